@@ -1,0 +1,117 @@
+"""The interpolator registry: names to callables ``f(a, b, s) -> poses``.
+
+Built-in methods register here at import; third-party packages add theirs
+through the entry-point group ``posecast.interpolators`` (the entry point's
+object is the callable; its name is the entry point's name). Entry points are
+loaded lazily, the first time a name is looked up or listed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from importlib import metadata
+
+from numpy.typing import ArrayLike
+
+from interp.methods import dq_slerp, motor_lerp, soa
+from interp.pose import F64
+
+__all__ = [
+    "ENTRY_POINT_GROUP",
+    "Interpolator",
+    "InterpolatorInfo",
+    "get",
+    "info",
+    "names",
+    "register",
+]
+
+ENTRY_POINT_GROUP = "posecast.interpolators"
+
+Interpolator = Callable[[ArrayLike, ArrayLike, ArrayLike], F64]
+
+
+@dataclass(frozen=True, slots=True)
+class InterpolatorInfo:
+    """A registered interpolator and what the receiver must know to use it."""
+
+    name: str
+    func: Interpolator
+    description: str
+    #: Whether it commutes with a change of world frame (rigid-motion methods).
+    frame_invariant: bool
+
+
+_REGISTRY: dict[str, InterpolatorInfo] = {}
+_entry_points_loaded = False
+
+
+def register(
+    name: str,
+    func: Interpolator,
+    *,
+    description: str = "",
+    frame_invariant: bool = False,
+    replace: bool = False,
+) -> None:
+    """Register ``func`` under ``name``; refuse to shadow a name unless ``replace``."""
+    if not name or not name.replace("-", "").replace("_", "").isalnum():
+        raise ValueError(f"invalid interpolator name {name!r}")
+    if name in _REGISTRY and not replace:
+        raise ValueError(f"interpolator {name!r} is already registered")
+    _REGISTRY[name] = InterpolatorInfo(name, func, description, frame_invariant)
+
+
+def _load_entry_points() -> None:
+    global _entry_points_loaded
+    if _entry_points_loaded:
+        return
+    _entry_points_loaded = True
+    for ep in metadata.entry_points(group=ENTRY_POINT_GROUP):
+        if ep.name in _REGISTRY:
+            continue  # built-ins win; a plug-in cannot silently replace them
+        func = ep.load()
+        if not callable(func):
+            raise TypeError(f"entry point {ep.name!r} ({ep.value}) is not callable")
+        register(ep.name, func, description=f"plug-in from {ep.value}")
+
+
+def names() -> list[str]:
+    """Names of every available interpolator, built-ins first."""
+    _load_entry_points()
+    return list(_REGISTRY)
+
+
+def info(name: str) -> InterpolatorInfo:
+    """The registry entry for ``name``; ``KeyError`` lists the known names."""
+    _load_entry_points()
+    try:
+        return _REGISTRY[name]
+    except KeyError:
+        raise KeyError(f"unknown interpolator {name!r}; known: {', '.join(_REGISTRY)}") from None
+
+
+def get(name: str) -> Interpolator:
+    """The callable ``f(a, b, s)`` registered under ``name``."""
+    return info(name).func
+
+
+register(
+    "soa",
+    soa,
+    description="position LERP + quaternion SLERP (what engines do today)",
+    frame_invariant=False,
+)
+register(
+    "dq-slerp",
+    dq_slerp,
+    description="unit dual quaternion screw interpolation (ScLERP)",
+    frame_invariant=True,
+)
+register(
+    "motor-lerp",
+    motor_lerp,
+    description="linear blend of 3D PGA motors, then Study-number normalisation",
+    frame_invariant=True,
+)

@@ -1,0 +1,121 @@
+"""Keyframe-track evaluation: query times to bracketing keyframes to poses.
+
+The receiver's render step and every offline QoE computation go through
+:func:`evaluate_track`: keyframes at times ``(K,)`` for ``S`` streams
+``(K, S, 7)``, queries ``(Q,)``; one ``searchsorted`` finds the brackets and one
+batched interpolator call renders every stream at every query.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from interp.pose import F64, as_pose
+from interp.registry import Interpolator, get
+
+__all__ = ["Brackets", "TrackResult", "bracket", "evaluate_track", "interpolate_brackets"]
+
+
+@dataclass(frozen=True, slots=True)
+class Brackets:
+    """For each query: keyframe indices ``lo``/``hi``, fraction ``s``, and ``held``.
+
+    ``held`` marks queries outside ``[times[0], times[-1]]``: they show the
+    nearest keyframe (``lo == hi``, ``s == 0``).
+    """
+
+    lo: NDArray[np.intp]
+    hi: NDArray[np.intp]
+    s: F64
+    held: NDArray[np.bool_]
+
+
+@dataclass(frozen=True, slots=True)
+class TrackResult:
+    """Rendered poses ``(Q, S, 7)`` and which queries were held, ``(Q,)``."""
+
+    poses: F64
+    held: NDArray[np.bool_]
+
+
+def bracket(times: ArrayLike, query: ArrayLike) -> Brackets:
+    """Bracketing keyframes for each query time (``times`` strictly increasing)."""
+    t = np.asarray(times, dtype=np.float64)
+    q = np.asarray(query, dtype=np.float64)
+    if t.ndim != 1 or t.shape[0] == 0:
+        raise ValueError(f"expected `times` to have shape (K,) with K >= 1, got {t.shape}")
+    if q.ndim != 1:
+        raise ValueError(f"expected `query` to have shape (Q,), got {q.shape}")
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))):
+        raise ValueError("expected `times` and `query` to hold finite values")
+    if t.shape[0] > 1 and not np.all(np.diff(t) > 0):
+        raise ValueError("expected `times` to be strictly increasing")
+    k = t.shape[0]
+    # hi = first keyframe strictly after q; a query exactly on the last keyframe
+    # is inside the track (it reproduces that keyframe).
+    hi = np.searchsorted(t, q, side="right")
+    lo = hi - 1
+    before = lo < 0
+    after = hi >= k
+    on_last = after & (q == t[-1])
+    held = before | (after & ~on_last)
+    lo = np.clip(lo, 0, k - 1)
+    hi = np.clip(hi, 0, k - 1)
+    hi = np.where(before, 0, hi)
+    lo = np.where(on_last, k - 1, lo)
+    span = t[hi] - t[lo]
+    s = np.where(span > 0, (q - t[lo]) / np.where(span > 0, span, 1.0), 0.0)
+    s = np.clip(s, 0.0, 1.0)
+    return Brackets(lo=lo, hi=hi, s=s, held=held)
+
+
+def evaluate_track(
+    times: ArrayLike,
+    poses: ArrayLike,
+    query: ArrayLike,
+    method: str | Interpolator = "soa",
+) -> TrackResult:
+    """Render ``S`` streams at ``Q`` query times from ``K`` shared keyframes.
+
+    ``poses`` is ``(K, S, 7)`` (or ``(K, 7)`` for one stream, returning
+    ``(Q, 1, 7)``); ``method`` is a registered name or an interpolator callable.
+    """
+    p = as_pose(poses, "poses")
+    if p.ndim == 2:
+        p = p[:, None, :]
+    if p.ndim != 3:
+        raise ValueError(f"expected `poses` to have shape (K, S, 7), got {p.shape}")
+    t = np.asarray(times, dtype=np.float64)
+    if t.shape != (p.shape[0],):
+        raise ValueError(f"expected `times` to have shape ({p.shape[0]},), got {t.shape}")
+    br = bracket(t, query)
+    return TrackResult(poses=interpolate_brackets(p, br.lo, br.hi, br.s, method), held=br.held)
+
+
+def interpolate_brackets(
+    poses: ArrayLike,
+    lo: ArrayLike,
+    hi: ArrayLike,
+    s: ArrayLike,
+    method: str | Interpolator = "soa",
+) -> F64:
+    """Render keyframes ``poses (K, S, 7)`` at given brackets in one batched call.
+
+    ``lo``, ``hi``, ``s`` have shape ``(Q,)`` (shared by all streams) or
+    ``(Q, S)`` (one bracket per stream, e.g. streams of different senders);
+    returns ``(Q, S, 7)``.
+    """
+    p = np.asarray(poses, dtype=np.float64)
+    if p.ndim != 3 or p.shape[-1] != 7:
+        raise ValueError(f"expected `poses` to have shape (K, S, 7), got {p.shape}")
+    lo_a = np.asarray(lo, dtype=np.intp)
+    hi_a = np.asarray(hi, dtype=np.intp)
+    s_a = np.asarray(s, dtype=np.float64)
+    f = get(method) if isinstance(method, str) else method
+    if lo_a.ndim == 1:
+        return f(p[lo_a], p[hi_a], s_a[:, None])
+    cols = np.arange(p.shape[1])
+    return f(p[lo_a, cols], p[hi_a, cols], s_a)

@@ -1,0 +1,140 @@
+"""Real head and hand traces in the ``shared/data/vr-traces`` CSV format.
+
+One CSV per recording: ``t`` then 7 columns (``px, py, pz, qw, qx, qy, qz``) for
+each of ``head``, ``left``, ``right``. :func:`load_trace` reads one into a
+:class:`Trace` (times ``(N,)``, poses ``(N, S, 7)`` float64); :func:`find_traces`
+resolves ``traces:dev`` / ``traces:eval`` / a directory / a file into paths.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = [
+    "DEVICE_NAMES",
+    "Trace",
+    "TraceError",
+    "default_trace_root",
+    "device_class",
+    "find_traces",
+    "load_trace",
+]
+
+DEVICE_NAMES = ("head", "left", "right")
+_COMPONENTS = ("px", "py", "pz", "qw", "qx", "qy", "qz")
+
+
+class TraceError(ValueError):
+    """A trace file or trace set that cannot be used, with the reason."""
+
+
+def device_class(stream_name: str) -> str:
+    """QoE device class of a stream: ``head``, ``hands`` or ``objects``."""
+    if stream_name == "head":
+        return "head"
+    if stream_name in ("left", "right"):
+        return "hands"
+    return "objects"
+
+
+@dataclass(frozen=True)
+class Trace:
+    """A recording: sample times ``(N,)`` (s) and poses ``(N, S, 7)`` (float64)."""
+
+    name: str
+    times: NDArray[np.float64]
+    poses: NDArray[np.float64]
+    streams: tuple[str, ...]
+
+    @property
+    def duration(self) -> float:
+        return float(self.times[-1] - self.times[0])
+
+    @property
+    def native_rate(self) -> float:
+        """Median sample rate in Hz."""
+        return float(1.0 / np.median(np.diff(self.times)))
+
+    def select(self, streams: list[str] | tuple[str, ...]) -> Trace:
+        """The same trace restricted to ``streams`` (by name, in that order)."""
+        missing = [s for s in streams if s not in self.streams]
+        if missing:
+            raise TraceError(f"trace {self.name} has no stream(s) {missing}; has {self.streams}")
+        idx = [self.streams.index(s) for s in streams]
+        return Trace(self.name, self.times, self.poses[:, idx], tuple(streams))
+
+    def window(self, start: float, end: float) -> Trace:
+        """Samples with ``start <= t <= end`` (times unchanged)."""
+        m = (self.times >= start) & (self.times <= end)
+        return Trace(self.name, self.times[m], self.poses[m], self.streams)
+
+
+def load_trace(path: str | os.PathLike[str]) -> Trace:
+    """Read a trace CSV; errors name the file and the problem."""
+    p = Path(path)
+    try:
+        with p.open(newline="") as fh:
+            header = next(csv.reader(fh))
+            data = np.loadtxt(fh, delimiter=",", dtype=np.float64, ndmin=2)
+    except FileNotFoundError:
+        raise TraceError(f"{p}: no such trace file") from None
+    except StopIteration:
+        raise TraceError(f"{p}: empty file") from None
+    except ValueError as exc:
+        raise TraceError(f"{p}: not a numeric trace CSV ({exc})") from None
+    expected = ["t"] + [f"{d}_{c}" for d in DEVICE_NAMES for c in _COMPONENTS]
+    if [h.strip() for h in header] != expected:
+        raise TraceError(f"{p}: unexpected columns; expected {','.join(expected)}")
+    if data.shape[0] < 2 or data.shape[1] != len(expected):
+        raise TraceError(f"{p}: expected at least 2 rows of {len(expected)} values")
+    if not np.all(np.isfinite(data)):
+        raise TraceError(f"{p}: non-finite values")
+    times = data[:, 0].copy()
+    if not np.all(np.diff(times) > 0):
+        raise TraceError(f"{p}: times are not strictly increasing")
+    poses = data[:, 1:].reshape(-1, len(DEVICE_NAMES), 7).copy()
+    q = poses[..., 3:]
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    return Trace(p.stem, times, poses, DEVICE_NAMES)
+
+
+def default_trace_root() -> Path:
+    """``shared/data/vr-traces`` beside the checkout (override: POSECAST_TRACES)."""
+    env = os.environ.get("POSECAST_TRACES")
+    if env:
+        return Path(env)
+    here = Path(__file__).resolve().parent.parent
+    for base in (here, *here.parents):
+        cand = base / "shared" / "data" / "vr-traces"
+        if cand.is_dir():
+            return cand
+    return here.parent / "shared" / "data" / "vr-traces"
+
+
+def find_traces(spec: str | os.PathLike[str]) -> list[Path]:
+    """Trace CSVs for ``traces:dev``, ``traces:eval``, a directory or a file."""
+    s = str(spec)
+    if s.startswith("traces:"):
+        split = s.split(":", 1)[1]
+        path = default_trace_root() / split
+        if not path.is_dir():
+            raise TraceError(
+                f"trace split {split!r} not found at {path} (set POSECAST_TRACES to the "
+                "vr-traces folder)"
+            )
+    else:
+        path = Path(s)
+    if path.is_file():
+        return [path]
+    if path.is_dir():
+        files = sorted(path.glob("*.csv"))
+        if not files:
+            raise TraceError(f"{path}: no .csv traces in this directory")
+        return files
+    raise TraceError(f"{path}: no such trace file or directory")

@@ -1,0 +1,22 @@
+"""Shared fixtures: paths to the real traces."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from scenarios.traces import default_trace_root
+
+
+@pytest.fixture(scope="session")
+def trace_root() -> Path:
+    root = default_trace_root()
+    if not (root / "dev").is_dir():
+        pytest.fail(f"vr-traces not found at {root}; set POSECAST_TRACES")
+    return root
+
+
+@pytest.fixture(scope="session")
+def dev_trace_path(trace_root: Path) -> Path:
+    return trace_root / "dev" / "S02_riftS_expertplus.csv"
