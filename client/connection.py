@@ -1,0 +1,138 @@
+"""A thin asyncio adapter from a websocket to :class:`protocol.ClientSession`.
+
+``ClientConnection`` does the handshake (hello, welcome, join, joined), then
+hands every received event to the caller through :meth:`recv` with its
+arrival time, and sends messages through the session so the state table is
+kept. Arrival times come from the ``clock`` passed in.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from websockets.asyncio.client import ClientConnection as WsConnection
+from websockets.asyncio.client import connect
+
+from protocol import (
+    ClientSession,
+    ErrorMessage,
+    Hello,
+    Join,
+    Joined,
+    PeerJoined,
+    ProtocolError,
+    Welcome,
+)
+from protocol.events import Event, Message
+
+__all__ = ["ClientConnection", "JoinRefused", "Received"]
+
+
+class JoinRefused(RuntimeError):
+    """The server refused the handshake or the join; ``code`` says why."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(f"{code}: {message}")
+        self.code = code
+        self.message = message
+
+
+@dataclass(frozen=True, slots=True)
+class Received:
+    event: Event
+    arrival: float
+    size: int
+
+
+class ClientConnection:
+    """One client's websocket, handshake done, events in and messages out."""
+
+    def __init__(self, ws: WsConnection, clock: Callable[[], float] = time.monotonic) -> None:
+        self.ws = ws
+        self.clock = clock
+        self.session = ClientSession()
+        self.welcome: Welcome | None = None
+        self.joined: Joined | None = None
+        #: Peers announced before the handshake finished.
+        self.early_peers: list[PeerJoined] = []
+        self.bytes_in = 0
+        self.frames_in = 0
+        self.bytes_out = 0
+        self.frames_out = 0
+        self._pending: deque[Received] = deque()
+
+    @classmethod
+    async def open(
+        cls,
+        url: str,
+        *,
+        room: str,
+        streams: tuple[str, ...],
+        rate: float,
+        token: str | None = None,
+        label: str | None = None,
+        agent: str = "posecast-bot",
+        clock: Callable[[], float] = time.monotonic,
+        open_timeout: float = 10.0,
+    ) -> ClientConnection:
+        """Connect, say hello and join ``room``; :class:`JoinRefused` if refused."""
+        ws = await connect(url, open_timeout=open_timeout, max_size=2**20, compression=None)
+        conn = cls(ws, clock)
+        try:
+            await conn.send(Hello(agent=agent))
+            conn.welcome = await conn._expect(Welcome)
+            await conn.send(Join(room=room, streams=streams, rate=rate, token=token, label=label))
+            conn.joined = await conn._expect(Joined)
+        except BaseException:
+            await ws.close()
+            raise
+        return conn
+
+    async def _expect(self, kind: type[Welcome] | type[Joined]) -> Welcome | Joined | ErrorMessage:
+        while True:
+            rec = await self.recv()
+            ev = rec.event
+            if isinstance(ev, kind):
+                return ev
+            if isinstance(ev, ErrorMessage):
+                raise JoinRefused(ev.code, ev.message)
+            if isinstance(ev, ProtocolError):
+                raise JoinRefused(str(ev.code), ev.message)
+            if isinstance(ev, PeerJoined):
+                self.early_peers.append(ev)
+
+    @property
+    def user(self) -> int:
+        assert self.welcome is not None
+        return self.welcome.user
+
+    async def send(self, message: Message) -> None:
+        data = self.session.send(message)
+        await self.ws.send(data)
+        self.frames_out += 1
+        self.bytes_out += len(data)
+
+    async def send_bytes(self, data: bytes) -> None:
+        """Send pre-encoded frame bytes (bypassing the session's checks)."""
+        await self.ws.send(data)
+        self.frames_out += 1
+        self.bytes_out += len(data)
+
+    async def recv(self) -> Received:
+        """The next event with its arrival time (raises ConnectionClosed at the end)."""
+        while not self._pending:
+            data = await self.ws.recv()
+            arrival = self.clock()
+            raw = data.encode() if isinstance(data, str) else data
+            self.frames_in += 1
+            self.bytes_in += len(raw)
+            self._pending.extend(
+                Received(ev, arrival, len(raw)) for ev in self.session.receive_data(raw)
+            )
+        return self._pending.popleft()
+
+    async def close(self, reason: str = "bye") -> None:
+        await self.ws.close(1000, reason)

@@ -1,0 +1,477 @@
+"""The asyncio relay: websocket connections, rooms, HTTP health and metrics.
+
+Each connection runs three tasks under one ``TaskGroup``: a reader feeding the
+sans-I/O :class:`protocol.ServerSession`, a writer draining the connection's
+:class:`server.room.Outbox` (events in order, then the newest snapshot), and a
+closer that waits for a decision to close. Room tick loops run under the
+server's own ``TaskGroup``. ``GET /healthz`` and ``GET /metrics`` (Prometheus
+text) are served on the websocket port.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from http import HTTPStatus
+
+from websockets.asyncio.server import Server, ServerConnection, serve
+from websockets.datastructures import Headers
+from websockets.exceptions import ConnectionClosed
+from websockets.http11 import Request, Response
+
+from protocol import (
+    Bye,
+    ErrorCode,
+    ErrorMessage,
+    Hello,
+    Join,
+    Joined,
+    Limits,
+    PeerJoined,
+    PeerLeft,
+    Ping,
+    Pong,
+    PoseUpdate,
+    ProtocolError,
+    ServerSession,
+    SetRate,
+    UserEvent,
+)
+from protocol.events import Event, Message
+from server.auth import TokenError, verify_token
+from server.room import DEFAULT_EVENT_QUEUE, IdAllocator, Member, Outbox, Room
+
+__all__ = ["ConnectionStatistics", "RelayServer", "ServerConfig"]
+
+log = logging.getLogger("posecast.server")
+
+Clock = Callable[[], float]
+
+
+@dataclass(frozen=True)
+class ServerConfig:
+    """Everything ``posecast serve`` can set."""
+
+    host: str = "127.0.0.1"
+    port: int = 8765
+    rate: float = 20.0
+    min_rate: float = 5.0
+    max_rate: float = 30.0
+    secret: str | None = None
+    max_event_queue: int = DEFAULT_EVENT_QUEUE
+    #: A subscriber with more than this many bytes unsent gets no new snapshot.
+    congested_bytes: int = 64 * 1024
+    #: Pose updates per second one connection may publish (bucket of one second).
+    max_update_rate: float = 120.0
+    close_timeout: float = 2.0
+
+
+@dataclass(frozen=True, slots=True)
+class ConnectionStatistics:
+    user: int | None
+    room: str | None
+    frames_in: int
+    bytes_in: int
+    frames_out: int
+    bytes_out: int
+    snapshots_offered: int
+    skips: int
+    congestion_skips: int
+    event_drops: int
+    flood_drops: int
+    protocol_errors: int
+
+
+class _Connection:
+    """One websocket: session state, outbox and counters."""
+
+    def __init__(self, server: RelayServer, ws: ServerConnection) -> None:
+        self.server = server
+        self.ws = ws
+        cfg = server.config
+        self.session = ServerSession(server.limits)
+        self.outbox = Outbox(cfg.max_event_queue, self._buffered, cfg.congested_bytes)
+        self.user: int | None = None
+        self.name = ""
+        self.room: Room | None = None
+        self.member: Member | None = None
+        self.close_request: tuple[int, str] | None = None
+        self.must_close = asyncio.Event()
+        self.frames_in = self.bytes_in = self.frames_out = self.bytes_out = 0
+        self.event_drops = self.flood_drops = self.protocol_errors = 0
+        self._bucket = cfg.max_update_rate
+        self._bucket_time = server.clock()
+
+    def _buffered(self) -> int:
+        transport = self.ws.transport
+        return 0 if transport is None else int(transport.get_write_buffer_size())
+
+    # -- sending -------------------------------------------------------------------
+
+    def send(self, message: Message) -> None:
+        """Queue a reliable message; overflow closes this connection, not others."""
+        if self.close_request is not None:
+            return
+        data = self.session.send(message)
+        if not self.outbox.offer_event(data):
+            self.event_drops += 1
+            self.close(1008, f"event queue overflow ({self.outbox.max_events}): client too slow")
+
+    def close(self, code: int, reason: str) -> None:
+        if self.close_request is None:
+            self.close_request = (code, reason)
+            self.must_close.set()
+
+    # -- tasks ---------------------------------------------------------------------
+
+    async def read_loop(self) -> None:
+        count = 0
+        try:
+            async for data in self.ws:
+                self.frames_in += 1
+                if isinstance(data, str):
+                    self.bytes_in += len(data.encode())
+                    self._protocol_error(
+                        ProtocolError(ErrorCode.BAD_FRAME, "text frames are not allowed")
+                    )
+                else:
+                    self.bytes_in += len(data)
+                    now = self.server.clock()
+                    for event in self.session.receive_data(data):
+                        self._handle(event, now)
+                count += 1
+                if count % 32 == 0:
+                    # A peer flooding us must not starve the other connections.
+                    await asyncio.sleep(0)
+        except ConnectionClosed:
+            pass
+
+    async def write_loop(self) -> None:
+        outbox = self.outbox
+        try:
+            while True:
+                await outbox.wake.wait()
+                outbox.wake.clear()
+                while (data := outbox.take()) is not None:
+                    await self.ws.send(data)
+                    self.frames_out += 1
+                    self.bytes_out += len(data)
+                outbox.idle.set()
+        except ConnectionClosed:
+            pass
+
+    async def close_watch(self) -> None:
+        await self.must_close.wait()
+        assert self.close_request is not None
+        code, reason = self.close_request
+        # Let queued messages (the error that explains the close) go out first.
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(0.5):
+                await self.outbox.idle.wait()
+        await self.ws.close(code, reason)
+
+    # -- events --------------------------------------------------------------------
+
+    def _protocol_error(self, err: ProtocolError) -> None:
+        self.protocol_errors += 1
+        log.info("user %s: %s (%s)", self.user, err.message, err.code)
+        self.send(err.to_message())
+        if err.fatal:
+            self.close(err.close_code or 1002, err.close_reason)
+
+    def _handle(self, event: Event, now: float) -> None:
+        if isinstance(event, PoseUpdate):
+            self._on_update(event, now)
+        elif isinstance(event, Ping):
+            self.send(
+                Pong(
+                    seq=event.seq,
+                    ping_time=event.time,
+                    recv_time=now,
+                    send_time=self.server.clock(),
+                )
+            )
+        elif isinstance(event, ProtocolError):
+            self._protocol_error(event)
+        elif isinstance(event, Hello):
+            self.user = self.server.users.take()
+            self.server.register(self)
+            self.name = event.agent or f"user{self.user}"
+            self.send(self.session.make_welcome(self.user, now))
+        elif isinstance(event, Join):
+            self._on_join(event, now)
+        elif isinstance(event, SetRate):
+            if self.room is not None and self.user is not None:
+                self.room.set_rate(self.user, event.rate, now)
+        elif isinstance(event, UserEvent):
+            if self.room is not None:
+                for m in list(self.room.members.values()):
+                    if m.user != self.user:
+                        self.server.connection_of(m.user).send(event)
+        elif isinstance(event, Bye):
+            self.close(1000, event.reason or "bye")
+        elif isinstance(event, ErrorMessage):
+            log.info("user %s reports %s: %s", self.user, event.code, event.message)
+
+    def _on_join(self, join: Join, now: float) -> None:
+        server = self.server
+        if server.config.secret is not None:
+            try:
+                claims = verify_token(
+                    server.config.secret, join.token, join.room, server.wall_clock()
+                )
+            except TokenError as exc:
+                self.send(
+                    ErrorMessage.from_code(ErrorCode.UNAUTHORIZED, str(exc), in_reply_to="join")
+                )
+                self.close(1008, str(exc))
+                return
+            self.name = claims.user
+        assert self.user is not None  # the state table puts hello before join
+        room = server.room_for(join.room)
+        streams = room.allocate_streams(join.streams)
+        self.send(Joined(room=join.room, streams=streams, rate=join.rate))
+        member = Member(self.user, self.name, streams, join.rate, self.outbox, label=join.label)
+        for other in room.members.values():
+            self.send(PeerJoined(user=other.user, streams=other.streams, label=other.label))
+            server.connection_of(other.user).send(
+                PeerJoined(user=self.user, streams=streams, label=join.label)
+            )
+        room.add(member, now)
+        self.room, self.member = room, member
+
+    def _on_update(self, update: PoseUpdate, now: float) -> None:
+        cfg = self.server.config
+        self._bucket = min(
+            cfg.max_update_rate, self._bucket + (now - self._bucket_time) * cfg.max_update_rate
+        )
+        self._bucket_time = now
+        if self._bucket < 1.0:
+            self.flood_drops += 1
+            if self.flood_drops > 10 * cfg.max_update_rate:
+                self.close(1008, f"update flood: over {cfg.max_update_rate:g} updates/s")
+            return
+        self._bucket -= 1.0
+        if self.room is not None and self.user is not None:
+            self.room.ingest(self.user, update)
+
+    def leave(self) -> None:
+        room, user = self.room, self.user
+        if room is not None and user is not None:
+            room.remove(user)
+            for other in list(room.members.values()):
+                self.server.connection_of(other.user).send(PeerLeft(user=user, reason="left"))
+            self.server.forget_room_if_empty(room)
+        self.room = self.member = None
+
+    def statistics(self) -> ConnectionStatistics:
+        m = self.member
+        return ConnectionStatistics(
+            user=self.user,
+            room=self.room.name if self.room else None,
+            frames_in=self.frames_in,
+            bytes_in=self.bytes_in,
+            frames_out=self.frames_out,
+            bytes_out=self.bytes_out,
+            snapshots_offered=self.outbox.snapshots_offered,
+            skips=self.outbox.skips,
+            congestion_skips=m.congestion_skips if m else 0,
+            event_drops=self.event_drops,
+            flood_drops=self.flood_drops,
+            protocol_errors=self.protocol_errors,
+        )
+
+
+class RelayServer:
+    """The relay: ``await RelayServer(config).run()`` serves until :meth:`stop`."""
+
+    def __init__(
+        self,
+        config: ServerConfig | None = None,
+        clock: Clock = time.monotonic,
+        wall_clock: Clock = time.time,
+    ) -> None:
+        self.config = config or ServerConfig()
+        self.clock = clock
+        self.wall_clock = wall_clock
+        self.limits = Limits(min_rate=self.config.min_rate, max_rate=self.config.max_rate)
+        self.users = IdAllocator()
+        self.rooms: dict[str, Room] = {}
+        self._connections: dict[int, _Connection] = {}
+        self._all: set[_Connection] = set()
+        self._tg: asyncio.TaskGroup | None = None
+        self._stop = asyncio.Event()
+        self._ws_server: Server | None = None
+        self.ready = asyncio.Event()
+        self.port: int | None = None
+        self.closed_connections = 0
+        self.totals = {"frames_in": 0, "bytes_in": 0, "frames_out": 0, "bytes_out": 0}
+
+    # -- rooms and connections -------------------------------------------------------
+
+    def room_for(self, name: str) -> Room:
+        room = self.rooms.get(name)
+        if room is None:
+            room = self.rooms[name] = Room(name)
+            assert self._tg is not None
+            self._tg.create_task(room.run(self.clock), name=f"room:{name}")
+            log.info("room %r created", name)
+        return room
+
+    def forget_room_if_empty(self, room: Room) -> None:
+        if not room.members and self.rooms.get(room.name) is room:
+            del self.rooms[room.name]
+            room.changed.set()  # wake its loop so it sees it is empty and ends
+            log.info("room %r removed", room.name)
+
+    def register(self, conn: _Connection) -> None:
+        assert conn.user is not None
+        self._connections[conn.user] = conn
+
+    def connection_of(self, user: int) -> _Connection:
+        return self._connections[user]
+
+    async def _handler(self, ws: ServerConnection) -> None:
+        conn = _Connection(self, ws)
+        self._all.add(conn)
+        try:
+            async with asyncio.TaskGroup() as tg:
+                writer = tg.create_task(conn.write_loop())
+                closer = tg.create_task(conn.close_watch())
+                await conn.read_loop()
+                writer.cancel()
+                closer.cancel()
+        finally:
+            conn.leave()
+            if conn.user is not None:
+                self._connections.pop(conn.user, None)
+                self.users.give_back(conn.user)
+            self._all.discard(conn)
+            self.closed_connections += 1
+            for key, value in (
+                ("frames_in", conn.frames_in),
+                ("bytes_in", conn.bytes_in),
+                ("frames_out", conn.frames_out),
+                ("bytes_out", conn.bytes_out),
+            ):
+                self.totals[key] += value
+
+    # -- HTTP ------------------------------------------------------------------------
+
+    def _process_request(self, connection: ServerConnection, request: Request) -> Response | None:
+        path = request.path.split("?", 1)[0]
+        if path == "/healthz":
+            return connection.respond(HTTPStatus.OK, "ok\n")
+        if path == "/metrics":
+            body = self.metrics_text().encode()
+            headers = Headers(
+                [("Content-Type", "text/plain; version=0.0.4"), ("Content-Length", str(len(body)))]
+            )
+            return Response(HTTPStatus.OK.value, "OK", headers, body)
+        return None
+
+    # -- lifecycle ---------------------------------------------------------------------
+
+    def stop(self) -> None:
+        """Stop accepting, close every connection with 1001 "going away"."""
+        self._stop.set()
+
+    async def run(self) -> None:
+        cfg = self.config
+        if cfg.secret is None:
+            log.warning("no --secret: the server is open, anyone can join any room")
+        async with asyncio.TaskGroup() as tg:
+            self._tg = tg
+            async with serve(
+                self._handler,
+                cfg.host,
+                cfg.port,
+                process_request=self._process_request,
+                max_size=self.limits.max_frame_size,
+                close_timeout=cfg.close_timeout,
+                compression=None,
+            ) as ws_server:
+                self._ws_server = ws_server
+                sock = next(iter(ws_server.sockets))
+                self.port = int(sock.getsockname()[1])
+                self.ready.set()
+                await self._stop.wait()
+                ws_server.close(close_connections=True, code=1001, reason="going away")
+                await ws_server.wait_closed()
+            for room in list(self.rooms.values()):
+                room.members.clear()
+                room.changed.set()
+            self.rooms.clear()
+
+    # -- statistics ----------------------------------------------------------------------
+
+    def statistics(self) -> dict[str, object]:
+        conns = [c.statistics() for c in self._all]
+        return {
+            "connections": len(conns),
+            "rooms": {name: room.statistics() for name, room in self.rooms.items()},
+            "connection_stats": conns,
+        }
+
+    def metrics_text(self) -> str:
+        """Prometheus text exposition of the server's counters."""
+        conns = [c.statistics() for c in self._all]
+        lines: list[str] = []
+
+        def metric(name: str, kind: str, help_: str, samples: list[tuple[str, float]]) -> None:
+            lines.append(f"# HELP {name} {help_}")
+            lines.append(f"# TYPE {name} {kind}")
+            for labels, value in samples:
+                lines.append(f"{name}{labels} {value:g}")
+
+        def total(key: str) -> float:
+            return float(self.totals[key] + sum(getattr(c, key) for c in conns))
+
+        metric("posecast_connections", "gauge", "Open websocket connections.", [("", len(conns))])
+        metric("posecast_rooms", "gauge", "Rooms with members.", [("", len(self.rooms))])
+        metric(
+            "posecast_frames_in_total", "counter", "Frames received.", [("", total("frames_in"))]
+        )
+        metric("posecast_bytes_in_total", "counter", "Bytes received.", [("", total("bytes_in"))])
+        metric("posecast_frames_out_total", "counter", "Frames sent.", [("", total("frames_out"))])
+        metric("posecast_bytes_out_total", "counter", "Bytes sent.", [("", total("bytes_out"))])
+        metric(
+            "posecast_snapshot_skips_total",
+            "counter",
+            "Snapshots not delivered because a subscriber had not drained the previous one.",
+            [("", float(sum(c.skips + c.congestion_skips for c in conns)))],
+        )
+        metric(
+            "posecast_flood_drops_total",
+            "counter",
+            "Pose updates dropped for exceeding the per-connection update rate.",
+            [("", float(sum(c.flood_drops for c in conns)))],
+        )
+        rooms = [r.statistics() for r in self.rooms.values()]
+        metric(
+            "posecast_room_members",
+            "gauge",
+            "Members per room.",
+            [(f'{{room="{_label(r.name)}"}}', r.members) for r in rooms],
+        )
+        metric(
+            "posecast_room_poses_out_total",
+            "counter",
+            "Poses sent in snapshots per room.",
+            [(f'{{room="{_label(r.name)}"}}', r.poses_out) for r in rooms],
+        )
+        metric(
+            "posecast_room_tick_lag_max_ms",
+            "gauge",
+            "Largest delay of a room tick behind its due time.",
+            [(f'{{room="{_label(r.name)}"}}', r.tick_lag_max_ms) for r in rooms],
+        )
+        return "\n".join(lines) + "\n"
+
+
+def _label(value: str) -> str:
+    return value.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")

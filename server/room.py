@@ -1,0 +1,322 @@
+"""Rooms: latest-wins stream store, per-subscriber tick schedule, fan-out.
+
+A :class:`Room` owns the newest keyframe of every stream of its members and a
+schedule: each member is due on its own grid ``k / rate`` of the server clock.
+At a tick the room encodes, once, a snapshot of every stream that changed since
+the member's last snapshot, and hands the same bytes to every due member that
+shares that last snapshot (members of one rate are always in step). Nothing
+here touches a socket: members receive bytes through an :class:`Outbox`, whose
+single pose slot is latest-wins (an unsent snapshot replaced by a newer one is a
+skip) and whose event queue is bounded (overflow is reported to the caller,
+which closes the connection). Time is always an argument.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from protocol import PoseUpdate, encode_snapshot
+
+__all__ = [
+    "DEFAULT_EVENT_QUEUE",
+    "IdAllocator",
+    "Member",
+    "Outbox",
+    "Room",
+    "RoomStatistics",
+]
+
+#: Control messages (events, peer notices, pongs) a connection may have queued.
+DEFAULT_EVENT_QUEUE = 256
+
+
+class IdAllocator:
+    """u16 ids, reused oldest-freed first so a just-freed id is not handed out again."""
+
+    def __init__(self, limit: int = 1 << 16) -> None:
+        self._next = 0
+        self._limit = limit
+        self._free: deque[int] = deque()
+
+    def take(self) -> int:
+        if self._next < self._limit:
+            self._next += 1
+            return self._next - 1
+        if not self._free:
+            raise RuntimeError("no free ids left")
+        return self._free.popleft()
+
+    def give_back(self, ident: int) -> None:
+        self._free.append(ident)
+
+    def __len__(self) -> int:
+        return self._next - len(self._free)
+
+
+class Outbox:
+    """What one connection still has to write: one pose slot and a bounded queue.
+
+    ``buffered`` reports the socket's write-buffer size; above ``congested_bytes``
+    the room gives the connection no new snapshot (a skip) until it drains.
+    """
+
+    def __init__(
+        self,
+        max_events: int = DEFAULT_EVENT_QUEUE,
+        buffered: Callable[[], int] = lambda: 0,
+        congested_bytes: int = 64 * 1024,
+    ) -> None:
+        self.pose: bytes | None = None
+        self.events: deque[bytes] = deque()
+        self.max_events = max_events
+        self.buffered = buffered
+        self.congested_bytes = congested_bytes
+        self.wake = asyncio.Event()
+        #: Set while no event is waiting to be written.
+        self.idle = asyncio.Event()
+        self.idle.set()
+        self.skips = 0
+        self.snapshots_offered = 0
+
+    def congested(self) -> bool:
+        return self.buffered() > self.congested_bytes
+
+    def offer_snapshot(self, data: bytes) -> None:
+        """Latest wins: a snapshot still waiting is replaced (and counted as a skip)."""
+        if self.pose is not None:
+            self.skips += 1
+        self.pose = data
+        self.snapshots_offered += 1
+        self.wake.set()
+
+    def offer_event(self, data: bytes) -> bool:
+        """Queue a reliable message; ``False`` if the queue is full (caller closes)."""
+        if len(self.events) >= self.max_events:
+            return False
+        self.events.append(data)
+        self.idle.clear()
+        self.wake.set()
+        return True
+
+    def take(self) -> bytes | None:
+        """Next frame to write: queued events first, in order, then the snapshot."""
+        if self.events:
+            return self.events.popleft()
+        data, self.pose = self.pose, None
+        return data
+
+
+@dataclass
+class Member:
+    """A joined user as its room sees it."""
+
+    user: int
+    name: str
+    streams: dict[str, int]
+    rate: float
+    outbox: Outbox
+    label: str | None = None
+    next_due: float = 0.0
+    last_version: int = 0
+    snapshots: int = 0
+    snapshot_bytes: int = 0
+    poses_sent: int = 0
+    congestion_skips: int = 0
+    updates_in: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class RoomStatistics:
+    name: str
+    members: int
+    streams: int
+    ticks: int
+    snapshots_encoded: int
+    frames_out: int
+    bytes_out: int
+    poses_out: int
+    updates_in: int
+    stale_updates: int
+    skips: int
+    tick_lag_max_ms: float
+    tick_lag_mean_ms: float
+
+
+@dataclass
+class _Stream:
+    user: int
+    capture: float
+    pose: np.ndarray
+    version: int
+
+
+@dataclass
+class Room:
+    """One session's members, their streams and the fan-out schedule."""
+
+    name: str
+    members: dict[int, Member] = field(default_factory=dict)
+    stream_ids: IdAllocator = field(default_factory=IdAllocator)
+    _streams: dict[int, _Stream] = field(default_factory=dict)
+    _version: int = 0
+    _tick: int = 0
+    _snapshots: int = 0
+    _frames_out: int = 0
+    _bytes_out: int = 0
+    _poses_out: int = 0
+    _updates_in: int = 0
+    _stale: int = 0
+    _lag_max: float = 0.0
+    _lag_sum: float = 0.0
+    _lag_n: int = 0
+    changed: asyncio.Event = field(default_factory=asyncio.Event)
+
+    # -- membership ---------------------------------------------------------------
+
+    def allocate_streams(self, names: tuple[str, ...]) -> dict[str, int]:
+        return {n: self.stream_ids.take() for n in names}
+
+    def add(self, member: Member, now: float) -> None:
+        member.next_due = self._grid_after(now, member.rate)
+        member.last_version = 0
+        self.members[member.user] = member
+        self.changed.set()
+
+    def remove(self, user: int) -> Member | None:
+        member = self.members.pop(user, None)
+        if member is not None:
+            for sid in member.streams.values():
+                self._streams.pop(sid, None)
+                self.stream_ids.give_back(sid)
+            self.changed.set()
+        return member
+
+    def set_rate(self, user: int, rate: float, now: float) -> None:
+        member = self.members[user]
+        member.rate = rate
+        member.next_due = self._grid_after(now, rate)
+        self.changed.set()
+
+    # -- ingest -------------------------------------------------------------------
+
+    def ingest(self, user: int, update: PoseUpdate) -> int:
+        """Store the newest keyframe of each stream (by capture time); returns stale count."""
+        self._updates_in += 1
+        member = self.members.get(user)
+        if member is not None:
+            member.updates_in += 1
+        stale = 0
+        streams = update.streams
+        times = update.capture_times
+        poses = update.poses
+        for i in range(len(update)):
+            sid = int(streams[i])
+            t = float(times[i])
+            cur = self._streams.get(sid)
+            if cur is not None and t <= cur.capture:
+                stale += 1
+                continue
+            self._version += 1
+            if cur is None:
+                self._streams[sid] = _Stream(user, t, np.array(poses[i]), self._version)
+            else:
+                cur.capture, cur.pose, cur.version = t, np.array(poses[i]), self._version
+        self._stale += stale
+        return stale
+
+    # -- schedule -----------------------------------------------------------------
+
+    @staticmethod
+    def _grid_after(now: float, rate: float) -> float:
+        """The first time on the ``k / rate`` grid strictly after ``now``."""
+        return (math.floor(now * rate + 1e-9) + 1) / rate
+
+    def next_due(self) -> float | None:
+        if not self.members:
+            return None
+        return min(m.next_due for m in self.members.values())
+
+    def tick(self, now: float) -> int:
+        """Send a snapshot to every due member; returns how many were offered."""
+        cache: dict[int, tuple[bytes, int]] = {}
+        offered = 0
+        for member in self.members.values():
+            if member.next_due > now + 1e-9:
+                continue
+            lag = now - member.next_due
+            self._lag_max = max(self._lag_max, lag)
+            self._lag_sum += lag
+            self._lag_n += 1
+            # Missed grid points are skipped, never sent in a burst.
+            member.next_due = self._grid_after(now, member.rate)
+            if member.outbox.congested():
+                member.congestion_skips += 1
+                continue
+            key = member.last_version
+            if key not in cache:
+                cache[key] = self._encode(now, key)
+            data, n = cache[key]
+            member.last_version = self._version
+            if n == 0:
+                continue
+            member.outbox.offer_snapshot(data)
+            member.snapshots += 1
+            member.snapshot_bytes += len(data)
+            member.poses_sent += n
+            self._frames_out += 1
+            self._bytes_out += len(data)
+            self._poses_out += n
+            offered += 1
+        return offered
+
+    def _encode(self, now: float, since: int) -> tuple[bytes, int]:
+        fresh = [(sid, s) for sid, s in self._streams.items() if s.version > since]
+        if not fresh:
+            return b"", 0
+        self._tick += 1
+        self._snapshots += 1
+        n = len(fresh)
+        users = np.fromiter((s.user for _, s in fresh), dtype=np.uint16, count=n)
+        sids = np.fromiter((sid for sid, _ in fresh), dtype=np.uint16, count=n)
+        caps = np.fromiter((s.capture for _, s in fresh), dtype=np.float64, count=n)
+        poses = np.stack([s.pose for _, s in fresh])
+        return encode_snapshot(self._tick, now, users, sids, caps, poses), n
+
+    async def run(self, clock: Callable[[], float]) -> None:
+        """Tick at every due time until the room is empty."""
+        while self.members:
+            due = self.next_due()
+            now = clock()
+            if due is not None and due > now:
+                self.changed.clear()
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self.changed.wait(), timeout=due - now)
+                continue
+            self.tick(now)
+            await asyncio.sleep(0)
+
+    # -- events -------------------------------------------------------------------
+
+    def statistics(self) -> RoomStatistics:
+        return RoomStatistics(
+            name=self.name,
+            members=len(self.members),
+            streams=len(self._streams),
+            ticks=self._lag_n,
+            snapshots_encoded=self._snapshots,
+            frames_out=self._frames_out,
+            bytes_out=self._bytes_out,
+            poses_out=self._poses_out,
+            updates_in=self._updates_in,
+            stale_updates=self._stale,
+            skips=sum(m.outbox.skips + m.congestion_skips for m in self.members.values()),
+            tick_lag_max_ms=1000.0 * self._lag_max,
+            tick_lag_mean_ms=1000.0 * self._lag_sum / self._lag_n if self._lag_n else 0.0,
+        )
