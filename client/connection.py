@@ -65,6 +65,44 @@ class ClientConnection:
         self._pending: deque[Received] = deque()
 
     @classmethod
+    async def connect(
+        cls,
+        url: str,
+        *,
+        agent: str = "posecast-bot",
+        clock: Callable[[], float] = time.monotonic,
+        open_timeout: float = 10.0,
+    ) -> ClientConnection:
+        """Connect and say hello; returns once the server's welcome arrived."""
+        ws = await connect(url, open_timeout=open_timeout, max_size=2**20, compression=None)
+        conn = cls(ws, clock)
+        try:
+            await conn.send(Hello(agent=agent))
+            welcome = await conn._expect(Welcome)
+            assert isinstance(welcome, Welcome)
+            conn.welcome = welcome
+        except BaseException:
+            await ws.close()
+            raise
+        return conn
+
+    async def join(
+        self,
+        *,
+        room: str,
+        streams: tuple[str, ...],
+        rate: float,
+        token: str | None = None,
+        label: str | None = None,
+    ) -> Joined:
+        """Join ``room``; :class:`JoinRefused` if the server refuses."""
+        await self.send(Join(room=room, streams=streams, rate=rate, token=token, label=label))
+        joined = await self._expect(Joined)
+        assert isinstance(joined, Joined)
+        self.joined = joined
+        return joined
+
+    @classmethod
     async def open(
         cls,
         url: str,
@@ -79,15 +117,11 @@ class ClientConnection:
         open_timeout: float = 10.0,
     ) -> ClientConnection:
         """Connect, say hello and join ``room``; :class:`JoinRefused` if refused."""
-        ws = await connect(url, open_timeout=open_timeout, max_size=2**20, compression=None)
-        conn = cls(ws, clock)
+        conn = await cls.connect(url, agent=agent, clock=clock, open_timeout=open_timeout)
         try:
-            await conn.send(Hello(agent=agent))
-            conn.welcome = await conn._expect(Welcome)
-            await conn.send(Join(room=room, streams=streams, rate=rate, token=token, label=label))
-            conn.joined = await conn._expect(Joined)
+            await conn.join(room=room, streams=streams, rate=rate, token=token, label=label)
         except BaseException:
-            await ws.close()
+            await conn.ws.close()
             raise
         return conn
 

@@ -14,7 +14,7 @@ mean the same thing. Nothing here reads a clock: times are arguments.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -124,8 +124,11 @@ def ideal_delay(rate: float, native_rate: float) -> float:
     return 1.0 / rate + 1.0 / native_rate
 
 
-def playout_brackets(capture: F64, arrival: F64, query: F64, delay: float) -> Playout:
-    """Bracketing keyframes for each ``tau`` among those arrived by ``tau + delay``."""
+def playout_brackets(capture: F64, arrival: F64, query: F64, delay: float | F64) -> Playout:
+    """Bracketing keyframes for each ``tau`` among those arrived by ``tau + delay``.
+
+    ``delay`` is one D for all queries or one per query.
+    """
     k = capture.shape[0]
     q = np.asarray(query, dtype=np.float64)
     deadline = q + delay
@@ -226,14 +229,16 @@ class ErrorSamples:
 def evaluate_group(
     truth: Trace,
     log: KeyframeLog,
-    delay: float,
+    delay: float | Callable[[F64], F64],
     methods: Sequence[str],
     window: tuple[float, float] | None = None,
 ) -> dict[str, dict[str, ErrorSamples]]:
     """Errors of every method for one sender's streams, by device class.
 
     ``truth`` holds the sender's streams at their native sample times (the
-    same streams, in the same order, as ``log.poses``). Queries are the truth
+    same streams, in the same order, as ``log.poses``). ``delay`` is the
+    playout delay D, or a function giving the D in effect for each ``tau``
+    (an adaptive receiver). Queries are the truth
     samples inside ``window`` (default: first to last keyframe capture).
     Returns ``{method: {device_class: ErrorSamples}}``.
     """
@@ -246,7 +251,8 @@ def evaluate_group(
     m = (truth.times >= window[0]) & (truth.times <= window[1])
     taus = truth.times[m]
     true_poses = truth.poses[m]
-    play = playout_brackets(log.capture, log.arrival, taus, delay)
+    d = delay(taus) if callable(delay) else delay
+    play = playout_brackets(log.capture, log.arrival, taus, d)
     shown = ~play.missing
     out: dict[str, dict[str, ErrorSamples]] = {}
     for name in methods:

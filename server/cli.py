@@ -8,7 +8,7 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from rich.console import Console
@@ -147,21 +147,260 @@ def compare(
         console.print(f"wrote {json_out}")
 
 
+def print_swarm(report: dict[str, Any], title: str) -> None:
+    """The demo/bots result: QoE per method and class, then bots and wire figures."""
+    table = Table(title=title, title_justify="left")
+    for col in ("method", "class"):
+        table.add_column(col)
+    for col in (
+        "pos p50 mm",
+        "pos p95 mm",
+        "rot p50 deg",
+        "rot p95 deg",
+        "tip p50 mm",
+        "tip p95 mm",
+        "stall %",
+    ):
+        table.add_column(col, justify="right")
+    for method, classes in report["methods"].items():
+        for cls, st in classes.items():
+            table.add_row(
+                method,
+                cls,
+                _fmt(st["pos_p50_mm"]),
+                _fmt(st["pos_p95_mm"]),
+                _fmt(st["rot_p50_deg"], 2),
+                _fmt(st["rot_p95_deg"], 2),
+                _fmt(st["tip_p50_mm"]),
+                _fmt(st["tip_p95_mm"]),
+                _fmt(100.0 * st["stall_fraction"], 2),
+            )
+        table.add_section()
+    console.print(table)
+    bots = Table(title="bots", title_justify="left")
+    for col in ("id", "name", "keyframes/s", "delay D ms", "render ms/frame", "clock rtt ms"):
+        bots.add_column(col, justify="right")
+    for b in report["bots"]:
+        bots.add_row(
+            str(b["id"]),
+            b["name"],
+            _fmt(b["rate_hz"]),
+            _fmt(b["delay_ms"]),
+            _fmt(b["render_cpu_ms_per_frame"], 2),
+            _fmt(b["clock_rtt_ms"], 2),
+        )
+    console.print(bots)
+    wire = report["wire"]
+    console.print(
+        f"wire: {wire['bytes_per_pose']:.1f} bytes per remote pose, "
+        f"{wire['bytes_per_s'] / 1000:.1f} kB/s per bot downstream"
+    )
+
+
 @app.command()
-def demo(
-    trace: Annotated[
-        Path | None, typer.Option(help="Trace for the offline comparison (default: a dev trace).")
+def serve(
+    host: Annotated[str, typer.Option(help="Address to listen on.")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(help="Port (0: pick a free one).")] = 8765,
+    rate: Annotated[float, typer.Option(help="Default snapshot rate (Hz).")] = 20.0,
+    min_rate: Annotated[float, typer.Option(help="Lowest rate a subscriber may ask.")] = 5.0,
+    max_rate: Annotated[float, typer.Option(help="Highest rate a subscriber may ask.")] = 30.0,
+    secret: Annotated[
+        str | None,
+        typer.Option(help="Require tokens signed with this secret (see `posecast token`)."),
+    ] = None,
+    log_level: Annotated[str, typer.Option(help="debug, info, warning, error.")] = "info",
+) -> None:
+    """Run the relay server until SIGINT/SIGTERM (then close all with 1001, exit 0)."""
+    import asyncio
+    import logging
+    import signal
+
+    from server.app import RelayServer, ServerConfig
+
+    if not 0 < min_rate <= rate <= max_rate:
+        raise _fail("need 0 < --min-rate <= --rate <= --max-rate")
+    logging.basicConfig(
+        level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    cfg = ServerConfig(
+        host=host, port=port, rate=rate, min_rate=min_rate, max_rate=max_rate, secret=secret
+    )
+
+    async def main() -> None:
+        server = RelayServer(cfg)
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, server.stop)
+
+        async def announce() -> None:
+            await server.ready.wait()
+            access = "token required" if secret else "open (no --secret)"
+            print(f"posecast listening on ws://{host}:{server.port} ({access})", flush=True)
+
+        async with asyncio.TaskGroup() as tg:
+            tg.create_task(announce())
+            await server.run()
+        print("posecast stopped", flush=True)
+
+    try:
+        _run_async(main())
+    except OSError as exc:
+        raise _fail(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+
+
+def _run_async(coro: Any) -> Any:
+    """asyncio.run, on uvloop when the platform has it."""
+    import asyncio
+
+    try:
+        import uvloop
+    except ImportError:
+        return asyncio.run(coro)
+    return uvloop.run(coro)
+
+
+@app.command()
+def token(
+    room: Annotated[str, typer.Option(help="Room the token admits to.")],
+    user: Annotated[str, typer.Option(help="User name the token is for.")],
+    secret: Annotated[str, typer.Option(help="The server's --secret.")],
+    ttl: Annotated[float, typer.Option(help="Validity in seconds.")] = 3600.0,
+) -> None:
+    """Print an access token for `posecast serve --secret`."""
+    import time
+
+    from server.auth import make_token
+
+    try:
+        print(make_token(secret, room, user, ttl, time.time()))
+    except ValueError as exc:
+        raise _fail(str(exc)) from None
+
+
+def _check_bot_args(rate: float, n: int, duration: float) -> None:
+    if n < 1:
+        raise _fail("--n must be at least 1")
+    if duration <= 0:
+        raise _fail("--duration must be positive")
+    if rate <= 0:
+        raise _fail("--rate must be positive")
+
+
+@app.command()
+def bots(
+    url: Annotated[str, typer.Option(help="Server URL, e.g. ws://127.0.0.1:8765.")],
+    n: Annotated[int, typer.Option(help="Number of bots.")] = 8,
+    room: Annotated[str, typer.Option(help="Room to join.")] = "lobby",
+    rate: Annotated[float, typer.Option(help="Snapshot rate each bot asks for (Hz).")] = 10.0,
+    send_rate: Annotated[float, typer.Option(help="Rate each bot publishes at (Hz).")] = 30.0,
+    interp_: Annotated[
+        str, typer.Option("--interp", help="Interpolators rendered side by side.")
+    ] = DEFAULT_METHODS,
+    motion: Annotated[
+        str, typer.Option(help="traces:dev, traces:eval, a CSV or folder, or synthetic[:orbit].")
+    ] = "traces:dev",
+    duration: Annotated[float, typer.Option(help="Seconds to run.")] = 30.0,
+    token_: Annotated[str | None, typer.Option("--token", help="Access token.")] = None,
+    secret: Annotated[
+        str | None, typer.Option(help="Mint a token per bot with this secret instead.")
+    ] = None,
+    json_out: Annotated[
+        Path | None, typer.Option("--json", help="Write the report as JSON.")
     ] = None,
 ) -> None:
-    """The main job: an offline comparison of the interpolators on a dev trace."""
+    """Run N headless bots against a server and report QoE per interpolator."""
+    import time
+
+    from websockets.exceptions import InvalidURI, WebSocketException
+
+    from client.bot import BotConfig
+    from client.connection import JoinRefused
+    from client.swarm import run_bots, swarm_report
     from scenarios.traces import TraceError, find_traces
 
-    if trace is None:
+    _check_bot_args(rate, n, duration)
+    methods = tuple(_parse_methods(interp_))
+    if not motion.startswith("synthetic"):
         try:
-            trace = find_traces("traces:dev")[0]
+            find_traces(motion)
         except TraceError as exc:
             raise _fail(str(exc)) from None
-    compare(trace=trace, rates="5,10,15,20,30", interp_=DEFAULT_METHODS, json_out=None)
+    base = BotConfig(
+        url=url,
+        room=room,
+        rate=rate,
+        send_rate=send_rate,
+        methods=methods,
+        motion=motion,
+        duration=duration,
+        token=token_,
+        name="bot",
+    )
+    token_for = None
+    if secret is not None:
+        from server.auth import make_token
+
+        def token_for(i: int) -> str:
+            return make_token(secret, room, f"bot{i}", duration + 600, time.time())
+
+    try:
+        with console.status(f"{n} bots in room {room!r} for {duration:g} s ..."):
+            reports = _run_async(run_bots(base, n, token_for=token_for))
+    except* JoinRefused as eg:
+        raise _fail(f"join refused: {eg.exceptions[0]}") from None
+    except* (OSError, InvalidURI, WebSocketException) as eg:
+        raise _fail(f"cannot connect to {url}: {eg.exceptions[0]}") from None
+    report = swarm_report(reports)
+    print_swarm(report, f"{n} bots at {rate:g} Hz for {duration:g} s ({motion})")
+    if json_out is not None:
+        json_out.write_text(json.dumps(report, indent=2))
+        console.print(f"wrote {json_out}")
+
+
+@app.command()
+def demo(
+    bots: Annotated[int, typer.Option("--bots", help="Number of bots.")] = 6,
+    rate: Annotated[float, typer.Option(help="Snapshot rate each bot asks for (Hz).")] = 15.0,
+    duration: Annotated[float, typer.Option(help="Seconds to run.")] = 20.0,
+    motion: Annotated[
+        str, typer.Option(help="traces:dev, traces:eval, a CSV or folder, or synthetic[:orbit].")
+    ] = "traces:dev",
+    interp_: Annotated[
+        str, typer.Option("--interp", help="Interpolators rendered side by side.")
+    ] = DEFAULT_METHODS,
+    json_out: Annotated[
+        Path | None, typer.Option("--json", help="Write the report as JSON.")
+    ] = None,
+) -> None:
+    """The main job: a server and N bots on loopback, then QoE per interpolator."""
+    from scenarios.traces import TraceError, find_traces
+    from server.demo import run_demo
+
+    _check_bot_args(rate, bots, duration)
+    methods = tuple(_parse_methods(interp_))
+    if not motion.startswith("synthetic"):
+        try:
+            find_traces(motion)
+        except TraceError as exc:
+            raise _fail(str(exc)) from None
+    report = _run_async(
+        run_demo(
+            bots=bots,
+            rate=rate,
+            duration=duration,
+            methods=methods,
+            motion=motion,
+            console=console,
+        )
+    )
+    print_swarm(
+        report,
+        f"posecast demo: {bots} bots at {rate:g} Hz for {duration:g} s on loopback ({motion}); "
+        "errors vs the senders' own samples",
+    )
+    if json_out is not None:
+        json_out.write_text(json.dumps(report, indent=2))
+        console.print(f"wrote {json_out}")
 
 
 @bench_app.command("interp")

@@ -1,0 +1,352 @@
+"""Headless bot: publish a motion, receive everyone else's, render at 90 Hz.
+
+A bot connects, syncs its clock with the server (several pings, lowest round
+trip kept, refreshed periodically), joins with a motion label, then runs four
+tasks under one ``TaskGroup``: publisher (its motion at the send rate, capture
+times in server time), receiver (snapshots into per-stream jitter buffers and
+an arrival log), renderer (every remote stream at ``server_now - D`` in one
+batched call per interpolator) and pinger. At the end it scores what it received
+with :mod:`scenarios.qoe`, exactly as DESIGN.md defines it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+from websockets.exceptions import ConnectionClosed
+
+from client.connection import ClientConnection
+from protocol import PeerJoined, PeerLeft, Ping, Pong, Snapshot, encode_update
+from scenarios.motion import MotionSpec, sample_at
+from scenarios.qoe import ErrorSamples, KeyframeLog, evaluate_group
+from scenarios.receiver import ClockEstimator, PlayoutDelay, StreamBuffer, render_buffers
+from scenarios.traces import DEVICE_NAMES, Trace, TraceError, find_traces
+
+__all__ = ["BotConfig", "BotReport", "RemoteStream", "motion_for_bot", "run_bot"]
+
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class BotConfig:
+    url: str
+    room: str = "lobby"
+    #: Snapshot rate asked of the server (Hz).
+    rate: float = 15.0
+    #: How often the bot publishes its own poses (Hz).
+    send_rate: float = 30.0
+    methods: tuple[str, ...] = ("soa", "dq-slerp", "motor-lerp")
+    #: A trace CSV path or ``synthetic:NAME``; the seed varies synthetic motion.
+    motion: str = "synthetic:orbit"
+    seed: int = 0
+    duration: float = 10.0
+    render_rate: float = 90.0
+    token: str | None = None
+    name: str = "bot"
+    ping_interval: float = 1.0
+    initial_pings: int = 8
+
+
+@dataclass
+class RemoteStream:
+    """One remote stream: buffer for rendering, log for the QoE evaluation."""
+
+    user: int
+    stream: int
+    name: str
+    label: str | None
+    buffer: StreamBuffer = field(default_factory=StreamBuffer)
+    capture: list[float] = field(default_factory=list)
+    arrival: list[float] = field(default_factory=list)
+    poses: list[NDArray[np.float32]] = field(default_factory=list)
+
+
+@dataclass
+class BotReport:
+    """What one bot measured."""
+
+    user: int
+    name: str
+    qoe: dict[str, dict[str, ErrorSamples]]
+    #: New keyframes received per remote stream per second (mean over streams).
+    rate_hz: float
+    delay_ms: float
+    render_stall_fraction: float
+    frames_rendered: int
+    render_cpu_s: float
+    snapshot_bytes: int
+    poses_received: int
+    bytes_in: int
+    bytes_out: int
+    duration: float
+    clock_rtt_ms: float
+    streams: dict[tuple[int, int], RemoteStream] = field(default_factory=dict, repr=False)
+
+
+def motion_for_bot(spec: str, index: int) -> tuple[str, int]:
+    """Resolve ``--motion`` for bot ``index``: (trace path or synthetic:NAME, seed)."""
+    if spec.startswith("synthetic"):
+        name = spec.partition(":")[2] or "orbit"
+        return f"synthetic:{name}", index
+    files = find_traces(spec)
+    return str(files[index % len(files)]), 0
+
+
+class _Bot:
+    def __init__(self, cfg: BotConfig, clock: Callable[[], float]) -> None:
+        self.cfg = cfg
+        self.clock = clock
+        self.est = ClockEstimator()
+        self.delay = PlayoutDelay(interval=1.0 / cfg.rate)
+        self.remote: dict[tuple[int, int], RemoteStream] = {}
+        self.peers: dict[int, tuple[dict[int, str], str | None]] = {}
+        self.play_t: list[float] = []
+        self.play_d: list[float] = []
+        self.render_stalls = 0
+        self.render_samples = 0
+        self.frames = 0
+        self.render_cpu = 0.0
+        self.snapshot_bytes = 0
+        self.poses_in = 0
+        self.ping_seq = 0
+        self.conn: ClientConnection | None = None
+        self.trace: Trace | None = None
+        self.spec: MotionSpec | None = None
+
+    def server_now(self) -> float:
+        return self.clock() + self.est.offset
+
+    async def _sync(self, conn: ClientConnection, n: int) -> None:
+        for _ in range(n):
+            self.ping_seq += 1
+            await conn.send(Ping(seq=self.ping_seq, time=self.clock()))
+            while True:
+                rec = await conn.recv()
+                if isinstance(rec.event, Pong):
+                    self.est.add(rec.event.offset(rec.arrival), rec.event.round_trip(rec.arrival))
+                    break
+                self._on_event(rec.event, rec.arrival, rec.size)
+
+    def _add_peer(self, ev: PeerJoined) -> None:
+        self.peers[ev.user] = ({sid: name for name, sid in ev.streams.items()}, ev.label)
+
+    def _on_event(self, ev: object, arrival: float, size: int) -> None:
+        if isinstance(ev, Snapshot):
+            self._on_snapshot(ev, arrival, size)
+        elif isinstance(ev, Pong):
+            self.est.add(ev.offset(arrival), ev.round_trip(arrival))
+        elif isinstance(ev, PeerJoined):
+            self._add_peer(ev)
+        elif isinstance(ev, PeerLeft):
+            self.peers.pop(ev.user, None)
+
+    def _on_snapshot(self, snap: Snapshot, arrival: float, size: int) -> None:
+        me = self.conn.user if self.conn else -1
+        arrival_srv = arrival + self.est.offset
+        users, streams = snap.users, snap.streams
+        caps, poses = snap.capture_times, snap.poses
+        self.snapshot_bytes += size
+        floor = self.play_t[-1] if self.play_t else -np.inf
+        for i in range(len(snap)):
+            user = int(users[i])
+            if user == me:
+                continue
+            key = (user, int(streams[i]))
+            rs = self.remote.get(key)
+            if rs is None:
+                names, label = self.peers.get(user, ({}, None))
+                rs = self.remote[key] = RemoteStream(
+                    user, key[1], names.get(key[1], f"stream{key[1]}"), label
+                )
+            cap = float(caps[i])
+            pose = np.array(poses[i])
+            self.poses_in += 1
+            rs.capture.append(cap)
+            rs.arrival.append(arrival_srv)
+            rs.poses.append(pose)
+            rs.buffer.push(cap, pose, floor)
+            self.delay.observe(arrival_srv - cap)
+
+    async def _publish(self, conn: ClientConnection, stop: float) -> None:
+        assert self.trace is not None and self.spec is not None and conn.joined is not None
+        trace, t0 = self.trace, self.spec.t0
+        ids = np.array([conn.joined.streams[n] for n in trace.streams])
+        period = 1.0 / self.cfg.send_rate
+        seq = 0
+        last = -1.0
+        k = 0
+        while True:
+            now = self.server_now()
+            if now >= stop:
+                return
+            idx, tm = sample_at(trace, max(0.0, now - t0))
+            if tm != last:
+                last = tm
+                cap = t0 + tm
+                seq += 1
+                data = encode_update(
+                    seq,
+                    ids,
+                    np.full(ids.size, cap),
+                    trace.poses[idx].astype(np.float32),
+                    base_time=cap,
+                )
+                await conn.send_bytes(data)
+            k += 1
+            nxt = t0 + k * period
+            if nxt <= now:  # fell behind: resume on the grid, never burst
+                k = int((now - t0) / period) + 1
+                nxt = t0 + k * period
+            await asyncio.sleep(max(0.0, nxt - self.server_now()))
+
+    async def _receive(self, conn: ClientConnection) -> None:
+        with contextlib.suppress(ConnectionClosed):
+            while True:
+                rec = await conn.recv()
+                self._on_event(rec.event, rec.arrival, rec.size)
+
+    async def _render(self, stop: float) -> None:
+        period = 1.0 / self.cfg.render_rate
+        methods = self.cfg.methods
+        nxt = self.clock()
+        while self.server_now() < stop:
+            now_srv = self.server_now()
+            d = self.delay.update(now_srv)
+            t_play = now_srv - d
+            c0 = time.process_time()
+            frame = render_buffers([rs.buffer for rs in self.remote.values()], t_play, methods)
+            self.render_cpu += time.process_time() - c0
+            self.frames += 1
+            self.render_stalls += int(frame.stalled.sum())
+            self.render_samples += frame.stalled.size
+            self.play_t.append(t_play)
+            self.play_d.append(d)
+            nxt += period
+            await asyncio.sleep(max(0.0, nxt - self.clock()))
+
+    async def _pinger(self, conn: ClientConnection, stop: float) -> None:
+        while self.server_now() < stop:
+            await asyncio.sleep(self.cfg.ping_interval)
+            self.ping_seq += 1
+            await conn.send(Ping(seq=self.ping_seq, time=self.clock()))
+
+    async def run(self) -> BotReport:
+        cfg = self.cfg
+        conn = await ClientConnection.connect(cfg.url, agent=cfg.name, clock=self.clock)
+        self.conn = conn
+        try:
+            await self._sync(conn, cfg.initial_pings)
+            start = self.server_now()
+            source, seed = cfg.motion, cfg.seed
+            if source.startswith("synthetic:"):
+                self.spec = MotionSpec(source, seed, start)
+            else:
+                self.spec = MotionSpec.for_trace(Path(source), start)
+            self.trace = self.spec.load().select(DEVICE_NAMES)
+            await conn.join(
+                room=cfg.room,
+                streams=self.trace.streams,
+                rate=cfg.rate,
+                token=cfg.token,
+                label=self.spec.label(),
+            )
+            for ev in conn.early_peers:
+                self._add_peer(ev)
+            stop = start + cfg.duration
+            async with asyncio.TaskGroup() as tg:
+                receiver = tg.create_task(self._receive(conn))
+                tg.create_task(self._publish(conn, stop))
+                tg.create_task(self._pinger(conn, stop))
+                await self._render(stop)
+                receiver.cancel()
+        finally:
+            with contextlib.suppress(ConnectionClosed):
+                await conn.close()
+        return self._report(start)
+
+    def _report(self, start: float) -> BotReport:
+        cfg = self.cfg
+        qoe = evaluate_remote(self.remote, self.play_t, self.play_d, cfg.methods)
+        end = self.play_t[-1] + self.play_d[-1] if self.play_t else start
+        span = max(1e-9, end - start)
+        rates = [len(set(rs.capture)) / span for rs in self.remote.values()]
+        assert self.conn is not None
+        return BotReport(
+            user=self.conn.user,
+            name=cfg.name,
+            qoe=qoe,
+            rate_hz=float(np.mean(rates)) if rates else 0.0,
+            delay_ms=1000.0 * float(np.mean(self.play_d)) if self.play_d else float("nan"),
+            render_stall_fraction=self.render_stalls / max(1, self.render_samples),
+            frames_rendered=self.frames,
+            render_cpu_s=self.render_cpu,
+            snapshot_bytes=self.snapshot_bytes,
+            poses_received=self.poses_in,
+            bytes_in=self.conn.bytes_in,
+            bytes_out=self.conn.bytes_out,
+            duration=span,
+            clock_rtt_ms=1000.0 * self.est.rtt,
+            streams=self.remote,
+        )
+
+
+def remote_log(rs: RemoteStream) -> KeyframeLog:
+    """The stream's arrival log as a KeyframeLog (sorted by capture, deduplicated)."""
+    cap = np.asarray(rs.capture, dtype=np.float64)
+    arr = np.asarray(rs.arrival, dtype=np.float64)
+    poses = np.asarray(rs.poses, dtype=np.float64).reshape(-1, 1, 7)
+    order = np.lexsort((arr, cap))
+    cap, arr, poses = cap[order], arr[order], poses[order]
+    keep = np.ones(cap.shape, dtype=bool)
+    keep[1:] = cap[1:] != cap[:-1]  # a duplicate: the first arrival counts
+    return KeyframeLog(cap[keep], arr[keep], poses[keep])
+
+
+def evaluate_remote(
+    remote: dict[tuple[int, int], RemoteStream],
+    play_t: Sequence[float],
+    play_d: Sequence[float],
+    methods: Sequence[str],
+) -> dict[str, dict[str, ErrorSamples]]:
+    """QoE of everything received, with the delay D that was in effect at each tau."""
+    out: dict[str, dict[str, ErrorSamples]] = {m: {} for m in methods}
+    if not play_t:
+        return out
+    pt = np.asarray(play_t)
+    pd = np.asarray(play_d)
+
+    def delay_at(taus: F64) -> F64:
+        d: F64 = np.interp(taus, pt, pd)
+        return d
+
+    truths: dict[str, Trace] = {}
+    for rs in remote.values():
+        if rs.label is None or not rs.capture:
+            continue
+        if rs.label not in truths:
+            try:
+                truths[rs.label] = MotionSpec.parse(rs.label).truth(until=float(pt[-1]) + 1.0)
+            except TraceError:
+                continue
+        truth = truths[rs.label]
+        if rs.name not in truth.streams:
+            continue
+        log = remote_log(rs)
+        window = (max(float(log.capture[0]), float(pt[0])), float(pt[-1]))
+        res = evaluate_group(truth.select([rs.name]), log, delay_at, methods, window)
+        for m, classes in res.items():
+            for cls, samples in classes.items():
+                out[m].setdefault(cls, ErrorSamples()).merge(samples)
+    return out
+
+
+async def run_bot(cfg: BotConfig, clock: Callable[[], float] = time.monotonic) -> BotReport:
+    """Run one bot to the end of its duration and return what it measured."""
+    return await _Bot(cfg, clock).run()

@@ -1,0 +1,189 @@
+"""The receiver model: clock offset, jitter buffers, adaptive playout delay.
+
+Shared by the live bots and the offline simulator; nothing here reads a clock
+(every method takes the time it needs).
+
+- :class:`ClockEstimator`: NTP-style offset to the server clock from ping/pong
+  samples, keeping the lowest round trip of a sliding window.
+- :class:`StreamBuffer`: one remote stream's keyframes ordered by capture time;
+  duplicates and stale frames dropped; bounded (oldest evicted).
+- :class:`PlayoutDelay`: delay D that starts at one interval plus the measured
+  arrival jitter and follows the observed keyframe age (Mirror-style dynamic
+  buffer: ``D = interval + p95(age)``), slewing smoothly, never jumping.
+- :func:`render_buffers`: every buffer at its playout time in one batched
+  interpolator call.
+"""
+
+from __future__ import annotations
+
+import bisect
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from interp import interpolate_brackets
+
+__all__ = [
+    "DEFAULT_BUFFER_CAPACITY",
+    "ClockEstimator",
+    "PlayoutDelay",
+    "RenderFrame",
+    "StreamBuffer",
+    "render_buffers",
+]
+
+DEFAULT_BUFFER_CAPACITY = 64
+
+
+@dataclass
+class ClockEstimator:
+    """Server-minus-client clock offset from the lowest-RTT recent ping sample."""
+
+    window: int = 16
+    _samples: deque[tuple[float, float]] = field(default_factory=deque)
+
+    def add(self, offset: float, rtt: float) -> None:
+        self._samples.append((rtt, offset))
+        while len(self._samples) > self.window:
+            self._samples.popleft()
+
+    @property
+    def ready(self) -> bool:
+        return bool(self._samples)
+
+    @property
+    def offset(self) -> float:
+        return min(self._samples)[1] if self._samples else 0.0
+
+    @property
+    def rtt(self) -> float:
+        return min(self._samples)[0] if self._samples else float("nan")
+
+
+class StreamBuffer:
+    """Keyframes of one remote stream, by capture time, for rendering.
+
+    ``push`` refuses duplicates (same capture time) and stale keyframes (older
+    than the oldest one kept, or than ``floor`` = what playout already passed);
+    beyond ``capacity`` the oldest is evicted.
+    """
+
+    def __init__(self, capacity: int = DEFAULT_BUFFER_CAPACITY) -> None:
+        self.capacity = capacity
+        self.times: list[float] = []
+        self.poses: list[NDArray[np.float32]] = []
+        self.duplicates = 0
+        self.stale = 0
+        self.evicted = 0
+
+    def push(self, capture: float, pose: NDArray[np.float32], floor: float = -np.inf) -> bool:
+        times = self.times
+        if capture < floor or (times and len(times) >= self.capacity and capture < times[0]):
+            self.stale += 1
+            return False
+        i = bisect.bisect_left(times, capture)
+        if i < len(times) and times[i] == capture:
+            self.duplicates += 1
+            return False
+        times.insert(i, capture)
+        self.poses.insert(i, pose)
+        if len(times) > self.capacity:
+            del times[0]
+            del self.poses[0]
+            self.evicted += 1
+        return True
+
+    def __len__(self) -> int:
+        return len(self.times)
+
+    def bracket(self, t: float) -> tuple[int, int, float, bool]:
+        """``(lo, hi, s, stall)`` for playout time ``t`` (hold the newest on a stall)."""
+        times = self.times
+        hi = bisect.bisect_right(times, t)
+        if hi == 0:
+            return 0, 0, 0.0, True
+        lo = hi - 1
+        if times[lo] == t:
+            return lo, lo, 0.0, False
+        if hi >= len(times):
+            return lo, lo, 0.0, True
+        return lo, hi, (t - times[lo]) / (times[hi] - times[lo]), False
+
+
+@dataclass
+class PlayoutDelay:
+    """Adaptive playout delay D (seconds) from the ages of arriving keyframes."""
+
+    interval: float
+    #: Share of keyframe ages the delay covers.
+    percentile: float = 95.0
+    #: Time constant of the slew towards the target (s).
+    tau: float = 1.0
+    window: int = 256
+    margin: float = 0.002
+    value: float = field(init=False)
+    _ages: deque[float] = field(default_factory=deque)
+    _last: float | None = None
+
+    def __post_init__(self) -> None:
+        self.value = self.interval + self.margin
+
+    def observe(self, age: float) -> None:
+        """One keyframe's age on arrival (arrival minus capture, server clock)."""
+        self._ages.append(age)
+        while len(self._ages) > self.window:
+            self._ages.popleft()
+
+    @property
+    def target(self) -> float:
+        if not self._ages:
+            return self.interval + self.margin
+        return self.interval + float(np.percentile(self._ages, self.percentile)) + self.margin
+
+    def update(self, now: float) -> float:
+        """Slew towards the target; the first observation sets D directly."""
+        target = self.target
+        if self._last is None:
+            if self._ages:
+                self.value = target
+                self._last = now
+            return self.value
+        dt = max(0.0, now - self._last)
+        self._last = now
+        self.value += (target - self.value) * min(1.0, dt / self.tau)
+        return self.value
+
+
+@dataclass(frozen=True)
+class RenderFrame:
+    """Rendered poses ``(S, 7)`` per method, and which streams stalled."""
+
+    poses: dict[str, NDArray[np.float64]]
+    stalled: NDArray[np.bool_]
+
+
+def render_buffers(
+    buffers: Sequence[StreamBuffer], t: float, methods: Sequence[str]
+) -> RenderFrame:
+    """All non-empty buffers at playout time ``t``: one batched call per method."""
+    live = [b for b in buffers if len(b)]
+    if not live:
+        return RenderFrame({m: np.empty((0, 7)) for m in methods}, np.zeros(0, dtype=bool))
+    a = np.empty((1, len(live), 7))
+    b = np.empty((1, len(live), 7))
+    s = np.empty((1, len(live)))
+    stalled = np.zeros(len(live), dtype=bool)
+    for j, buf in enumerate(live):
+        lo, hi, frac, stall = buf.bracket(t)
+        a[0, j] = buf.poses[lo]
+        b[0, j] = buf.poses[hi]
+        s[0, j] = frac
+        stalled[j] = stall
+    # Keyframes pre-gathered: brackets are (0, 1) into the stacked pair.
+    pair = np.concatenate([a, b])
+    zero = np.zeros((1, len(live)), dtype=np.intp)
+    out = {m: interpolate_brackets(pair, zero, zero + 1, s, m)[0] for m in methods}
+    return RenderFrame(out, stalled)
