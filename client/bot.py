@@ -52,6 +52,8 @@ class BotConfig:
     name: str = "bot"
     ping_interval: float = 1.0
     initial_pings: int = 8
+    #: Keep every rendered frame (first method) for inspection; memory grows.
+    keep_render_log: bool = False
 
 
 @dataclass
@@ -88,6 +90,10 @@ class BotReport:
     duration: float
     clock_rtt_ms: float
     streams: dict[tuple[int, int], RemoteStream] = field(default_factory=dict, repr=False)
+    #: With ``keep_render_log``: (playout time, D, {stream key: (pose, stalled)}).
+    render_log: list[tuple[float, float, dict[tuple[int, int], tuple[F64, bool]]]] = field(
+        default_factory=list, repr=False
+    )
 
 
 def motion_for_bot(spec: str, index: int) -> tuple[str, int]:
@@ -117,6 +123,7 @@ class _Bot:
         self.poses_in = 0
         self.ping_seq = 0
         self.conn: ClientConnection | None = None
+        self.render_log: list[tuple[float, float, dict[tuple[int, int], tuple[F64, bool]]]] = []
         self.trace: Trace | None = None
         self.spec: MotionSpec | None = None
 
@@ -223,6 +230,16 @@ class _Bot:
             c0 = time.process_time()
             frame = render_buffers([rs.buffer for rs in self.remote.values()], t_play, methods)
             self.render_cpu += time.process_time() - c0
+            if self.cfg.keep_render_log:
+                keys = [k for k, rs in self.remote.items() if len(rs.buffer)]
+                first = frame.poses[methods[0]]
+                self.render_log.append(
+                    (
+                        t_play,
+                        d,
+                        {k: (first[j], bool(frame.stalled[j])) for j, k in enumerate(keys)},
+                    )
+                )
             self.frames += 1
             self.render_stalls += int(frame.stalled.sum())
             self.render_samples += frame.stalled.size
@@ -276,7 +293,12 @@ class _Bot:
         qoe = evaluate_remote(self.remote, self.play_t, self.play_d, cfg.methods)
         end = self.play_t[-1] + self.play_d[-1] if self.play_t else start
         span = max(1e-9, end - start)
-        rates = [len(set(rs.capture)) / span for rs in self.remote.values()]
+        # Per stream: new keyframes per second over the span it was received.
+        rates = [
+            (len(set(rs.capture)) - 1) / (rs.arrival[-1] - rs.arrival[0])
+            for rs in self.remote.values()
+            if len(rs.arrival) > 1 and rs.arrival[-1] > rs.arrival[0]
+        ]
         assert self.conn is not None
         return BotReport(
             user=self.conn.user,
@@ -294,6 +316,7 @@ class _Bot:
             duration=span,
             clock_rtt_ms=1000.0 * self.est.rtt,
             streams=self.remote,
+            render_log=self.render_log,
         )
 
 

@@ -66,9 +66,12 @@ class ClockEstimator:
 class StreamBuffer:
     """Keyframes of one remote stream, by capture time, for rendering.
 
-    ``push`` refuses duplicates (same capture time) and stale keyframes (older
-    than the oldest one kept, or than ``floor`` = what playout already passed);
-    beyond ``capacity`` the oldest is evicted.
+    ``push`` refuses duplicates (same capture time) and stale keyframes: ones
+    that can never be a bracket again because a newer keyframe already sits at
+    or before ``floor`` (the playout time already passed), or that are older than
+    everything kept in a full buffer. A late keyframe just before the playout
+    time is kept: it is the lower bracket. Beyond ``capacity`` the oldest is
+    evicted.
     """
 
     def __init__(self, capacity: int = DEFAULT_BUFFER_CAPACITY) -> None:
@@ -81,12 +84,13 @@ class StreamBuffer:
 
     def push(self, capture: float, pose: NDArray[np.float32], floor: float = -np.inf) -> bool:
         times = self.times
-        if capture < floor or (times and len(times) >= self.capacity and capture < times[0]):
-            self.stale += 1
-            return False
         i = bisect.bisect_left(times, capture)
         if i < len(times) and times[i] == capture:
             self.duplicates += 1
+            return False
+        superseded = capture < floor and i < len(times) and times[i] <= floor
+        if superseded or (len(times) >= self.capacity and i == 0):
+            self.stale += 1
             return False
         times.insert(i, capture)
         self.poses.insert(i, pose)

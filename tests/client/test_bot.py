@@ -1,0 +1,152 @@
+"""Bots against a real relay on loopback: rates, QoE, and live = offline."""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+import pytest
+
+from client.bot import BotConfig, BotReport, remote_log, run_bot
+from client.swarm import run_bots, swarm_report
+from interp import get
+from scenarios.qoe import STAT_KEYS, playout_brackets
+from server.app import RelayServer, ServerConfig
+
+
+async def _session(configs: list[BotConfig]) -> list[BotReport]:
+    server = RelayServer(ServerConfig(host="127.0.0.1", port=0))
+    async with asyncio.TaskGroup() as tg:
+        tg.create_task(server.run())
+        await asyncio.wait_for(server.ready.wait(), 10)
+        url = f"ws://127.0.0.1:{server.port}"
+        try:
+            async with asyncio.TaskGroup() as bots:
+                tasks = [
+                    bots.create_task(run_bot(BotConfig(**{**c.__dict__, "url": url})))
+                    for c in configs
+                ]
+            return [t.result() for t in tasks]
+        finally:
+            server.stop()
+
+
+@pytest.fixture(scope="module")
+def three_bots() -> list[BotReport]:
+    """Three bots (two synthetic, one real trace) for 4 s at 15 Hz, render log kept."""
+    configs = [
+        BotConfig(
+            url="",
+            room="t",
+            rate=15,
+            motion="synthetic:orbit",
+            seed=1,
+            duration=4,
+            keep_render_log=True,
+            name="a",
+        ),
+        BotConfig(
+            url="",
+            room="t",
+            rate=15,
+            motion="synthetic:orbit",
+            seed=2,
+            duration=4,
+            keep_render_log=True,
+            name="b",
+        ),
+        BotConfig(
+            url="",
+            room="t",
+            rate=15,
+            motion="traces:dev",
+            duration=4,
+            keep_render_log=True,
+            name="c",
+        ),
+    ]
+    from client.bot import motion_for_bot
+
+    configs[2] = BotConfig(**{**configs[2].__dict__, "motion": motion_for_bot("traces:dev", 1)[0]})
+    return asyncio.run(_session(configs))
+
+
+def test_each_bot_receives_every_other_stream(three_bots: list[BotReport]) -> None:
+    """Every bot renders the 6 streams of the two others, named head/left/right."""
+    for rep in three_bots:
+        names = sorted(rs.name for rs in rep.streams.values())
+        assert names == ["head", "head", "left", "left", "right", "right"]
+        assert rep.user not in {rs.user for rs in rep.streams.values()}
+
+
+def test_keyframe_rate_matches_subscription(three_bots: list[BotReport]) -> None:
+    """Bots publishing at 30 Hz and subscribing at 15 Hz receive ~15 new keyframes/s."""
+    for rep in three_bots:
+        assert rep.rate_hz == pytest.approx(15.0, rel=0.1)
+
+
+def test_qoe_is_reported_for_every_method_and_class(three_bots: list[BotReport]) -> None:
+    """The swarm report has p50/p95 stats for hands and head for each interpolator."""
+    report = swarm_report(three_bots)
+    assert set(report["methods"]) == {"soa", "dq-slerp", "motor-lerp"}
+    for classes in report["methods"].values():
+        assert set(classes) == {"hands", "head"}
+        for st in classes.values():
+            assert set(st) == set(STAT_KEYS)
+            assert np.isfinite(st["tip_p95_mm"]) and st["tip_p95_mm"] > 0
+            assert st["pos_p50_mm"] <= st["pos_p95_mm"]
+    assert 30 < report["wire"]["bytes_per_pose"] < 80
+    assert {b["id"] for b in report["bots"]} == {r.user for r in three_bots}
+
+
+def test_live_render_equals_offline_computation(three_bots: list[BotReport]) -> None:
+    """Each rendered pose equals the QoE definition's pose from the arrival log.
+
+    For every frame, the offline path takes the keyframes that had arrived by the
+    render's wall time (t_play + D), brackets t_play and interpolates (soa); it
+    must reproduce what the live render loop showed, stall flags included.
+    """
+    soa = get("soa")
+    checked = 0
+    for rep in three_bots:
+        logs = {k: remote_log(rs) for k, rs in rep.streams.items()}
+        for t_play, d, shown in rep.render_log[5:]:
+            for key, (pose, stalled) in shown.items():
+                log = logs[key]
+                play = playout_brackets(
+                    log.capture, log.arrival, np.array([t_play]), np.array([d - 1e-9])
+                )
+                if play.missing[0]:
+                    continue
+                want = soa(log.poses[play.lo[0], 0], log.poses[play.hi[0], 0], play.s[0])
+                assert bool(play.stall[0]) == stalled
+                np.testing.assert_allclose(pose, want, atol=1e-6)
+                checked += 1
+    assert checked > 1000
+
+
+def test_swarm_runs_n_bots_with_trace_motion() -> None:
+    """run_bots starts N bots on distinct dev traces; all finish with a report."""
+
+    async def go() -> list[BotReport]:
+        server = RelayServer(ServerConfig(host="127.0.0.1", port=0))
+        async with asyncio.TaskGroup() as tg:
+            tg.create_task(server.run())
+            await asyncio.wait_for(server.ready.wait(), 10)
+            base = BotConfig(
+                url=f"ws://127.0.0.1:{server.port}",
+                room="s",
+                rate=10,
+                motion="traces:dev",
+                duration=2.0,
+            )
+            try:
+                return await run_bots(base, 3)
+            finally:
+                server.stop()
+
+    reports = asyncio.run(go())
+    assert len(reports) == 3
+    assert len({r.user for r in reports}) == 3
+    labels = {rs.label.split("|")[0] for r in reports for rs in r.streams.values() if rs.label}
+    assert len(labels) == 3
