@@ -47,8 +47,12 @@ def _rows(x: F64) -> F64:
     return np.ascontiguousarray(x.reshape(-1, x.shape[-1]).T)
 
 
-def _validate_rows(rows: F64, name: str) -> None:
-    """Check finiteness and quaternion norms of pose rows; normalise in place."""
+def _validate_rows(rows: F64, name: str) -> F64:
+    """Check finiteness and quaternion norms of pose rows; normalise a copy if needed.
+
+    ``rows`` may be a view of the caller's array (when the transpose is already
+    contiguous), so it is never written to.
+    """
     # One reduction first: a non-finite sum is rare, then we look closer.
     if not np.isfinite(rows.sum()) and not np.all(np.isfinite(rows)):
         raise ValueError(f"expected `{name}` to hold finite values")
@@ -58,7 +62,9 @@ def _validate_rows(rows: F64, name: str) -> None:
     if np.any(np.abs(n2 - 1.0) > 2.0 * UNIT_TOLERANCE):
         if not np.all(n2 > 1e-24):
             raise ValueError(f"expected `{name}` to hold non-zero quaternions")
-        q /= np.sqrt(n2)
+        rows = rows.copy()
+        rows[3:] /= np.sqrt(n2)
+    return rows
 
 
 def prepare(a: ArrayLike, b: ArrayLike, s: ArrayLike) -> tuple[F64, F64, F64, tuple[int, ...]]:
@@ -87,9 +93,8 @@ def prepare(a: ArrayLike, b: ArrayLike, s: ArrayLike) -> tuple[F64, F64, F64, tu
         raise ValueError(
             f"expected `s` to be broadcastable to {batch}, got {s_arr.shape}"
         ) from None
-    A, B = _rows(a_arr), _rows(b_arr)
-    _validate_rows(A, "a")
-    _validate_rows(B, "b")
+    A = _validate_rows(_rows(a_arr), "a")
+    B = _validate_rows(_rows(b_arr), "b")
     return A, B, s_b.reshape(-1), batch
 
 

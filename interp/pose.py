@@ -147,8 +147,16 @@ def pose_from_tq(t: ArrayLike, q: ArrayLike) -> F64:
     t_arr = _as_float_array(t, "t")
     _check_last_axis(t_arr, 3, "t")
     q_arr = as_quat(q)
-    t_arr, q_arr = np.broadcast_arrays(t_arr[..., None, :], q_arr[..., None, :])
-    return np.concatenate([t_arr[..., 0, :], q_arr[..., 0, :]], axis=-1)
+    try:
+        batch = np.broadcast_shapes(t_arr.shape[:-1], q_arr.shape[:-1])
+    except ValueError:
+        raise ValueError(
+            f"expected `t` (..., 3) and `q` (..., 4) with matching leading shapes, "
+            f"got {t_arr.shape} and {q_arr.shape}"
+        ) from None
+    return np.concatenate(
+        [np.broadcast_to(t_arr, (*batch, 3)), np.broadcast_to(q_arr, (*batch, 4))], axis=-1
+    )
 
 
 def pose_to_dq(pose: ArrayLike) -> F64:
