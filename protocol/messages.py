@@ -1,0 +1,379 @@
+"""Control messages: frozen dataclasses that validate their fields on construction.
+
+Each class is one msgpack map on the wire, ``{"type": TYPE, field: value, ...}``
+with the dataclass fields as keys in declaration order. Decoding accepts a
+missing key only for fields with a default, and rejects unknown keys (the
+schema is pinned by ``PROTOCOL_VERSION``).
+
+Constructors check types and fixed ranges (u16 ids, finite numbers, string
+lengths) and raise ``LocalProtocolError("bad-message")``. Checks that depend on
+a session's ``Limits`` or state (rate range, stream names, ownership, version)
+live in the session, so a peer can be told "bad-rate" instead of "bad-message".
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable, Mapping
+from dataclasses import MISSING, dataclass, field, fields
+from typing import Any, ClassVar, Self, TypeVar
+
+from protocol._validate import (
+    U16_MAX,
+    U63_MAX,
+    bad,
+    check_bool,
+    check_float,
+    check_int,
+    check_optional_float,
+    check_optional_int,
+    check_optional_text,
+    check_payload,
+    check_stream_map,
+    check_text,
+)
+from protocol.errors import ErrorCode
+from protocol.limits import (
+    MAX_RATE,
+    MAX_STREAM_NAME_LENGTH,
+    MAX_STREAMS_PER_USER,
+    MIN_RATE,
+    PROTOCOL_VERSION,
+)
+
+__all__ = [
+    "DEVICE_NAMES",
+    "EVENT_KINDS",
+    "OBJECT_PREFIX",
+    "Bye",
+    "ControlMessage",
+    "ErrorMessage",
+    "Hello",
+    "Join",
+    "Joined",
+    "PeerJoined",
+    "PeerLeft",
+    "Ping",
+    "Pong",
+    "SetRate",
+    "UserEvent",
+    "Welcome",
+    "is_valid_stream_name",
+]
+
+DEVICE_NAMES = ("head", "left", "right")
+"""The tracked devices of a user, by convention; any lowercase identifier is a valid device."""
+
+OBJECT_PREFIX = "object:"
+"""Prefix of object stream names, e.g. ``object:drill``."""
+
+# A device is a lowercase identifier; an object is "object:" plus a plain name.
+_STREAM_NAME = re.compile(r"[a-z][a-z0-9_]*|object:[A-Za-z0-9_.\-]+")
+
+EVENT_KINDS = frozenset({"grab", "release", "button", "scene_step"})
+"""Values of ``UserEvent.kind``."""
+
+# Longest error code accepted from a peer: codes are short kebab-case words.
+_MAX_CODE_LENGTH = 64
+
+
+def _set(obj: object, name: str, value: object) -> None:
+    # Frozen dataclasses normalise their own fields (int -> float, list -> tuple).
+    object.__setattr__(obj, name, value)
+
+
+class ControlMessage:
+    """Base of the control messages: wire type, field names and the map codec."""
+
+    __slots__ = ()
+
+    TYPE: ClassVar[str]
+    _NAMES: ClassVar[frozenset[str]]
+    _REQUIRED: ClassVar[frozenset[str]]
+    _ORDER: ClassVar[tuple[str, ...]]
+
+    def to_wire(self) -> dict[str, object]:
+        """The msgpack map for this message, "type" first."""
+        wire: dict[str, object] = {"type": self.TYPE}
+        for name in self._ORDER:
+            wire[name] = getattr(self, name)
+        return wire
+
+    @classmethod
+    def from_wire(cls, wire: Mapping[str, object]) -> Self:
+        """Build from a decoded map; raises LocalProtocolError (decoders re-raise as remote)."""
+        keys = wire.keys() - {"type"}
+        unknown = keys - cls._NAMES
+        if unknown:
+            # Quote at most 32 characters: the name comes from the peer.
+            raise bad(cls.TYPE, f"has unknown field {sorted(map(str, unknown))[0][:32]!r}")
+        missing = cls._REQUIRED - keys
+        if missing:
+            raise bad(cls.TYPE, f"lacks field {sorted(missing)[0]!r}")
+        factory: Callable[..., Self] = cls
+        return factory(**{name: wire[name] for name in keys})
+
+
+_M = TypeVar("_M", bound=type[ControlMessage])
+
+
+def _register(cls: _M) -> _M:
+    # Runs after @dataclass, so the field tables see the final fields.
+    names = tuple(f.name for f in fields(cls))  # type: ignore[arg-type]
+    cls._ORDER = names
+    cls._NAMES = frozenset(names)
+    cls._REQUIRED = frozenset(
+        f.name
+        for f in fields(cls)  # type: ignore[arg-type]
+        if f.default is MISSING and f.default_factory is MISSING
+    )
+    return cls
+
+
+def is_valid_stream_name(name: object, max_length: int = MAX_STREAM_NAME_LENGTH) -> bool:
+    """Whether ``name`` is a device name or ``object:NAME``, at most ``max_length`` long."""
+    return (
+        type(name) is str and len(name) <= max_length and _STREAM_NAME.fullmatch(name) is not None
+    )
+
+
+@_register
+@dataclass(frozen=True, slots=True)
+class Hello(ControlMessage):
+    """Client -> server, first message: the protocol version the client speaks."""
+
+    TYPE: ClassVar[str] = "hello"
+    version: int = PROTOCOL_VERSION
+    agent: str = ""
+    """Free text naming the client software, for logs."""
+
+    def __post_init__(self) -> None:
+        check_int("hello.version", self.version, 0, U16_MAX)
+        check_text("hello.agent", self.agent)
+
+
+@_register
+@dataclass(frozen=True, slots=True)
+class Welcome(ControlMessage):
+    """Server -> client answer to hello: the user id and the server's limits."""
+
+    TYPE: ClassVar[str] = "welcome"
+    user: int
+    server_time: float
+    """The server clock when it sent welcome, a first guess for clock sync."""
+    version: int = PROTOCOL_VERSION
+    min_rate: float = MIN_RATE
+    max_rate: float = MAX_RATE
+    max_streams: int = MAX_STREAMS_PER_USER
+
+    def __post_init__(self) -> None:
+        check_int("welcome.user", self.user, 0, U16_MAX)
+        _set(self, "server_time", check_float("welcome.server_time", self.server_time))
+        check_int("welcome.version", self.version, 0, U16_MAX)
+        _set(self, "min_rate", check_float("welcome.min_rate", self.min_rate))
+        _set(self, "max_rate", check_float("welcome.max_rate", self.max_rate))
+        check_int("welcome.max_streams", self.max_streams, 1, U16_MAX + 1)
+        if not 0 < self.min_rate <= self.max_rate:
+            raise bad("welcome", "needs 0 < min_rate <= max_rate")
+
+
+@_register
+@dataclass(frozen=True, slots=True)
+class Join(ControlMessage):
+    """Client -> server: enter a room with these streams at this update rate."""
+
+    TYPE: ClassVar[str] = "join"
+    room: str
+    streams: tuple[str, ...]
+    """Stream names: devices ``head``, ``left``, ``right``; objects ``object:NAME``."""
+    rate: float
+    """Requested update rate in Hz, for the snapshots this user receives."""
+    token: str | None = None
+    label: str | None = None
+    """Name of the motion being played (ground truth for evaluation), if any."""
+
+    def __post_init__(self) -> None:
+        check_text("join.room", self.room, empty=False)
+        if not isinstance(self.streams, list | tuple):
+            raise bad("join.streams", "must be a list of names")
+        for name in self.streams:
+            check_text("join.streams", name, empty=False)
+        _set(self, "streams", tuple(self.streams))
+        _set(self, "rate", check_float("join.rate", self.rate))
+        check_optional_text("join.token", self.token)
+        check_optional_text("join.label", self.label)
+
+
+@_register
+@dataclass(frozen=True, slots=True)
+class Joined(ControlMessage):
+    """Server -> client: the join succeeded; the stream ids assigned to each name."""
+
+    TYPE: ClassVar[str] = "joined"
+    room: str
+    streams: dict[str, int]
+    """Stream name -> stream id (u16, unique within the room)."""
+    rate: float
+    """Granted update rate in Hz."""
+
+    def __post_init__(self) -> None:
+        check_text("joined.room", self.room, empty=False)
+        _set(self, "streams", check_stream_map("joined.streams", self.streams))
+        _set(self, "rate", check_float("joined.rate", self.rate))
+
+
+@_register
+@dataclass(frozen=True, slots=True)
+class PeerJoined(ControlMessage):
+    """Server -> client: another user is in the room, with these streams."""
+
+    TYPE: ClassVar[str] = "peer_joined"
+    user: int
+    streams: dict[str, int]
+    label: str | None = None
+
+    def __post_init__(self) -> None:
+        check_int("peer_joined.user", self.user, 0, U16_MAX)
+        _set(self, "streams", check_stream_map("peer_joined.streams", self.streams))
+        check_optional_text("peer_joined.label", self.label)
+
+
+@_register
+@dataclass(frozen=True, slots=True)
+class PeerLeft(ControlMessage):
+    """Server -> client: a user left the room; its streams are gone."""
+
+    TYPE: ClassVar[str] = "peer_left"
+    user: int
+    reason: str = ""
+
+    def __post_init__(self) -> None:
+        check_int("peer_left.user", self.user, 0, U16_MAX)
+        check_text("peer_left.reason", self.reason)
+
+
+@_register
+@dataclass(frozen=True, slots=True)
+class Ping(ControlMessage):
+    """Either way, after welcome: clock sync probe stamped with the sender's clock."""
+
+    TYPE: ClassVar[str] = "ping"
+    seq: int
+    time: float
+
+    def __post_init__(self) -> None:
+        check_int("ping.seq", self.seq, 0, U63_MAX)
+        _set(self, "time", check_float("ping.time", self.time))
+
+
+@_register
+@dataclass(frozen=True, slots=True)
+class Pong(ControlMessage):
+    """Answer to ping: NTP's four timestamps minus the last, which the receiver takes.
+
+    Offset of the answering clock = ((recv_time - ping_time) + (send_time - t3)) / 2
+    and round trip = (t3 - ping_time) - (send_time - recv_time), t3 = arrival time.
+    """
+
+    TYPE: ClassVar[str] = "pong"
+    seq: int
+    ping_time: float
+    recv_time: float
+    send_time: float
+
+    def __post_init__(self) -> None:
+        check_int("pong.seq", self.seq, 0, U63_MAX)
+        for name in ("ping_time", "recv_time", "send_time"):
+            _set(self, name, check_float(f"pong.{name}", getattr(self, name)))
+
+    def offset(self, arrival_time: float) -> float:
+        """Answering clock minus pinging clock, given when (pinger's clock) the pong arrived."""
+        return ((self.recv_time - self.ping_time) + (self.send_time - arrival_time)) / 2
+
+    def round_trip(self, arrival_time: float) -> float:
+        """Network round trip, the answerer's time between receive and send excluded."""
+        return (arrival_time - self.ping_time) - (self.send_time - self.recv_time)
+
+
+@_register
+@dataclass(frozen=True, slots=True)
+class SetRate(ControlMessage):
+    """Client -> server, once joined: change the update rate this user receives."""
+
+    TYPE: ClassVar[str] = "set_rate"
+    rate: float
+
+    def __post_init__(self) -> None:
+        _set(self, "rate", check_float("set_rate.rate", self.rate))
+
+
+@_register
+@dataclass(frozen=True, slots=True)
+class UserEvent(ControlMessage):
+    """Either way, once joined: a reliable, ordered interaction event.
+
+    A client leaves ``user`` as None (or its own id); the server session stamps
+    the sender's id before returning it, and the server relays it with that id.
+    """
+
+    TYPE: ClassVar[str] = "event"
+    kind: str
+    """One of EVENT_KINDS: grab, release, button, scene_step."""
+    stream: int | None = None
+    """The stream the event is about (the grabbing hand, the pressed controller)."""
+    user: int | None = None
+    time: float | None = None
+    """When it happened, in server time."""
+    payload: dict[str, Any] = field(default_factory=dict)
+    """Free-form msgpack map, e.g. {"object": "object:drill"}; arrays are stored as tuples."""
+
+    def __post_init__(self) -> None:
+        # The type check comes first: an unhashable kind must not reach "in".
+        if type(self.kind) is not str or self.kind not in EVENT_KINDS:
+            raise bad("event.kind", f"must be one of {', '.join(sorted(EVENT_KINDS))}")
+        check_optional_int("event.stream", self.stream, 0, U16_MAX)
+        check_optional_int("event.user", self.user, 0, U16_MAX)
+        _set(self, "time", check_optional_float("event.time", self.time))
+        _set(self, "payload", check_payload("event.payload", self.payload))
+
+
+@_register
+@dataclass(frozen=True, slots=True)
+class ErrorMessage(ControlMessage):
+    """Either way: tell the peer what it did wrong (codes in ``protocol.errors``).
+
+    ``in_reply_to`` names the type of the message refused ("join", "update", ...);
+    a non-fatal error in reply to "join" means the join was refused and the
+    client may join again.
+    """
+
+    TYPE: ClassVar[str] = "error"
+    code: str
+    message: str
+    fatal: bool = False
+    in_reply_to: str | None = None
+
+    def __post_init__(self) -> None:
+        check_text("error.code", self.code, max_length=_MAX_CODE_LENGTH, empty=False)
+        check_text("error.message", self.message)
+        check_bool("error.fatal", self.fatal)
+        check_optional_text("error.in_reply_to", self.in_reply_to)
+
+    @classmethod
+    def from_code(
+        cls, code: ErrorCode, message: str, *, in_reply_to: str | None = None
+    ) -> ErrorMessage:
+        """An error message whose fatality follows the code table."""
+        return cls(code=str(code), message=message, fatal=code.fatal, in_reply_to=in_reply_to)
+
+
+@_register
+@dataclass(frozen=True, slots=True)
+class Bye(ControlMessage):
+    """Either way: the sender is leaving; the session is over."""
+
+    TYPE: ClassVar[str] = "bye"
+    reason: str = ""
+
+    def __post_init__(self) -> None:
+        check_text("bye.reason", self.reason)

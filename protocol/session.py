@@ -1,0 +1,389 @@
+"""Sessions: one object per connection end, holding state and enforcing the rules.
+
+``receive_data(frame)`` takes one complete websocket message and returns the
+events it carries (today always zero or one); it never raises for anything the
+peer sent. ``send(message)`` checks that this side may send it now and returns
+the frame bytes; it raises ``LocalProtocolError`` for a local mistake. Neither
+touches a socket or a clock.
+
+The state table is in ``protocol._state``. On top of it, sessions check what
+depends on limits and on what was agreed earlier:
+
+- hello/welcome: same ``PROTOCOL_VERSION``;
+- join: at most ``max_streams`` valid, distinct names, rate in
+  [min_rate, max_rate] (the client checks against the limits its welcome
+  announced, the server against its own ``Limits``);
+- joined: the stream ids the server assigns become the user's own; the names
+  must be those of the join;
+- update: at most as many entries as owned streams, every stream owned and
+  named once, every pose finite with a unit quaternion (else the update is
+  dropped with a non-fatal "bad-pose");
+- event: its stream owned by the sender, payload small enough; the server
+  session stamps the sender's user id on it;
+- snapshot (client): poses finite and unit, else dropped with "bad-pose".
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from typing import ClassVar
+
+import msgpack
+
+from protocol._state import ERROR_FATAL, ERROR_JOIN, TRANSITIONS, Role, State, moves
+from protocol.errors import ErrorCode, LocalProtocolError, ProtocolViolation
+from protocol.events import Event, Message, ProtocolError
+from protocol.limits import DEFAULT_LIMITS, PROTOCOL_VERSION, Limits
+from protocol.messages import (
+    ErrorMessage,
+    Hello,
+    Join,
+    Joined,
+    PeerJoined,
+    PeerLeft,
+    SetRate,
+    UserEvent,
+    Welcome,
+    is_valid_stream_name,
+)
+from protocol.poses import PoseUpdate, Snapshot, pose_problem
+from protocol.wire import decode_message, encode_message
+
+__all__ = ["ClientSession", "ServerSession", "SessionStatistics"]
+
+# Which kinds each role may ever send, to tell "wrong side" from "wrong time".
+_SENDABLE: dict[Role, frozenset[str]] = {
+    role: frozenset(kind for table in TRANSITIONS.values() for (r, kind) in table if r is role)
+    for role in Role
+}
+
+# (sender, state) -> {kind: next state}, precomputed for the hot path.
+_MOVES: dict[tuple[Role, State], dict[str, State]] = {
+    (role, state): moves(role, state) for role in Role for state in State
+}
+
+_TOO_EARLY = {
+    State.START: "before hello",
+    State.HELLO: "before welcome",
+    State.READY: "before join",
+    State.JOINING: "before joined",
+    State.JOINED: "while joined",
+    State.CLOSED: "after the session closed",
+}
+
+
+def _kind(message: Message) -> str:
+    if type(message) is ErrorMessage:
+        if message.fatal:
+            return ERROR_FATAL
+        if message.in_reply_to == "join":
+            return ERROR_JOIN
+    return message.TYPE
+
+
+@dataclass(frozen=True, slots=True)
+class SessionStatistics:
+    """Counters of one session since it was created."""
+
+    state: State
+    frames_received: int
+    bytes_received: int
+    frames_sent: int
+    bytes_sent: int
+    errors: int
+    """ProtocolError events returned by receive_data."""
+
+
+class _Session:
+    """What client and server sessions share: the state walk and the counters."""
+
+    ROLE: ClassVar[Role]
+    PEER: ClassVar[Role]
+
+    def __init__(self, limits: Limits = DEFAULT_LIMITS) -> None:
+        self.limits = limits
+        self.state = State.START
+        self._peer_moves = _MOVES[self.PEER, State.START]
+        self.user: int | None = None
+        """This session's user id, from welcome."""
+        self.room: str | None = None
+        self.streams: dict[str, int] = {}
+        """The user's own streams, name -> id, from joined."""
+        self.rate: float | None = None
+        """The agreed update rate in Hz, from joined and accepted set_rate."""
+        self._owned: frozenset[int] = frozenset()
+        self._pending_join: Join | None = None
+        self._frames_in = self._bytes_in = self._frames_out = self._bytes_out = 0
+        self._errors = 0
+
+    @property
+    def closed(self) -> bool:
+        """Whether the session is over (bye or a fatal error)."""
+        return self.state is State.CLOSED
+
+    @property
+    def owned_streams(self) -> frozenset[int]:
+        """Ids of the streams assigned to this user."""
+        return self._owned
+
+    def statistics(self) -> SessionStatistics:
+        """A frozen copy of the counters."""
+        return SessionStatistics(
+            self.state,
+            self._frames_in,
+            self._bytes_in,
+            self._frames_out,
+            self._bytes_out,
+            self._errors,
+        )
+
+    def receive_data(self, data: bytes | bytearray | memoryview | str) -> list[Event]:
+        """Events carried by one complete websocket message from the peer; never raises.
+
+        A text frame (``str``) is a fatal bad-frame: posecast frames are binary.
+        """
+        if self.state is State.CLOSED:
+            return []
+        self._frames_in += 1
+        self._bytes_in += len(data)
+        type_: str | None = None
+        try:
+            message = decode_message(data, max_frame_size=self.limits.max_frame_size)
+            type_ = message.TYPE
+            new_state = self._peer_moves.get(_kind(message))
+            if new_state is None:
+                raise self._unexpected(message, self.PEER, type_)
+            message = self._check_received(message)
+        except ProtocolViolation as exc:
+            self._errors += 1
+            error = ProtocolError(exc.code, exc.message, exc.in_reply_to or type_)
+            if error.fatal:
+                self._move(State.CLOSED)
+            return [error]
+        if new_state is not self.state:
+            self._move(new_state)
+        return [message]
+
+    def send(self, message: Message) -> bytes:
+        """Frame bytes of ``message``; raises LocalProtocolError if it may not be sent now."""
+        new_state = _MOVES[self.ROLE, self.state].get(_kind(message))
+        if new_state is None:
+            exc = self._unexpected(message, self.ROLE, message.TYPE)
+            raise LocalProtocolError(exc.code, f"cannot send {exc.message}")
+        try:
+            self._check_sent(message)
+        except LocalProtocolError:
+            raise
+        except ProtocolViolation as exc:
+            raise LocalProtocolError(exc.code, exc.message) from None
+        data = encode_message(message)
+        if len(data) > self.limits.max_frame_size:
+            raise LocalProtocolError(
+                ErrorCode.FRAME_TOO_LARGE,
+                f"frame of {len(data)} bytes over {self.limits.max_frame_size}",
+            )
+        self._sent(message)
+        self._move(new_state)
+        self._frames_out += 1
+        self._bytes_out += len(data)
+        return data
+
+    def _move(self, state: State) -> None:
+        self.state = state
+        self._peer_moves = _MOVES[self.PEER, state]
+
+    def _unexpected(self, message: Message, sender: Role, type_: str) -> ProtocolViolation:
+        if _kind(message) not in _SENDABLE[sender]:
+            text = f"{type_} from a {sender.value}"
+        else:
+            text = f"{type_} {_TOO_EARLY[self.state]}"
+        return ProtocolViolation(ErrorCode.UNEXPECTED_MESSAGE, text)
+
+    def _check_received(self, message: Message) -> Message:
+        """Role rules for an incoming message; may return it amended. Raises ProtocolViolation."""
+        raise NotImplementedError
+
+    def _check_sent(self, message: Message) -> None:
+        """Role rules for an outgoing message, applied before it is encoded."""
+        raise NotImplementedError
+
+    def _sent(self, message: Message) -> None:
+        """Record what an outgoing message settles, once it is surely sent."""
+
+    # Shared checks -------------------------------------------------------
+
+    def _check_update(self, update: PoseUpdate) -> None:
+        entries = update.entries
+        owned = self._owned
+        if len(entries) > len(owned):
+            raise ProtocolViolation(
+                ErrorCode.TOO_MANY_STREAMS,
+                f"update has {len(entries)} poses for {len(owned)} streams",
+            )
+        ids = entries["stream"].tolist()
+        seen = set(ids)
+        if not seen <= owned:
+            raise ProtocolViolation(
+                ErrorCode.STREAM_NOT_OWNED, f"stream {min(seen - owned)} not owned"
+            )
+        if len(seen) != len(ids):
+            raise ProtocolViolation(ErrorCode.DUPLICATE_STREAM, "stream twice in one update")
+        problem = pose_problem(entries)
+        if problem is not None:
+            raise ProtocolViolation(ErrorCode.BAD_POSE, problem)
+
+    def _check_event(self, event: UserEvent) -> None:
+        if event.user is not None and event.user != self.user:
+            raise ProtocolViolation(ErrorCode.BAD_MESSAGE, "event.user is not the sender")
+        if event.stream is not None and event.stream not in self._owned:
+            raise ProtocolViolation(ErrorCode.STREAM_NOT_OWNED, f"stream {event.stream} not owned")
+        size = len(msgpack.packb(event.payload))
+        if size > self.limits.max_event_payload:
+            raise ProtocolViolation(
+                ErrorCode.PAYLOAD_TOO_LARGE,
+                f"event payload of {size} bytes over {self.limits.max_event_payload}",
+            )
+
+    def _check_names(self, names: tuple[str, ...], max_streams: int) -> None:
+        if len(names) > max_streams:
+            raise ProtocolViolation(
+                ErrorCode.TOO_MANY_STREAMS, f"{len(names)} streams, at most {max_streams}"
+            )
+        if not names:
+            raise ProtocolViolation(ErrorCode.BAD_STREAM_NAME, "no streams")
+        for name in names:
+            if not is_valid_stream_name(name, self.limits.max_stream_name_length):
+                raise ProtocolViolation(ErrorCode.BAD_STREAM_NAME, f"bad stream name {name[:40]!r}")
+        if len(set(names)) != len(names):
+            raise ProtocolViolation(ErrorCode.BAD_STREAM_NAME, "duplicate stream name")
+
+    @staticmethod
+    def _check_rate(rate: float, lo: float, hi: float) -> None:
+        if not lo <= rate <= hi:
+            raise ProtocolViolation(
+                ErrorCode.BAD_RATE, f"rate {rate:g} hz outside [{lo:g}, {hi:g}]"
+            )
+
+    def _accept_joined(self, joined: Joined) -> None:
+        join = self._pending_join
+        if join is None or joined.room != join.room or set(joined.streams) != set(join.streams):
+            raise ProtocolViolation(ErrorCode.BAD_MESSAGE, "joined does not match the join")
+
+
+class ServerSession(_Session):
+    """The server's end of one connection.
+
+    The server assigns the user id in ``welcome`` (see ``make_welcome``) and the
+    stream ids in ``joined``; sending them through this session is what makes
+    them the user's own. Snapshots usually bypass the session: encode them once
+    with ``encode_snapshot`` and send the same bytes to every due subscriber.
+    """
+
+    ROLE = Role.SERVER
+    PEER = Role.CLIENT
+
+    def make_welcome(self, user: int, server_time: float) -> Welcome:
+        """A welcome that announces this session's limits."""
+        return Welcome(
+            user=user,
+            server_time=server_time,
+            min_rate=self.limits.min_rate,
+            max_rate=self.limits.max_rate,
+            max_streams=self.limits.max_streams,
+        )
+
+    def assign_streams(self, streams: Mapping[str, int]) -> None:
+        """Make these stream ids the user's own without sending joined (tests, replays)."""
+        self.streams = dict(streams)
+        self._owned = frozenset(self.streams.values())
+
+    def _check_received(self, message: Message) -> Message:
+        if isinstance(message, PoseUpdate):
+            self._check_update(message)
+        elif isinstance(message, Join):
+            self._check_names(message.streams, self.limits.max_streams)
+            self._check_rate(message.rate, self.limits.min_rate, self.limits.max_rate)
+            self._pending_join = message
+        elif isinstance(message, SetRate):
+            self._check_rate(message.rate, self.limits.min_rate, self.limits.max_rate)
+            self.rate = message.rate
+        elif isinstance(message, UserEvent):
+            self._check_event(message)
+            return replace(message, user=self.user)
+        return message
+
+    def _check_sent(self, message: Message) -> None:
+        if isinstance(message, Welcome):
+            if message.version != PROTOCOL_VERSION:
+                raise ProtocolViolation(ErrorCode.VERSION_MISMATCH, "welcome of another version")
+        elif isinstance(message, Joined):
+            self._accept_joined(message)
+            self._check_names(tuple(message.streams), self.limits.max_streams)
+            self._check_rate(message.rate, self.limits.min_rate, self.limits.max_rate)
+
+    def _sent(self, message: Message) -> None:
+        if isinstance(message, Welcome):
+            self.user = message.user
+        elif isinstance(message, Joined):
+            self.room = message.room
+            self.rate = message.rate
+            self.assign_streams(message.streams)
+
+
+class ClientSession(_Session):
+    """The client's end of one connection.
+
+    Joins are checked against the limits the server announced in welcome.
+    ``peers`` follows peer_joined/peer_left: user id -> (stream name -> id).
+    """
+
+    ROLE = Role.CLIENT
+    PEER = Role.SERVER
+
+    def __init__(self, limits: Limits = DEFAULT_LIMITS) -> None:
+        super().__init__(limits)
+        self.welcome: Welcome | None = None
+        self.peers: dict[int, dict[str, int]] = {}
+
+    def _check_received(self, message: Message) -> Message:
+        if isinstance(message, Snapshot):
+            problem = pose_problem(message.entries)
+            if problem is not None:
+                raise ProtocolViolation(ErrorCode.BAD_POSE, problem)
+        elif isinstance(message, Welcome):
+            self.welcome = message
+            self.user = message.user
+        elif isinstance(message, Joined):
+            self._accept_joined(message)
+            self.room = message.room
+            self.rate = message.rate
+            self.streams = dict(message.streams)
+            self._owned = frozenset(self.streams.values())
+        elif isinstance(message, PeerJoined):
+            self.peers[message.user] = dict(message.streams)
+        elif isinstance(message, PeerLeft):
+            self.peers.pop(message.user, None)
+        return message
+
+    def _check_sent(self, message: Message) -> None:
+        if isinstance(message, PoseUpdate):
+            self._check_update(message)
+        elif isinstance(message, Hello):
+            if message.version != PROTOCOL_VERSION:
+                raise ProtocolViolation(ErrorCode.VERSION_MISMATCH, "hello of another version")
+        elif isinstance(message, Join):
+            welcome = self.welcome
+            assert welcome is not None  # the state table only allows join after welcome
+            self._check_names(message.streams, min(welcome.max_streams, self.limits.max_streams))
+            self._check_rate(message.rate, welcome.min_rate, welcome.max_rate)
+        elif isinstance(message, SetRate):
+            welcome = self.welcome
+            assert welcome is not None
+            self._check_rate(message.rate, welcome.min_rate, welcome.max_rate)
+        elif isinstance(message, UserEvent):
+            self._check_event(message)
+
+    def _sent(self, message: Message) -> None:
+        if isinstance(message, Join):
+            self._pending_join = message
