@@ -5,6 +5,7 @@ Public API: :func:`get` (name to ``f(a, b, s)``), :func:`names`,
 error measures.
 """
 
+from interp.cubic import VELOCITY_SIZE, motor_cubic, motor_hermite, screw_extrapolate
 from interp.methods import dq_slerp, motor_lerp, soa
 from interp.metrics import TIP_OFFSET_M, position_error_mm, rotation_error_deg, tip_error_mm
 from interp.pose import (
@@ -25,6 +26,7 @@ from interp.registry import (
     ENTRY_POINT_GROUP,
     Interpolator,
     InterpolatorInfo,
+    Kind,
     get,
     info,
     names,
@@ -35,9 +37,11 @@ from interp.track import Brackets, TrackResult, bracket, evaluate_track, interpo
 __all__ = [
     "ENTRY_POINT_GROUP",
     "TIP_OFFSET_M",
+    "VELOCITY_SIZE",
     "Brackets",
     "Interpolator",
     "InterpolatorInfo",
+    "Kind",
     "TrackResult",
     "as_pose",
     "bracket",
@@ -48,6 +52,8 @@ __all__ = [
     "info",
     "interpolate_brackets",
     "matrix_to_pose",
+    "motor_cubic",
+    "motor_hermite",
     "motor_lerp",
     "motor_to_pose",
     "names",
@@ -62,6 +68,7 @@ __all__ = [
     "quat_rotate",
     "register",
     "rotation_error_deg",
+    "screw_extrapolate",
     "soa",
     "tip_error_mm",
 ]

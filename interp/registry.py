@@ -11,9 +11,11 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import metadata
+from typing import Any, Literal
 
 from numpy.typing import ArrayLike
 
+from interp.cubic import motor_cubic, motor_hermite
 from interp.methods import dq_slerp, motor_lerp, soa
 from interp.pose import F64
 
@@ -21,6 +23,7 @@ __all__ = [
     "ENTRY_POINT_GROUP",
     "Interpolator",
     "InterpolatorInfo",
+    "Kind",
     "get",
     "info",
     "names",
@@ -30,6 +33,14 @@ __all__ = [
 ENTRY_POINT_GROUP = "posecast.interpolators"
 
 Interpolator = Callable[[ArrayLike, ArrayLike, ArrayLike], F64]
+"""A pair interpolator ``f(a, b, s)``."""
+
+#: How an interpolator is called:
+#: ``pair``: ``f(a, b, s)`` on the two bracketing keyframes;
+#: ``window``: ``f(keys (..., 4, 7), times (..., 4), t)`` on the bracket and one
+#: neighbour each side (a missing neighbour repeats its bracket keyframe);
+#: ``velocity``: ``f(a, b, va, vb, dt, s)`` with (..., 6) keyframe velocities.
+Kind = Literal["pair", "window", "velocity"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -37,10 +48,15 @@ class InterpolatorInfo:
     """A registered interpolator and what the receiver must know to use it."""
 
     name: str
-    func: Interpolator
+    func: Callable[..., F64]
     description: str
     #: Whether it commutes with a change of world frame (rigid-motion methods).
     frame_invariant: bool
+    kind: Kind = "pair"
+    #: Keyframes needed after the bracket (each costs one interval of playout delay).
+    lookahead: int = 0
+    #: Whether keyframes must carry velocities (6 more floats each).
+    needs_velocity: bool = False
 
 
 _REGISTRY: dict[str, InterpolatorInfo] = {}
@@ -49,10 +65,11 @@ _entry_points_loaded = False
 
 def register(
     name: str,
-    func: Interpolator,
+    func: Callable[..., F64],
     *,
     description: str = "",
     frame_invariant: bool = False,
+    kind: Kind = "pair",
     replace: bool = False,
 ) -> None:
     """Register ``func`` under ``name``; refuse to shadow a name unless ``replace``."""
@@ -60,7 +77,17 @@ def register(
         raise ValueError(f"invalid interpolator name {name!r}")
     if name in _REGISTRY and not replace:
         raise ValueError(f"interpolator {name!r} is already registered")
-    _REGISTRY[name] = InterpolatorInfo(name, func, description, frame_invariant)
+    if kind not in ("pair", "window", "velocity"):
+        raise ValueError(f"invalid interpolator kind {kind!r}")
+    _REGISTRY[name] = InterpolatorInfo(
+        name,
+        func,
+        description,
+        frame_invariant,
+        kind,
+        lookahead=1 if kind == "window" else 0,
+        needs_velocity=kind == "velocity",
+    )
 
 
 def _load_entry_points() -> None:
@@ -71,10 +98,11 @@ def _load_entry_points() -> None:
     for ep in metadata.entry_points(group=ENTRY_POINT_GROUP):
         if ep.name in _REGISTRY:
             continue  # built-ins win; a plug-in cannot silently replace them
-        func = ep.load()
+        func: Any = ep.load()
         if not callable(func):
             raise TypeError(f"entry point {ep.name!r} ({ep.value}) is not callable")
-        register(ep.name, func, description=f"plug-in from {ep.value}")
+        kind: Kind = getattr(func, "posecast_kind", "pair")
+        register(ep.name, func, description=f"plug-in from {ep.value}", kind=kind)
 
 
 def names() -> list[str]:
@@ -92,8 +120,8 @@ def info(name: str) -> InterpolatorInfo:
         raise KeyError(f"unknown interpolator {name!r}; known: {', '.join(_REGISTRY)}") from None
 
 
-def get(name: str) -> Interpolator:
-    """The callable ``f(a, b, s)`` registered under ``name``."""
+def get(name: str) -> Callable[..., F64]:
+    """The callable registered under ``name`` (``f(a, b, s)`` for pair methods)."""
     return info(name).func
 
 
@@ -114,4 +142,18 @@ register(
     motor_lerp,
     description="linear blend of 3D PGA motors, then Study-number normalisation",
     frame_invariant=True,
+)
+register(
+    "motor-cubic",
+    motor_cubic,
+    description="Catmull-Rom cubic on motors over 4 keyframes (1 keyframe look-ahead)",
+    frame_invariant=True,
+    kind="window",
+)
+register(
+    "motor-hermite",
+    motor_hermite,
+    description="Hermite cubic on motors from keyframe poses + tracker velocities",
+    frame_invariant=True,
+    kind="velocity",
 )

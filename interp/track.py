@@ -9,12 +9,13 @@ batched interpolator call renders every stream at every query.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from interp.pose import F64, as_pose
-from interp.registry import Interpolator, get
+from interp.registry import Interpolator, info
 
 __all__ = ["Brackets", "TrackResult", "bracket", "evaluate_track", "interpolate_brackets"]
 
@@ -77,11 +78,14 @@ def evaluate_track(
     poses: ArrayLike,
     query: ArrayLike,
     method: str | Interpolator = "soa",
+    velocities: ArrayLike | None = None,
 ) -> TrackResult:
     """Render ``S`` streams at ``Q`` query times from ``K`` shared keyframes.
 
     ``poses`` is ``(K, S, 7)`` (or ``(K, 7)`` for one stream, returning
-    ``(Q, 1, 7)``); ``method`` is a registered name or an interpolator callable.
+    ``(Q, 1, 7)``); ``method`` is a registered name or a pair interpolator
+    callable; window methods use the neighbouring keyframes, velocity methods
+    need ``velocities (K, S, 6)``.
     """
     p = as_pose(poses, "poses")
     if p.ndim == 2:
@@ -92,7 +96,10 @@ def evaluate_track(
     if t.shape != (p.shape[0],):
         raise ValueError(f"expected `times` to have shape ({p.shape[0]},), got {t.shape}")
     br = bracket(t, query)
-    return TrackResult(poses=interpolate_brackets(p, br.lo, br.hi, br.s, method), held=br.held)
+    return TrackResult(
+        poses=interpolate_brackets(p, br.lo, br.hi, br.s, method, times=t, velocities=velocities),
+        held=br.held,
+    )
 
 
 def interpolate_brackets(
@@ -101,12 +108,20 @@ def interpolate_brackets(
     hi: ArrayLike,
     s: ArrayLike,
     method: str | Interpolator = "soa",
+    *,
+    times: ArrayLike | None = None,
+    prev: ArrayLike | None = None,
+    nxt: ArrayLike | None = None,
+    velocities: ArrayLike | None = None,
 ) -> F64:
     """Render keyframes ``poses (K, S, 7)`` at given brackets in one batched call.
 
-    ``lo``, ``hi``, ``s`` have shape ``(Q,)`` (shared by all streams) or
-    ``(Q, S)`` (one bracket per stream, e.g. streams of different senders);
-    returns ``(Q, S, 7)``.
+    ``lo``, ``hi``, ``s`` (and ``prev``, ``nxt``) have shape ``(Q,)`` (shared by
+    all streams) or ``(Q, S)`` (one bracket per stream); returns ``(Q, S, 7)``.
+    Window methods also need ``times`` (``(K,)`` or ``(K, S)``) and use the
+    neighbours ``prev``/``nxt`` (default ``lo - 1``/``hi + 1``; pass ``lo``/``hi``
+    where a neighbour is not available); velocity methods need ``velocities``
+    ``(K, S, 6)`` and ``times``.
     """
     p = np.asarray(poses, dtype=np.float64)
     if p.ndim != 3 or p.shape[-1] != 7:
@@ -114,8 +129,44 @@ def interpolate_brackets(
     lo_a = np.asarray(lo, dtype=np.intp)
     hi_a = np.asarray(hi, dtype=np.intp)
     s_a = np.asarray(s, dtype=np.float64)
-    f = get(method) if isinstance(method, str) else method
-    if lo_a.ndim == 1:
-        return f(p[lo_a], p[hi_a], s_a[:, None])
+    if isinstance(method, str):
+        entry = info(method)
+        f, kind = entry.func, entry.kind
+    else:
+        f, kind = method, "pair"
+    per_stream = lo_a.ndim == 2
     cols = np.arange(p.shape[1])
-    return f(p[lo_a, cols], p[hi_a, cols], s_a)
+
+    def take(x: NDArray[Any], idx: NDArray[np.intp]) -> NDArray[Any]:
+        """Rows ``idx`` of a (K, S, ...) array: (Q, S, ...)."""
+        return x[idx, cols] if per_stream else x[idx]
+
+    if kind == "pair":
+        return f(take(p, lo_a), take(p, hi_a), s_a if per_stream else s_a[:, None])
+    if not per_stream:
+        s_a = np.broadcast_to(s_a[:, None], (s_a.shape[0], p.shape[1]))
+    if times is None:
+        raise ValueError(f"interpolator {method!r} needs keyframe `times`")
+    t = np.asarray(times, dtype=np.float64)
+    t2 = np.broadcast_to(t[:, None], p.shape[:2]) if t.ndim == 1 else t
+    t_lo, t_hi = take(t2, lo_a), take(t2, hi_a)
+    if kind == "window":
+        k = p.shape[0]
+        pv = np.clip(lo_a - 1, 0, k - 1) if prev is None else np.asarray(prev, dtype=np.intp)
+        nx = np.clip(hi_a + 1, 0, k - 1) if nxt is None else np.asarray(nxt, dtype=np.intp)
+        keys = np.stack([take(p, pv), take(p, lo_a), take(p, hi_a), take(p, nx)], axis=-2)
+        ktimes = np.stack([take(t2, pv), t_lo, t_hi, take(t2, nx)], axis=-1)
+        return f(keys, ktimes, t_lo + s_a * (t_hi - t_lo))
+    if velocities is None:
+        raise ValueError(f"interpolator {method!r} needs keyframe `velocities`")
+    v = np.asarray(velocities, dtype=np.float64)
+    span = t_hi - t_lo
+    held = span <= 0
+    return f(
+        take(p, lo_a),
+        take(p, hi_a),
+        take(v, lo_a),
+        take(v, hi_a),
+        np.where(held, 1.0, span),
+        np.where(held, 0.0, s_a),
+    )
