@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
+from interp import info
 from scenarios.qoe import KeyframeLog, evaluate_group, ideal_delay, sample_keyframes, summarize
 from scenarios.traces import Trace, load_trace
 
@@ -21,14 +22,27 @@ Comparison = dict[float, dict[str, dict[str, dict[str, float]]]]
 
 
 def compare_trace(trace: Trace, rates: Sequence[float], methods: Sequence[str]) -> Comparison:
-    """QoE of each method at each rate on one trace, ideal network."""
+    """QoE of each method at each rate on one trace, ideal network.
+
+    Each method gets one-interval playout plus its own look-ahead (a window
+    method waits one interval more for the keyframe after the bracket).
+    """
     out: Comparison = {}
+    vel = trace.velocities() if any(info(m).needs_velocity for m in methods) else None
     for rate in rates:
         send, idx = sample_keyframes(trace.times, rate)
         # Ideal link: a keyframe arrives the instant it is sent.
-        log = KeyframeLog(capture=trace.times[idx], arrival=send, poses=trace.poses[idx])
-        delay = ideal_delay(rate, trace.native_rate)
-        out[rate] = summarize([evaluate_group(trace, log, delay, methods)])
+        log = KeyframeLog(
+            capture=trace.times[idx],
+            arrival=send,
+            poses=trace.poses[idx],
+            velocities=None if vel is None else vel[idx],
+        )
+        groups = []
+        for m in methods:
+            delay = ideal_delay(rate, trace.native_rate, info(m).lookahead)
+            groups.append(evaluate_group(trace, log, delay, [m]))
+        out[rate] = summarize(groups)
     return out
 
 

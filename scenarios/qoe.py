@@ -20,7 +20,15 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from interp import interpolate_brackets, position_error_mm, rotation_error_deg, tip_error_mm
+from interp import (
+    info as interp_info,
+)
+from interp import (
+    interpolate_brackets,
+    position_error_mm,
+    rotation_error_deg,
+    tip_error_mm,
+)
 from scenarios.traces import Trace, device_class
 
 __all__ = [
@@ -66,6 +74,8 @@ class KeyframeLog:
     capture: F64
     arrival: F64
     poses: F64
+    #: Optional (K, S, 6) tracker velocities sent with the keyframes.
+    velocities: F64 | None = None
 
     def __post_init__(self) -> None:
         k = self.capture.shape[0]
@@ -75,6 +85,10 @@ class KeyframeLog:
             raise ValueError(f"expected `poses` to have shape ({k}, S, 7), got {self.poses.shape}")
         if k > 1 and not np.all(np.diff(self.capture) > 0):
             raise ValueError("expected `capture` to be strictly increasing")
+        if self.velocities is not None and self.velocities.shape != (*self.poses.shape[:2], 6):
+            raise ValueError(
+                f"expected `velocities` to have shape ({k}, S, 6), got {self.velocities.shape}"
+            )
 
 
 @dataclass(frozen=True)
@@ -83,6 +97,8 @@ class Playout:
 
     ``missing`` marks queries for which no keyframe had arrived at all (nothing
     to show; they count as stalls and are left out of the error statistics).
+    ``prev``/``nxt`` are the arrived neighbours of the bracket (``lo``/``hi``
+    themselves when none had arrived), for window interpolators.
     """
 
     lo: NDArray[np.intp]
@@ -90,6 +106,8 @@ class Playout:
     s: F64
     stall: NDArray[np.bool_]
     missing: NDArray[np.bool_]
+    prev: NDArray[np.intp] | None = None
+    nxt: NDArray[np.intp] | None = None
 
 
 def sample_keyframes(
@@ -114,14 +132,15 @@ def sample_keyframes(
     return send[first], idx[first]
 
 
-def ideal_delay(rate: float, native_rate: float) -> float:
-    """One-interval playout on an ideal network.
+def ideal_delay(rate: float, native_rate: float, lookahead: int = 0) -> float:
+    """One-interval playout on an ideal network (plus any look-ahead intervals).
 
     One send interval plus one native frame: a keyframe is captured up to one
     native frame before its send time, so this is the smallest delay at which an
-    ideal link never stalls.
+    ideal link never stalls. A method that needs ``lookahead`` keyframes past
+    the bracket waits that many intervals more.
     """
-    return 1.0 / rate + 1.0 / native_rate
+    return (1.0 + lookahead) / rate + 1.0 / native_rate
 
 
 def playout_brackets(capture: F64, arrival: F64, query: F64, delay: float | F64) -> Playout:
@@ -175,12 +194,33 @@ def playout_brackets(capture: F64, arrival: F64, query: F64, delay: float | F64)
     hi_out = np.where(bracketed, np.clip(hi, 0, k - 1), hold)
     span = capture[hi_out] - capture[lo_out]
     s = np.where(span > 0, (q - capture[lo_out]) / np.where(span > 0, span, 1.0), 0.0)
+    # Arrived neighbours: step outwards past keyframes that had not arrived.
+    prev = lo_out - 1
+    ok = arrived(prev)
+    for _ in range(MAX_REORDER_DEPTH):
+        step = ~ok & (prev >= 0)
+        if not step.any():
+            break
+        prev = np.where(step, prev - 1, prev)
+        ok = arrived(prev)
+    prev = np.where(ok, prev, lo_out)
+    nxt = hi_out + 1
+    ok = arrived(nxt)
+    for _ in range(MAX_REORDER_DEPTH):
+        step = ~ok & (nxt < k)
+        if not step.any():
+            break
+        nxt = np.where(step, nxt + 1, nxt)
+        ok = arrived(nxt)
+    nxt = np.where(ok & bracketed, nxt, hi_out)
     return Playout(
         lo=lo_out.astype(np.intp),
         hi=hi_out.astype(np.intp),
         s=np.clip(s, 0.0, 1.0),
         stall=~bracketed,
         missing=newest < 0,
+        prev=prev.astype(np.intp),
+        nxt=nxt.astype(np.intp),
     )
 
 
@@ -258,8 +298,20 @@ def evaluate_group(
     for name in methods:
         per_class: dict[str, ErrorSamples] = {}
         if taus.size and log.capture.size:
+            entry = interp_info(name)
+            if entry.needs_velocity and log.velocities is None:
+                raise ValueError(f"{name} needs keyframes with velocities")
+            assert play.prev is not None and play.nxt is not None
             rendered = interpolate_brackets(
-                log.poses, play.lo[shown], play.hi[shown], play.s[shown], name
+                log.poses,
+                play.lo[shown],
+                play.hi[shown],
+                play.s[shown],
+                name,
+                times=log.capture,
+                prev=play.prev[shown],
+                nxt=play.nxt[shown],
+                velocities=log.velocities,
             )
             ref = true_poses[shown]
             pos = position_error_mm(rendered, ref)

@@ -61,6 +61,34 @@ class Trace:
         """Median sample rate in Hz."""
         return float(1.0 / np.median(np.diff(self.times)))
 
+    def velocities(self) -> NDArray[np.float64]:
+        """Tracker-style velocities ``(N, S, 6)``: linear (m/s) then angular (rad/s).
+
+        World frame, by central differences over the native samples (one-sided
+        at the ends), standing in for what headset runtimes report with poses.
+        """
+        t = self.times
+        p = self.poses
+        nxt = np.r_[1 : len(t), len(t) - 1]
+        prv = np.r_[0, 0 : len(t) - 1]
+        dt = (t[nxt] - t[prv])[:, None, None]
+        lin = (p[nxt, :, :3] - p[prv, :, :3]) / dt
+        q1, q0 = p[nxt, :, 3:], p[prv, :, 3:]
+        # Angular velocity from the world-frame rotation q1 q0*, via its log.
+        w = q1[..., 0] * q0[..., 0] + np.einsum("...i,...i->...", q1[..., 1:], q0[..., 1:])
+        v = (
+            -q1[..., :1] * q0[..., 1:]
+            + q0[..., :1] * q1[..., 1:]
+            - np.cross(q1[..., 1:], q0[..., 1:])
+        )
+        sign = np.where(w < 0, -1.0, 1.0)
+        w, v = w * sign, v * sign[..., None]
+        nv = np.linalg.norm(v, axis=-1)
+        angle = 2.0 * np.arctan2(nv, w)
+        axis = v / np.where(nv > 0, nv, 1.0)[..., None]
+        ang = axis * (angle / dt[..., 0])[..., None]
+        return np.concatenate([lin, ang], axis=-1)
+
     def select(self, streams: list[str] | tuple[str, ...]) -> Trace:
         """The same trace restricted to ``streams`` (by name, in that order)."""
         missing = [s for s in streams if s not in self.streams]
