@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 from websockets.exceptions import ConnectionClosed
 
 from client.connection import ClientConnection
+from interp import info as interp_info
 from protocol import PeerJoined, PeerLeft, Ping, Pong, Snapshot, encode_update
 from scenarios.motion import MotionSpec, sample_at
 from scenarios.qoe import ErrorSamples, KeyframeLog, evaluate_group
@@ -110,7 +111,15 @@ class _Bot:
         self.cfg = cfg
         self.clock = clock
         self.est = ClockEstimator()
-        self.delay = PlayoutDelay(interval=1.0 / cfg.rate)
+        for m in cfg.methods:
+            if interp_info(m).needs_velocity:
+                raise ValueError(
+                    f"{m} needs keyframes with velocities, which live sessions do not carry "
+                    "yet; use it offline (posecast compare / table1)"
+                )
+        # A window method waits for the keyframe after the bracket: one more interval.
+        lookahead = max(interp_info(m).lookahead for m in cfg.methods)
+        self.delay = PlayoutDelay(interval=(1.0 + lookahead) / cfg.rate)
         self.remote: dict[tuple[int, int], RemoteStream] = {}
         self.peers: dict[int, tuple[dict[int, str], str | None]] = {}
         self.play_t: list[float] = []

@@ -172,22 +172,32 @@ class RenderFrame:
 def render_buffers(
     buffers: Sequence[StreamBuffer], t: float, methods: Sequence[str]
 ) -> RenderFrame:
-    """All non-empty buffers at playout time ``t``: one batched call per method."""
+    """All non-empty buffers at playout time ``t``: one batched call per method.
+
+    Pair methods see the bracket; window methods also the keyframes either side
+    of it (the bracket keyframe itself where the buffer has none).
+    """
     live = [b for b in buffers if len(b)]
-    if not live:
+    n = len(live)
+    if not n:
         return RenderFrame({m: np.empty((0, 7)) for m in methods}, np.zeros(0, dtype=bool))
-    a = np.empty((1, len(live), 7))
-    b = np.empty((1, len(live), 7))
-    s = np.empty((1, len(live)))
-    stalled = np.zeros(len(live), dtype=bool)
+    # Gather each stream's window (prev, lo, hi, next) into a (4, n, 7) track.
+    keys = np.empty((4, n, 7))
+    times = np.empty((4, n))
+    s = np.empty((1, n))
+    stalled = np.zeros(n, dtype=bool)
     for j, buf in enumerate(live):
         lo, hi, frac, stall = buf.bracket(t)
-        a[0, j] = buf.poses[lo]
-        b[0, j] = buf.poses[hi]
+        prev = lo - 1 if lo > 0 else lo
+        nxt = hi + 1 if (hi + 1 < len(buf) and hi > lo) else hi
+        for row, i in enumerate((prev, lo, hi, nxt)):
+            keys[row, j] = buf.poses[i]
+            times[row, j] = buf.times[i]
         s[0, j] = frac
         stalled[j] = stall
-    # Keyframes pre-gathered: brackets are (0, 1) into the stacked pair.
-    pair = np.concatenate([a, b])
-    zero = np.zeros((1, len(live)), dtype=np.intp)
-    out = {m: interpolate_brackets(pair, zero, zero + 1, s, m)[0] for m in methods}
+    idx = np.ones((1, n), dtype=np.intp)
+    out = {
+        m: interpolate_brackets(keys, idx, idx + 1, s, m, times=times, prev=idx - 1, nxt=idx + 2)[0]
+        for m in methods
+    }
     return RenderFrame(out, stalled)

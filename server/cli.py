@@ -63,7 +63,7 @@ def _parse_rates(text: str) -> list[float]:
     return rates
 
 
-def _parse_methods(text: str) -> list[str]:
+def _parse_methods(text: str, live: bool = False) -> list[str]:
     import interp
 
     methods = [m.strip() for m in text.split(",") if m.strip()]
@@ -71,6 +71,13 @@ def _parse_methods(text: str) -> list[str]:
     unknown = [m for m in methods if m not in known]
     if unknown or not methods:
         raise _fail(f"unknown interpolator(s) {unknown}; known: {', '.join(known)}")
+    if live:
+        needs = [m for m in methods if interp.info(m).needs_velocity]
+        if needs:
+            raise _fail(
+                f"{', '.join(needs)} need keyframes with velocities, which live sessions do "
+                "not carry yet; use them with `posecast compare` or `posecast table1`"
+            )
     return methods
 
 
@@ -319,7 +326,7 @@ def bots(
     from scenarios.traces import TraceError, find_traces
 
     _check_bot_args(rate, n, duration)
-    methods = tuple(_parse_methods(interp_))
+    methods = tuple(_parse_methods(interp_, live=True))
     if not motion.startswith("synthetic"):
         try:
             find_traces(motion)
@@ -377,7 +384,7 @@ def demo(
     from server.demo import run_demo
 
     _check_bot_args(rate, bots, duration)
-    methods = tuple(_parse_methods(interp_))
+    methods = tuple(_parse_methods(interp_, live=True))
     if not motion.startswith("synthetic"):
         try:
             find_traces(motion)
@@ -412,6 +419,22 @@ def bench_interp(
 
     sizes = tuple(b for b in (1, 100, 10_000, 1_000_000) if b <= max_batch)
     run_interp_bench(batch_sizes=sizes, console=console)
+
+
+@bench_app.command("relay")
+def bench_relay(
+    clients: Annotated[int, typer.Option(help="Load clients (in a separate process).")] = 500,
+    room_size: Annotated[int, typer.Option(help="Clients per room.")] = 10,
+    rate: Annotated[float, typer.Option(help="Publish and snapshot rate (Hz).")] = 20.0,
+    duration: Annotated[float, typer.Option(help="Measured seconds (after warm-up).")] = 30.0,
+    record: Annotated[bool, typer.Option(help="Record the session on the server.")] = False,
+) -> None:
+    """Relay throughput: server CPU per pose, latency p50/p99, skips, tick lag."""
+    from server.bench import run_relay_bench
+
+    if clients < 1 or room_size < 1 or rate <= 0 or duration <= 0:
+        raise _fail("--clients, --room-size, --rate and --duration must be positive")
+    run_relay_bench(clients, room_size, rate, duration, record=record, console=console)
 
 
 @app.command("interpolators")
