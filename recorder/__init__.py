@@ -1,0 +1,62 @@
+"""Session files: record a room to MCAP, read it back, recover it after a crash.
+
+- :class:`SessionRecorder` (``recorder.writer``): the relay's non-blocking tap;
+  a bounded queue and a writer thread; ``NAME.mcap.part`` renamed on close.
+- :func:`recover`, :func:`find_leftovers`, :func:`recover_leftovers`
+  (``recorder.recovery``): chunk-by-chunk recovery of a ``.part`` file.
+- :class:`SessionReader`, :func:`info`, :func:`format_info`, :func:`load_streams`,
+  :func:`read_records` (``recorder.reader``): records, time ranges, arrays.
+- ``recorder.format``: channels, the pose message layout, :class:`PoseRecord`.
+- ``recorder.scan``: the forgiving linear MCAP parser behind recovery.
+"""
+
+from recorder.format import FormatError, PoseRecord, decode_pose, encode_pose
+from recorder.reader import (
+    DropRecord,
+    EventRecord,
+    PresenceRecord,
+    Record,
+    SessionReader,
+    StreamData,
+    UserInfo,
+    format_info,
+    info,
+    load_streams,
+    read_records,
+)
+from recorder.recovery import (
+    RecoveryError,
+    RecoveryReport,
+    find_leftovers,
+    recover,
+    recover_leftovers,
+)
+from recorder.scan import ScanProblem
+from recorder.writer import RecorderError, RecorderStatistics, SessionRecorder
+
+__all__ = [
+    "DropRecord",
+    "EventRecord",
+    "FormatError",
+    "PoseRecord",
+    "PresenceRecord",
+    "Record",
+    "RecorderError",
+    "RecorderStatistics",
+    "RecoveryError",
+    "RecoveryReport",
+    "ScanProblem",
+    "SessionReader",
+    "SessionRecorder",
+    "StreamData",
+    "UserInfo",
+    "decode_pose",
+    "encode_pose",
+    "find_leftovers",
+    "format_info",
+    "info",
+    "load_streams",
+    "read_records",
+    "recover",
+    "recover_leftovers",
+]

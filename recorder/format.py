@@ -1,0 +1,335 @@
+"""What a posecast session file contains: channels, schemas and the pose message layout.
+
+A session file is an MCAP file (profile ``posecast``) with four channels, always
+registered in this order (so their ids are 1-4 in every file the recorder writes):
+
+=========  ==================  =====================================================
+topic      message encoding    one message per
+=========  ==================  =====================================================
+poses      ``posecast.pose.v1``  client pose update the server accepted (below)
+events     ``json``            reliable event (grab, release, button, scene step, ...)
+presence   ``json``            join / leave / rate change of a user
+drops      ``json``            drop or skip on the server, or records the recorder lost
+=========  ==================  =====================================================
+
+Every message's ``log_time`` is its arrival time on the server clock in
+nanoseconds; ``publish_time`` is the (newest) capture time in nanoseconds, and the
+arrival time for JSON records. ``sequence`` counts every record of the file, over
+all channels, from 0: a gap in it is a lost record. JSON channels carry a
+``jsonschema`` schema so that other tools (Foxglove, ``mcap cat``) can read them.
+
+Pose message layout (little-endian, packed, ``22 + 38 n`` bytes for n streams)::
+
+    offset      type        field
+    0           u8          layout version (1)
+    1           u8          flags (0)
+    2           u16         user id
+    4           u16         n: number of streams in this update
+    6           u64         update sequence number (the client's ``seq``)
+    14          f64         arrival time, s, server clock
+    22          u16[n]      stream ids
+    22 + 2n     u64[n]      capture time bits XOR arrival time bits
+    22 + 10n    u8[4][7n]   the (n, 7) float32 poses, byte-shuffled
+
+Both transforms are exact and exist only to help the chunk compressor: a capture
+time shares its sign, exponent and high mantissa bits with the arrival time, so
+the XOR leaves mostly zero bytes; the poses ``[px, py, pz, qw, qx, qy, qz]`` are
+stored as four byte planes (plane b holds byte b of each of the 7n float32
+values, in row-major order), which groups the slowly varying sign and exponent
+bytes together. Decoding gives back the float64 capture times and the float32
+poses bit for bit (NaN payloads included).
+
+Session metadata lives in MCAP metadata records: ``posecast.session`` (written at
+open: room, posecast version, start time on both clocks, the users present at
+the start as JSON, recorder settings) and ``posecast.session.end`` (written on a
+clean close).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+from collections.abc import Mapping
+from dataclasses import dataclass
+from importlib.metadata import PackageNotFoundError, version
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = [
+    "CHANNELS",
+    "DROPS_TOPIC",
+    "EVENTS_TOPIC",
+    "FORMAT_VERSION",
+    "POSES_TOPIC",
+    "POSE_ENCODING",
+    "POSE_HEADER_SIZE",
+    "POSE_STREAM_SIZE",
+    "PRESENCE_TOPIC",
+    "PROFILE",
+    "QUEUE_OVERFLOW_KIND",
+    "SESSION_END_METADATA",
+    "SESSION_METADATA",
+    "ChannelSpec",
+    "FormatError",
+    "PoseRecord",
+    "decode_json",
+    "decode_pose",
+    "encode_json",
+    "encode_pose",
+    "pose_message_size",
+    "posecast_version",
+    "seconds",
+    "to_ns",
+]
+
+PROFILE = "posecast"
+FORMAT_VERSION = 1
+POSE_ENCODING = "posecast.pose.v1"
+POSES_TOPIC = "poses"
+EVENTS_TOPIC = "events"
+PRESENCE_TOPIC = "presence"
+DROPS_TOPIC = "drops"
+SESSION_METADATA = "posecast.session"
+SESSION_END_METADATA = "posecast.session.end"
+#: ``kind`` of the drops record the recorder writes for records its queue lost.
+QUEUE_OVERFLOW_KIND = "recorder-queue-overflow"
+
+_HEAD = struct.Struct("<BBHHQd")
+POSE_HEADER_SIZE = _HEAD.size
+#: Bytes per stream in a pose message: id u16, capture time u64, pose 7 x f32.
+POSE_STREAM_SIZE = 2 + 8 + 28
+_F64 = struct.Struct("<d")
+_U16 = np.dtype("<u2")
+_U16_MAX = 0xFFFF
+_U64_MAX = (1 << 64) - 1
+
+
+class FormatError(ValueError):
+    """Bytes that are not a valid posecast record, with the reason."""
+
+
+@dataclass(frozen=True)
+class ChannelSpec:
+    """One channel of a session file and its schema, as the recorder registers it."""
+
+    topic: str
+    message_encoding: str
+    schema_name: str
+    schema_encoding: str
+    schema_data: bytes
+
+
+def _json_schema(title: str, required: tuple[str, ...], props: Mapping[str, Any]) -> bytes:
+    schema = {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": title,
+        "type": "object",
+        "properties": dict(props),
+        "required": list(required),
+    }
+    return json.dumps(schema, separators=(",", ":")).encode()
+
+
+_POSE_LAYOUT = (
+    b"posecast pose update, little-endian, packed: u8 version=1, u8 flags=0, u16 user, "
+    b"u16 n, u64 seq, f64 arrival_s; u16[n] stream; u64[n] capture_bits^arrival_bits; "
+    b"u8[4][7n] byte planes of float32 poses (n,7) [px,py,pz,qw,qx,qy,qz], row-major"
+)
+_NUM = {"type": "number"}
+_INT = {"type": "integer"}
+_STR = {"type": "string"}
+
+#: The channels of a session file in registration order (channel id = index + 1).
+CHANNELS: tuple[ChannelSpec, ...] = (
+    ChannelSpec(POSES_TOPIC, POSE_ENCODING, "posecast.PoseUpdate", "posecast.layout", _POSE_LAYOUT),
+    ChannelSpec(
+        EVENTS_TOPIC,
+        "json",
+        "posecast.Event",
+        "jsonschema",
+        _json_schema("posecast event", ("kind",), {"kind": _STR, "time": _NUM, "user": _INT}),
+    ),
+    ChannelSpec(
+        PRESENCE_TOPIC,
+        "json",
+        "posecast.Presence",
+        "jsonschema",
+        _json_schema(
+            "posecast presence (join, leave, rate)",
+            ("kind", "user"),
+            {
+                "kind": {"enum": ["join", "leave", "rate"]},
+                "user": _INT,
+                "time": _NUM,
+                "name": _STR,
+                "label": {"type": ["string", "null"]},
+                "streams": {"type": "object", "additionalProperties": _INT},
+                "rate": _NUM,
+                "reason": _STR,
+            },
+        ),
+    ),
+    ChannelSpec(
+        DROPS_TOPIC,
+        "json",
+        "posecast.Drop",
+        "jsonschema",
+        _json_schema(
+            "posecast drop or skip",
+            ("kind",),
+            {"kind": _STR, "time": _NUM, "user": _INT, "count": _INT},
+        ),
+    ),
+)
+
+
+@dataclass(frozen=True, eq=False)
+class PoseRecord:
+    """One recorded pose update: arrays are read-only, poses ``(n, 7)`` float32."""
+
+    user: int
+    seq: int
+    arrival: float
+    streams: NDArray[np.uint16]
+    capture_times: NDArray[np.float64]
+    poses: NDArray[np.float32]
+
+    def __len__(self) -> int:
+        return len(self.streams)
+
+
+def posecast_version() -> str:
+    """The installed posecast version, or ``"unknown"``."""
+    try:
+        return version("posecast")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def to_ns(t: float) -> int:
+    """Seconds to MCAP nanoseconds (u64): rounded, clamped at 0 and 2**64 - 1."""
+    if 0.0 <= t < 1e10:  # the usual case (NaN fails the test)
+        return int(t * 1e9 + 0.5)
+    if not math.isfinite(t):
+        return 0 if t < 0 or math.isnan(t) else _U64_MAX
+    ns = round(t * 1e9)
+    return 0 if ns < 0 else min(ns, _U64_MAX)
+
+
+def seconds(ns: int) -> float:
+    """MCAP nanoseconds to seconds."""
+    return ns / 1e9
+
+
+def pose_message_size(n: int) -> int:
+    """Bytes of a pose message with ``n`` streams."""
+    return POSE_HEADER_SIZE + POSE_STREAM_SIZE * n
+
+
+def _xor_times(data: bytes, arrival: float) -> bytes:
+    # XOR every 8-byte word of ``data`` with the bits of ``arrival``: one big-int
+    # operation, several times faster than numpy on a few values.
+    n = len(data)
+    mask = int.from_bytes(_F64.pack(arrival) * (n >> 3), "little")
+    return (int.from_bytes(data, "little") ^ mask).to_bytes(n, "little")
+
+
+def encode_pose(
+    user: int,
+    seq: int,
+    arrival: float,
+    streams: ArrayLike,
+    capture_times: ArrayLike,
+    poses: ArrayLike,
+) -> bytes:
+    """Pack one update: stream ids (n,), capture times (n,) s, poses (n, 7) as float32.
+
+    Float64 poses are rounded to float32 (what the wire carries anyway).
+    """
+    if not 0 <= user <= _U16_MAX:
+        raise FormatError(f"user id {user} is not a u16")
+    if not 0 <= seq <= _U64_MAX:
+        raise FormatError(f"sequence number {seq} is not a u64")
+    s = np.asarray(streams)
+    c = np.asarray(capture_times, dtype="<f8")
+    p = np.asarray(poses, dtype="<f4")
+    n = s.shape[0] if s.ndim == 1 else -1
+    if n < 0 or n > _U16_MAX or c.shape != (n,) or p.shape != (n, 7):
+        raise FormatError(
+            f"shapes must be streams (n,), capture_times (n,), poses (n, 7); got "
+            f"{s.shape}, {c.shape}, {p.shape}"
+        )
+    if s.dtype != _U16:
+        if n and (not np.issubdtype(s.dtype, np.integer) or s.min() < 0 or s.max() > _U16_MAX):
+            raise FormatError("stream ids must be integers in 0..65535")
+        s = s.astype(_U16)
+    arrival = float(arrival)
+    raw = p.tobytes()
+    return b"".join(
+        (
+            _HEAD.pack(FORMAT_VERSION, 0, user, n, seq, arrival),
+            s.tobytes(),
+            _xor_times(c.tobytes(), arrival),
+            raw[0::4],
+            raw[1::4],
+            raw[2::4],
+            raw[3::4],
+        )
+    )
+
+
+def decode_pose(data: bytes | bytearray | memoryview) -> PoseRecord:
+    """Unpack a pose message written by :func:`encode_pose` (bit-exact)."""
+    data = bytes(data)
+    if len(data) < POSE_HEADER_SIZE:
+        raise FormatError(f"pose message of {len(data)} bytes is shorter than its header")
+    ver, _flags, user, n, seq, arrival = _HEAD.unpack_from(data, 0)
+    if ver != FORMAT_VERSION:
+        raise FormatError(f"unknown pose layout version {ver}")
+    if len(data) != pose_message_size(n):
+        raise FormatError(f"pose message of {len(data)} bytes, expected {pose_message_size(n)}")
+    off = POSE_HEADER_SIZE
+    streams = np.frombuffer(data, _U16, n, off)
+    off += 2 * n
+    caps = np.frombuffer(_xor_times(data[off : off + 8 * n], arrival), "<f8")
+    off += 8 * n
+    k = 7 * n
+    raw = bytearray(4 * k)
+    for b in range(4):
+        raw[b::4] = data[off + b * k : off + (b + 1) * k]
+    poses = np.frombuffer(raw, "<f4").reshape(n, 7)
+    poses.flags.writeable = False
+    return PoseRecord(user, seq, arrival, streams, caps, poses)
+
+
+def _json_default(obj: object) -> Any:
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, bytes | bytearray | memoryview):
+        return bytes(obj).hex()
+    if isinstance(obj, set | frozenset | tuple):
+        return list(obj)
+    raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
+
+
+def encode_json(record: Mapping[str, Any]) -> bytes:
+    """Compact UTF-8 JSON; numpy values become numbers or lists, bytes become hex."""
+    return json.dumps(
+        dict(record), separators=(",", ":"), default=_json_default, ensure_ascii=False
+    ).encode()
+
+
+def decode_json(data: bytes | bytearray | memoryview) -> dict[str, Any]:
+    """A JSON record back as a dict."""
+    try:
+        value = json.loads(bytes(data))
+    except ValueError as exc:
+        raise FormatError(f"not a JSON record: {exc}") from exc
+    if not isinstance(value, dict):
+        raise FormatError("a JSON record must be an object")
+    return value

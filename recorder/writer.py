@@ -1,0 +1,605 @@
+"""The session recorder: the relay hands it records, a writer thread puts them on disk.
+
+The asyncio server calls the ``record_*`` methods from its event loop. They never
+wait on the disk: each encodes its record (a few microseconds) and offers it to a
+bounded ``queue.Queue``; a writer thread takes records from the queue and appends
+them to an MCAP file (layout in :mod:`recorder.format`). When the queue is full
+the record is lost, counted, and the loss itself is recorded: the next time the
+queue has room, a ``drops`` record of kind ``recorder-queue-overflow`` goes in
+first, with how many records (and poses) were lost and between which times.
+
+Durability: the writer closes the current zstd chunk (``Writer.flush``) and
+``os.fsync``\\ s the file at most ``flush_interval`` seconds (default 0.5 s) after
+it wrote a record, so after a crash every record older than that (plus the queue
+delay) is in a complete chunk on disk. The file is written as ``NAME.mcap.part``
+and renamed to ``NAME.mcap`` by a clean :meth:`SessionRecorder.close`;
+:func:`recorder.recovery.recover` turns a left-over ``.part`` into a complete file.
+
+The recorder reads no clock for what it records: times are arguments (a JSON
+record without one takes its ``"time"`` field, else ``clock()``, which the server
+sets to its own clock). Only the flush schedule of the writer thread uses
+``time.monotonic``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import queue
+import re
+import threading
+import time as _time
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from types import TracebackType
+from typing import IO, Any, Final
+
+import numpy as np
+from mcap.writer import CompressionType, IndexType, Writer
+from numpy.typing import ArrayLike
+
+from recorder.format import (
+    CHANNELS,
+    DROPS_TOPIC,
+    EVENTS_TOPIC,
+    FORMAT_VERSION,
+    POSE_HEADER_SIZE,
+    POSE_STREAM_SIZE,
+    POSES_TOPIC,
+    PRESENCE_TOPIC,
+    PROFILE,
+    QUEUE_OVERFLOW_KIND,
+    SESSION_END_METADATA,
+    SESSION_METADATA,
+    encode_json,
+    encode_pose,
+    posecast_version,
+    to_ns,
+)
+
+__all__ = [
+    "DEFAULT_FLUSH_INTERVAL",
+    "DEFAULT_QUEUE_SIZE",
+    "PART_SUFFIX",
+    "RecorderError",
+    "RecorderStatistics",
+    "SessionRecorder",
+]
+
+log = logging.getLogger("posecast.recorder")
+
+#: Records the queue holds: 20 s of a 20-user room at 20 updates/s.
+DEFAULT_QUEUE_SIZE = 8192
+#: Seconds between closing a chunk and fsync-ing it, while records come in.
+DEFAULT_FLUSH_INTERVAL = 0.5
+#: A chunk is also closed once this many uncompressed bytes are in it.
+DEFAULT_CHUNK_BYTES = 1 << 20
+PART_SUFFIX = ".part"
+
+_CHANNEL_IDS: Final = {spec.topic: i + 1 for i, spec in enumerate(CHANNELS)}
+_POSES = _CHANNEL_IDS[POSES_TOPIC]
+_EVENTS = _CHANNEL_IDS[EVENTS_TOPIC]
+_PRESENCE = _CHANNEL_IDS[PRESENCE_TOPIC]
+_DROPS = _CHANNEL_IDS[DROPS_TOPIC]
+#: MCAP Message record overhead, for the chunk-size estimate.
+_MESSAGE_OVERHEAD = 31
+
+Clock = Callable[[], float]
+# A queued record: channel id, log time ns, publish time ns, data, poses in it.
+_Item = tuple[int, int, int, bytes, int]
+
+
+class RecorderError(RuntimeError):
+    """The recorder failed (disk full, I/O error); the ``.part`` file is kept."""
+
+
+@dataclass(frozen=True)
+class RecorderStatistics:
+    """Counters of a :class:`SessionRecorder`; ``bytes_written`` is the file size so far."""
+
+    records_offered: int
+    """Records the ``record_*`` methods accepted into the queue."""
+    records_written: int
+    """Messages written to the file (including the recorder's own drops records)."""
+    poses_written: int
+    queue_drops: int
+    """Records lost because the queue was full (each is also in a drops record)."""
+    queue_drop_poses: int
+    loss_records: int
+    """Drops records queued to report queue overflows."""
+    rejected: int
+    """Records that could not be encoded or came after close (logged, counted)."""
+    bytes_written: int
+    chunks: int
+    fsyncs: int
+    queue_depth: int
+    queue_high_water: int
+    error: str | None
+    closed: bool
+
+
+class _Stop:
+    def __init__(self, end_time: float) -> None:
+        self.end_time = end_time
+
+
+_HOLD: Final = object()
+
+
+def _safe_name(room: str) -> str:
+    name = re.sub(r"[^A-Za-z0-9._-]+", "-", room).strip(".-")
+    return name[:64] or "room"
+
+
+def _fsync_dir(directory: Path) -> None:
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+class _Loss:
+    """Records lost to a full queue since the last loss record was queued."""
+
+    __slots__ = ("first", "last", "poses", "records", "topics")
+
+    def __init__(self) -> None:
+        self.records = 0
+        self.poses = 0
+        self.first = 0
+        self.last = 0
+        self.topics: dict[str, int] = {}
+
+    def add(self, item: _Item) -> None:
+        channel, log_ns, _pub, _data, poses = item
+        if self.records == 0 or log_ns < self.first:
+            self.first = log_ns
+        self.last = max(self.last, log_ns)
+        self.records += 1
+        self.poses += poses
+        topic = CHANNELS[channel - 1].topic
+        self.topics[topic] = self.topics.get(topic, 0) + 1
+
+    def item(self) -> _Item:
+        record = {
+            "kind": QUEUE_OVERFLOW_KIND,
+            "count": self.records,
+            "poses": self.poses,
+            "topics": self.topics,
+            "first_time": self.first / 1e9,
+            "last_time": self.last / 1e9,
+            "time": self.last / 1e9,
+        }
+        return (_DROPS, self.last, self.last, encode_json(record), 0)
+
+
+class SessionRecorder:
+    """Records one room's session to ``NAME.mcap.part``; see the module docstring.
+
+    Make one with :meth:`open`. ``record_*`` return ``True`` if the record was
+    queued, ``False`` if it was lost (counted, and reported in the file).
+    """
+
+    def __init__(
+        self,
+        part_path: Path,
+        final_path: Path,
+        stream: IO[bytes],
+        writer: Writer,
+        *,
+        clock: Clock,
+        queue_size: int,
+        flush_interval: float,
+        chunk_records: int | None,
+        chunk_bytes: int,
+    ) -> None:
+        self.part_path = part_path
+        self.path = final_path
+        self._file = stream
+        self._mcap = writer
+        self._clock = clock
+        self._queue: queue.Queue[object] = queue.Queue(maxsize=queue_size)
+        self._flush_interval = flush_interval
+        self._chunk_records = chunk_records
+        self._chunk_bytes = chunk_bytes
+        self._lock = threading.Lock()
+        self._loss = _Loss()
+        self._closing = False
+        self._closed = False
+        self._error: BaseException | None = None
+        self._resume = threading.Event()
+        self._held = threading.Event()
+        # producer-side counters (under _lock)
+        self._offered = 0
+        self._queue_drops = 0
+        self._queue_drop_poses = 0
+        self._rejected = 0
+        self._high_water = 0
+        self._loss_records = 0
+        # writer-side counters (only the writer thread writes them)
+        self._sequence = 0
+        self._pending = 0  # messages in the chunk being built
+        self._written = 0
+        self._poses_written = 0
+        self._bytes = stream.tell()
+        self._chunks = 0
+        self._fsyncs = 0
+        self._thread = threading.Thread(
+            target=self._run, name=f"recorder:{final_path.name}", daemon=True
+        )
+
+    # -- opening ---------------------------------------------------------------------
+
+    @classmethod
+    def open(
+        cls,
+        directory: str | os.PathLike[str],
+        room: str,
+        *,
+        name: str | None = None,
+        users: Iterable[Mapping[str, Any]] = (),
+        clock: Clock = _time.monotonic,
+        wall_clock: Clock = _time.time,
+        queue_size: int = DEFAULT_QUEUE_SIZE,
+        flush_interval: float = DEFAULT_FLUSH_INTERVAL,
+        chunk_records: int | None = None,
+        chunk_bytes: int = DEFAULT_CHUNK_BYTES,
+        metadata: Mapping[str, str] | None = None,
+    ) -> SessionRecorder:
+        """Create ``directory/NAME.mcap.part``, write the session header, start the writer.
+
+        ``NAME`` defaults to ``ROOM-YYYYmmddTHHMMSSZ`` (made unique with ``-2``,
+        ``-3``, ...). ``users`` are the members present at the start, as presence
+        join dicts (``user``, ``name``, ``label``, ``streams`` {name: id},
+        ``rate``). ``clock`` is the server clock the record times use.
+        ``chunk_records`` closes a chunk every that many records (tests);
+        ``metadata`` adds string pairs to the ``posecast.session`` metadata.
+        """
+        if queue_size < 1:
+            raise ValueError("queue_size must be at least 1")
+        if not flush_interval > 0:
+            raise ValueError("flush_interval must be positive")
+        folder = Path(directory)
+        folder.mkdir(parents=True, exist_ok=True)
+        start_wall = wall_clock()
+        start = clock()
+        base = name or (
+            f"{_safe_name(room)}-{datetime.fromtimestamp(start_wall, UTC):%Y%m%dT%H%M%SZ}"
+        )
+        stream: IO[bytes] | None = None
+        for k in range(1, 10_000):
+            stem = base if k == 1 else f"{base}-{k}"
+            final = folder / f"{stem}.mcap"
+            part = folder / f"{stem}.mcap{PART_SUFFIX}"
+            if final.exists():
+                continue
+            try:
+                stream = part.open("xb")
+            except FileExistsError:
+                continue
+            break
+        if stream is None:
+            raise FileExistsError(f"no free file name for {base!r} in {folder}")
+        try:
+            writer = Writer(
+                stream,
+                chunk_size=1 << 62,  # chunks are closed by the recorder, never by size
+                compression=CompressionType.ZSTD,
+                # Message indexes would cost 16 B per message outside the chunks,
+                # about 5 B per pose; readers find messages through the chunk
+                # indexes, and recovery re-indexes from the chunks.
+                index_types=IndexType.ALL & ~IndexType.MESSAGE,
+            )
+            writer.start(profile=PROFILE, library=f"posecast-recorder/{posecast_version()}")
+            session = {
+                "room": room,
+                "posecast_version": posecast_version(),
+                "format_version": str(FORMAT_VERSION),
+                "start_time": repr(start),
+                "start_wall_time": repr(start_wall),
+                "start_utc": datetime.fromtimestamp(start_wall, UTC).isoformat(),
+                "users": encode_json({"users": [dict(u) for u in users]}).decode(),
+                "flush_interval": repr(flush_interval),
+                "queue_size": str(queue_size),
+            }
+            session.update(metadata or {})
+            writer.add_metadata(SESSION_METADATA, session)
+            for spec in CHANNELS:
+                schema_id = writer.register_schema(
+                    spec.schema_name, spec.schema_encoding, spec.schema_data
+                )
+                writer.register_channel(spec.topic, spec.message_encoding, schema_id)
+            rec = cls(
+                part,
+                final,
+                stream,
+                writer,
+                clock=clock,
+                queue_size=queue_size,
+                flush_interval=flush_interval,
+                chunk_records=chunk_records,
+                chunk_bytes=chunk_bytes,
+            )
+            # The first chunk holds the schemas and channels: make it durable now.
+            start_ns = to_ns(start)
+            rec._write((_EVENTS, start_ns, start_ns, encode_json(_start_event(room, start)), 0))
+            rec._sync()
+            _fsync_dir(folder)
+        except BaseException:
+            stream.close()
+            part.unlink(missing_ok=True)
+            raise
+        rec._thread.start()
+        log.info("recording room %r to %s", room, part)
+        return rec
+
+    # -- the relay's side: never blocks ----------------------------------------------
+
+    def record_update(
+        self,
+        user: int,
+        seq: int,
+        arrival: float,
+        streams: ArrayLike,
+        capture_times: ArrayLike,
+        poses: ArrayLike,
+    ) -> bool:
+        """Queue one pose update: stream ids (n,), capture times (n,), poses (n, 7)."""
+        try:
+            caps = np.asarray(capture_times, dtype="<f8")
+            data = encode_pose(user, seq, arrival, streams, caps, poses)
+        except (TypeError, ValueError) as exc:
+            return self._reject(POSES_TOPIC, exc)
+        # publish_time: the newest capture time of the update
+        newest = max(caps.tolist()) if len(caps) else arrival
+        n = (len(data) - POSE_HEADER_SIZE) // POSE_STREAM_SIZE
+        return self._offer((_POSES, to_ns(arrival), to_ns(newest), data, n))
+
+    def record_event(self, event: Mapping[str, Any], time: float | None = None) -> bool:
+        """Queue an event (grab, release, button, ...) as JSON on ``events``."""
+        return self._json(_EVENTS, event, time)
+
+    def record_presence(self, presence: Mapping[str, Any], time: float | None = None) -> bool:
+        """Queue a join / leave / rate record on ``presence``.
+
+        Join: ``{"kind": "join", "user", "name", "label", "streams": {name: id},
+        "rate"}``; leave: ``{"kind": "leave", "user", "reason"}``; rate change:
+        ``{"kind": "rate", "user", "rate"}``.
+        """
+        return self._json(_PRESENCE, presence, time)
+
+    def record_drop(self, drop: Mapping[str, Any], time: float | None = None) -> bool:
+        """Queue a server-side drop or skip, e.g. ``{"kind": "flood", "user": 3, "count": 1}``."""
+        return self._json(_DROPS, drop, time)
+
+    def _json(self, channel: int, record: Mapping[str, Any], time: float | None) -> bool:
+        try:
+            if time is None:
+                t = record.get("time")
+                time = float(t) if isinstance(t, int | float) else self._clock()
+            data = encode_json(record)
+        except (TypeError, ValueError) as exc:
+            return self._reject(CHANNELS[channel - 1].topic, exc)
+        ns = to_ns(time)
+        return self._offer((channel, ns, ns, data, 0))
+
+    def _reject(self, topic: str, exc: Exception) -> bool:
+        with self._lock:
+            self._rejected += 1
+        log.warning("recorder: %s record not recorded: %s", topic, exc)
+        return False
+
+    def _offer(self, item: _Item) -> bool:
+        q = self._queue
+        with self._lock:
+            if self._closing or self._error is not None:
+                self._rejected += 1
+                return False
+            loss = self._loss
+            try:
+                if loss.records:
+                    q.put_nowait(loss.item())
+                    self._loss = _Loss()
+                    self._loss_records += 1
+                q.put_nowait(item)
+            except queue.Full:
+                self._loss.add(item)
+                self._queue_drops += 1
+                self._queue_drop_poses += item[4]
+                return False
+            self._offered += 1
+            depth = len(q.queue)  # no lock: the deque's length is enough here
+            if depth > self._high_water:
+                self._high_water = depth
+            return True
+
+    # -- the writer thread -------------------------------------------------------------
+
+    def _write(self, item: _Item) -> None:
+        channel, log_ns, pub_ns, data, poses = item
+        self._mcap.add_message(channel, log_ns, data, pub_ns, self._sequence & 0xFFFFFFFF)
+        self._sequence += 1
+        self._written += 1
+        self._poses_written += poses
+        self._pending += 1
+
+    def _close_chunk(self) -> None:
+        self._mcap.flush()  # type: ignore[no-untyped-call]
+        if self._pending:
+            self._chunks += 1
+            self._pending = 0
+        self._bytes = self._file.tell()
+
+    def _sync(self) -> None:
+        self._close_chunk()
+        os.fsync(self._file.fileno())
+        self._fsyncs += 1
+
+    def _run(self) -> None:
+        try:
+            end_time = self._loop()
+            self._finish(end_time)
+        except BaseException as exc:  # disk full, I/O error: keep the .part
+            self._error = exc
+            log.exception("recorder for %s failed; the .part file is kept", self.path.name)
+            with contextlib.suppress(Exception):
+                self._file.close()
+
+    def _loop(self) -> float:
+        q = self._queue
+        interval = self._flush_interval
+        chunk_records = self._chunk_records or 0
+        chunk_bytes = self._chunk_bytes
+        monotonic = _time.monotonic
+        deadline: float | None = None  # when the oldest unsynced record must be on disk
+        in_chunk = 0
+        chunk_size = 0
+        while True:
+            try:
+                if deadline is None:
+                    item = q.get()
+                else:
+                    item = q.get(timeout=max(0.0, deadline - monotonic()))
+            except queue.Empty:
+                item = None
+            if isinstance(item, _Stop):
+                return item.end_time
+            if item is _HOLD:
+                self._held.set()
+                self._resume.wait()
+                self._held.clear()
+            elif item is not None:
+                rec: _Item = item  # type: ignore[assignment]
+                self._write(rec)
+                if deadline is None:
+                    deadline = monotonic() + interval
+                in_chunk += 1
+                chunk_size += len(rec[3]) + _MESSAGE_OVERHEAD
+                if (chunk_records and in_chunk >= chunk_records) or chunk_size >= chunk_bytes:
+                    self._close_chunk()
+                    in_chunk = chunk_size = 0
+            if deadline is not None and monotonic() >= deadline:
+                self._sync()
+                deadline = None
+                in_chunk = chunk_size = 0
+
+    def _finish(self, end_time: float) -> None:
+        self._mcap.add_metadata(
+            SESSION_END_METADATA,
+            {
+                "end_time": repr(end_time),
+                "records": str(self._written),
+                "queue_drops": str(self._queue_drops),
+            },
+        )
+        if self._pending:
+            self._chunks += 1
+            self._pending = 0
+        self._mcap.finish()  # type: ignore[no-untyped-call]
+        self._file.flush()
+        os.fsync(self._file.fileno())
+        self._fsyncs += 1
+        self._file.close()
+        os.replace(self.part_path, self.path)
+        _fsync_dir(self.path.parent)
+        self._bytes = self.path.stat().st_size
+
+    # -- control -----------------------------------------------------------------------
+
+    def hold(self, timeout: float = 10.0) -> None:
+        """Pause the writer thread with the queue empty (tests: a stalled disk)."""
+        self._resume.clear()
+        if not self._put_blocking(_HOLD) or not self._held.wait(timeout):
+            raise RecorderError("the writer thread did not pause")
+
+    def release(self) -> None:
+        """Let a writer paused by :meth:`hold` continue."""
+        self._resume.set()
+
+    def _put_blocking(self, item: object) -> bool:
+        while self._thread.is_alive():
+            try:
+                self._queue.put(item, timeout=0.05)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def close(self, time: float | None = None) -> Path:
+        """Write what is queued, the summary and indexes; rename to ``NAME.mcap``.
+
+        Blocks (use :meth:`aclose` from the event loop). Raises
+        :class:`RecorderError` if the writer thread failed, keeping the ``.part``.
+        """
+        with self._lock:
+            already = self._closing
+            self._closing = True
+            end = self._clock() if time is None else time
+            loss, self._loss = self._loss, _Loss()
+        if not already:
+            self.release()
+            if loss.records and self._put_blocking(loss.item()):
+                with self._lock:
+                    self._loss_records += 1
+            self._put_blocking(_Stop(end))
+        self._thread.join()
+        self._closed = True
+        if self._error is not None:
+            raise RecorderError(
+                f"recording failed ({self._error!r}); partial file kept at {self.part_path}"
+            ) from self._error
+        return self.path
+
+    async def aclose(self, time: float | None = None) -> Path:
+        """:meth:`close` in a worker thread, for the event loop."""
+        return await asyncio.to_thread(self.close, time)
+
+    def __enter__(self) -> SessionRecorder:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    @property
+    def failed(self) -> bool:
+        """True once the writer thread has failed (records are then rejected)."""
+        return self._error is not None
+
+    def statistics(self) -> RecorderStatistics:
+        """A snapshot of the counters (any thread)."""
+        with self._lock:
+            return RecorderStatistics(
+                records_offered=self._offered,
+                records_written=self._written,
+                poses_written=self._poses_written,
+                queue_drops=self._queue_drops,
+                queue_drop_poses=self._queue_drop_poses,
+                loss_records=self._loss_records,
+                rejected=self._rejected,
+                bytes_written=self._bytes,
+                chunks=self._chunks,
+                fsyncs=self._fsyncs,
+                queue_depth=self._queue.qsize(),
+                queue_high_water=self._high_water,
+                error=None if self._error is None else repr(self._error),
+                closed=self._closed,
+            )
+
+
+def _start_event(room: str, start: float) -> dict[str, Any]:
+    return {"kind": "recording-start", "room": room, "time": start}

@@ -1,0 +1,119 @@
+"""The pose message layout and JSON records of recorder.format."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from recorder.format import (
+    CHANNELS,
+    FormatError,
+    decode_json,
+    decode_pose,
+    encode_json,
+    encode_pose,
+    pose_message_size,
+    to_ns,
+)
+
+_Update = tuple[int, int, float, np.ndarray, np.ndarray, np.ndarray]
+
+
+@st.composite
+def updates(draw: st.DrawFn) -> _Update:
+    n = draw(st.integers(0, 6))
+    user = draw(st.integers(0, 0xFFFF))
+    seq = draw(st.integers(0, (1 << 64) - 1))
+    arrival = draw(st.floats(allow_nan=False, allow_infinity=False))
+    streams = np.array(draw(st.lists(st.integers(0, 0xFFFF), min_size=n, max_size=n)), np.uint16)
+    cap_bits = draw(st.lists(st.integers(0, (1 << 64) - 1), min_size=n, max_size=n))
+    pose_bits = draw(st.lists(st.integers(0, (1 << 32) - 1), min_size=7 * n, max_size=7 * n))
+    caps = np.array(cap_bits, dtype=np.uint64).view(np.float64)
+    poses = np.array(pose_bits, dtype=np.uint32).view(np.float32).reshape(n, 7)
+    return user, seq, arrival, streams, caps, poses
+
+
+@settings(max_examples=100, deadline=None)
+@given(updates())
+def test_pose_round_trip_is_bit_exact(u: _Update) -> None:
+    """Any update (all float bit patterns, NaN payloads included) decodes bit for bit."""
+    user, seq, arrival, streams, caps, poses = u
+    data = encode_pose(user, seq, arrival, streams, caps, poses)
+    assert len(data) == pose_message_size(len(streams))
+    rec = decode_pose(data)
+    assert (rec.user, rec.seq, rec.arrival) == (user, seq, arrival)
+    assert rec.streams.tolist() == streams.tolist()
+    assert rec.capture_times.view(np.uint64).tolist() == caps.view(np.uint64).tolist()
+    assert rec.poses.shape == (len(streams), 7)
+    assert rec.poses.view(np.uint32).tolist() == poses.view(np.uint32).tolist()
+
+
+def test_decoded_arrays_are_read_only() -> None:
+    """Decoded arrays cannot be modified by accident."""
+    rec = decode_pose(encode_pose(1, 2, 3.0, [0], [2.9], np.ones((1, 7), np.float32)))
+    for arr in (rec.streams, rec.capture_times, rec.poses):
+        with pytest.raises(ValueError):
+            arr[0] = 0
+
+
+def test_float64_poses_are_stored_as_float32() -> None:
+    """Float64 poses are rounded to float32, as on the wire."""
+    p = np.full((2, 7), 0.1)
+    rec = decode_pose(encode_pose(0, 0, 1.0, [0, 1], [1.0, 1.0], p))
+    assert rec.poses.dtype == np.float32
+    assert np.array_equal(rec.poses, p.astype(np.float32))
+
+
+@pytest.mark.parametrize(
+    ("user", "streams", "caps", "poses"),
+    [
+        (70000, [0], [1.0], np.zeros((1, 7))),
+        (-1, [0], [1.0], np.zeros((1, 7))),
+        (0, [0, 1], [1.0], np.zeros((2, 7))),
+        (0, [0], [1.0], np.zeros((1, 6))),
+        (0, [70000], [1.0], np.zeros((1, 7))),
+        (0, [[0]], [1.0], np.zeros((1, 7))),
+    ],
+)
+def test_bad_updates_are_refused(
+    user: int, streams: list[int] | list[list[int]], caps: list[float], poses: np.ndarray
+) -> None:
+    """Out-of-range ids and mismatched shapes raise FormatError."""
+    with pytest.raises(FormatError):
+        encode_pose(user, 0, 1.0, streams, caps, poses)
+
+
+@pytest.mark.parametrize(
+    "data", [b"", b"\x01" * 21, b"\x02" + b"\x00" * 21, b"\x01" + b"\x00" * 40]
+)
+def test_bad_pose_messages_are_refused(data: bytes) -> None:
+    """Short, unknown-version or wrongly sized messages raise FormatError."""
+    with pytest.raises(FormatError):
+        decode_pose(data)
+
+
+def test_json_records_take_numpy_values() -> None:
+    """Numpy scalars and arrays become JSON numbers and lists."""
+    data = encode_json({"kind": "x", "n": np.int64(3), "a": np.arange(2), "f": np.float32(0.5)})
+    assert json.loads(data) == {"kind": "x", "n": 3, "a": [0, 1], "f": 0.5}
+    assert decode_json(data)["n"] == 3
+
+
+def test_channels_have_json_schemas() -> None:
+    """The JSON channels carry a parseable jsonschema (other tools can decode them)."""
+    for spec in CHANNELS[1:]:
+        assert spec.message_encoding == "json"
+        assert spec.schema_encoding == "jsonschema"
+        assert json.loads(spec.schema_data)["type"] == "object"
+
+
+def test_to_ns_rounds_and_clamps() -> None:
+    """Seconds become u64 nanoseconds, rounded, clamped at zero."""
+    assert to_ns(1.5) == 1_500_000_000
+    assert to_ns(-3.0) == 0
+    assert to_ns(float("nan")) == 0
+    assert to_ns(float("inf")) == (1 << 64) - 1
