@@ -437,6 +437,45 @@ def bench_relay(
     run_relay_bench(clients, room_size, rate, duration, record=record, console=console)
 
 
+@app.command()
+def info(
+    file: Annotated[Path, typer.Argument(help="A session recording (.mcap or .mcap.part).")],
+    json_out: Annotated[bool, typer.Option("--json", help="Print JSON instead of text.")] = False,
+) -> None:
+    """Users, streams, durations, rates, sizes and drops of a recording."""
+    from recorder import format_info
+    from recorder import info as recording_info
+
+    if not file.is_file():
+        raise _fail(f"{file}: no such recording")
+    try:
+        data = recording_info(file)
+    except Exception as exc:  # a damaged file: say so, suggest recovery
+        raise _fail(f"{file}: cannot read ({exc}); try `posecast recover {file}`") from None
+    if json_out:
+        print(json.dumps(data, indent=2, default=str))
+    else:
+        print(format_info(data))
+
+
+@app.command()
+def recover(
+    file: Annotated[Path, typer.Argument(help="A leftover NAME.mcap.part (or damaged .mcap).")],
+    out: Annotated[Path | None, typer.Option(help="Output file (default: NAME.mcap).")] = None,
+    overwrite: Annotated[bool, typer.Option(help="Replace an existing output file.")] = False,
+) -> None:
+    """Recover every intact chunk of a crashed or damaged recording into a complete MCAP."""
+    from recorder import recover as recover_file
+
+    if not file.is_file():
+        raise _fail(f"{file}: no such file")
+    try:
+        report = recover_file(file, out, overwrite=overwrite)
+    except (OSError, ValueError) as exc:
+        raise _fail(f"{file}: {exc}") from None
+    print(report.summary())
+
+
 @app.command("interpolators")
 def list_interpolators() -> None:
     """List the registered interpolators (built-in and plug-ins)."""
