@@ -13,15 +13,16 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from http import HTTPStatus
 
 from websockets.asyncio.server import Server, ServerConnection, serve
-from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
+from websockets.protocol import State as WsState
 
 from protocol import (
     Bye,
@@ -31,6 +32,7 @@ from protocol import (
     Join,
     Joined,
     Limits,
+    LocalProtocolError,
     PeerJoined,
     PeerLeft,
     Ping,
@@ -40,6 +42,7 @@ from protocol import (
     ServerSession,
     SetRate,
     UserEvent,
+    close_reason,
 )
 from protocol.events import Event, Message
 from server.auth import TokenError, verify_token
@@ -68,6 +71,21 @@ class ServerConfig:
     #: Pose updates per second one connection may publish (bucket of one second).
     max_update_rate: float = 120.0
     close_timeout: float = 2.0
+
+
+#: ConnectionStatistics fields that only ever grow, summed over ended connections.
+_COUNTERS = (
+    "frames_in",
+    "bytes_in",
+    "frames_out",
+    "bytes_out",
+    "snapshots_offered",
+    "skips",
+    "congestion_skips",
+    "event_drops",
+    "flood_drops",
+    "protocol_errors",
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -113,17 +131,30 @@ class _Connection:
     # -- sending -------------------------------------------------------------------
 
     def send(self, message: Message) -> None:
-        """Queue a reliable message; overflow closes this connection, not others."""
+        """Queue a reliable message; overflow closes this connection, not others.
+
+        Called from other connections' readers (peer notices, relayed events), so
+        it never raises: a message this session may no longer carry (it ended on
+        a fatal error or bye) is dropped.
+        """
         if self.close_request is not None:
             return
-        data = self.session.send(message)
+        try:
+            data = self.session.send(message)
+        except LocalProtocolError as exc:
+            log.info("user %s: not sent (%s)", self.user, exc)
+            return
         if not self.outbox.offer_event(data):
             self.event_drops += 1
-            self.close(1008, f"event queue overflow ({self.outbox.max_events}): client too slow")
+            self.close(
+                ErrorCode.TOO_SLOW.close_code or 1008,
+                f"too-slow: event queue overflow ({self.outbox.max_events})",
+            )
 
     def close(self, code: int, reason: str) -> None:
+        """Ask the closer task to close the websocket (first request wins)."""
         if self.close_request is None:
-            self.close_request = (code, reason)
+            self.close_request = (code, close_reason(reason))
             self.must_close.set()
 
     # -- tasks ---------------------------------------------------------------------
@@ -133,7 +164,11 @@ class _Connection:
         try:
             async for data in self.ws:
                 self.frames_in += 1
-                if isinstance(data, str):
+                relayed = False
+                if self.close_request is not None:
+                    # Closing: what it still sends cannot matter to anyone.
+                    self.bytes_in += len(data)
+                elif isinstance(data, str):
                     self.bytes_in += len(data.encode())
                     self._protocol_error(
                         ProtocolError(ErrorCode.BAD_FRAME, "text frames are not allowed")
@@ -143,9 +178,13 @@ class _Connection:
                     now = self.server.clock()
                     for event in self.session.receive_data(data):
                         self._handle(event, now)
+                        relayed = relayed or isinstance(event, UserEvent)
                 count += 1
-                if count % 32 == 0:
-                    # A peer flooding us must not starve the other connections.
+                # A peer flooding us must not starve the other connections. After
+                # a relayed event, let the peers' writers drain it before the next
+                # one: their bounded queues must measure how slow *they* are, not
+                # how many events this reader handled in one go.
+                if relayed or count % 32 == 0:
                     await asyncio.sleep(0)
         except ConnectionClosed:
             pass
@@ -172,7 +211,21 @@ class _Connection:
         with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(0.5):
                 await self.outbox.idle.wait()
-        await self.ws.close(code, reason)
+        await self.close_now(code, reason)
+
+    async def close_now(self, code: int, reason: str) -> None:
+        """Closing handshake, bounded by ``close_timeout``; then drop the TCP connection.
+
+        ``ws.close`` waits for the write buffer to drain before it waits (with a
+        timeout) for the peer's close frame, and a peer that never reads never
+        lets it drain: without this bound its connection would never end.
+        """
+        try:
+            async with asyncio.timeout(self.server.config.close_timeout):
+                await self.ws.close(code, reason)
+        except TimeoutError:
+            log.info("user %s: no closing handshake, dropping the connection", self.user)
+            self.ws.transport.abort()
 
     # -- events --------------------------------------------------------------------
 
@@ -208,7 +261,7 @@ class _Connection:
             if self.room is not None and self.user is not None:
                 self.room.set_rate(self.user, event.rate, now)
         elif isinstance(event, UserEvent):
-            if self.room is not None:
+            if self.room is not None and self._admit(now):
                 for m in list(self.room.members.values()):
                     if m.user != self.user:
                         self.server.connection_of(m.user).send(event)
@@ -216,6 +269,9 @@ class _Connection:
             self.close(1000, event.reason or "bye")
         elif isinstance(event, ErrorMessage):
             log.info("user %s reports %s: %s", self.user, event.code, event.message)
+            if event.fatal:
+                # Its session is over (CLOSED): nothing more may be sent to it.
+                self.close(1000, f"client ended the session: {event.code}")
 
     def _on_join(self, join: Join, now: float) -> None:
         server = self.server
@@ -244,19 +300,25 @@ class _Connection:
         room.add(member, now)
         self.room, self.member = room, member
 
-    def _on_update(self, update: PoseUpdate, now: float) -> None:
-        cfg = self.server.config
-        self._bucket = min(
-            cfg.max_update_rate, self._bucket + (now - self._bucket_time) * cfg.max_update_rate
-        )
+    def _admit(self, now: float) -> bool:
+        """Token bucket over pose updates and events: ``max_update_rate`` a second.
+
+        Holds one second's worth, so bursts are fine; what exceeds it is dropped
+        and counted, and a connection that keeps flooding is closed.
+        """
+        rate = self.server.config.max_update_rate
+        self._bucket = min(rate, self._bucket + (now - self._bucket_time) * rate)
         self._bucket_time = now
         if self._bucket < 1.0:
             self.flood_drops += 1
-            if self.flood_drops > 10 * cfg.max_update_rate:
-                self.close(1008, f"update flood: over {cfg.max_update_rate:g} updates/s")
-            return
+            if self.flood_drops > 10 * rate:
+                self.close(1008, f"update flood: over {rate:g} updates/s")
+            return False
         self._bucket -= 1.0
-        if self.room is not None and self.user is not None:
+        return True
+
+    def _on_update(self, update: PoseUpdate, now: float) -> None:
+        if self._admit(now) and self.room is not None and self.user is not None:
             self.room.ingest(self.user, update)
 
     def leave(self) -> None:
@@ -309,7 +371,9 @@ class RelayServer:
         self.ready = asyncio.Event()
         self.port: int | None = None
         self.closed_connections = 0
-        self.totals = {"frames_in": 0, "bytes_in": 0, "frames_out": 0, "bytes_out": 0}
+        #: Counters of connections that have ended (live ones are added on demand),
+        #: so that the Prometheus counters never go down.
+        self.totals = dict.fromkeys(_COUNTERS, 0)
 
     # -- rooms and connections -------------------------------------------------------
 
@@ -318,9 +382,22 @@ class RelayServer:
         if room is None:
             room = self.rooms[name] = Room(name)
             assert self._tg is not None
-            self._tg.create_task(room.run(self.clock), name=f"room:{name}")
+            self._tg.create_task(self._run_room(room), name=f"room:{name}")
             log.info("room %r created", name)
         return room
+
+    async def _run_room(self, room: Room) -> None:
+        """A room's tick loop; a bug in it ends that room's connections, not the server."""
+        try:
+            await room.run(self.clock)
+        except Exception:
+            log.exception("room %r failed", room.name)
+            if self.rooms.get(room.name) is room:
+                del self.rooms[room.name]
+            for member in list(room.members.values()):
+                conn = self._connections.get(member.user)
+                if conn is not None:
+                    conn.close(1011, "internal-error: room failed")
 
     def forget_room_if_empty(self, room: Room) -> None:
         if not room.members and self.rooms.get(room.name) is room:
@@ -338,6 +415,9 @@ class RelayServer:
     async def _handler(self, ws: ServerConnection) -> None:
         conn = _Connection(self, ws)
         self._all.add(conn)
+        if self._stop.is_set():
+            # Its handshake finished after stop() had closed the others.
+            conn.close(1001, "going away")
         try:
             async with asyncio.TaskGroup() as tg:
                 writer = tg.create_task(conn.write_loop())
@@ -346,19 +426,19 @@ class RelayServer:
                 writer.cancel()
                 closer.cancel()
         finally:
+            stats = conn.statistics()  # before leave(): it forgets the member's counters
             conn.leave()
             if conn.user is not None:
                 self._connections.pop(conn.user, None)
                 self.users.give_back(conn.user)
             self._all.discard(conn)
             self.closed_connections += 1
-            for key, value in (
-                ("frames_in", conn.frames_in),
-                ("bytes_in", conn.bytes_in),
-                ("frames_out", conn.frames_out),
-                ("bytes_out", conn.bytes_out),
-            ):
-                self.totals[key] += value
+            for key in _COUNTERS:
+                self.totals[key] += getattr(stats, key)
+            if ws.state is WsState.OPEN:
+                # Only after a bug (the reader ended without the socket closing):
+                # websockets would close without a bound, so close here.
+                await conn.close_now(1011, "internal-error")
 
     # -- HTTP ------------------------------------------------------------------------
 
@@ -367,17 +447,21 @@ class RelayServer:
         if path == "/healthz":
             return connection.respond(HTTPStatus.OK, "ok\n")
         if path == "/metrics":
-            body = self.metrics_text().encode()
-            headers = Headers(
-                [("Content-Type", "text/plain; version=0.0.4"), ("Content-Length", str(len(body)))]
-            )
-            return Response(HTTPStatus.OK.value, "OK", headers, body)
+            response = connection.respond(HTTPStatus.OK, self.metrics_text())
+            # Same headers as /healthz (Date, Connection: close), Prometheus' type.
+            del response.headers["Content-Type"]
+            response.headers["Content-Type"] = "text/plain; version=0.0.4; charset=utf-8"
+            return response
         return None
 
     # -- lifecycle ---------------------------------------------------------------------
 
     def stop(self) -> None:
-        """Stop accepting, close every connection with 1001 "going away"."""
+        """Stop accepting, close every connection with 1001 "going away"; run() returns.
+
+        Each close takes at most ``close_timeout`` after the connection's queued
+        messages drain (0.5 s at most), even for a peer that stopped reading.
+        """
         self._stop.set()
 
     async def run(self) -> None:
@@ -400,7 +484,13 @@ class RelayServer:
                 self.port = int(sock.getsockname()[1])
                 self.ready.set()
                 await self._stop.wait()
-                ws_server.close(close_connections=True, code=1001, reason="going away")
+                log.info("stopping: closing %d connections", len(self._all))
+                # Every connection closes through its own bounded path (see
+                # _Connection.close_now); websockets' own close could wait forever
+                # on a peer that does not read. Handshakes from now on get a 503.
+                ws_server.close(close_connections=False)
+                for conn in list(self._all):
+                    conn.close(1001, "going away")
                 await ws_server.wait_closed()
             for room in list(self.rooms.values()):
                 room.members.clear()
@@ -426,30 +516,47 @@ class RelayServer:
             lines.append(f"# HELP {name} {help_}")
             lines.append(f"# TYPE {name} {kind}")
             for labels, value in samples:
-                lines.append(f"{name}{labels} {value:g}")
+                lines.append(f"{name}{labels} {_number(value)}")
 
-        def total(key: str) -> float:
-            return float(self.totals[key] + sum(getattr(c, key) for c in conns))
+        def total(*keys: str) -> list[tuple[str, float]]:
+            # Ended connections plus live ones: a counter never goes down.
+            return [("", sum(self.totals[k] + sum(getattr(c, k) for c in conns) for k in keys))]
 
         metric("posecast_connections", "gauge", "Open websocket connections.", [("", len(conns))])
-        metric("posecast_rooms", "gauge", "Rooms with members.", [("", len(self.rooms))])
         metric(
-            "posecast_frames_in_total", "counter", "Frames received.", [("", total("frames_in"))]
+            "posecast_connections_closed_total",
+            "counter",
+            "Websocket connections that have ended.",
+            [("", self.closed_connections)],
         )
-        metric("posecast_bytes_in_total", "counter", "Bytes received.", [("", total("bytes_in"))])
-        metric("posecast_frames_out_total", "counter", "Frames sent.", [("", total("frames_out"))])
-        metric("posecast_bytes_out_total", "counter", "Bytes sent.", [("", total("bytes_out"))])
+        metric("posecast_rooms", "gauge", "Rooms with members.", [("", len(self.rooms))])
+        metric("posecast_frames_in_total", "counter", "Frames received.", total("frames_in"))
+        metric("posecast_bytes_in_total", "counter", "Bytes received.", total("bytes_in"))
+        metric("posecast_frames_out_total", "counter", "Frames sent.", total("frames_out"))
+        metric("posecast_bytes_out_total", "counter", "Bytes sent.", total("bytes_out"))
         metric(
             "posecast_snapshot_skips_total",
             "counter",
             "Snapshots not delivered because a subscriber had not drained the previous one.",
-            [("", float(sum(c.skips + c.congestion_skips for c in conns)))],
+            total("skips", "congestion_skips"),
         )
         metric(
             "posecast_flood_drops_total",
             "counter",
-            "Pose updates dropped for exceeding the per-connection update rate.",
-            [("", float(sum(c.flood_drops for c in conns)))],
+            "Pose updates and events dropped for exceeding the per-connection rate.",
+            total("flood_drops"),
+        )
+        metric(
+            "posecast_event_drops_total",
+            "counter",
+            "Reliable messages refused by a full event queue (the connection is closed).",
+            total("event_drops"),
+        )
+        metric(
+            "posecast_protocol_errors_total",
+            "counter",
+            "Protocol errors detected in what clients sent.",
+            total("protocol_errors"),
         )
         rooms = [r.statistics() for r in self.rooms.values()]
         metric(
@@ -471,6 +578,17 @@ class RelayServer:
             [(f'{{room="{_label(r.name)}"}}', r.tick_lag_max_ms) for r in rooms],
         )
         return "\n".join(lines) + "\n"
+
+
+def _number(value: float) -> str:
+    """A sample value: integers exactly (``:g`` would round 1234567 to 1.23457e+06)."""
+    if isinstance(value, int) or (math.isfinite(value) and value == int(value)):
+        return str(int(value))
+    if math.isnan(value):
+        return "NaN"
+    if math.isinf(value):
+        return "+Inf" if value > 0 else "-Inf"
+    return repr(float(value))
 
 
 def _label(value: str) -> str:

@@ -62,7 +62,8 @@ def verify_token(secret: str, token: str | None, room: str, now: float) -> Token
     if len(parts) != 3 or parts[0] != _PREFIX:
         raise TokenError("malformed access token")
     _, payload, sig = parts
-    if not hmac.compare_digest(_sign(secret, payload), sig):
+    # Bytes: compare_digest raises TypeError on non-ASCII str, and tokens come from peers.
+    if not hmac.compare_digest(_sign(secret, payload).encode(), sig.encode()):
         raise TokenError("invalid access token signature")
     try:
         claims = json.loads(_unb64(payload))

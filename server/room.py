@@ -124,7 +124,11 @@ class Member:
     outbox: Outbox
     label: str | None = None
     next_due: float = 0.0
+    #: Store version covered by the newest snapshot offered to this member.
     last_version: int = 0
+    #: Store version covered by the snapshots its writer has taken: the base of
+    #: the next delta. It lags ``last_version`` while a snapshot waits unsent.
+    delivered_version: int = 0
     snapshots: int = 0
     snapshot_bytes: int = 0
     poses_sent: int = 0
@@ -185,7 +189,7 @@ class Room:
 
     def add(self, member: Member, now: float) -> None:
         member.next_due = self._grid_after(now, member.rate)
-        member.last_version = 0
+        member.last_version = member.delivered_version = 0
         self.members[member.user] = member
         self.changed.set()
 
@@ -259,7 +263,12 @@ class Room:
             if member.outbox.congested():
                 member.congestion_skips += 1
                 continue
-            key = member.last_version
+            if member.outbox.pose is None:
+                # The previous snapshot went to the socket: deltas may start from it.
+                member.delivered_version = member.last_version
+            # A snapshot still waiting in the slot is about to be replaced (a skip),
+            # so the new one must also carry what only the replaced one had.
+            key = member.delivered_version
             if key not in cache:
                 cache[key] = self._encode(now, key)
             data, n = cache[key]

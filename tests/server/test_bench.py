@@ -1,0 +1,72 @@
+"""The relay benchmark: a short real run (server + load subprocesses) and its report."""
+
+from __future__ import annotations
+
+import io
+import math
+
+import msgpack
+import numpy as np
+from rich.console import Console
+
+from protocol import encode_update
+from server.bench import run_relay_bench, update_template
+
+EXPECTED_KEYS = {
+    "clients",
+    "clients_joined",
+    "clients_failed",
+    "server_cpu_pct",
+    "server_cpu_us_per_pose",
+    "load_cpu_pct",
+    "latency_p50_ms",
+    "latency_p99_ms",
+    "relay_p50_ms",
+    "relay_p99_ms",
+    "tick_lag_p50_ms",
+    "tick_lag_p99_ms",
+    "snapshots_per_client_s",
+    "snapshot_rate_ratio",
+    "skips",
+    "tick_lag_max_ms_start",
+    "tick_lag_max_ms_end",
+    "bytes_per_pose",
+    "poses_delivered",
+    "clients_without_snapshots",
+}
+
+
+def test_update_template_packs_like_encode_update() -> None:
+    """The load's re-packed template is byte for byte the protocol's update frame."""
+    wire = update_template([4, 5, 6], (0.5, 1.6, 0.0))
+    wire["seq"], wire["time"] = 17, 1234.5678
+    poses = np.tile([0.5, 1.6, 0.0, 1.0, 0.0, 0.0, 0.0], (3, 1))
+    expected = encode_update(17, [4, 5, 6], [1234.5678] * 3, poses, base_time=1234.5678)
+    assert msgpack.packb(wire) == expected
+
+
+def test_relay_bench_smoke() -> None:
+    """20 clients in rooms of 5 for 2 s: every client gets snapshots, figures are sane."""
+    out = io.StringIO()
+    console = Console(file=out, width=160)
+    report = run_relay_bench(
+        20, 5, 20.0, 2.0, record=True, console=console, warmup=1.0, ramp_rate=100.0
+    )
+    assert report.keys() >= EXPECTED_KEYS
+    assert report["clients_joined"] == 20 and report["clients_failed"] == 0
+    assert report["rooms"] == 4
+    assert report["clients_without_snapshots"] == 0
+    assert report["clients_without_snapshots_in_window"] == 0
+    assert report["poses_delivered"] > 0 and report["snapshots"] > 0
+    for key in EXPECTED_KEYS - {"clients"}:
+        value = report[key]
+        assert isinstance(value, int | float) and math.isfinite(value), key
+        assert value >= 0, key
+    # Remote poses only: each snapshot carries at most the 4 peers' 3 streams.
+    assert report["poses_delivered"] <= 12 * report["snapshots"]
+    assert report["latency_p50_ms"] <= report["latency_p99_ms"]
+    assert report["server_exit_code"] == 0
+    assert report["metrics_ok"]
+    text = out.getvalue()
+    assert "recorder is not available yet" in text
+    assert "relay bench" in text and "capture->receipt" in text
