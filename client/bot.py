@@ -67,7 +67,10 @@ class RemoteStream:
     label: str | None
     buffer: StreamBuffer = field(default_factory=StreamBuffer)
     capture: list[float] = field(default_factory=list)
+    #: Arrival times in server time (with the clock offset known on arrival).
     arrival: list[float] = field(default_factory=list)
+    #: The same arrivals on the bot's own clock.
+    arrival_local: list[float] = field(default_factory=list)
     poses: list[NDArray[np.float32]] = field(default_factory=list)
 
 
@@ -91,8 +94,9 @@ class BotReport:
     duration: float
     clock_rtt_ms: float
     streams: dict[tuple[int, int], RemoteStream] = field(default_factory=dict, repr=False)
-    #: With ``keep_render_log``: (playout time, D, {stream key: (pose, stalled)}).
-    render_log: list[tuple[float, float, dict[tuple[int, int], tuple[F64, bool]]]] = field(
+    #: With ``keep_render_log``: (playout time, D, bot clock at render,
+    #: {stream key: (pose, stalled)}).
+    render_log: list[tuple[float, float, float, dict[tuple[int, int], tuple[F64, bool]]]] = field(
         default_factory=list, repr=False
     )
 
@@ -132,7 +136,9 @@ class _Bot:
         self.poses_in = 0
         self.ping_seq = 0
         self.conn: ClientConnection | None = None
-        self.render_log: list[tuple[float, float, dict[tuple[int, int], tuple[F64, bool]]]] = []
+        self.render_log: list[
+            tuple[float, float, float, dict[tuple[int, int], tuple[F64, bool]]]
+        ] = []
         self.trace: Trace | None = None
         self.spec: MotionSpec | None = None
 
@@ -186,6 +192,7 @@ class _Bot:
             self.poses_in += 1
             rs.capture.append(cap)
             rs.arrival.append(arrival_srv)
+            rs.arrival_local.append(arrival)
             rs.poses.append(pose)
             rs.buffer.push(cap, pose, floor)
             self.delay.observe(arrival_srv - cap)
@@ -233,7 +240,8 @@ class _Bot:
         methods = self.cfg.methods
         nxt = self.clock()
         while self.server_now() < stop:
-            now_srv = self.server_now()
+            local = self.clock()
+            now_srv = local + self.est.offset
             d = self.delay.update(now_srv)
             t_play = now_srv - d
             c0 = time.process_time()
@@ -246,6 +254,7 @@ class _Bot:
                     (
                         t_play,
                         d,
+                        local,
                         {k: (first[j], bool(frame.stalled[j])) for j, k in enumerate(keys)},
                     )
                 )

@@ -50,7 +50,9 @@ class InterpolatorInfo:
     name: str
     func: Callable[..., F64]
     description: str
-    #: Whether it commutes with a change of world frame (rigid-motion methods).
+    #: Whether it commutes with a change of body frame (which point of the device
+    #: is tracked), i.e. treats the pose as one rigid motion. All built-ins commute
+    #: with a change of world frame; SoA does not commute with a body-frame change.
     frame_invariant: bool
     kind: Kind = "pair"
     #: Keyframes needed after the bracket (each costs one interval of playout delay).

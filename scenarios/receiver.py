@@ -104,11 +104,15 @@ class StreamBuffer:
         return len(self.times)
 
     def bracket(self, t: float) -> tuple[int, int, float, bool]:
-        """``(lo, hi, s, stall)`` for playout time ``t`` (hold the newest on a stall)."""
+        """``(lo, hi, s, stall)`` for playout time ``t`` (hold the newest on a stall).
+
+        Before the first keyframe too: DESIGN.md's rule is "hold the newest".
+        """
         times = self.times
         hi = bisect.bisect_right(times, t)
         if hi == 0:
-            return 0, 0, 0.0, True
+            newest = len(times) - 1
+            return newest, newest, 0.0, True
         lo = hi - 1
         if times[lo] == t:
             return lo, lo, 0.0, False

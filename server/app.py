@@ -18,6 +18,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from http import HTTPStatus
+from pathlib import Path
 
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
@@ -71,6 +72,8 @@ class ServerConfig:
     #: Pose updates per second one connection may publish (bucket of one second).
     max_update_rate: float = 120.0
     close_timeout: float = 2.0
+    #: Record every room session into this folder (``posecast serve --record``).
+    record_dir: Path | None = None
 
 
 #: ConnectionStatistics fields that only ever grow, summed over ended connections.
@@ -177,6 +180,10 @@ class _Connection:
                     self.bytes_in += len(data)
                     now = self.server.clock()
                     for event in self.session.receive_data(data):
+                        if isinstance(event, Join) and self._join_permitted(event):
+                            # A new room's recorder opens off the event loop first.
+                            await self.server.prepare_room(event.room)
+                            now = self.server.clock()
                         self._handle(event, now)
                         relayed = relayed or isinstance(event, UserEvent)
                 count += 1
@@ -260,11 +267,26 @@ class _Connection:
         elif isinstance(event, SetRate):
             if self.room is not None and self.user is not None:
                 self.room.set_rate(self.user, event.rate, now)
+                if self.room.recorder is not None:
+                    self.room.recorder.record_presence(
+                        {"kind": "rate", "user": self.user, "rate": event.rate}, now
+                    )
         elif isinstance(event, UserEvent):
             if self.room is not None and self._admit(now):
                 for m in list(self.room.members.values()):
                     if m.user != self.user:
                         self.server.connection_of(m.user).send(event)
+                if self.room.recorder is not None:
+                    self.room.recorder.record_event(
+                        {
+                            "kind": event.kind,
+                            "user": event.user,
+                            "stream": event.stream,
+                            "time": event.time,
+                            "payload": event.payload,
+                        },
+                        now,
+                    )
         elif isinstance(event, Bye):
             self.close(1000, event.reason or "bye")
         elif isinstance(event, ErrorMessage):
@@ -272,6 +294,16 @@ class _Connection:
             if event.fatal:
                 # Its session is over (CLOSED): nothing more may be sent to it.
                 self.close(1000, f"client ended the session: {event.code}")
+
+    def _join_permitted(self, join: Join) -> bool:
+        secret = self.server.config.secret
+        if secret is None:
+            return True
+        try:
+            verify_token(secret, join.token, join.room, self.server.wall_clock())
+        except TokenError:
+            return False
+        return True
 
     def _on_join(self, join: Join, now: float) -> None:
         server = self.server
@@ -299,6 +331,18 @@ class _Connection:
             )
         room.add(member, now)
         self.room, self.member = room, member
+        if room.recorder is not None:
+            room.recorder.record_presence(
+                {
+                    "kind": "join",
+                    "user": self.user,
+                    "name": self.name,
+                    "label": join.label,
+                    "streams": streams,
+                    "rate": join.rate,
+                },
+                now,
+            )
 
     def _admit(self, now: float) -> bool:
         """Token bucket over pose updates and events: ``max_update_rate`` a second.
@@ -311,6 +355,8 @@ class _Connection:
         self._bucket_time = now
         if self._bucket < 1.0:
             self.flood_drops += 1
+            if self.room is not None and self.user is not None:
+                self.room.note_drop("flood", self.user)
             if self.flood_drops > 10 * rate:
                 self.close(1008, f"update flood: over {rate:g} updates/s")
             return False
@@ -318,13 +364,25 @@ class _Connection:
         return True
 
     def _on_update(self, update: PoseUpdate, now: float) -> None:
-        if self._admit(now) and self.room is not None and self.user is not None:
-            self.room.ingest(self.user, update)
+        room, user = self.room, self.user
+        if self._admit(now) and room is not None and user is not None:
+            stale = room.ingest(user, update)
+            rec = room.recorder
+            if rec is not None:
+                rec.record_update(
+                    user, update.seq, now, update.streams, update.capture_times, update.poses
+                )
+                if stale:
+                    room.note_drop("stale", user, stale)
 
     def leave(self) -> None:
         room, user = self.room, self.user
         if room is not None and user is not None:
             room.remove(user)
+            if room.recorder is not None:
+                room.recorder.record_presence(
+                    {"kind": "leave", "user": user, "reason": "left"}, self.server.clock()
+                )
             for other in list(room.members.values()):
                 self.server.connection_of(other.user).send(PeerLeft(user=user, reason="left"))
             self.server.forget_room_if_empty(room)
@@ -366,6 +424,9 @@ class RelayServer:
         self._connections: dict[int, _Connection] = {}
         self._all: set[_Connection] = set()
         self._tg: asyncio.TaskGroup | None = None
+        self._opening: dict[str, asyncio.Task[None]] = {}
+        #: Finished recordings, in the order they closed.
+        self.recordings: list[Path] = []
         self._stop = asyncio.Event()
         self._ws_server: Server | None = None
         self.ready = asyncio.Event()
@@ -386,6 +447,54 @@ class RelayServer:
             log.info("room %r created", name)
         return room
 
+    async def prepare_room(self, name: str) -> None:
+        """Make sure room ``name`` exists, opening its recorder off the event loop."""
+        if self.config.record_dir is None or name in self.rooms:
+            return
+        pending = self._opening.get(name)
+        if pending is None:
+            assert self._tg is not None
+            pending = self._tg.create_task(self._open_room(name), name=f"open:{name}")
+            self._opening[name] = pending
+        await asyncio.shield(pending)
+
+    async def _open_room(self, name: str) -> None:
+        from recorder import SessionRecorder
+
+        try:
+            rec: SessionRecorder | None = await asyncio.to_thread(
+                SessionRecorder.open,
+                self.config.record_dir,  # type: ignore[arg-type]
+                name,
+                clock=self.clock,
+                wall_clock=self.wall_clock,
+            )
+        except Exception:
+            log.exception("cannot record room %r; it runs unrecorded", name)
+            rec = None
+        try:
+            if name not in self.rooms:
+                room = self.room_for(name)
+                room.recorder = rec
+                if rec is not None:
+                    log.info("recording room %r to %s", name, rec.path)
+            elif rec is not None:
+                await rec.aclose()
+        finally:
+            self._opening.pop(name, None)
+
+    async def _close_recorder(self, room: Room) -> None:
+        rec, room.recorder = room.recorder, None
+        if rec is None:
+            return
+        room.flush_drops(self.clock(), force=True)
+        try:
+            path = await rec.aclose(self.clock())
+            self.recordings.append(path)
+            log.info("room %r recorded to %s", room.name, path)
+        except Exception:
+            log.exception("recording of room %r did not finish cleanly", room.name)
+
     async def _run_room(self, room: Room) -> None:
         """A room's tick loop; a bug in it ends that room's connections, not the server."""
         try:
@@ -402,8 +511,10 @@ class RelayServer:
     def forget_room_if_empty(self, room: Room) -> None:
         if not room.members and self.rooms.get(room.name) is room:
             del self.rooms[room.name]
-            room.changed.set()  # wake its loop so it sees it is empty and ends
+            room.retire()
             log.info("room %r removed", room.name)
+            if room.recorder is not None and self._tg is not None:
+                self._tg.create_task(self._close_recorder(room), name=f"close:{room.name}")
 
     def register(self, conn: _Connection) -> None:
         assert conn.user is not None
@@ -468,6 +579,12 @@ class RelayServer:
         cfg = self.config
         if cfg.secret is None:
             log.warning("no --secret: the server is open, anyone can join any room")
+        if cfg.record_dir is not None:
+            from recorder import recover_leftovers
+
+            cfg.record_dir.mkdir(parents=True, exist_ok=True)
+            for report in await asyncio.to_thread(recover_leftovers, cfg.record_dir):
+                log.warning("recovered leftover recording: %s", report.summary())
         async with asyncio.TaskGroup() as tg:
             self._tg = tg
             async with serve(
@@ -494,7 +611,9 @@ class RelayServer:
                 await ws_server.wait_closed()
             for room in list(self.rooms.values()):
                 room.members.clear()
-                room.changed.set()
+                room.retire()
+                if room.recorder is not None:
+                    tg.create_task(self._close_recorder(room))
             self.rooms.clear()
 
     # -- statistics ----------------------------------------------------------------------

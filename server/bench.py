@@ -702,6 +702,9 @@ def run_relay_bench(
     delivered = int(result["poses_delivered"])
     snapshots = int(result["snapshots"])
     busy, total = c1[0] - c0[0], c1[1] - c0[1]
+    # Remote poses/s the clients ask for: each gets its room mates' 3 streams at ``rate``.
+    full, last = divmod(clients, room_size)
+    offered = rate * len(STREAMS) * (full * room_size * (room_size - 1) + last * (last - 1))
     del result["event"]
     report.update(result)
     report.update(
@@ -718,6 +721,11 @@ def run_relay_bench(
             if total > 0
             else math.nan,
             "poses_per_s": delivered / wall,
+            "offered_poses_per_s": offered,
+            # What the server would need at full rate, at the CPU cost per pose measured.
+            "server_core_demand_pct": 100.0 * server_cpu / delivered * offered
+            if delivered
+            else math.nan,
             "snapshot_rate_ratio": float(result["snapshots_per_client_s"]) / rate,
             "bytes_per_pose": result["wire_bytes"] / delivered if delivered else math.nan,
             "payload_bytes_per_pose": result["payload_bytes"] / delivered
@@ -798,7 +806,16 @@ def print_relay_report(report: dict[str, Any], console: Console) -> None:
             f"asked {r['rate_hz']:g}; ratio {_f(r['snapshot_rate_ratio'], 3)}",
         ),
         ("skips", f"{_f(r['skips'], 0)} ({_f(r['skips_per_s'], 1)}/s)", "/metrics"),
-        ("poses delivered / s", _f(r["poses_per_s"], 0), "remote poses"),
+        (
+            "poses delivered / s",
+            _f(r["poses_per_s"], 0),
+            f"remote poses; {_f(r['offered_poses_per_s'], 0)} asked for",
+        ),
+        (
+            "server core demand at full rate",
+            f"{_f(r['server_core_demand_pct'])} %",
+            "CPU per pose x poses asked for; > 100 %: one process cannot keep up",
+        ),
         (
             "bytes per pose",
             f"{_f(r['bytes_per_pose'], 1)}",

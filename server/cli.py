@@ -215,6 +215,10 @@ def serve(
         str | None,
         typer.Option(help="Require tokens signed with this secret (see `posecast token`)."),
     ] = None,
+    record: Annotated[
+        Path | None,
+        typer.Option(help="Record every room session as MCAP into this folder."),
+    ] = None,
     log_level: Annotated[str, typer.Option(help="debug, info, warning, error.")] = "info",
 ) -> None:
     """Run the relay server until SIGINT/SIGTERM (then close all with 1001, exit 0)."""
@@ -230,7 +234,13 @@ def serve(
         level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
     cfg = ServerConfig(
-        host=host, port=port, rate=rate, min_rate=min_rate, max_rate=max_rate, secret=secret
+        host=host,
+        port=port,
+        rate=rate,
+        min_rate=min_rate,
+        max_rate=max_rate,
+        secret=secret,
+        record_dir=record,
     )
 
     async def main() -> None:
@@ -378,6 +388,10 @@ def demo(
     json_out: Annotated[
         Path | None, typer.Option("--json", help="Write the report as JSON.")
     ] = None,
+    record: Annotated[Path, typer.Option(help="Folder for the session recording (MCAP).")] = Path(
+        "recordings"
+    ),
+    no_record: Annotated[bool, typer.Option("--no-record", help="Do not record.")] = False,
 ) -> None:
     """The main job: a server and N bots on loopback, then QoE per interpolator."""
     from scenarios.traces import TraceError, find_traces
@@ -398,6 +412,7 @@ def demo(
             methods=methods,
             motion=motion,
             console=console,
+            record_dir=None if no_record else record,
         )
     )
     print_swarm(
@@ -405,6 +420,8 @@ def demo(
         f"posecast demo: {bots} bots at {rate:g} Hz for {duration:g} s on loopback ({motion}); "
         "errors vs the senders' own samples",
     )
+    if report.get("recording"):
+        console.print(f"recorded to {report['recording']} (see `posecast info`)")
     if json_out is not None:
         json_out.write_text(json.dumps(report, indent=2))
         console.print(f"wrote {json_out}")

@@ -8,6 +8,7 @@ shows the session; the result is the swarm report of :mod:`client.swarm`.
 from __future__ import annotations
 
 import asyncio
+from pathlib import Path
 from typing import Any
 
 from rich.console import Console
@@ -29,8 +30,9 @@ async def run_demo(
     motion: str,
     send_rate: float = 30.0,
     console: Console | None = None,
+    record_dir: Path | None = None,
 ) -> dict[str, Any]:
-    server = RelayServer(ServerConfig(host="127.0.0.1", port=0))
+    server = RelayServer(ServerConfig(host="127.0.0.1", port=0, record_dir=record_dir))
     async with asyncio.TaskGroup() as tg:
         tg.create_task(server.run())
         await asyncio.wait_for(server.ready.wait(), 10)
@@ -89,4 +91,5 @@ async def run_demo(
             "motion": motion,
         }
         server.stop()
+    report["recording"] = str(server.recordings[-1]) if server.recordings else None
     return report

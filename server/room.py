@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from protocol import PoseUpdate, encode_snapshot
+from recorder import SessionRecorder
 
 __all__ = [
     "DEFAULT_EVENT_QUEUE",
@@ -181,6 +182,34 @@ class Room:
     _lag_sum: float = 0.0
     _lag_n: int = 0
     changed: asyncio.Event = field(default_factory=asyncio.Event)
+    retired: bool = False
+    #: The session recorder tapping this room (``posecast serve --record``), if any.
+    recorder: SessionRecorder | None = None
+    _drops: dict[tuple[str, int], int] = field(default_factory=dict)
+    _skips_reported: dict[int, int] = field(default_factory=dict)
+    _drops_flushed: float = 0.0
+
+    def note_drop(self, kind: str, user: int, count: int = 1) -> None:
+        """Count a server-side drop; recorded (aggregated) at most once a second."""
+        if self.recorder is not None:
+            key = (kind, user)
+            self._drops[key] = self._drops.get(key, 0) + count
+
+    def flush_drops(self, now: float, force: bool = False) -> None:
+        """Write the drops and snapshot skips counted since the last flush."""
+        rec = self.recorder
+        if rec is None or (not force and now - self._drops_flushed < 1.0):
+            return
+        self._drops_flushed = now
+        for m in self.members.values():
+            total = m.outbox.skips + m.congestion_skips
+            new = total - self._skips_reported.get(m.user, 0)
+            if new > 0:
+                self._skips_reported[m.user] = total
+                self._drops[("skip", m.user)] = self._drops.get(("skip", m.user), 0) + new
+        for (kind, user), count in self._drops.items():
+            rec.record_drop({"kind": kind, "user": user, "count": count}, now)
+        self._drops.clear()
 
     # -- membership ---------------------------------------------------------------
 
@@ -298,17 +327,28 @@ class Room:
         poses = np.stack([s.pose for _, s in fresh])
         return encode_snapshot(self._tick, now, users, sids, caps, poses), n
 
+    def retire(self) -> None:
+        """End :meth:`run` (the server calls this when the room is removed)."""
+        self.retired = True
+        self.changed.set()
+
     async def run(self, clock: Callable[[], float]) -> None:
-        """Tick at every due time until the room is empty."""
-        while self.members:
+        """Tick at every due time until the room is retired.
+
+        An empty room waits for members instead of ending: a room is created
+        before its first member is added (its recorder opens in between).
+        """
+        while not self.retired:
             due = self.next_due()
             now = clock()
-            if due is not None and due > now:
+            if due is None or due > now:
                 self.changed.clear()
                 with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(self.changed.wait(), timeout=due - now)
+                    timeout = None if due is None else due - now
+                    await asyncio.wait_for(self.changed.wait(), timeout=timeout)
                 continue
             self.tick(now)
+            self.flush_drops(now)
             await asyncio.sleep(0)
 
     # -- events -------------------------------------------------------------------

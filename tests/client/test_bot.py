@@ -7,7 +7,7 @@ import asyncio
 import numpy as np
 import pytest
 
-from client.bot import BotConfig, BotReport, remote_log, run_bot
+from client.bot import BotConfig, BotReport, RemoteStream, remote_log, run_bot
 from client.swarm import run_bots, swarm_report
 from interp import get
 from scenarios.qoe import STAT_KEYS, playout_brackets
@@ -103,18 +103,24 @@ def test_live_render_equals_offline_computation(three_bots: list[BotReport]) -> 
     """Each rendered pose equals the QoE definition's pose from the arrival log.
 
     For every frame, the offline path takes the keyframes that had arrived by the
-    render's wall time (t_play + D), brackets t_play and interpolates (soa); it
-    must reproduce what the live render loop showed, stall flags included.
+    render's wall time, brackets t_play and interpolates (soa); it must
+    reproduce what the live render loop showed, stall flags included. Arrival
+    and render times are compared on the bot's own clock, so a refinement of
+    the clock offset between the two cannot blur the comparison.
     """
     soa = get("soa")
     checked = 0
     for rep in three_bots:
-        logs = {k: remote_log(rs) for k, rs in rep.streams.items()}
-        for t_play, d, shown in rep.render_log[5:]:
+        logs = {}
+        for k, rs in rep.streams.items():
+            local = RemoteStream(rs.user, rs.stream, rs.name, rs.label)
+            local.capture, local.arrival, local.poses = rs.capture, rs.arrival_local, rs.poses
+            logs[k] = remote_log(local)
+        for t_play, _d, rendered_at, shown in rep.render_log[5:]:
             for key, (pose, stalled) in shown.items():
                 log = logs[key]
                 play = playout_brackets(
-                    log.capture, log.arrival, np.array([t_play]), np.array([d - 1e-9])
+                    log.capture, log.arrival, np.array([t_play]), np.array([rendered_at - t_play])
                 )
                 if play.missing[0]:
                     continue

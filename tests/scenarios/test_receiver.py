@@ -54,7 +54,7 @@ def test_buffer_bracket_and_hold() -> None:
     assert (lo, hi, stall) == (1, 2, False) and np.isclose(s, 0.5)
     assert buf.bracket(0.1) == (1, 1, 0.0, False)
     assert buf.bracket(0.25) == (2, 2, 0.0, True)
-    assert buf.bracket(-1.0)[3]
+    assert buf.bracket(-1.0) == (2, 2, 0.0, True)  # before all: hold the newest
 
 
 def test_playout_delay_follows_keyframe_age_smoothly() -> None:

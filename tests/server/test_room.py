@@ -296,8 +296,8 @@ def test_id_allocator_reuses_oldest_freed_only_when_exhausted() -> None:
         ids.take()
 
 
-async def test_run_ticks_until_empty() -> None:
-    """Room.run offers snapshots on its own and returns once the last member is removed."""
+async def test_run_ticks_until_retired() -> None:
+    """Room.run offers snapshots on its own, waits while empty, returns once retired."""
     room = Room("r")
     loop = asyncio.get_running_loop()
     pub = member(room, 1, ("head",), 30.0)
@@ -308,5 +308,8 @@ async def test_run_ticks_until_empty() -> None:
         await pub.outbox.wake.wait()
     assert contents(pub.outbox.take()) == {(1, pub.streams["head"]): 1.0}
     room.remove(1)
+    await asyncio.sleep(0.05)
+    assert not task.done()  # empty is not the end: a member may be about to join
+    room.retire()
     async with asyncio.timeout(5):
         await task
