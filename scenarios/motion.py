@@ -19,11 +19,13 @@ from pathlib import Path
 import numpy as np
 
 from interp import quat_mul
+from scenarios import synthetic
 from scenarios.traces import DEVICE_NAMES, Trace, TraceError, default_trace_root, load_trace
 
 __all__ = ["SYNTHETIC_MOTIONS", "MotionSpec", "loop_period", "sample_at", "synthetic_trace"]
 
-SYNTHETIC_MOTIONS = ("orbit",)
+#: ``orbit`` plus every motion of :mod:`scenarios.synthetic` (reach-grasp, throw-catch, ...).
+SYNTHETIC_MOTIONS = ("orbit", *synthetic.motion_names())
 _SYNTH_RATE = 90.0
 _SYNTH_DURATION = 120.0
 
@@ -35,15 +37,19 @@ def _axis_angle(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
 
 
 def synthetic_trace(name: str = "orbit", seed: int = 0, duration: float = _SYNTH_DURATION) -> Trace:
-    """A deterministic head + two hands motion sampled at 90 Hz.
+    """A deterministic head + two hands (+ objects) motion sampled at 90 Hz.
 
     ``orbit``: the head looks around (yaw and pitch oscillations); each hand
     circles in front of the body while its wrist rolls, like a slow stirring.
+    Every other name is a motion of :mod:`scenarios.synthetic` with its default
+    parameters (it may add object streams such as ``object:ball``).
     """
     if name not in SYNTHETIC_MOTIONS:
         raise TraceError(
             f"unknown synthetic motion {name!r}; known: {', '.join(SYNTHETIC_MOTIONS)}"
         )
+    if name != "orbit":
+        return synthetic.synthetic_motion(name, seed, duration_s=duration)
     rng = np.random.default_rng(seed)
     t = np.arange(0.0, duration, 1.0 / _SYNTH_RATE)
     n = t.size

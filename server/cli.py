@@ -455,6 +455,95 @@ def bench_relay(
 
 
 @app.command()
+def table1(
+    traces: Annotated[
+        list[str],
+        typer.Option(
+            help="traces:dev, traces:eval, a CSV or folder, synthetic[:NAME[:SEED]] or a "
+            "suite .toml (repeatable)."
+        ),
+    ],
+    out: Annotated[Path, typer.Option(help="Output folder for table1.md/.json and plots.")],
+    rates: Annotated[str, typer.Option(help="Rates in Hz (integers): 5-30 or 5,10,15.")] = "5-30",
+    methods: Annotated[str, typer.Option(help="Interpolators to compare.")] = DEFAULT_METHODS,
+    tiers: Annotated[
+        Path | None, typer.Option(help="TOML tiers merged over the built-in ones.")
+    ] = None,
+    transport: Annotated[
+        str, typer.Option(help="Link loss model: datagram (lost) or stream (retransmitted).")
+    ] = "datagram",
+    link: Annotated[bool, typer.Option(help="Also sweep each tier's link model.")] = True,
+    bench: Annotated[bool, typer.Option(help="Measure receiver running time.")] = True,
+    plots: Annotated[bool, typer.Option(help="Write PNG plots.")] = True,
+    seed: Annotated[int, typer.Option(help="Seed of the link model.")] = 0,
+) -> None:
+    """Reproduce the paper's Table 1: QoE vs rate, equal-QoE rates per network tier."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from scenarios.table1 import run_table1
+    from scenarios.traces import TraceError
+
+    rate_list = [int(r) for r in _parse_rates(rates)]
+    method_list = _parse_methods(methods)
+    if transport not in ("datagram", "stream"):
+        raise _fail("--transport must be datagram or stream")
+    command = "posecast table1 " + " ".join(sys.argv[2:])
+    bar = Progress(
+        TextColumn("{task.description:<24}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total}"),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+    )
+    tasks: dict[str, Any] = {}
+
+    def progress(stage: str, done: int, total: int) -> None:
+        if stage not in tasks:
+            tasks[stage] = bar.add_task(stage, total=total)
+        bar.update(tasks[stage], completed=done, total=total)
+
+    try:
+        with bar:
+            report = run_table1(
+                traces,
+                rate_list,
+                method_list,
+                tiers,
+                out,
+                progress,
+                seed=seed,
+                transport=transport,  # type: ignore[arg-type]
+                link=link,
+                bench=bench,
+                plots=plots,
+                command=command,
+            )
+    except (TraceError, ValueError, KeyError) as exc:
+        raise _fail(str(exc)) from None
+    table = Table(
+        title="Table 1: equal-QoE rate (saving vs SoA), ideal network", title_justify="left"
+    )
+    table.add_column("tier")
+    table.add_column("SoA Hz", justify="right")
+    others = [m for m in method_list if m != "soa"]
+    for m in others:
+        table.add_column(m, justify="right")
+    paper = report.get("paper", {})
+    for row in report["tiers"]:
+        cells = []
+        for m in others:
+            r = row["equal_qoe_rate"].get(m)
+            sv = row["bandwidth_saving_pct"].get(m)
+            cells.append("none" if r is None else f"{r} ({sv:.0f} %)")
+        table.add_row(row["name"], str(row["soa_rate"]), *cells)
+    console.print(table)
+    if paper:
+        console.print(f"paper: {json.dumps(paper)[:300]}")
+    console.print(f"wrote {out}/table1.md, table1.json and plots")
+
+
+@app.command()
 def info(
     file: Annotated[Path, typer.Argument(help="A session recording (.mcap or .mcap.part).")],
     json_out: Annotated[bool, typer.Option("--json", help="Print JSON instead of text.")] = False,

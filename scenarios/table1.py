@@ -1,0 +1,1171 @@
+"""Reproduce the paper's Table 1 offline: equal-QoE update rates per network tier.
+
+The paper claims that, for the same quality, its geometric-algebra methods need
+20/10/7/5 updates/s where SoA needs 30/20/15/12 (33/50/53/58 % less bandwidth)
+and 16.5 % less running time. :func:`run_table1` measures this on traces:
+
+(a) **QoE curves**: for every method and rate (1 Hz steps), keyframes are the
+    latest native sample at each send time ``t0 + k/r``; an ideal link delivers
+    them at once and the receiver plays out one interval behind
+    (:func:`scenarios.qoe.ideal_delay`). Errors are pooled over the traces per
+    device class (:mod:`scenarios.qoe` is the one definition of every number).
+(b) **Equal-QoE rates** per tier: SoA runs at the tier's rate (its
+    ``max_rate_hz``, or less if the bandwidth cap cannot carry the room's
+    snapshots at that rate); each method's equal-QoE rate is the lowest rate
+    whose headline number (p95 tip error of the hands) is no worse than SoA's
+    there (:func:`equal_qoe_rate`); bandwidth saving ``1 - r / r_soa``; and the
+    receiver's CPU time (:func:`receiver_cpu_time`) at the two rates.
+(c) The same through each tier's :class:`~scenarios.network.LinkModel`
+    (latency, jitter, loss, bandwidth cap) with a **fixed** playout delay per
+    run, ``D = 1/r + p95(keyframe age)`` where age = arrival - capture over the
+    run's delivered keyframes (the steady state the live receiver's adaptive
+    :class:`~scenarios.receiver.PlayoutDelay` converges to). Stalls and delay
+    show up there. Through a link the equal-QoE rate is searched only up to
+    the tier's rate (the tier allows no more). Every method sees the same link
+    realisation at a given rate (one seed per tier, trace and rate).
+(d) Writes ``table1.md``, ``table1.json`` and PNG plots to ``out_dir``.
+
+Run: ``python -m scenarios.table1 --traces traces:dev --out DIR`` (see ``--help``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import math
+import sys
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+import interp
+from protocol import decode_message, encode_snapshot
+from protocol.poses import Snapshot
+from scenarios.network import LinkModel, Tier, Transport, affordable_rate, load_tiers, wire_bytes
+from scenarios.qoe import (
+    KeyframeLog,
+    evaluate_group,
+    ideal_delay,
+    sample_keyframes,
+    summarize,
+)
+from scenarios.receiver import StreamBuffer, render_buffers
+from scenarios.synthetic import suite_traces, synthetic_motion
+from scenarios.traces import Trace, TraceError, find_traces, load_trace
+
+__all__ = [
+    "DEFAULT_METHODS",
+    "HEADLINE",
+    "PAPER",
+    "Progress",
+    "equal_qoe_rate",
+    "main",
+    "receiver_cpu_time",
+    "receiver_cpu_times",
+    "resolve_traces",
+    "run_table1",
+    "saving_pct",
+    "tier_rate",
+]
+
+F64 = NDArray[np.float64]
+#: ``progress(stage, done, total)``.
+Progress = Callable[[str, int, int], None]
+#: ``{method: {device_class: {stat: value}}}``
+Stats = dict[str, dict[str, dict[str, float]]]
+
+DEFAULT_METHODS = ("soa", "dq-slerp", "motor-lerp")
+#: The headline QoE number: p95 tip error of the hands (mm).
+HEADLINE = ("hands", "tip_p95_mm")
+CURVE_KEYS = ("pos_p50_mm", "pos_p95_mm", "rot_p50_deg", "rot_p95_deg", "tip_p50_mm", "tip_p95_mm")
+
+#: The paper's Table 1 (rates in updates/s; the GA methods share one row).
+PAPER: dict[str, Any] = {
+    "source": (
+        "Kamarianakis et al., 'Less Is More: Efficient Networked VR Transformation "
+        "Handling Using Geometric Algebra', Table 1"
+    ),
+    "ga_methods": ["dq-slerp", "motor-lerp"],
+    "tiers": [
+        {"name": "excellent", "soa_rate": 30, "ga_rate": 20, "bandwidth_saving_pct": 33},
+        {"name": "good", "soa_rate": 20, "ga_rate": 10, "bandwidth_saving_pct": 50},
+        {"name": "mediocre", "soa_rate": 15, "ga_rate": 7, "bandwidth_saving_pct": 53},
+        {"name": "poor", "soa_rate": 12, "ga_rate": 5, "bandwidth_saving_pct": 58},
+    ],
+    "running_time_saving_pct": 16.5,
+}
+
+#: Poses in one snapshot for wire sizes: a 16-user room, head + two hands each.
+DEFAULT_ROOM_POSES = 48
+
+
+# ---------------------------------------------------------------- pure helpers
+
+
+def equal_qoe_rate(
+    headline: Mapping[int, float], reference: float, rates: Iterable[int] | None = None
+) -> int | None:
+    """Lowest rate whose headline error is no worse (<=) than ``reference``.
+
+    ``headline`` maps rate -> headline error of one method; ``rates`` limits the
+    search (default: every rate of ``headline``). ``None`` if no rate qualifies
+    (NaN never qualifies).
+    """
+    candidates = sorted(headline if rates is None else (r for r in rates if r in headline))
+    for r in candidates:
+        v = headline[r]
+        if not math.isnan(v) and not math.isnan(reference) and v <= reference:
+            return int(r)
+    return None
+
+
+def saving_pct(value: float | None, reference: float | None) -> float | None:
+    """``100 (1 - value / reference)``; ``None`` if either is missing."""
+    if value is None or reference is None or reference == 0:
+        return None
+    if math.isnan(value) or math.isnan(reference):
+        return None
+    return 100.0 * (1.0 - value / reference)
+
+
+def tier_rate(tier: Tier, frame_bytes: float) -> int:
+    """SoA's rate in a tier: its max rate, or less if the cap cannot carry it (1 Hz steps)."""
+    return max(1, math.floor(affordable_rate(tier, frame_bytes) + 1e-9))
+
+
+# ---------------------------------------------------------------- traces
+
+
+def resolve_traces(spec: str | Path) -> list[Trace]:
+    """Traces for ``traces:dev``/``traces:eval``, a CSV or directory of CSVs, or synthetic.
+
+    ``synthetic`` is the packaged suite (``scenarios/data/synthetic.toml``); a
+    ``.toml`` path is a suite file; ``synthetic:NAME`` or ``synthetic:NAME:SEED``
+    is one synthetic motion with default parameters.
+    """
+    s = str(spec)
+    if s == "synthetic":
+        return suite_traces()
+    if s.startswith("synthetic:"):
+        _, name, seed = ([*s.split(":"), "0"])[:3]
+        try:
+            return [synthetic_motion(name, int(seed))]
+        except ValueError:
+            raise TraceError(f"malformed synthetic spec {s!r}; use synthetic:NAME[:SEED]") from None
+    if s.endswith(".toml"):
+        return suite_traces(s)
+    return [load_trace(p) for p in find_traces(s)]
+
+
+def _as_traces(traces: Sequence[str | Path | Trace]) -> list[Trace]:
+    out: list[Trace] = []
+    for item in traces:
+        if isinstance(item, Trace):
+            out.append(item)
+        elif isinstance(item, Path):
+            out.append(load_trace(item))
+        else:
+            out.extend(resolve_traces(item))
+    if not out:
+        raise TraceError("no traces given")
+    return out
+
+
+# ---------------------------------------------------------------- sweeps
+
+
+@dataclass
+class _Net:
+    """Per-run network figures, summed over traces (for means)."""
+
+    sent: int = 0
+    delivered: int = 0
+    lost: int = 0
+    skipped: int = 0
+    delay_sum: float = 0.0
+    d_weighted: float = 0.0
+    samples: int = 0
+
+    def add(self, other: _Net) -> None:
+        for f in ("sent", "delivered", "lost", "skipped", "delay_sum", "d_weighted", "samples"):
+            setattr(self, f, getattr(self, f) + getattr(other, f))
+
+    def summary(self) -> dict[str, float]:
+        mean_delay = self.delay_sum / self.delivered if self.delivered else float("nan")
+        d = self.d_weighted / self.samples if self.samples else float("nan")
+        return {
+            "network_delay_ms": 1000.0 * mean_delay,
+            "playout_delay_ms": 1000.0 * d,
+            "latency_ms": 1000.0 * (d + mean_delay),
+            "loss_fraction": self.lost / self.sent if self.sent else float("nan"),
+            "skipped_fraction": self.skipped / self.sent if self.sent else float("nan"),
+        }
+
+
+#: ``make_log(trace_index, trace, rate) -> (log, delay D, window, network figures)``
+_LogMaker = Callable[[int, Trace, int], tuple[KeyframeLog, float, tuple[float, float], _Net]]
+
+
+def _ideal_log(
+    i: int, trace: Trace, rate: int
+) -> tuple[KeyframeLog, float, tuple[float, float], _Net]:
+    send, idx = sample_keyframes(trace.times, rate)
+    log = KeyframeLog(capture=trace.times[idx], arrival=send, poses=trace.poses[idx])
+    window = (float(log.capture[0]), float(log.capture[-1]))
+    d = ideal_delay(rate, trace.native_rate)
+    n_q = int(np.count_nonzero((trace.times >= window[0]) & (trace.times <= window[1])))
+    return log, d, window, _Net(len(send), len(send), 0, 0, 0.0, d * n_q, n_q)
+
+
+def _link_log_maker(
+    tier: Tier, tier_index: int, seed: int, frame_bytes: int, transport: Transport
+) -> _LogMaker:
+    def make(
+        i: int, trace: Trace, rate: int
+    ) -> tuple[KeyframeLog, float, tuple[float, float], _Net]:
+        send, idx = sample_keyframes(trace.times, rate)
+        capture = trace.times[idx]
+        link = LinkModel(
+            tier, np.random.SeedSequence([seed, tier_index, i, rate]), transport=transport
+        )
+        dl = link.transmit(send, frame_bytes)
+        ok = dl.delivered
+        log = KeyframeLog(capture=capture[ok], arrival=dl.arrival[ok], poses=trace.poses[idx][ok])
+        age = dl.arrival[ok] - capture[ok]
+        d = 1.0 / rate + (float(np.percentile(age, 95)) if age.size else 0.0)
+        window = (float(capture[0]), float(capture[-1]))
+        n_q = int(np.count_nonzero((trace.times >= window[0]) & (trace.times <= window[1])))
+        net = _Net(
+            sent=len(send),
+            delivered=int(ok.sum()),
+            lost=int(dl.lost.sum()),
+            skipped=int(dl.skipped.sum()),
+            delay_sum=float(np.sum(dl.delay[ok])),
+            d_weighted=d * n_q,
+            samples=n_q,
+        )
+        return log, d, window, net
+
+    return make
+
+
+@dataclass
+class _Sweep:
+    """Pooled and per-trace statistics of one sweep, by rate.
+
+    ``hands_tip`` keeps the pooled hands tip errors (mm) per rate and method,
+    for the error-distribution plots (only when asked to).
+    """
+
+    pooled: dict[int, Stats]
+    per_trace: dict[str, dict[int, Stats]]
+    network: dict[int, dict[str, float]]
+    hands_tip: dict[int, dict[str, F64]]
+
+
+def _sweep(
+    traces: Sequence[Trace],
+    rates: Sequence[int],
+    methods: Sequence[str],
+    make_log: _LogMaker,
+    tick: Callable[[], None],
+    per_trace_stats: bool = True,
+    keep_samples: bool = False,
+) -> _Sweep:
+    pooled: dict[int, Stats] = {}
+    per_trace: dict[str, dict[int, Stats]] = {tr.name: {} for tr in traces}
+    network: dict[int, dict[str, float]] = {}
+    hands_tip: dict[int, dict[str, F64]] = {}
+    for rate in rates:
+        groups = []
+        net = _Net()
+        for i, tr in enumerate(traces):
+            log, d, window, n = make_log(i, tr, rate)
+            g = evaluate_group(tr, log, d, methods, window)
+            groups.append(g)
+            if per_trace_stats:
+                per_trace[tr.name][rate] = summarize([g])
+            net.add(n)
+            tick()
+        pooled[rate] = summarize(groups)
+        network[rate] = net.summary()
+        if keep_samples:
+            hands_tip[rate] = {
+                m: np.concatenate([x for g in groups for x in g[m]["hands"].tip_mm])
+                for m in methods
+                if any("hands" in g[m] for g in groups)
+            }
+    return _Sweep(pooled, per_trace, network, hands_tip)
+
+
+def _headline(
+    stats: Mapping[int, Stats], method: str, cls: str = HEADLINE[0], key: str = HEADLINE[1]
+) -> dict[int, float]:
+    """``{rate: stat}`` of one method and device class (default: the headline)."""
+    return {r: s[method].get(cls, {}).get(key, float("nan")) for r, s in stats.items()}
+
+
+def _classes(stats: Mapping[int, Stats]) -> list[str]:
+    present = {c for s in stats.values() for classes in s.values() for c in classes}
+    return [c for c in ("hands", "head", "objects") if c in present]
+
+
+def _equal_by_class(
+    stats: Mapping[int, Stats], meths: Sequence[str], ref_rate: int, rates: Sequence[int]
+) -> dict[str, dict[str, int | None]]:
+    """Equal-QoE rates judged on each device class's p95 tip error instead of the hands'."""
+    out: dict[str, dict[str, int | None]] = {}
+    for cls in _classes(stats):
+        curves = {m: _headline(stats, m, cls) for m in meths}
+        ref = curves["soa"][ref_rate]
+        out[cls] = {m: equal_qoe_rate(curves[m], ref, rates) for m in meths}
+    return out
+
+
+# ---------------------------------------------------------------- running time
+
+
+@dataclass
+class _ReceiverRun:
+    """Encoded snapshots and the render schedule of one bench configuration."""
+
+    frames: list[bytes]
+    send_times: list[float]
+    render_times: list[float]
+    delay: float
+
+
+def _prepare_receiver(
+    rate: float, streams: int, seconds: float, render_hz: float, source: Trace | None
+) -> _ReceiverRun:
+    n_snap = math.floor(seconds * rate + 1e-9) + 1
+    n_frames = round(seconds * render_hz)
+    if source is None:
+        t = np.arange(n_snap) / rate
+        poses = np.zeros((n_snap, 3, 7))
+        poses[..., 0] = np.sin(t)[:, None]
+        poses[..., 3] = 1.0
+    else:
+        idx = np.arange(n_snap) / rate * source.native_rate
+        poses = source.poses[np.minimum(idx.astype(int), len(source.times) - 1)]
+    users = np.repeat(np.arange(streams // 3 + 1), 3)[:streams].astype(np.uint16)
+    sids = np.tile(np.arange(3), streams // 3 + 1)[:streams].astype(np.uint16)
+    cols = np.arange(streams) % poses.shape[1]
+    frames = [
+        encode_snapshot(
+            k, k / rate, users, sids, np.full(streams, k / rate - 0.005), poses[k, cols]
+        )
+        for k in range(n_snap)
+    ]
+    delay = 1.0 / rate + 0.02
+    return _ReceiverRun(
+        frames,
+        (np.arange(n_snap) / rate).tolist(),
+        (np.arange(n_frames) / render_hz + delay).tolist(),
+        delay,
+    )
+
+
+def _run_receiver(run: _ReceiverRun, method: str) -> tuple[float, float]:
+    """One pass: CPU seconds spent decoding and rendering."""
+    methods = [method]
+    buffers: dict[tuple[int, int], StreamBuffer] = {}
+    decode = render = 0.0
+    nxt, n_snap = 0, len(run.frames)
+    for t_now in run.render_times:
+        c0 = time.process_time()
+        floor = t_now - run.delay
+        while nxt < n_snap and run.send_times[nxt] <= t_now:
+            snap = decode_message(run.frames[nxt])
+            assert isinstance(snap, Snapshot)
+            u, s, caps, ps = snap.users, snap.streams, snap.capture_times, snap.poses
+            for i in range(len(snap)):
+                key = (int(u[i]), int(s[i]))
+                buf = buffers.get(key)
+                if buf is None:
+                    buf = buffers[key] = StreamBuffer()
+                buf.push(float(caps[i]), np.array(ps[i]), floor)
+            nxt += 1
+        c1 = time.process_time()
+        render_buffers(list(buffers.values()), floor, methods)
+        c2 = time.process_time()
+        decode += c1 - c0
+        render += c2 - c1
+    return decode, render
+
+
+def receiver_cpu_times(
+    configs: Sequence[tuple[str, float]],
+    *,
+    streams: int = DEFAULT_ROOM_POSES,
+    seconds: float = 1.0,
+    render_hz: float = 90.0,
+    repeats: int = 11,
+    source: Trace | None = None,
+) -> dict[tuple[str, float], dict[str, float]]:
+    """The receiver's CPU time for each ``(method, rate)`` configuration.
+
+    Replays what the live client does, on the real code paths: every snapshot
+    (``streams`` poses, encoded beforehand with ``protocol.encode_snapshot``)
+    is decoded with ``protocol.decode_message`` as it arrives and its poses are
+    pushed into one :class:`~scenarios.receiver.StreamBuffer` per stream; every
+    render frame interpolates all streams with the method in one batched call
+    (:func:`~scenarios.receiver.render_buffers`). The number of rendered
+    frames depends only on ``seconds`` and ``render_hz``, not on the rate.
+
+    CPU time is ``time.process_time`` (garbage collection paused). The
+    configurations run round-robin, ``repeats`` times each, so that load from
+    other processes hits all of them alike. Returned per configuration, in
+    seconds: ``decode_s``, ``render_s`` and ``total_s`` as the **median** over
+    the repeats (what savings are computed from), ``best_total_s`` (the
+    smallest), and the counts of snapshots, frames and streams. The median,
+    not the best, is the headline because on a loaded machine the best of a
+    few runs varied by a third between configurations doing identical render
+    work, while the median stayed within a few per cent.
+    """
+    runs = {
+        rate: _prepare_receiver(rate, streams, seconds, render_hz, source)
+        for rate in sorted({r for _, r in configs})
+    }
+    samples: dict[tuple[str, float], list[tuple[float, float]]] = {c: [] for c in configs}
+    was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        for _ in range(max(1, repeats)):
+            for method, rate in samples:
+                samples[(method, rate)].append(_run_receiver(runs[rate], method))
+    finally:
+        if was_enabled:
+            gc.enable()
+    out: dict[tuple[str, float], dict[str, float]] = {}
+    for c, v in samples.items():
+        a = np.asarray(v)
+        out[c] = {
+            "decode_s": float(np.median(a[:, 0])),
+            "render_s": float(np.median(a[:, 1])),
+            "total_s": float(np.median(a.sum(axis=1))),
+            "best_total_s": float(a.sum(axis=1).min()),
+            "snapshots": float(len(runs[c[1]].frames)),
+            "frames": float(len(runs[c[1]].render_times)),
+            "streams": float(streams),
+        }
+    return out
+
+
+def receiver_cpu_time(method: str, rate: float, **kwargs: Any) -> dict[str, float]:
+    """:func:`receiver_cpu_times` for one configuration."""
+    return receiver_cpu_times([(method, rate)], **kwargs)[(method, rate)]
+
+
+# ---------------------------------------------------------------- run
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, float | np.floating):
+        return None if not math.isfinite(float(x)) else round(float(x), 6)
+    if isinstance(x, np.integer):
+        return int(x)
+    return x
+
+
+def _curves_json(stats: Mapping[int, Stats], methods: Sequence[str]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for m in methods:
+        out[m] = {}
+        for r in sorted(stats):
+            classes = stats[r].get(m, {})
+            entry: dict[str, Any] = {}
+            for cls, st in classes.items():
+                entry[cls] = {k: st[k] for k in (*CURVE_KEYS, "stall_fraction")}
+            out[m][str(r)] = entry
+    return out
+
+
+def _resolve_tiers(tiers: Mapping[str, Tier] | Sequence[Tier] | str | Path | None) -> list[Tier]:
+    if tiers is None:
+        return list(load_tiers().values())
+    if isinstance(tiers, str | Path):
+        return list(load_tiers(tiers).values())
+    if isinstance(tiers, Mapping):
+        return list(tiers.values())
+    return list(tiers)
+
+
+def run_table1(
+    traces: Sequence[str | Path | Trace],
+    rates: Iterable[int] = range(5, 31),
+    methods: Sequence[str] = DEFAULT_METHODS,
+    tiers: Mapping[str, Tier] | Sequence[Tier] | str | Path | None = None,
+    out_dir: str | Path | None = None,
+    progress: Progress | None = None,
+    *,
+    seed: int = 0,
+    room_poses: int = DEFAULT_ROOM_POSES,
+    transport: Transport = "datagram",
+    link: bool = True,
+    bench: bool = True,
+    bench_seconds: float = 1.0,
+    bench_repeats: int = 11,
+    plots: bool = True,
+    command: str | None = None,
+) -> dict[str, Any]:
+    """Measure Table 1 on ``traces``; return the report (and write it if ``out_dir``).
+
+    ``traces``: :class:`Trace` objects, CSV paths, or specs for
+    :func:`resolve_traces` (``traces:dev``, ``synthetic``, ...). ``rates``:
+    integer rates (Hz) searched for equal-QoE rates. ``methods``: interpolator
+    names (``soa`` is always included as the reference). ``tiers``: tiers, a
+    tier TOML file merged over the built-ins, or None for the built-ins.
+    ``room_poses``: poses per snapshot for wire sizes (the bandwidth cap and the
+    receiver running time). ``transport``: the link model's loss behaviour.
+    ``link``/``bench``/``plots`` switch off parts (c), the running time, and
+    the PNGs. Writes ``table1.md``, ``table1.json`` and PNGs to ``out_dir``
+    when given. The returned dict is what ``table1.json`` holds.
+    """
+    t_start = time.perf_counter()
+    trs = _as_traces(traces)
+    rates_in = list(rates)
+    if not rates_in or any(r != int(r) or r <= 0 for r in rates_in):
+        raise ValueError(f"rates must be positive integers (1 Hz steps), got {rates_in}")
+    rate_list = sorted({int(r) for r in rates_in})
+    meths = list(dict.fromkeys(["soa", *methods]))
+    unknown = [m for m in meths if m not in interp.names()]
+    if unknown:
+        raise ValueError(f"unknown interpolator(s) {unknown}; known: {', '.join(interp.names())}")
+    tier_list = _resolve_tiers(tiers)
+    frame_bytes = wire_bytes(room_poses)
+    soa_rates = {t.name: tier_rate(t, frame_bytes) for t in tier_list}
+    paper_rates = {p["ga_rate"] for p in PAPER["tiers"] if p["name"] in soa_rates}
+    all_rates = sorted(set(rate_list) | set(soa_rates.values()) | paper_rates)
+
+    n_link = sum(r <= soa_rates[t.name] for t in tier_list for r in all_rates) if link else 0
+    total = (len(all_rates) + n_link) * len(trs)
+    done = 0
+
+    def tick(stage: str) -> Callable[[], None]:
+        def f() -> None:
+            nonlocal done
+            done += 1
+            if progress is not None:
+                progress(stage, done, total)
+
+        return f
+
+    # (a) ideal-network curves
+    ideal = _sweep(trs, all_rates, meths, _ideal_log, tick("ideal"), keep_samples=plots)
+    timings = {"ideal_sweep": time.perf_counter() - t_start}
+    heads = {m: _headline(ideal.pooled, m) for m in meths}
+
+    # (b) equal-QoE rates, savings, running time
+    paper_by_tier = {p["name"]: p for p in PAPER["tiers"]}
+    tier_rows: list[dict[str, Any]] = []
+    for tier in tier_list:
+        r_soa = soa_rates[tier.name]
+        ref = heads["soa"][r_soa]
+        eq = {m: equal_qoe_rate(heads[m], ref, rate_list) for m in meths}
+        row: dict[str, Any] = {
+            "name": tier.name,
+            "soa_rate": r_soa,
+            "tier": tier.as_dict(),
+            "reference_headline_mm": ref,
+            "equal_qoe_rate": eq,
+            "bandwidth_saving_pct": {m: saving_pct(eq[m], r_soa) for m in meths},
+            "headline_at_equal_rate_mm": {
+                m: (None if (r := eq[m]) is None else heads[m][r]) for m in meths
+            },
+            "headline_at_soa_rate_mm": {m: heads[m][r_soa] for m in meths},
+            "equal_qoe_rate_by_class": _equal_by_class(ideal.pooled, meths, r_soa, rate_list),
+            "running_time_saving_pct": dict.fromkeys(meths),
+        }
+        paper = paper_by_tier.get(tier.name)
+        if paper is not None:
+            row["paper"] = paper
+            row["headline_at_paper_rate_mm"] = {
+                m: heads[m][paper["ga_rate"]] for m in meths if m in PAPER["ga_methods"]
+            }
+            row["reproduced"] = {
+                m: (eq[m] is not None and eq[m] <= paper["ga_rate"])
+                for m in meths
+                if m in PAPER["ga_methods"]
+            }
+        tier_rows.append(row)
+    if bench:
+        # Every configuration needed, measured round-robin in one go.
+        configs: list[tuple[str, float]] = []
+        for row in tier_rows:
+            configs += [(m, float(row["soa_rate"])) for m in meths]
+            configs += [(m, float(r)) for m, r in row["equal_qoe_rate"].items() if r is not None]
+            if "paper" in row:
+                configs += [(m, float(row["paper"]["ga_rate"])) for m in row["reproduced"]]
+        if progress is not None:
+            progress("running time", 0, 1)
+        cpu = receiver_cpu_times(
+            list(dict.fromkeys(configs)),
+            streams=room_poses,
+            seconds=bench_seconds,
+            repeats=bench_repeats,
+            source=trs[0],
+        )
+        for row in tier_rows:
+            ref_rate = float(row["soa_rate"])
+            base = cpu[("soa", ref_rate)]
+            row["running_time_s"] = {
+                m: {
+                    "at_soa_rate": {"rate": row["soa_rate"], **cpu[(m, ref_rate)]},
+                    "at_equal_rate": (
+                        None
+                        if (r := row["equal_qoe_rate"][m]) is None
+                        else {"rate": r, **cpu[(m, float(r))]}
+                    ),
+                }
+                for m in meths
+            }
+            row["running_time_saving_pct"] = {
+                m: (
+                    None
+                    if (r := row["equal_qoe_rate"][m]) is None
+                    else saving_pct(cpu[(m, float(r))]["total_s"], base["total_s"])
+                )
+                for m in meths
+            }
+            if "paper" in row:
+                # Granting the paper's rates: what would the receiver save then?
+                r_p = float(row["paper"]["ga_rate"])
+                row["running_time_saving_at_paper_rate_pct"] = {
+                    m: saving_pct(cpu[(m, r_p)]["total_s"], base["total_s"])
+                    for m in row["reproduced"]
+                }
+                for m in row["reproduced"]:
+                    row["running_time_s"][m]["at_paper_rate"] = {
+                        "rate": row["paper"]["ga_rate"],
+                        **cpu[(m, r_p)],
+                    }
+
+    timings["bench"] = time.perf_counter() - t_start - sum(timings.values())
+
+    # (c) the same through each tier's link model
+    link_rows: list[dict[str, Any]] = []
+    link_sweeps: dict[str, _Sweep] = {}
+    for ti, tier in enumerate(tier_list if link else []):
+        maker = _link_log_maker(tier, ti, seed, frame_bytes, transport)
+        r_soa = soa_rates[tier.name]
+        # Through the link a method may not exceed the tier's rate: sweep up to it.
+        allowed = [r for r in all_rates if r <= r_soa]
+        sw = _sweep(trs, allowed, meths, maker, tick(f"link:{tier.name}"), False)
+        link_sweeps[tier.name] = sw
+        lh = {m: _headline(sw.pooled, m) for m in meths}
+        ref = lh["soa"][r_soa]
+        eq = {m: equal_qoe_rate(lh[m], ref, rate_list) for m in meths}
+
+        def at(m: str, r: int | None, sw: _Sweep = sw) -> dict[str, Any] | None:
+            if r is None:
+                return None
+            hands = sw.pooled[r][m].get("hands", {})
+            head = sw.pooled[r][m].get("head", {})
+            return {
+                "rate": r,
+                "headline_mm": hands.get("tip_p95_mm", float("nan")),
+                "head_tip_p95_mm": head.get("tip_p95_mm", float("nan")),
+                "stall_fraction": hands.get("stall_fraction", float("nan")),
+                **sw.network[r],
+            }
+
+        link_rows.append(
+            {
+                "name": tier.name,
+                "soa_rate": r_soa,
+                "transport": transport,
+                "playout": "fixed per run: D = 1/rate + p95(arrival - capture)",
+                "reference_headline_mm": ref,
+                "equal_qoe_rate": eq,
+                "bandwidth_saving_pct": {m: saving_pct(eq[m], r_soa) for m in meths},
+                "at_soa_rate": {m: at(m, r_soa) for m in meths},
+                "at_equal_rate": {m: at(m, eq[m]) for m in meths},
+                "curves": _curves_json(sw.pooled, meths),
+                "network": {str(r): sw.network[r] for r in sorted(sw.network)},
+            }
+        )
+
+    timings["link_sweeps"] = time.perf_counter() - t_start - sum(timings.values())
+    per_trace: dict[str, Any] = {}
+    for tr in trs:
+        ph = {m: _headline(ideal.per_trace[tr.name], m) for m in meths}
+        per_trace[tr.name] = {
+            "duration_s": tr.duration,
+            "native_rate_hz": tr.native_rate,
+            "streams": list(tr.streams),
+            "headline_mm": {m: {str(r): ph[m][r] for r in all_rates} for m in meths},
+            "tip_p95_mm_by_class": {
+                cls: {
+                    m: {str(r): v for r, v in _headline(ideal.per_trace[tr.name], m, cls).items()}
+                    for m in meths
+                }
+                for cls in _classes(ideal.per_trace[tr.name])
+            },
+            "equal_qoe_rate": {
+                t.name: {
+                    m: equal_qoe_rate(ph[m], ph["soa"][soa_rates[t.name]], rate_list) for m in meths
+                }
+                for t in tier_list
+            },
+            "equal_qoe_rate_by_class": {
+                t.name: _equal_by_class(
+                    ideal.per_trace[tr.name], meths, soa_rates[t.name], rate_list
+                )
+                for t in tier_list
+            },
+        }
+
+    elapsed = time.perf_counter() - t_start
+    report: dict[str, Any] = {
+        "curves": _curves_json(ideal.pooled, meths),
+        "tiers": tier_rows,
+        "paper": PAPER,
+        "link": link_rows,
+        "per_trace": per_trace,
+        "config": {
+            "traces": [tr.name for tr in trs],
+            "rates": rate_list,
+            "methods": meths,
+            "headline": "p95 tip error of the hands (mm), tip 0.20 m along -z",
+            "keyframes": "latest native sample at each send time t0 + k/rate",
+            "ideal_playout": "D = 1/rate + 1/native_rate (one interval)",
+            "room_poses": room_poses,
+            "snapshot_wire_bytes": frame_bytes,
+            "seed": seed,
+            "transport": transport,
+            "bench": {"seconds": bench_seconds, "repeats": bench_repeats, "render_hz": 90.0},
+            "command": command,
+            "elapsed_s": elapsed,
+            "timings_s": timings,
+        },
+    }
+    report = _jsonable(report)
+    if out_dir is not None:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "table1.json").write_text(json.dumps(report, indent=1) + "\n")
+        plot_files: list[str] = []
+        if plots:
+            t_plot = time.perf_counter()
+            plot_files = _plots(out, trs, report, ideal, link_sweeps, meths, soa_rates)
+            report["config"]["timings_s"]["plots"] = round(time.perf_counter() - t_plot, 3)
+            (out / "table1.json").write_text(json.dumps(report, indent=1) + "\n")
+        (out / "table1.md").write_text(_markdown(report, trs, plot_files))
+    return report
+
+
+# ---------------------------------------------------------------- plots
+
+
+def _plots(
+    out: Path,
+    trs: Sequence[Trace],
+    report: Mapping[str, Any],
+    ideal: _Sweep,
+    link_sweeps: Mapping[str, _Sweep],
+    meths: Sequence[str],
+    soa_rates: Mapping[str, int],
+) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    colours = {m: f"C{i}" for i, m in enumerate(meths)}
+    files: list[str] = []
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), dpi=100)
+    for ax, cls in zip(axes, ("hands", "head"), strict=True):
+        for m in meths:
+            rs = sorted(ideal.pooled)
+            ys = [ideal.pooled[r][m].get(cls, {}).get("tip_p95_mm", np.nan) for r in rs]
+            ax.plot(rs, ys, marker=".", color=colours[m], label=m)
+        for name, r in soa_rates.items():
+            ax.axvline(r, color="grey", ls=":", lw=0.8)
+            ax.text(
+                r,
+                1.0,
+                name,
+                rotation=90,
+                va="top",
+                ha="right",
+                fontsize=7,
+                transform=ax.get_xaxis_transform(),
+                color="grey",
+            )
+        ax.set_yscale("log")
+        ax.set_xlabel("update rate (Hz)")
+        ax.set_ylabel(f"p95 tip error, {cls} (mm)")
+        ax.grid(True, which="both", alpha=0.3)
+    for row in report["tiers"]:
+        ref = row["reference_headline_mm"]
+        if ref is not None:
+            axes[0].axhline(ref, color="grey", ls="--", lw=0.5)
+        for m, r in row["equal_qoe_rate"].items():
+            if r is not None and m != "soa":
+                axes[0].plot(
+                    [r], [row["headline_at_equal_rate_mm"][m]], "o", mfc="none", color=colours[m]
+                )
+    axes[0].legend(fontsize=8)
+    fig.suptitle(
+        "QoE vs update rate, ideal network (dotted: tier rates; circles: equal-QoE)", fontsize=9
+    )
+    fig.tight_layout()
+    fig.savefig(out / "qoe_vs_rate.png")
+    plt.close(fig)
+    files.append("qoe_vs_rate.png")
+
+    tiers = report["tiers"]
+    fig, axes = plt.subplots(1, len(tiers), figsize=(3.2 * len(tiers), 3.4), dpi=100, squeeze=False)
+    for ax, row in zip(axes[0], tiers, strict=True):
+        r_soa = row["soa_rate"]
+        at_soa = ideal.hands_tip.get(r_soa, {})
+        for m in meths:
+            x = np.sort(at_soa.get(m, np.empty(0)))
+            if x.size:
+                ax.plot(
+                    x, np.arange(1, x.size + 1) / x.size, color=colours[m], label=f"{m} @{r_soa}"
+                )
+            r_m = row["equal_qoe_rate"].get(m)
+            if m != "soa" and r_m is not None and r_m != r_soa:
+                y = np.sort(ideal.hands_tip.get(r_m, {}).get(m, np.empty(0)))
+                if y.size:
+                    ax.plot(
+                        y,
+                        np.arange(1, y.size + 1) / y.size,
+                        color=colours[m],
+                        ls="--",
+                        label=f"{m} @{r_m}",
+                    )
+        ax.axhline(0.95, color="grey", lw=0.5)
+        ax.set_xscale("log")
+        ax.set_xlim(left=1)
+        ax.set_title(f"{row['name']} (SoA {r_soa} Hz)", fontsize=9)
+        ax.set_xlabel("hands tip error (mm)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=6)
+    axes[0][0].set_ylabel("CDF")
+    fig.tight_layout()
+    fig.savefig(out / "error_cdf.png")
+    plt.close(fig)
+    files.append("error_cdf.png")
+
+    if link_sweeps:
+        fig, axes = plt.subplots(
+            1, len(link_sweeps), figsize=(3.2 * len(link_sweeps), 3.4), dpi=100, squeeze=False
+        )
+        for ax, (name, sw) in zip(axes[0], link_sweeps.items(), strict=True):
+            rs = sorted(sw.pooled)
+            for m in meths:
+                ys = [sw.pooled[r][m].get("hands", {}).get("tip_p95_mm", np.nan) for r in rs]
+                ax.plot(rs, ys, marker=".", color=colours[m], label=m)
+            ax.axvline(soa_rates[name], color="grey", ls=":", lw=0.8)
+            ax.set_yscale("log")
+            ax.set_title(f"link: {name}", fontsize=9)
+            ax.set_xlabel("update rate (Hz)")
+            ax.grid(True, which="both", alpha=0.3)
+        axes[0][0].set_ylabel("p95 tip error, hands (mm)")
+        axes[0][0].legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(out / "qoe_vs_rate_link.png")
+        plt.close(fig)
+        files.append("qoe_vs_rate_link.png")
+    return files
+
+
+# ---------------------------------------------------------------- markdown
+
+
+def _f(x: Any, digits: int = 1, unit: str = "") -> str:
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "null"
+    if isinstance(x, int):
+        return f"{x}{unit}"
+    return f"{x:.{digits}f}{unit}"
+
+
+def _markdown(report: Mapping[str, Any], trs: Sequence[Trace], plots: Sequence[str]) -> str:
+    cfg = report["config"]
+    meths: list[str] = cfg["methods"]
+    others = [m for m in meths if m != "soa"]
+    lines: list[str] = ["# Table 1: equal-QoE update rates per network tier", ""]
+    if cfg.get("command"):
+        lines += ["Command:", "", f"    {cfg['command']}", ""]
+    total_s = sum(tr.duration for tr in trs)
+    lines += [
+        f"Traces ({len(trs)}, {total_s:.0f} s in all): "
+        + ", ".join(f"`{tr.name}` ({tr.duration:.0f} s, {tr.native_rate:.0f} Hz)" for tr in trs)
+        + ".",
+        "",
+        f"Rates {cfg['rates'][0]}-{cfg['rates'][-1]} Hz in 1 Hz steps; methods "
+        + ", ".join(f"`{m}`" for m in meths)
+        + f". Headline: {cfg['headline']}. Keyframes: {cfg['keyframes']}. "
+        f"Ideal network playout: {cfg['ideal_playout']}. Wire size of a snapshot: "
+        f"{cfg['snapshot_wire_bytes']} B ({cfg['room_poses']} poses, a 16-user room). "
+        f"Run time {cfg['elapsed_s']:.0f} s ("
+        + ", ".join(f"{k.replace('_', ' ')} {v:.0f} s" for k, v in cfg["timings_s"].items())
+        + ").",
+        "",
+        "## Measured beside the paper (ideal network)",
+        "",
+        "Equal-QoE rate: the lowest rate whose headline is no worse than SoA's at the tier "
+        "rate; `null` = no rate in the range reaches SoA's quality. Running time: receiver "
+        "CPU time (decode + interpolate the same number of 90 Hz frames), method at its "
+        "equal-QoE rate vs SoA at the tier rate; last column: the method at the paper's rate "
+        "for it (granting the paper's equal-QoE rate) vs SoA at the tier rate.",
+        "",
+        "| tier | SoA rate | SoA p95 tip (mm) | method | rate paper "
+        "| p95 tip at the paper's rate (mm) | rate measured "
+        "| p95 tip at it (mm) | bandwidth saving paper | measured "
+        "| running-time saving paper | measured | at the paper's rate |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    paper_rt = report["paper"]["running_time_saving_pct"]
+    for row in report["tiers"]:
+        paper = row.get("paper", {})
+        for m in others:
+            lines.append(
+                f"| {row['name']} | {row['soa_rate']} | {_f(row['reference_headline_mm'])} "
+                f"| `{m}` | {paper.get('ga_rate', '-')} "
+                f"| {_f(row.get('headline_at_paper_rate_mm', {}).get(m))} "
+                f"| {_f(row['equal_qoe_rate'][m])} "
+                f"| {_f(row['headline_at_equal_rate_mm'][m])} "
+                f"| {paper.get('bandwidth_saving_pct', '-')} % "
+                f"| {_f(row['bandwidth_saving_pct'][m], 0, ' %')} "
+                f"| {paper_rt if paper else '-'} % "
+                f"| {_f(row['running_time_saving_pct'][m], 1, ' %')} "
+                f"| {_f(row.get('running_time_saving_at_paper_rate_pct', {}).get(m), 1, ' %')} |"
+            )
+    lines += [""]
+    if report["tiers"] and "running_time_s" in report["tiers"][0]:
+        b = cfg["bench"]
+        lines += [
+            f"Receiver CPU time (ms; median of {b['repeats']} round-robin runs "
+            f"of {b['seconds']:g} s of session: {cfg['room_poses']} streams, "
+            f"{b['render_hz']:.0f} Hz render): decode / render / total, every method at the "
+            "tier's SoA rate, at its equal-QoE rate and at the paper's rate.",
+            "",
+            "| tier | method | rate | decode | render | total |",
+            "|---|---|---|---|---|---|",
+        ]
+        seen: set[tuple[str, str, int]] = set()
+        for row in report["tiers"]:
+            for m, both in row["running_time_s"].items():
+                for c in (both["at_soa_rate"], both["at_equal_rate"], both.get("at_paper_rate")):
+                    if c is None or (row["name"], m, c["rate"]) in seen:
+                        continue
+                    seen.add((row["name"], m, c["rate"]))
+                    lines.append(
+                        f"| {row['name']} | `{m}` | {c['rate']} | {1000 * c['decode_s']:.1f} "
+                        f"| {1000 * c['render_s']:.1f} | {1000 * c['total_s']:.1f} |"
+                    )
+        lines += [""]
+    if report["link"]:
+        lines += [
+            "## Through each tier's link model",
+            "",
+            f"Transport `{cfg['transport']}`; playout delay fixed per run: D = 1/rate + p95 of "
+            "the keyframe age (arrival - capture). Latency = D + mean network delay (DESIGN.md); "
+            "D alone is already the capture-to-display delay, since ages count from capture. "
+            "Stall: share of hand samples with no bracketing keyframe by their deadline. "
+            "Here the equal-QoE rate is searched only up to the tier's rate (the tier allows no "
+            "more); `null`: no rate the tier allows reaches SoA's quality through the link. "
+            "Rows show SoA at the tier rate and each method at its equal-QoE rate.",
+            "",
+            "| tier | method | rate | p95 tip (mm) | stall | D (ms) | net delay (ms) "
+            "| latency (ms) | lost | equal-QoE rate | bandwidth saving |",
+            "|---|---|---|---|---|---|---|---|---|---|---|",
+        ]
+        for row in report["link"]:
+            for m in meths:
+                a = row["at_soa_rate"][m] if m == "soa" else row["at_equal_rate"][m]
+                eq = row["equal_qoe_rate"][m]
+                if a is None:
+                    lines.append(f"| {row['name']} | `{m}` | null | | | | | | | null | null |")
+                    continue
+                lines.append(
+                    f"| {row['name']} | `{m}` | {a['rate']} | {_f(a['headline_mm'])} "
+                    f"| {_f(100 * a['stall_fraction'] if a['stall_fraction'] is not None else None, 2, ' %')} "  # noqa: E501
+                    f"| {_f(a['playout_delay_ms'])} | {_f(a['network_delay_ms'])} "
+                    f"| {_f(a['latency_ms'])} "
+                    f"| {_f(100 * a['loss_fraction'] if a['loss_fraction'] is not None else None, 2, ' %')} "  # noqa: E501
+                    f"| {_f(eq)} | {_f(row['bandwidth_saving_pct'][m], 0, ' %')} |"
+                )
+        lines += [""]
+    lines += [
+        "## Headline QoE vs rate (ideal network)",
+        "",
+        "p95 tip error of the hands (mm); the head's in brackets.",
+        "",
+        "| rate | " + " | ".join(f"`{m}`" for m in meths) + " |",
+        "|---|" + "---|" * len(meths),
+    ]
+    rates = sorted(int(r) for r in report["curves"][meths[0]])
+    for r in rates:
+        cells = []
+        for m in meths:
+            c = report["curves"][m][str(r)]
+            cells.append(
+                f"{_f(c.get('hands', {}).get('tip_p95_mm'))} "
+                f"({_f(c.get('head', {}).get('tip_p95_mm'))})"
+            )
+        lines.append(f"| {r} | " + " | ".join(cells) + " |")
+    lines += [""]
+    tier_names = [row["name"] for row in report["tiers"]]
+    by_class = [row.get("equal_qoe_rate_by_class", {}) for row in report["tiers"]]
+    classes = [c for c in ("hands", "head", "objects") if any(c in b for b in by_class)]
+    if classes:
+        lines += [
+            "## Equal-QoE rate judged on each device class (ideal network)",
+            "",
+            "As above, but with each class's own p95 tip error in place of the hands'; cells "
+            "are " + " / ".join(f"`{m}`" for m in others) + " (SoA at the tier rate).",
+            "",
+            "| class | "
+            + " | ".join(
+                f"{t} ({row['soa_rate']} Hz)"
+                for t, row in zip(tier_names, report["tiers"], strict=True)
+            )
+            + " |",
+            "|---|" + "---|" * len(tier_names),
+        ]
+        for cls in classes:
+            cells = [" / ".join(_f(b.get(cls, {}).get(m)) for m in others) for b in by_class]
+            lines.append(f"| {cls} | " + " | ".join(cells) + " |")
+        lines += [""]
+    if len(report["per_trace"]) > 1:
+        lines += [
+            "## Equal-QoE rate per trace and device class (ideal network)",
+            "",
+            "Each trace on its own, against SoA on the same trace, judged on the class's p95 "
+            "tip error; cells are "
+            + " / ".join(f"`{m}`" for m in others)
+            + ". Last column: p95 tip error (mm) at 15 Hz, "
+            + " / ".join(f"`{m}`" for m in meths)
+            + ".",
+            "",
+            "| trace | class | " + " | ".join(tier_names) + " | p95 tip @15 Hz |",
+            "|---|---|" + "---|" * (len(tier_names) + 1),
+        ]
+        for name, pt in report["per_trace"].items():
+            for cls, curves in pt["tip_p95_mm_by_class"].items():
+                cells = [
+                    " / ".join(
+                        _f(pt["equal_qoe_rate_by_class"][t].get(cls, {}).get(m)) for m in others
+                    )
+                    for t in tier_names
+                ]
+                at15 = " / ".join(_f(curves[m].get("15")) for m in meths)
+                lines.append(f"| `{name}` | {cls} | " + " | ".join(cells) + f" | {at15} |")
+        lines += [""]
+    if plots:
+        lines += ["## Plots", ""] + [f"![{p}]({p})" for p in plots] + [""]
+    lines += [
+        "Paper: " + report["paper"]["source"] + ". Full numbers: `table1.json`.",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------- CLI
+
+
+def _parse_rates(text: str) -> list[int]:
+    out: list[int] = []
+    for part in text.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        if "-" in part:
+            lo, hi = (int(x) for x in part.split("-", 1))
+            out.extend(range(lo, hi + 1))
+        else:
+            out.append(int(part))
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m scenarios.table1",
+        description="Reproduce the paper's Table 1 offline (equal-QoE rates per network tier).",
+    )
+    parser.add_argument(
+        "--traces",
+        action="append",
+        required=True,
+        help="traces:dev, traces:eval, a CSV or directory, 'synthetic', synthetic:NAME[:SEED] "
+        "or a suite .toml (repeatable)",
+    )
+    parser.add_argument("--rates", default="5-30", help="e.g. 5-30 or 5,10,15 (integers)")
+    parser.add_argument("--methods", default=",".join(DEFAULT_METHODS))
+    parser.add_argument("--tiers", default=None, help="TOML file merged over the built-in tiers")
+    parser.add_argument("--out", required=True, help="output directory")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--room-poses", type=int, default=DEFAULT_ROOM_POSES)
+    parser.add_argument("--transport", choices=("datagram", "stream"), default="datagram")
+    parser.add_argument("--no-link", action="store_true", help="skip the link-model sweeps")
+    parser.add_argument("--no-bench", action="store_true", help="skip the running-time bench")
+    parser.add_argument("--no-plots", action="store_true", help="write no PNG plots")
+    parser.add_argument("--quiet", action="store_true")
+    args = parser.parse_args(argv)
+    try:
+        rates = _parse_rates(args.rates)
+    except ValueError:
+        parser.error(f"cannot parse --rates {args.rates!r}")
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    last = [-1.0]
+
+    def progress(stage: str, done: int, total: int) -> None:
+        now = time.perf_counter()
+        if args.quiet or (now - last[0] < 2.0 and done < total):
+            return
+        last[0] = now
+        print(f"  {stage}: {done}/{total}", file=sys.stderr)
+
+    command = "python -m scenarios.table1 " + " ".join(sys.argv[1:] if argv is None else list(argv))
+    try:
+        report = run_table1(
+            args.traces,
+            rates,
+            methods,
+            args.tiers,
+            args.out,
+            progress,
+            seed=args.seed,
+            room_poses=args.room_poses,
+            transport=args.transport,
+            link=not args.no_link,
+            bench=not args.no_bench,
+            plots=not args.no_plots,
+            command=command,
+        )
+    except (TraceError, ValueError, KeyError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(
+        f"{'tier':10s} {'SoA':>4s}  " + "  ".join(f"{m:>16s}" for m in report["config"]["methods"])
+    )
+    for row in report["tiers"]:
+        cells = []
+        for m in report["config"]["methods"]:
+            r = row["equal_qoe_rate"][m]
+            bw = row["bandwidth_saving_pct"][m]
+            cells.append(f"{_f(r):>5s} ({_f(bw, 0, '%'):>6s})".rjust(16))
+        print(f"{row['name']:10s} {row['soa_rate']:>4d}  " + "  ".join(cells))
+    print(f"wrote {Path(args.out) / 'table1.md'} in {report['config']['elapsed_s']:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,181 @@
+"""Table 1: equal-QoE rate arithmetic, the running-time bench, and a small end-to-end run."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from scenarios.network import Tier, builtin_tiers, wire_bytes
+from scenarios.synthetic import synthetic_motion
+from scenarios.table1 import (
+    PAPER,
+    equal_qoe_rate,
+    main,
+    receiver_cpu_time,
+    run_table1,
+    saving_pct,
+    tier_rate,
+)
+from scenarios.traces import load_trace
+
+STAT_KEYS = {"pos_p50_mm", "pos_p95_mm", "rot_p50_deg", "rot_p95_deg", "tip_p50_mm", "tip_p95_mm"}
+
+
+def test_equal_qoe_rate_is_the_lowest_rate_no_worse_than_the_reference() -> None:
+    """The lowest rate whose headline is <= the reference; equality counts as no worse."""
+    curve = {5: 90.0, 6: 70.0, 7: 50.0, 8: 40.0, 9: 30.0}
+    assert equal_qoe_rate(curve, 50.0) == 7
+    assert equal_qoe_rate(curve, 49.9) == 8
+    assert equal_qoe_rate(curve, 1000.0) == 5
+
+
+def test_equal_qoe_rate_is_none_when_no_rate_reaches_the_reference() -> None:
+    """None when even the highest rate is worse; NaN headlines never qualify."""
+    assert equal_qoe_rate({5: 9.0, 6: 8.0}, 7.0) is None
+    assert equal_qoe_rate({5: math.nan, 6: 6.0}, 7.0) == 6
+    assert equal_qoe_rate({5: 1.0}, math.nan) is None
+
+
+def test_equal_qoe_rate_searches_only_the_given_rates() -> None:
+    """Rates outside the search range are ignored even if they qualify."""
+    curve = {4: 1.0, 5: 9.0, 6: 5.0, 40: 0.1}
+    assert equal_qoe_rate(curve, 5.0, rates=range(5, 31)) == 6
+    assert equal_qoe_rate(curve, 0.5, rates=range(5, 31)) is None
+
+
+def test_saving_is_one_minus_the_ratio_in_percent() -> None:
+    """Bandwidth saving = 100 (1 - r_method / r_soa); the paper's tiers give 33/50/53/58 %."""
+    got = [round(saving_pct(p["ga_rate"], p["soa_rate"]) or 0.0) for p in PAPER["tiers"]]
+    assert got == [p["bandwidth_saving_pct"] for p in PAPER["tiers"]]
+    assert saving_pct(None, 30) is None
+    assert saving_pct(33.0, 30.0) == pytest.approx(-10.0)
+
+
+def test_tier_rate_is_capped_by_the_bandwidth() -> None:
+    """SoA runs at the tier's max rate unless the cap cannot carry the room's snapshots."""
+    tiers = builtin_tiers()
+    assert [tier_rate(t, wire_bytes(48)) for t in tiers.values()] == [30, 20, 15, 12]
+    small = Tier("thin", 30, 80.0, 10, 1, 0)  # 10 000 B/s
+    assert tier_rate(small, 1000) == 10
+
+
+def test_receiver_bench_counts_the_work() -> None:
+    """The bench decodes rate x seconds snapshots and renders render_hz x seconds frames."""
+    out = receiver_cpu_time("dq-slerp", 10.0, streams=6, seconds=0.5, repeats=1)
+    assert out["snapshots"] == 6 and out["frames"] == 45 and out["streams"] == 6
+    assert out["decode_s"] > 0 and out["render_s"] > 0
+    assert out["total_s"] == pytest.approx(out["decode_s"] + out["render_s"], rel=0.5)
+
+
+def _strict_json(path: Path) -> Any:
+    def refuse(token: str) -> None:
+        raise AssertionError(f"non-JSON constant {token} in {path}")
+
+    return json.loads(path.read_text(), parse_constant=refuse)
+
+
+def test_small_real_run_writes_the_documented_report(dev_trace_path: Path, tmp_path: Path) -> None:
+    """A dev-trace window at a few rates writes table1.md/json and plots of the documented shape."""
+    trace = load_trace(dev_trace_path).window(20.0, 32.0)
+    seen: list[str] = []
+    report = run_table1(
+        [trace],
+        rates=[10, 20],
+        out_dir=tmp_path,
+        progress=lambda stage, done, total: seen.append(stage),
+        bench_seconds=0.2,
+        bench_repeats=1,
+    )
+    for name in ("table1.md", "table1.json", "qoe_vs_rate.png", "error_cdf.png"):
+        assert (tmp_path / name).stat().st_size > 0, name
+    data = _strict_json(tmp_path / "table1.json")
+    assert set(data) >= {"curves", "tiers", "paper"}
+    assert set(data["curves"]) == {"soa", "dq-slerp", "motor-lerp"}
+    for method in data["curves"].values():
+        # searched rates, the tiers' SoA rates and the paper's rates, as strings of integers
+        assert set(method) == {"5", "7", "10", "12", "15", "20", "30"}
+        for classes in method.values():
+            assert set(classes["hands"]) >= STAT_KEYS and set(classes["head"]) >= STAT_KEYS
+    assert [t["name"] for t in data["tiers"]] == ["excellent", "good", "mediocre", "poor"]
+    for row in data["tiers"]:
+        assert set(row) >= {
+            "name",
+            "soa_rate",
+            "equal_qoe_rate",
+            "bandwidth_saving_pct",
+            "running_time_saving_pct",
+        }
+        for key in ("equal_qoe_rate", "bandwidth_saving_pct", "running_time_saving_pct"):
+            assert set(row[key]) == {"soa", "dq-slerp", "motor-lerp"}
+        r = row["equal_qoe_rate"]["dq-slerp"]
+        assert r is None or r in (10, 20)
+    assert data["paper"]["running_time_saving_pct"] == 16.5
+    assert data == report
+    assert "ideal" in seen and any(s.startswith("link:") for s in seen)
+    md = (tmp_path / "table1.md").read_text()
+    assert "| excellent | 30 |" in md and "Through each tier's link model" in md
+
+
+def test_screw_motion_needs_the_lowest_rate_with_dq_slerp() -> None:
+    """On a constant screw dq-slerp is exact, so its equal-QoE rate is 5 Hz in every tier."""
+    report = run_table1(
+        [synthetic_motion("screw", 0, duration_s=10.0)],
+        rates=range(5, 31),
+        methods=["dq-slerp"],
+        link=False,
+        bench=False,
+    )
+    for row in report["tiers"]:
+        assert row["equal_qoe_rate"]["dq-slerp"] == 5
+        assert row["bandwidth_saving_pct"]["dq-slerp"] == pytest.approx(
+            100 * (1 - 5 / row["soa_rate"])
+        )
+        assert row["equal_qoe_rate"]["soa"] == row["soa_rate"]
+
+
+def test_objects_are_reported_as_their_own_class() -> None:
+    """Synthetic scenes with objects get an 'objects' curve and per-class equal-QoE rates."""
+    report = run_table1(
+        [synthetic_motion("drill", 0, duration_s=8.0)],
+        rates=[12, 15],
+        link=False,
+        bench=False,
+    )
+    assert "objects" in report["curves"]["soa"]["15"]
+    assert set(report["tiers"][0]["equal_qoe_rate_by_class"]) == {"hands", "head", "objects"}
+
+
+def test_cli_writes_a_report(dev_trace_path: Path, tmp_path: Path) -> None:
+    """`python -m scenarios.table1 --traces FILE --out DIR` writes table1.md and exits 0."""
+    short = tmp_path / "short.csv"
+    short.write_text("".join(dev_trace_path.read_text().splitlines(keepends=True)[:900]))
+    code = main(
+        [
+            "--traces",
+            str(short),
+            "--rates",
+            "12,20",
+            "--out",
+            str(tmp_path),
+            "--no-link",
+            "--no-bench",
+            "--no-plots",
+            "--quiet",
+        ]
+    )
+    assert code == 0
+    assert "Table 1" in (tmp_path / "table1.md").read_text()
+    assert main(["--traces", str(tmp_path / "missing.csv"), "--out", str(tmp_path)]) == 2
+
+
+def test_bad_rates_and_methods_are_refused_before_any_work() -> None:
+    """Non-integer rates and unknown interpolators raise ValueError naming the problem."""
+    trace = synthetic_motion("screw", 0, duration_s=2.0)
+    with pytest.raises(ValueError, match="positive integers"):
+        run_table1([trace], rates=[7.5], link=False, bench=False)
+    with pytest.raises(ValueError, match="unknown interpolator"):
+        run_table1([trace], rates=iter([10]), methods=["cubic"], link=False, bench=False)
