@@ -152,6 +152,9 @@ def test_negated_quaternions_give_the_same_poses(name: str, a: F64, b: F64, s: f
     a_neg, b_neg = a.copy(), b.copy()
     a_neg[3:] *= -1.0
     b_neg[3:] *= -1.0
+    # At exactly 180 deg (q0.q1 == 0) both ways round are equally short and the
+    # sign of the zero decides: a tie, not a property violation.
+    assume(not_half_turn(a, b))
     scale = translation_scale(a, b)
     for x, y in ((a_neg, b), (a, b_neg), (a_neg, b_neg)):
         assert_same_poses(f(x, y, s), want, scale)
