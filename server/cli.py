@@ -294,13 +294,25 @@ def token(
         raise _fail(str(exc)) from None
 
 
-def _check_bot_args(rate: float, n: int, duration: float) -> None:
+def _check_bot_args(
+    rate: float, n: int, duration: float, interp_text: str, motion: str
+) -> tuple[str, ...]:
+    """Validate what bots and demo share; returns the interpolator names."""
+    from scenarios.traces import TraceError, find_traces
+
     if n < 1:
-        raise _fail("--n must be at least 1")
+        raise _fail("the number of bots must be at least 1")
     if duration <= 0:
         raise _fail("--duration must be positive")
     if rate <= 0:
         raise _fail("--rate must be positive")
+    methods = tuple(_parse_methods(interp_text, live=True))
+    if not motion.startswith("synthetic"):
+        try:
+            find_traces(motion)
+        except TraceError as exc:
+            raise _fail(str(exc)) from None
+    return methods
 
 
 @app.command()
@@ -333,15 +345,8 @@ def bots(
     from client.bot import BotConfig
     from client.connection import JoinRefused
     from client.swarm import run_bots, swarm_report
-    from scenarios.traces import TraceError, find_traces
 
-    _check_bot_args(rate, n, duration)
-    methods = tuple(_parse_methods(interp_, live=True))
-    if not motion.startswith("synthetic"):
-        try:
-            find_traces(motion)
-        except TraceError as exc:
-            raise _fail(str(exc)) from None
+    methods = _check_bot_args(rate, n, duration, interp_, motion)
     base = BotConfig(
         url=url,
         room=room,
@@ -394,16 +399,9 @@ def demo(
     no_record: Annotated[bool, typer.Option("--no-record", help="Do not record.")] = False,
 ) -> None:
     """The main job: a server and N bots on loopback, then QoE per interpolator."""
-    from scenarios.traces import TraceError, find_traces
     from server.demo import run_demo
 
-    _check_bot_args(rate, bots, duration)
-    methods = tuple(_parse_methods(interp_, live=True))
-    if not motion.startswith("synthetic"):
-        try:
-            find_traces(motion)
-        except TraceError as exc:
-            raise _fail(str(exc)) from None
+    methods = _check_bot_args(rate, bots, duration, interp_, motion)
     report = _run_async(
         run_demo(
             bots=bots,

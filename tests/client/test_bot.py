@@ -6,29 +6,22 @@ import asyncio
 
 import numpy as np
 import pytest
+from support import running_server
 
 from client.bot import BotConfig, BotReport, RemoteStream, remote_log, run_bot
 from client.swarm import run_bots, swarm_report
 from interp import get
 from scenarios.qoe import STAT_KEYS, playout_brackets
-from server.app import RelayServer, ServerConfig
 
 
 async def _session(configs: list[BotConfig]) -> list[BotReport]:
-    server = RelayServer(ServerConfig(host="127.0.0.1", port=0))
-    async with asyncio.TaskGroup() as tg:
-        tg.create_task(server.run())
-        await asyncio.wait_for(server.ready.wait(), 10)
+    async with running_server() as server:
         url = f"ws://127.0.0.1:{server.port}"
-        try:
-            async with asyncio.TaskGroup() as bots:
-                tasks = [
-                    bots.create_task(run_bot(BotConfig(**{**c.__dict__, "url": url})))
-                    for c in configs
-                ]
-            return [t.result() for t in tasks]
-        finally:
-            server.stop()
+        async with asyncio.TaskGroup() as bots:
+            tasks = [
+                bots.create_task(run_bot(BotConfig(**{**c.__dict__, "url": url}))) for c in configs
+            ]
+    return [t.result() for t in tasks]
 
 
 @pytest.fixture(scope="module")
@@ -135,10 +128,7 @@ def test_swarm_runs_n_bots_with_trace_motion() -> None:
     """run_bots starts N bots on distinct dev traces; all finish with a report."""
 
     async def go() -> list[BotReport]:
-        server = RelayServer(ServerConfig(host="127.0.0.1", port=0))
-        async with asyncio.TaskGroup() as tg:
-            tg.create_task(server.run())
-            await asyncio.wait_for(server.ready.wait(), 10)
+        async with running_server() as server:
             base = BotConfig(
                 url=f"ws://127.0.0.1:{server.port}",
                 room="s",
@@ -146,10 +136,7 @@ def test_swarm_runs_n_bots_with_trace_motion() -> None:
                 motion="traces:dev",
                 duration=2.0,
             )
-            try:
-                return await run_bots(base, 3)
-            finally:
-                server.stop()
+            return await run_bots(base, 3)
 
     reports = asyncio.run(go())
     assert len(reports) == 3

@@ -12,38 +12,35 @@ import time
 from pathlib import Path
 
 import numpy as np
+from support import running_server
 
 from client.bot import BotConfig, BotReport, run_bot
 from recorder import find_leftovers, info, load_streams, recover
-from server.app import RelayServer, ServerConfig
+from server.app import ServerConfig
 
 
 async def _recorded_session(tmp: Path) -> tuple[list[BotReport], list[Path]]:
-    server = RelayServer(ServerConfig(host="127.0.0.1", port=0, record_dir=tmp))
-    async with asyncio.TaskGroup() as tg:
-        tg.create_task(server.run())
-        await asyncio.wait_for(server.ready.wait(), 10)
+    """Three bots for 3 s on a recording server; the recordings once it stopped."""
+    config = ServerConfig(host="127.0.0.1", port=0, record_dir=tmp)
+    async with running_server(config) as server:
         url = f"ws://127.0.0.1:{server.port}"
-        try:
-            async with asyncio.TaskGroup() as bots:
-                tasks = [
-                    bots.create_task(
-                        run_bot(
-                            BotConfig(
-                                url=url,
-                                room="rec",
-                                rate=20,
-                                motion="synthetic:orbit",
-                                seed=i,
-                                duration=3.0,
-                                methods=("soa",),
-                            )
+        async with asyncio.TaskGroup() as bots:
+            tasks = [
+                bots.create_task(
+                    run_bot(
+                        BotConfig(
+                            url=url,
+                            room="rec",
+                            rate=20,
+                            motion="synthetic:orbit",
+                            seed=i,
+                            duration=3.0,
+                            methods=("soa",),
                         )
                     )
-                    for i in range(3)
-                ]
-        finally:
-            server.stop()
+                )
+                for i in range(3)
+            ]
     return [t.result() for t in tasks], server.recordings
 
 
