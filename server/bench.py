@@ -315,7 +315,9 @@ class _BenchClient:
                     if wire["type"] != "snapshot":
                         stats.other_frames += 1
                         continue
-                    body, send = wire["poses"], wire["time"]
+                    body, send = wire["poses"], float(wire["time"])
+                    if type(body) is not bytes or len(body) % SNAPSHOT_ENTRY_SIZE:
+                        raise ValueError("not whole snapshot records")
                 except Exception:
                     stats.bad_frames += 1
                     continue
@@ -521,12 +523,13 @@ class _Child:
         return self.proc.poll()
 
 
-def _proc_cpu(pid: int) -> float:
-    """User + system CPU seconds of process ``pid`` (from /proc/<pid>/stat)."""
+def _proc_cpu(pid: int) -> tuple[float, float]:
+    """(user, system) CPU seconds of process ``pid`` (from /proc/<pid>/stat)."""
     text = Path(f"/proc/{pid}/stat").read_text()
     fields = text[text.rindex(")") + 2 :].split()
     # After "pid (comm) ": state is field 3, utime and stime are fields 14 and 15.
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    tick = os.sysconf("SC_CLK_TCK")
+    return int(fields[11]) / tick, int(fields[12]) / tick
 
 
 def _machine_cpu() -> tuple[float, float]:
@@ -698,7 +701,9 @@ def run_relay_bench(
             report["server_exit_code"] = code
 
     wall = w1 - w0
-    server_cpu = s1 - s0
+    server_user, server_sys = s1[0] - s0[0], s1[1] - s0[1]
+    server_cpu = server_user + server_sys
+    load_cpu = sum(l1) - sum(l0)
     delivered = int(result["poses_delivered"])
     snapshots = int(result["snapshots"])
     busy, total = c1[0] - c0[0], c1[1] - c0[1]
@@ -713,11 +718,12 @@ def run_relay_bench(
             "server_cpu_pct": 100.0 * server_cpu / wall,
             "server_cpu_us_per_pose": 1e6 * server_cpu / delivered if delivered else math.nan,
             "server_cpu_us_per_snapshot": 1e6 * server_cpu / snapshots if snapshots else math.nan,
-            "load_cpu_pct": 100.0 * (l1 - l0) / wall,
+            "server_sys_pct": 100.0 * server_sys / wall,
+            "load_cpu_pct": 100.0 * load_cpu / wall,
             "machine_cpu_pct": 100.0 * busy / total if total > 0 else math.nan,
             # CPU used by neither the server nor the load (other jobs on the host).
             "other_cpu_pct": 100.0 * (busy / total * (os.cpu_count() or 1))
-            - 100.0 * (server_cpu + l1 - l0) / wall
+            - 100.0 * (server_cpu + load_cpu) / wall
             if total > 0
             else math.nan,
             "poses_per_s": delivered / wall,
@@ -766,7 +772,11 @@ def print_relay_report(report: dict[str, Any], console: Console) -> None:
     table.add_column("note")
     rows = [
         ("clients joined / failed", f"{r['clients_joined']} / {r['clients_failed']}", ""),
-        ("server CPU", f"{_f(r['server_cpu_pct'])} %", "of one core"),
+        (
+            "server CPU",
+            f"{_f(r['server_cpu_pct'])} %",
+            f"of one core; {_f(r['server_sys_pct'])} % in the kernel",
+        ),
         ("server CPU per pose", f"{_f(r['server_cpu_us_per_pose'], 2)} us", "per remote pose"),
         ("server CPU per snapshot", f"{_f(r['server_cpu_us_per_snapshot'], 1)} us", ""),
         ("load CPU", f"{_f(r['load_cpu_pct'])} %", "load generator; ~100 % = it limits"),

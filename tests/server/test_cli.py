@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 from typer.testing import CliRunner
 
 from server.cli import app
@@ -41,3 +42,61 @@ def test_compare_bad_inputs_are_clear(tmp_path: Path) -> None:
     assert res.exit_code == 2 and "cannot parse rates" in res.output
     res = runner.invoke(app, ["compare", "--trace", "x.csv", "--interp", "cubic"])
     assert res.exit_code == 2 and "unknown interpolator" in res.output
+
+
+@pytest.fixture(scope="module")
+def small_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 3-user, 4 s recording synthesised from the dev traces."""
+    from recorder.replay import synthesize_recording
+
+    folder = tmp_path_factory.mktemp("rec")
+    return synthesize_recording(folder, users=3, rate=30.0, duration=4.0)
+
+
+def test_info_replay_export_analyze_on_a_recording(small_recording: Path, tmp_path: Path) -> None:
+    """info, offline replay, every export format and analyze run on one recording."""
+    res = runner.invoke(app, ["info", str(small_recording)])
+    assert res.exit_code == 0, res.output
+    assert "users: 3" in res.output
+    out_json = tmp_path / "replay.json"
+    res = runner.invoke(
+        app,
+        [
+            "replay",
+            str(small_recording),
+            "--offline",
+            "--rate",
+            "10",
+            "--interp",
+            "soa",
+            "--out",
+            str(tmp_path / "rendered"),
+            "--json",
+            str(out_json),
+        ],
+    )
+    assert res.exit_code == 0, res.output
+    assert json.loads(out_json.read_text())["qoe"]["soa"]["hands"]["tip_p95_mm"] > 0
+    assert any((tmp_path / "rendered").iterdir())
+    for fmt, name in (("csv", "csv"), ("npz", "x.npz"), ("foxglove", "fx.mcap")):
+        res = runner.invoke(
+            app, ["export", str(small_recording), "--to", fmt, "--out", str(tmp_path / name)]
+        )
+        assert res.exit_code == 0, res.output
+        assert (tmp_path / name).exists()
+    res = runner.invoke(app, ["analyze", str(small_recording), "--keep-every", "2"])
+    assert res.exit_code == 0, res.output
+    assert "Keep 1 in 2" in res.output
+
+
+def test_recording_commands_refuse_bad_input(small_recording: Path, tmp_path: Path) -> None:
+    """Missing files, a replay without a mode, bad formats and decimations exit 2."""
+    assert runner.invoke(app, ["info", str(tmp_path / "none.mcap")]).exit_code == 2
+    res = runner.invoke(app, ["replay", str(small_recording)])
+    assert res.exit_code == 2 and "--offline" in res.output
+    res = runner.invoke(app, ["export", str(small_recording), "--to", "xml"])
+    assert res.exit_code == 2 and "csv, npz or foxglove" in res.output
+    res = runner.invoke(app, ["analyze", str(small_recording), "--keep-every", "1"])
+    assert res.exit_code == 2
+    res = runner.invoke(app, ["recover", str(tmp_path / "none.mcap.part")])
+    assert res.exit_code == 2

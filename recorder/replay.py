@@ -1,0 +1,407 @@
+"""Offline replay: reconstruct a recorded session headlessly, as a receiver would have seen it.
+
+:func:`replay_offline` takes every recorded stream (its keyframes, capture time
+order) as the full-rate ground truth, samples it at an update rate ``R`` (the
+newest recorded keyframe at each send time ``t0 + k/R``, as a sender would),
+and renders every stream at ``render_rate`` (90 Hz) with each interpolator on
+an ideal network with one-interval playout (plus a window method's look-ahead)
+-- the definitions of :mod:`scenarios.qoe`. It writes the rendered poses (one
+CSV and one NPZ per method) and scores the QoE against the recorded streams with
+:func:`scenarios.qoe.evaluate_group`.
+
+Rendered output, one row per stream and render frame::
+
+    user, stream, name, time, px, py, pz, qw, qx, qy, qz, stall
+
+``time`` is the playout time tau on the server clock (the frame is shown at
+``tau + D``); ``stall`` is 1 where no keyframe pair brackets tau (the newest
+keyframe is held). The NPZ holds the same columns as arrays (``user``,
+``stream``, ``name``, ``time``, ``poses`` (M, 7) float64, ``stall``).
+
+:func:`synthesize_recording` writes a session with :class:`SessionRecorder` from
+real traces (bots publishing the newest trace sample at their send rate), and
+:func:`bench_replay` times the replay of a 20-user, 60 s one (figures only).
+Wall-clock timings here are report figures (``time.perf_counter``), never inputs.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from interp import info as interp_info
+from interp import interpolate_brackets
+from recorder.export import POSE_COLUMNS, csv_bytes, sorted_streams
+from recorder.reader import StreamData
+from recorder.writer import SessionRecorder
+from scenarios.motion import MotionSpec
+from scenarios.qoe import (
+    ErrorSamples,
+    KeyframeLog,
+    evaluate_group,
+    ideal_delay,
+    playout_brackets,
+    sample_keyframes,
+    summarize,
+)
+from scenarios.traces import DEVICE_NAMES, Trace, find_traces, load_trace
+
+__all__ = [
+    "DEFAULT_RENDER_RATE",
+    "bench_replay",
+    "recording_stem",
+    "replay_offline",
+    "synthesize_recording",
+]
+
+F64 = NDArray[np.float64]
+
+DEFAULT_RENDER_RATE = 90.0
+_METHODS = ("soa", "dq-slerp", "motor-lerp")
+
+
+def recording_stem(path: str | os.PathLike[str]) -> str:
+    """``NAME`` of ``NAME.mcap`` or ``NAME.mcap.part``."""
+    name = Path(path).name
+    for suffix in (".part", ".mcap"):
+        name = name.removesuffix(suffix)
+    return name
+
+
+def _dedupe(s: StreamData) -> tuple[F64, F64]:
+    """Capture times strictly increasing (first of equal ones) and float64 poses."""
+    keep = np.ones(s.times.shape, dtype=bool)
+    keep[1:] = s.times[1:] != s.times[:-1]
+    return s.times[keep], s.poses[keep].astype(np.float64)
+
+
+def _groups(streams: Sequence[StreamData]) -> list[tuple[int, F64, list[tuple[StreamData, F64]]]]:
+    """Streams of one user with identical capture times, batched: (user, times, members)."""
+    found: dict[tuple[int, bytes], tuple[int, F64, list[tuple[StreamData, F64]]]] = {}
+    for s in streams:
+        times, poses = _dedupe(s)
+        if times.size < 2:
+            continue
+        key = (s.user, times.tobytes())
+        found.setdefault(key, (s.user, times, []))[2].append((s, poses))
+    return list(found.values())
+
+
+def _write_rendered(
+    out: Path,
+    stem: str,
+    method: str,
+    rate: float,
+    rows: list[tuple[StreamData, F64, F64, NDArray[np.bool_]]],
+    formats: Sequence[str],
+) -> dict[str, str]:
+    """One CSV and/or NPZ with every stream's rendered frames; returns the paths."""
+    users = np.concatenate([np.full(t.size, s.user, dtype=np.uint16) for s, t, _p, _st in rows])
+    sids = np.concatenate([np.full(t.size, s.stream, dtype=np.uint16) for s, t, _p, _st in rows])
+    names = np.concatenate(
+        [np.full(t.size, (s.name or f"stream{s.stream}").encode()) for s, t, _p, _st in rows]
+    )
+    times = np.concatenate([t for _s, t, _p, _st in rows])
+    poses = np.concatenate([p for _s, _t, p, _st in rows])
+    stall = np.concatenate([st for _s, _t, _p, st in rows]).astype(np.uint8)
+    base = out / f"{stem}.{method}.{rate:g}hz"
+    files: dict[str, str] = {}
+    if "npz" in formats:
+        path = base.with_name(base.name + ".npz")
+        with path.open("wb") as fh:
+            np.savez(
+                fh,
+                user=users,
+                stream=sids,
+                name=names.astype(str),
+                time=times,
+                poses=poses,
+                stall=stall.astype(bool),
+            )
+        files["npz"] = str(path)
+    if "csv" in formats:
+        path = base.with_name(base.name + ".csv")
+        header = ("user", "stream", "name", "time", *POSE_COLUMNS, "stall")
+        cols = [users, sids, names, times, *(poses[:, j] for j in range(7)), stall]
+        decimals = (None, None, None, 6, 7, 7, 7, 8, 8, 8, 8, None)
+        path.write_bytes(csv_bytes(header, cols, decimals))
+        files["csv"] = str(path)
+    return files
+
+
+def replay_offline(
+    path: str | os.PathLike[str],
+    interp_names: Sequence[str],
+    rate: float,
+    out_dir: str | os.PathLike[str] | None,
+    render_rate: float = DEFAULT_RENDER_RATE,
+    *,
+    formats: Sequence[str] = ("csv", "npz"),
+) -> dict[str, Any]:
+    """Reconstruct every recorded stream at ``render_rate`` from keyframes sampled at ``rate``.
+
+    Writes ``out_dir/NAME.METHOD.RHz.csv`` and ``.npz`` (``formats`` picks which;
+    ``out_dir=None`` or no formats: nothing is written) and returns::
+
+        {"path", "rate", "render_rate", "methods", "delay_s": {method: D},
+         "session_s", "streams", "frames_rendered", "files": {method: {...}},
+         "qoe": {method: {class: {pos_p50_mm, ..., stall_fraction}}},
+         "timing": {"read_s", "reconstruct_s", "write_s", "total_s", "speedup"}}
+
+    ``speedup`` is the session duration over the total time taken. Velocity
+    methods are refused (recordings carry no velocities).
+    """
+    if not rate > 0 or not render_rate > 0:
+        raise ValueError("rate and render_rate must be positive")
+    methods = list(interp_names)
+    if not methods:
+        raise ValueError("expected at least one interpolator")
+    for m in methods:
+        if interp_info(m).needs_velocity:
+            raise ValueError(
+                f"{m} needs keyframe velocities, which recordings do not carry; "
+                "use a pair or window method"
+            )
+    fmts = tuple(formats) if out_dir is not None else ()
+    for f in fmts:
+        if f not in ("csv", "npz"):
+            raise ValueError(f"unknown output format {f!r}; expected csv or npz")
+    t0 = time.perf_counter()
+    streams = sorted_streams(path)
+    t1 = time.perf_counter()
+    qoe_groups: dict[str, list[dict[str, dict[str, ErrorSamples]]]] = {m: [] for m in methods}
+    rendered: dict[str, list[tuple[StreamData, F64, F64, NDArray[np.bool_]]]] = {
+        m: [] for m in methods
+    }
+    delays: dict[str, list[float]] = {m: [] for m in methods}
+    first, last = math.inf, -math.inf
+    frames = 0
+    for _user, times, members in _groups(streams):
+        first, last = min(first, float(times[0])), max(last, float(times[-1]))
+        poses = np.stack([p for _s, p in members], axis=1)  # (N, S, 7)
+        truth = Trace(
+            f"user{members[0][0].user}",
+            times,
+            poses,
+            tuple(s.name or f"stream{s.stream}" for s, _p in members),
+        )
+        send, idx = sample_keyframes(times, rate)
+        # Ideal network: each keyframe arrives the instant it is sent.
+        log = KeyframeLog(capture=times[idx], arrival=send, poses=poses[idx])
+        n = math.floor((float(times[-1]) - float(times[0])) * render_rate + 1e-9) + 1
+        taus = float(times[0]) + np.arange(n) / render_rate
+        frames += n * len(members)
+        # Methods with the same look-ahead share the playout delay, so one bracket
+        # search (and one QoE pass) serves them all.
+        by_delay: dict[float, list[str]] = {}
+        for m in methods:
+            delay = ideal_delay(rate, truth.native_rate, interp_info(m).lookahead)
+            by_delay.setdefault(delay, []).append(m)
+            delays[m].append(delay)
+        for delay, group in by_delay.items():
+            scored = evaluate_group(truth, log, delay, group)
+            play = playout_brackets(log.capture, log.arrival, taus, delay)
+            for m in group:
+                qoe_groups[m].append({m: scored[m]})
+                out = interpolate_brackets(
+                    log.poses,
+                    play.lo,
+                    play.hi,
+                    play.s,
+                    m,
+                    times=log.capture,
+                    prev=play.prev,
+                    nxt=play.nxt,
+                )
+                for j, (s, _p) in enumerate(members):
+                    rendered[m].append((s, taus, out[:, j], play.stall))
+    t2 = time.perf_counter()
+    files: dict[str, dict[str, str]] = {}
+    if fmts and out_dir is not None:
+        folder = Path(out_dir)
+        folder.mkdir(parents=True, exist_ok=True)
+        stem = recording_stem(path)
+        for m in methods:
+            if rendered[m]:
+                files[m] = _write_rendered(folder, stem, m, rate, rendered[m], fmts)
+    t3 = time.perf_counter()
+    session = max(0.0, last - first) if math.isfinite(first) else 0.0
+    total = t3 - t0
+    result = {
+        "path": str(path),
+        "rate": rate,
+        "render_rate": render_rate,
+        "methods": methods,
+        "delay_s": {m: float(np.median(d)) if d else math.nan for m, d in delays.items()},
+        "session_s": session,
+        "streams": len(streams),
+        "frames_rendered": frames * len(methods),
+        "files": files,
+        "qoe": summarize(g for m in methods for g in qoe_groups[m]),
+        "timing": {
+            "read_s": t1 - t0,
+            "reconstruct_s": t2 - t1,
+            "write_s": t3 - t2,
+            "total_s": total,
+            "speedup": session / total if total > 0 else math.inf,
+        },
+    }
+    if "npz" in fmts or "csv" in fmts:
+        assert out_dir is not None
+        summary = Path(out_dir) / f"{recording_stem(path)}.replay.{rate:g}hz.json"
+        summary.write_text(json.dumps(result, indent=1, default=float) + "\n")
+    return result
+
+
+# -- synthetic sessions and the benchmark ----------------------------------------------------
+
+
+def synthesize_recording(
+    directory: str | os.PathLike[str],
+    *,
+    users: int = 20,
+    rate: float = 30.0,
+    duration: float = 60.0,
+    traces: str = "traces:dev",
+    room: str = "synthetic",
+    name: str | None = None,
+    start: float = 1000.0,
+    seed: int = 0,
+) -> Path:
+    """Record a session of ``users`` bots playing real traces; returns the ``.mcap`` path.
+
+    Bot ``u`` plays trace ``u % len(traces)`` (from a seeded offset into it),
+    publishing head, left and right at ``rate`` Hz: at each send time the newest
+    trace sample (capture time = that sample's time on the server clock), as the
+    live bots do. Arrivals are 5-20 ms after sending. Every update goes through
+    :class:`SessionRecorder` (a queue big enough that none is lost), with a
+    presence join per user whose label is the motion label live bots use.
+    """
+    files = find_traces(traces)
+    loaded = [load_trace(f) for f in files]
+    rng = np.random.default_rng(seed)
+    per_user: list[tuple[F64, F64, F64, F64]] = []  # send, arrival, capture, poses
+    joins = []
+    ids = np.arange(3, dtype=np.uint16)
+    for u in range(users):
+        tr = loaded[u % len(loaded)].select(DEVICE_NAMES)
+        phase = float(rng.uniform(0.0, 1.0 / rate))
+        room_left = max(0.0, tr.duration - duration)
+        offset = float(rng.uniform(0.0, room_left)) if room_left > 0 else 0.0
+        anchor = start + phase - offset - float(tr.times[0])  # server time of trace time 0
+        n = math.floor(duration * rate)
+        send = start + phase + np.arange(n) / rate
+        idx = np.searchsorted(tr.times, send - anchor, side="right") - 1
+        idx = np.clip(idx, 0, tr.times.size - 1)
+        fresh = np.ones(idx.shape, dtype=bool)
+        fresh[1:] = idx[1:] != idx[:-1]
+        send, idx = send[fresh], idx[fresh]
+        arrival = send + rng.uniform(0.005, 0.020, send.size)
+        capture = anchor + tr.times[idx]
+        per_user.append((send, arrival, capture, tr.poses[idx].astype(np.float32)))
+        label = MotionSpec.for_trace(files[u % len(files)], anchor).label()
+        joins.append(
+            {
+                "kind": "join",
+                "user": u + 1,
+                "name": f"bot{u}",
+                "label": label,
+                "streams": {d: int(3 * u + j) for j, d in enumerate(DEVICE_NAMES)},
+                "rate": 15.0,
+            }
+        )
+    total = sum(p[0].size for p in per_user)
+    rec = SessionRecorder.open(
+        directory,
+        room,
+        name=name or f"{room}-{users}u-{duration:g}s",
+        clock=lambda: start,
+        wall_clock=lambda: 0.0,
+        queue_size=total + len(joins) + 16,
+    )
+    for j in joins:
+        rec.record_presence(j, time=start)
+    # All users' updates in arrival order, as the server would tap them.
+    user_of = np.concatenate([np.full(p[0].size, u) for u, p in enumerate(per_user)])
+    row_of = np.concatenate([np.arange(p[0].size) for p in per_user])
+    arrivals = np.concatenate([p[1] for p in per_user])
+    order = np.argsort(arrivals, kind="stable")
+    for k in order.tolist():
+        u, r = int(user_of[k]), int(row_of[k])
+        _send, arr, cap, poses = per_user[u]
+        rec.record_update(u + 1, r, float(arr[r]), ids + 3 * u, np.full(3, cap[r]), poses[r])
+    end = float(arrivals.max()) if arrivals.size else start
+    return rec.close(time=end)
+
+
+def bench_replay(
+    users: int = 20,
+    send_rate: float = 30.0,
+    duration: float = 60.0,
+    rate: float = 10.0,
+    methods: Sequence[str] = _METHODS,
+    render_rate: float = DEFAULT_RENDER_RATE,
+    directory: str | os.PathLike[str] | None = None,
+    echo: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """Time :func:`replay_offline` on a synthesised session and print the speed-up.
+
+    The session: ``users`` bots x 3 streams x ``send_rate`` Hz x ``duration`` s
+    from the dev traces. Replayed at ``rate`` Hz, rendered at ``render_rate``,
+    with one method and with all ``methods``, writing nothing, NPZ, and NPZ + CSV.
+    Figures only: the machine may be busy with other work.
+    """
+    with tempfile.TemporaryDirectory(prefix="posecast-bench-") as tmp:
+        base = Path(directory) if directory is not None else Path(tmp)
+        t = time.perf_counter()
+        path = synthesize_recording(base, users=users, rate=send_rate, duration=duration)
+        synth_s = time.perf_counter() - t
+        size = path.stat().st_size
+        echo(
+            f"synthesised {users} users x 3 streams x {send_rate:g} Hz x {duration:g} s"
+            f" ({size / 1e6:.1f} MB) in {synth_s:.2f} s"
+        )
+        runs = []
+        for ms in ([methods[-1]], list(methods)):
+            for formats in ((), ("npz",), ("npz", "csv")):
+                res = replay_offline(path, ms, rate, base / "out", render_rate, formats=formats)
+                tm = res["timing"]
+                label = "+".join(formats) or "no files"
+                echo(
+                    f"replay {','.join(ms)} at {rate:g} Hz -> {render_rate:g} Hz, {label}:"
+                    f" {tm['total_s']:.3f} s (read {tm['read_s']:.3f}, reconstruct+QoE"
+                    f" {tm['reconstruct_s']:.3f}, write {tm['write_s']:.3f})"
+                    f" = {tm['speedup']:.0f}x real time"
+                )
+                runs.append(
+                    {
+                        "methods": ms,
+                        "formats": list(formats),
+                        "session_s": res["session_s"],
+                        "frames_rendered": res["frames_rendered"],
+                        **tm,
+                    }
+                )
+        return {
+            "users": users,
+            "send_rate": send_rate,
+            "duration": duration,
+            "rate": rate,
+            "render_rate": render_rate,
+            "file_bytes": size,
+            "synthesise_s": synth_s,
+            "runs": runs,
+        }
+
+
+if __name__ == "__main__":  # python -m recorder.replay: the benchmark
+    bench_replay()

@@ -1,0 +1,187 @@
+"""Live replay against a real relay on loopback: timing, bit-exact poses, rooms, speeds."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import AsyncIterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import pytest
+from websockets.exceptions import ConnectionClosed
+
+from client.connection import ClientConnection
+from client.replay import DEFAULT_MAX_SEND_RATE, plan_replay, replay_live
+from protocol import PeerJoined, Snapshot
+from recorder.export import read_session
+from recorder.replay import synthesize_recording
+from scenarios.motion import MotionSpec
+from server.app import RelayServer, ServerConfig
+
+SUB_RATE = 30.0
+TICK = 1.0 / SUB_RATE
+
+
+@contextlib.asynccontextmanager
+async def relay() -> AsyncIterator[RelayServer]:
+    """A RelayServer on 127.0.0.1:0 inside a TaskGroup, stopped on exit."""
+    server = RelayServer(ServerConfig(host="127.0.0.1", port=0))
+    async with asyncio.TaskGroup() as tg:
+        tg.create_task(server.run())
+        await asyncio.wait_for(server.ready.wait(), 10)
+        try:
+            yield server
+        finally:
+            server.stop()
+
+
+@dataclass
+class Viewer:
+    """A subscriber that keeps every new keyframe it sees: (user, stream) -> rows."""
+
+    conn: ClientConnection
+    seen: dict[tuple[int, int], list[tuple[float, float, np.ndarray]]] = field(default_factory=dict)
+    labels: dict[int, str | None] = field(default_factory=dict)
+
+    async def run(self) -> None:
+        newest: dict[tuple[int, int], float] = {}
+        with contextlib.suppress(ConnectionClosed):
+            while True:
+                rec = await self.conn.recv()
+                snap = rec.event
+                if isinstance(snap, PeerJoined):
+                    self.labels[snap.user] = snap.label
+                if not isinstance(snap, Snapshot):
+                    continue
+                caps = snap.capture_times
+                for i in range(len(snap)):
+                    key = (int(snap.users[i]), int(snap.streams[i]))
+                    cap = float(caps[i])
+                    if cap > newest.get(key, -np.inf):
+                        newest[key] = cap
+                        self.seen.setdefault(key, []).append(
+                            (cap, snap.send_time, np.array(snap.poses[i]))
+                        )
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Two users x 3 streams x 30 Hz x 3 s from the dev traces, recorded by SessionRecorder."""
+    out = tmp_path_factory.mktemp("rec")
+    return synthesize_recording(out, users=2, rate=30.0, duration=3.0, room="recorded")
+
+
+async def _replay_and_watch(
+    path: Path, speed: float | Literal["max"], room: str | None, viewer_room: str
+) -> tuple[dict[str, Any], Viewer]:
+    async with relay() as server:
+        url = f"ws://127.0.0.1:{server.port}"
+        conn = await ClientConnection.open(url, room=viewer_room, streams=("head",), rate=SUB_RATE)
+        viewer = Viewer(conn)
+        task = asyncio.create_task(viewer.run())
+        try:
+            report = await replay_live(path, url, speed=speed, room=room, linger=2 * TICK)
+            await asyncio.sleep(3 * TICK)  # the last snapshot's way to the viewer
+        finally:
+            await conn.close()
+            await task
+    return report, viewer
+
+
+def _check(path: Path, report: dict[str, Any], viewer: Viewer) -> int:
+    """Every keyframe the viewer got is a recorded one, re-timed; returns how many."""
+    speed = float(report["speed"])
+    start = float(report["server_start"])
+    origin = float(report["origin"])
+    recorded = {(s.user, s.stream): s for s in read_session(path).streams}
+    total = 0
+    excess_all: list[float] = []
+    for m in report["streams"]:
+        rec = recorded[(m["recorded_user"], m["recorded_stream"])]
+        got = viewer.seen.get((m["user"], m["stream"]), [])
+        assert got, f"nothing received of {m}"
+        expected = start + (rec.times - origin) / speed
+        caps = np.array([g[0] for g in got])
+        idx = np.searchsorted(expected, caps)
+        idx = np.clip(idx, 0, expected.size - 1)
+        lower = np.clip(idx - 1, 0, expected.size - 1)
+        idx = np.where(np.abs(expected[lower] - caps) < np.abs(expected[idx] - caps), lower, idx)
+        # Capture times: the recorded ones, re-based and scaled (float32 offsets on the wire).
+        np.testing.assert_allclose(caps, expected[idx], rtol=0, atol=1e-6)
+        np.testing.assert_allclose(
+            np.diff(caps), np.diff(rec.times[idx]) / speed, rtol=0, atol=2e-6
+        )
+        # Poses: bit for bit.
+        poses = np.stack([g[2] for g in got]).astype(np.float32)
+        assert np.array_equal(poses.view(np.uint32), rec.poses[idx].view(np.uint32))
+        # Timing: relayed within a server tick of when the recording had it.
+        sent = np.array([g[1] for g in got])
+        excess = (sent - caps) - (rec.arrival[idx] - rec.times[idx]) / speed
+        assert excess.min() > -0.005  # never before it was due (clock sync error aside)
+        excess_all.extend(excess.tolist())
+        total += len(got)
+    assert float(np.median(excess_all)) <= TICK
+    return total
+
+
+async def test_replay_at_speed_1_reproduces_timing_and_poses(recording: Path) -> None:
+    """At speed 1 a viewer gets recorded keyframes, re-timed exactly, relayed within a tick."""
+    report, viewer = await _replay_and_watch(recording, 1.0, None, "recorded")
+    assert report["room"] == "recorded"
+    assert report["speed"] == 1.0
+    assert report["updates_sent"] + report["updates_merged"] == report["updates_recorded"]
+    got = _check(recording, report, viewer)
+    # 6 streams x ~3 s at ~30 keyframes/s; a 30 Hz viewer sees most of them.
+    assert got >= 0.5 * 6 * 3.0 * 30.0
+    # Motion labels are re-based to the replay: a live bot's ground truth still fits.
+    for m in report["streams"]:
+        label = viewer.labels[m["user"]]
+        assert label is not None
+        truth = MotionSpec.parse(label).truth()
+        j = truth.streams.index(m["name"])
+        for cap, _sent, pose in viewer.seen[(m["user"], m["stream"])]:
+            i = int(np.argmin(np.abs(truth.times - cap)))
+            assert abs(truth.times[i] - cap) < 1e-6
+            assert np.array_equal(truth.poses[i, j].astype(np.float32), pose)
+
+
+async def test_replay_at_speed_10_scales_intervals(recording: Path) -> None:
+    """At speed 10 capture intervals shrink tenfold and poses stay bit-exact."""
+    report, viewer = await _replay_and_watch(recording, 10.0, None, "recorded")
+    assert report["speed"] == 10.0
+    assert all(str(label).startswith("replay:trace:") for label in viewer.labels.values())
+    assert float(report["duration_s"]) < 0.5
+    got = _check(recording, report, viewer)
+    assert got >= 6 * 3  # a few snapshots per stream in ~0.3 s
+
+
+async def test_replay_into_another_room_at_max_speed(recording: Path) -> None:
+    """--room overrides the recorded room; 'max' is 90 % of the send cap over the busiest user."""
+    report, viewer = await _replay_and_watch(recording, "max", "elsewhere", "elsewhere")
+    assert report["room"] == "elsewhere"
+    busiest = max(u.update_rate for u in plan_replay(recording).users)
+    assert report["speed"] == pytest.approx(0.9 * DEFAULT_MAX_SEND_RATE / busiest)
+    assert report["updates_sent"] + report["updates_merged"] == report["updates_recorded"]
+    _check(recording, report, viewer)
+
+
+def test_plan_regroups_updates_as_recorded(recording: Path) -> None:
+    """The plan holds each user's updates (3 streams each) in arrival order with their names."""
+    plan = plan_replay(recording)
+    assert plan.room == "recorded"
+    assert len(plan.users) == 2
+    for u in plan.users:
+        assert sorted(u.streams.values()) == ["head", "left", "right"]
+        assert np.all(np.diff(u.arrival) > 0)
+        assert all(len(ids) == 3 for ids, _c, _p in u.updates)
+        assert u.label is not None and u.label.startswith("trace:")
+    assert plan.updates == sum(len(s) for s in read_session(recording).streams) // 3
+
+
+async def test_replay_refuses_a_bad_speed(recording: Path) -> None:
+    """A speed that is not positive is refused before connecting."""
+    with pytest.raises(ValueError, match="speed"):
+        await replay_live(recording, "ws://127.0.0.1:9", speed=0.0)
