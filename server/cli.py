@@ -449,7 +449,10 @@ def bench_relay(
 
     if clients < 1 or room_size < 1 or rate <= 0 or duration <= 0:
         raise _fail("--clients, --room-size, --rate and --duration must be positive")
-    run_relay_bench(clients, room_size, rate, duration, record=record, console=console)
+    try:
+        run_relay_bench(clients, room_size, rate, duration, record=record, console=console)
+    except (ValueError, RuntimeError) as exc:
+        raise _fail(str(exc)) from None
 
 
 @app.command()
