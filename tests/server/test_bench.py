@@ -46,7 +46,7 @@ def test_update_template_packs_like_encode_update() -> None:
 
 
 def test_relay_bench_smoke() -> None:
-    """20 clients in rooms of 5 for 2 s: every client gets snapshots, figures are sane."""
+    """20 clients in rooms of 5 for 2 s, recorder off then on: snapshots, sane figures."""
     out = io.StringIO()
     console = Console(file=out, width=160)
     report = run_relay_bench(
@@ -68,5 +68,9 @@ def test_relay_bench_smoke() -> None:
     assert report["server_exit_code"] == 0
     assert report["metrics_ok"]
     text = out.getvalue()
-    assert "recorder is not available yet" in text
     assert "relay bench" in text and "capture->receipt" in text
+    rec = report["recorder"]
+    assert rec["files"] == 4  # one recording per room
+    assert rec["disk_bytes"] > 0 and 0 < rec["disk_bytes_per_pose"] < 100
+    assert rec["throughput_ratio"] > 0 and "recorder cost (Table 4)" in text
+    assert report["recorder_off"]["record"] is False and report["record"] is True
