@@ -202,13 +202,18 @@ class SessionRecorder:
         flush_interval: float,
         chunk_records: int | None,
         chunk_bytes: int,
+        batch_size: int = 1,
+        batch_delay: float = 0.05,
     ) -> None:
         self.part_path = part_path
         self.path = final_path
         self._file = stream
         self._mcap = writer
         self._clock = clock
-        self._queue: queue.Queue[object] = queue.Queue(maxsize=queue_size)
+        # The bound holds about ``queue_size`` records whether they come alone or batched.
+        self._queue: queue.Queue[object] = queue.Queue(
+            maxsize=queue_size if batch_size <= 1 else max(2, queue_size // batch_size)
+        )
         self._flush_interval = flush_interval
         self._chunk_records = chunk_records
         self._chunk_bytes = chunk_bytes
@@ -219,6 +224,13 @@ class SessionRecorder:
         self._error: BaseException | None = None
         self._resume = threading.Event()
         self._held = threading.Event()
+        # Producer-side batching (the relay's thread only): records wait in a plain
+        # list and go to the queue as one item, so the writer thread wakes (and
+        # takes the GIL) once per batch, not once per record.
+        self._batch_size = batch_size
+        self._batch_delay = batch_delay
+        self._batch: list[_Item] = []
+        self._batch_since = 0.0
         # producer-side counters (under _lock)
         self._offered = 0
         self._queue_drops = 0
@@ -255,6 +267,8 @@ class SessionRecorder:
         chunk_records: int | None = None,
         chunk_bytes: int = DEFAULT_CHUNK_BYTES,
         metadata: Mapping[str, str] | None = None,
+        batch_size: int = 1,
+        batch_delay: float = 0.05,
     ) -> SessionRecorder:
         """Create ``directory/NAME.mcap.part``, write the session header, start the writer.
 
@@ -264,6 +278,9 @@ class SessionRecorder:
         ``rate``). ``clock`` is the server clock the record times use.
         ``chunk_records`` closes a chunk every that many records (tests);
         ``metadata`` adds string pairs to the ``posecast.session`` metadata.
+        ``batch_size`` > 1 hands records to the writer thread in batches (at
+        most ``batch_delay`` s old; call :meth:`poll` regularly): far fewer
+        thread wake-ups for a busy relay. The default hands over each record.
         """
         if queue_size < 1:
             raise ValueError("queue_size must be at least 1")
@@ -329,6 +346,8 @@ class SessionRecorder:
                 flush_interval=flush_interval,
                 chunk_records=chunk_records,
                 chunk_bytes=chunk_bytes,
+                batch_size=batch_size,
+                batch_delay=batch_delay,
             )
             # The first chunk holds the schemas and channels: make it durable now.
             start_ns = to_ns(start)
@@ -400,10 +419,44 @@ class SessionRecorder:
         return False
 
     def _offer(self, item: _Item) -> bool:
+        if self._batch_size <= 1:
+            return self._enqueue(item)
+        if self._closing or self._error is not None:
+            with self._lock:
+                self._rejected += 1
+            return False
+        batch = self._batch
+        if not batch:
+            self._batch_since = _time.monotonic()
+        batch.append(item)
+        if (
+            len(batch) >= self._batch_size
+            or _time.monotonic() - self._batch_since >= self._batch_delay
+        ):
+            self._handoff()
+        return True
+
+    def poll(self) -> None:
+        """Hand a waiting batch to the writer once it is ``batch_delay`` old.
+
+        The relay calls this on every tick, so a quiet room's last records still
+        reach the disk within ``batch_delay + flush_interval``.
+        """
+        if self._batch and _time.monotonic() - self._batch_since >= self._batch_delay:
+            self._handoff()
+
+    def _handoff(self) -> None:
+        batch, self._batch = self._batch, []
+        if batch:
+            self._enqueue(batch)
+
+    def _enqueue(self, item: _Item | list[_Item]) -> bool:
+        """Queue a record (or a batch of them); on overflow count and remember the loss."""
         q = self._queue
+        items = item if isinstance(item, list) else [item]
         with self._lock:
             if self._closing or self._error is not None:
-                self._rejected += 1
+                self._rejected += len(items)
                 return False
             loss = self._loss
             try:
@@ -413,11 +466,12 @@ class SessionRecorder:
                     self._loss_records += 1
                 q.put_nowait(item)
             except queue.Full:
-                self._loss.add(item)
-                self._queue_drops += 1
-                self._queue_drop_poses += item[4]
+                for one in items:
+                    self._loss.add(one)
+                    self._queue_drops += 1
+                    self._queue_drop_poses += one[4]
                 return False
-            self._offered += 1
+            self._offered += len(items)
             depth = len(q.queue)  # no lock: the deque's length is enough here
             if depth > self._high_water:
                 self._high_water = depth
@@ -479,15 +533,16 @@ class SessionRecorder:
                 self._resume.wait()
                 self._held.clear()
             elif item is not None:
-                rec: _Item = item  # type: ignore[assignment]
-                self._write(rec)
-                if deadline is None:
-                    deadline = monotonic() + interval
-                in_chunk += 1
-                chunk_size += len(rec[3]) + _MESSAGE_OVERHEAD
-                if (chunk_records and in_chunk >= chunk_records) or chunk_size >= chunk_bytes:
-                    self._close_chunk()
-                    in_chunk = chunk_size = 0
+                recs: list[_Item] = item if isinstance(item, list) else [item]  # type: ignore[list-item]
+                for rec in recs:
+                    self._write(rec)
+                    if deadline is None:
+                        deadline = monotonic() + interval
+                    in_chunk += 1
+                    chunk_size += len(rec[3]) + _MESSAGE_OVERHEAD
+                    if (chunk_records and in_chunk >= chunk_records) or chunk_size >= chunk_bytes:
+                        self._close_chunk()
+                        in_chunk = chunk_size = 0
             if deadline is not None and monotonic() >= deadline:
                 self._sync()
                 deadline = None
@@ -541,6 +596,11 @@ class SessionRecorder:
         Blocks (use :meth:`aclose` from the event loop). Raises
         :class:`RecorderError` if the writer thread failed, keeping the ``.part``.
         """
+        if not self._closing and self._batch:
+            batch, self._batch = self._batch, []
+            self._put_blocking(batch)
+            with self._lock:
+                self._offered += len(batch)
         with self._lock:
             already = self._closing
             self._closing = True

@@ -468,6 +468,8 @@ class RelayServer:
                 name,
                 clock=self.clock,
                 wall_clock=self.wall_clock,
+                batch_size=256,
+                batch_delay=0.05,
             )
         except Exception:
             log.exception("cannot record room %r; it runs unrecorded", name)

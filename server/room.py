@@ -198,7 +198,10 @@ class Room:
     def flush_drops(self, now: float, force: bool = False) -> None:
         """Write the drops and snapshot skips counted since the last flush."""
         rec = self.recorder
-        if rec is None or (not force and now - self._drops_flushed < 1.0):
+        if rec is None:
+            return
+        rec.poll()
+        if not force and now - self._drops_flushed < 1.0:
             return
         self._drops_flushed = now
         for m in self.members.values():

@@ -147,3 +147,31 @@ def test_writer_failure_keeps_the_part_file(tmp_path: Path) -> None:
     with SessionReader(rec.part_path) as reader:
         assert not reader.complete
         assert reader.session["room"] == "r"
+
+
+def test_batched_handoff_keeps_every_record_in_order(tmp_path: Path) -> None:
+    """With batch_size > 1, every record reaches the file, in order, after poll/close."""
+    updates = make_updates(300, users=5)
+    rec = SessionRecorder.open(
+        tmp_path, "r", name="b", clock=lambda: T0, batch_size=64, batch_delay=3600.0
+    )
+    assert all(_offer(rec, updates[:100]))
+    assert rec.statistics().records_offered < 100  # a partial batch is still waiting
+    rec.poll()  # not old enough: stays
+    assert all(_offer(rec, updates[100:]))
+    path = rec.close()
+    stats = rec.statistics()
+    assert stats.queue_drops == 0 and stats.records_written == 301
+    seqs = [r.seq for r in read_records(path) if isinstance(r, PoseRecord)]
+    assert seqs == [u.seq for u in updates]
+
+
+def test_poll_hands_over_an_aged_batch(tmp_path: Path) -> None:
+    """poll() passes a waiting batch to the writer once batch_delay has passed."""
+    rec = SessionRecorder.open(
+        tmp_path, "r", name="p", clock=lambda: T0, batch_size=64, batch_delay=0.0
+    )
+    rec.record_event({"kind": "a"})
+    rec.poll()
+    assert rec.statistics().records_offered == 1
+    rec.close()
