@@ -52,6 +52,7 @@ from protocol.messages import (
     is_valid_stream_name,
 )
 from protocol.poses import (
+    POSE_BYTES,
     SNAPSHOT_DTYPE,
     SNAPSHOT_ENTRY_SIZE,
     UPDATE_DTYPE,
@@ -62,7 +63,9 @@ from protocol.poses import (
     encode_snapshot,
     encode_update,
     frame_size,
+    pack_snapshot,
     pose_problem,
+    update_records,
 )
 from protocol.session import ClientSession, ServerSession, SessionStatistics
 from protocol.wire import MESSAGE_TYPES, decode_message, encode_message
@@ -82,6 +85,7 @@ __all__ = [
     "MESSAGE_TYPES",
     "MIN_RATE",
     "OBJECT_PREFIX",
+    "POSE_BYTES",
     "PROTOCOL_VERSION",
     "QUAT_NORM_TOLERANCE",
     "SNAPSHOT_DTYPE",
@@ -124,5 +128,7 @@ __all__ = [
     "encode_update",
     "frame_size",
     "is_valid_stream_name",
+    "pack_snapshot",
     "pose_problem",
+    "update_records",
 ]

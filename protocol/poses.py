@@ -27,6 +27,8 @@ This module owns the record layouts, the frame classes, ``encode_snapshot``
 from __future__ import annotations
 
 import math
+import struct
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import ClassVar, Literal
 
@@ -38,6 +40,7 @@ from protocol._validate import U16_MAX, U63_MAX, bad, check_float, check_int
 from protocol.limits import QUAT_NORM_TOLERANCE
 
 __all__ = [
+    "POSE_BYTES",
     "SNAPSHOT_DTYPE",
     "SNAPSHOT_ENTRY_SIZE",
     "UPDATE_DTYPE",
@@ -48,7 +51,9 @@ __all__ = [
     "encode_snapshot",
     "encode_update",
     "frame_size",
+    "pack_snapshot",
     "pose_problem",
+    "update_records",
 ]
 
 UPDATE_DTYPE = np.dtype([("stream", "<u2"), ("dt", "<f4"), ("pose", "<f4", (7,))])
@@ -57,6 +62,11 @@ SNAPSHOT_DTYPE = np.dtype(
 )
 UPDATE_ENTRY_SIZE = UPDATE_DTYPE.itemsize
 SNAPSHOT_ENTRY_SIZE = SNAPSHOT_DTYPE.itemsize
+#: A pose on the wire: 7 little-endian float32.
+POSE_BYTES = 28
+# The fixed heads of the two entry layouts above, for the relay's byte-level path.
+_UPDATE_HEAD = struct.Struct("<Hf")
+_SNAPSHOT_HEAD = struct.Struct("<HHf")
 
 # |norm - 1| <= tol  <=>  (1 - tol)^2 <= norm^2 <= (1 + tol)^2, with no sqrt.
 _NORM2_LO = (1.0 - QUAT_NORM_TOLERANCE) ** 2
@@ -416,3 +426,39 @@ def bytes_per_pose(n_poses: int = 1, kind: Literal["update", "snapshot"] = "snap
     if n_poses < 1:
         raise ValueError("n_poses must be >= 1")
     return frame_size(n_poses, kind) / n_poses
+
+
+def update_records(update: PoseUpdate) -> Iterator[tuple[int, float, bytes]]:
+    """``(stream, capture time, pose bytes)`` of each entry, without numpy per entry.
+
+    The relay keeps the 28 pose bytes as they arrived (they were validated when
+    the update was received) and copies them into snapshots with
+    :func:`pack_snapshot`, so a pose crosses the server without being decoded.
+    """
+    raw = update.entries.tobytes()
+    base = update.base_time
+    head = _UPDATE_HEAD
+    for off in range(0, len(raw), UPDATE_ENTRY_SIZE):
+        stream, dt = head.unpack_from(raw, off)
+        start = off + head.size
+        yield stream, base + dt, raw[start : start + POSE_BYTES]
+
+
+def pack_snapshot(
+    tick: int, send_time: float, entries: Iterable[tuple[int, int, float, bytes]]
+) -> bytes:
+    """Snapshot frame bytes from ``(user, stream, capture time, pose bytes)`` entries.
+
+    The same frame as :func:`encode_snapshot` builds from arrays, assembled from
+    bytes: the relay's per-tick path. Pose bytes are not checked (they come from
+    validated updates); the capture time travels as a float32 offset from
+    ``send_time``.
+    """
+    head = _SNAPSHOT_HEAD
+    parts: list[bytes] = []
+    for user, stream, capture, pose in entries:
+        parts.append(head.pack(user, stream, capture - send_time))
+        parts.append(pose)
+    return _pack(
+        {"type": Snapshot.TYPE, "tick": tick, "time": send_time, "poses": b"".join(parts)}
+    )

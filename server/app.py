@@ -47,7 +47,7 @@ from protocol import (
 )
 from protocol.events import Event, Message
 from server.auth import TokenError, verify_token
-from server.room import DEFAULT_EVENT_QUEUE, IdAllocator, Member, Outbox, Room
+from server.room import DEFAULT_EVENT_QUEUE, IdAllocator, Member, Outbox, Room, room_phase
 
 __all__ = ["ConnectionStatistics", "RelayServer", "ServerConfig"]
 
@@ -441,7 +441,7 @@ class RelayServer:
     def room_for(self, name: str) -> Room:
         room = self.rooms.get(name)
         if room is None:
-            room = self.rooms[name] = Room(name)
+            room = self.rooms[name] = Room(name, phase=room_phase(name))
             assert self._tg is not None
             self._tg.create_task(self._run_room(room), name=f"room:{name}")
             log.info("room %r created", name)

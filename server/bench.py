@@ -51,6 +51,7 @@ from rich.console import Console
 from rich.table import Table
 
 from protocol import SNAPSHOT_DTYPE, SNAPSHOT_ENTRY_SIZE, PoseUpdate
+from server.room import room_phase
 
 __all__ = ["STREAMS", "main", "print_relay_report", "run_relay_bench", "update_template"]
 
@@ -298,7 +299,9 @@ class _BenchClient:
 
         stats, unpack, index, rate = self.stats, msgpack.unpackb, self.index, self.rate
         floor = math.floor
-        # The server ticks a subscriber on the grid k / rate of its clock, and after
+        ph = room_phase(self.room)
+        # The server ticks a subscriber on the grid (k + phase) / rate of its clock
+        # (phase: the room's, see server.room.room_phase), and after
         # a tick at ``now`` its next one is due at the first grid point after
         # ``now`` (missed points are skipped). A snapshot's send time is the
         # ``now`` of its tick, so the due time of each snapshot follows from the
@@ -321,8 +324,8 @@ class _BenchClient:
                 except Exception:
                     stats.bad_frames += 1
                     continue
-                latest = floor(send * rate + 1e-9) / rate
-                due = latest if prev is None else (floor(prev * rate + 1e-9) + 1) / rate
+                latest = (floor(send * rate - ph + 1e-9) + ph) / rate
+                due = latest if prev is None else (floor(prev * rate - ph + 1e-9) + 1 + ph) / rate
                 if due > send:
                     due = latest
                 prev = send

@@ -16,13 +16,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
+import zlib
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-import numpy as np
-
-from protocol import PoseUpdate, encode_snapshot
+from protocol import PoseUpdate, pack_snapshot, update_records
 from recorder import SessionRecorder
 
 __all__ = [
@@ -32,10 +31,20 @@ __all__ = [
     "Outbox",
     "Room",
     "RoomStatistics",
+    "room_phase",
 ]
 
 #: Control messages (events, peer notices, pongs) a connection may have queued.
 DEFAULT_EVENT_QUEUE = 256
+
+
+def room_phase(name: str) -> float:
+    """Where in a tick interval room ``name``'s grid sits, in ``[0, 1)``.
+
+    Every room on one grid would fan out in one burst at the same instants; a
+    phase per room (from its name, so it is stable) spreads the bursts out.
+    """
+    return zlib.crc32(name.encode()) / 2**32
 
 
 class IdAllocator:
@@ -158,7 +167,8 @@ class RoomStatistics:
 class _Stream:
     user: int
     capture: float
-    pose: np.ndarray
+    #: The 28 pose bytes as they arrived (validated on receipt, never decoded here).
+    pose: bytes
     version: int
 
 
@@ -183,6 +193,8 @@ class Room:
     _lag_n: int = 0
     changed: asyncio.Event = field(default_factory=asyncio.Event)
     retired: bool = False
+    #: Offset of this room's tick grid, as a fraction of an interval (see room_phase).
+    phase: float = 0.0
     #: The session recorder tapping this room (``posecast serve --record``), if any.
     recorder: SessionRecorder | None = None
     _drops: dict[tuple[str, int], int] = field(default_factory=dict)
@@ -249,30 +261,25 @@ class Room:
         if member is not None:
             member.updates_in += 1
         stale = 0
-        streams = update.streams
-        times = update.capture_times
-        poses = update.poses
-        for i in range(len(update)):
-            sid = int(streams[i])
-            t = float(times[i])
+        for sid, t, pose in update_records(update):
             cur = self._streams.get(sid)
             if cur is not None and t <= cur.capture:
                 stale += 1
                 continue
             self._version += 1
             if cur is None:
-                self._streams[sid] = _Stream(user, t, np.array(poses[i]), self._version)
+                self._streams[sid] = _Stream(user, t, pose, self._version)
             else:
-                cur.capture, cur.pose, cur.version = t, np.array(poses[i]), self._version
+                cur.capture, cur.pose, cur.version = t, pose, self._version
         self._stale += stale
         return stale
 
     # -- schedule -----------------------------------------------------------------
 
-    @staticmethod
-    def _grid_after(now: float, rate: float) -> float:
-        """The first time on the ``k / rate`` grid strictly after ``now``."""
-        return (math.floor(now * rate + 1e-9) + 1) / rate
+    def _grid_after(self, now: float, rate: float) -> float:
+        """The first time on the ``(k + phase) / rate`` grid strictly after ``now``."""
+        ph = self.phase
+        return (math.floor(now * rate - ph + 1e-9) + 1 + ph) / rate
 
     def next_due(self) -> float | None:
         if not self.members:
@@ -323,12 +330,10 @@ class Room:
             return b"", 0
         self._tick += 1
         self._snapshots += 1
-        n = len(fresh)
-        users = np.fromiter((s.user for _, s in fresh), dtype=np.uint16, count=n)
-        sids = np.fromiter((sid for sid, _ in fresh), dtype=np.uint16, count=n)
-        caps = np.fromiter((s.capture for _, s in fresh), dtype=np.float64, count=n)
-        poses = np.stack([s.pose for _, s in fresh])
-        return encode_snapshot(self._tick, now, users, sids, caps, poses), n
+        data = pack_snapshot(
+            self._tick, now, ((s.user, sid, s.capture, s.pose) for sid, s in fresh)
+        )
+        return data, len(fresh)
 
     def retire(self) -> None:
         """End :meth:`run` (the server calls this when the room is removed)."""

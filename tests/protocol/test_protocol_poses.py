@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import protocol
 from protocol import (
     QUAT_NORM_TOLERANCE,
     SNAPSHOT_DTYPE,
@@ -233,3 +234,37 @@ def test_pose_frames_compare_by_content() -> None:
     assert a == b
     assert a != PoseUpdate.from_arrays(2, [0], [0.0], random_poses(1))
     assert a != "update"
+
+
+def test_pack_snapshot_equals_encode_snapshot_bytes() -> None:
+    """The relay's byte path builds exactly the frame encode_snapshot builds."""
+    rng = np.random.default_rng(5)
+    n = 7
+    users = rng.integers(0, 1000, n)
+    streams = rng.integers(0, 60000, n)
+    send = 1234.5
+    caps = send - rng.uniform(0, 0.1, n)
+    poses = rng.normal(size=(n, 7)).astype(np.float32)
+    want = protocol.encode_snapshot(99, send, users, streams, caps, poses)
+    got = protocol.pack_snapshot(
+        99,
+        send,
+        [
+            (int(u), int(s), float(c), p.tobytes())
+            for u, s, c, p in zip(users, streams, caps, poses, strict=True)
+        ],
+    )
+    assert got == want
+
+
+def test_update_records_yield_streams_times_and_pose_bytes() -> None:
+    """update_records gives each entry's stream, capture time and raw 28 pose bytes."""
+    poses = np.arange(21, dtype=np.float32).reshape(3, 7)
+    update = protocol.decode_message(
+        protocol.encode_update(4, [7, 8, 9], [10.0, 10.25, 10.5], poses, base_time=10.5)
+    )
+    assert isinstance(update, protocol.PoseUpdate)
+    recs = list(protocol.update_records(update))
+    assert [r[0] for r in recs] == [7, 8, 9]
+    assert [r[1] for r in recs] == [10.0, 10.25, 10.5]
+    assert [r[2] for r in recs] == [p.tobytes() for p in poses]

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from protocol import PoseUpdate, Snapshot, decode_message
-from server.room import IdAllocator, Member, Outbox, Room
+from server.room import IdAllocator, Member, Outbox, Room, room_phase
 
 IDENTITY = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
 
@@ -313,3 +313,15 @@ async def test_run_ticks_until_retired() -> None:
     room.retire()
     async with asyncio.timeout(5):
         await task
+
+
+def test_room_phase_offsets_the_tick_grid() -> None:
+    """A room with a phase ticks on (k + phase) / rate; phases come from the name."""
+    room = Room("p", phase=0.25)
+    m = member(room, 1, ("head",), 10.0)
+    room.add(m, 0.0)
+    assert m.next_due == pytest.approx(0.025)
+    room.tick(0.025)
+    assert m.next_due == pytest.approx(0.125)
+    assert 0.0 <= room_phase("lobby") < 1.0
+    assert room_phase("lobby") == room_phase("lobby") != room_phase("demo")
