@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from interp.methods import dq_slerp
+from interp.methods import dq_slerp, hemisphere_sign
 from interp.pose import F64, UNIT_TOLERANCE
 
 __all__ = [
@@ -87,7 +87,7 @@ def _dq_rows(rows: F64) -> F64:
 def _align_to(ref: F64, d: F64) -> tuple[F64, F64]:
     """``d`` (8, M) flipped into ``ref``'s hemisphere; also the sign used."""
     dot = ref[0] * d[0] + ref[1] * d[1] + ref[2] * d[2] + ref[3] * d[3]
-    sign = np.copysign(1.0, dot)
+    sign = hemisphere_sign(ref[:4], d[:4], dot)
     return d * sign, sign
 
 

@@ -116,10 +116,35 @@ def _safe_div(num: F64, den: F64, limit: F64) -> F64:
     return out
 
 
+def hemisphere_sign(q0: F64, q1: F64, dot: F64) -> F64:
+    """+1 or -1 per row: the sign that puts ``q1`` in ``q0``'s hemisphere.
+
+    At an exact half turn (``q0.q1 == 0``) both ways round are equally short;
+    the sign of the zero would decide, so negating an input would flip the
+    path. There the relative rotation ``q0* q1`` (a pure vector) is chosen with
+    its largest component positive: a rule about rotations, not about signs.
+    """
+    sign: F64 = np.copysign(1.0, dot)
+    ties = dot == 0.0
+    if ties.any():
+        a, b = q0[:, ties], q1[:, ties]
+        # Vector part of q0* q1.
+        rel = np.stack(
+            [
+                a[0] * b[1] - a[1] * b[0] - a[2] * b[3] + a[3] * b[2],
+                a[0] * b[2] + a[1] * b[3] - a[2] * b[0] - a[3] * b[1],
+                a[0] * b[3] - a[1] * b[2] + a[2] * b[1] - a[3] * b[0],
+            ]
+        )
+        pick = np.take_along_axis(rel, np.argmax(np.abs(rel), axis=0)[None], axis=0)[0]
+        sign[ties] = np.where(pick < 0.0, -1.0, 1.0)
+    return sign
+
+
 def _align(q0: F64, q1: F64) -> tuple[F64, F64]:
     """``q1`` rows moved into ``q0``'s hemisphere, and ``q0.q1 >= 0`` after it."""
     dot = q0[0] * q1[0] + q0[1] * q1[1] + q0[2] * q1[2] + q0[3] * q1[3]
-    sign = np.copysign(1.0, dot)
+    sign = hemisphere_sign(q0, q1, dot)
     return q1 * sign, dot * sign
 
 

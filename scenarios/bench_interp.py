@@ -2,7 +2,10 @@
 
 For each batch size, every posecast interpolator is timed on random pose pairs
 (poses in, poses out, validation included) in the same run as the reference
-implementations of the same maths:
+implementations of the same maths. The window and velocity methods
+(``motor-cubic``: 4 keyframes and their times per pose; ``motor-hermite``: 2
+keyframes, their velocities and the interval per pose) are timed on the same
+batch sizes with their own random inputs; they have no reference library.
 
 - SoA (position LERP + SLERP): scipy ``Rotation`` vectorised slerp
   ``r0 * from_rotvec(s * (r0^-1 r1).as_rotvec())`` plus a numpy LERP, and one
@@ -56,10 +59,16 @@ TARGETS: dict[str, float] = {
     "soa": 10e6,
     "dq-slerp": 5e6,
     "motor-lerp": 10e6,
+    "motor-cubic": 2e6,
+    "motor-hermite": 2e6,
     "track_us": 50.0,
 }
 TARGET_BATCH = 10_000
+#: Pair methods (with reference libraries).
 METHODS = ("soa", "dq-slerp", "motor-lerp")
+#: Window and velocity methods (posecast's own; no reference).
+EXTRA_METHODS = ("motor-cubic", "motor-hermite")
+ALL_METHODS = METHODS + EXTRA_METHODS
 
 #: Pairs timed for per-pose reference loops (their rate does not depend on batch).
 LOOP_PAIRS = 300
@@ -79,6 +88,27 @@ def _random_poses(rng: np.random.Generator, n: int) -> F64:
     q = rng.normal(size=(n, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     return np.concatenate([rng.uniform(-3.0, 3.0, (n, 3)), q], axis=1)
+
+
+def _random_velocities(rng: np.random.Generator, n: int) -> F64:
+    """Hand-like velocities: up to 5 m/s and 20 rad/s per axis."""
+    return np.concatenate([rng.uniform(-5.0, 5.0, (n, 3)), rng.uniform(-20.0, 20.0, (n, 3))], 1)
+
+
+def _extra_call(name: str, rng: np.random.Generator, n: int) -> Callable[[], object]:
+    """The timed call of a window or velocity method on ``n`` random queries."""
+    f = interp.get(name)
+    kind = interp.info(name).kind
+    s = rng.uniform(0.0, 1.0, n)
+    if kind == "window":
+        keys = _random_poses(rng, 4 * n).reshape(n, 4, 7)
+        times = np.cumsum(rng.uniform(0.03, 0.2, (n, 4)), axis=1)
+        t = times[:, 1] + s * (times[:, 2] - times[:, 1])
+        return partial(f, keys, times, t)
+    a, b = _random_poses(rng, n), _random_poses(rng, n)
+    va, vb = _random_velocities(rng, n), _random_velocities(rng, n)
+    dt = rng.uniform(0.03, 0.2, n)
+    return partial(f, a, b, va, vb, dt, s)
 
 
 def _best_seconds(call: Callable[[], object]) -> float:
@@ -290,14 +320,34 @@ def _track_medians(rng: np.random.Generator) -> dict[str, dict[str, float]]:
     lo, hi, s = poses[br.lo], poses[br.hi], br.s[:, None]
     bracket_us = float(np.median(_run_times_us(partial(interp.bracket, times, query))))
     as_pose_us = float(np.median(_run_times_us(partial(interp.as_pose, poses, "poses"))))
+    vel = _random_velocities(rng, TRACK_KEYFRAMES * TRACK_STREAMS).reshape(
+        TRACK_KEYFRAMES, TRACK_STREAMS, 6
+    )
     out: dict[str, dict[str, float]] = {}
-    for name in METHODS:
+    for name in ALL_METHODS:
         f = interp.get(name)
-        runs = _run_times_us(partial(interp.evaluate_track, times, poses, query, f))
+        if name in METHODS:
+            track = partial(interp.evaluate_track, times, poses, query, f)
+            alone = partial(f, lo, hi, s)
+        else:
+            # By name: evaluate_track gathers the window or the velocities itself.
+            track = partial(interp.evaluate_track, times, poses, query, name, velocities=vel)
+            k = np.array([br.lo[0]])
+            alone = partial(
+                interp.interpolate_brackets,
+                poses,
+                k,
+                k + 1,
+                br.s,
+                name,
+                times=times,
+                velocities=vel,
+            )
+        runs = _run_times_us(track)
         out[name] = {
             "evaluate_track_us": float(np.median(runs)),
             "evaluate_track_min_us": float(np.min(runs)),
-            "interpolator_us": float(np.median(_run_times_us(partial(f, lo, hi, s)))),
+            "interpolator_us": float(np.median(_run_times_us(alone))),
             "bracket_us": bracket_us,
             "as_pose_us": as_pose_us,
         }
@@ -320,7 +370,7 @@ def run_interp_bench(
         raise ValueError("batch sizes must be positive integers")
     rng = np.random.default_rng(12345)
     report: dict[str, Any] = {"machine": _machine(), "batch_sizes": list(sizes)}
-    posecast: dict[str, dict[int, float]] = {name: {} for name in METHODS}
+    posecast: dict[str, dict[int, float]] = {name: {} for name in ALL_METHODS}
     refs: list[dict[str, Any]] = [
         {"label": c.label, "method": c.method, "rates": {}, "loop": c.loop} for c in REFERENCES
     ]
@@ -334,6 +384,9 @@ def run_interp_bench(
                 status.update(f"bench interp: {name} at batch {n:,}")
                 f = interp.get(name)
                 posecast[name][n] = n / _best_seconds(partial(f, a, b, s))
+            for name in EXTRA_METHODS:
+                status.update(f"bench interp: {name} at batch {n:,}")
+                posecast[name][n] = n / _best_seconds(_extra_call(name, rng, n))
             for case, row in zip(REFERENCES, refs, strict=True):
                 if case.loop or "missing" in row:
                     continue
@@ -373,7 +426,7 @@ def _target_summary(
     posecast: dict[str, dict[int, float]], track: dict[str, dict[str, float]]
 ) -> dict[str, dict[str, Any]]:
     out: dict[str, dict[str, Any]] = {}
-    for name in METHODS:
+    for name in ALL_METHODS:
         rate = posecast[name].get(TARGET_BATCH)
         goal = TARGETS[name]
         out[f"{name}@{TARGET_BATCH}"] = {
@@ -382,7 +435,7 @@ def _target_summary(
             "ratio": None if rate is None else rate / goal,
             "met": None if rate is None else rate >= goal,
         }
-    for name in METHODS:
+    for name in ALL_METHODS:
         us = track[name]["evaluate_track_us"]
         out[f"track-{name}"] = {
             "measured": us,
@@ -421,7 +474,7 @@ def _print_report(console: Console, report: dict[str, Any]) -> None:
     for n in sizes:
         table.add_column(f"batch {n:,}", justify="right")
     table.add_column(f"per-pair loop ({LOOP_PAIRS})", justify="right")
-    for name in METHODS:
+    for name in ALL_METHODS:
         table.add_row(
             f"[bold]posecast {name}[/]",
             name,

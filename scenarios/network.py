@@ -26,7 +26,13 @@ one subscriber to their arrival times, deterministically for a seed:
    and every frame waits for the ones before it (in-order delivery).
 
 Wire sizes: :func:`wire_bytes` is the snapshot frame (``protocol.frame_size``)
-plus the websocket header and the TCP/IPv4 headers of its segments.
+plus the websocket header and the TCP/IPv4 headers of its segments. The
+velocity keyframe variant (for interpolators that need keyframe velocities)
+adds :data:`VELOCITY_BYTES_PER_POSE` to every pose: 6 x float16 (linear m/s,
+angular rad/s). float16 holds up to 65504 with a relative step of 2^-11, so at
+20 m/s and 40 rad/s it quantises to 0.008 m/s and 0.016 rad/s (the largest
+speeds in the real traces are 22 m/s and 114 rad/s, glitches included). The
+protocol does not carry the variant yet; the size is what it would cost.
 """
 
 from __future__ import annotations
@@ -42,12 +48,14 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from protocol import frame_size
+from protocol import SNAPSHOT_ENTRY_SIZE, frame_size
 
 __all__ = [
     "GAMMA_SHAPE",
     "TCP_IP_HEADER_BYTES",
     "TCP_MSS",
+    "VELOCITY_BYTES_PER_POSE",
+    "VELOCITY_WIRE_DTYPE",
     "Delivery",
     "LinkModel",
     "Tier",
@@ -71,6 +79,11 @@ TCP_MSS = 1448
 MIN_RTO_S = 0.200
 
 Transport = Literal["datagram", "stream"]
+
+#: Element type of the velocity variant's 6 numbers per pose on the wire.
+VELOCITY_WIRE_DTYPE = np.float16
+#: Extra bytes per pose of the velocity keyframe variant (6 x float16).
+VELOCITY_BYTES_PER_POSE = 6 * np.dtype(VELOCITY_WIRE_DTYPE).itemsize
 
 
 class TierError(ValueError):
@@ -184,9 +197,23 @@ def websocket_header_bytes(payload: int) -> int:
     return 2 if payload < 126 else 4 if payload < 1 << 16 else 10
 
 
-def wire_bytes(n_poses: int) -> int:
-    """Bytes on the wire of one snapshot of ``n_poses`` poses (frame + ws + TCP/IP)."""
+def _bin_header(body: int) -> int:
+    return 2 if body < 1 << 8 else 3 if body < 1 << 16 else 5
+
+
+def wire_bytes(n_poses: int, extra_bytes_per_pose: int = 0) -> int:
+    """Bytes on the wire of one snapshot of ``n_poses`` poses (frame + ws + TCP/IP).
+
+    ``extra_bytes_per_pose``: a keyframe variant carrying more per pose (e.g.
+    :data:`VELOCITY_BYTES_PER_POSE`), in the same msgpack ``bin`` payload.
+    """
+    if extra_bytes_per_pose < 0:
+        raise ValueError(f"extra_bytes_per_pose must be >= 0, got {extra_bytes_per_pose}")
     payload = frame_size(n_poses, "snapshot")
+    if extra_bytes_per_pose:
+        body = n_poses * SNAPSHOT_ENTRY_SIZE
+        extra = n_poses * extra_bytes_per_pose
+        payload += extra + _bin_header(body + extra) - _bin_header(body)
     payload += websocket_header_bytes(payload)
     segments = max(1, -(-payload // TCP_MSS))
     return payload + segments * TCP_IP_HEADER_BYTES

@@ -16,31 +16,43 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
 from interp import (
-    info as interp_info,
-)
-from interp import (
+    dq_slerp,
     interpolate_brackets,
     position_error_mm,
     rotation_error_deg,
+    screw_extrapolate,
     tip_error_mm,
 )
+from interp import (
+    info as interp_info,
+)
+from interp.extrapolate import twist_extrapolate
 from scenarios.traces import Trace, device_class
 
 __all__ = [
     "CLASS_ORDER",
+    "EXTRAPOLATION_KEYS",
     "MAX_REORDER_DEPTH",
     "STAT_KEYS",
     "ErrorSamples",
+    "ExtrapolateMode",
     "KeyframeLog",
     "Playout",
+    "Rendered",
+    "StallPlan",
+    "apply_stalls",
     "evaluate_group",
+    "extrapolate_stalls",
     "ideal_delay",
+    "plan_stalls",
     "playout_brackets",
+    "render_playout",
     "sample_keyframes",
     "summarize",
 ]
@@ -59,8 +71,25 @@ STAT_KEYS = (
     "tip_p95_mm",
     "stall_fraction",
 )
+#: Extra statistics of :meth:`ErrorSamples.extrapolation_stats` (stalls rendered by
+#: dead reckoning, and the corrections when the next keyframe arrives).
+EXTRAPOLATION_KEYS = (
+    "extrapolated_fraction",
+    "beyond_horizon_fraction",
+    "correction_events",
+    "correction_tip_p50_mm",
+    "correction_tip_p95_mm",
+    "correction_pos_p50_mm",
+    "correction_pos_p95_mm",
+)
 
 F64 = NDArray[np.float64]
+
+#: How a stalled query is dead-reckoned: ``screw`` continues the screw motion of
+#: the two newest arrived keyframes; ``velocity`` moves the newest one at the
+#: constant twist it was sent with (needs keyframe velocities); ``auto`` uses
+#: ``velocity`` for methods that need velocities and ``screw`` for the others.
+ExtrapolateMode = Literal["screw", "velocity", "auto"]
 
 
 @dataclass(frozen=True)
@@ -226,13 +255,25 @@ def playout_brackets(capture: F64, arrival: F64, query: F64, delay: float | F64)
 
 @dataclass
 class ErrorSamples:
-    """Per-sample errors pooled over streams of one device class."""
+    """Per-sample errors pooled over streams of one device class.
+
+    With extrapolation on (:func:`evaluate_group`'s ``extrapolate_horizon``),
+    ``extrapolated`` and ``beyond_horizon`` count samples (per stream, like
+    ``samples``) rendered by dead reckoning, and ``correction_*_mm`` hold the
+    size of each correction: the distance between the stalled pose continued
+    to the first frame after a keyframe arrives and the pose the new keyframes
+    give there (the jump a renderer without smoothing would show).
+    """
 
     pos_mm: list[F64] = field(default_factory=list)
     rot_deg: list[F64] = field(default_factory=list)
     tip_mm: list[F64] = field(default_factory=list)
     stalls: int = 0
     samples: int = 0
+    extrapolated: int = 0
+    beyond_horizon: int = 0
+    correction_tip_mm: list[F64] = field(default_factory=list)
+    correction_pos_mm: list[F64] = field(default_factory=list)
 
     def add(self, pos: F64, rot: F64, tip: F64, stalls: int, samples: int) -> None:
         self.pos_mm.append(pos)
@@ -241,29 +282,341 @@ class ErrorSamples:
         self.stalls += stalls
         self.samples += samples
 
+    def add_extrapolation(
+        self, extrapolated: int, beyond_horizon: int, correction_tip: F64, correction_pos: F64
+    ) -> None:
+        """Count dead-reckoned samples and record correction sizes (mm)."""
+        self.extrapolated += extrapolated
+        self.beyond_horizon += beyond_horizon
+        self.correction_tip_mm.append(correction_tip)
+        self.correction_pos_mm.append(correction_pos)
+
     def merge(self, other: ErrorSamples) -> None:
         self.pos_mm += other.pos_mm
         self.rot_deg += other.rot_deg
         self.tip_mm += other.tip_mm
         self.stalls += other.stalls
         self.samples += other.samples
+        self.extrapolated += other.extrapolated
+        self.beyond_horizon += other.beyond_horizon
+        self.correction_tip_mm += other.correction_tip_mm
+        self.correction_pos_mm += other.correction_pos_mm
 
     def stats(self) -> dict[str, float]:
         """p50/p95 of each error and the stall fraction (NaN where no samples)."""
-
-        def pct(parts: list[F64], p: float) -> float:
-            arr = np.concatenate(parts) if parts else np.empty(0)
-            return float(np.percentile(arr, p)) if arr.size else float("nan")
-
         return {
-            "pos_p50_mm": pct(self.pos_mm, 50),
-            "pos_p95_mm": pct(self.pos_mm, 95),
-            "rot_p50_deg": pct(self.rot_deg, 50),
-            "rot_p95_deg": pct(self.rot_deg, 95),
-            "tip_p50_mm": pct(self.tip_mm, 50),
-            "tip_p95_mm": pct(self.tip_mm, 95),
+            "pos_p50_mm": _pct(self.pos_mm, 50),
+            "pos_p95_mm": _pct(self.pos_mm, 95),
+            "rot_p50_deg": _pct(self.rot_deg, 50),
+            "rot_p95_deg": _pct(self.rot_deg, 95),
+            "tip_p50_mm": _pct(self.tip_mm, 50),
+            "tip_p95_mm": _pct(self.tip_mm, 95),
             "stall_fraction": self.stalls / self.samples if self.samples else float("nan"),
         }
+
+    def extrapolation_stats(self) -> dict[str, float]:
+        """Shares of dead-reckoned samples and correction sizes (:data:`EXTRAPOLATION_KEYS`)."""
+        n = self.samples
+        return {
+            "extrapolated_fraction": self.extrapolated / n if n else float("nan"),
+            "beyond_horizon_fraction": self.beyond_horizon / n if n else float("nan"),
+            "correction_events": float(sum(x.size for x in self.correction_tip_mm)),
+            "correction_tip_p50_mm": _pct(self.correction_tip_mm, 50),
+            "correction_tip_p95_mm": _pct(self.correction_tip_mm, 95),
+            "correction_pos_p50_mm": _pct(self.correction_pos_mm, 50),
+            "correction_pos_p95_mm": _pct(self.correction_pos_mm, 95),
+        }
+
+
+def _pct(parts: list[F64], p: float) -> float:
+    arr = np.concatenate(parts) if parts else np.empty(0)
+    return float(np.percentile(arr, p)) if arr.size else float("nan")
+
+
+@dataclass(frozen=True)
+class Rendered:
+    """What a receiver shows for each query of :func:`render_playout`.
+
+    ``poses`` ``(Q', S, 7)`` for the ``shown`` queries (``(Q,)`` mask: not
+    ``missing``), in query order. Per query ``(Q,)``: ``extrapolated`` (a stall
+    rendered by dead reckoning instead of a hold), ``beyond_horizon`` (of
+    those, clipped at the horizon) and ``corrected`` (inside a correction
+    blend). ``events`` are the query indices where the stalled pose gives way
+    to a newer one (the first frame after a keyframe arrives); ``jump_tip_mm``
+    and ``jump_pos_mm`` ``(E, S)`` are the correction sizes there.
+    """
+
+    poses: F64
+    shown: NDArray[np.bool_]
+    extrapolated: NDArray[np.bool_]
+    beyond_horizon: NDArray[np.bool_]
+    corrected: NDArray[np.bool_]
+    events: NDArray[np.intp]
+    jump_tip_mm: F64
+    jump_pos_mm: F64
+    #: The same poses before any correction blend (``poses`` itself without one).
+    unblended: F64 | None = None
+
+
+def _stalled_poses(
+    log: KeyframeLog,
+    hold: NDArray[np.intp],
+    prev: NDArray[np.intp],
+    ext: NDArray[np.bool_],
+    taus: F64,
+    horizon: float,
+    velocity: bool,
+) -> tuple[F64, NDArray[np.bool_]]:
+    """What a stall shows at ``taus``: the held keyframe, or dead reckoning from it.
+
+    ``hold`` is the newest arrived keyframe, ``prev`` the arrived one before it
+    (screw mode), ``ext`` where to extrapolate. Returns ``(n, S, 7)`` poses and
+    where the horizon clipped the extrapolation.
+    """
+    out = log.poses[hold].copy()
+    beyond = np.zeros(taus.shape, dtype=bool)
+    if not ext.any():
+        return out, beyond
+    h, tq = hold[ext], taus[ext]
+    dt = tq - log.capture[h]
+    beyond[ext] = dt > horizon
+    dt = np.minimum(dt, horizon)
+    if velocity:
+        assert log.velocities is not None
+        out[ext] = twist_extrapolate(log.poses[h], log.velocities[h], dt[:, None])
+    else:
+        pv = prev[ext]
+        span = log.capture[h] - log.capture[pv]
+        s = 1.0 + dt / span
+        out[ext] = screw_extrapolate(
+            log.poses[pv], log.poses[h], s[:, None], max_s=float(s.max(initial=1.0))
+        )
+    return out, beyond
+
+
+def render_playout(
+    log: KeyframeLog,
+    taus: F64,
+    play: Playout,
+    method: str,
+    *,
+    extrapolate_horizon: float | None = None,
+    correction_time: float = 0.0,
+    extrapolate_mode: ExtrapolateMode = "screw",
+) -> Rendered:
+    """Render ``method`` at the queries ``taus`` (increasing) given their ``play``.
+
+    Bracketed queries are interpolated (window methods with the arrived
+    neighbours, velocity methods with ``log.velocities``). A stall holds the
+    newest arrived keyframe or, with ``extrapolate_horizon > 0`` (seconds past
+    that keyframe's capture), dead-reckons it (``extrapolate_mode``): along the
+    screw from the arrived keyframe before it (needs two arrived keyframes;
+    otherwise a hold), or at the newest keyframe's own velocity; past the
+    horizon the pose stays where the horizon left it. Stalls whose query lies
+    before the newest keyframe (deep reordering) are held.
+
+    A **correction event** is a frame whose predecessor was a stall and which
+    shows a different source (it is now bracketed, or a newer keyframe is
+    held or extrapolated). Its size is the distance between the previous
+    stall's pose continued to this frame and the new pose. With
+    ``correction_time > 0`` the receiver hides it: for ``correction_time``
+    seconds after the event it shows ``ScLERP(old, new, w)`` with a smoothstep
+    ``w`` from 0 to 1 (old = the previous stall continued, new = what the
+    keyframes now give). Only the most recent event blends; an event inside an
+    earlier blend starts from the unblended old pose (a small jump that a
+    stateful renderer would not show).
+    """
+    entry = interp_info(method)
+    if entry.needs_velocity and log.velocities is None:
+        raise ValueError(f"{method} needs keyframes with velocities")
+    if extrapolate_mode not in ("screw", "velocity", "auto"):
+        raise ValueError(f"unknown extrapolate_mode {extrapolate_mode!r}")
+    if extrapolate_horizon is not None and not extrapolate_horizon >= 0:
+        raise ValueError(f"extrapolate_horizon must be >= 0, got {extrapolate_horizon}")
+    if not correction_time >= 0:
+        raise ValueError(f"correction_time must be >= 0, got {correction_time}")
+    velocity = extrapolate_mode == "velocity" or (
+        extrapolate_mode == "auto" and entry.needs_velocity
+    )
+    if velocity and log.velocities is None:
+        raise ValueError("velocity extrapolation needs keyframes with velocities")
+    q = taus.shape[0]
+    s_count = log.poses.shape[1]
+    shown = ~play.missing
+    none = np.zeros(q, dtype=bool)
+    empty = np.empty((0, s_count))
+    if not (q and log.capture.size):
+        return Rendered(
+            np.empty((0, s_count, 7)), shown, none, none, none, np.empty(0, np.intp), empty, empty
+        )
+    assert play.prev is not None and play.nxt is not None
+    poses = interpolate_brackets(
+        log.poses,
+        play.lo[shown],
+        play.hi[shown],
+        play.s[shown],
+        method,
+        times=log.capture,
+        prev=play.prev[shown],
+        nxt=play.nxt[shown],
+        velocities=log.velocities,
+    )
+    if extrapolate_horizon is None:
+        return Rendered(poses, shown, none, none, none, np.empty(0, np.intp), empty, empty)
+    return extrapolate_stalls(
+        log,
+        taus,
+        play,
+        poses,
+        horizon=extrapolate_horizon,
+        correction_time=correction_time,
+        velocity=velocity,
+    )
+
+
+@dataclass(frozen=True)
+class StallPlan:
+    """The method-independent part of dead reckoning, for one log, playout and setting.
+
+    What stalls show does not depend on the interpolator (only on the arrived
+    keyframes), so :func:`plan_stalls` computes it once and :func:`apply_stalls`
+    puts it over each method's rendering. Per query ``(Q,)``: ``stall``
+    (shown stalls), ``extrapolated``, ``beyond_horizon``, ``blend``; ``row``
+    maps a query to its row among the shown ones. ``stall_poses`` are the
+    stalls' poses, ``events`` the correction events and ``cont`` the previous
+    stall continued to each event; ``blend_old`` and ``blend_w`` the old pose
+    and the weight of the new one in each blended query.
+    """
+
+    shown: NDArray[np.bool_]
+    stall: NDArray[np.bool_]
+    extrapolated: NDArray[np.bool_]
+    beyond_horizon: NDArray[np.bool_]
+    row: NDArray[np.intp]
+    stall_poses: F64
+    events: NDArray[np.intp]
+    cont: F64
+    blend: NDArray[np.bool_]
+    blend_old: F64
+    blend_w: F64
+
+
+def plan_stalls(
+    log: KeyframeLog,
+    taus: F64,
+    play: Playout,
+    *,
+    horizon: float,
+    correction_time: float = 0.0,
+    velocity: bool = False,
+) -> StallPlan:
+    """What every stall shows, the correction events and the blends (see :func:`render_playout`).
+
+    ``horizon`` 0 means hold. ``velocity`` selects dead reckoning at the newest
+    keyframe's velocity instead of along the last screw.
+    """
+    if not horizon >= 0 or not correction_time >= 0:
+        raise ValueError("horizon and correction_time must be >= 0")
+    if velocity and log.velocities is None:
+        raise ValueError("velocity extrapolation needs keyframes with velocities")
+    assert play.prev is not None
+    q = taus.shape[0]
+    shown = ~play.missing
+    horizon = float(horizon)
+    stall = play.stall & shown
+    hold, prev = play.hi, play.prev
+    ahead = taus > log.capture[hold]
+    ext = stall & ahead & ((prev < hold) | velocity) & (horizon > 0)
+    where = np.flatnonzero(shown)  # rendered row of each shown query
+    row = np.full(q, -1, dtype=np.intp)
+    row[where] = np.arange(where.size)
+    st, beyond_st = _stalled_poses(
+        log, hold[stall], prev[stall], ext[stall], taus[stall], horizon, velocity
+    )
+    beyond = np.zeros(q, dtype=bool)
+    beyond[stall] = beyond_st
+    # Correction events: the frame after a stall shows another source.
+    before = np.r_[False, stall[:-1]]
+    same = np.r_[False, stall[1:] & (hold[1:] == hold[:-1])]
+    events = np.flatnonzero(before & shown & ~same)
+    src = events - 1  # the stalled frame each event leaves
+    cont, _ = _stalled_poses(log, hold[src], prev[src], ext[src], taus[events], horizon, velocity)
+    blend = np.zeros(q, dtype=bool)
+    old = np.empty((0, *log.poses.shape[1:]))
+    w = np.empty(0)
+    if correction_time > 0 and events.size:
+        k = np.searchsorted(taus[events], taus, side="right") - 1  # latest event at or before
+        age = taus - taus[events[np.maximum(k, 0)]]
+        blend = shown & (k >= 0) & (age < correction_time)
+        if blend.any():
+            e = events[k[blend]] - 1
+            old, _ = _stalled_poses(log, hold[e], prev[e], ext[e], taus[blend], horizon, velocity)
+            w = age[blend] / correction_time
+            w = w * w * (3.0 - 2.0 * w)
+    return StallPlan(shown, stall, ext, beyond, row, st, events, cont, blend, old, w)
+
+
+def apply_stalls(plan: StallPlan, base: F64) -> Rendered:
+    """A method's ``base`` rendering (shown queries; stalls held) with ``plan`` put over it.
+
+    ``base`` is not modified (without stalls the result shares it).
+    """
+    if not (plan.stall.any() or plan.events.size):
+        empty = np.empty((0, *base.shape[1:-1]))
+        return Rendered(
+            base,
+            plan.shown,
+            plan.extrapolated,
+            plan.beyond_horizon,
+            plan.blend,
+            plan.events,
+            empty,
+            empty,
+            unblended=base,
+        )
+    poses = base.copy()
+    row = plan.row
+    poses[row[plan.stall]] = plan.stall_poses
+    new = poses[row[plan.events]]
+    jump_pos = position_error_mm(plan.cont, new)
+    jump_tip = tip_error_mm(plan.cont, new)
+    unblended = poses
+    if plan.blend.any():
+        poses = poses.copy()
+        rb = row[plan.blend]
+        poses[rb] = dq_slerp(plan.blend_old, poses[rb], plan.blend_w[:, None])
+    return Rendered(
+        poses,
+        plan.shown,
+        plan.extrapolated,
+        plan.beyond_horizon,
+        plan.blend,
+        plan.events,
+        jump_tip,
+        jump_pos,
+        unblended=unblended,
+    )
+
+
+def extrapolate_stalls(
+    log: KeyframeLog,
+    taus: F64,
+    play: Playout,
+    base: F64,
+    *,
+    horizon: float,
+    correction_time: float = 0.0,
+    velocity: bool = False,
+) -> Rendered:
+    """Dead-reckon the stalls of an already rendered ``base`` (the shown queries, held).
+
+    The second half of :func:`render_playout` (see there): :func:`plan_stalls`
+    then :func:`apply_stalls`. ``base`` is not modified.
+    """
+    plan = plan_stalls(
+        log, taus, play, horizon=horizon, correction_time=correction_time, velocity=velocity
+    )
+    return apply_stalls(plan, base)
 
 
 def evaluate_group(
@@ -272,6 +625,10 @@ def evaluate_group(
     delay: float | Callable[[F64], F64],
     methods: Sequence[str],
     window: tuple[float, float] | None = None,
+    *,
+    extrapolate_horizon: float | None = None,
+    correction_time: float = 0.0,
+    extrapolate_mode: ExtrapolateMode = "screw",
 ) -> dict[str, dict[str, ErrorSamples]]:
     """Errors of every method for one sender's streams, by device class.
 
@@ -280,6 +637,10 @@ def evaluate_group(
     playout delay D, or a function giving the D in effect for each ``tau``
     (an adaptive receiver). Queries are the truth
     samples inside ``window`` (default: first to last keyframe capture).
+    ``extrapolate_horizon`` (seconds; None = hold, the default) dead-reckons
+    stalls and ``correction_time`` smooths the corrections, as in
+    :func:`render_playout`; stalls are counted either way, and the
+    :class:`ErrorSamples` also count extrapolated samples and correction sizes.
     Returns ``{method: {device_class: ErrorSamples}}``.
     """
     if truth.poses.shape[1] != log.poses.shape[1]:
@@ -295,44 +656,52 @@ def evaluate_group(
     play = playout_brackets(log.capture, log.arrival, taus, d)
     shown = ~play.missing
     out: dict[str, dict[str, ErrorSamples]] = {}
+    n_streams = truth.poses.shape[1]
     for name in methods:
         per_class: dict[str, ErrorSamples] = {}
+        ren: Rendered | None = None
         if taus.size and log.capture.size:
-            entry = interp_info(name)
-            if entry.needs_velocity and log.velocities is None:
-                raise ValueError(f"{name} needs keyframes with velocities")
-            assert play.prev is not None and play.nxt is not None
-            rendered = interpolate_brackets(
-                log.poses,
-                play.lo[shown],
-                play.hi[shown],
-                play.s[shown],
+            ren = render_playout(
+                log,
+                taus,
+                play,
                 name,
-                times=log.capture,
-                prev=play.prev[shown],
-                nxt=play.nxt[shown],
-                velocities=log.velocities,
+                extrapolate_horizon=extrapolate_horizon,
+                correction_time=correction_time,
+                extrapolate_mode=extrapolate_mode,
             )
+            rendered = ren.poses
             ref = true_poses[shown]
             pos = position_error_mm(rendered, ref)
             rot = rotation_error_deg(rendered, ref)
             tip = tip_error_mm(rendered, ref)
         else:
-            pos = rot = tip = np.empty((0, truth.poses.shape[1]))
+            pos = rot = tip = np.empty((0, n_streams))
         stalls = int(play.stall.sum())
         for j, stream in enumerate(truth.streams):
             cls = device_class(stream)
-            per_class.setdefault(cls, ErrorSamples()).add(
-                pos[:, j], rot[:, j], tip[:, j], stalls, taus.size
-            )
+            samples = per_class.setdefault(cls, ErrorSamples())
+            samples.add(pos[:, j], rot[:, j], tip[:, j], stalls, taus.size)
+            if ren is not None and extrapolate_horizon is not None:
+                samples.add_extrapolation(
+                    int(ren.extrapolated.sum()),
+                    int(ren.beyond_horizon.sum()),
+                    ren.jump_tip_mm[:, j],
+                    ren.jump_pos_mm[:, j],
+                )
         out[name] = per_class
     return out
 
 
 def summarize(
     groups: Iterable[dict[str, dict[str, ErrorSamples]]],
+    *,
+    extrapolation: bool = False,
 ) -> dict[str, dict[str, dict[str, float]]]:
-    """Pool several groups' errors: ``{method: {class: {STAT_KEYS...}}}``."""
+    """Pool several groups' errors: ``{method: {class: {STAT_KEYS...}}}``.
+
+    With ``extrapolation`` the :data:`EXTRAPOLATION_KEYS` are added.
+    """
     pooled: dict[str, dict[str, ErrorSamples]] = {}
     for g in groups:
         for method, classes in g.items():
@@ -340,6 +709,14 @@ def summarize(
             for cls, samples in classes.items():
                 dst.setdefault(cls, ErrorSamples()).merge(samples)
     return {
-        method: {cls: classes[cls].stats() for cls in CLASS_ORDER if cls in classes}
+        method: {
+            cls: (
+                {**classes[cls].stats(), **classes[cls].extrapolation_stats()}
+                if extrapolation
+                else classes[cls].stats()
+            )
+            for cls in CLASS_ORDER
+            if cls in classes
+        }
         for method, classes in pooled.items()
     }

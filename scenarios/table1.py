@@ -23,7 +23,24 @@ and 16.5 % less running time. :func:`run_table1` measures this on traces:
     show up there. Through a link the equal-QoE rate is searched only up to
     the tier's rate (the tier allows no more). Every method sees the same link
     realisation at a given rate (one seed per tier, trace and rate).
-(d) Writes ``table1.md``, ``table1.json`` and PNG plots to ``out_dir``.
+(d) **Error versus latency** (key ``"frontier"``, beyond the paper): hands
+    only, every method at a few rates (:data:`FRONTIER_RATES`) and playout
+    delays ``D = (f + look-ahead)/rate + lag`` (:data:`FRONTIER_FRACTIONS`),
+    each with three stall policies (:data:`VARIANTS`: hold, dead reckoning with
+    the correction as a jump, dead reckoning with the correction blended in),
+    on the ideal network and through each tier's link. Latency is
+    capture-to-display, i.e. D itself (ages count from capture). From these
+    points: the frontier (best headline within each latency budget), and per
+    tier the fewest bytes/s each method needs for SoA's headline at SoA's
+    latency (:func:`cheapest_point`).
+(e) Writes ``table1.md``, ``table1.json`` and PNG plots to ``out_dir``.
+
+Every interpolator kind is handled: each method plays out one interval plus
+its look-ahead (``interp.info(m).lookahead``); methods that need keyframe
+velocities get the trace's velocities rounded to float16 and the bigger wire
+frame of the velocity variant (:func:`method_wire_bytes`), so savings are
+reported in updates/s and in bytes/s. The receiver running time leaves out
+velocity methods (the live receiver cannot render them yet).
 
 Run: ``python -m scenarios.table1 --traces traces:dev --out DIR`` (see ``--help``).
 """
@@ -37,7 +54,7 @@ import math
 import sys
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -47,25 +64,48 @@ from numpy.typing import NDArray
 import interp
 from protocol import decode_message, encode_snapshot
 from protocol.poses import Snapshot
-from scenarios.network import LinkModel, Tier, Transport, affordable_rate, load_tiers, wire_bytes
+from scenarios.network import (
+    VELOCITY_BYTES_PER_POSE,
+    VELOCITY_WIRE_DTYPE,
+    LinkModel,
+    Tier,
+    Transport,
+    affordable_rate,
+    load_tiers,
+    wire_bytes,
+)
 from scenarios.qoe import (
+    ErrorSamples,
     KeyframeLog,
+    Playout,
+    StallPlan,
+    apply_stalls,
     evaluate_group,
     ideal_delay,
+    plan_stalls,
+    playout_brackets,
     sample_keyframes,
     summarize,
 )
 from scenarios.receiver import StreamBuffer, render_buffers
 from scenarios.synthetic import suite_traces, synthetic_motion
-from scenarios.traces import Trace, TraceError, find_traces, load_trace
+from scenarios.traces import Trace, TraceError, device_class, find_traces, load_trace
 
 __all__ = [
+    "CORRECTION_TIME_S",
     "DEFAULT_METHODS",
+    "EXTRAPOLATE_HORIZON_S",
+    "FRONTIER_FRACTIONS",
+    "FRONTIER_RATES",
     "HEADLINE",
     "PAPER",
     "Progress",
+    "cheapest_point",
     "equal_qoe_rate",
+    "keyframe_velocities",
     "main",
+    "method_wire_bytes",
+    "pareto_frontier",
     "receiver_cpu_time",
     "receiver_cpu_times",
     "resolve_traces",
@@ -104,6 +144,26 @@ PAPER: dict[str, Any] = {
 #: Poses in one snapshot for wire sizes: a 16-user room, head + two hands each.
 DEFAULT_ROOM_POSES = 48
 
+#: Error-versus-latency view: playout delay D = (f + look-ahead) / rate + lag for
+#: these f (lag: one native frame on the ideal network, p95 keyframe age on a link).
+FRONTIER_FRACTIONS = (0.25, 0.5, 0.75, 1.0, 1.5, 2.0)
+#: Rates of the error-versus-latency view (those inside the run's rate range, plus
+#: the tiers' SoA rates): the paper's and the tiers' rates. The integer rates in
+#: between are bisected where a verdict needs them (see ``_refine``).
+FRONTIER_RATES = (5, 7, 10, 12, 15, 20, 30)
+#: Dead-reckoning horizon past the newest keyframe (s). Chosen on the dev traces
+#: (25/50/100/200 ms tried at 10-20 Hz, ideal and poor link): 50 ms was best or
+#: within 1 % of best for every method; longer horizons only add error.
+EXTRAPOLATE_HORIZON_S = 0.05
+#: Correction blend time of the smoothed variant (s): 3 render frames at 90 Hz.
+#: An assumption, not tuned: blending only ever adds error to the headline (it
+#: shows the stale prediction for longer); what it buys is continuity.
+CORRECTION_TIME_S = 0.03
+#: Playout variants of the view: hold on a stall (DESIGN.md), dead reckoning with
+#: the correction applied at once (a jump), and dead reckoning with the
+#: correction blended over CORRECTION_TIME_S.
+VARIANTS = ("hold", "extrapolate", "smooth")
+
 
 # ---------------------------------------------------------------- pure helpers
 
@@ -132,6 +192,20 @@ def saving_pct(value: float | None, reference: float | None) -> float | None:
     if math.isnan(value) or math.isnan(reference):
         return None
     return 100.0 * (1.0 - value / reference)
+
+
+def method_wire_bytes(method: str, room_poses: int = DEFAULT_ROOM_POSES) -> int:
+    """Wire bytes of a room snapshot for ``method`` (velocity methods: the velocity variant)."""
+    extra = VELOCITY_BYTES_PER_POSE if interp.info(method).needs_velocity else 0
+    return wire_bytes(room_poses, extra)
+
+
+def keyframe_velocities(trace: Trace) -> F64:
+    """The trace's velocities ``(N, S, 6)`` as the velocity variant carries them (float16)."""
+    v = trace.velocities()
+    lim = float(np.finfo(VELOCITY_WIRE_DTYPE).max)
+    out: F64 = np.clip(v, -lim, lim).astype(VELOCITY_WIRE_DTYPE).astype(np.float64)
+    return out
 
 
 def tier_rate(tier: Tier, frame_bytes: float) -> int:
@@ -208,26 +282,32 @@ class _Net:
         }
 
 
-#: ``make_log(trace_index, trace, rate) -> (log, delay D, window, network figures)``
-_LogMaker = Callable[[int, Trace, int], tuple[KeyframeLog, float, tuple[float, float], _Net]]
+#: ``make_log(trace_index, trace, rate, frame_bytes, velocities) -> (log, D, window, net)``:
+#: D is the one-interval playout delay ``1/rate + lag`` of a method without look-ahead.
+_LogMaker = Callable[
+    [int, Trace, int, int, F64 | None], tuple[KeyframeLog, float, tuple[float, float], _Net]
+]
 
 
 def _ideal_log(
-    i: int, trace: Trace, rate: int
+    i: int, trace: Trace, rate: int, frame_bytes: int = 0, velocities: F64 | None = None
 ) -> tuple[KeyframeLog, float, tuple[float, float], _Net]:
     send, idx = sample_keyframes(trace.times, rate)
-    log = KeyframeLog(capture=trace.times[idx], arrival=send, poses=trace.poses[idx])
+    log = KeyframeLog(
+        capture=trace.times[idx],
+        arrival=send,
+        poses=trace.poses[idx],
+        velocities=None if velocities is None else velocities[idx],
+    )
     window = (float(log.capture[0]), float(log.capture[-1]))
     d = ideal_delay(rate, trace.native_rate)
     n_q = int(np.count_nonzero((trace.times >= window[0]) & (trace.times <= window[1])))
     return log, d, window, _Net(len(send), len(send), 0, 0, 0.0, d * n_q, n_q)
 
 
-def _link_log_maker(
-    tier: Tier, tier_index: int, seed: int, frame_bytes: int, transport: Transport
-) -> _LogMaker:
+def _link_log_maker(tier: Tier, tier_index: int, seed: int, transport: Transport) -> _LogMaker:
     def make(
-        i: int, trace: Trace, rate: int
+        i: int, trace: Trace, rate: int, frame_bytes: int, velocities: F64 | None
     ) -> tuple[KeyframeLog, float, tuple[float, float], _Net]:
         send, idx = sample_keyframes(trace.times, rate)
         capture = trace.times[idx]
@@ -236,7 +316,12 @@ def _link_log_maker(
         )
         dl = link.transmit(send, frame_bytes)
         ok = dl.delivered
-        log = KeyframeLog(capture=capture[ok], arrival=dl.arrival[ok], poses=trace.poses[idx][ok])
+        log = KeyframeLog(
+            capture=capture[ok],
+            arrival=dl.arrival[ok],
+            poses=trace.poses[idx][ok],
+            velocities=None if velocities is None else velocities[idx][ok],
+        )
         age = dl.arrival[ok] - capture[ok]
         d = 1.0 / rate + (float(np.percentile(age, 95)) if age.size else 0.0)
         window = (float(capture[0]), float(capture[-1]))
@@ -255,18 +340,48 @@ def _link_log_maker(
     return make
 
 
+@dataclass(frozen=True)
+class _Wire:
+    """How each method's keyframes travel: snapshot wire bytes and velocities."""
+
+    frame_bytes: dict[str, int]
+    lookahead: dict[str, int]
+    #: per trace (same order as the run's traces): float16 keyframe velocities, if needed
+    velocities: list[F64 | None]
+
+    def groups(self, methods: Sequence[str]) -> list[tuple[int, bool, list[str]]]:
+        """Methods grouped by (frame bytes, needs velocities), in first-seen order."""
+        out: dict[tuple[int, bool], list[str]] = {}
+        for m in methods:
+            key = (self.frame_bytes[m], interp.info(m).needs_velocity)
+            out.setdefault(key, []).append(m)
+        return [(fb, v, ms) for (fb, v), ms in out.items()]
+
+
+def _wire(trs: Sequence[Trace], methods: Sequence[str], room_poses: int) -> _Wire:
+    needs = any(interp.info(m).needs_velocity for m in methods)
+    return _Wire(
+        frame_bytes={m: method_wire_bytes(m, room_poses) for m in methods},
+        lookahead={m: interp.info(m).lookahead for m in methods},
+        velocities=[keyframe_velocities(tr) if needs else None for tr in trs],
+    )
+
+
 @dataclass
 class _Sweep:
     """Pooled and per-trace statistics of one sweep, by rate.
 
     ``hands_tip`` keeps the pooled hands tip errors (mm) per rate and method,
-    for the error-distribution plots (only when asked to).
+    for the error-distribution plots (only when asked to). ``network`` is the
+    figures of a method without look-ahead on the plain wire variant;
+    ``network_by_method`` each method's own (its D includes its look-ahead).
     """
 
     pooled: dict[int, Stats]
     per_trace: dict[str, dict[int, Stats]]
     network: dict[int, dict[str, float]]
     hands_tip: dict[int, dict[str, F64]]
+    network_by_method: dict[int, dict[str, dict[str, float]]] = field(default_factory=dict)
 
 
 def _sweep(
@@ -275,33 +390,45 @@ def _sweep(
     methods: Sequence[str],
     make_log: _LogMaker,
     tick: Callable[[], None],
+    wire: _Wire,
     per_trace_stats: bool = True,
     keep_samples: bool = False,
 ) -> _Sweep:
+    """Every method at every rate: one log per wire variant, one D per look-ahead."""
     pooled: dict[int, Stats] = {}
     per_trace: dict[str, dict[int, Stats]] = {tr.name: {} for tr in traces}
     network: dict[int, dict[str, float]] = {}
+    by_method: dict[int, dict[str, dict[str, float]]] = {}
     hands_tip: dict[int, dict[str, F64]] = {}
     for rate in rates:
         groups = []
-        net = _Net()
+        nets = {m: _Net() for m in methods}
         for i, tr in enumerate(traces):
-            log, d, window, n = make_log(i, tr, rate)
-            g = evaluate_group(tr, log, d, methods, window)
+            g: dict[str, dict[str, ErrorSamples]] = {}
+            for fb, needs_v, ms in wire.groups(methods):
+                log, d, window, n = make_log(
+                    i, tr, rate, fb, wire.velocities[i] if needs_v else None
+                )
+                for la in sorted({wire.lookahead[m] for m in ms}):
+                    la_ms = [m for m in ms if wire.lookahead[m] == la]
+                    g.update(evaluate_group(tr, log, d + la / rate, la_ms, window))
+                    for m in la_ms:
+                        nets[m].add(replace(n, d_weighted=n.d_weighted + la / rate * n.samples))
+            g = {m: g[m] for m in methods}
             groups.append(g)
             if per_trace_stats:
                 per_trace[tr.name][rate] = summarize([g])
-            net.add(n)
             tick()
         pooled[rate] = summarize(groups)
-        network[rate] = net.summary()
+        by_method[rate] = {m: nets[m].summary() for m in methods}
+        network[rate] = by_method[rate][methods[0]]
         if keep_samples:
             hands_tip[rate] = {
                 m: np.concatenate([x for g in groups for x in g[m]["hands"].tip_mm])
                 for m in methods
                 if any("hands" in g[m] for g in groups)
             }
-    return _Sweep(pooled, per_trace, network, hands_tip)
+    return _Sweep(pooled, per_trace, network, hands_tip, by_method)
 
 
 def _headline(
@@ -463,6 +590,544 @@ def receiver_cpu_time(method: str, rate: float, **kwargs: Any) -> dict[str, floa
     return receiver_cpu_times([(method, rate)], **kwargs)[(method, rate)]
 
 
+# ---------------------------------------------------------------- error vs latency
+
+
+def pareto_frontier(
+    points: Iterable[Mapping[str, Any]], x: str = "latency_ms", y: str = "headline_mm"
+) -> list[dict[str, Any]]:
+    """The points no other point beats on both ``x`` and ``y`` (lower is better), by ``x``.
+
+    Reading it as a step function gives the best ``y`` within each ``x``
+    budget: each point's ``y`` is strictly lower than that of every point with
+    a smaller or equal ``x``. Points with a missing or non-finite value are
+    left out.
+    """
+
+    def ok(p: Mapping[str, Any]) -> bool:
+        vx, vy = p.get(x), p.get(y)
+        return (
+            isinstance(vx, int | float)
+            and isinstance(vy, int | float)
+            and math.isfinite(vx)
+            and math.isfinite(vy)
+        )
+
+    out: list[dict[str, Any]] = []
+    best = math.inf
+    for p in sorted((p for p in points if ok(p)), key=lambda p: (p[x], p[y])):
+        if p[y] < best:
+            out.append(dict(p))
+            best = p[y]
+    return out
+
+
+def cheapest_point(
+    points: Iterable[Mapping[str, Any]],
+    max_latency_ms: float,
+    max_headline_mm: float,
+    methods: Iterable[str] | None = None,
+) -> dict[str, Any] | None:
+    """The point with the fewest bytes/s at no more latency and no more headline error.
+
+    ``methods`` limits the candidates. Ties go to the lower latency, then the
+    lower headline. ``None`` if no point qualifies.
+    """
+    allowed = None if methods is None else set(methods)
+    best: dict[str, Any] | None = None
+    for p in points:
+        if allowed is not None and p["method"] not in allowed:
+            continue
+        lat, head, bw = p.get("latency_ms"), p.get("headline_mm"), p.get("bytes_per_s")
+        if lat is None or head is None or bw is None:
+            continue
+        if not (lat <= max_latency_ms + 1e-9 and head <= max_headline_mm):
+            continue
+        key = (bw, lat, head)
+        if best is None or key < (best["bytes_per_s"], best["latency_ms"], best["headline_mm"]):
+            best = dict(p)
+    return best
+
+
+def _tips(poses: F64) -> F64:
+    """Tip points ``p + R (0, 0, -TIP_OFFSET_M)``: the tip error's points, in closed form."""
+    w, x, y, z = poses[..., 3], poses[..., 4], poses[..., 5], poses[..., 6]
+    n2 = w * w + x * x + y * y + z * z
+    k = -2.0 * interp.TIP_OFFSET_M / n2
+    out = np.empty((*poses.shape[:-1], 3))
+    out[..., 0] = poses[..., 0] + k * (x * z + w * y)
+    out[..., 1] = poses[..., 1] + k * (y * z - w * x)
+    out[..., 2] = poses[..., 2] - interp.TIP_OFFSET_M - k * (x * x + y * y)
+    return out
+
+
+def _tip_mm(poses: F64, true_tips: F64) -> F64:
+    d = _tips(poses) - true_tips
+    out: F64 = 1000.0 * np.sqrt(np.einsum("...i,...i->...", d, d))
+    return out
+
+
+@dataclass
+class _Acc:
+    """One point's samples pooled over traces (hands streams)."""
+
+    tip: list[F64] = field(default_factory=list)
+    jumps: list[F64] = field(default_factory=list)
+    stalls: int = 0
+    extrapolated: int = 0
+    samples: int = 0
+    d_weighted: float = 0.0
+
+
+def _same_bracket(play: Playout, ref: Playout, window: bool) -> NDArray[np.bool_]:
+    """Queries whose bracket (and, for window methods, neighbours) equal the reference's."""
+    same: NDArray[np.bool_] = (play.lo == ref.lo) & (play.hi == ref.hi)
+    if window:
+        assert play.prev is not None and ref.prev is not None
+        assert play.nxt is not None and ref.nxt is not None
+        same &= (play.prev == ref.prev) & (play.nxt == ref.nxt)
+    return same
+
+
+@dataclass
+class _PlayCache:
+    """Playouts and stall plans of one arrival pattern, shared by methods and wire variants."""
+
+    plays: dict[float, Playout] = field(default_factory=dict)
+    plans: dict[tuple[float, float, float, bool], StallPlan] = field(default_factory=dict)
+
+    def play(self, log: KeyframeLog, taus: F64, d: float) -> Playout:
+        out = self.plays.get(d)
+        if out is None:
+            out = self.plays[d] = playout_brackets(log.capture, log.arrival, taus, d)
+        return out
+
+    def plan(
+        self, log: KeyframeLog, taus: F64, d: float, horizon: float, t_c: float, velocity: bool
+    ) -> StallPlan:
+        key = (d, horizon, t_c, velocity)
+        out = self.plans.get(key)
+        if out is None:
+            out = self.plans[key] = plan_stalls(
+                log,
+                taus,
+                self.play(log, taus, d),
+                horizon=horizon,
+                correction_time=t_c,
+                velocity=velocity,
+            )
+        return out
+
+
+def _frontier_trace(
+    log: KeyframeLog,
+    lag: float,
+    rate: int,
+    taus: F64,
+    true_tips: F64,
+    methods: Sequence[str],
+    wire: _Wire,
+    fractions: Sequence[float],
+    horizon: float,
+    correction_time: float,
+    acc: dict[tuple[str, float, str], _Acc],
+    cache: _PlayCache,
+) -> None:
+    """Every (method, f, variant) on one trace's hands keyframes, pooled into ``acc``.
+
+    Each query is rendered as :func:`scenarios.qoe.evaluate_group` renders it.
+    To save work, a bracketed query whose bracket (and neighbours) match those
+    with every keyframe arrived reuses that render, a held query shows its
+    keyframe (what every interpolator returns at s = 0), and what stalls show
+    is planned once per playout delay (:func:`scenarios.qoe.plan_stalls`).
+    """
+    if not (taus.size and log.capture.size):
+        return
+    s_count = log.poses.shape[1]
+    ref = playout_brackets(log.capture, log.arrival, taus, math.inf)
+    kf_tips = _tips(log.poses)
+    for m in methods:
+        entry = interp.info(m)
+        window = entry.kind == "window"
+        assert ref.prev is not None and ref.nxt is not None
+        ref_poses = interp.interpolate_brackets(
+            log.poses,
+            ref.lo,
+            ref.hi,
+            ref.s,
+            m,
+            times=log.capture,
+            prev=ref.prev,
+            nxt=ref.nxt,
+            velocities=log.velocities,
+        )
+        ref_err = _tip_mm(ref_poses, true_tips)
+        for f in fractions:
+            d = lag + (f + entry.lookahead) / rate
+            play = cache.play(log, taus, d)
+            assert play.prev is not None and play.nxt is not None
+            shown = ~play.missing
+            stall = play.stall & shown
+            redo = shown & ~stall & ~_same_bracket(play, ref, window)
+            poses, err = ref_poses, ref_err
+            if stall.any() or redo.any():
+                poses, err = ref_poses.copy(), ref_err.copy()
+            if stall.any():
+                hold = play.hi[stall]
+                poses[stall] = log.poses[hold]
+                d_tip = kf_tips[hold] - true_tips[stall]
+                err[stall] = 1000.0 * np.sqrt(np.einsum("...i,...i->...", d_tip, d_tip))
+            if redo.any():
+                poses[redo] = interp.interpolate_brackets(
+                    log.poses,
+                    play.lo[redo],
+                    play.hi[redo],
+                    play.s[redo],
+                    m,
+                    times=log.capture,
+                    prev=play.prev[redo],
+                    nxt=play.nxt[redo],
+                    velocities=log.velocities,
+                )
+                err[redo] = _tip_mm(poses[redo], true_tips[redo])
+            base = poses[shown]
+            n_stall = int(play.stall.sum()) * s_count
+            n_q = taus.size * s_count
+            e_shown = err[shown]
+            tips_shown = true_tips[shown]
+            hold_ren = apply_stalls(cache.plan(log, taus, d, 0.0, 0.0, False), base)
+            ext_ren = apply_stalls(
+                cache.plan(log, taus, d, horizon, correction_time, entry.needs_velocity), base
+            )
+            for variant in VARIANTS:
+                a = acc.setdefault((m, f, variant), _Acc())
+                a.stalls += n_stall
+                a.samples += n_q
+                a.d_weighted += d * n_q
+                if variant == "hold":
+                    a.jumps.append(hold_ren.jump_tip_mm.reshape(-1))
+                    a.tip.append(e_shown.reshape(-1))
+                    continue
+                a.jumps.append(ext_ren.jump_tip_mm.reshape(-1))
+                a.extrapolated += int(ext_ren.extrapolated.sum()) * s_count
+                changed = ext_ren.extrapolated[shown]
+                shown_poses = ext_ren.unblended
+                if variant == "smooth":
+                    changed = changed | ext_ren.corrected[shown]
+                    shown_poses = ext_ren.poses
+                e = e_shown
+                if changed.any():
+                    assert shown_poses is not None
+                    e = e_shown.copy()
+                    e[changed] = _tip_mm(shown_poses[changed], tips_shown[changed])
+                a.tip.append(e.reshape(-1))
+
+
+def _frontier_sweep(
+    trs: Sequence[Trace],
+    networks: Sequence[tuple[str, _LogMaker, Sequence[int]]],
+    methods: Sequence[str],
+    wire: _Wire,
+    fractions: Sequence[float],
+    horizon: float,
+    correction_time: float,
+    tick: Callable[[], None],
+) -> list[dict[str, Any]]:
+    """Headline, latency, stalls and bytes/s of every (network, method, rate, f, variant)."""
+    hands = [
+        (i, [j for j, s in enumerate(tr.streams) if device_class(s) == "hands"])
+        for i, tr in enumerate(trs)
+    ]
+    hands = [(i, cols) for i, cols in hands if cols]
+    points: list[dict[str, Any]] = []
+    for net_name, make_log, rates in networks:
+        for rate in rates:
+            acc: dict[tuple[str, float, str], _Acc] = {}
+            for i, cols in hands:
+                tr = trs[i]
+                tr_h = Trace(
+                    tr.name, tr.times, tr.poses[:, cols], tuple(tr.streams[j] for j in cols)
+                )
+                vel = wire.velocities[i]
+                caches: list[tuple[KeyframeLog, _PlayCache]] = []
+                for fb, needs_v, ms in wire.groups(methods):
+                    v = None if (vel is None or not needs_v) else vel[:, cols]
+                    log, d1, window, _ = make_log(i, tr_h, rate, fb, v)
+                    # Wire variants whose keyframes arrived alike share playouts and plans.
+                    cache = next(
+                        (
+                            c
+                            for other, c in caches
+                            if np.array_equal(other.capture, log.capture)
+                            and np.array_equal(other.arrival, log.arrival)
+                        ),
+                        None,
+                    )
+                    if cache is None:
+                        cache = _PlayCache()
+                        caches.append((log, cache))
+                    q = (tr_h.times >= window[0]) & (tr_h.times <= window[1])
+                    _frontier_trace(
+                        log,
+                        d1 - 1.0 / rate,
+                        rate,
+                        tr_h.times[q],
+                        _tips(tr_h.poses[q]),
+                        ms,
+                        wire,
+                        fractions,
+                        horizon,
+                        correction_time,
+                        acc,
+                        cache,
+                    )
+                tick()
+            for (m, f, variant), a in acc.items():
+                tip = np.concatenate(a.tip) if a.tip else np.empty(0)
+                jumps = np.concatenate(a.jumps) if a.jumps else np.empty(0)
+                d_mean = a.d_weighted / a.samples if a.samples else math.nan
+                t50, t95 = np.percentile(tip, [50, 95]) if tip.size else (math.nan, math.nan)
+                j50, j95 = np.percentile(jumps, [50, 95]) if jumps.size else (math.nan, math.nan)
+                points.append(
+                    {
+                        "network": net_name,
+                        "method": m,
+                        "rate": rate,
+                        "fraction": f,
+                        "variant": variant,
+                        "lookahead": wire.lookahead[m],
+                        "latency_ms": 1000.0 * d_mean,
+                        "headline_mm": float(t95),
+                        "tip_p50_mm": float(t50),
+                        "stall_fraction": a.stalls / a.samples if a.samples else math.nan,
+                        "extrapolated_fraction": (
+                            a.extrapolated / a.samples if a.samples else math.nan
+                        ),
+                        "correction_events": int(jumps.size),
+                        "correction_tip_p50_mm": float(j50),
+                        "correction_tip_p95_mm": float(j95),
+                        "wire_bytes": wire.frame_bytes[m],
+                        "bytes_per_s": float(rate * wire.frame_bytes[m]),
+                    }
+                )
+    return points
+
+
+def _qualifies(
+    points: Sequence[Mapping[str, Any]], net: str, m: str, r: int, lat: float, head: float
+) -> bool:
+    """Whether ``m`` at ``r`` on ``net`` has a point within both bounds."""
+    return any(
+        p["network"] == net
+        and p["method"] == m
+        and p["rate"] == r
+        and p["latency_ms"] <= lat + 1e-9
+        and p["headline_mm"] <= head
+        for p in points
+    )
+
+
+def _refine(
+    points: list[dict[str, Any]],
+    methods: Sequence[str],
+    soa_rates: Mapping[str, int],
+    networks: Sequence[tuple[str, _LogMaker, Sequence[int]]],
+    min_rate: int,
+    evaluate: Callable[[str, _LogMaker, str, list[int]], list[dict[str, Any]]],
+) -> dict[str, dict[str, list[int]]]:
+    """Bisect the integer rates below each verdict's cheapest grid rate; extend ``points``.
+
+    For every reference of :func:`_frontier_verdicts` (SoA at each tier rate;
+    on the ideal network also SoA at 30 Hz without a latency bound, for the
+    posecast methods) and every paper or posecast method that reaches it on
+    the grid: bisect between its cheapest qualifying grid rate and the grid
+    rate below it, assuming that a method which qualifies at a rate also
+    qualifies at every higher one. ``evaluate(network, maker, method, rates)``
+    returns the new points. Returns the rates added, by network and method.
+    """
+    ours = _ours(methods)
+    cands = [m for m in methods if m != "soa"]
+    added: dict[str, dict[str, list[int]]] = {}
+    for net, maker, rates in networks:
+        refs: list[tuple[float, float, list[str]]] = []
+        pts = [p for p in points if p["network"] == net]
+        for tier, r_soa in soa_rates.items():
+            if net in (tier, "ideal") and (ref := _find(pts, net, "soa", r_soa, 1.0)):
+                refs.append((ref["latency_ms"], ref["headline_mm"], cands))
+        if net == "ideal" and (ref := _find(pts, net, "soa", 30, 1.0)):
+            refs.append((math.inf, ref["headline_mm"], ours))
+        top = max(rates, default=0)
+        done: dict[str, set[int]] = {m: set(rates) for m in cands}
+
+        # (method, latency bound, headline bound) -> (highest failing, lowest qualifying)
+        searches: dict[tuple[str, float, float], tuple[int, int]] = {}
+        for lat, head, ms in refs:
+            for m in ms:
+                ok = [r for r in done[m] if _qualifies(points, net, m, r, lat, head)]
+                if ok:
+                    r_c = min(ok)
+                    below = [r for r in done[m] if r < r_c]
+                    searches[(m, lat, head)] = (max(below) if below else min_rate - 1, r_c)
+        while True:
+            todo: dict[str, set[int]] = {}
+            for (m, _, _), (lo, hi) in searches.items():
+                if hi - lo > 1:
+                    mid = (lo + hi) // 2
+                    if mid <= top and mid not in done[m]:
+                        todo.setdefault(m, set()).add(mid)
+            if not todo:
+                break
+            for m, rs in todo.items():
+                points += evaluate(net, maker, m, sorted(rs))
+                done[m] |= rs
+                added.setdefault(net, {}).setdefault(m, []).extend(sorted(rs))
+            for key, (lo, hi) in list(searches.items()):
+                m, lat, head = key
+                if hi - lo > 1:
+                    mid = (lo + hi) // 2
+                    searches[key] = (
+                        (lo, mid) if _qualifies(points, net, m, mid, lat, head) else (mid, hi)
+                    )
+    return {n: {m: sorted(set(r)) for m, r in d.items()} for n, d in added.items()}
+
+
+def _ours(methods: Sequence[str]) -> list[str]:
+    """posecast's own methods: neither SoA nor one of the paper's."""
+    return [m for m in methods if m != "soa" and m not in PAPER["ga_methods"]]
+
+
+def _find(
+    points: Sequence[Mapping[str, Any]], network: str, method: str, rate: int, fraction: float
+) -> dict[str, Any] | None:
+    for p in points:
+        if (
+            p["network"] == network
+            and p["method"] == method
+            and p["rate"] == rate
+            and p["fraction"] == fraction
+            and p["variant"] == "hold"
+        ):
+            return dict(p)
+    return None
+
+
+def _short(p: Mapping[str, Any] | None) -> dict[str, Any] | None:
+    if p is None:
+        return None
+    keys = (
+        "network",
+        "method",
+        "rate",
+        "fraction",
+        "variant",
+        "latency_ms",
+        "headline_mm",
+        "stall_fraction",
+        "correction_tip_p95_mm",
+        "bytes_per_s",
+    )
+    return {k: p[k] for k in keys}
+
+
+def _frontier_verdicts(
+    points: Sequence[Mapping[str, Any]],
+    methods: Sequence[str],
+    soa_rates: Mapping[str, int],
+    networks: Sequence[str],
+) -> dict[str, Any]:
+    """The issue's two questions, answered from the points.
+
+    (1) Headline target, ideal network: the posecast method and configuration
+    (rate <= 10 Hz, any D and variant) with the lowest latency whose headline is
+    no worse than SoA at 30 Hz (f = 1, hold). (2) Per tier, on the tier's link
+    and on the ideal network at the tier's rate: with SoA at the tier rate
+    (f = 1, hold) as the reference, the cheapest configuration (bytes/s) of
+    each method at no more latency and no more headline error.
+    """
+    ours = _ours(methods)
+    paper = [m for m in methods if m in PAPER["ga_methods"]]
+    out: dict[str, Any] = {"posecast_methods": ours, "paper_methods": paper}
+    ideal = [p for p in points if p["network"] == "ideal"]
+    ref30 = _find(ideal, "ideal", "soa", 30, 1.0)
+    if ref30 is not None:
+        cands = [
+            p
+            for p in ideal
+            if p["method"] in ours and p["rate"] <= 10 and p["headline_mm"] <= ref30["headline_mm"]
+        ]
+        best = min(cands, key=lambda p: (p["latency_ms"], p["bytes_per_s"]), default=None)
+        # How close each method gets at <= 10 Hz, and the lowest rate matching at all.
+        closest = {
+            m: _short(
+                min(
+                    (p for p in ideal if p["method"] == m and p["rate"] <= 10),
+                    key=lambda p: p["headline_mm"],
+                    default=None,
+                )
+            )
+            for m in methods
+        }
+        lowest = {}
+        for m in methods:
+            ok = [p for p in ideal if p["method"] == m and p["headline_mm"] <= ref30["headline_mm"]]
+            lowest[m] = _short(min(ok, key=lambda p: (p["rate"], p["latency_ms"]), default=None))
+        out["headline_target"] = {
+            "reference": _short(ref30),
+            "met": best is not None,
+            "best": _short(best),
+            "added_latency_ms": None if best is None else best["latency_ms"] - ref30["latency_ms"],
+            "bytes_saving_pct": (
+                None if best is None else saving_pct(best["bytes_per_s"], ref30["bytes_per_s"])
+            ),
+            "updates_saving_pct": None if best is None else saving_pct(best["rate"], 30),
+            "closest_at_10hz_or_less": closest,
+            "lowest_matching_rate": lowest,
+        }
+    tiers: list[dict[str, Any]] = []
+    for tier, r_soa in soa_rates.items():
+        for net in (tier, "ideal"):
+            if net not in networks:
+                continue
+            pts = [p for p in points if p["network"] == net]
+            ref = _find(pts, net, "soa", r_soa, 1.0)
+            if ref is None:
+                continue
+            cheapest = {
+                m: _short(cheapest_point(pts, ref["latency_ms"], ref["headline_mm"], [m]))
+                for m in methods
+            }
+
+            def bytes_of(ms: Sequence[str], ch: Mapping[str, Any] = cheapest) -> float:
+                vals = [ch[m]["bytes_per_s"] for m in ms if ch[m] is not None]
+                return min(vals) if vals else math.inf
+
+            b_ours, b_paper, b_soa = bytes_of(ours), bytes_of(paper), bytes_of(["soa"])
+            found = [c for m in ours if (c := cheapest[m]) is not None]
+            winner = min(found, key=lambda p: p["bytes_per_s"], default=None)
+            saving: dict[str, float | None] = {}
+            for m in methods:
+                c = cheapest[m]
+                saving[m] = None if c is None else saving_pct(c["bytes_per_s"], ref["bytes_per_s"])
+            tiers.append(
+                {
+                    "tier": tier,
+                    "network": net,
+                    "soa_rate": r_soa,
+                    "reference": _short(ref),
+                    "cheapest": cheapest,
+                    "bytes_saving_pct": saving,
+                    "posecast_beats_both_paper_methods": bool(
+                        math.isfinite(b_ours) and b_ours < b_paper
+                    ),
+                    "posecast_beats_soa": bool(math.isfinite(b_ours) and b_ours < b_soa),
+                    "paper_methods_reach_reference": bool(math.isfinite(b_paper)),
+                    "posecast_winner": winner,
+                }
+            )
+    out["tiers"] = tiers
+    return out
+
+
 # ---------------------------------------------------------------- run
 
 
@@ -518,6 +1183,11 @@ def run_table1(
     bench_repeats: int = 11,
     plots: bool = True,
     command: str | None = None,
+    frontier: bool = True,
+    frontier_rates: Iterable[int] | None = None,
+    frontier_fractions: Sequence[float] = FRONTIER_FRACTIONS,
+    extrapolate_horizon: float = EXTRAPOLATE_HORIZON_S,
+    correction_time: float = CORRECTION_TIME_S,
 ) -> dict[str, Any]:
     """Measure Table 1 on ``traces``; return the report (and write it if ``out_dir``).
 
@@ -531,6 +1201,18 @@ def run_table1(
     ``link``/``bench``/``plots`` switch off parts (c), the running time, and
     the PNGs. Writes ``table1.md``, ``table1.json`` and PNGs to ``out_dir``
     when given. The returned dict is what ``table1.json`` holds.
+
+    Every method gets its own playout delay (one interval plus its look-ahead),
+    velocity methods get float16 keyframe velocities and the bigger wire frame
+    (:func:`method_wire_bytes`), and savings are given in updates/s and bytes/s.
+
+    ``frontier`` adds the error-versus-latency view (key ``"frontier"``): hands
+    only, every method at ``frontier_rates`` (default: :data:`FRONTIER_RATES`
+    inside the rate range, plus the tiers' SoA rates), playout delays
+    ``(f + look-ahead)/rate + lag`` for ``f`` in ``frontier_fractions``, each
+    with the :data:`VARIANTS` (hold; dead reckoning up to
+    ``extrapolate_horizon`` s, jump or blended over ``correction_time`` s), on
+    the ideal network and (with ``link``) through every tier's link.
     """
     t_start = time.perf_counter()
     trs = _as_traces(traces)
@@ -547,9 +1229,23 @@ def run_table1(
     soa_rates = {t.name: tier_rate(t, frame_bytes) for t in tier_list}
     paper_rates = {p["ga_rate"] for p in PAPER["tiers"] if p["name"] in soa_rates}
     all_rates = sorted(set(rate_list) | set(soa_rates.values()) | paper_rates)
+    wire = _wire(trs, meths, room_poses)
+    if frontier_rates is None:
+        f_rates = {r for r in FRONTIER_RATES if rate_list[0] <= r <= rate_list[-1]}
+    else:
+        f_rates = {int(r) for r in frontier_rates}
+    f_rate_list = sorted(f_rates | set(soa_rates.values()))
+    f_nets: list[tuple[str, _LogMaker, Sequence[int]]] = []
+    if frontier:
+        f_nets.append(("ideal", _ideal_log, f_rate_list))
+        for ti, tier in enumerate(tier_list if link else []):
+            allowed = [r for r in f_rate_list if r <= soa_rates[tier.name]]
+            f_nets.append((tier.name, _link_log_maker(tier, ti, seed, transport), allowed))
 
     n_link = sum(r <= soa_rates[t.name] for t in tier_list for r in all_rates) if link else 0
-    total = (len(all_rates) + n_link) * len(trs)
+    n_hands = sum(any(device_class(s) == "hands" for s in tr.streams) for tr in trs)
+    n_frontier = sum(len(r) for _, _, r in f_nets) * n_hands
+    total = (len(all_rates) + n_link) * len(trs) + n_frontier
     done = 0
 
     def tick(stage: str) -> Callable[[], None]:
@@ -562,7 +1258,7 @@ def run_table1(
         return f
 
     # (a) ideal-network curves
-    ideal = _sweep(trs, all_rates, meths, _ideal_log, tick("ideal"), keep_samples=plots)
+    ideal = _sweep(trs, all_rates, meths, _ideal_log, tick("ideal"), wire, keep_samples=plots)
     timings = {"ideal_sweep": time.perf_counter() - t_start}
     heads = {m: _headline(ideal.pooled, m) for m in meths}
 
@@ -580,6 +1276,19 @@ def run_table1(
             "reference_headline_mm": ref,
             "equal_qoe_rate": eq,
             "bandwidth_saving_pct": {m: saving_pct(eq[m], r_soa) for m in meths},
+            "bytes_saving_pct": {
+                m: saving_pct(
+                    None if (r := eq[m]) is None else r * wire.frame_bytes[m],
+                    r_soa * wire.frame_bytes["soa"],
+                )
+                for m in meths
+            },
+            "wire_bytes_per_snapshot": dict(wire.frame_bytes),
+            "latency_at_equal_rate_ms": {
+                m: (None if (r := eq[m]) is None else ideal.network_by_method[r][m]["latency_ms"])
+                for m in meths
+            },
+            "latency_at_soa_rate_ms": ideal.network_by_method[r_soa]["soa"]["latency_ms"],
             "headline_at_equal_rate_mm": {
                 m: (None if (r := eq[m]) is None else heads[m][r]) for m in meths
             },
@@ -599,12 +1308,19 @@ def run_table1(
                 if m in PAPER["ga_methods"]
             }
         tier_rows.append(row)
+    # The live receiver cannot render velocity methods yet (its buffers keep no
+    # velocities): they are left out of the running-time bench.
+    benched = [m for m in meths if not interp.info(m).needs_velocity]
     if bench:
         # Every configuration needed, measured round-robin in one go.
         configs: list[tuple[str, float]] = []
         for row in tier_rows:
-            configs += [(m, float(row["soa_rate"])) for m in meths]
-            configs += [(m, float(r)) for m, r in row["equal_qoe_rate"].items() if r is not None]
+            configs += [(m, float(row["soa_rate"])) for m in benched]
+            configs += [
+                (m, float(r))
+                for m, r in row["equal_qoe_rate"].items()
+                if r is not None and m in benched
+            ]
             if "paper" in row:
                 configs += [(m, float(row["paper"]["ga_rate"])) for m in row["reproduced"]]
         if progress is not None:
@@ -628,12 +1344,12 @@ def run_table1(
                         else {"rate": r, **cpu[(m, float(r))]}
                     ),
                 }
-                for m in meths
+                for m in benched
             }
             row["running_time_saving_pct"] = {
                 m: (
                     None
-                    if (r := row["equal_qoe_rate"][m]) is None
+                    if (r := row["equal_qoe_rate"][m]) is None or m not in benched
                     else saving_pct(cpu[(m, float(r))]["total_s"], base["total_s"])
                 )
                 for m in meths
@@ -657,11 +1373,11 @@ def run_table1(
     link_rows: list[dict[str, Any]] = []
     link_sweeps: dict[str, _Sweep] = {}
     for ti, tier in enumerate(tier_list if link else []):
-        maker = _link_log_maker(tier, ti, seed, frame_bytes, transport)
+        maker = _link_log_maker(tier, ti, seed, transport)
         r_soa = soa_rates[tier.name]
         # Through the link a method may not exceed the tier's rate: sweep up to it.
         allowed = [r for r in all_rates if r <= r_soa]
-        sw = _sweep(trs, allowed, meths, maker, tick(f"link:{tier.name}"), False)
+        sw = _sweep(trs, allowed, meths, maker, tick(f"link:{tier.name}"), wire, False)
         link_sweeps[tier.name] = sw
         lh = {m: _headline(sw.pooled, m) for m in meths}
         ref = lh["soa"][r_soa]
@@ -677,7 +1393,8 @@ def run_table1(
                 "headline_mm": hands.get("tip_p95_mm", float("nan")),
                 "head_tip_p95_mm": head.get("tip_p95_mm", float("nan")),
                 "stall_fraction": hands.get("stall_fraction", float("nan")),
-                **sw.network[r],
+                "bytes_per_s": float(r * wire.frame_bytes[m]),
+                **sw.network_by_method[r][m],
             }
 
         link_rows.append(
@@ -689,6 +1406,13 @@ def run_table1(
                 "reference_headline_mm": ref,
                 "equal_qoe_rate": eq,
                 "bandwidth_saving_pct": {m: saving_pct(eq[m], r_soa) for m in meths},
+                "bytes_saving_pct": {
+                    m: saving_pct(
+                        None if (r := eq[m]) is None else r * wire.frame_bytes[m],
+                        r_soa * wire.frame_bytes["soa"],
+                    )
+                    for m in meths
+                },
                 "at_soa_rate": {m: at(m, r_soa) for m in meths},
                 "at_equal_rate": {m: at(m, eq[m]) for m in meths},
                 "curves": _curves_json(sw.pooled, meths),
@@ -697,6 +1421,71 @@ def run_table1(
         )
 
     timings["link_sweeps"] = time.perf_counter() - t_start - sum(timings.values())
+
+    # (d) error versus latency: playout delay sweep, hold vs dead reckoning
+    frontier_report: dict[str, Any] | None = None
+    if frontier:
+        points = _frontier_sweep(
+            trs,
+            f_nets,
+            meths,
+            wire,
+            frontier_fractions,
+            extrapolate_horizon,
+            correction_time,
+            tick("error vs latency"),
+        )
+        net_names = [n for n, _, _ in f_nets]
+
+        # Refine: bisect the rates below each verdict's cheapest grid rate.
+        def evaluate(name: str, maker: _LogMaker, m: str, extra: list[int]) -> list[dict[str, Any]]:
+            return _frontier_sweep(
+                trs,
+                [(name, maker, extra)],
+                [m],
+                wire,
+                frontier_fractions,
+                extrapolate_horizon,
+                correction_time,
+                lambda: None,
+            )
+
+        refined = _refine(points, meths, soa_rates, f_nets, rate_list[0], evaluate)
+        frontier_report = {
+            "config": {
+                "streams": "hands only (the headline's class)",
+                "rates": {n: list(r) for n, _, r in f_nets},
+                "refined_rates": refined,
+                "fractions": list(frontier_fractions),
+                "playout": "D = (f + look-ahead) / rate + lag; lag = 1/native_rate on the "
+                "ideal network, p95(arrival - capture) of the run on a link",
+                "latency": "capture to display = D (keyframe ages count from capture, so the "
+                "network delay is inside D)",
+                "variants": {
+                    "hold": "a stall holds the newest arrived keyframe (DESIGN.md)",
+                    "extrapolate": "a stall dead-reckons the newest keyframe for up to the "
+                    "horizon, then holds; the correction is applied at once (a jump)",
+                    "smooth": "as extrapolate, the correction blended in over the correction "
+                    "time (ScLERP, smoothstep weight)",
+                },
+                "extrapolation": {
+                    m: "velocity (constant twist from the newest keyframe's velocity)"
+                    if interp.info(m).needs_velocity
+                    else "screw (ScLERP of the two newest arrived keyframes continued)"
+                    for m in meths
+                },
+                "extrapolate_horizon_s": extrapolate_horizon,
+                "correction_time_s": correction_time,
+                "bytes_per_s": "rate x wire bytes of a room snapshot for the method (velocity "
+                f"variant: +{VELOCITY_BYTES_PER_POSE} B per pose, 6 x float16)",
+            },
+            "points": points,
+            "frontiers": {
+                n: pareto_frontier(p for p in points if p["network"] == n) for n in net_names
+            },
+            "verdicts": _frontier_verdicts(points, meths, soa_rates, net_names),
+        }
+        timings["frontier"] = time.perf_counter() - t_start - sum(timings.values())
     per_trace: dict[str, Any] = {}
     for tr in trs:
         ph = {m: _headline(ideal.per_trace[tr.name], m) for m in meths}
@@ -733,15 +1522,26 @@ def run_table1(
         "paper": PAPER,
         "link": link_rows,
         "per_trace": per_trace,
+        **({"frontier": frontier_report} if frontier_report is not None else {}),
         "config": {
             "traces": [tr.name for tr in trs],
             "rates": rate_list,
             "methods": meths,
             "headline": "p95 tip error of the hands (mm), tip 0.20 m along -z",
             "keyframes": "latest native sample at each send time t0 + k/rate",
-            "ideal_playout": "D = 1/rate + 1/native_rate (one interval)",
+            "ideal_playout": "D = (1 + look-ahead)/rate + 1/native_rate (one interval, plus one "
+            "per keyframe of look-ahead the method needs)",
+            "lookahead": dict(wire.lookahead),
             "room_poses": room_poses,
             "snapshot_wire_bytes": frame_bytes,
+            "wire_bytes_by_method": dict(wire.frame_bytes),
+            "velocity_variant": {
+                "bytes_per_pose": VELOCITY_BYTES_PER_POSE,
+                "encoding": "6 x float16 (linear m/s, angular rad/s, world frame) after each pose",
+                "source": "trace velocities by central differences at the native rate, rounded "
+                "to float16",
+            },
+            "running_time_methods": benched,
             "seed": seed,
             "transport": transport,
             "bench": {"seconds": bench_seconds, "repeats": bench_repeats, "render_hz": 90.0},
@@ -759,6 +1559,8 @@ def run_table1(
         if plots:
             t_plot = time.perf_counter()
             plot_files = _plots(out, trs, report, ideal, link_sweeps, meths, soa_rates)
+            if "frontier" in report:
+                plot_files.append(_frontier_plot(out, report, meths, soa_rates))
             report["config"]["timings_s"]["plots"] = round(time.perf_counter() - t_plot, 3)
             (out / "table1.json").write_text(json.dumps(report, indent=1) + "\n")
         (out / "table1.md").write_text(_markdown(report, trs, plot_files))
@@ -884,6 +1686,239 @@ def _plots(
     return files
 
 
+def _frontier_plot(
+    out: Path, report: Mapping[str, Any], meths: Sequence[str], soa_rates: Mapping[str, int]
+) -> str:
+    """``frontier.png``: headline vs latency per network, one curve per method and tier rate."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fr = report["frontier"]
+    nets = list(fr["frontiers"])
+    colours = {m: f"C{i}" for i, m in enumerate(meths)}
+    markers = "osD^v<>P*X"
+    tier_rates = sorted(set(soa_rates.values()), reverse=True)
+    ncols = min(3, len(nets))
+    nrows = -(-len(nets) // ncols)
+    fig, axes = plt.subplots(
+        nrows, ncols, figsize=(4.6 * ncols, 3.9 * nrows), dpi=100, squeeze=False, sharey=True
+    )
+    flat = list(axes.flat)
+    for ax in flat[len(nets) :]:
+        ax.axis("off")
+    for ax, net in zip(flat, nets, strict=False):
+        pts = [p for p in fr["points"] if p["network"] == net]
+        present = {p["rate"] for p in pts}
+        rates = sorted(
+            (set(tier_rates) | {p["ga_rate"] for p in PAPER["tiers"]}) & present, reverse=True
+        )
+        for m in meths:
+            for k, r in enumerate(rates):
+                by_f: dict[float, tuple[float, float]] = {}
+                for p in pts:
+                    if p["method"] != m or p["rate"] != r or p["headline_mm"] is None:
+                        continue
+                    f, cur = p["fraction"], by_f.get(p["fraction"])
+                    if cur is None or p["headline_mm"] < cur[1]:
+                        by_f[f] = (p["latency_ms"], p["headline_mm"])
+                xy = [by_f[f] for f in sorted(by_f)]
+                if not xy:
+                    continue
+                ax.plot(
+                    [a for a, _ in xy],
+                    [b for _, b in xy],
+                    marker=markers[k % len(markers)],
+                    ms=3,
+                    lw=0.8,
+                    alpha=0.75,
+                    color=colours[m],
+                    label=m if k == 0 else None,
+                )
+        front = fr["frontiers"][net]
+        if front:
+            xs = [p["latency_ms"] for p in front]
+            ys = [p["headline_mm"] for p in front]
+            ax.step(xs, ys, where="post", color="black", lw=1.8, label="frontier")
+        for row in fr["verdicts"]["tiers"]:
+            if row["network"] == net and row["reference"] is not None:
+                ref = row["reference"]
+                ax.plot([ref["latency_ms"]], [ref["headline_mm"]], "*", color="k", ms=9)
+        ax.set_yscale("log")
+        ax.set_title(
+            f"{net}: best variant per D; rates "
+            + ",".join(str(r) for r in rates)
+            + f" Hz ({'/'.join(markers[: len(rates)])})",
+            fontsize=8,
+        )
+        ax.set_xlabel("capture-to-display latency (ms)")
+        ax.grid(True, which="both", alpha=0.3)
+    for row in axes:
+        row[0].set_ylabel("p95 tip error, hands (mm)")
+    flat[0].legend(fontsize=7)
+    fig.suptitle(
+        "Error vs latency (stars: SoA at the tier rate, one-interval playout; black: frontier)",
+        fontsize=9,
+    )
+    fig.tight_layout()
+    fig.savefig(out / "frontier.png")
+    plt.close(fig)
+    return "frontier.png"
+
+
+def _frontier_markdown(report: Mapping[str, Any]) -> list[str]:
+    fr = report["frontier"]
+    cfg = fr["config"]
+    ver = fr["verdicts"]
+    lines = [
+        "## Error versus latency",
+        "",
+        "Hands only. Playout delay "
+        + cfg["playout"]
+        + "; f in "
+        + ", ".join(f"{f:g}" for f in cfg["fractions"])
+        + ". Latency = "
+        + cfg["latency"]
+        + " (DESIGN.md's 'D plus the mean network "
+        "delay' would count the network twice here). Variants: "
+        + "; ".join(f"`{k}`: {v}" for k, v in cfg["variants"].items())
+        + f". Horizon {1000 * cfg['extrapolate_horizon_s']:.0f} ms, correction time "
+        f"{1000 * cfg['correction_time_s']:.0f} ms. Dead reckoning: "
+        + "; ".join(f"`{m}` {v.split(' (')[0]}" for m, v in cfg["extrapolation"].items())
+        + ". Bandwidth: "
+        + cfg["bytes_per_s"]
+        + ". Corrections: p95 of the tip jump (mm) "
+        "between the stalled pose continued and the new pose at the first frame after a "
+        "keyframe arrives (for `smooth` this is the size of the correction it blends in).",
+        "",
+    ]
+    ht = ver.get("headline_target")
+    if ht is not None and ht["reference"] is not None:
+        ref = ht["reference"]
+        lines += [
+            "### Headline target: a posecast method at <= 10 Hz as good as SoA at 30 Hz",
+            "",
+            f"Reference: SoA at 30 Hz, one-interval playout: {_f(ref['headline_mm'])} mm at "
+            f"{_f(ref['latency_ms'])} ms, {_f(ref['bytes_per_s'], 0)} B/s.",
+            "",
+        ]
+        if ht["met"]:
+            b = ht["best"]
+            lines += [
+                f"**Met**: `{b['method']}` at {b['rate']} Hz, f = {b['fraction']:g}, "
+                f"`{b['variant']}`: {_f(b['headline_mm'])} mm at {_f(b['latency_ms'])} ms "
+                f"(+{_f(ht['added_latency_ms'])} ms), {_f(b['bytes_per_s'], 0)} B/s "
+                f"({_f(ht['bytes_saving_pct'], 0, ' %')} fewer bytes, "
+                f"{_f(ht['updates_saving_pct'], 0, ' %')} fewer updates).",
+                "",
+            ]
+        else:
+            lines += [
+                "**Not met** on these traces. Closest at <= 10 Hz, and the lowest rate "
+                "that matches at any playout delay:",
+                "",
+            ]
+        lines += [
+            "| method | best at <= 10 Hz (mm) | at (Hz, f, variant, latency) "
+            "| lowest matching rate | its latency (ms) | its bytes/s |",
+            "|---|---|---|---|---|---|",
+        ]
+        for m, c in ht["closest_at_10hz_or_less"].items():
+            lo = ht["lowest_matching_rate"].get(m)
+            cell = (
+                "-"
+                if c is None
+                else f"{c['rate']} Hz, f {c['fraction']:g}, {c['variant']}, "
+                f"{_f(c['latency_ms'])} ms"
+            )
+            lines.append(
+                f"| `{m}` | {_f(None if c is None else c['headline_mm'])} | {cell} "
+                f"| {'none' if lo is None else str(lo['rate']) + ' Hz'} "
+                f"| {_f(None if lo is None else lo['latency_ms'])} "
+                f"| {_f(None if lo is None else lo['bytes_per_s'], 0)} |"
+            )
+        lines += [""]
+    if ver["tiers"]:
+        meths = list(ver["tiers"][0]["cheapest"])
+        lines += [
+            "### Bandwidth at equal QoE and equal latency, per tier",
+            "",
+            "Reference: SoA at the tier's rate with one-interval playout (hold), on the "
+            "tier's link and on the ideal network. Each cell: the fewest bytes/s of the "
+            "method at no more latency and no more headline error than the reference "
+            "(rate, f, variant; saving vs the reference in bytes/s).",
+            "",
+            "| tier | network | SoA ref (mm @ ms, B/s) | "
+            + " | ".join(f"`{m}`" for m in meths)
+            + " | posecast beats both paper methods | ... and SoA |",
+            "|---|---|---|" + "---|" * len(meths) + "---|---|",
+        ]
+        for row in ver["tiers"]:
+            ref = row["reference"]
+            cells = []
+            for m in meths:
+                c = row["cheapest"][m]
+                cells.append(
+                    "none"
+                    if c is None
+                    else f"{_f(c['bytes_per_s'], 0)} ({c['rate']} Hz, f {c['fraction']:g}, "
+                    f"{c['variant']}; {_f(row['bytes_saving_pct'][m], 0, ' %')})"
+                )
+            lines.append(
+                f"| {row['tier']} | {row['network']} | {_f(ref['headline_mm'])} @ "
+                f"{_f(ref['latency_ms'])}, {_f(ref['bytes_per_s'], 0)} | "
+                + " | ".join(cells)
+                + f" | {'yes' if row['posecast_beats_both_paper_methods'] else 'no'}"
+                + ("" if row["paper_methods_reach_reference"] else " (paper methods: none)")
+                + f" | {'yes' if row['posecast_beats_soa'] else 'no'} |"
+            )
+        lines += [""]
+    lines += [
+        "### Frontier: the best headline within each latency budget",
+        "",
+        "| network | latency (ms) | p95 tip, hands (mm) | method | rate | f | variant "
+        "| stall | corr. p95 (mm) | B/s |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for net, front in fr["frontiers"].items():
+        for p in front:
+            lines.append(
+                f"| {net} | {_f(p['latency_ms'])} | {_f(p['headline_mm'])} | `{p['method']}` "
+                f"| {p['rate']} | {p['fraction']:g} | {p['variant']} "
+                f"| {_f(100 * p['stall_fraction'], 1, ' %')} "
+                f"| {_f(p['correction_tip_p95_mm'])} | {_f(p['bytes_per_s'], 0)} |"
+            )
+    lines += [""]
+    ideal = [p for p in fr["points"] if p["network"] == "ideal"]
+    if ideal:
+        fracs = list(cfg["fractions"])
+        lines += [
+            "### Ideal network: headline (mm) per playout delay",
+            "",
+            "Cells: hold / extrapolate / smooth p95 tip error of the hands (mm) @ latency (ms).",
+            "",
+            "| method | rate | " + " | ".join(f"f = {f:g}" for f in fracs) + " |",
+            "|---|---|" + "---|" * len(fracs),
+        ]
+        index = {(p["method"], p["rate"], p["fraction"], p["variant"]): p for p in ideal}
+        for m in dict.fromkeys(p["method"] for p in ideal):
+            for r in sorted({p["rate"] for p in ideal if p["method"] == m}):
+                cells = []
+                for f in fracs:
+                    trio = [index.get((m, r, f, v)) for v in VARIANTS]
+                    if trio[0] is None:
+                        cells.append("")
+                        continue
+                    cells.append(
+                        " / ".join(_f(None if t is None else t["headline_mm"], 0) for t in trio)
+                        + f" @ {_f(trio[0]['latency_ms'], 0)}"
+                    )
+                lines.append(f"| `{m}` | {r} | " + " | ".join(cells) + " |")
+        lines += [""]
+    return lines
+
+
 # ---------------------------------------------------------------- markdown
 
 
@@ -923,14 +1958,20 @@ def _markdown(report: Mapping[str, Any], trs: Sequence[Trace], plots: Sequence[s
         "rate; `null` = no rate in the range reaches SoA's quality. Running time: receiver "
         "CPU time (decode + interpolate the same number of 90 Hz frames), method at its "
         "equal-QoE rate vs SoA at the tier rate; last column: the method at the paper's rate "
-        "for it (granting the paper's equal-QoE rate) vs SoA at the tier rate.",
+        "for it (granting the paper's equal-QoE rate) vs SoA at the tier rate. Bandwidth "
+        "saving in updates/s (the paper's measure) and in bytes/s (velocity methods send "
+        f"{cfg['velocity_variant']['bytes_per_pose']} B more per pose: "
+        f"{cfg['velocity_variant']['encoding']}). Latency: the method's playout delay at its "
+        "equal-QoE rate, one interval plus its look-ahead (SoA's at the tier rate in brackets). "
+        "`n/a`: the live receiver cannot render the method yet, so it has no running time.",
         "",
         "| tier | SoA rate | SoA p95 tip (mm) | method | rate paper "
         "| p95 tip at the paper's rate (mm) | rate measured "
-        "| p95 tip at it (mm) | bandwidth saving paper | measured "
-        "| running-time saving paper | measured | at the paper's rate |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| p95 tip at it (mm) | bandwidth saving paper | measured (updates) | (bytes) "
+        "| latency (ms) | running-time saving paper | measured | at the paper's rate |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+    benched = set(cfg.get("running_time_methods", meths))
     paper_rt = report["paper"]["running_time_saving_pct"]
     for row in report["tiers"]:
         paper = row.get("paper", {})
@@ -943,8 +1984,11 @@ def _markdown(report: Mapping[str, Any], trs: Sequence[Trace], plots: Sequence[s
                 f"| {_f(row['headline_at_equal_rate_mm'][m])} "
                 f"| {paper.get('bandwidth_saving_pct', '-')} % "
                 f"| {_f(row['bandwidth_saving_pct'][m], 0, ' %')} "
+                f"| {_f(row.get('bytes_saving_pct', {}).get(m), 0, ' %')} "
+                f"| {_f(row.get('latency_at_equal_rate_ms', {}).get(m), 0)} "
+                f"({_f(row.get('latency_at_soa_rate_ms'), 0)}) "
                 f"| {paper_rt if paper else '-'} % "
-                f"| {_f(row['running_time_saving_pct'][m], 1, ' %')} "
+                f"| {_f(row['running_time_saving_pct'][m], 1, ' %') if m in benched else 'n/a'} "
                 f"| {_f(row.get('running_time_saving_at_paper_rate_pct', {}).get(m), 1, ' %')} |"
             )
     lines += [""]
@@ -975,8 +2019,10 @@ def _markdown(report: Mapping[str, Any], trs: Sequence[Trace], plots: Sequence[s
         lines += [
             "## Through each tier's link model",
             "",
-            f"Transport `{cfg['transport']}`; playout delay fixed per run: D = 1/rate + p95 of "
-            "the keyframe age (arrival - capture). Latency = D + mean network delay (DESIGN.md); "
+            f"Transport `{cfg['transport']}`; playout delay fixed per run: D = (1 + look-ahead)"
+            "/rate + p95 of the keyframe age (arrival - capture); velocity methods send the "
+            "bigger velocity frames through the same link (same seed). "
+            "Latency = D + mean network delay (DESIGN.md); "
             "D alone is already the capture-to-display delay, since ages count from capture. "
             "Stall: share of hand samples with no bracketing keyframe by their deadline. "
             "Here the equal-QoE rate is searched only up to the tier's rate (the tier allows no "
@@ -984,15 +2030,17 @@ def _markdown(report: Mapping[str, Any], trs: Sequence[Trace], plots: Sequence[s
             "Rows show SoA at the tier rate and each method at its equal-QoE rate.",
             "",
             "| tier | method | rate | p95 tip (mm) | stall | D (ms) | net delay (ms) "
-            "| latency (ms) | lost | equal-QoE rate | bandwidth saving |",
-            "|---|---|---|---|---|---|---|---|---|---|---|",
+            "| latency (ms) | lost | equal-QoE rate | bandwidth saving (updates) | (bytes) |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|",
         ]
         for row in report["link"]:
             for m in meths:
                 a = row["at_soa_rate"][m] if m == "soa" else row["at_equal_rate"][m]
                 eq = row["equal_qoe_rate"][m]
                 if a is None:
-                    lines.append(f"| {row['name']} | `{m}` | null | | | | | | | null | null |")
+                    lines.append(
+                        f"| {row['name']} | `{m}` | null | | | | | | | null | null | null |"
+                    )
                     continue
                 lines.append(
                     f"| {row['name']} | `{m}` | {a['rate']} | {_f(a['headline_mm'])} "
@@ -1000,7 +2048,8 @@ def _markdown(report: Mapping[str, Any], trs: Sequence[Trace], plots: Sequence[s
                     f"| {_f(a['playout_delay_ms'])} | {_f(a['network_delay_ms'])} "
                     f"| {_f(a['latency_ms'])} "
                     f"| {_f(100 * a['loss_fraction'] if a['loss_fraction'] is not None else None, 2, ' %')} "  # noqa: E501
-                    f"| {_f(eq)} | {_f(row['bandwidth_saving_pct'][m], 0, ' %')} |"
+                    f"| {_f(eq)} | {_f(row['bandwidth_saving_pct'][m], 0, ' %')} "
+                    f"| {_f(row.get('bytes_saving_pct', {}).get(m), 0, ' %')} |"
                 )
         lines += [""]
     lines += [
@@ -1069,6 +2118,8 @@ def _markdown(report: Mapping[str, Any], trs: Sequence[Trace], plots: Sequence[s
                 at15 = " / ".join(_f(curves[m].get("15")) for m in meths)
                 lines.append(f"| `{name}` | {cls} | " + " | ".join(cells) + f" | {at15} |")
         lines += [""]
+    if "frontier" in report:
+        lines += _frontier_markdown(report)
     if plots:
         lines += ["## Plots", ""] + [f"![{p}]({p})" for p in plots] + [""]
     lines += [
@@ -1117,12 +2168,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--no-link", action="store_true", help="skip the link-model sweeps")
     parser.add_argument("--no-bench", action="store_true", help="skip the running-time bench")
     parser.add_argument("--no-plots", action="store_true", help="write no PNG plots")
+    parser.add_argument(
+        "--no-frontier", action="store_true", help="skip the error-versus-latency view"
+    )
+    parser.add_argument(
+        "--frontier-rates",
+        default=None,
+        help="rates of the error-versus-latency view (default: "
+        + ",".join(str(r) for r in FRONTIER_RATES)
+        + " inside --rates, plus the tier rates)",
+    )
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     try:
         rates = _parse_rates(args.rates)
+        f_rates = None if args.frontier_rates is None else _parse_rates(args.frontier_rates)
     except ValueError:
-        parser.error(f"cannot parse --rates {args.rates!r}")
+        parser.error(f"cannot parse --rates {args.rates!r} / --frontier-rates")
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     last = [-1.0]
 
@@ -1149,6 +2211,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             bench=not args.no_bench,
             plots=not args.no_plots,
             command=command,
+            frontier=not args.no_frontier,
+            frontier_rates=f_rates,
         )
     except (TraceError, ValueError, KeyError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -13,6 +13,7 @@ not with the second, which is where SoA's swing of an off-centre point shows.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
@@ -294,3 +295,16 @@ def test_dq_slerp_follows_a_constant_screw(
     assert_same_poses(interp.dq_slerp(identity, end, s), want, scale)
     got = interp.dq_slerp(g, compose(g, end), s)
     assert_same_poses(got, compose(g, want), scale + float(np.linalg.norm(g[:3])), 1e-11)
+
+
+@pytest.mark.parametrize("name", ["soa", "dq-slerp", "motor-lerp"])
+def test_exact_half_turn_tie_is_broken_by_rotation_not_sign(name: str) -> None:
+    """At q0.q1 == 0 the path chosen does not depend on the quaternions' signs."""
+    a = np.array([0.0, 0.0, 0.0, 0.5, -0.5, 0.5, 0.5])
+    b = np.array([0.0, 0.0, 1.0, 0.0, 0.0, np.sqrt(0.5), -np.sqrt(0.5)])
+    assert np.dot(a[3:], b[3:]) == 0.0
+    f = interp.get(name)
+    want = f(a, b, 0.3)
+    flip = np.array([1, 1, 1, -1, -1, -1, -1.0])
+    for x, y in ((a * flip, b), (a, b * flip), (a * flip, b * flip)):
+        assert_same_poses(f(x, y, 0.3), want, 1.0)

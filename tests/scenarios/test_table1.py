@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from scenarios.network import Tier, builtin_tiers, wire_bytes
@@ -179,3 +180,67 @@ def test_bad_rates_and_methods_are_refused_before_any_work() -> None:
         run_table1([trace], rates=[7.5], link=False, bench=False)
     with pytest.raises(ValueError, match="unknown interpolator"):
         run_table1([trace], rates=iter([10]), methods=["cubic"], link=False, bench=False)
+
+
+def test_every_interpolator_kind_runs_with_its_own_delay_and_bytes(dev_trace_path: Path) -> None:
+    """Window and velocity methods get their look-ahead in D and their bytes in the savings."""
+    trace = load_trace(dev_trace_path).window(20.0, 35.0)
+    report = run_table1(
+        [trace],
+        rates=[10, 15, 20],
+        methods=["motor-cubic", "motor-hermite"],
+        link=False,
+        bench=False,
+        frontier=False,
+    )
+    cfg = report["config"]
+    assert cfg["lookahead"] == {"soa": 0, "motor-cubic": 1, "motor-hermite": 0}
+    assert cfg["wire_bytes_by_method"]["motor-hermite"] == wire_bytes(48, 12) == 2460
+    assert cfg["wire_bytes_by_method"]["motor-cubic"] == wire_bytes(48) == 1884
+    for row in report["tiers"]:
+        lat = row["latency_at_equal_rate_ms"]
+        for m in ("motor-cubic", "motor-hermite"):
+            r = row["equal_qoe_rate"][m]
+            if r is None:
+                assert row["bytes_saving_pct"][m] is None
+                continue
+            # One interval plus the look-ahead, plus one native frame of capture lag.
+            la = cfg["lookahead"][m]
+            assert lat[m] == pytest.approx(1000 * ((1 + la) / r + 1 / trace.native_rate), rel=1e-6)
+            want = 100 * (1 - r * cfg["wire_bytes_by_method"][m] / (row["soa_rate"] * 1884))
+            assert row["bytes_saving_pct"][m] == pytest.approx(want)
+        assert row["running_time_saving_pct"]["motor-hermite"] is None
+
+
+def test_velocity_keyframes_are_float16_and_accurate_enough(dev_trace_path: Path) -> None:
+    """The velocity variant rounds to float16: under 0.05 % of the value, far below what matters."""
+    from scenarios.table1 import keyframe_velocities
+
+    trace = load_trace(dev_trace_path)
+    exact = trace.velocities()
+    sent = keyframe_velocities(trace)
+    assert np.array_equal(sent, sent.astype(np.float16).astype(np.float64))
+    rel = np.abs(sent - exact) / np.maximum(np.abs(exact), 1e-3)
+    assert float(rel.max()) <= 2.0**-11
+
+
+def test_link_sweep_sends_velocity_methods_through_the_link(dev_trace_path: Path) -> None:
+    """Through a tier's link every method has its own D, bytes/s and network figures."""
+    trace = load_trace(dev_trace_path).window(20.0, 30.0)
+    tier = {"poor": builtin_tiers()["poor"]}
+    report = run_table1(
+        [trace],
+        rates=[10, 12],
+        methods=["motor-cubic", "motor-hermite"],
+        tiers=tier,
+        bench=False,
+        frontier=False,
+        plots=False,
+    )
+    (row,) = report["link"]
+    at = row["at_soa_rate"]
+    assert at["motor-cubic"]["playout_delay_ms"] == pytest.approx(
+        at["soa"]["playout_delay_ms"] + 1000 / 12, rel=1e-6
+    )
+    assert at["motor-hermite"]["bytes_per_s"] == 12 * 2460
+    assert at["soa"]["bytes_per_s"] == 12 * 1884
