@@ -100,3 +100,47 @@ def test_recording_commands_refuse_bad_input(small_recording: Path, tmp_path: Pa
     assert res.exit_code == 2
     res = runner.invoke(app, ["recover", str(tmp_path / "none.mcap.part")])
     assert res.exit_code == 2
+
+
+def test_table1_command_writes_the_documented_json(dev_trace_path: Path, tmp_path: Path) -> None:
+    """posecast table1 prints the tier table and writes table1.json/md in the contract shape."""
+    out = tmp_path / "t1"
+    res = runner.invoke(
+        app,
+        [
+            "table1",
+            "--traces",
+            str(dev_trace_path),
+            "--rates",
+            "10,20,30",
+            "--out",
+            str(out),
+            "--no-link",
+            "--no-bench",
+            "--no-plots",
+            "--no-frontier",
+        ],
+    )
+    assert res.exit_code == 0, res.output
+    assert "excellent" in res.output
+    data = json.loads((out / "table1.json").read_text())
+    assert set(data["curves"]) == {"soa", "dq-slerp", "motor-lerp"}
+    point = data["curves"]["soa"]["30"]["hands"]
+    assert {
+        "pos_p50_mm",
+        "pos_p95_mm",
+        "rot_p50_deg",
+        "rot_p95_deg",
+        "tip_p50_mm",
+        "tip_p95_mm",
+    } <= set(point)
+    names = [t["name"] for t in data["tiers"]]
+    assert names == ["excellent", "good", "mediocre", "poor"]
+    for t in data["tiers"]:
+        assert {
+            "soa_rate",
+            "equal_qoe_rate",
+            "bandwidth_saving_pct",
+            "running_time_saving_pct",
+        } <= set(t)
+    assert "paper" in data and (out / "table1.md").is_file()
