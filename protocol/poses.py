@@ -459,6 +459,4 @@ def pack_snapshot(
     for user, stream, capture, pose in entries:
         parts.append(head.pack(user, stream, capture - send_time))
         parts.append(pose)
-    return _pack(
-        {"type": Snapshot.TYPE, "tick": tick, "time": send_time, "poses": b"".join(parts)}
-    )
+    return _pack({"type": Snapshot.TYPE, "tick": tick, "time": send_time, "poses": b"".join(parts)})
