@@ -85,38 +85,48 @@ def _fmt(x: float, digits: int = 1) -> str:
     return "-" if x != x else f"{x:.{digits}f}"
 
 
+_QOE_COLUMNS = (
+    "pos p50 mm",
+    "pos p95 mm",
+    "rot p50 deg",
+    "rot p95 deg",
+    "tip p50 mm",
+    "tip p95 mm",
+    "stall %",
+)
+
+
+def _qoe_table(title: str, keys: tuple[str, ...]) -> Table:
+    """A table with ``keys`` columns then the DESIGN.md QoE columns."""
+    table = Table(title=title, title_justify="left")
+    for col in keys:
+        table.add_column(col)
+    for col in _QOE_COLUMNS:
+        table.add_column(col, justify="right")
+    return table
+
+
+def _qoe_cells(st: dict[str, float]) -> list[str]:
+    return [
+        _fmt(st["pos_p50_mm"]),
+        _fmt(st["pos_p95_mm"]),
+        _fmt(st["rot_p50_deg"], 2),
+        _fmt(st["rot_p95_deg"], 2),
+        _fmt(st["tip_p50_mm"]),
+        _fmt(st["tip_p95_mm"]),
+        _fmt(100.0 * st["stall_fraction"], 2),
+    ]
+
+
 def print_comparison(
     title: str, results: dict[float, dict[str, dict[str, dict[str, float]]]]
 ) -> None:
     """Rich table: one row per (rate, method, device class)."""
-    table = Table(title=title, title_justify="left")
-    for col in ("rate Hz", "method", "class"):
-        table.add_column(col)
-    for col in (
-        "pos p50 mm",
-        "pos p95 mm",
-        "rot p50 deg",
-        "rot p95 deg",
-        "tip p50 mm",
-        "tip p95 mm",
-        "stall %",
-    ):
-        table.add_column(col, justify="right")
+    table = _qoe_table(title, ("rate Hz", "method", "class"))
     for rate, methods in results.items():
         for method, classes in methods.items():
             for cls, st in classes.items():
-                table.add_row(
-                    f"{rate:g}",
-                    method,
-                    cls,
-                    _fmt(st["pos_p50_mm"]),
-                    _fmt(st["pos_p95_mm"]),
-                    _fmt(st["rot_p50_deg"], 2),
-                    _fmt(st["rot_p95_deg"], 2),
-                    _fmt(st["tip_p50_mm"]),
-                    _fmt(st["tip_p95_mm"]),
-                    _fmt(100.0 * st["stall_fraction"], 2),
-                )
+                table.add_row(f"{rate:g}", method, cls, *_qoe_cells(st))
         table.add_section()
     console.print(table)
 
@@ -156,32 +166,10 @@ def compare(
 
 def print_swarm(report: dict[str, Any], title: str) -> None:
     """The demo/bots result: QoE per method and class, then bots and wire figures."""
-    table = Table(title=title, title_justify="left")
-    for col in ("method", "class"):
-        table.add_column(col)
-    for col in (
-        "pos p50 mm",
-        "pos p95 mm",
-        "rot p50 deg",
-        "rot p95 deg",
-        "tip p50 mm",
-        "tip p95 mm",
-        "stall %",
-    ):
-        table.add_column(col, justify="right")
+    table = _qoe_table(title, ("method", "class"))
     for method, classes in report["methods"].items():
         for cls, st in classes.items():
-            table.add_row(
-                method,
-                cls,
-                _fmt(st["pos_p50_mm"]),
-                _fmt(st["pos_p95_mm"]),
-                _fmt(st["rot_p50_deg"], 2),
-                _fmt(st["rot_p95_deg"], 2),
-                _fmt(st["tip_p50_mm"]),
-                _fmt(st["tip_p95_mm"]),
-                _fmt(100.0 * st["stall_fraction"], 2),
-            )
+            table.add_row(method, cls, *_qoe_cells(st))
         table.add_section()
     console.print(table)
     bots = Table(title="bots", title_justify="left")

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 import pytest
+from support import running_server
 from websockets.exceptions import ConnectionClosed
 
 from client.connection import ClientConnection
@@ -19,23 +19,9 @@ from protocol import PeerJoined, Snapshot
 from recorder.export import read_session
 from recorder.replay import synthesize_recording
 from scenarios.motion import MotionSpec
-from server.app import RelayServer, ServerConfig
 
 SUB_RATE = 30.0
 TICK = 1.0 / SUB_RATE
-
-
-@contextlib.asynccontextmanager
-async def relay() -> AsyncIterator[RelayServer]:
-    """A RelayServer on 127.0.0.1:0 inside a TaskGroup, stopped on exit."""
-    server = RelayServer(ServerConfig(host="127.0.0.1", port=0))
-    async with asyncio.TaskGroup() as tg:
-        tg.create_task(server.run())
-        await asyncio.wait_for(server.ready.wait(), 10)
-        try:
-            yield server
-        finally:
-            server.stop()
 
 
 @dataclass
@@ -77,7 +63,7 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
 async def _replay_and_watch(
     path: Path, speed: float | Literal["max"], room: str | None, viewer_room: str
 ) -> tuple[dict[str, Any], Viewer]:
-    async with relay() as server:
+    async with running_server() as server:
         url = f"ws://127.0.0.1:{server.port}"
         conn = await ClientConnection.open(url, room=viewer_room, streams=("head",), rate=SUB_RATE)
         viewer = Viewer(conn)
