@@ -340,7 +340,9 @@ def test_twist_extrapolation_is_screw_extrapolation(seed: int, s: float) -> None
     """Constant-twist dead reckoning equals ScLERP continued along the same screw."""
     rng = np.random.default_rng(seed)
     a = random_pose(rng)
-    vel = random_velocity(rng, 3.0, 2.0)
+    # |w| < pi over the 1 s keyframe interval: past a half turn ScLERP rightly takes
+    # the shorter way round, which is not this twist any more.
+    vel = random_velocity(rng, 3.0, 1.7)
     b = twist_extrapolate(a, vel, 1.0)
     got = interp.screw_extrapolate(a, b, s, max_s=3.0)
     assert_same_poses(got, twist_extrapolate(a, vel, s), 1e-10)
