@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import heapq
 import logging
 import math
 import time
@@ -46,10 +47,15 @@ from protocol import (
     close_reason,
 )
 from protocol.events import Event, Message
+from scenarios.network import EgressLink, Tier
 from server.auth import TokenError, verify_token
 from server.room import DEFAULT_EVENT_QUEUE, IdAllocator, Member, Outbox, Room, room_phase
 
 __all__ = ["ConnectionStatistics", "RelayServer", "ServerConfig"]
+
+# Websocket framing of a server frame of 126-65535 bytes (no mask): what the
+# emulated link charges on top of the frame itself.
+_WS_HEADER = 4
 
 log = logging.getLogger("posecast.server")
 
@@ -74,6 +80,10 @@ class ServerConfig:
     close_timeout: float = 2.0
     #: Record every room session into this folder (``posecast serve --record``).
     record_dir: Path | None = None
+    #: Emulate this network tier on every subscriber's downlink (``--link``).
+    link: Tier | None = None
+    #: Snapshots held in one subscriber's emulated link at most (older ones drop).
+    link_max_in_flight: int = 64
 
 
 #: ConnectionStatistics fields that only ever grow, summed over ended connections.
@@ -105,6 +115,13 @@ class ConnectionStatistics:
     event_drops: int
     flood_drops: int
     protocol_errors: int
+    #: With an emulated link: the rate the server chose for this subscriber (Hz),
+    #: snapshots delivered / skipped at the cap / lost, and bytes on the link.
+    link_rate_hz: float | None = None
+    link_frames: int = 0
+    link_cap_skips: int = 0
+    link_lost: int = 0
+    link_bytes: int = 0
 
 
 class _Connection:
@@ -124,6 +141,11 @@ class _Connection:
         self.must_close = asyncio.Event()
         self.frames_in = self.bytes_in = self.frames_out = self.bytes_out = 0
         self.event_drops = self.flood_drops = self.protocol_errors = 0
+        #: The emulated downlink (``ServerConfig.link``), set at join.
+        self.link: EgressLink | None = None
+        self._delayed: list[tuple[float, int, bytes]] = []
+        self._link_seq = 0
+        self.link_overflow = 0
         self._bucket = cfg.max_update_rate
         self._bucket_time = server.clock()
 
@@ -198,17 +220,54 @@ class _Connection:
 
     async def write_loop(self) -> None:
         outbox = self.outbox
+        clock = self.server.clock
+        delayed = self._delayed
         try:
             while True:
-                await outbox.wake.wait()
+                if delayed:
+                    with contextlib.suppress(TimeoutError):
+                        await asyncio.wait_for(
+                            outbox.wake.wait(), max(0.0, delayed[0][0] - clock())
+                        )
+                else:
+                    await outbox.wake.wait()
                 outbox.wake.clear()
-                while (data := outbox.take()) is not None:
-                    await self.ws.send(data)
-                    self.frames_out += 1
-                    self.bytes_out += len(data)
+                now = clock()
+                while delayed and delayed[0][0] <= now:
+                    await self._write(heapq.heappop(delayed)[2])
+                while True:
+                    data, is_snapshot = outbox.take_with_kind()
+                    if data is None:
+                        break
+                    if is_snapshot and self.link is not None:
+                        self._into_link(data, now)
+                    else:
+                        await self._write(data)
                 outbox.idle.set()
         except ConnectionClosed:
             pass
+
+    async def _write(self, data: bytes) -> None:
+        await self.ws.send(data)
+        self.frames_out += 1
+        self.bytes_out += len(data)
+
+    def _into_link(self, data: bytes, now: float) -> None:
+        """Put a snapshot on the emulated link; adopt the rate its cap allows."""
+        link = self.link
+        assert link is not None
+        arrival = link.offer(now, len(data) + _WS_HEADER)
+        if arrival is not None:
+            if len(self._delayed) >= self.server.config.link_max_in_flight:
+                heapq.heappop(self._delayed)
+                self.link_overflow += 1
+            self._link_seq += 1
+            heapq.heappush(self._delayed, (arrival, self._link_seq, data))
+        room, member = self.room, self.member
+        if room is not None and member is not None:
+            rate = max(self.server.config.min_rate, link.rate_for(member.asked_rate))
+            if abs(rate - member.rate) > 0.25:
+                room.set_rate(member.user, rate, now)
 
     async def close_watch(self) -> None:
         await self.must_close.wait()
@@ -266,7 +325,10 @@ class _Connection:
             self._on_join(event, now)
         elif isinstance(event, SetRate):
             if self.room is not None and self.user is not None:
-                self.room.set_rate(self.user, event.rate, now)
+                if self.member is not None:
+                    self.member.asked_rate = event.rate
+                rate = event.rate if self.link is None else self.link.rate_for(event.rate)
+                self.room.set_rate(self.user, max(self.server.config.min_rate, rate), now)
                 if self.room.recorder is not None:
                     self.room.recorder.record_presence(
                         {"kind": "rate", "user": self.user, "rate": event.rate}, now
@@ -324,6 +386,9 @@ class _Connection:
         streams = room.allocate_streams(join.streams)
         self.send(Joined(room=join.room, streams=streams, rate=join.rate))
         member = Member(self.user, self.name, streams, join.rate, self.outbox, label=join.label)
+        member.asked_rate = join.rate
+        if server.config.link is not None:
+            self.link = EgressLink(server.config.link, seed=self.user)
         for other in room.members.values():
             self.send(PeerJoined(user=other.user, streams=other.streams, label=other.label))
             server.connection_of(other.user).send(
@@ -403,6 +468,11 @@ class _Connection:
             event_drops=self.event_drops,
             flood_drops=self.flood_drops,
             protocol_errors=self.protocol_errors,
+            link_rate_hz=m.rate if (m is not None and self.link is not None) else None,
+            link_frames=self.link.frames if self.link else 0,
+            link_cap_skips=self.link.cap_skips if self.link else 0,
+            link_lost=self.link.lost if self.link else 0,
+            link_bytes=self.link.bytes if self.link else 0,
         )
 
 

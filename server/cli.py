@@ -207,6 +207,16 @@ def serve(
         Path | None,
         typer.Option(help="Record every room session as MCAP into this folder."),
     ] = None,
+    link: Annotated[
+        str | None,
+        typer.Option(
+            help="Emulate a network tier (excellent, good, mediocre, poor, or one of --tiers) "
+            "on every subscriber's downlink: bandwidth cap, delay, jitter, loss."
+        ),
+    ] = None,
+    tiers: Annotated[
+        Path | None, typer.Option(help="TOML tiers merged over the built-in ones.")
+    ] = None,
     log_level: Annotated[str, typer.Option(help="debug, info, warning, error.")] = "info",
 ) -> None:
     """Run the relay server until SIGINT/SIGTERM (then close all with 1001, exit 0)."""
@@ -229,6 +239,7 @@ def serve(
         max_rate=max_rate,
         secret=secret,
         record_dir=record,
+        link=_tier(link, tiers) if link is not None else None,
     )
 
     async def main() -> None:
@@ -251,6 +262,18 @@ def serve(
         _run_async(main())
     except OSError as exc:
         raise _fail(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+
+
+def _tier(name: str, path: Path | None) -> Any:
+    from scenarios.network import TierError, load_tiers
+
+    try:
+        known = load_tiers(path)
+    except (TierError, OSError) as exc:
+        raise _fail(str(exc)) from None
+    if name not in known:
+        raise _fail(f"unknown tier {name!r}; known: {', '.join(known)}")
+    return known[name]
 
 
 def _run_async(coro: Any) -> Any:

@@ -117,10 +117,14 @@ class Outbox:
 
     def take(self) -> bytes | None:
         """Next frame to write: queued events first, in order, then the snapshot."""
+        return self.take_with_kind()[0]
+
+    def take_with_kind(self) -> tuple[bytes | None, bool]:
+        """Like :meth:`take`, and whether the frame is the snapshot."""
         if self.events:
-            return self.events.popleft()
+            return self.events.popleft(), False
         data, self.pose = self.pose, None
-        return data
+        return data, data is not None
 
 
 @dataclass
@@ -133,6 +137,8 @@ class Member:
     rate: float
     outbox: Outbox
     label: str | None = None
+    #: The rate the subscriber asked for; ``rate`` may be lower (an emulated link's cap).
+    asked_rate: float = 0.0
     next_due: float = 0.0
     #: Store version covered by the newest snapshot offered to this member.
     last_version: int = 0

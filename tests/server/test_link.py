@@ -1,0 +1,77 @@
+"""Link emulation in the server's egress: cap held, delay applied, rate chosen."""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+import pytest
+from support import running_server
+
+from client.connection import ClientConnection
+from protocol import Snapshot, encode_update
+from scenarios.network import Tier
+from server.app import ServerConfig
+
+POSE = np.tile(np.array([0.0, 1.6, 0.0, 1.0, 0.0, 0.0, 0.0], dtype=np.float32), (3, 1))
+
+
+async def _publish(conn: ClientConnection, clock: object, seconds: float) -> None:
+    assert conn.joined is not None
+    ids = np.array(list(conn.joined.streams.values()))
+    loop = asyncio.get_running_loop()
+    end = loop.time() + seconds
+    seq = 0
+    while loop.time() < end:
+        seq += 1
+        now = clock()  # type: ignore[operator]
+        await conn.send_bytes(encode_update(seq, ids, np.full(3, now), POSE))
+        await asyncio.sleep(1 / 30)
+
+
+async def test_link_holds_its_cap_applies_delay_and_reports_the_rate() -> None:
+    """A capped, delayed tier: bytes/s within 5 % of the cap, delay >= latency, rate chosen."""
+    tier = Tier(
+        "test", max_rate_hz=30.0, bandwidth_kbps=24.0, latency_ms=60.0, jitter_ms=5.0, loss_pct=0.0
+    )  # 3,000 bytes/s: about 9 Hz of 4-user snapshots
+    config = ServerConfig(host="127.0.0.1", port=0, link=tier)
+    async with running_server(config) as srv:
+        url = f"ws://127.0.0.1:{srv.port}"
+        pubs = [
+            await ClientConnection.open(url, room="l", streams=("head", "left", "right"), rate=30)
+            for _ in range(3)
+        ]
+        sub = await ClientConnection.open(url, room="l", streams=("head",), rate=30)
+        got: list[tuple[float, float, int]] = []
+
+        async def receive() -> None:
+            while True:
+                rec = await sub.recv()
+                if isinstance(rec.event, Snapshot):
+                    got.append((rec.arrival, rec.event.send_time, rec.size))
+
+        async def drain(conn: ClientConnection) -> None:
+            while True:  # publishers read too, so their close handshake is prompt
+                await conn.recv()
+
+        async with asyncio.TaskGroup() as tg:
+            readers = [tg.create_task(receive())]
+            readers += [tg.create_task(drain(p)) for p in pubs]
+            await asyncio.gather(*(_publish(p, srv.clock, 6.0) for p in pubs))
+            for r in readers:
+                r.cancel()
+        stats = {s.user: s for s in srv.statistics()["connection_stats"]}  # type: ignore[attr-defined]
+        chosen = stats[sub.user].link_rate_hz
+        for c in (*pubs, sub):
+            await c.close()
+    arrival = np.array([g[0] for g in got])
+    sent = np.array([g[1] for g in got])
+    size = np.array([g[2] for g in got]) + 4  # the link charges the websocket header too
+    window = (arrival > arrival[0] + 2.0) & (arrival < arrival[0] + 5.0)
+    span = arrival[window][-1] - arrival[window][0]
+    rate_bytes = size[window][1:].sum() / span
+    assert rate_bytes == pytest.approx(tier.bytes_per_s, rel=0.05)
+    delay = arrival - sent
+    assert delay.min() >= 0.060 - np.sqrt(2) * 0.005 - 1e-3
+    assert np.median(delay) < 0.060 + 0.050
+    assert chosen is not None and 5.0 <= chosen < 30.0
