@@ -197,22 +197,23 @@ def playout_brackets(capture: F64, arrival: F64, query: F64, delay: float | F64)
     m = np.searchsorted(arrival[order], deadline, side="right")
     newest = np.where(m > 0, newest_by_arrival[np.maximum(m - 1, 0)], -1)
 
-    lo = n - 1
-    ok_lo = arrived(lo)
-    for _ in range(MAX_REORDER_DEPTH):
-        step = ~ok_lo & (lo >= 0)
-        if not step.any():
-            break
-        lo = np.where(step, lo - 1, lo)
-        ok_lo = arrived(lo)
-    hi = n.copy()
-    ok_hi = arrived(hi)
-    for _ in range(MAX_REORDER_DEPTH):
-        step = ~ok_hi & (hi < k) & (hi >= 0)
-        if not step.any():
-            break
-        hi = np.where(step, hi + 1, hi)
-        ok_hi = arrived(hi)
+    def walk(i: NDArray[np.intp], step: int) -> tuple[NDArray[np.intp], NDArray[np.bool_]]:
+        """Move each index by ``step`` past keyframes not arrived by its deadline.
+
+        Stops at the first arrived keyframe, or just outside ``[0, k)``;
+        reordering deeper than MAX_REORDER_DEPTH counts as not arrived.
+        """
+        ok = arrived(i)
+        for _ in range(MAX_REORDER_DEPTH):
+            move = ~ok & (i >= 0) & (i < k)
+            if not move.any():
+                break
+            i = np.where(move, i + step, i)
+            ok = arrived(i)
+        return i, ok
+
+    lo, ok_lo = walk(n - 1, -1)
+    hi, ok_hi = walk(n, +1)
     lo_c = np.clip(lo, 0, k - 1)
     # A query exactly on an arrived keyframe needs no second keyframe.
     exact = ok_lo & (capture[lo_c] == q)
@@ -223,24 +224,10 @@ def playout_brackets(capture: F64, arrival: F64, query: F64, delay: float | F64)
     hi_out = np.where(bracketed, np.clip(hi, 0, k - 1), hold)
     span = capture[hi_out] - capture[lo_out]
     s = np.where(span > 0, (q - capture[lo_out]) / np.where(span > 0, span, 1.0), 0.0)
-    # Arrived neighbours: step outwards past keyframes that had not arrived.
-    prev = lo_out - 1
-    ok = arrived(prev)
-    for _ in range(MAX_REORDER_DEPTH):
-        step = ~ok & (prev >= 0)
-        if not step.any():
-            break
-        prev = np.where(step, prev - 1, prev)
-        ok = arrived(prev)
+    # Arrived neighbours of the bracket, for window interpolators.
+    prev, ok = walk(lo_out - 1, -1)
     prev = np.where(ok, prev, lo_out)
-    nxt = hi_out + 1
-    ok = arrived(nxt)
-    for _ in range(MAX_REORDER_DEPTH):
-        step = ~ok & (nxt < k)
-        if not step.any():
-            break
-        nxt = np.where(step, nxt + 1, nxt)
-        ok = arrived(nxt)
+    nxt, ok = walk(hi_out + 1, +1)
     nxt = np.where(ok & bracketed, nxt, hi_out)
     return Playout(
         lo=lo_out.astype(np.intp),
