@@ -284,7 +284,9 @@ class _Bot:
                 self.spec = MotionSpec(source, seed, start)
             else:
                 self.spec = MotionSpec.for_trace(Path(source), start)
-            self.trace = self.spec.load().select(DEVICE_NAMES)
+            # Reading a trace CSV takes a while: not on the event loop.
+            motion = await asyncio.to_thread(self.spec.load)
+            self.trace = motion.select(DEVICE_NAMES)
             await conn.join(
                 room=cfg.room,
                 streams=self.trace.streams,
@@ -304,7 +306,9 @@ class _Bot:
         finally:
             with contextlib.suppress(ConnectionClosed):
                 await conn.close()
-        return self._report(start)
+        # Loading the peers' ground truth and scoring it is heavy: off the loop,
+        # so other bots (and an in-process server) keep their timing.
+        return await asyncio.to_thread(self._report, start)
 
     def _report(self, start: float) -> BotReport:
         cfg = self.cfg

@@ -364,7 +364,8 @@ async def replay_live(
     """
     if not max_send_rate > 0:
         raise ValueError("max_send_rate must be positive")
-    plan = plan_replay(path, room)
+    # Reading the recording is file I/O: not on the event loop.
+    plan = await asyncio.to_thread(plan_replay, path, room)
     if not plan.users:
         raise ValueError(f"{path}: no pose updates to replay")
     if speed == "max":
