@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from interp.methods import dq_slerp, hemisphere_sign
+from interp.methods import _rows, dq_slerp, hemisphere_sign
 from interp.pose import F64, UNIT_TOLERANCE
 
 __all__ = [
@@ -40,10 +40,6 @@ __all__ = [
 
 #: A velocity is 6 numbers: linear (m/s) then angular (rad/s), both in the world frame.
 VELOCITY_SIZE = 6
-
-
-def _rows(x: F64, n: int) -> F64:
-    return np.ascontiguousarray(x.reshape(-1, n).T)
 
 
 def _checked(x: ArrayLike, name: str, tail: tuple[int, ...]) -> F64:
@@ -139,17 +135,17 @@ def motor_cubic(keys: ArrayLike, times: ArrayLike, t: ArrayLike) -> F64:
     if tt.shape[:-1] != batch:
         tt = np.broadcast_to(tt, (*batch, 4))
     q = np.broadcast_to(_checked(t, "t", ()), batch).reshape(-1).astype(np.float64)
-    T = _rows(np.ascontiguousarray(tt), 4)
+    T = _rows(tt)
     t0, t1, t2, t3 = T
     span = t2 - t1
     if not (np.all(span >= 0) and np.all(t1 >= t0) and np.all(t3 >= t2)):
         raise ValueError("expected window times with T0 <= T1 <= T2 <= T3")
     # T1 == T2 is a held keyframe: s = 0 reproduces it.
     s = np.where(span > 0, np.clip((q - t1) / np.where(span > 0, span, 1.0), 0.0, 1.0), 0.0)
-    d0 = _dq_rows(_rows(p[..., 0, :], 7))
-    d1 = _dq_rows(_rows(p[..., 1, :], 7))
-    d2 = _dq_rows(_rows(p[..., 2, :], 7))
-    d3 = _dq_rows(_rows(p[..., 3, :], 7))
+    d0 = _dq_rows(_rows(p[..., 0, :]))
+    d1 = _dq_rows(_rows(p[..., 1, :]))
+    d2 = _dq_rows(_rows(p[..., 2, :]))
+    d3 = _dq_rows(_rows(p[..., 3, :]))
     # Sign choices chained keyframe to keyframe, so neighbouring segments agree.
     d0, _ = _align_to(d1, d0)
     d2, _ = _align_to(d1, d2)
@@ -223,12 +219,12 @@ def motor_hermite(
     if not np.all(span > 0):
         raise ValueError("expected `dt` to be positive")
     ss = np.broadcast_to(_checked(s, "s", ()), batch).reshape(-1).astype(np.float64)
-    d1 = _dq_rows(_rows(pa, 7))
-    d2 = _dq_rows(_rows(pb, 7))
-    m1 = _dq_rate_rows(d1, _rows(np.ascontiguousarray(vva), 6)) * span
+    d1 = _dq_rows(_rows(pa))
+    d2 = _dq_rows(_rows(pb))
+    m1 = _dq_rate_rows(d1, _rows(vva)) * span
     d2, sign = _align_to(d1, d2)
     # The derivative of -M is -M': flip it with its motor.
-    m2 = _dq_rate_rows(d2 * sign, _rows(np.ascontiguousarray(vvb), 6)) * (span * sign)
+    m2 = _dq_rate_rows(d2 * sign, _rows(vvb)) * (span * sign)
     rows = _dq_to_pose_rows(_hermite(d1, d2, m1, m2, ss))
     return _finish(rows, batch, ss, pa, pb)
 
