@@ -202,7 +202,11 @@ class _Connection:
                     self.bytes_in += len(data)
                     now = self.server.clock()
                     for event in self.session.receive_data(data):
-                        if isinstance(event, Join) and self._join_permitted(event):
+                        if (
+                            isinstance(event, Join)
+                            and self.server.config.record_dir is not None
+                            and self._join_permitted(event)
+                        ):
                             # A new room's recorder opens off the event loop first.
                             await self.server.prepare_room(event.room)
                             now = self.server.clock()
