@@ -2,6 +2,8 @@
 
 - :class:`SessionRecorder` (``recorder.writer``): the relay's non-blocking tap;
   a bounded queue and a writer thread; ``NAME.mcap.part`` renamed on close.
+- :class:`ProcessRecorder` (``recorder.process``): the same tap with the writer
+  in a child process fed the raw update frames (what the server uses).
 - :func:`recover`, :func:`find_leftovers`, :func:`recover_leftovers`
   (``recorder.recovery``): chunk-by-chunk recovery of a ``.part`` file.
 - :class:`SessionReader`, :func:`info`, :func:`format_info`, :func:`load_streams`,
@@ -11,6 +13,7 @@
 """
 
 from recorder.format import FormatError, PoseRecord, decode_pose, encode_pose
+from recorder.process import ProcessRecorder, RoomRecorder
 from recorder.reader import (
     DropRecord,
     EventRecord,
@@ -40,11 +43,13 @@ __all__ = [
     "FormatError",
     "PoseRecord",
     "PresenceRecord",
+    "ProcessRecorder",
     "Record",
     "RecorderError",
     "RecorderStatistics",
     "RecoveryError",
     "RecoveryReport",
+    "RoomRecorder",
     "ScanProblem",
     "SessionReader",
     "SessionRecorder",

@@ -128,6 +128,12 @@ class _Stop:
 
 
 _HOLD: Final = object()
+#: Tells the writer thread to make what it has durable and stop, keeping the ``.part``.
+_ABANDON: Final = object()
+
+
+class _Abandoned(Exception):
+    pass
 
 
 def _safe_name(room: str) -> str:
@@ -412,6 +418,27 @@ class SessionRecorder:
         ns = to_ns(time)
         return self._offer((channel, ns, ns, data, 0))
 
+    def record_update_frame(self, user: int, arrival: float, frame: bytes, poses: int) -> bool:
+        """Queue one pose update given as the ``update`` frame it arrived in.
+
+        The relay's fast path (see :class:`recorder.process.ProcessRecorder`,
+        which hands the frame to another process); here it is decoded and
+        recorded as :meth:`record_update`. ``poses`` is the count in the frame.
+        """
+        from recorder.process import decode_update_frame
+
+        try:
+            seq, streams, caps, pose_array = decode_update_frame(frame)
+        except ValueError as exc:
+            return self._reject(POSES_TOPIC, exc)
+        return self.record_update(user, seq, arrival, streams, caps, pose_array)
+
+    def offer_encoded(
+        self, channel: str, log_ns: int, publish_ns: int, data: bytes, poses: int
+    ) -> bool:
+        """Queue a record already encoded for ``channel`` (a topic of :data:`CHANNELS`)."""
+        return self._offer((_CHANNEL_IDS[channel], log_ns, publish_ns, data, poses))
+
     def _reject(self, topic: str, exc: Exception) -> bool:
         with self._lock:
             self._rejected += 1
@@ -503,6 +530,9 @@ class SessionRecorder:
         try:
             end_time = self._loop()
             self._finish(end_time)
+        except _Abandoned:
+            with contextlib.suppress(Exception):
+                self._file.close()
         except BaseException as exc:  # disk full, I/O error: keep the .part
             self._error = exc
             log.exception("recorder for %s failed; the .part file is kept", self.path.name)
@@ -528,6 +558,9 @@ class SessionRecorder:
                 item = None
             if isinstance(item, _Stop):
                 return item.end_time
+            if item is _ABANDON:
+                self._sync()
+                raise _Abandoned
             if item is _HOLD:
                 self._held.set()
                 self._resume.wait()
@@ -580,6 +613,21 @@ class SessionRecorder:
     def release(self) -> None:
         """Let a writer paused by :meth:`hold` continue."""
         self._resume.set()
+
+    def abandon(self) -> Path:
+        """Make every queued record durable and stop, keeping ``NAME.mcap.part``.
+
+        What a crash leaves, minus the loss: the writer closes its chunk and
+        fsyncs, but writes no summary and does not rename. For a writer process
+        whose relay vanished (it cannot know whether the session is over).
+        """
+        with self._lock:
+            self._closing = True
+        self.release()
+        self._put_blocking(_ABANDON)
+        self._thread.join()
+        self._closed = True
+        return self.part_path
 
     def _put_blocking(self, item: object) -> bool:
         while self._thread.is_alive():

@@ -20,6 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from http import HTTPStatus
 from pathlib import Path
+from typing import TYPE_CHECKING, Literal
 
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
@@ -51,6 +52,9 @@ from scenarios.network import EgressLink, Tier
 from server.auth import TokenError, verify_token
 from server.room import DEFAULT_EVENT_QUEUE, IdAllocator, Member, Outbox, Room, room_phase
 
+if TYPE_CHECKING:
+    from recorder import RoomRecorder
+
 __all__ = ["ConnectionStatistics", "RelayServer", "ServerConfig"]
 
 # Websocket framing of a server frame of 126-65535 bytes (no mask): what the
@@ -80,6 +84,10 @@ class ServerConfig:
     close_timeout: float = 2.0
     #: Record every room session into this folder (``posecast serve --record``).
     record_dir: Path | None = None
+    #: Where the recorder's MCAP writer runs: ``process`` (a child process fed the
+    #: raw update frames through a pipe; the relay's own cost per update is two
+    #: list appends) or ``thread`` (a thread of the server's process).
+    record_writer: Literal["process", "thread"] = "process"
     #: Emulate this network tier on every subscriber's downlink (``--link``).
     link: Tier | None = None
     #: Snapshots held in one subscriber's emulated link at most (older ones drop).
@@ -132,6 +140,8 @@ class _Connection:
         self.ws = ws
         cfg = server.config
         self.session = ServerSession(server.limits)
+        #: The frame being handled (a recorded update is the frame it arrived in).
+        self._frame = b""
         self.outbox = Outbox(cfg.max_event_queue, self._buffered, cfg.congested_bytes)
         self.user: int | None = None
         self.name = ""
@@ -200,6 +210,7 @@ class _Connection:
                     )
                 else:
                     self.bytes_in += len(data)
+                    self._frame = data  # an update is recorded as the frame it came in
                     now = self.server.clock()
                     for event in self.session.receive_data(data):
                         if (
@@ -438,9 +449,7 @@ class _Connection:
             stale = room.ingest(user, update)
             rec = room.recorder
             if rec is not None:
-                rec.record_update(
-                    user, update.seq, now, update.streams, update.capture_times, update.poses
-                )
+                rec.record_update_frame(user, now, self._frame, len(update.streams))
                 if stale:
                     room.note_drop("stale", user, stale)
 
@@ -533,12 +542,17 @@ class RelayServer:
         await asyncio.shield(pending)
 
     async def _open_room(self, name: str) -> None:
-        from recorder import SessionRecorder
+        from recorder import ProcessRecorder, SessionRecorder
 
+        directory = self.config.record_dir
+        assert directory is not None
+        opener: Callable[..., RoomRecorder] = (
+            SessionRecorder.open if self.config.record_writer == "thread" else ProcessRecorder.open
+        )
         try:
-            rec: SessionRecorder | None = await asyncio.to_thread(
-                SessionRecorder.open,
-                self.config.record_dir,  # type: ignore[arg-type]
+            rec: RoomRecorder | None = await asyncio.to_thread(
+                opener,
+                directory,
                 name,
                 clock=self.clock,
                 wall_clock=self.wall_clock,

@@ -22,7 +22,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from protocol import PoseUpdate, pack_snapshot, update_records
-from recorder import SessionRecorder
+from recorder import RoomRecorder
 
 __all__ = [
     "DEFAULT_EVENT_QUEUE",
@@ -202,7 +202,7 @@ class Room:
     #: Offset of this room's tick grid, as a fraction of an interval (see room_phase).
     phase: float = 0.0
     #: The session recorder tapping this room (``posecast serve --record``), if any.
-    recorder: SessionRecorder | None = None
+    recorder: RoomRecorder | None = None
     _drops: dict[tuple[str, int], int] = field(default_factory=dict)
     _skips_reported: dict[int, int] = field(default_factory=dict)
     _drops_flushed: float = 0.0

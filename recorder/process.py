@@ -1,0 +1,674 @@
+"""A session recorder whose MCAP writer runs in its own process.
+
+:class:`recorder.writer.SessionRecorder` encodes records on the relay's thread
+and writes them from a thread of the relay's process, so every record costs the
+relay some GIL time (encoding, MCAP framing, compression bookkeeping): 26-32 %
+of a CPU-bound relay's throughput in ``posecast bench relay --record``.
+:class:`ProcessRecorder` has the same relay-facing methods but keeps almost all
+of that work out of the relay's process:
+
+- the relay hands over each pose update as the very ``update`` frame it
+  received (:meth:`ProcessRecorder.record_update_frame`: two list appends, no
+  decoding, no copying), and the few JSON records (presence, events, drops)
+  already encoded;
+- at most every ``batch_delay`` s (the room tick calls :meth:`poll`) or every
+  ``batch_size`` records the batch is joined into one blob and offered to a
+  bounded queue; a feeder thread writes the blobs into a pipe;
+- a child process (``python -m recorder.process``) reads the pipe, decodes the
+  frames and records them with a :class:`SessionRecorder` of its own (same
+  file layout, chunking, fsync schedule, ``.part`` and rename).
+
+Nothing is silent: a full queue (the child or its disk cannot keep up, and the
+pipe is full) loses the batch, counts it and records the loss in the file as a
+``recorder-queue-overflow`` drops record, as the thread recorder does. If the
+relay dies, the child sees the pipe close without a stop message, makes what it
+received durable and leaves the ``.part`` for recovery.
+
+Pipe messages (little-endian): ``u8 kind, u32 length, payload``:
+``FRAME``: ``u16 user, u32 poses, f64 arrival`` + the update frame;
+``RECORD``: ``u8 channel index, i64 log ns, i64 publish ns, u32 poses`` + data;
+``STOP``: ``f64 end time``. The child's standard output carries JSON lines:
+``{"event": "ready", "part": ..., "path": ...}`` once the file is open and
+``{"event": "closed", "statistics": {...}}`` at the end.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import queue
+import select
+import signal
+import struct
+import subprocess
+import sys
+import threading
+import time as _time
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import IO, Any, Final
+
+import numpy as np
+from numpy.typing import NDArray
+
+from recorder.format import (
+    CHANNELS,
+    DROPS_TOPIC,
+    EVENTS_TOPIC,
+    POSES_TOPIC,
+    PRESENCE_TOPIC,
+    QUEUE_OVERFLOW_KIND,
+    encode_json,
+    to_ns,
+)
+from recorder.writer import (
+    DEFAULT_CHUNK_BYTES,
+    DEFAULT_FLUSH_INTERVAL,
+    DEFAULT_QUEUE_SIZE,
+    RecorderError,
+    RecorderStatistics,
+    SessionRecorder,
+)
+
+__all__ = ["ProcessRecorder", "RoomRecorder", "decode_update_frame"]
+
+log = logging.getLogger("posecast.recorder")
+
+_KIND_FRAME: Final = 1
+_KIND_RECORD: Final = 2
+_KIND_STOP: Final = 3
+_HEAD: Final = struct.Struct("<BI")
+_FRAME: Final = struct.Struct("<BIHId")  # head + user, poses, arrival
+_FRAME_EXTRA: Final = _FRAME.size - _HEAD.size
+_RECORD: Final = struct.Struct("<BIBqqI")  # head + channel, log ns, publish ns, poses
+_RECORD_EXTRA: Final = _RECORD.size - _HEAD.size
+_STOP: Final = struct.Struct("<BId")
+_TOPICS: Final = [spec.topic for spec in CHANNELS]
+_CHANNEL_INDEX: Final = {topic: i for i, topic in enumerate(_TOPICS)}
+#: Seconds to wait for the child to open the file, and to finish it on close.
+_START_TIMEOUT: Final = 60.0
+_CLOSE_TIMEOUT: Final = 120.0
+
+Clock = Callable[[], float]
+
+
+def decode_update_frame(
+    frame: bytes,
+) -> tuple[int, NDArray[np.uint16], NDArray[np.float64], NDArray[np.float32]]:
+    """``(seq, streams, capture_times, poses)`` of an ``update`` frame, else ``ValueError``."""
+    from protocol import PoseUpdate, decode_message
+    from protocol.errors import RemoteProtocolError
+
+    try:
+        msg = decode_message(frame)
+    except RemoteProtocolError as exc:
+        raise ValueError(f"not a valid frame: {exc}") from exc
+    if not isinstance(msg, PoseUpdate):
+        raise ValueError(f"expected an update frame, got {type(msg).__name__}")
+    return msg.seq, msg.streams, msg.capture_times, msg.poses
+
+
+class _Batch:
+    """Records waiting on the relay's thread; what a loss of the batch would lose."""
+
+    __slots__ = ("first", "last", "parts", "poses", "records", "since", "topics")
+
+    def __init__(self) -> None:
+        self.parts: list[bytes] = []
+        self.records = 0
+        self.poses = 0
+        self.first = 0.0
+        self.last = 0.0
+        self.since = 0.0
+        self.topics: dict[str, int] = {}
+
+
+@dataclass
+class _Loss:
+    records: int = 0
+    poses: int = 0
+    first: float = 0.0
+    last: float = 0.0
+
+    def add(self, batch: _Batch, topics: dict[str, int]) -> None:
+        if self.records == 0 or batch.first < self.first:
+            self.first = batch.first
+        self.last = max(self.last, batch.last)
+        self.records += batch.records
+        self.poses += batch.poses
+        for k, v in batch.topics.items():
+            topics[k] = topics.get(k, 0) + v
+
+
+class ProcessRecorder:
+    """Records one room's session from a child process; see the module docstring.
+
+    Make one with :meth:`open`; the relay-facing methods match
+    :class:`SessionRecorder` (``record_*`` return ``True`` if the record was
+    taken, ``False`` if it was lost or refused, always counted).
+    """
+
+    def __init__(
+        self,
+        proc: subprocess.Popen[bytes],
+        part_path: Path,
+        final_path: Path,
+        *,
+        clock: Clock,
+        queue_size: int,
+        batch_size: int,
+        batch_delay: float,
+    ) -> None:
+        self._proc = proc
+        self.part_path = part_path
+        self.path = final_path
+        self._clock = clock
+        self._batch_size = max(1, batch_size)
+        self._batch_delay = batch_delay
+        # Blobs of about ``batch_size`` records: the bound is ``queue_size`` records.
+        self._queue: queue.Queue[tuple[bytes, _Batch] | None] = queue.Queue(
+            maxsize=max(2, queue_size // self._batch_size)
+        )
+        self._lock = threading.Lock()
+        self._batch = _Batch()
+        self._loss = _Loss()
+        self._loss_topics: dict[str, int] = {}
+        self._closing = False
+        self._closed = False
+        self._error: str | None = None
+        self._final: dict[str, Any] | None = None
+        self._resume = threading.Event()
+        self._resume.set()
+        self._offered = 0
+        self._queue_drops = 0
+        self._queue_drop_poses = 0
+        self._loss_records = 0
+        self._rejected = 0
+        self._high_water = 0
+        self._sent_records = 0
+        self._feeder = threading.Thread(
+            target=self._feed, name=f"recorder-feed:{final_path.name}", daemon=True
+        )
+        self._feeder.start()
+
+    # -- opening ---------------------------------------------------------------------
+
+    @classmethod
+    def open(
+        cls,
+        directory: str | os.PathLike[str],
+        room: str,
+        *,
+        name: str | None = None,
+        users: Iterable[Mapping[str, Any]] = (),
+        clock: Clock = _time.monotonic,
+        wall_clock: Clock = _time.time,
+        queue_size: int = DEFAULT_QUEUE_SIZE,
+        flush_interval: float = DEFAULT_FLUSH_INTERVAL,
+        chunk_bytes: int = DEFAULT_CHUNK_BYTES,
+        metadata: Mapping[str, str] | None = None,
+        batch_size: int = 256,
+        batch_delay: float = 0.05,
+    ) -> ProcessRecorder:
+        """Start the writer process; return once it has created ``NAME.mcap.part``.
+
+        Blocks for the child's start-up (a fraction of a second; run it off the
+        event loop). Arguments as for :meth:`SessionRecorder.open`; the child's
+        own queue is ``queue_size`` records as well.
+        """
+        if queue_size < 1:
+            raise ValueError("queue_size must be at least 1")
+        if not flush_interval > 0:
+            raise ValueError("flush_interval must be positive")
+        config = {
+            "directory": str(Path(directory).resolve()),
+            "room": room,
+            "name": name,
+            "users": [dict(u) for u in users],
+            "start": clock(),
+            "start_wall": wall_clock(),
+            "queue_size": queue_size,
+            "flush_interval": flush_interval,
+            "chunk_bytes": chunk_bytes,
+            "metadata": dict(metadata or {}),
+        }
+        env = dict(os.environ)
+        # The child imports this package the way the parent did.
+        root = str(Path(__file__).resolve().parent.parent)
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "recorder.process", json.dumps(config)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            env=env,
+        )
+        assert proc.stdout is not None
+        try:
+            ready = _read_event(proc, proc.stdout, _START_TIMEOUT)
+            if ready is None or ready.get("event") != "ready":
+                raise RecorderError(
+                    f"the recorder process did not start (exit code {proc.poll()}): "
+                    f"{(ready or {}).get('error', 'see its log')}"
+                )
+        except BaseException:
+            with contextlib.suppress(Exception):
+                proc.kill()
+                proc.wait(5)
+            raise
+        return cls(
+            proc,
+            Path(ready["part"]),
+            Path(ready["path"]),
+            clock=clock,
+            queue_size=queue_size,
+            batch_size=batch_size,
+            batch_delay=batch_delay,
+        )
+
+    # -- the relay's side: never blocks ----------------------------------------------
+
+    def record_update_frame(self, user: int, arrival: float, frame: bytes, poses: int) -> bool:
+        """Take one pose update as the ``update`` frame it arrived in (``poses`` in it)."""
+        if self._closing or self._error is not None:
+            return self._refuse(1)
+        b = self._batch
+        if not b.records:
+            b.since = _time.monotonic()
+            b.first = arrival
+        b.parts.append(_FRAME.pack(_KIND_FRAME, _FRAME_EXTRA + len(frame), user, poses, arrival))
+        b.parts.append(frame)
+        b.records += 1
+        b.poses += poses
+        b.last = arrival
+        b.topics[POSES_TOPIC] = b.topics.get(POSES_TOPIC, 0) + 1
+        if b.records >= self._batch_size:
+            self._handoff()
+        return True
+
+    def record_update(
+        self,
+        user: int,
+        seq: int,
+        arrival: float,
+        streams: Any,
+        capture_times: Any,
+        poses: Any,
+    ) -> bool:
+        """Take one pose update as arrays (see :meth:`SessionRecorder.record_update`)."""
+        from recorder.format import encode_pose
+
+        try:
+            caps = np.asarray(capture_times, dtype="<f8")
+            data = encode_pose(user, seq, arrival, streams, caps, poses)
+        except (TypeError, ValueError) as exc:
+            return self._reject(POSES_TOPIC, exc)
+        newest = max(caps.tolist()) if len(caps) else arrival
+        return self._record(POSES_TOPIC, arrival, to_ns(newest), data, len(caps))
+
+    def record_event(self, event: Mapping[str, Any], time: float | None = None) -> bool:
+        """Take an event (grab, release, button, ...) for the ``events`` channel."""
+        return self._json(EVENTS_TOPIC, event, time)
+
+    def record_presence(self, presence: Mapping[str, Any], time: float | None = None) -> bool:
+        """Take a join / leave / rate record (see :meth:`SessionRecorder.record_presence`)."""
+        return self._json(PRESENCE_TOPIC, presence, time)
+
+    def record_drop(self, drop: Mapping[str, Any], time: float | None = None) -> bool:
+        """Take a server-side drop or skip record."""
+        return self._json(DROPS_TOPIC, drop, time)
+
+    def _json(self, topic: str, record: Mapping[str, Any], time: float | None) -> bool:
+        try:
+            if time is None:
+                t = record.get("time")
+                time = float(t) if isinstance(t, int | float) else self._clock()
+            data = encode_json(record)
+        except (TypeError, ValueError) as exc:
+            return self._reject(topic, exc)
+        return self._record(topic, time, to_ns(time), data, 0)
+
+    def _record(self, topic: str, time: float, publish_ns: int, data: bytes, poses: int) -> bool:
+        if self._closing or self._error is not None:
+            return self._refuse(1)
+        b = self._batch
+        if not b.records:
+            b.since = _time.monotonic()
+            b.first = time
+        b.parts.append(
+            _RECORD.pack(
+                _KIND_RECORD,
+                _RECORD_EXTRA + len(data),
+                _CHANNEL_INDEX[topic],
+                to_ns(time),
+                publish_ns,
+                poses,
+            )
+        )
+        b.parts.append(data)
+        b.records += 1
+        b.poses += poses
+        b.first = min(b.first, time)
+        b.last = max(b.last, time)
+        b.topics[topic] = b.topics.get(topic, 0) + 1
+        if b.records >= self._batch_size:
+            self._handoff()
+        return True
+
+    def _reject(self, topic: str, exc: Exception) -> bool:
+        log.warning("recorder: %s record not recorded: %s", topic, exc)
+        return self._refuse(1)
+
+    def _refuse(self, n: int) -> bool:
+        with self._lock:
+            self._rejected += n
+        return False
+
+    def poll(self) -> None:
+        """Hand the waiting batch over once it is ``batch_delay`` old (call every tick)."""
+        b = self._batch
+        if b.records and _time.monotonic() - b.since >= self._batch_delay:
+            self._handoff()
+        if self._error is None and self._proc.poll() is not None and not self._closing:
+            self._fail(f"the recorder process exited with code {self._proc.returncode}")
+
+    def _handoff(self) -> None:
+        batch, self._batch = self._batch, _Batch()
+        if batch.records:
+            self._enqueue(batch)
+
+    def _enqueue(self, batch: _Batch) -> bool:
+        blob = b"".join(batch.parts)
+        batch.parts = []
+        with self._lock:
+            q = self._queue
+            try:
+                if self._loss.records:
+                    q.put_nowait((self._loss_blob(), _Batch()))
+                    self._loss_records += 1
+                    self._loss = _Loss()
+                    self._loss_topics = {}
+                q.put_nowait((blob, batch))
+            except queue.Full:
+                self._loss.add(batch, self._loss_topics)
+                self._queue_drops += batch.records
+                self._queue_drop_poses += batch.poses
+                return False
+            self._offered += batch.records
+            self._high_water = max(self._high_water, q.qsize())
+            return True
+
+    def _loss_blob(self) -> bytes:
+        loss = self._loss
+        record = {
+            "kind": QUEUE_OVERFLOW_KIND,
+            "count": loss.records,
+            "poses": loss.poses,
+            "topics": dict(self._loss_topics),
+            "first_time": loss.first,
+            "last_time": loss.last,
+            "time": loss.last,
+        }
+        data = encode_json(record)
+        ns = to_ns(loss.last)
+        head = _RECORD.pack(
+            _KIND_RECORD, _RECORD_EXTRA + len(data), _CHANNEL_INDEX[DROPS_TOPIC], ns, ns, 0
+        )
+        return head + data
+
+    # -- the feeder thread -------------------------------------------------------------
+
+    def _feed(self) -> None:
+        stdin = self._proc.stdin
+        assert stdin is not None
+        fd = stdin.fileno()
+        try:
+            while True:
+                item = self._queue.get()
+                self._resume.wait()
+                if item is None:
+                    return
+                blob, batch = item
+                view = memoryview(blob)
+                while view:
+                    view = view[os.write(fd, view) :]
+                with self._lock:
+                    self._sent_records += batch.records
+        except OSError as exc:  # the child died: its .part stays for recovery
+            self._fail(f"the recorder process stopped taking records ({exc})")
+
+    def _fail(self, message: str) -> None:
+        with self._lock:
+            if self._error is None:
+                self._error = message
+                log.error("recorder for %s failed: %s; the .part file is kept", self.path, message)
+
+    # -- control -----------------------------------------------------------------------
+
+    def hold(self, timeout: float = 10.0) -> None:
+        """Stop feeding the child (tests: a stalled writer); the queue then fills."""
+        del timeout
+        self._resume.clear()
+
+    def release(self) -> None:
+        """Resume feeding after :meth:`hold`."""
+        self._resume.set()
+
+    def close(self, time: float | None = None) -> Path:
+        """Send what is waiting and a stop; wait for the child to finish and rename.
+
+        Blocks (use :meth:`aclose` from the event loop). Raises
+        :class:`RecorderError` if the child failed, keeping the ``.part``.
+        """
+        if not self._closing:
+            end = self._clock() if time is None else time
+            self._handoff()
+            with self._lock:
+                self._closing = True
+                tail = [self._loss_blob()] if self._loss.records else []
+                if tail:
+                    self._loss_records += 1
+                    self._loss = _Loss()
+                tail.append(_STOP.pack(_KIND_STOP, 8, end))
+            self.release()
+            self._put_blocking((b"".join(tail), _Batch()))
+            self._put_blocking(None)
+        self._feeder.join()
+        proc = self._proc
+        assert proc.stdin is not None and proc.stdout is not None
+        with contextlib.suppress(OSError):
+            proc.stdin.close()
+        closed = _read_event(proc, proc.stdout, _CLOSE_TIMEOUT)
+        try:
+            code = proc.wait(_CLOSE_TIMEOUT)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            code = proc.wait()
+        with contextlib.suppress(OSError):
+            proc.stdout.close()
+        self._closed = True
+        if closed is not None and closed.get("event") == "closed":
+            self._final = closed.get("statistics")
+        if code != 0 or self._final is None or (self._final or {}).get("error"):
+            detail = (closed or {}).get("error") or (self._final or {}).get("error") or self._error
+            self._fail(f"exit code {code}: {detail}")
+            raise RecorderError(
+                f"recording failed ({self._error}); partial file kept at {self.part_path}"
+            )
+        return self.path
+
+    def _put_blocking(self, item: tuple[bytes, _Batch] | None) -> None:
+        while self._feeder.is_alive():
+            try:
+                self._queue.put(item, timeout=0.05)
+                return
+            except queue.Full:
+                continue
+
+    async def aclose(self, time: float | None = None) -> Path:
+        """:meth:`close` in a worker thread, for the event loop."""
+        import asyncio
+
+        return await asyncio.to_thread(self.close, time)
+
+    def __enter__(self) -> ProcessRecorder:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def failed(self) -> bool:
+        """True once the child process or the pipe to it failed."""
+        return self._error is not None
+
+    def statistics(self) -> RecorderStatistics:
+        """A snapshot of the counters; the child's own are filled in once it closed."""
+        final = self._final or {}
+        path = self.path if self._closed and self.path.exists() else self.part_path
+        try:
+            size = path.stat().st_size
+        except OSError:
+            size = 0
+        with self._lock:
+            return RecorderStatistics(
+                records_offered=self._offered,
+                records_written=int(final.get("records_written", 0)),
+                poses_written=int(final.get("poses_written", 0)),
+                queue_drops=self._queue_drops + int(final.get("queue_drops", 0)),
+                queue_drop_poses=self._queue_drop_poses + int(final.get("queue_drop_poses", 0)),
+                loss_records=self._loss_records + int(final.get("loss_records", 0)),
+                rejected=self._rejected + int(final.get("rejected", 0)),
+                bytes_written=size,
+                chunks=int(final.get("chunks", 0)),
+                fsyncs=int(final.get("fsyncs", 0)),
+                queue_depth=self._queue.qsize(),
+                queue_high_water=self._high_water,
+                error=self._error,
+                closed=self._closed,
+            )
+
+
+#: What a server room records through: either recorder has the relay-facing methods.
+RoomRecorder = SessionRecorder | ProcessRecorder
+
+
+def _read_event(
+    proc: subprocess.Popen[bytes], stream: IO[bytes], timeout: float
+) -> dict[str, Any] | None:
+    """The child's next JSON line, or ``None`` if it closed its output or timed out."""
+    deadline = _time.monotonic() + timeout
+    fd = stream.fileno()
+    buf = b""
+    while True:
+        left = deadline - _time.monotonic()
+        if left <= 0:
+            return None
+        ready, _, _ = select.select([fd], [], [], min(left, 0.5))
+        if not ready:
+            if proc.poll() is not None:
+                return None
+            continue
+        chunk = os.read(fd, 65536)
+        if not chunk:
+            return None
+        buf += chunk
+        if b"\n" in buf:
+            line = buf.split(b"\n", 1)[0]
+            try:
+                event: dict[str, Any] = json.loads(line)
+            except ValueError:
+                return None
+            return event
+
+
+# -- the child process -------------------------------------------------------------------
+
+
+def _emit(event: Mapping[str, Any]) -> None:
+    sys.stdout.write(json.dumps(event) + "\n")
+    sys.stdout.flush()
+
+
+def _read_exact(stream: IO[bytes], n: int) -> bytes | None:
+    data = stream.read(n)
+    if len(data) < n:
+        return None
+    return data
+
+
+def _child(config: Mapping[str, Any]) -> int:
+    """Read the pipe until a stop (finish the file) or its end (keep the ``.part``)."""
+    # Ctrl-C in a terminal signals the whole process group: the relay decides
+    # when the session ends, by a stop message or by closing the pipe.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    start, start_wall = float(config["start"]), float(config["start_wall"])
+    try:
+        rec = SessionRecorder.open(
+            config["directory"],
+            config["room"],
+            name=config.get("name"),
+            users=config.get("users", ()),
+            clock=lambda: start,
+            wall_clock=lambda: start_wall,
+            queue_size=int(config["queue_size"]),
+            flush_interval=float(config["flush_interval"]),
+            chunk_bytes=int(config["chunk_bytes"]),
+            metadata={**config.get("metadata", {}), "writer": "process"},
+        )
+    except Exception as exc:
+        _emit({"event": "error", "error": repr(exc)})
+        return 1
+    _emit({"event": "ready", "part": str(rec.part_path), "path": str(rec.path)})
+    stream = sys.stdin.buffer
+    head_size = _HEAD.size
+    end: float | None = None
+    while True:
+        head = _read_exact(stream, head_size)
+        if head is None:
+            break
+        kind, length = _HEAD.unpack(head)
+        payload = _read_exact(stream, length)
+        if payload is None:
+            break
+        if kind == _KIND_FRAME:
+            user, poses, arrival = struct.unpack_from("<HId", payload)
+            rec.record_update_frame(user, arrival, payload[_FRAME_EXTRA:], poses)
+        elif kind == _KIND_RECORD:
+            channel, log_ns, pub_ns, poses = struct.unpack_from("<BqqI", payload)
+            rec.offer_encoded(_TOPICS[channel], log_ns, pub_ns, payload[_RECORD_EXTRA:], poses)
+        elif kind == _KIND_STOP:
+            (end,) = struct.unpack("<d", payload)
+            break
+        else:
+            _emit({"event": "error", "error": f"unknown pipe message kind {kind}"})
+            rec.abandon()
+            return 1
+    if end is None:
+        # The relay vanished (crash, SIGKILL): make what arrived durable, keep the .part.
+        rec.abandon()
+        log.warning("recorder: the relay went away; %s kept for recovery", rec.part_path)
+        return 2
+    try:
+        rec.close(end)
+    except RecorderError as exc:
+        _emit({"event": "closed", "statistics": asdict(rec.statistics()), "error": str(exc)})
+        return 1
+    _emit({"event": "closed", "statistics": asdict(rec.statistics())})
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = sys.argv[1:] if argv is None else argv
+    if len(args) != 1:
+        sys.stderr.write("usage: python -m recorder.process CONFIG_JSON (started by the server)\n")
+        return 2
+    logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
+    return _child(json.loads(args[0]))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
