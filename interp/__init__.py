@@ -32,7 +32,14 @@ from interp.registry import (
     names,
     register,
 )
-from interp.track import Brackets, TrackResult, bracket, evaluate_track, interpolate_brackets
+from interp.track import (
+    Brackets,
+    TrackResult,
+    bracket,
+    evaluate_track,
+    interpolate_brackets,
+    window_indices,
+)
 
 __all__ = [
     "ENTRY_POINT_GROUP",
@@ -71,4 +78,5 @@ __all__ = [
     "screw_extrapolate",
     "soa",
     "tip_error_mm",
+    "window_indices",
 ]

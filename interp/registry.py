@@ -3,7 +3,38 @@
 Built-in methods register here at import; third-party packages add theirs
 through the entry-point group ``posecast.interpolators`` (the entry point's
 object is the callable; its name is the entry point's name). Entry points are
-loaded lazily, the first time a name is looked up or listed.
+loaded lazily, the first time a name is looked up or listed. A plug-in declares
+how it is called with attributes on its callable: ``posecast_kind`` (``"pair"``,
+the default, ``"window"`` or ``"velocity"``) and, for window methods,
+``posecast_lookbehind`` / ``posecast_lookahead`` (ints, default 1 each), e.g.::
+
+    def my_spline(keys, times, t): ...     # keys (..., 6, 7), times (..., 6)
+    my_spline.posecast_kind = "window"
+    my_spline.posecast_lookbehind = 2
+    my_spline.posecast_lookahead = 2
+
+    # pyproject.toml
+    [project.entry-points."posecast.interpolators"]
+    my-spline = "my_package.module:my_spline"
+
+Window methods
+--------------
+A window method is called as ``f(keys (..., K, 7), times (..., K), t (...))``
+with ``K = lookbehind + 2 + lookahead``: ``keys[..., :lookbehind]`` are the
+keyframes before the bracket (oldest first), ``keys[..., lookbehind]`` and
+``keys[..., lookbehind + 1]`` the bracket ``lo``/``hi`` (``T[lb] <= t <=
+T[lb + 1]``), the rest the keyframes after it (nearest first). The receiver
+needs ``lookahead`` keyframes past the bracket, so it plays out ``lookahead``
+intervals later (:func:`scenarios.qoe.ideal_delay`).
+
+**Missing neighbours.** A neighbour that does not exist (the ends of a track),
+has not arrived by the query's deadline (QoE and live paths: not-yet-arrived
+keyframes are skipped, as the receiver cannot see them) or lies past a held
+bracket is given as a *copy of its inward neighbour with the same time*. So
+window times never decrease, and ``T[j] == T[j + 1]`` (before the bracket) or
+``T[j] == T[j - 1]`` (after it) means "nothing from here outwards". A held
+query has ``lo == hi`` (``T[lb] == T[lb + 1]``) and must return ``keys[...,
+lb, :]``. Window functions fall back to what the available keyframes allow.
 """
 
 from __future__ import annotations
@@ -21,6 +52,7 @@ from interp.pose import F64
 
 __all__ = [
     "ENTRY_POINT_GROUP",
+    "MAX_NEIGHBOURS",
     "Interpolator",
     "InterpolatorInfo",
     "Kind",
@@ -31,14 +63,17 @@ __all__ = [
 ]
 
 ENTRY_POINT_GROUP = "posecast.interpolators"
+#: Most neighbours a window method may ask for on either side.
+MAX_NEIGHBOURS = 16
 
 Interpolator = Callable[[ArrayLike, ArrayLike, ArrayLike], F64]
 """A pair interpolator ``f(a, b, s)``."""
 
 #: How an interpolator is called:
 #: ``pair``: ``f(a, b, s)`` on the two bracketing keyframes;
-#: ``window``: ``f(keys (..., 4, 7), times (..., 4), t)`` on the bracket and one
-#: neighbour each side (a missing neighbour repeats its bracket keyframe);
+#: ``window``: ``f(keys (..., K, 7), times (..., K), t)`` on the bracket and
+#: ``lookbehind`` / ``lookahead`` neighbours before / after it (see the module
+#: docstring for the order and for missing neighbours);
 #: ``velocity``: ``f(a, b, va, vb, dt, s)`` with (..., 6) keyframe velocities.
 Kind = Literal["pair", "window", "velocity"]
 
@@ -59,6 +94,13 @@ class InterpolatorInfo:
     lookahead: int = 0
     #: Whether keyframes must carry velocities (6 more floats each).
     needs_velocity: bool = False
+    #: Keyframes used before the bracket (window methods; no delay cost).
+    lookbehind: int = 0
+
+    @property
+    def window_size(self) -> int:
+        """Keyframes per query: ``lookbehind + 2 + lookahead`` (2 for pair/velocity)."""
+        return self.lookbehind + 2 + self.lookahead
 
 
 _REGISTRY: dict[str, InterpolatorInfo] = {}
@@ -73,22 +115,40 @@ def register(
     frame_invariant: bool = False,
     kind: Kind = "pair",
     replace: bool = False,
+    lookbehind: int | None = None,
+    lookahead: int | None = None,
 ) -> None:
-    """Register ``func`` under ``name``; refuse to shadow a name unless ``replace``."""
+    """Register ``func`` under ``name``; refuse to shadow a name unless ``replace``.
+
+    ``lookbehind`` / ``lookahead``: neighbours a window method sees before / after
+    the bracket (default 1 each for window methods; pair and velocity methods
+    take none).
+    """
     if not name or not name.replace("-", "").replace("_", "").isalnum():
         raise ValueError(f"invalid interpolator name {name!r}")
     if name in _REGISTRY and not replace:
         raise ValueError(f"interpolator {name!r} is already registered")
     if kind not in ("pair", "window", "velocity"):
         raise ValueError(f"invalid interpolator kind {kind!r}")
+    default = 1 if kind == "window" else 0
+    lb = default if lookbehind is None else lookbehind
+    la = default if lookahead is None else lookahead
+    for label, v in (("lookbehind", lb), ("lookahead", la)):
+        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+            raise ValueError(f"{label} must be a non-negative int, got {v!r}")
+        if v > MAX_NEIGHBOURS:
+            raise ValueError(f"{label} must be at most {MAX_NEIGHBOURS}, got {v}")
+    if kind != "window" and (lb or la):
+        raise ValueError(f"only window interpolators take neighbours, not {kind!r} ones")
     _REGISTRY[name] = InterpolatorInfo(
         name,
         func,
         description,
         frame_invariant,
         kind,
-        lookahead=1 if kind == "window" else 0,
+        lookahead=la,
         needs_velocity=kind == "velocity",
+        lookbehind=lb,
     )
 
 
@@ -104,7 +164,14 @@ def _load_entry_points() -> None:
         if not callable(func):
             raise TypeError(f"entry point {ep.name!r} ({ep.value}) is not callable")
         kind: Kind = getattr(func, "posecast_kind", "pair")
-        register(ep.name, func, description=f"plug-in from {ep.value}", kind=kind)
+        register(
+            ep.name,
+            func,
+            description=f"plug-in from {ep.value}",
+            kind=kind,
+            lookbehind=getattr(func, "posecast_lookbehind", None),
+            lookahead=getattr(func, "posecast_lookahead", None),
+        )
 
 
 def names() -> list[str]:

@@ -3,7 +3,10 @@
 The receiver's render step and every offline QoE computation go through
 :func:`evaluate_track`: keyframes at times ``(K,)`` for ``S`` streams
 ``(K, S, 7)``, queries ``(Q,)``; one ``searchsorted`` finds the brackets and one
-batched interpolator call renders every stream at every query.
+batched interpolator call renders every stream at every query. Window methods
+get ``lookbehind + 2 + lookahead`` keyframes per query, whatever their
+window size (:func:`window_indices`; missing neighbours as in
+:mod:`interp.registry`).
 """
 
 from __future__ import annotations
@@ -17,7 +20,14 @@ from numpy.typing import ArrayLike, NDArray
 from interp.pose import F64, as_pose
 from interp.registry import Interpolator, info
 
-__all__ = ["Brackets", "TrackResult", "bracket", "evaluate_track", "interpolate_brackets"]
+__all__ = [
+    "Brackets",
+    "TrackResult",
+    "bracket",
+    "evaluate_track",
+    "interpolate_brackets",
+    "window_indices",
+]
 
 
 @dataclass(frozen=True, slots=True)
@@ -102,6 +112,56 @@ def evaluate_track(
     )
 
 
+def window_indices(
+    lo: ArrayLike, hi: ArrayLike, n_keys: int, lookbehind: int, lookahead: int
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Neighbours of each bracket in a track of ``n_keys`` keyframes (every one present).
+
+    Returns ``before`` (``lo.shape + (lookbehind,)``, oldest first) and ``after``
+    (``hi.shape + (lookahead,)``, nearest first): ``lo - j`` and ``hi + j``; past
+    either end of the track, and after a held bracket (``lo == hi``), an entry
+    repeats its inward neighbour (the rule of :mod:`interp.registry`).
+    """
+    lo_a = np.asarray(lo, dtype=np.intp)
+    hi_a = np.asarray(hi, dtype=np.intp)
+    steps_b = np.arange(lookbehind, 0, -1, dtype=np.intp)
+    steps_a = np.arange(1, lookahead + 1, dtype=np.intp)
+    before = np.maximum(lo_a[..., None] - steps_b, 0)
+    after = np.minimum(hi_a[..., None] + steps_a, n_keys - 1)
+    after = np.where((hi_a > lo_a)[..., None], after, hi_a[..., None])
+    return before.astype(np.intp), after.astype(np.intp)
+
+
+def _neighbours(
+    given: ArrayLike | None,
+    single: ArrayLike | None,
+    need: int,
+    default: NDArray[np.intp],
+    side: str,
+    method: object,
+) -> NDArray[np.intp]:
+    """The ``need`` neighbours on one side: ``before``/``after``, ``prev``/``nxt`` or defaults."""
+    if given is not None:
+        g = np.asarray(given, dtype=np.intp)
+        if g.ndim != default.ndim or g.shape[:-1] != default.shape[:-1] or g.shape[-1] < need:
+            raise ValueError(
+                f"interpolator {method!r} needs {need} keyframe(s) {side} the bracket: expected "
+                f"`{side}` of shape {(*default.shape[:-1], need)} or wider, got {g.shape}"
+            )
+        # The nearest ``need``: before is oldest first, after nearest first.
+        return g[..., g.shape[-1] - need :] if side == "before" else g[..., :need]
+    if single is not None:
+        if need > 1:
+            name = "prev" if side == "before" else "nxt"
+            raise ValueError(
+                f"interpolator {method!r} needs {need} keyframes {side} the bracket; "
+                f"`{name}` gives one: pass `{side}` instead"
+            )
+        one = np.asarray(single, dtype=np.intp)
+        return one[..., None][..., :need]
+    return default
+
+
 def interpolate_brackets(
     poses: ArrayLike,
     lo: ArrayLike,
@@ -113,15 +173,21 @@ def interpolate_brackets(
     prev: ArrayLike | None = None,
     nxt: ArrayLike | None = None,
     velocities: ArrayLike | None = None,
+    before: ArrayLike | None = None,
+    after: ArrayLike | None = None,
 ) -> F64:
     """Render keyframes ``poses (K, S, 7)`` at given brackets in one batched call.
 
-    ``lo``, ``hi``, ``s`` (and ``prev``, ``nxt``) have shape ``(Q,)`` (shared by
-    all streams) or ``(Q, S)`` (one bracket per stream); returns ``(Q, S, 7)``.
-    Window methods also need ``times`` (``(K,)`` or ``(K, S)``) and use the
-    neighbours ``prev``/``nxt`` (default ``lo - 1``/``hi + 1``; pass ``lo``/``hi``
-    where a neighbour is not available); velocity methods need ``velocities``
-    ``(K, S, 6)`` and ``times``.
+    ``lo``, ``hi``, ``s`` have shape ``(Q,)`` (shared by all streams) or ``(Q, S)``
+    (one bracket per stream); returns ``(Q, S, 7)``. Window methods also need
+    ``times`` (``(K,)`` or ``(K, S)``) and their neighbours: ``before``
+    (``lo.shape + (B,)``, oldest first) and ``after`` (``hi.shape + (A,)``,
+    nearest first), of which the method uses the nearest ``lookbehind`` /
+    ``lookahead`` (``B``, ``A`` may be larger); ``prev``/``nxt`` (shape of ``lo``)
+    are the one-neighbour shorthand. Missing neighbours repeat their inward
+    neighbour (see :mod:`interp.registry`); without any of these the neighbours
+    are the adjacent keyframes (:func:`window_indices`). Velocity methods need
+    ``velocities (K, S, 6)`` and ``times``.
     """
     p = np.asarray(poses, dtype=np.float64)
     if p.ndim != 3 or p.shape[-1] != 7:
@@ -132,8 +198,9 @@ def interpolate_brackets(
     if isinstance(method, str):
         entry = info(method)
         f, kind = entry.func, entry.kind
+        lb, la = entry.lookbehind, entry.lookahead
     else:
-        f, kind = method, "pair"
+        f, kind, lb, la = method, "pair", 0, 0
     per_stream = lo_a.ndim == 2
     cols = np.arange(p.shape[1])
 
@@ -149,14 +216,23 @@ def interpolate_brackets(
         raise ValueError(f"interpolator {method!r} needs keyframe `times`")
     t = np.asarray(times, dtype=np.float64)
     t2 = np.broadcast_to(t[:, None], p.shape[:2]) if t.ndim == 1 else t
-    t_lo, t_hi = take(t2, lo_a), take(t2, hi_a)
     if kind == "window":
         k = p.shape[0]
-        pv = np.clip(lo_a - 1, 0, k - 1) if prev is None else np.asarray(prev, dtype=np.intp)
-        nx = np.clip(hi_a + 1, 0, k - 1) if nxt is None else np.asarray(nxt, dtype=np.intp)
-        keys = np.stack([take(p, pv), take(p, lo_a), take(p, hi_a), take(p, nx)], axis=-2)
-        ktimes = np.stack([take(t2, pv), t_lo, t_hi, take(t2, nx)], axis=-1)
+        d_before, d_after = window_indices(lo_a, hi_a, k, lb, la)
+        bw = _neighbours(before, prev, lb, d_before, "before", method)
+        aw = _neighbours(after, nxt, la, d_after, "after", method)
+        win = np.concatenate([bw, lo_a[..., None], hi_a[..., None], aw], axis=-1)
+        if win.size and (int(win.min()) < 0 or int(win.max()) >= k):
+            raise ValueError(f"expected window keyframe indices in [0, {k}), got {win.min()}..")
+        if per_stream:
+            keys = p[win, cols[:, None]]  # (Q, S, K', 7)
+            ktimes = t2[win, cols[:, None]]
+        else:
+            keys = np.moveaxis(p[win], 2, 1)  # (Q, K', S, 7) -> (Q, S, K', 7)
+            ktimes = np.moveaxis(t2[win], 2, 1)
+        t_lo, t_hi = ktimes[..., lb], ktimes[..., lb + 1]
         return f(keys, ktimes, t_lo + s_a * (t_hi - t_lo))
+    t_lo, t_hi = take(t2, lo_a), take(t2, hi_a)
     if velocities is None:
         raise ValueError(f"interpolator {method!r} needs keyframe `velocities`")
     v = np.asarray(velocities, dtype=np.float64)

@@ -55,6 +55,7 @@ __all__ = [
     "render_playout",
     "sample_keyframes",
     "summarize",
+    "window_depth",
 ]
 
 #: How far (in keyframes) the bracket search looks past keyframes that have
@@ -127,7 +128,11 @@ class Playout:
     ``missing`` marks queries for which no keyframe had arrived at all (nothing
     to show; they count as stalls and are left out of the error statistics).
     ``prev``/``nxt`` are the arrived neighbours of the bracket (``lo``/``hi``
-    themselves when none had arrived), for window interpolators.
+    themselves when none had arrived), for window interpolators; ``before``
+    ``(Q, B)`` (oldest first, ``before[:, -1] == prev``) and ``after`` ``(Q, A)``
+    (nearest first, ``after[:, 0] == nxt``) hold as many arrived neighbours as
+    :func:`playout_brackets` was asked for, each missing one repeating its
+    inward neighbour (the rule of :mod:`interp.registry`).
     """
 
     lo: NDArray[np.intp]
@@ -137,6 +142,17 @@ class Playout:
     missing: NDArray[np.bool_]
     prev: NDArray[np.intp] | None = None
     nxt: NDArray[np.intp] | None = None
+    before: NDArray[np.intp] | None = None
+    after: NDArray[np.intp] | None = None
+
+
+def window_depth(methods: Iterable[str]) -> tuple[int, int]:
+    """Neighbours (before, after) a playout must gather for all of ``methods`` (at least 1, 1)."""
+    lb, la = 1, 1
+    for m in methods:
+        entry = interp_info(m)
+        lb, la = max(lb, entry.lookbehind), max(la, entry.lookahead)
+    return lb, la
 
 
 def sample_keyframes(
@@ -167,23 +183,41 @@ def ideal_delay(rate: float, native_rate: float, lookahead: int = 0) -> float:
     One send interval plus one native frame: a keyframe is captured up to one
     native frame before its send time, so this is the smallest delay at which an
     ideal link never stalls. A method that needs ``lookahead`` keyframes past
-    the bracket waits that many intervals more.
+    the bracket (``interp.info(m).lookahead``) waits that many intervals more,
+    so that all of them have arrived for every query inside the track.
     """
     return (1.0 + lookahead) / rate + 1.0 / native_rate
 
 
-def playout_brackets(capture: F64, arrival: F64, query: F64, delay: float | F64) -> Playout:
+def playout_brackets(
+    capture: F64,
+    arrival: F64,
+    query: F64,
+    delay: float | F64,
+    *,
+    lookbehind: int = 1,
+    lookahead: int = 1,
+) -> Playout:
     """Bracketing keyframes for each ``tau`` among those arrived by ``tau + delay``.
 
-    ``delay`` is one D for all queries or one per query.
+    ``delay`` is one D for all queries or one per query. ``lookbehind`` /
+    ``lookahead`` (at least 1 each): how many arrived neighbours of the bracket
+    to gather for window interpolators (``Playout.before`` / ``after``;
+    :func:`window_depth` gives what a set of methods needs). Not-yet-arrived
+    keyframes are skipped; past the newest arrived one (or after a stall's held
+    keyframe) a neighbour repeats its inward neighbour.
     """
+    if lookbehind < 1 or lookahead < 1:
+        raise ValueError(f"expected lookbehind, lookahead >= 1, got {lookbehind}, {lookahead}")
     k = capture.shape[0]
     q = np.asarray(query, dtype=np.float64)
     deadline = q + delay
     if k == 0:
         z = np.zeros(q.shape, dtype=np.intp)
         ones = np.ones(q.shape, dtype=bool)
-        return Playout(z, z, np.zeros(q.shape), ones, ones)
+        zb = np.zeros((*q.shape, lookbehind), dtype=np.intp)
+        za = np.zeros((*q.shape, lookahead), dtype=np.intp)
+        return Playout(z, z, np.zeros(q.shape), ones, ones, z, z, zb, za)
     n = np.searchsorted(capture, q, side="right")  # first keyframe after tau
 
     def arrived(i: NDArray[np.intp]) -> NDArray[np.bool_]:
@@ -224,11 +258,19 @@ def playout_brackets(capture: F64, arrival: F64, query: F64, delay: float | F64)
     hi_out = np.where(bracketed, np.clip(hi, 0, k - 1), hold)
     span = capture[hi_out] - capture[lo_out]
     s = np.where(span > 0, (q - capture[lo_out]) / np.where(span > 0, span, 1.0), 0.0)
-    # Arrived neighbours of the bracket, for window interpolators.
-    prev, ok = walk(lo_out - 1, -1)
-    prev = np.where(ok, prev, lo_out)
-    nxt, ok = walk(hi_out + 1, +1)
-    nxt = np.where(ok & bracketed, nxt, hi_out)
+    # Arrived neighbours of the bracket, for window interpolators: each one the
+    # next arrived keyframe outwards, or a repeat of its inward neighbour.
+    cols_b = [lo_out]
+    for _ in range(lookbehind):
+        cand, ok = walk(cols_b[-1] - 1, -1)
+        cols_b.append(np.where(ok, cand, cols_b[-1]))
+    cols_a = [hi_out]
+    for _ in range(lookahead):
+        cand, ok = walk(cols_a[-1] + 1, +1)
+        cols_a.append(np.where(ok & bracketed, cand, cols_a[-1]))
+    prev, nxt = cols_b[1], cols_a[1]
+    before = np.stack(cols_b[:0:-1], axis=-1).astype(np.intp)
+    after = np.stack(cols_a[1:], axis=-1).astype(np.intp)
     return Playout(
         lo=lo_out.astype(np.intp),
         hi=hi_out.astype(np.intp),
@@ -237,6 +279,8 @@ def playout_brackets(capture: F64, arrival: F64, query: F64, delay: float | F64)
         missing=newest < 0,
         prev=prev.astype(np.intp),
         nxt=nxt.astype(np.intp),
+        before=before,
+        after=after,
     )
 
 
@@ -444,9 +488,8 @@ def render_playout(
         play.s[shown],
         method,
         times=log.capture,
-        prev=play.prev[shown],
-        nxt=play.nxt[shown],
         velocities=log.velocities,
+        **_window_args(play, shown),
     )
     if extrapolate_horizon is None:
         return Rendered(poses, shown, none, none, none, np.empty(0, np.intp), empty, empty)
@@ -459,6 +502,14 @@ def render_playout(
         correction_time=correction_time,
         velocity=velocity,
     )
+
+
+def _window_args(play: Playout, rows: NDArray[np.bool_]) -> dict[str, NDArray[np.intp] | None]:
+    """The neighbours of ``play`` at ``rows`` for :func:`interp.interpolate_brackets`."""
+    if play.before is not None and play.after is not None:
+        return {"before": play.before[rows], "after": play.after[rows]}
+    assert play.prev is not None and play.nxt is not None
+    return {"prev": play.prev[rows], "nxt": play.nxt[rows]}
 
 
 @dataclass(frozen=True)
@@ -640,7 +691,8 @@ def evaluate_group(
     taus = truth.times[m]
     true_poses = truth.poses[m]
     d = delay(taus) if callable(delay) else delay
-    play = playout_brackets(log.capture, log.arrival, taus, d)
+    lb, la = window_depth(methods)
+    play = playout_brackets(log.capture, log.arrival, taus, d, lookbehind=lb, lookahead=la)
     shown = ~play.missing
     out: dict[str, dict[str, ErrorSamples]] = {}
     n_streams = truth.poses.shape[1]

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from interp import info as interp_info
 from interp import interpolate_brackets
 
 __all__ = [
@@ -178,30 +179,44 @@ def render_buffers(
 ) -> RenderFrame:
     """All non-empty buffers at playout time ``t``: one batched call per method.
 
-    Pair methods see the bracket; window methods also the keyframes either side
-    of it (the bracket keyframe itself where the buffer has none).
+    Pair methods see the bracket; window methods also their ``lookbehind`` /
+    ``lookahead`` keyframes either side of it (``interp.info(m)``), gathered once
+    for the widest window among ``methods``. A neighbour the buffer does not
+    have, and every neighbour after a held (stalled) bracket, repeats its inward
+    neighbour (the rule of :mod:`interp.registry`).
     """
     live = [b for b in buffers if len(b)]
     n = len(live)
     if not n:
         return RenderFrame({m: np.empty((0, 7)) for m in methods}, np.zeros(0, dtype=bool))
-    # Gather each stream's window (prev, lo, hi, next) into a (4, n, 7) track.
-    keys = np.empty((4, n, 7))
-    times = np.empty((4, n))
+    lb, la = 1, 1
+    for m in methods:
+        entry = interp_info(m)
+        lb, la = max(lb, entry.lookbehind), max(la, entry.lookahead)
+    # Each stream's window (before..., lo, hi, after...) as a (K, n, 7) track.
+    k = lb + 2 + la
+    keys = np.empty((k, n, 7))
+    times = np.empty((k, n))
     s = np.empty((1, n))
     stalled = np.zeros(n, dtype=bool)
     for j, buf in enumerate(live):
         lo, hi, frac, stall = buf.bracket(t)
-        prev = lo - 1 if lo > 0 else lo
-        nxt = hi + 1 if (hi + 1 < len(buf) and hi > lo) else hi
-        for row, i in enumerate((prev, lo, hi, nxt)):
+        last = len(buf) - 1
+        rows = [max(lo - i, 0) for i in range(lb, 0, -1)]
+        rows += [lo, hi]
+        rows += [min(hi + i, last) if hi > lo else hi for i in range(1, la + 1)]
+        for row, i in enumerate(rows):
             keys[row, j] = buf.poses[i]
             times[row, j] = buf.times[i]
         s[0, j] = frac
         stalled[j] = stall
-    idx = np.ones((1, n), dtype=np.intp)
+    lo_idx = np.full((1, n), lb, dtype=np.intp)
+    before = np.broadcast_to(np.arange(lb, dtype=np.intp)[:, None], (lb, n)).T[None]
+    after = np.broadcast_to(np.arange(lb + 2, k, dtype=np.intp)[:, None], (la, n)).T[None]
     out = {
-        m: interpolate_brackets(keys, idx, idx + 1, s, m, times=times, prev=idx - 1, nxt=idx + 2)[0]
+        m: interpolate_brackets(
+            keys, lo_idx, lo_idx + 1, s, m, times=times, before=before, after=after
+        )[0]
         for m in methods
     }
     return RenderFrame(out, stalled)

@@ -86,6 +86,7 @@ from scenarios.qoe import (
     playout_brackets,
     sample_keyframes,
     summarize,
+    window_depth,
 )
 from scenarios.receiver import StreamBuffer, render_buffers
 from scenarios.synthetic import suite_traces, synthetic_motion
@@ -679,13 +680,17 @@ class _Acc:
     d_weighted: float = 0.0
 
 
-def _same_bracket(play: Playout, ref: Playout, window: bool) -> NDArray[np.bool_]:
-    """Queries whose bracket (and, for window methods, neighbours) equal the reference's."""
+def _same_bracket(
+    play: Playout, ref: Playout, lookbehind: int, lookahead: int
+) -> NDArray[np.bool_]:
+    """Queries whose bracket (and the neighbours a window method uses) equal the reference's."""
     same: NDArray[np.bool_] = (play.lo == ref.lo) & (play.hi == ref.hi)
-    if window:
-        assert play.prev is not None and ref.prev is not None
-        assert play.nxt is not None and ref.nxt is not None
-        same &= (play.prev == ref.prev) & (play.nxt == ref.nxt)
+    if lookbehind:
+        assert play.before is not None and ref.before is not None
+        same &= np.all(play.before[:, -lookbehind:] == ref.before[:, -lookbehind:], axis=1)
+    if lookahead:
+        assert play.after is not None and ref.after is not None
+        same &= np.all(play.after[:, :lookahead] == ref.after[:, :lookahead], axis=1)
     return same
 
 
@@ -695,11 +700,16 @@ class _PlayCache:
 
     plays: dict[float, Playout] = field(default_factory=dict)
     plans: dict[tuple[float, float, float, bool], StallPlan] = field(default_factory=dict)
+    #: Neighbours gathered (before, after): the widest window of the methods.
+    depth: tuple[int, int] = (1, 1)
 
     def play(self, log: KeyframeLog, taus: F64, d: float) -> Playout:
         out = self.plays.get(d)
         if out is None:
-            out = self.plays[d] = playout_brackets(log.capture, log.arrival, taus, d)
+            lb, la = self.depth
+            out = self.plays[d] = playout_brackets(
+                log.capture, log.arrival, taus, d, lookbehind=lb, lookahead=la
+            )
         return out
 
     def plan(
@@ -744,12 +754,14 @@ def _frontier_trace(
     if not (taus.size and log.capture.size):
         return
     s_count = log.poses.shape[1]
-    ref = playout_brackets(log.capture, log.arrival, taus, math.inf)
+    lb_max, la_max = cache.depth
+    ref = playout_brackets(
+        log.capture, log.arrival, taus, math.inf, lookbehind=lb_max, lookahead=la_max
+    )
     kf_tips = _tips(log.poses)
     for m in methods:
         entry = interp.info(m)
-        window = entry.kind == "window"
-        assert ref.prev is not None and ref.nxt is not None
+        assert ref.before is not None and ref.after is not None
         ref_poses = interp.interpolate_brackets(
             log.poses,
             ref.lo,
@@ -757,18 +769,18 @@ def _frontier_trace(
             ref.s,
             m,
             times=log.capture,
-            prev=ref.prev,
-            nxt=ref.nxt,
+            before=ref.before,
+            after=ref.after,
             velocities=log.velocities,
         )
         ref_err = _tip_mm(ref_poses, true_tips)
         for f in fractions:
             d = lag + (f + entry.lookahead) / rate
             play = cache.play(log, taus, d)
-            assert play.prev is not None and play.nxt is not None
+            assert play.before is not None and play.after is not None
             shown = ~play.missing
             stall = play.stall & shown
-            redo = shown & ~stall & ~_same_bracket(play, ref, window)
+            redo = shown & ~stall & ~_same_bracket(play, ref, entry.lookbehind, entry.lookahead)
             poses, err = ref_poses, ref_err
             if stall.any() or redo.any():
                 poses, err = ref_poses.copy(), ref_err.copy()
@@ -785,8 +797,8 @@ def _frontier_trace(
                     play.s[redo],
                     m,
                     times=log.capture,
-                    prev=play.prev[redo],
-                    nxt=play.nxt[redo],
+                    before=play.before[redo],
+                    after=play.after[redo],
                     velocities=log.velocities,
                 )
                 err[redo] = _tip_mm(poses[redo], true_tips[redo])
@@ -864,7 +876,7 @@ def _frontier_sweep(
                         None,
                     )
                     if cache is None:
-                        cache = _PlayCache()
+                        cache = _PlayCache(depth=window_depth(methods))
                         caches.append((log, cache))
                     q = (tr_h.times >= window[0]) & (tr_h.times <= window[1])
                     _frontier_trace(
