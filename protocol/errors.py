@@ -25,7 +25,10 @@ frame-too-large     yes    1009   a frame is longer than ``max_frame_size``
 unknown-type        yes    1002   a well-formed frame with a "type" this version lacks
 bad-message         yes    1002   a known type with missing, unknown or ill-typed
                                   fields, or values out of their range (NaN in a
-                                  control field, user id over u16, ...)
+                                  control field, user id over u16, ...); a pose
+                                  frame of the other variant than agreed at join
+                                  (velocity records without sends/wants_velocities,
+                                  or plain records with it)
 version-mismatch    yes    1002   hello/welcome carry another ``PROTOCOL_VERSION``
 unexpected-message  yes    1002   a message the state table forbids: anything before
                                   hello, join twice, poses before joined, a
@@ -38,6 +41,8 @@ duplicate-stream    no     --     one update carries the same stream id twice
 bad-stream-name     no     --     a join has an invalid, duplicate or too long name
 bad-pose            no     --     a pose with NaN/inf, or a quaternion norm off 1 by
                                   more than ``QUAT_NORM_TOLERANCE``
+bad-velocity        no     --     a velocity-variant pose whose velocity holds NaN/inf
+                                  (float16 on the wire)
 bad-rate            no     --     join/set_rate asks for a rate outside
                                   [min_rate, max_rate] (the request is refused, never
                                   clamped)
@@ -84,6 +89,7 @@ class ErrorCode(StrEnum):
     DUPLICATE_STREAM = "duplicate-stream"
     BAD_STREAM_NAME = "bad-stream-name"
     BAD_POSE = "bad-pose"
+    BAD_VELOCITY = "bad-velocity"
     BAD_RATE = "bad-rate"
     PAYLOAD_TOO_LARGE = "payload-too-large"
     UNAUTHORIZED = "unauthorized"
@@ -115,6 +121,7 @@ _CLOSE_CODES: dict[ErrorCode, int | None] = {
     ErrorCode.DUPLICATE_STREAM: None,
     ErrorCode.BAD_STREAM_NAME: None,
     ErrorCode.BAD_POSE: None,
+    ErrorCode.BAD_VELOCITY: None,
     ErrorCode.BAD_RATE: None,
     ErrorCode.PAYLOAD_TOO_LARGE: None,
     ErrorCode.UNAUTHORIZED: 1008,

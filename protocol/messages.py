@@ -3,7 +3,10 @@
 Each class is one msgpack map on the wire, ``{"type": TYPE, field: value, ...}``
 with the dataclass fields as keys in declaration order. Decoding accepts a
 missing key only for fields with a default, and rejects unknown keys (the
-schema is pinned by ``PROTOCOL_VERSION``).
+schema is pinned by ``PROTOCOL_VERSION``). Optional capabilities added later
+(the velocity flags of join and peer_joined) are left out of the map while they
+hold their default, so a peer that does not use them sends and receives the
+same bytes as before they existed.
 
 Constructors check types and fixed ranges (u16 ids, finite numbers, string
 lengths) and raise ``LocalProtocolError("bad-message")``. Checks that depend on
@@ -91,12 +94,18 @@ class ControlMessage:
     _NAMES: ClassVar[frozenset[str]]
     _REQUIRED: ClassVar[frozenset[str]]
     _ORDER: ClassVar[tuple[str, ...]]
+    #: Fields left out of the map while they equal their default.
+    _OMIT: ClassVar[dict[str, object]]
 
     def to_wire(self) -> dict[str, object]:
         """The msgpack map for this message, "type" first."""
         wire: dict[str, object] = {"type": self.TYPE}
+        omit = self._OMIT
         for name in self._ORDER:
-            wire[name] = getattr(self, name)
+            value = getattr(self, name)
+            if name in omit and value == omit[name]:
+                continue
+            wire[name] = value
         return wire
 
     @classmethod
@@ -116,6 +125,14 @@ class ControlMessage:
 
 _M = TypeVar("_M", bound=type[ControlMessage])
 
+# Field metadata key: leave the field off the wire while it holds its default.
+_OMIT_DEFAULT = "omit_default"
+
+
+def _capability() -> Any:
+    """An optional bool capability flag: False by default, and then not sent."""
+    return field(default=False, metadata={_OMIT_DEFAULT: True})
+
 
 def _register(cls: _M) -> _M:
     # Runs after @dataclass, so the field tables see the final fields.
@@ -127,6 +144,11 @@ def _register(cls: _M) -> _M:
         for f in fields(cls)  # type: ignore[arg-type]
         if f.default is MISSING and f.default_factory is MISSING
     )
+    cls._OMIT = {
+        f.name: f.default
+        for f in fields(cls)  # type: ignore[arg-type]
+        if f.metadata.get(_OMIT_DEFAULT)
+    }
     return cls
 
 
@@ -191,9 +213,17 @@ class Join(ControlMessage):
     token: str | None = None
     label: str | None = None
     """Name of the motion being played (ground truth for evaluation), if any."""
+    sends_velocities: bool = _capability()
+    """This client's updates are of the velocity variant (each pose with its
+    linear and angular velocity, see ``protocol.poses``); then every update must be."""
+    wants_velocities: bool = _capability()
+    """Send this client velocity-variant snapshots (streams whose sender reports
+    no velocities carry zeros; ``PeerJoined.velocities`` tells which do)."""
 
     def __post_init__(self) -> None:
         check_text("join.room", self.room, empty=False)
+        check_bool("join.sends_velocities", self.sends_velocities)
+        check_bool("join.wants_velocities", self.wants_velocities)
         if not isinstance(self.streams, list | tuple):
             raise bad("join.streams", "must be a list of names")
         for name in self.streams:
@@ -231,9 +261,12 @@ class PeerJoined(ControlMessage):
     user: int
     streams: dict[str, int]
     label: str | None = None
+    velocities: bool = _capability()
+    """The user's updates carry velocities (else velocity snapshots hold zeros for it)."""
 
     def __post_init__(self) -> None:
         check_int("peer_joined.user", self.user, 0, U16_MAX)
+        check_bool("peer_joined.velocities", self.velocities)
         _set(self, "streams", check_stream_map("peer_joined.streams", self.streams))
         check_optional_text("peer_joined.label", self.label)
 

@@ -15,6 +15,26 @@ Wire layout (little-endian, packed, no padding)::
 Times travel as one float64 plus a float32 offset per pose: an offset under 8 s
 keeps better than 1 us resolution, and each pose saves 4 bytes.
 
+Velocity variant (negotiated at join: ``Join.sends_velocities`` for a client's
+updates, ``Join.wants_velocities`` for the snapshots it receives)::
+
+    update    {"type": "update",   "seq": int,  "time": float64, "vpose": bin}
+              vpose = records of UPDATE_VELOCITY_DTYPE:
+                      stream u16, dt f4, pose 7 x f4, velocity 6 x f2      (46 B)
+    snapshot  {"type": "snapshot", "tick": int, "time": float64, "vpose": bin}
+              vpose = records of SNAPSHOT_VELOCITY_DTYPE:
+                      user u16, stream u16, dt f4, pose 7 x f4, velocity 6 x f2 (48 B)
+
+The velocity is what a tracker runtime reports with the pose (OpenXR
+``XrSpaceVelocity``): linear velocity of the device origin (m/s, 3) then angular
+velocity (rad/s, 3), **both in the world frame** (the convention of
+``interp.cubic.motor_hermite`` and ``interp.extrapolate.twist_extrapolate``), as
+little-endian float16: 12 bytes a pose more. The key "vpose" is as long as
+"poses", so a velocity frame is exactly the plain frame plus 12 bytes a pose
+(plus one byte when the bin header grows). Encoders clamp finite velocities to
+float16's range (+-65504) and leave NaN/inf as they are: sessions refuse those
+as "bad-velocity".
+
 Decoding is zero-copy: ``entries`` is ``np.frombuffer`` over the received bytes
 (read-only); ``poses`` and ``streams`` are views into it, ``capture_times`` is
 computed in float64. Copy before modifying.
@@ -43,30 +63,63 @@ __all__ = [
     "POSE_BYTES",
     "SNAPSHOT_DTYPE",
     "SNAPSHOT_ENTRY_SIZE",
+    "SNAPSHOT_VELOCITY_DTYPE",
+    "SNAPSHOT_VELOCITY_ENTRY_SIZE",
     "UPDATE_DTYPE",
     "UPDATE_ENTRY_SIZE",
+    "UPDATE_VELOCITY_DTYPE",
+    "UPDATE_VELOCITY_ENTRY_SIZE",
+    "VELOCITY_BYTES",
+    "VELOCITY_MAX",
+    "ZERO_VELOCITY",
     "PoseUpdate",
     "Snapshot",
     "bytes_per_pose",
     "encode_snapshot",
     "encode_update",
     "frame_size",
+    "has_velocity",
     "pack_snapshot",
+    "pack_velocity_snapshot",
     "pose_problem",
     "update_records",
+    "velocity_problem",
 ]
 
 UPDATE_DTYPE = np.dtype([("stream", "<u2"), ("dt", "<f4"), ("pose", "<f4", (7,))])
 SNAPSHOT_DTYPE = np.dtype(
     [("user", "<u2"), ("stream", "<u2"), ("dt", "<f4"), ("pose", "<f4", (7,))]
 )
+UPDATE_VELOCITY_DTYPE = np.dtype(
+    [("stream", "<u2"), ("dt", "<f4"), ("pose", "<f4", (7,)), ("velocity", "<f2", (6,))]
+)
+SNAPSHOT_VELOCITY_DTYPE = np.dtype(
+    [
+        ("user", "<u2"),
+        ("stream", "<u2"),
+        ("dt", "<f4"),
+        ("pose", "<f4", (7,)),
+        ("velocity", "<f2", (6,)),
+    ]
+)
 UPDATE_ENTRY_SIZE = UPDATE_DTYPE.itemsize
 SNAPSHOT_ENTRY_SIZE = SNAPSHOT_DTYPE.itemsize
+UPDATE_VELOCITY_ENTRY_SIZE = UPDATE_VELOCITY_DTYPE.itemsize
+SNAPSHOT_VELOCITY_ENTRY_SIZE = SNAPSHOT_VELOCITY_DTYPE.itemsize
 #: A pose on the wire: 7 little-endian float32.
 POSE_BYTES = 28
-# The fixed heads of the two entry layouts above, for the relay's byte-level path.
+#: A velocity on the wire: 6 little-endian float16 (linear m/s, angular rad/s, world frame).
+VELOCITY_BYTES = 12
+#: Largest finite float16: encoders clamp velocity components to +-VELOCITY_MAX.
+VELOCITY_MAX = float(np.finfo(np.float16).max)
+#: The velocity bytes of a stream whose sender reports none (all zeros).
+ZERO_VELOCITY = bytes(VELOCITY_BYTES)
+# The fixed heads of the entry layouts above, for the relay's byte-level path.
 _UPDATE_HEAD = struct.Struct("<Hf")
 _SNAPSHOT_HEAD = struct.Struct("<HHf")
+# Wire key of the records: plain frames and the velocity variant (same length).
+POSES_KEY = "poses"
+VELOCITY_POSES_KEY = "vpose"
 
 # |norm - 1| <= tol  <=>  (1 - tol)^2 <= norm^2 <= (1 + tol)^2, with no sqrt.
 _NORM2_LO = (1.0 - QUAT_NORM_TOLERANCE) ** 2
@@ -78,19 +131,45 @@ _LOOP_MAX = 32
 
 
 def _floats(entries: NDArray[np.void]) -> NDArray[np.float32]:
-    # dt and the 7 pose numbers are the last 32 bytes of both record layouts:
+    # dt and the 7 pose numbers are 32 contiguous bytes of every record layout:
     # view them as one (n, 8) float32 array [dt, px, py, pz, qw, qx, qy, qz].
     if not entries.flags.c_contiguous:
         entries = np.ascontiguousarray(entries)
-    itemsize = entries.dtype.itemsize
-    return np.ndarray((len(entries), 8), "<f4", entries, itemsize - 32, (itemsize, 4))
+    dtype = entries.dtype
+    fields = dtype.fields
+    assert fields is not None
+    start: int = fields["dt"][1]
+    return np.ndarray((len(entries), 8), "<f4", entries, start, (dtype.itemsize, 4))
+
+
+def has_velocity(entries: NDArray[np.void]) -> bool:
+    """Whether these records are of a velocity layout."""
+    names = entries.dtype.names
+    return names is not None and "velocity" in names
+
+
+def velocity_problem(entries: NDArray[np.void]) -> str | None:
+    """ "non-finite velocity" if a velocity record holds NaN or inf, else None.
+
+    Plain records (no velocities) are always fine.
+    """
+    if not len(entries) or not has_velocity(entries):
+        return None
+    velocity = entries["velocity"]
+    # float16 NaN and inf have every exponent bit set: a check on the bits is
+    # exact and needs no float conversion.
+    bits = np.ascontiguousarray(velocity).view("<u2")
+    if bool(((bits & 0x7C00) == 0x7C00).any()):
+        return "non-finite velocity"
+    return None
 
 
 def pose_problem(entries: NDArray[np.void]) -> str | None:
     """Why these records' poses are unusable ("non-finite pose", ...), or None if fine.
 
-    Works on UPDATE_DTYPE and SNAPSHOT_DTYPE records; checks dt and pose are
+    Works on every record layout (plain and velocity); checks dt and pose are
     finite and every quaternion's norm is within QUAT_NORM_TOLERANCE of 1.
+    Velocities are checked by :func:`velocity_problem`.
     """
     n = len(entries)
     if n == 0:
@@ -150,6 +229,17 @@ def _poses(value: ArrayLike) -> NDArray[np.float64]:
     return array
 
 
+def _velocities(value: ArrayLike, n: int) -> NDArray[np.float16]:
+    array = _float_array("velocities", value)
+    if array.shape != (n, 6):
+        raise bad("velocities", f"must have shape ({n}, 6), got {array.shape}")
+    # Clamp finite values to float16's range (65520 and above would round to
+    # inf); NaN and inf stay, for the receiver's check to refuse.
+    with np.errstate(invalid="ignore"):
+        clamped = np.where(np.isfinite(array), np.clip(array, -VELOCITY_MAX, VELOCITY_MAX), array)
+    return clamped.astype("<f2")
+
+
 def _base_time(base_time: float | None, capture_times: NDArray[np.float64]) -> float:
     if base_time is not None:
         return check_float("base time", base_time)
@@ -173,13 +263,16 @@ class PoseUpdate:
     base_time: float
     """Server-clock time the offsets count from."""
     entries: NDArray[np.void]
-    """Records of UPDATE_DTYPE (stream, dt, pose)."""
+    """Records of UPDATE_DTYPE (stream, dt, pose) or UPDATE_VELOCITY_DTYPE (+ velocity)."""
 
     def __post_init__(self) -> None:
         check_int("update.seq", self.seq, 0, U63_MAX)
         object.__setattr__(self, "base_time", check_float("update.time", self.base_time))
         entries = self.entries
-        if not isinstance(entries, np.ndarray) or entries.dtype != UPDATE_DTYPE:
+        if not isinstance(entries, np.ndarray) or entries.dtype not in (
+            UPDATE_DTYPE,
+            UPDATE_VELOCITY_DTYPE,
+        ):
             raise bad("update.poses", "must be an array of UPDATE_DTYPE records")
         if entries.ndim != 1:
             raise bad("update.poses", "must be 1-d")
@@ -192,20 +285,28 @@ class PoseUpdate:
         capture_times: ArrayLike,
         poses: ArrayLike,
         base_time: float | None = None,
+        velocities: ArrayLike | None = None,
     ) -> PoseUpdate:
-        """Pack stream ids (n,), capture times (n,) in server time and poses (n, 7)."""
+        """Pack stream ids (n,), capture times (n,) in server time and poses (n, 7).
+
+        With ``velocities`` (n, 6: linear m/s, angular rad/s, world frame) the
+        update is of the velocity variant.
+        """
         pose_array = _poses(poses)
         n = len(pose_array)
         stream_array = _u16("streams", streams, n)
         times = _times("capture_times", capture_times, n)
         base = _base_time(base_time, times)
-        entries = np.empty(n, dtype=UPDATE_DTYPE)
+        vel = None if velocities is None else _velocities(velocities, n)
+        entries = np.empty(n, dtype=UPDATE_DTYPE if vel is None else UPDATE_VELOCITY_DTYPE)
         entries["stream"] = stream_array
         # Values beyond float32 become inf without a warning; the receiver's
         # pose check reports them as "bad-pose".
         with np.errstate(over="ignore", invalid="ignore"):
             entries["dt"] = times - base
             entries["pose"] = pose_array
+        if vel is not None:
+            entries["velocity"] = vel
         return cls(seq, base, entries)
 
     @classmethod
@@ -247,13 +348,23 @@ class PoseUpdate:
         """Poses [px, py, pz, qw, qx, qy, qz], (n, 7) float32 view."""
         return self.entries["pose"]
 
+    @property
+    def has_velocities(self) -> bool:
+        """Whether this is the velocity variant."""
+        return has_velocity(self.entries)
+
+    @property
+    def velocities(self) -> NDArray[np.float16] | None:
+        """Velocities [vx, vy, vz, wx, wy, wz] (m/s, rad/s, world), (n, 6) float16 view."""
+        return self.entries["velocity"] if self.has_velocities else None
+
     def to_wire(self) -> dict[str, object]:
         """The msgpack map for this update."""
         return {
             "type": self.TYPE,
             "seq": self.seq,
             "time": self.base_time,
-            "poses": self.entries.tobytes(),
+            _key(self.entries): self.entries.tobytes(),
         }
 
 
@@ -271,13 +382,16 @@ class Snapshot:
     send_time: float
     """Server time when the snapshot was built."""
     entries: NDArray[np.void]
-    """Records of SNAPSHOT_DTYPE (user, stream, dt, pose)."""
+    """Records of SNAPSHOT_DTYPE (user, stream, dt, pose) or SNAPSHOT_VELOCITY_DTYPE."""
 
     def __post_init__(self) -> None:
         check_int("snapshot.tick", self.tick, 0, U63_MAX)
         object.__setattr__(self, "send_time", check_float("snapshot.time", self.send_time))
         entries = self.entries
-        if not isinstance(entries, np.ndarray) or entries.dtype != SNAPSHOT_DTYPE:
+        if not isinstance(entries, np.ndarray) or entries.dtype not in (
+            SNAPSHOT_DTYPE,
+            SNAPSHOT_VELOCITY_DTYPE,
+        ):
             raise bad("snapshot.poses", "must be an array of SNAPSHOT_DTYPE records")
         if entries.ndim != 1:
             raise bad("snapshot.poses", "must be 1-d")
@@ -291,18 +405,25 @@ class Snapshot:
         streams: ArrayLike,
         capture_times: ArrayLike,
         poses: ArrayLike,
+        velocities: ArrayLike | None = None,
     ) -> Snapshot:
-        """Pack user ids (n,), stream ids (n,), capture times (n,) and poses (n, 7)."""
+        """Pack user ids (n,), stream ids (n,), capture times (n,) and poses (n, 7).
+
+        With ``velocities`` (n, 6) the snapshot is of the velocity variant.
+        """
         pose_array = _poses(poses)
         n = len(pose_array)
         send = check_float("send_time", send_time)
-        entries = np.empty(n, dtype=SNAPSHOT_DTYPE)
+        vel = None if velocities is None else _velocities(velocities, n)
+        entries = np.empty(n, dtype=SNAPSHOT_DTYPE if vel is None else SNAPSHOT_VELOCITY_DTYPE)
         entries["user"] = _u16("users", users, n)
         entries["stream"] = _u16("streams", streams, n)
         times = _times("capture_times", capture_times, n)
         with np.errstate(over="ignore", invalid="ignore"):
             entries["dt"] = times - send
             entries["pose"] = pose_array
+        if vel is not None:
+            entries["velocity"] = vel
         return cls(tick, send, entries)
 
     @classmethod
@@ -349,14 +470,28 @@ class Snapshot:
         """Poses [px, py, pz, qw, qx, qy, qz], (n, 7) float32 view."""
         return self.entries["pose"]
 
+    @property
+    def has_velocities(self) -> bool:
+        """Whether this is the velocity variant."""
+        return has_velocity(self.entries)
+
+    @property
+    def velocities(self) -> NDArray[np.float16] | None:
+        """Velocities [vx, vy, vz, wx, wy, wz] (m/s, rad/s, world), (n, 6) float16 view."""
+        return self.entries["velocity"] if self.has_velocities else None
+
     def to_wire(self) -> dict[str, object]:
         """The msgpack map for this snapshot."""
         return {
             "type": self.TYPE,
             "tick": self.tick,
             "time": self.send_time,
-            "poses": self.entries.tobytes(),
+            _key(self.entries): self.entries.tobytes(),
         }
+
+
+def _key(entries: NDArray[np.void]) -> str:
+    return VELOCITY_POSES_KEY if has_velocity(entries) else POSES_KEY
 
 
 def encode_update(
@@ -365,9 +500,13 @@ def encode_update(
     capture_times: ArrayLike,
     poses: ArrayLike,
     base_time: float | None = None,
+    velocities: ArrayLike | None = None,
 ) -> bytes:
-    """Frame bytes of one update, without a session (no ownership or pose checks)."""
-    update = PoseUpdate.from_arrays(seq, streams, capture_times, poses, base_time)
+    """Frame bytes of one update, without a session (no ownership or pose checks).
+
+    With ``velocities`` (n, 6) the velocity variant.
+    """
+    update = PoseUpdate.from_arrays(seq, streams, capture_times, poses, base_time, velocities)
     return _pack(update.to_wire())
 
 
@@ -378,13 +517,17 @@ def encode_snapshot(
     streams: ArrayLike,
     capture_times: ArrayLike,
     poses: ArrayLike,
+    velocities: ArrayLike | None = None,
 ) -> bytes:
     """Frame bytes of one snapshot: encode once per tick, send to every due subscriber.
 
     Shapes are checked (LocalProtocolError "bad-message"); pose values are not,
-    because the server only relays poses its sessions already validated.
+    because the server only relays poses its sessions already validated. With
+    ``velocities`` (n, 6) the velocity variant.
     """
-    snapshot = Snapshot.from_arrays(tick, send_time, users, streams, capture_times, poses)
+    snapshot = Snapshot.from_arrays(
+        tick, send_time, users, streams, capture_times, poses, velocities
+    )
     return _pack(snapshot.to_wire())
 
 
@@ -398,17 +541,23 @@ def _pack(wire: dict[str, object]) -> bytes:
 _TYPICAL_COUNTER = 1 << 16
 
 
-def frame_size(n_poses: int, kind: Literal["update", "snapshot"] = "snapshot") -> int:
-    """Exact bytes of an update or snapshot frame with ``n_poses`` poses (32-bit counter)."""
+def frame_size(
+    n_poses: int, kind: Literal["update", "snapshot"] = "snapshot", *, velocities: bool = False
+) -> int:
+    """Exact bytes of an update or snapshot frame with ``n_poses`` poses (32-bit counter).
+
+    ``velocities``: the velocity variant (12 bytes more a pose).
+    """
     if n_poses < 0:
         raise ValueError("n_poses must be >= 0")
     header: dict[str, object]
+    key = VELOCITY_POSES_KEY if velocities else POSES_KEY
     if kind == "snapshot":
-        header = {"type": "snapshot", "tick": _TYPICAL_COUNTER, "time": 0.0, "poses": b""}
-        entry = SNAPSHOT_ENTRY_SIZE
+        header = {"type": "snapshot", "tick": _TYPICAL_COUNTER, "time": 0.0, key: b""}
+        entry = SNAPSHOT_VELOCITY_ENTRY_SIZE if velocities else SNAPSHOT_ENTRY_SIZE
     elif kind == "update":
-        header = {"type": "update", "seq": _TYPICAL_COUNTER, "time": 0.0, "poses": b""}
-        entry = UPDATE_ENTRY_SIZE
+        header = {"type": "update", "seq": _TYPICAL_COUNTER, "time": 0.0, key: b""}
+        entry = UPDATE_VELOCITY_ENTRY_SIZE if velocities else UPDATE_ENTRY_SIZE
     else:
         raise ValueError(f"kind must be 'update' or 'snapshot', got {kind!r}")
     body = n_poses * entry
@@ -417,31 +566,47 @@ def frame_size(n_poses: int, kind: Literal["update", "snapshot"] = "snapshot") -
     return len(_pack(header)) - 2 + bin_header + body
 
 
-def bytes_per_pose(n_poses: int = 1, kind: Literal["update", "snapshot"] = "snapshot") -> float:
+def bytes_per_pose(
+    n_poses: int = 1,
+    kind: Literal["update", "snapshot"] = "snapshot",
+    *,
+    velocities: bool = False,
+) -> float:
     """Wire bytes per pose in a frame of ``n_poses`` poses, header amortised.
 
-    36 bytes a pose in snapshots (34 in updates) plus 44-48 bytes of frame header
-    shared by the frame's poses, before websocket framing (2-8 bytes a frame).
+    36 bytes a pose in snapshots (34 in updates; 12 more each in the velocity
+    variant) plus 44-48 bytes of frame header shared by the frame's poses,
+    before websocket framing (2-8 bytes a frame).
     """
     if n_poses < 1:
         raise ValueError("n_poses must be >= 1")
-    return frame_size(n_poses, kind) / n_poses
+    return frame_size(n_poses, kind, velocities=velocities) / n_poses
 
 
-def update_records(update: PoseUpdate) -> Iterator[tuple[int, float, bytes]]:
-    """``(stream, capture time, pose bytes)`` of each entry, without numpy per entry.
+def update_records(update: PoseUpdate) -> Iterator[tuple[int, float, bytes, bytes | None]]:
+    """``(stream, capture time, pose bytes, velocity bytes)`` of each entry, no numpy per entry.
 
-    The relay keeps the 28 pose bytes as they arrived (they were validated when
+    The relay keeps the 28 pose bytes (and the 12 velocity bytes of the velocity
+    variant; None for a plain update) as they arrived (they were validated when
     the update was received) and copies them into snapshots with
-    :func:`pack_snapshot`, so a pose crosses the server without being decoded.
+    :func:`pack_snapshot` / :func:`pack_velocity_snapshot`, so a pose crosses the
+    server without being decoded.
     """
     raw = update.entries.tobytes()
     base = update.base_time
     head = _UPDATE_HEAD
+    if update.has_velocities:
+        size = UPDATE_VELOCITY_ENTRY_SIZE
+        for off in range(0, len(raw), size):
+            stream, dt = head.unpack_from(raw, off)
+            start = off + head.size
+            mid = start + POSE_BYTES
+            yield stream, base + dt, raw[start:mid], raw[mid : mid + VELOCITY_BYTES]
+        return
     for off in range(0, len(raw), UPDATE_ENTRY_SIZE):
         stream, dt = head.unpack_from(raw, off)
         start = off + head.size
-        yield stream, base + dt, raw[start : start + POSE_BYTES]
+        yield stream, base + dt, raw[start : start + POSE_BYTES], None
 
 
 def pack_snapshot(
@@ -460,3 +625,28 @@ def pack_snapshot(
         parts.append(head.pack(user, stream, capture - send_time))
         parts.append(pose)
     return _pack({"type": Snapshot.TYPE, "tick": tick, "time": send_time, "poses": b"".join(parts)})
+
+
+def pack_velocity_snapshot(
+    tick: int, send_time: float, entries: Iterable[tuple[int, int, float, bytes, bytes]]
+) -> bytes:
+    """Velocity-variant snapshot bytes from ``(user, stream, capture, pose, velocity)`` entries.
+
+    As :func:`pack_snapshot`, with each entry's 12 velocity bytes (6 float16,
+    e.g. :data:`ZERO_VELOCITY` for a stream whose sender reports none) after its
+    pose: the same frame :func:`encode_snapshot` builds with ``velocities``.
+    """
+    head = _SNAPSHOT_HEAD
+    parts: list[bytes] = []
+    for user, stream, capture, pose, velocity in entries:
+        parts.append(head.pack(user, stream, capture - send_time))
+        parts.append(pose)
+        parts.append(velocity)
+    return _pack(
+        {
+            "type": Snapshot.TYPE,
+            "tick": tick,
+            "time": send_time,
+            VELOCITY_POSES_KEY: b"".join(parts),
+        }
+    )

@@ -17,10 +17,14 @@ depends on limits and on what was agreed earlier:
   must be those of the join;
 - update: at most as many entries as owned streams, every stream owned and
   named once, every pose finite with a unit quaternion (else the update is
-  dropped with a non-fatal "bad-pose");
+  dropped with a non-fatal "bad-pose"), of the variant agreed at join (velocity
+  records exactly when the join said ``sends_velocities``; else a fatal
+  "bad-message"), every velocity finite (else a non-fatal "bad-velocity");
 - event: its stream owned by the sender, payload small enough; the server
   session stamps the sender's user id on it;
-- snapshot (client): poses finite and unit, else dropped with "bad-pose".
+- snapshot (client): of the variant the join asked for (``wants_velocities``;
+  else a fatal "bad-message"), poses finite and unit, else dropped with
+  "bad-pose", velocities finite, else dropped with "bad-velocity".
 """
 
 from __future__ import annotations
@@ -47,7 +51,7 @@ from protocol.messages import (
     Welcome,
     is_valid_stream_name,
 )
-from protocol.poses import PoseUpdate, Snapshot, pose_problem
+from protocol.poses import PoseUpdate, Snapshot, has_velocity, pose_problem, velocity_problem
 from protocol.wire import decode_message, encode_message
 
 __all__ = ["ClientSession", "ServerSession", "SessionStatistics"]
@@ -114,6 +118,10 @@ class _Session:
         """The agreed update rate in Hz, from joined and accepted set_rate."""
         self._owned: frozenset[int] = frozenset()
         self._pending_join: Join | None = None
+        self.sends_velocities = False
+        """Agreed at join: the client's updates are of the velocity variant."""
+        self.wants_velocities = False
+        """Agreed at join: the client's snapshots are of the velocity variant."""
         self._frames_in = self._bytes_in = self._frames_out = self._bytes_out = 0
         self._errors = 0
 
@@ -229,9 +237,30 @@ class _Session:
             )
         if len(seen) != len(ids):
             raise ProtocolViolation(ErrorCode.DUPLICATE_STREAM, "stream twice in one update")
+        self._check_variant("update", has_velocity(entries), self.sends_velocities)
         problem = pose_problem(entries)
         if problem is not None:
             raise ProtocolViolation(ErrorCode.BAD_POSE, problem)
+        problem = velocity_problem(entries)
+        if problem is not None:
+            raise ProtocolViolation(ErrorCode.BAD_VELOCITY, problem)
+
+    @staticmethod
+    def _check_variant(type_: str, velocity: bool, agreed: bool) -> None:
+        if velocity and not agreed:
+            raise ProtocolViolation(
+                ErrorCode.BAD_MESSAGE, f"{type_} with velocities, not agreed at join"
+            )
+        if agreed and not velocity:
+            raise ProtocolViolation(
+                ErrorCode.BAD_MESSAGE, f"{type_} without velocities, agreed at join"
+            )
+
+    def _agree_velocities(self) -> None:
+        join = self._pending_join
+        assert join is not None  # joined is checked against the pending join first
+        self.sends_velocities = join.sends_velocities
+        self.wants_velocities = join.wants_velocities
 
     def _check_event(self, event: UserEvent) -> None:
         if event.user is not None and event.user != self.user:
@@ -329,6 +358,7 @@ class ServerSession(_Session):
             self.room = message.room
             self.rate = message.rate
             self.assign_streams(message.streams)
+            self._agree_velocities()
 
 
 class ClientSession(_Session):
@@ -348,9 +378,14 @@ class ClientSession(_Session):
 
     def _check_received(self, message: Message) -> Message:
         if isinstance(message, Snapshot):
-            problem = pose_problem(message.entries)
+            entries = message.entries
+            self._check_variant("snapshot", has_velocity(entries), self.wants_velocities)
+            problem = pose_problem(entries)
             if problem is not None:
                 raise ProtocolViolation(ErrorCode.BAD_POSE, problem)
+            problem = velocity_problem(entries)
+            if problem is not None:
+                raise ProtocolViolation(ErrorCode.BAD_VELOCITY, problem)
         elif isinstance(message, Welcome):
             self.welcome = message
             self.user = message.user
@@ -360,6 +395,7 @@ class ClientSession(_Session):
             self.rate = message.rate
             self.streams = dict(message.streams)
             self._owned = frozenset(self.streams.values())
+            self._agree_velocities()
         elif isinstance(message, PeerJoined):
             self.peers[message.user] = dict(message.streams)
         elif isinstance(message, PeerLeft):

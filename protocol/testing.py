@@ -50,11 +50,20 @@ class SessionPair:
         ids: Mapping[str, int] | None = None,
         rate: float = 20.0,
         server_time: float = 0.0,
+        sends_velocities: bool = False,
+        wants_velocities: bool = False,
     ) -> Joined:
         """hello, welcome, join, joined; stream ids default to 0, 1, 2, ... in order."""
         self.client_send(Hello(agent="session-pair"))
         self.server_send(self.server.make_welcome(user, server_time))
-        self.client_send(Join(room=room, streams=tuple(streams), rate=rate))
+        join = Join(
+            room=room,
+            streams=tuple(streams),
+            rate=rate,
+            sends_velocities=sends_velocities,
+            wants_velocities=wants_velocities,
+        )
+        self.client_send(join)
         assigned = dict(ids) if ids is not None else {name: i for i, name in enumerate(streams)}
         joined = Joined(room=room, streams=assigned, rate=rate)
         self.server_send(joined)

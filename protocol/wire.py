@@ -33,7 +33,16 @@ from protocol.messages import (
     UserEvent,
     Welcome,
 )
-from protocol.poses import SNAPSHOT_DTYPE, UPDATE_DTYPE, PoseUpdate, Snapshot
+from protocol.poses import (
+    POSES_KEY,
+    SNAPSHOT_DTYPE,
+    SNAPSHOT_VELOCITY_DTYPE,
+    UPDATE_DTYPE,
+    UPDATE_VELOCITY_DTYPE,
+    VELOCITY_POSES_KEY,
+    PoseUpdate,
+    Snapshot,
+)
 
 __all__ = ["MESSAGE_TYPES", "decode_message", "encode_message"]
 
@@ -58,9 +67,22 @@ _CONTROL: dict[str, type[ControlMessage]] = {
 MESSAGE_TYPES = frozenset([*_CONTROL, PoseUpdate.TYPE, Snapshot.TYPE])
 """Every "type" this protocol version knows."""
 
+# Per type: (plain keys, velocity-variant keys). The records' key says which layout.
 _POSE_KEYS = {
-    "update": frozenset({"type", "seq", "time", "poses"}),
-    "snapshot": frozenset({"type", "tick", "time", "poses"}),
+    "update": (
+        frozenset({"type", "seq", "time", POSES_KEY}),
+        frozenset({"type", "seq", "time", VELOCITY_POSES_KEY}),
+    ),
+    "snapshot": (
+        frozenset({"type", "tick", "time", POSES_KEY}),
+        frozenset({"type", "tick", "time", VELOCITY_POSES_KEY}),
+    ),
+}
+_DTYPES = {
+    ("update", False): UPDATE_DTYPE,
+    ("update", True): UPDATE_VELOCITY_DTYPE,
+    ("snapshot", False): SNAPSHOT_DTYPE,
+    ("snapshot", True): SNAPSHOT_VELOCITY_DTYPE,
 }
 
 
@@ -88,16 +110,25 @@ def _unpack(data: bytes | bytearray | memoryview) -> dict[str, object]:
 
 
 def _pose_frame(wire: dict[str, object], type_: str) -> PoseUpdate | Snapshot:
-    if wire.keys() != _POSE_KEYS[type_]:
-        fields = ", ".join(sorted(_POSE_KEYS[type_] - {"type"}))
-        raise RemoteProtocolError(ErrorCode.BAD_MESSAGE, f"{type_} needs exactly {fields}")
-    body = wire["poses"]
+    plain, with_velocity = _POSE_KEYS[type_]
+    keys = wire.keys()
+    if keys == plain:
+        key, velocity = POSES_KEY, False
+    elif keys == with_velocity:
+        key, velocity = VELOCITY_POSES_KEY, True
+    else:
+        fields = ", ".join(sorted(plain - {"type", POSES_KEY}))
+        raise RemoteProtocolError(
+            ErrorCode.BAD_MESSAGE,
+            f"{type_} needs exactly {fields} and {POSES_KEY} (or {VELOCITY_POSES_KEY})",
+        )
+    body = wire[key]
     if type(body) is not bytes:
-        raise RemoteProtocolError(ErrorCode.BAD_MESSAGE, f"{type_}.poses must be bin")
-    dtype = UPDATE_DTYPE if type_ == "update" else SNAPSHOT_DTYPE
+        raise RemoteProtocolError(ErrorCode.BAD_MESSAGE, f"{type_}.{key} must be bin")
+    dtype = _DTYPES[type_, velocity]
     if len(body) % dtype.itemsize:
         raise RemoteProtocolError(
-            ErrorCode.BAD_MESSAGE, f"{type_}.poses is not whole {dtype.itemsize}-byte records"
+            ErrorCode.BAD_MESSAGE, f"{type_}.{key} is not whole {dtype.itemsize}-byte records"
         )
     time = check_float(f"{type_}.time", wire["time"])
     entries = np.frombuffer(body, dtype=dtype)

@@ -400,14 +400,35 @@ class _Connection:
         room = server.room_for(join.room)
         streams = room.allocate_streams(join.streams)
         self.send(Joined(room=join.room, streams=streams, rate=join.rate))
-        member = Member(self.user, self.name, streams, join.rate, self.outbox, label=join.label)
+        member = Member(
+            self.user,
+            self.name,
+            streams,
+            join.rate,
+            self.outbox,
+            label=join.label,
+            velocities=join.wants_velocities,
+            sends_velocities=join.sends_velocities,
+        )
         member.asked_rate = join.rate
         if server.config.link is not None:
             self.link = EgressLink(server.config.link, seed=self.user)
         for other in room.members.values():
-            self.send(PeerJoined(user=other.user, streams=other.streams, label=other.label))
+            self.send(
+                PeerJoined(
+                    user=other.user,
+                    streams=other.streams,
+                    label=other.label,
+                    velocities=other.sends_velocities,
+                )
+            )
             server.connection_of(other.user).send(
-                PeerJoined(user=self.user, streams=streams, label=join.label)
+                PeerJoined(
+                    user=self.user,
+                    streams=streams,
+                    label=join.label,
+                    velocities=join.sends_velocities,
+                )
             )
         room.add(member, now)
         self.room, self.member = room, member

@@ -4,7 +4,10 @@ A :class:`Room` owns the newest keyframe of every stream of its members and a
 schedule: each member is due on its own grid ``k / rate`` of the server clock.
 At a tick the room encodes, once, a snapshot of every stream that changed since
 the member's last snapshot, and hands the same bytes to every due member that
-shares that last snapshot (members of one rate are always in step). Nothing
+shares that last snapshot (members of one rate are always in step); members that
+asked for velocities (``Join.wants_velocities``) get the velocity variant, also
+encoded once per tick and shared the same way, with each stream's latest
+velocity beside its pose (zeros for a sender that reports none). Nothing
 here touches a socket: members receive bytes through an :class:`Outbox`, whose
 single pose slot is latest-wins (an unsent snapshot replaced by a newer one is a
 skip) and whose event queue is bounded (overflow is reported to the caller,
@@ -21,7 +24,13 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from protocol import PoseUpdate, pack_snapshot, update_records
+from protocol import (
+    ZERO_VELOCITY,
+    PoseUpdate,
+    pack_snapshot,
+    pack_velocity_snapshot,
+    update_records,
+)
 from recorder import RoomRecorder
 
 __all__ = [
@@ -150,6 +159,10 @@ class Member:
     poses_sent: int = 0
     congestion_skips: int = 0
     updates_in: int = 0
+    #: Receives velocity-variant snapshots (``Join.wants_velocities``).
+    velocities: bool = False
+    #: Its updates carry velocities (``Join.sends_velocities``).
+    sends_velocities: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -176,6 +189,8 @@ class _Stream:
     #: The 28 pose bytes as they arrived (validated on receipt, never decoded here).
     pose: bytes
     version: int
+    #: The 12 velocity bytes that came with the pose (zeros if its update had none).
+    velocity: bytes = ZERO_VELOCITY
 
 
 @dataclass
@@ -267,16 +282,18 @@ class Room:
         if member is not None:
             member.updates_in += 1
         stale = 0
-        for sid, t, pose in update_records(update):
+        for sid, t, pose, vel in update_records(update):
             cur = self._streams.get(sid)
             if cur is not None and t <= cur.capture:
                 stale += 1
                 continue
             self._version += 1
+            velocity = ZERO_VELOCITY if vel is None else vel
             if cur is None:
-                self._streams[sid] = _Stream(user, t, pose, self._version)
+                self._streams[sid] = _Stream(user, t, pose, self._version, velocity)
             else:
                 cur.capture, cur.pose, cur.version = t, pose, self._version
+                cur.velocity = velocity
         self._stale += stale
         return stale
 
@@ -294,7 +311,7 @@ class Room:
 
     def tick(self, now: float) -> int:
         """Send a snapshot to every due member; returns how many were offered."""
-        cache: dict[int, tuple[bytes, int]] = {}
+        cache: dict[tuple[int, bool], tuple[bytes, int]] = {}
         offered = 0
         for member in self.members.values():
             if member.next_due > now + 1e-9:
@@ -313,9 +330,9 @@ class Room:
                 member.delivered_version = member.last_version
             # A snapshot still waiting in the slot is about to be replaced (a skip),
             # so the new one must also carry what only the replaced one had.
-            key = member.delivered_version
+            key = (member.delivered_version, member.velocities)
             if key not in cache:
-                cache[key] = self._encode(now, key)
+                cache[key] = self._encode(now, *key)
             data, n = cache[key]
             member.last_version = self._version
             if n == 0:
@@ -330,15 +347,22 @@ class Room:
             offered += 1
         return offered
 
-    def _encode(self, now: float, since: int) -> tuple[bytes, int]:
+    def _encode(self, now: float, since: int, velocities: bool = False) -> tuple[bytes, int]:
         fresh = [(sid, s) for sid, s in self._streams.items() if s.version > since]
         if not fresh:
             return b"", 0
         self._tick += 1
         self._snapshots += 1
-        data = pack_snapshot(
-            self._tick, now, ((s.user, sid, s.capture, s.pose) for sid, s in fresh)
-        )
+        if velocities:
+            data = pack_velocity_snapshot(
+                self._tick,
+                now,
+                ((s.user, sid, s.capture, s.pose, s.velocity) for sid, s in fresh),
+            )
+        else:
+            data = pack_snapshot(
+                self._tick, now, ((s.user, sid, s.capture, s.pose) for sid, s in fresh)
+            )
         return data, len(fresh)
 
     def retire(self) -> None:

@@ -205,7 +205,7 @@ def test_encoders_reject_bad_shapes(call: object) -> None:
         (raw_frame("update", seq=0, time=0.0, poses=b"\x00" * 35), "not whole 34-byte records"),
         (raw_frame("snapshot", tick=0, time=0.0, poses=b"\x00" * 34), "not whole 36-byte"),
         (raw_frame("update", seq=0, time=0.0, poses="text"), "must be bin"),
-        (raw_frame("update", seq=0, time=0.0), "needs exactly poses, seq, time"),
+        (raw_frame("update", seq=0, time=0.0), r"needs exactly seq, time and poses \(or vpose\)"),
         (raw_frame("update", seq=0, time=0.0, poses=b"", extra=1), "needs exactly"),
         (raw_frame("update", seq=-5, time=0.0, poses=b""), "update.seq"),
         (raw_frame("update", seq=0, time=float("nan"), poses=b""), "update.time"),
@@ -268,3 +268,4 @@ def test_update_records_yield_streams_times_and_pose_bytes() -> None:
     assert [r[0] for r in recs] == [7, 8, 9]
     assert [r[1] for r in recs] == [10.0, 10.25, 10.5]
     assert [r[2] for r in recs] == [p.tobytes() for p in poses]
+    assert [r[3] for r in recs] == [None, None, None]  # plain update: no velocity bytes
