@@ -37,7 +37,8 @@ and 16.5 % less running time. :func:`run_table1` measures this on traces:
 
 Every interpolator kind is handled: each method plays out one interval plus
 its look-ahead (``interp.info(m).lookahead``); methods that need keyframe
-velocities get the trace's velocities rounded to float16 and the bigger wire
+velocities get the trace's velocities (:data:`VELOCITY_SOURCE`: causal by
+default, what a live sender has at capture time) rounded to float16 and the bigger wire
 frame of the velocity variant (:func:`method_wire_bytes`), so savings are
 reported in updates/s and in bytes/s. The receiver running time leaves out
 velocity methods (the live receiver cannot render them yet).
@@ -90,7 +91,15 @@ from scenarios.qoe import (
 )
 from scenarios.receiver import StreamBuffer, render_buffers
 from scenarios.synthetic import suite_traces, synthetic_motion
-from scenarios.traces import Trace, TraceError, device_class, find_traces, load_trace
+from scenarios.traces import (
+    CAUSAL_DEGREE,
+    CAUSAL_SAMPLES,
+    Trace,
+    TraceError,
+    device_class,
+    find_traces,
+    load_trace,
+)
 
 __all__ = [
     "CORRECTION_TIME_S",
@@ -144,6 +153,11 @@ PAPER: dict[str, Any] = {
 
 #: Poses in one snapshot for wire sizes: a 16-user room, head + two hands each.
 DEFAULT_ROOM_POSES = 48
+
+#: Where velocity methods' keyframe velocities come from (one of
+#: ``scenarios.traces.VELOCITY_SOURCES``): ``causal`` (past native samples only,
+#: what the live bots send) or ``central`` (needs the next native sample).
+VELOCITY_SOURCE = "causal"
 
 #: Error-versus-latency view: playout delay D = (f + look-ahead) / rate + lag for
 #: these f (lag: one native frame on the ideal network, p95 keyframe age on a link).
@@ -201,9 +215,12 @@ def method_wire_bytes(method: str, room_poses: int = DEFAULT_ROOM_POSES) -> int:
     return wire_bytes(room_poses, extra)
 
 
-def keyframe_velocities(trace: Trace) -> F64:
-    """The trace's velocities ``(N, S, 6)`` as the velocity variant carries them (float16)."""
-    v = trace.velocities()
+def keyframe_velocities(trace: Trace, source: str | None = None) -> F64:
+    """The trace's velocities ``(N, S, 6)`` as the velocity variant carries them (float16).
+
+    ``source``: ``causal`` or ``central`` (default :data:`VELOCITY_SOURCE`).
+    """
+    v = trace.velocities_from(VELOCITY_SOURCE if source is None else source)
     lim = float(np.finfo(VELOCITY_WIRE_DTYPE).max)
     out: F64 = np.clip(v, -lim, lim).astype(VELOCITY_WIRE_DTYPE).astype(np.float64)
     return out
@@ -1550,8 +1567,13 @@ def run_table1(
             "velocity_variant": {
                 "bytes_per_pose": VELOCITY_BYTES_PER_POSE,
                 "encoding": "6 x float16 (linear m/s, angular rad/s, world frame) after each pose",
-                "source": "trace velocities by central differences at the native rate, rounded "
-                "to float16",
+                "source": f"trace velocities ({VELOCITY_SOURCE}: "
+                + (
+                    f"degree-{CAUSAL_DEGREE} fit over the last {CAUSAL_SAMPLES} native samples"
+                    if VELOCITY_SOURCE == "causal"
+                    else "central differences at the native rate"
+                )
+                + "), rounded to float16",
             },
             "running_time_methods": benched,
             "seed": seed,

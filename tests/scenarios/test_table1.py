@@ -214,14 +214,18 @@ def test_every_interpolator_kind_runs_with_its_own_delay_and_bytes(dev_trace_pat
 
 def test_velocity_keyframes_are_float16_and_accurate_enough(dev_trace_path: Path) -> None:
     """The velocity variant rounds to float16: under 0.05 % of the value, far below what matters."""
-    from scenarios.table1 import keyframe_velocities
+    from scenarios.table1 import VELOCITY_SOURCE, keyframe_velocities
 
     trace = load_trace(dev_trace_path)
-    exact = trace.velocities()
-    sent = keyframe_velocities(trace)
-    assert np.array_equal(sent, sent.astype(np.float16).astype(np.float64))
-    rel = np.abs(sent - exact) / np.maximum(np.abs(exact), 1e-3)
-    assert float(rel.max()) <= 2.0**-11
+    for source in ("causal", "central"):
+        exact = trace.velocities_from(source)
+        sent = keyframe_velocities(trace, source)
+        assert np.array_equal(sent, sent.astype(np.float16).astype(np.float64))
+        rel = np.abs(sent - exact) / np.maximum(np.abs(exact), 1e-3)
+        assert float(rel.max()) <= 2.0**-11
+    # The default is what a live sender can report at capture time.
+    assert VELOCITY_SOURCE == "causal"
+    np.testing.assert_array_equal(keyframe_velocities(trace), keyframe_velocities(trace, "causal"))
 
 
 def test_link_sweep_sends_velocity_methods_through_the_link(dev_trace_path: Path) -> None:
