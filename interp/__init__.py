@@ -22,6 +22,7 @@ from interp.pose import (
     quat_mul,
     quat_rotate,
 )
+from interp.quintic import motor_quintic
 from interp.registry import (
     ENTRY_POINT_GROUP,
     Interpolator,
@@ -62,6 +63,7 @@ __all__ = [
     "motor_cubic",
     "motor_hermite",
     "motor_lerp",
+    "motor_quintic",
     "motor_to_pose",
     "names",
     "pose_from_tq",

@@ -49,6 +49,7 @@ from numpy.typing import ArrayLike
 from interp.cubic import motor_cubic, motor_hermite
 from interp.methods import dq_slerp, motor_lerp, soa
 from interp.pose import F64
+from interp.quintic import QUINTIC_LOOKAHEAD, QUINTIC_LOOKBEHIND, motor_quintic
 
 __all__ = [
     "ENTRY_POINT_GROUP",
@@ -225,4 +226,16 @@ register(
     description="Hermite cubic on motors from keyframe poses + tracker velocities",
     frame_invariant=True,
     kind="velocity",
+)
+register(
+    "motor-quintic",
+    motor_quintic,
+    description=(
+        "C2 quintic on motors over 6 keyframes, derivatives from local quartics "
+        "(2 keyframes look-ahead)"
+    ),
+    frame_invariant=True,
+    kind="window",
+    lookbehind=QUINTIC_LOOKBEHIND,
+    lookahead=QUINTIC_LOOKAHEAD,
 )
