@@ -7,6 +7,14 @@ times in server time), receiver (snapshots into per-stream jitter buffers and
 an arrival log), renderer (every remote stream at ``server_now - D`` in one
 batched call per interpolator) and pinger. At the end it scores what it received
 with :mod:`scenarios.qoe`, exactly as DESIGN.md defines it.
+
+Velocity keyframes: when a rendered method needs them (``motor-hermite``) or
+``BotConfig.velocities`` says so, the bot joins with ``sends_velocities`` and
+``wants_velocities``: it publishes each pose with the velocity a tracker runtime
+could report at capture time (:meth:`scenarios.traces.Trace.causal_velocities`,
+past native samples only), receives velocity snapshots, keeps the velocities in
+its buffers and arrival log, and renders and scores velocity methods from them
+(streams of peers that send no velocities arrive with zeros).
 """
 
 from __future__ import annotations
@@ -23,6 +31,7 @@ from numpy.typing import NDArray
 from websockets.exceptions import ConnectionClosed
 
 from client.connection import ClientConnection
+from client.render import VelocityBuffer, render_velocity_buffers
 from interp import info as interp_info
 from protocol import PeerJoined, PeerLeft, Ping, Pong, Snapshot, encode_update
 from scenarios.motion import MotionSpec, sample_at
@@ -55,6 +64,9 @@ class BotConfig:
     initial_pings: int = 8
     #: Keep every rendered frame (first method) for inspection; memory grows.
     keep_render_log: bool = False
+    #: Send velocity keyframes and receive velocity snapshots. None: exactly when a
+    #: rendered method needs keyframe velocities.
+    velocities: bool | None = None
 
 
 @dataclass
@@ -65,13 +77,18 @@ class RemoteStream:
     stream: int
     name: str
     label: str | None
-    buffer: StreamBuffer = field(default_factory=StreamBuffer)
+    buffer: StreamBuffer = field(default_factory=VelocityBuffer)
     capture: list[float] = field(default_factory=list)
     #: Arrival times in server time (with the clock offset known on arrival).
     arrival: list[float] = field(default_factory=list)
     #: The same arrivals on the bot's own clock.
     arrival_local: list[float] = field(default_factory=list)
     poses: list[NDArray[np.float32]] = field(default_factory=list)
+    #: With velocity snapshots: the velocity received with each pose, (6,) float64
+    #: from float16 (linear m/s, angular rad/s, world frame).
+    velocities: list[NDArray[np.float64]] = field(default_factory=list)
+    #: Whether the sender reports velocities (else the received ones are zeros).
+    sends_velocities: bool = False
 
 
 @dataclass
@@ -93,6 +110,8 @@ class BotReport:
     bytes_out: int
     duration: float
     clock_rtt_ms: float
+    #: Whether it sent and received velocity keyframes (snapshot bytes include them).
+    velocities: bool = False
     streams: dict[tuple[int, int], RemoteStream] = field(default_factory=dict, repr=False)
     #: With ``keep_render_log``: (playout time, D, bot clock at render,
     #: {stream key: (pose, stalled)}).
@@ -115,17 +134,21 @@ class _Bot:
         self.cfg = cfg
         self.clock = clock
         self.est = ClockEstimator()
-        for m in cfg.methods:
-            if interp_info(m).needs_velocity:
-                raise ValueError(
-                    f"{m} needs keyframes with velocities, which live sessions do not carry "
-                    "yet; use it offline (posecast compare / table1)"
-                )
+        needs = [m for m in cfg.methods if interp_info(m).needs_velocity]
+        self.velocities = bool(needs) if cfg.velocities is None else cfg.velocities
+        if needs and not self.velocities:
+            raise ValueError(f"{', '.join(needs)} need keyframe velocities (velocities=False)")
+        self.velocity_methods = tuple(needs)
+        self.plain_methods = tuple(m for m in cfg.methods if m not in needs)
+        #: Causal velocities of the bot's own motion at its native samples, if it sends them.
+        self.send_velocities: NDArray[np.float64] | None = None
         # A window method waits for the keyframe after the bracket: one more interval.
         lookahead = max(interp_info(m).lookahead for m in cfg.methods)
         self.delay = PlayoutDelay(interval=(1.0 + lookahead) / cfg.rate)
         self.remote: dict[tuple[int, int], RemoteStream] = {}
         self.peers: dict[int, tuple[dict[int, str], str | None]] = {}
+        #: Peers whose updates carry velocities (peer_joined.velocities).
+        self.velocity_peers: set[int] = set()
         self.play_t: list[float] = []
         self.play_d: list[float] = []
         self.render_stalls = 0
@@ -158,6 +181,8 @@ class _Bot:
 
     def _add_peer(self, ev: PeerJoined) -> None:
         self.peers[ev.user] = ({sid: name for name, sid in ev.streams.items()}, ev.label)
+        if ev.velocities:
+            self.velocity_peers.add(ev.user)
 
     def _on_event(self, ev: object, arrival: float, size: int) -> None:
         if isinstance(ev, Snapshot):
@@ -174,6 +199,8 @@ class _Bot:
         arrival_srv = arrival + self.est.offset
         users, streams = snap.users, snap.streams
         caps, poses = snap.capture_times, snap.poses
+        vels = snap.velocities
+        vel64 = None if vels is None else vels.astype(np.float64)
         self.snapshot_bytes += size
         floor = self.play_t[-1] if self.play_t else -np.inf
         for i in range(len(snap)):
@@ -185,7 +212,11 @@ class _Bot:
             if rs is None:
                 names, label = self.peers.get(user, ({}, None))
                 rs = self.remote[key] = RemoteStream(
-                    user, key[1], names.get(key[1], f"stream{key[1]}"), label
+                    user,
+                    key[1],
+                    names.get(key[1], f"stream{key[1]}"),
+                    label,
+                    sends_velocities=user in self.velocity_peers,
                 )
             cap = float(caps[i])
             pose = np.array(poses[i])
@@ -194,13 +225,20 @@ class _Bot:
             rs.arrival.append(arrival_srv)
             rs.arrival_local.append(arrival)
             rs.poses.append(pose)
-            rs.buffer.push(cap, pose, floor)
+            if vel64 is None:
+                rs.buffer.push(cap, pose, floor)
+            else:
+                rs.velocities.append(vel64[i])
+                buf = rs.buffer
+                assert isinstance(buf, VelocityBuffer)
+                buf.push(cap, pose, floor, vel64[i])
             self.delay.observe(arrival_srv - cap)
 
     async def _publish(self, conn: ClientConnection, stop: float) -> None:
         assert self.trace is not None and self.spec is not None and conn.joined is not None
         trace, t0 = self.trace, self.spec.t0
         ids = np.array([conn.joined.streams[n] for n in trace.streams])
+        vel = self.send_velocities
         period = 1.0 / self.cfg.send_rate
         seq = 0
         last = -1.0
@@ -220,6 +258,7 @@ class _Bot:
                     np.full(ids.size, cap),
                     trace.poses[idx].astype(np.float32),
                     base_time=cap,
+                    velocities=None if vel is None else vel[idx],
                 )
                 await conn.send_bytes(data)
             k += 1
@@ -238,6 +277,7 @@ class _Bot:
     async def _render(self, stop: float) -> None:
         period = 1.0 / self.cfg.render_rate
         methods = self.cfg.methods
+        plain, with_velocity = self.plain_methods, self.velocity_methods
         nxt = self.clock()
         while self.server_now() < stop:
             local = self.clock()
@@ -245,11 +285,17 @@ class _Bot:
             d = self.delay.update(now_srv)
             t_play = now_srv - d
             c0 = time.process_time()
-            frame = render_buffers([rs.buffer for rs in self.remote.values()], t_play, methods)
+            buffers = [rs.buffer for rs in self.remote.values()]
+            frame = render_buffers(buffers, t_play, plain)
+            rendered = frame.poses
+            if with_velocity:
+                vbufs = [b for b in buffers if isinstance(b, VelocityBuffer)]
+                assert len(vbufs) == len(buffers)  # RemoteStream's default buffer
+                rendered = {**rendered, **render_velocity_buffers(vbufs, t_play, with_velocity)}
             self.render_cpu += time.process_time() - c0
             if self.cfg.keep_render_log:
                 keys = [k for k, rs in self.remote.items() if len(rs.buffer)]
-                first = frame.poses[methods[0]]
+                first = rendered[methods[0]]
                 self.render_log.append(
                     (
                         t_play,
@@ -287,12 +333,16 @@ class _Bot:
             # Reading a trace CSV takes a while: not on the event loop.
             motion = await asyncio.to_thread(self.spec.load)
             self.trace = motion.select(DEVICE_NAMES)
+            if self.velocities:
+                self.send_velocities = await asyncio.to_thread(self.trace.causal_velocities)
             await conn.join(
                 room=cfg.room,
                 streams=self.trace.streams,
                 rate=cfg.rate,
                 token=cfg.token,
                 label=self.spec.label(),
+                sends_velocities=self.velocities,
+                wants_velocities=self.velocities,
             )
             for ev in conn.early_peers:
                 self._add_peer(ev)
@@ -337,13 +387,17 @@ class _Bot:
             bytes_out=self.conn.bytes_out,
             duration=span,
             clock_rtt_ms=1000.0 * self.est.rtt,
+            velocities=self.velocities,
             streams=self.remote,
             render_log=self.render_log,
         )
 
 
 def remote_log(rs: RemoteStream) -> KeyframeLog:
-    """The stream's arrival log as a KeyframeLog (sorted by capture, deduplicated)."""
+    """The stream's arrival log as a KeyframeLog (sorted by capture, deduplicated).
+
+    With the received velocities when every keyframe came with one.
+    """
     cap = np.asarray(rs.capture, dtype=np.float64)
     arr = np.asarray(rs.arrival, dtype=np.float64)
     poses = np.asarray(rs.poses, dtype=np.float64).reshape(-1, 1, 7)
@@ -351,7 +405,10 @@ def remote_log(rs: RemoteStream) -> KeyframeLog:
     cap, arr, poses = cap[order], arr[order], poses[order]
     keep = np.ones(cap.shape, dtype=bool)
     keep[1:] = cap[1:] != cap[:-1]  # a duplicate: the first arrival counts
-    return KeyframeLog(cap[keep], arr[keep], poses[keep])
+    vel = None
+    if rs.velocities and len(rs.velocities) == len(rs.capture):
+        vel = np.asarray(rs.velocities, dtype=np.float64).reshape(-1, 1, 6)[order][keep]
+    return KeyframeLog(cap[keep], arr[keep], poses[keep], vel)
 
 
 def evaluate_remote(

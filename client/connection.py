@@ -94,9 +94,25 @@ class ClientConnection:
         rate: float,
         token: str | None = None,
         label: str | None = None,
+        sends_velocities: bool = False,
+        wants_velocities: bool = False,
     ) -> Joined:
-        """Join ``room``; :class:`JoinRefused` if the server refuses."""
-        await self.send(Join(room=room, streams=streams, rate=rate, token=token, label=label))
+        """Join ``room``; :class:`JoinRefused` if the server refuses.
+
+        ``sends_velocities``: this client's updates will be of the velocity
+        variant; ``wants_velocities``: send it velocity snapshots.
+        """
+        await self.send(
+            Join(
+                room=room,
+                streams=streams,
+                rate=rate,
+                token=token,
+                label=label,
+                sends_velocities=sends_velocities,
+                wants_velocities=wants_velocities,
+            )
+        )
         joined = await self._expect(Joined)
         assert isinstance(joined, Joined)
         self.joined = joined
@@ -115,11 +131,21 @@ class ClientConnection:
         agent: str = "posecast-bot",
         clock: Callable[[], float] = time.monotonic,
         open_timeout: float = 10.0,
+        sends_velocities: bool = False,
+        wants_velocities: bool = False,
     ) -> ClientConnection:
         """Connect, say hello and join ``room``; :class:`JoinRefused` if refused."""
         conn = await cls.connect(url, agent=agent, clock=clock, open_timeout=open_timeout)
         try:
-            await conn.join(room=room, streams=streams, rate=rate, token=token, label=label)
+            await conn.join(
+                room=room,
+                streams=streams,
+                rate=rate,
+                token=token,
+                label=label,
+                sends_velocities=sends_velocities,
+                wants_velocities=wants_velocities,
+            )
         except BaseException:
             await conn.ws.close()
             raise

@@ -63,6 +63,8 @@ def swarm_report(reports: Sequence[BotReport]) -> dict[str, Any]:
             "bytes_per_s": snap_bytes / seconds if seconds else float("nan"),
             "bytes_in_total": sum(r.bytes_in for r in reports),
             "bytes_out_total": sum(r.bytes_out for r in reports),
+            # Velocity keyframes (12 B more a pose, 6 x float16) are in the figures above.
+            "velocity_keyframes": any(r.velocities for r in reports),
         },
         "bots": [
             {

@@ -189,6 +189,7 @@ def print_swarm(report: dict[str, Any], title: str) -> None:
     console.print(
         f"wire: {wire['bytes_per_pose']:.1f} bytes per remote pose, "
         f"{wire['bytes_per_s'] / 1000:.1f} kB/s per bot downstream"
+        + (" (velocity keyframes, 12 B a pose included)" if wire.get("velocity_keyframes") else "")
     )
 
 
@@ -317,7 +318,8 @@ def _check_bot_args(
         raise _fail("--duration must be positive")
     if rate <= 0:
         raise _fail("--rate must be positive")
-    methods = tuple(_parse_methods(interp_text, live=True))
+    # Velocity methods run live: the bots then send and receive velocity keyframes.
+    methods = tuple(_parse_methods(interp_text))
     if not motion.startswith("synthetic"):
         try:
             find_traces(motion)
