@@ -14,7 +14,7 @@ of that work out of the relay's process:
 - at most every ``batch_delay`` s (the room tick calls :meth:`poll`) or every
   ``batch_size`` records the batch is joined into one blob and offered to a
   bounded queue; a feeder thread writes the blobs into a pipe;
-- a child process (``python -m recorder.process``) reads the pipe, decodes the
+- a child process (:func:`main` here) reads the pipe, decodes the
   frames and records them with a :class:`SessionRecorder` of its own (same
   file layout, chunking, fsync schedule, ``.part`` and rename).
 
@@ -91,6 +91,10 @@ _CHANNEL_INDEX: Final = {topic: i for i, topic in enumerate(_TOPICS)}
 #: Seconds to wait for the child to open the file, and to finish it on close.
 _START_TIMEOUT: Final = 60.0
 _CLOSE_TIMEOUT: Final = 120.0
+_CHILD_BOOT: Final = "import sys; from recorder.process import main; sys.exit(main())"
+#: The child's own hand-off to its writer thread: records per batch, seconds at most.
+_CHILD_BATCH: Final = 256
+_CHILD_BATCH_DELAY: Final = 0.05
 
 Clock = Callable[[], float]
 
@@ -240,7 +244,7 @@ class ProcessRecorder:
         root = str(Path(__file__).resolve().parent.parent)
         env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
         proc = subprocess.Popen(
-            [sys.executable, "-m", "recorder.process", json.dumps(config)],
+            [sys.executable, "-c", _CHILD_BOOT, json.dumps(config)],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             env=env,
@@ -257,6 +261,10 @@ class ProcessRecorder:
             with contextlib.suppress(Exception):
                 proc.kill()
                 proc.wait(5)
+            for pipe in (proc.stdin, proc.stdout):
+                with contextlib.suppress(Exception):
+                    if pipe is not None:
+                        pipe.close()
             raise
         return cls(
             proc,
@@ -592,11 +600,41 @@ def _emit(event: Mapping[str, Any]) -> None:
     sys.stdout.flush()
 
 
-def _read_exact(stream: IO[bytes], n: int) -> bytes | None:
-    data = stream.read(n)
-    if len(data) < n:
-        return None
-    return data
+def _pump(rec: SessionRecorder, fd: int) -> float | None:
+    """Record what comes through the pipe; the stop's end time, or ``None`` at its end."""
+    buf = bytearray()
+    head_size = _HEAD.size
+    frame_at, record_at = _FRAME.size, _RECORD.size
+    while True:
+        # Wake at least every batch delay so a waiting batch reaches the writer
+        # (and the disk) even when the room has gone quiet.
+        ready, _, _ = select.select([fd], [], [], _CHILD_BATCH_DELAY)
+        if ready:
+            chunk = os.read(fd, 1 << 20)
+            if not chunk:
+                return None
+            buf += chunk
+            at = 0
+            end = len(buf)
+            while end - at >= head_size:
+                kind, length = _HEAD.unpack_from(buf, at)
+                stop = at + head_size + length
+                if stop > end:
+                    break
+                if kind == _KIND_FRAME:
+                    _k, _n, user, poses, arrival = _FRAME.unpack_from(buf, at)
+                    rec.record_update_frame(user, arrival, bytes(buf[at + frame_at : stop]), poses)
+                elif kind == _KIND_RECORD:
+                    _k, _n, channel, log_ns, pub_ns, poses = _RECORD.unpack_from(buf, at)
+                    data = bytes(buf[at + record_at : stop])
+                    rec.offer_encoded(_TOPICS[channel], log_ns, pub_ns, data, poses)
+                elif kind == _KIND_STOP:
+                    return float(_STOP.unpack_from(buf, at)[2])
+                else:
+                    raise ValueError(f"unknown pipe message kind {kind}")
+                at = stop
+            del buf[:at]
+        rec.poll()
 
 
 def _child(config: Mapping[str, Any]) -> int:
@@ -618,35 +656,20 @@ def _child(config: Mapping[str, Any]) -> int:
             flush_interval=float(config["flush_interval"]),
             chunk_bytes=int(config["chunk_bytes"]),
             metadata={**config.get("metadata", {}), "writer": "process"},
+            # Records reach the writer thread in batches: one wake-up per batch.
+            batch_size=_CHILD_BATCH,
+            batch_delay=_CHILD_BATCH_DELAY,
         )
     except Exception as exc:
         _emit({"event": "error", "error": repr(exc)})
         return 1
     _emit({"event": "ready", "part": str(rec.part_path), "path": str(rec.path)})
-    stream = sys.stdin.buffer
-    head_size = _HEAD.size
-    end: float | None = None
-    while True:
-        head = _read_exact(stream, head_size)
-        if head is None:
-            break
-        kind, length = _HEAD.unpack(head)
-        payload = _read_exact(stream, length)
-        if payload is None:
-            break
-        if kind == _KIND_FRAME:
-            user, poses, arrival = struct.unpack_from("<HId", payload)
-            rec.record_update_frame(user, arrival, payload[_FRAME_EXTRA:], poses)
-        elif kind == _KIND_RECORD:
-            channel, log_ns, pub_ns, poses = struct.unpack_from("<BqqI", payload)
-            rec.offer_encoded(_TOPICS[channel], log_ns, pub_ns, payload[_RECORD_EXTRA:], poses)
-        elif kind == _KIND_STOP:
-            (end,) = struct.unpack("<d", payload)
-            break
-        else:
-            _emit({"event": "error", "error": f"unknown pipe message kind {kind}"})
-            rec.abandon()
-            return 1
+    try:
+        end = _pump(rec, sys.stdin.buffer.fileno())
+    except ValueError as exc:
+        _emit({"event": "error", "error": str(exc)})
+        rec.abandon()
+        return 1
     if end is None:
         # The relay vanished (crash, SIGKILL): make what arrived durable, keep the .part.
         rec.abandon()
@@ -664,7 +687,7 @@ def _child(config: Mapping[str, Any]) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
     if len(args) != 1:
-        sys.stderr.write("usage: python -m recorder.process CONFIG_JSON (started by the server)\n")
+        sys.stderr.write("usage: recorder.process.main CONFIG_JSON (started by the server)\n")
         return 2
     logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
     return _child(json.loads(args[0]))

@@ -621,9 +621,13 @@ class SessionRecorder:
         fsyncs, but writes no summary and does not rename. For a writer process
         whose relay vanished (it cannot know whether the session is over).
         """
+        batch, self._batch = self._batch, []
         with self._lock:
             self._closing = True
+            self._offered += len(batch)
         self.release()
+        if batch:
+            self._put_blocking(batch)
         self._put_blocking(_ABANDON)
         self._thread.join()
         self._closed = True

@@ -208,6 +208,13 @@ def serve(
         Path | None,
         typer.Option(help="Record every room session as MCAP into this folder."),
     ] = None,
+    record_writer: Annotated[
+        str,
+        typer.Option(
+            help="Where the recorder writes: process (a child process, off the relay's CPU "
+            "time) or thread (inside the server process)."
+        ),
+    ] = "process",
     link: Annotated[
         str | None,
         typer.Option(
@@ -229,6 +236,8 @@ def serve(
 
     if not 0 < min_rate <= rate <= max_rate:
         raise _fail("need 0 < --min-rate <= --rate <= --max-rate")
+    if record_writer not in ("process", "thread"):
+        raise _fail(f"--record-writer must be process or thread, not {record_writer!r}")
     logging.basicConfig(
         level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
@@ -240,6 +249,7 @@ def serve(
         max_rate=max_rate,
         secret=secret,
         record_dir=record,
+        record_writer="thread" if record_writer == "thread" else "process",
         link=_tier(link, tiers) if link is not None else None,
     )
 
@@ -455,17 +465,43 @@ def bench_relay(
     room_size: Annotated[int, typer.Option(help="Clients per room.")] = 10,
     rate: Annotated[float, typer.Option(help="Publish and snapshot rate (Hz).")] = 20.0,
     duration: Annotated[float, typer.Option(help="Measured seconds (after warm-up).")] = 30.0,
-    record: Annotated[bool, typer.Option(help="Record the session on the server.")] = False,
+    record: Annotated[
+        bool,
+        typer.Option(help="Run twice, recorder off then on, and report its cost (Table 4)."),
+    ] = False,
+    record_writer: Annotated[
+        str,
+        typer.Option(
+            help="With --record: process, thread, or both (three runs: off, process, thread)."
+        ),
+    ] = "process",
+    json_out: Annotated[
+        Path | None, typer.Option("--json", help="Also write the report as JSON here.")
+    ] = None,
 ) -> None:
     """Relay throughput: server CPU per pose, latency p50/p99, skips, tick lag."""
     from server.bench import run_relay_bench
 
     if clients < 1 or room_size < 1 or rate <= 0 or duration <= 0:
         raise _fail("--clients, --room-size, --rate and --duration must be positive")
+    if record_writer not in ("process", "thread", "both"):
+        raise _fail(f"--record-writer must be process, thread or both, not {record_writer!r}")
     try:
-        run_relay_bench(clients, room_size, rate, duration, record=record, console=console)
+        report = run_relay_bench(
+            clients,
+            room_size,
+            rate,
+            duration,
+            record=record,
+            record_writer=record_writer,
+            console=console,
+        )
     except (ValueError, RuntimeError) as exc:
         raise _fail(str(exc)) from None
+    if json_out is not None:
+        import json
+
+        json_out.write_text(json.dumps(report, indent=2, default=float) + "\n")
 
 
 @app.command()

@@ -46,11 +46,19 @@ def test_update_template_packs_like_encode_update() -> None:
 
 
 def test_relay_bench_smoke() -> None:
-    """20 clients in rooms of 5 for 2 s, recorder off then on: snapshots, sane figures."""
+    """20 clients in rooms of 5 for 2 s, recorder off then on (both writers): sane figures."""
     out = io.StringIO()
     console = Console(file=out, width=160)
     report = run_relay_bench(
-        20, 5, 20.0, 2.0, record=True, console=console, warmup=1.0, ramp_rate=100.0
+        20,
+        5,
+        20.0,
+        2.0,
+        record=True,
+        record_writer="both",
+        console=console,
+        warmup=1.0,
+        ramp_rate=100.0,
     )
     assert report.keys() >= EXPECTED_KEYS
     assert report["clients_joined"] == 20 and report["clients_failed"] == 0
@@ -74,3 +82,10 @@ def test_relay_bench_smoke() -> None:
     assert rec["disk_bytes"] > 0 and 0 < rec["disk_bytes_per_pose"] < 100
     assert rec["throughput_ratio"] > 0 and "recorder cost (Table 4)" in text
     assert report["recorder_off"]["record"] is False and report["record"] is True
+    # the process writer's CPU is measured (its own process), the thread writer's is the relay's
+    assert report["record_writer"] == "process" and rec["writer"] == "process"
+    assert rec["recorder_process_cpu_us_per_pose"] > 0
+    thread = report["recorder_by_writer"]["thread"]
+    assert thread["files"] == 4 and thread["recorder_process_cpu_us_per_pose"] == 0
+    assert report["recorder_on_thread"]["record_writer"] == "thread"
+    assert "on (process writer)" in text and "on (thread writer)" in text
