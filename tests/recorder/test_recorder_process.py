@@ -1,0 +1,199 @@
+"""The writer-process recorder: same file as the thread recorder, losses recorded, crash-safe."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from reckit import T0, make_updates
+
+from protocol import PoseUpdate, encode_message
+from recorder import (
+    DropRecord,
+    EventRecord,
+    PoseRecord,
+    PresenceRecord,
+    ProcessRecorder,
+    RecorderError,
+    SessionReader,
+    SessionRecorder,
+    read_records,
+    recover,
+)
+
+
+def _frames(count: int, seed: int = 0) -> list[tuple[int, float, bytes, int]]:
+    """(user, arrival, update frame, poses) as a relay receives them."""
+    out = []
+    for u in make_updates(count, seed=seed):
+        poses = u.poses.astype(np.float64)
+        poses[:, 3:] /= np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)
+        msg = PoseUpdate.from_arrays(u.seq, u.streams, u.capture_times, poses)
+        out.append((u.user, u.arrival, encode_message(msg), len(u.streams)))
+    return out
+
+
+def _feed(
+    rec: ProcessRecorder | SessionRecorder, frames: list[tuple[int, float, bytes, int]]
+) -> None:
+    for k, (user, arrival, frame, n) in enumerate(frames):
+        assert rec.record_update_frame(user, arrival, frame, n)
+        if k % 40 == 0:
+            rec.record_presence({"kind": "rate", "user": user, "rate": 20.0}, arrival)
+            rec.record_event({"kind": "grab", "user": user, "object": k}, arrival)
+        rec.poll()
+
+
+def _content(path: Path) -> list[tuple[object, ...]]:
+    rows: list[tuple[object, ...]] = []
+    for r in read_records(path):
+        if isinstance(r, PoseRecord):
+            rows.append(
+                (
+                    "pose",
+                    r.user,
+                    r.seq,
+                    r.arrival,
+                    r.streams.tobytes(),
+                    r.capture_times.tobytes(),
+                    r.poses.tobytes(),
+                )
+            )
+        elif isinstance(r, PresenceRecord | EventRecord | DropRecord):
+            rows.append((type(r).__name__, r.time, sorted(r.data.items())))
+    return rows
+
+
+def test_process_recorder_writes_what_the_thread_recorder_writes(tmp_path: Path) -> None:
+    """Same frames and records into both recorders: the same records, bit for bit."""
+    frames = _frames(400)
+    proc = ProcessRecorder.open(tmp_path / "p", "r", name="s", clock=lambda: T0, batch_size=32)
+    assert proc.part_path.exists() and proc.part_path.name == "s.mcap.part"
+    _feed(proc, frames)
+    path_p = proc.close(T0 + 30)
+    thread = SessionRecorder.open(tmp_path / "t", "r", name="s", clock=lambda: T0)
+    _feed(thread, frames)
+    path_t = thread.close(T0 + 30)
+
+    assert path_p.name == "s.mcap" and not proc.part_path.exists()
+    got, want = _content(path_p), _content(path_t)
+    assert len([g for g in got if g[0] == "pose"]) == 400
+    assert got == want
+    stats = proc.statistics()
+    assert stats.closed and stats.error is None
+    assert stats.records_offered == 400 + 2 * 10
+    assert stats.records_written == stats.records_offered + 1  # + the recording-start event
+    assert stats.poses_written == sum(f[3] for f in frames)
+    assert stats.queue_drops == 0 and stats.rejected == 0 and stats.fsyncs >= 1
+    assert stats.bytes_written == path_p.stat().st_size
+    with SessionReader(path_p) as reader:
+        assert reader.session["writer"] == "process"
+
+
+def test_a_full_queue_loses_batches_counts_them_and_records_the_loss(tmp_path: Path) -> None:
+    frames = _frames(200)
+    rec = ProcessRecorder.open(
+        tmp_path, "r", name="o", clock=lambda: T0, queue_size=8, batch_size=4
+    )
+    rec.hold()  # the feeder stops: the pipe's queue (8 records = 2 batches) fills
+    for user, arrival, frame, n in frames[:40]:
+        rec.record_update_frame(user, arrival, frame, n)
+    stats = rec.statistics()
+    # the feeder may have taken one batch before it noticed the hold
+    assert stats.records_offered in (8, 12) and stats.queue_drops == 40 - stats.records_offered
+    lost = [f for f in frames[stats.records_offered : 40]]
+    assert stats.queue_drop_poses == sum(f[3] for f in lost)
+    rec.release()
+    for k in (40, 44, 48):
+        while rec.statistics().queue_depth:
+            time.sleep(0.001)
+        for user, arrival, frame, n in frames[k : k + 4]:  # one batch each
+            rec.record_update_frame(user, arrival, frame, n)
+    path = rec.close()
+    assert rec.statistics().loss_records == 1
+    records = [r for r in read_records(path) if isinstance(r, PoseRecord | DropRecord)]
+    kept = stats.records_offered
+    assert [r.seq for r in records[:kept] if isinstance(r, PoseRecord)] == [
+        PoseUpdate_seq(f) for f in frames[:kept]
+    ]
+    loss = records[kept]
+    assert isinstance(loss, DropRecord) and loss.kind == "recorder-queue-overflow"
+    assert loss.data["count"] == len(lost) and loss.data["poses"] == stats.queue_drop_poses
+    assert loss.data["topics"] == {"poses": len(lost)}
+    assert loss.data["first_time"] == pytest.approx(lost[0][1], abs=1e-9)
+    assert loss.data["last_time"] == pytest.approx(lost[-1][1], abs=1e-9)
+    assert len(records) == kept + 1 + 12
+
+
+def PoseUpdate_seq(frame: tuple[int, float, bytes, int]) -> int:
+    from protocol import decode_message
+
+    msg = decode_message(frame[2])
+    assert isinstance(msg, PoseUpdate)
+    return msg.seq
+
+
+def test_when_the_relay_vanishes_the_child_keeps_a_recoverable_part(tmp_path: Path) -> None:
+    """The pipe closes without a stop (the server was SIGKILLed): nothing taken is lost."""
+    frames = _frames(300)
+    rec = ProcessRecorder.open(tmp_path, "r", name="c", clock=lambda: T0, batch_size=16)
+    _feed(rec, frames)
+    rec._handoff()
+    while rec.statistics().queue_depth:
+        time.sleep(0.001)
+    rec._queue.put(None)  # stop the feeder, then close the pipe the way a dying process does
+    rec._feeder.join()
+    proc = rec._proc
+    assert proc.stdin is not None
+    proc.stdin.close()
+    assert proc.wait(30) == 2
+    assert proc.stdout is not None
+    proc.stdout.close()
+    assert rec.part_path.exists() and not rec.path.exists()
+    out = tmp_path / "recovered.mcap"
+    report = recover(rec.part_path, out)
+    assert report.chunks_lost == 0 and not report.complete
+    poses = [r for r in read_records(out) if isinstance(r, PoseRecord)]
+    assert [(r.user, r.seq) for r in poses] == [(f[0], PoseUpdate_seq(f)) for f in frames]
+
+
+def test_a_dead_writer_process_fails_the_recorder_not_the_relay(tmp_path: Path) -> None:
+    frames = _frames(100)
+    rec = ProcessRecorder.open(tmp_path, "r", name="d", clock=lambda: T0, batch_size=4)
+    _feed(rec, frames[:20])
+    os.kill(rec._proc.pid, signal.SIGKILL)
+    rec._proc.wait(10)
+    deadline = time.monotonic() + 10
+    while not rec.failed and time.monotonic() < deadline:
+        for user, arrival, frame, n in frames[20:40]:
+            rec.record_update_frame(user, arrival, frame, n)  # never raises, never blocks
+        rec.poll()
+        time.sleep(0.01)
+    assert rec.failed and "recorder process" in (rec.statistics().error or "")
+    assert not rec.record_update_frame(*frames[50])
+    with pytest.raises(RecorderError, match="partial file kept"):
+        rec.close()
+    assert rec.part_path.exists()
+
+
+def test_bad_records_are_refused_and_counted(tmp_path: Path) -> None:
+    rec = ProcessRecorder.open(tmp_path, "r", name="b", clock=lambda: T0)
+    assert not rec.record_update(1, 0, T0, [1, 2], [T0], np.zeros((2, 7)))
+    assert not rec.record_event({"bad": object()}, T0)
+    # a frame that is not an update reaches the child, which refuses and counts it
+    assert rec.record_update_frame(1, T0, b"\x00garbage", 1)
+    path = rec.close(T0 + 1)
+    stats = rec.statistics()
+    assert stats.rejected == 3
+    assert not [r for r in read_records(path) if isinstance(r, PoseRecord)]
+
+
+def test_open_fails_clearly_when_the_folder_cannot_be_written(tmp_path: Path) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    with pytest.raises(RecorderError, match="did not start"):
+        ProcessRecorder.open(blocker / "sub", "r")
