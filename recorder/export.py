@@ -46,7 +46,7 @@ from recorder.format import (
     posecast_version,
     to_ns,
 )
-from recorder.reader import SessionReader, StreamData, UserInfo, _decode_all
+from recorder.reader import SessionReader, StreamData, UserInfo, decode_poses
 
 __all__ = [
     "FRAME_TRANSFORM_SCHEMA",
@@ -346,7 +346,7 @@ def _fast_read(path: Path) -> SessionArrays | None:
     users = _users(session, sorted(presence, key=lambda r: r[0]))
     # Arrival (log time) order, as SessionReader.load_streams gives it.
     order = np.argsort(np.asarray(pose_times, dtype=np.uint64), kind="stable")
-    cols = _decode_all([pose_data[i] for i in order.tolist()])
+    cols = decode_poses([pose_data[i] for i in order.tolist()])
     streams: list[StreamData] = []
     if len(cols.user):
         keys = (cols.user.astype(np.uint32) << np.uint32(16)) | cols.stream.astype(np.uint32)

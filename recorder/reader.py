@@ -55,11 +55,13 @@ from recorder.scan import ChannelRecord, HeaderRecord, McapScanner, MessageRecor
 __all__ = [
     "DropRecord",
     "EventRecord",
+    "PoseColumns",
     "PresenceRecord",
     "Record",
     "SessionReader",
     "StreamData",
     "UserInfo",
+    "decode_poses",
     "format_info",
     "info",
     "load_streams",
@@ -333,7 +335,7 @@ class SessionReader:
     ) -> dict[tuple[int, int], StreamData]:
         """Every stream (or those of ``users`` / with ids in ``streams``) as arrays."""
         datas = [raw[4] for raw in self._raw((POSES_TOPIC,), start, end, time_order=True)]
-        cols = _decode_all(datas)
+        cols = decode_poses(datas)
         user_set = None if users is None else set(users)
         stream_set = None if streams is None else set(streams)
         infos = self.users()
@@ -409,8 +411,8 @@ def _apply_join(out: dict[int, UserInfo], d: dict[str, Any], time: float | None)
 
 
 @dataclass
-class _Columns:
-    """One row per recorded pose, in arrival order."""
+class PoseColumns:
+    """Pose messages decoded into columns: one row per recorded pose, in message order."""
 
     user: NDArray[np.uint16]
     stream: NDArray[np.uint16]
@@ -419,12 +421,18 @@ class _Columns:
     poses: NDArray[np.float32]
 
 
-def _decode_all(datas: list[bytes]) -> _Columns:
-    """Decode many pose messages at once (grouped by size, one numpy pass per group)."""
+def decode_poses(datas: list[bytes]) -> PoseColumns:
+    """Decode many pose messages (``poses`` channel payloads) at once into columns.
+
+    The fast path behind :func:`load_streams` and the exporters: messages are
+    grouped by size and each group is decoded in one numpy pass (bit-exact, like
+    :func:`recorder.format.decode_pose` one by one). Raises ``FormatError`` on a
+    message that is not a pose message of this format version.
+    """
     groups: dict[int, list[int]] = {}
     for i, d in enumerate(datas):
         groups.setdefault(len(d), []).append(i)
-    parts: list[tuple[NDArray[np.int64], _Columns]] = []
+    parts: list[tuple[NDArray[np.int64], PoseColumns]] = []
     for size, idx in groups.items():
         n, rest = divmod(size - POSE_HEADER_SIZE, POSE_STREAM_SIZE)
         if size < POSE_HEADER_SIZE or rest:
@@ -448,7 +456,7 @@ def _decode_all(datas: list[bytes]) -> _Columns:
         parts.append(
             (
                 msg,
-                _Columns(
+                PoseColumns(
                     user=np.repeat(user, n),
                     stream=stream.reshape(m * n),
                     arrival=np.repeat(abits.view("<f8"), n),
@@ -458,7 +466,7 @@ def _decode_all(datas: list[bytes]) -> _Columns:
             )
         )
     if not parts:
-        return _Columns(
+        return PoseColumns(
             np.zeros(0, np.uint16),
             np.zeros(0, np.uint16),
             np.zeros(0),
@@ -467,7 +475,7 @@ def _decode_all(datas: list[bytes]) -> _Columns:
         )
     msg = np.concatenate([p[0] for p in parts])
     order = np.argsort(msg, kind="stable")
-    return _Columns(
+    return PoseColumns(
         user=np.concatenate([p[1].user for p in parts])[order],
         stream=np.concatenate([p[1].stream for p in parts])[order],
         arrival=np.concatenate([p[1].arrival for p in parts])[order],

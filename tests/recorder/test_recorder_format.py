@@ -117,3 +117,30 @@ def test_to_ns_rounds_and_clamps() -> None:
     assert to_ns(-3.0) == 0
     assert to_ns(float("nan")) == 0
     assert to_ns(float("inf")) == (1 << 64) - 1
+
+
+def test_decode_poses_matches_decode_pose_one_by_one() -> None:
+    """The public batch decoder: mixed sizes, bit-exact, in message order."""
+    from recorder import decode_poses
+
+    rng = np.random.default_rng(7)
+    datas, want = [], []
+    for k in range(50):
+        n = int(rng.integers(0, 4))
+        streams = rng.integers(0, 9, n).astype(np.uint16)
+        caps = 100.0 + rng.uniform(0, 1, n)
+        poses = rng.normal(size=(n, 7)).astype(np.float32)
+        datas.append(encode_pose(k % 5, k, 100.5 + k, streams, caps, poses))
+        want.append(decode_pose(datas[-1]))
+    cols = decode_poses(datas)
+    assert len(cols.user) == sum(len(r.streams) for r in want)
+    np.testing.assert_array_equal(
+        cols.user, np.concatenate([[r.user] * len(r.streams) for r in want])
+    )
+    np.testing.assert_array_equal(cols.stream, np.concatenate([r.streams for r in want]))
+    np.testing.assert_array_equal(cols.capture, np.concatenate([r.capture_times for r in want]))
+    np.testing.assert_array_equal(
+        cols.poses.view(np.uint32), np.concatenate([r.poses for r in want]).view(np.uint32)
+    )
+    with pytest.raises(FormatError):
+        decode_poses([datas[1][:-3]])
