@@ -46,7 +46,7 @@ from recorder.format import (
     posecast_version,
     to_ns,
 )
-from recorder.reader import SessionReader, StreamData, UserInfo, decode_poses
+from recorder.reader import SessionReader, StreamData, UserInfo, decode_poses, split_streams
 
 __all__ = [
     "FRAME_TRANSFORM_SCHEMA",
@@ -277,6 +277,7 @@ def _by_capture(s: StreamData) -> StreamData:
         times=s.times[order],
         arrival=s.arrival[order],
         poses=s.poses[order],
+        velocities=None if s.velocities is None else s.velocities[order],
     )
 
 
@@ -347,29 +348,7 @@ def _fast_read(path: Path) -> SessionArrays | None:
     # Arrival (log time) order, as SessionReader.load_streams gives it.
     order = np.argsort(np.asarray(pose_times, dtype=np.uint64), kind="stable")
     cols = decode_poses([pose_data[i] for i in order.tolist()])
-    streams: list[StreamData] = []
-    if len(cols.user):
-        keys = (cols.user.astype(np.uint32) << np.uint32(16)) | cols.stream.astype(np.uint32)
-        uniq, inverse = np.unique(keys, return_inverse=True)
-        rows = np.argsort(inverse, kind="stable")
-        bounds = np.searchsorted(inverse[rows], np.arange(len(uniq) + 1))
-        for k, key in enumerate(uniq.tolist()):
-            user, sid = key >> 16, key & 0xFFFF
-            idx = rows[bounds[k] : bounds[k + 1]]
-            ui = users.get(user)
-            streams.append(
-                _by_capture(
-                    StreamData(
-                        user=user,
-                        stream=sid,
-                        name=None if ui is None else ui.streams.get(sid),
-                        user_name=None if ui is None else ui.name,
-                        times=cols.capture[idx],
-                        arrival=cols.arrival[idx],
-                        poses=cols.poses[idx],
-                    )
-                )
-            )
+    streams = [_by_capture(data) for data in split_streams(cols, users).values()]
     return SessionArrays(streams, users, session)
 
 

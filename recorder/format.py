@@ -22,7 +22,7 @@ Pose message layout (little-endian, packed, ``22 + 38 n`` bytes for n streams)::
 
     offset      type        field
     0           u8          layout version (1)
-    1           u8          flags (0)
+    1           u8          flags (bit 0: velocities follow the poses)
     2           u16         user id
     4           u16         n: number of streams in this update
     6           u64         update sequence number (the client's ``seq``)
@@ -30,6 +30,9 @@ Pose message layout (little-endian, packed, ``22 + 38 n`` bytes for n streams)::
     22          u16[n]      stream ids
     22 + 2n     u64[n]      capture time bits XOR arrival time bits
     22 + 10n    u8[4][7n]   the (n, 7) float32 poses, byte-shuffled
+    22 + 38n    f16[n][6]   only with flags bit 0: the velocities the update
+                            carried (linear m/s, angular rad/s, world frame;
+                            the protocol's velocity variant), 12 B a stream
 
 Both transforms are exact and exist only to help the chunk compressor: a capture
 time shares its sign, exponent and high mantissa bits with the arrival time, so
@@ -72,6 +75,8 @@ __all__ = [
     "QUEUE_OVERFLOW_KIND",
     "SESSION_END_METADATA",
     "SESSION_METADATA",
+    "VELOCITY_FLAG",
+    "VELOCITY_SIZE",
     "ChannelSpec",
     "FormatError",
     "PoseRecord",
@@ -101,6 +106,9 @@ _HEAD = struct.Struct("<BBHHQd")
 POSE_HEADER_SIZE = _HEAD.size
 #: Bytes per stream in a pose message: id u16, capture time u64, pose 7 x f32.
 POSE_STREAM_SIZE = 2 + 8 + 28
+#: Flags bit of a pose message that carries velocities, and their bytes per stream.
+VELOCITY_FLAG = 1
+VELOCITY_SIZE = 12
 _F64 = struct.Struct("<d")
 _U16 = np.dtype("<u2")
 _U16_MAX = 0xFFFF
@@ -136,7 +144,8 @@ def _json_schema(title: str, required: tuple[str, ...], props: Mapping[str, Any]
 _POSE_LAYOUT = (
     b"posecast pose update, little-endian, packed: u8 version=1, u8 flags=0, u16 user, "
     b"u16 n, u64 seq, f64 arrival_s; u16[n] stream; u64[n] capture_bits^arrival_bits; "
-    b"u8[4][7n] byte planes of float32 poses (n,7) [px,py,pz,qw,qx,qy,qz], row-major"
+    b"u8[4][7n] byte planes of float32 poses (n,7) [px,py,pz,qw,qx,qy,qz], row-major; "
+    b"if flags bit 0: float16 velocities (n,6) [vx,vy,vz,wx,wy,wz] (world frame)"
 )
 _NUM = {"type": "number"}
 _INT = {"type": "integer"}
@@ -196,6 +205,8 @@ class PoseRecord:
     streams: NDArray[np.uint16]
     capture_times: NDArray[np.float64]
     poses: NDArray[np.float32]
+    #: ``(n, 6)`` float16 velocities if the update carried them (velocity variant).
+    velocities: NDArray[np.float16] | None = None
 
     def __len__(self) -> int:
         return len(self.streams)
@@ -224,9 +235,9 @@ def seconds(ns: int) -> float:
     return ns / 1e9
 
 
-def pose_message_size(n: int) -> int:
-    """Bytes of a pose message with ``n`` streams."""
-    return POSE_HEADER_SIZE + POSE_STREAM_SIZE * n
+def pose_message_size(n: int, velocities: bool = False) -> int:
+    """Bytes of a pose message with ``n`` streams (with velocities: 12 more each)."""
+    return POSE_HEADER_SIZE + (POSE_STREAM_SIZE + (VELOCITY_SIZE if velocities else 0)) * n
 
 
 def _xor_times(data: bytes, arrival: float) -> bytes:
@@ -244,10 +255,13 @@ def encode_pose(
     streams: ArrayLike,
     capture_times: ArrayLike,
     poses: ArrayLike,
+    velocities: ArrayLike | None = None,
 ) -> bytes:
     """Pack one update: stream ids (n,), capture times (n,) s, poses (n, 7) as float32.
 
     Float64 poses are rounded to float32 (what the wire carries anyway).
+    ``velocities`` (n, 6), if the update carried them, are stored as float16 (the
+    wire's type: float16 values round-trip exactly).
     """
     if not 0 <= user <= _U16_MAX:
         raise FormatError(f"user id {user} is not a u16")
@@ -266,17 +280,24 @@ def encode_pose(
         if n and (not np.issubdtype(s.dtype, np.integer) or s.min() < 0 or s.max() > _U16_MAX):
             raise FormatError("stream ids must be integers in 0..65535")
         s = s.astype(_U16)
+    tail = b""
+    if velocities is not None:
+        v = np.asarray(velocities)
+        if v.shape != (n, 6):
+            raise FormatError(f"velocities must have shape ({n}, 6), got {v.shape}")
+        tail = v.astype("<f2").tobytes()
     arrival = float(arrival)
     raw = p.tobytes()
     return b"".join(
         (
-            _HEAD.pack(FORMAT_VERSION, 0, user, n, seq, arrival),
+            _HEAD.pack(FORMAT_VERSION, VELOCITY_FLAG if tail else 0, user, n, seq, arrival),
             s.tobytes(),
             _xor_times(c.tobytes(), arrival),
             raw[0::4],
             raw[1::4],
             raw[2::4],
             raw[3::4],
+            tail,
         )
     )
 
@@ -286,11 +307,16 @@ def decode_pose(data: bytes | bytearray | memoryview) -> PoseRecord:
     data = bytes(data)
     if len(data) < POSE_HEADER_SIZE:
         raise FormatError(f"pose message of {len(data)} bytes is shorter than its header")
-    ver, _flags, user, n, seq, arrival = _HEAD.unpack_from(data, 0)
+    ver, flags, user, n, seq, arrival = _HEAD.unpack_from(data, 0)
     if ver != FORMAT_VERSION:
         raise FormatError(f"unknown pose layout version {ver}")
-    if len(data) != pose_message_size(n):
-        raise FormatError(f"pose message of {len(data)} bytes, expected {pose_message_size(n)}")
+    if flags & ~VELOCITY_FLAG:
+        raise FormatError(f"unknown pose message flags {flags:#04x}")
+    has_v = bool(flags & VELOCITY_FLAG)
+    if len(data) != pose_message_size(n, has_v):
+        raise FormatError(
+            f"pose message of {len(data)} bytes, expected {pose_message_size(n, has_v)}"
+        )
     off = POSE_HEADER_SIZE
     streams = np.frombuffer(data, _U16, n, off)
     off += 2 * n
@@ -302,7 +328,10 @@ def decode_pose(data: bytes | bytearray | memoryview) -> PoseRecord:
         raw[b::4] = data[off + b * k : off + (b + 1) * k]
     poses = np.frombuffer(raw, "<f4").reshape(n, 7)
     poses.flags.writeable = False
-    return PoseRecord(user, seq, arrival, streams, caps, poses)
+    velocities = None
+    if has_v:
+        velocities = np.frombuffer(data, "<f2", 6 * n, off + 4 * k).reshape(n, 6)
+    return PoseRecord(user, seq, arrival, streams, caps, poses, velocities)
 
 
 def _json_default(obj: object) -> Any:

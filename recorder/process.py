@@ -101,8 +101,13 @@ Clock = Callable[[], float]
 
 def decode_update_frame(
     frame: bytes,
-) -> tuple[int, NDArray[np.uint16], NDArray[np.float64], NDArray[np.float32]]:
-    """``(seq, streams, capture_times, poses)`` of an ``update`` frame, else ``ValueError``."""
+) -> tuple[
+    int, NDArray[np.uint16], NDArray[np.float64], NDArray[np.float32], NDArray[np.float16] | None
+]:
+    """``(seq, streams, capture_times, poses, velocities)`` of an ``update`` frame.
+
+    ``velocities`` is ``None`` for a plain update; not an update: ``ValueError``.
+    """
     from protocol import PoseUpdate, decode_message
     from protocol.errors import RemoteProtocolError
 
@@ -112,7 +117,7 @@ def decode_update_frame(
         raise ValueError(f"not a valid frame: {exc}") from exc
     if not isinstance(msg, PoseUpdate):
         raise ValueError(f"expected an update frame, got {type(msg).__name__}")
-    return msg.seq, msg.streams, msg.capture_times, msg.poses
+    return msg.seq, msg.streams, msg.capture_times, msg.poses, msg.velocities
 
 
 class _Batch:
@@ -304,13 +309,14 @@ class ProcessRecorder:
         streams: Any,
         capture_times: Any,
         poses: Any,
+        velocities: Any = None,
     ) -> bool:
         """Take one pose update as arrays (see :meth:`SessionRecorder.record_update`)."""
         from recorder.format import encode_pose
 
         try:
             caps = np.asarray(capture_times, dtype="<f8")
-            data = encode_pose(user, seq, arrival, streams, caps, poses)
+            data = encode_pose(user, seq, arrival, streams, caps, poses, velocities)
         except (TypeError, ValueError) as exc:
             return self._reject(POSES_TOPIC, exc)
         newest = max(caps.tolist()) if len(caps) else arrival

@@ -23,7 +23,7 @@ import json
 import math
 import mmap
 import os
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
@@ -44,6 +44,8 @@ from recorder.format import (
     QUEUE_OVERFLOW_KIND,
     SESSION_END_METADATA,
     SESSION_METADATA,
+    VELOCITY_FLAG,
+    VELOCITY_SIZE,
     FormatError,
     PoseRecord,
     decode_json,
@@ -66,6 +68,7 @@ __all__ = [
     "info",
     "load_streams",
     "read_records",
+    "split_streams",
 ]
 
 
@@ -109,6 +112,9 @@ class StreamData:
     times: NDArray[np.float64]
     arrival: NDArray[np.float64]
     poses: NDArray[np.float32]
+    #: ``(N, 6)`` velocities the updates carried (float32; NaN where one carried
+    #: none), or ``None`` if none of this stream's updates carried velocities.
+    velocities: NDArray[np.float32] | None = None
 
     def __len__(self) -> int:
         return len(self.times)
@@ -338,32 +344,12 @@ class SessionReader:
         cols = decode_poses(datas)
         user_set = None if users is None else set(users)
         stream_set = None if streams is None else set(streams)
-        infos = self.users()
-        out: dict[tuple[int, int], StreamData] = {}
-        if not len(cols.user):
-            return out
-        keys = (cols.user.astype(np.uint32) << np.uint32(16)) | cols.stream.astype(np.uint32)
-        uniq, inverse = np.unique(keys, return_inverse=True)
-        order = np.argsort(inverse, kind="stable")
-        bounds = np.searchsorted(inverse[order], np.arange(len(uniq) + 1))
-        for k, key in enumerate(uniq.tolist()):
-            user, stream = key >> 16, key & 0xFFFF
-            if (user_set is not None and user not in user_set) or (
-                stream_set is not None and stream not in stream_set
-            ):
-                continue
-            idx = order[bounds[k] : bounds[k + 1]]
-            ui = infos.get(user)
-            out[(user, stream)] = StreamData(
-                user=user,
-                stream=stream,
-                name=None if ui is None else ui.streams.get(stream),
-                user_name=None if ui is None else ui.name,
-                times=cols.capture[idx],
-                arrival=cols.arrival[idx],
-                poses=cols.poses[idx],
-            )
-        return out
+        return {
+            key: data
+            for key, data in split_streams(cols, self.users()).items()
+            if (user_set is None or key[0] in user_set)
+            and (stream_set is None or key[1] in stream_set)
+        }
 
     def load_stream(
         self,
@@ -419,6 +405,9 @@ class PoseColumns:
     arrival: NDArray[np.float64]
     capture: NDArray[np.float64]
     poses: NDArray[np.float32]
+    #: ``(rows, 6)`` float32 velocities (NaN for rows whose message carried none),
+    #: or ``None`` if no message carried velocities.
+    velocities: NDArray[np.float32] | None = None
 
 
 def decode_poses(datas: list[bytes]) -> PoseColumns:
@@ -429,13 +418,16 @@ def decode_poses(datas: list[bytes]) -> PoseColumns:
     :func:`recorder.format.decode_pose` one by one). Raises ``FormatError`` on a
     message that is not a pose message of this format version.
     """
-    groups: dict[int, list[int]] = {}
+    groups: dict[tuple[int, int], list[int]] = {}
     for i, d in enumerate(datas):
-        groups.setdefault(len(d), []).append(i)
+        groups.setdefault((len(d), d[1] if len(d) > 1 else 0), []).append(i)
     parts: list[tuple[NDArray[np.int64], PoseColumns]] = []
-    for size, idx in groups.items():
-        n, rest = divmod(size - POSE_HEADER_SIZE, POSE_STREAM_SIZE)
-        if size < POSE_HEADER_SIZE or rest:
+    any_velocity = False
+    for (size, flags), idx in groups.items():
+        has_v = flags == VELOCITY_FLAG
+        per = POSE_STREAM_SIZE + (VELOCITY_SIZE if has_v else 0)
+        n, rest = divmod(size - POSE_HEADER_SIZE, per)
+        if size < POSE_HEADER_SIZE or rest or flags not in (0, VELOCITY_FLAG):
             decode_pose(datas[idx[0]])  # raises FormatError with the reason
         if n == 0:
             continue  # updates without poses
@@ -450,8 +442,16 @@ def decode_poses(datas: list[bytes]) -> PoseColumns:
         off += 2 * n
         cbits = a[:, off : off + 8 * n].copy().view("<u8") ^ abits[:, None]
         off += 8 * n
-        planes = a[:, off:].reshape(m, 4, 7 * n).transpose(0, 2, 1)
+        planes = a[:, off : off + 28 * n].reshape(m, 4, 7 * n).transpose(0, 2, 1)
         poses = np.ascontiguousarray(planes).view("<f4").reshape(m * n, 7)
+        off += 28 * n
+        if has_v:
+            any_velocity = True
+            velocities = (
+                np.ascontiguousarray(a[:, off:]).view("<f2").reshape(m * n, 6).astype(np.float32)
+            )
+        else:
+            velocities = np.full((m * n, 6), np.nan, np.float32)
         msg = np.repeat(np.asarray(idx, dtype=np.int64), n)
         parts.append(
             (
@@ -462,6 +462,7 @@ def decode_poses(datas: list[bytes]) -> PoseColumns:
                     arrival=np.repeat(abits.view("<f8"), n),
                     capture=cbits.view("<f8").reshape(m * n),
                     poses=poses,
+                    velocities=velocities,
                 ),
             )
         )
@@ -475,13 +476,50 @@ def decode_poses(datas: list[bytes]) -> PoseColumns:
         )
     msg = np.concatenate([p[0] for p in parts])
     order = np.argsort(msg, kind="stable")
+    vel = None
+    if any_velocity:
+        vel = np.concatenate([p[1].velocities for p in parts if p[1].velocities is not None])
+        vel = vel[order]
     return PoseColumns(
         user=np.concatenate([p[1].user for p in parts])[order],
         stream=np.concatenate([p[1].stream for p in parts])[order],
         arrival=np.concatenate([p[1].arrival for p in parts])[order],
         capture=np.concatenate([p[1].capture for p in parts])[order],
         poses=np.concatenate([p[1].poses for p in parts])[order],
+        velocities=vel,
     )
+
+
+def split_streams(
+    cols: PoseColumns, users: Mapping[int, UserInfo]
+) -> dict[tuple[int, int], StreamData]:
+    """The rows of ``cols`` by ``(user, stream)``, in their order, named from ``users``."""
+    out: dict[tuple[int, int], StreamData] = {}
+    if not len(cols.user):
+        return out
+    keys = (cols.user.astype(np.uint32) << np.uint32(16)) | cols.stream.astype(np.uint32)
+    uniq, inverse = np.unique(keys, return_inverse=True)
+    order = np.argsort(inverse, kind="stable")
+    bounds = np.searchsorted(inverse[order], np.arange(len(uniq) + 1))
+    for k, key in enumerate(uniq.tolist()):
+        user, stream = key >> 16, key & 0xFFFF
+        idx = order[bounds[k] : bounds[k + 1]]
+        ui = users.get(user)
+        velocities = None
+        if cols.velocities is not None:
+            v = cols.velocities[idx]
+            velocities = None if np.isnan(v[:, 0]).all() else v
+        out[(user, stream)] = StreamData(
+            user=user,
+            stream=stream,
+            name=None if ui is None else ui.streams.get(stream),
+            user_name=None if ui is None else ui.name,
+            times=cols.capture[idx],
+            arrival=cols.arrival[idx],
+            poses=cols.poses[idx],
+            velocities=velocities,
+        )
+    return out
 
 
 def _info(reader: SessionReader) -> dict[str, Any]:

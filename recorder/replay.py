@@ -52,6 +52,7 @@ from scenarios.qoe import (
     playout_brackets,
     sample_keyframes,
     summarize,
+    window_depth,
 )
 from scenarios.traces import DEVICE_NAMES, Trace, find_traces, load_trace
 
@@ -77,22 +78,32 @@ def recording_stem(path: str | os.PathLike[str]) -> str:
     return name
 
 
-def _dedupe(s: StreamData) -> tuple[F64, F64]:
-    """Capture times strictly increasing (first of equal ones) and float64 poses."""
+def _dedupe(s: StreamData) -> tuple[F64, F64, F64 | None]:
+    """Capture times strictly increasing (first of equal ones), float64 poses, velocities."""
     keep = np.ones(s.times.shape, dtype=bool)
     keep[1:] = s.times[1:] != s.times[:-1]
-    return s.times[keep], s.poses[keep].astype(np.float64)
+    vel = None
+    if s.velocities is not None and not np.isnan(s.velocities[keep]).any():
+        vel = s.velocities[keep].astype(np.float64)
+    return s.times[keep], s.poses[keep].astype(np.float64), vel
 
 
-def _groups(streams: Sequence[StreamData]) -> list[tuple[int, F64, list[tuple[StreamData, F64]]]]:
-    """Streams of one user with identical capture times, batched: (user, times, members)."""
-    found: dict[tuple[int, bytes], tuple[int, F64, list[tuple[StreamData, F64]]]] = {}
+_Member = tuple[StreamData, F64, F64 | None]
+
+
+def _groups(streams: Sequence[StreamData]) -> list[tuple[int, F64, list[_Member]]]:
+    """Streams of one user with identical capture times, batched: (user, times, members).
+
+    A member is ``(stream, poses, velocities)``; velocities are ``None`` unless
+    every update of the stream carried them.
+    """
+    found: dict[tuple[int, bytes], tuple[int, F64, list[_Member]]] = {}
     for s in streams:
-        times, poses = _dedupe(s)
+        times, poses, vel = _dedupe(s)
         if times.size < 2:
             continue
         key = (s.user, times.tobytes())
-        found.setdefault(key, (s.user, times, []))[2].append((s, poses))
+        found.setdefault(key, (s.user, times, []))[2].append((s, poses, vel))
     return list(found.values())
 
 
@@ -158,19 +169,15 @@ def replay_offline(
          "timing": {"read_s", "reconstruct_s", "write_s", "total_s", "speedup"}}
 
     ``speedup`` is the session duration over the total time taken. Velocity
-    methods are refused (recordings carry no velocities).
+    methods use the velocities the recorded updates carried (the protocol's
+    velocity variant); a recording without them refuses velocity methods.
     """
     if not rate > 0 or not render_rate > 0:
         raise ValueError("rate and render_rate must be positive")
     methods = list(interp_names)
     if not methods:
         raise ValueError("expected at least one interpolator")
-    for m in methods:
-        if interp_info(m).needs_velocity:
-            raise ValueError(
-                f"{m} needs keyframe velocities, which recordings do not carry; "
-                "use a pair or window method"
-            )
+    velocity_methods = [m for m in methods if interp_info(m).needs_velocity]
     fmts = tuple(formats) if out_dir is not None else ()
     for f in fmts:
         if f not in ("csv", "npz"):
@@ -178,6 +185,14 @@ def replay_offline(
     t0 = time.perf_counter()
     streams = sorted_streams(path)
     t1 = time.perf_counter()
+    groups = _groups(streams)
+    if velocity_methods and any(v is None for _u, _t, ms in groups for _s, _p, v in ms):
+        raise ValueError(
+            f"{', '.join(velocity_methods)} need keyframe velocities, which this recording "
+            "does not carry for every stream (record bots that send the velocity variant); "
+            "use a pair or window method"
+        )
+    lookbehind, lookahead = window_depth(methods)
     qoe_groups: dict[str, list[dict[str, dict[str, ErrorSamples]]]] = {m: [] for m in methods}
     rendered: dict[str, list[tuple[StreamData, F64, F64, NDArray[np.bool_]]]] = {
         m: [] for m in methods
@@ -185,18 +200,26 @@ def replay_offline(
     delays: dict[str, list[float]] = {m: [] for m in methods}
     first, last = math.inf, -math.inf
     frames = 0
-    for _user, times, members in _groups(streams):
+    for _user, times, members in groups:
         first, last = min(first, float(times[0])), max(last, float(times[-1]))
-        poses = np.stack([p for _s, p in members], axis=1)  # (N, S, 7)
+        poses = np.stack([p for _s, p, _v in members], axis=1)  # (N, S, 7)
+        vels = [v for _s, _p, v in members]
         truth = Trace(
             f"user{members[0][0].user}",
             times,
             poses,
-            tuple(s.name or f"stream{s.stream}" for s, _p in members),
+            tuple(s.name or f"stream{s.stream}" for s, _p, _v in members),
         )
         send, idx = sample_keyframes(times, rate)
         # Ideal network: each keyframe arrives the instant it is sent.
-        log = KeyframeLog(capture=times[idx], arrival=send, poses=poses[idx])
+        log = KeyframeLog(
+            capture=times[idx],
+            arrival=send,
+            poses=poses[idx],
+            velocities=None
+            if any(v is None for v in vels)
+            else np.stack([v for v in vels if v is not None], axis=1)[idx],
+        )
         n = math.floor((float(times[-1]) - float(times[0])) * render_rate + 1e-9) + 1
         taus = float(times[0]) + np.arange(n) / render_rate
         frames += n * len(members)
@@ -209,7 +232,9 @@ def replay_offline(
             delays[m].append(delay)
         for delay, group in by_delay.items():
             scored = evaluate_group(truth, log, delay, group)
-            play = playout_brackets(log.capture, log.arrival, taus, delay)
+            play = playout_brackets(
+                log.capture, log.arrival, taus, delay, lookbehind=lookbehind, lookahead=lookahead
+            )
             for m in group:
                 qoe_groups[m].append({m: scored[m]})
                 out = interpolate_brackets(
@@ -219,10 +244,11 @@ def replay_offline(
                     play.s,
                     m,
                     times=log.capture,
-                    prev=play.prev,
-                    nxt=play.nxt,
+                    before=play.before,
+                    after=play.after,
+                    velocities=log.velocities,
                 )
-                for j, (s, _p) in enumerate(members):
+                for j, (s, _p, _v) in enumerate(members):
                     rendered[m].append((s, taus, out[:, j], play.stall))
     t2 = time.perf_counter()
     files: dict[str, dict[str, str]] = {}
@@ -276,8 +302,13 @@ def synthesize_recording(
     name: str | None = None,
     start: float = 1000.0,
     seed: int = 0,
+    velocities: bool = False,
 ) -> Path:
     """Record a session of ``users`` bots playing real traces; returns the ``.mcap`` path.
+
+    With ``velocities`` the updates are of the velocity variant, carrying the
+    causal velocities a tracker could report at each capture
+    (:meth:`Trace.causal_velocities`, rounded to float16 as on the wire).
 
     Bot ``u`` plays trace ``u % len(traces)`` (from a seeded offset into it),
     publishing head, left and right at ``rate`` Hz: at each send time the newest
@@ -289,7 +320,8 @@ def synthesize_recording(
     files = find_traces(traces)
     loaded = [load_trace(f) for f in files]
     rng = np.random.default_rng(seed)
-    per_user: list[tuple[F64, F64, F64, F64]] = []  # send, arrival, capture, poses
+    # send, arrival, capture, poses, velocities
+    per_user: list[tuple[F64, F64, F64, NDArray[np.float32], NDArray[np.float16] | None]] = []
     joins = []
     ids = np.arange(3, dtype=np.uint16)
     for u in range(users):
@@ -307,7 +339,10 @@ def synthesize_recording(
         send, idx = send[fresh], idx[fresh]
         arrival = send + rng.uniform(0.005, 0.020, send.size)
         capture = anchor + tr.times[idx]
-        per_user.append((send, arrival, capture, tr.poses[idx].astype(np.float32)))
+        vel: NDArray[np.float16] | None = None
+        if velocities:
+            vel = tr.causal_velocities()[idx].astype(np.float16)
+        per_user.append((send, arrival, capture, tr.poses[idx].astype(np.float32), vel))
         label = MotionSpec.for_trace(files[u % len(files)], anchor).label()
         joins.append(
             {
@@ -337,8 +372,16 @@ def synthesize_recording(
     order = np.argsort(arrivals, kind="stable")
     for k in order.tolist():
         u, r = int(user_of[k]), int(row_of[k])
-        _send, arr, cap, poses = per_user[u]
-        rec.record_update(u + 1, r, float(arr[r]), ids + 3 * u, np.full(3, cap[r]), poses[r])
+        _send, arr, cap, poses, vel = per_user[u]
+        rec.record_update(
+            u + 1,
+            r,
+            float(arr[r]),
+            ids + 3 * u,
+            np.full(3, cap[r]),
+            poses[r],
+            None if vel is None else vel[r],
+        )
     end = float(arrivals.max()) if arrivals.size else start
     return rec.close(time=end)
 

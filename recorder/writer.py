@@ -47,8 +47,6 @@ from recorder.format import (
     DROPS_TOPIC,
     EVENTS_TOPIC,
     FORMAT_VERSION,
-    POSE_HEADER_SIZE,
-    POSE_STREAM_SIZE,
     POSES_TOPIC,
     PRESENCE_TOPIC,
     PROFILE,
@@ -378,16 +376,20 @@ class SessionRecorder:
         streams: ArrayLike,
         capture_times: ArrayLike,
         poses: ArrayLike,
+        velocities: ArrayLike | None = None,
     ) -> bool:
-        """Queue one pose update: stream ids (n,), capture times (n,), poses (n, 7)."""
+        """Queue one pose update: stream ids (n,), capture times (n,), poses (n, 7).
+
+        ``velocities`` (n, 6), if the update carried them, are recorded too.
+        """
         try:
             caps = np.asarray(capture_times, dtype="<f8")
-            data = encode_pose(user, seq, arrival, streams, caps, poses)
+            data = encode_pose(user, seq, arrival, streams, caps, poses, velocities)
         except (TypeError, ValueError) as exc:
             return self._reject(POSES_TOPIC, exc)
         # publish_time: the newest capture time of the update
         newest = max(caps.tolist()) if len(caps) else arrival
-        n = (len(data) - POSE_HEADER_SIZE) // POSE_STREAM_SIZE
+        n = len(caps)
         return self._offer((_POSES, to_ns(arrival), to_ns(newest), data, n))
 
     def record_event(self, event: Mapping[str, Any], time: float | None = None) -> bool:
@@ -428,10 +430,10 @@ class SessionRecorder:
         from recorder.process import decode_update_frame
 
         try:
-            seq, streams, caps, pose_array = decode_update_frame(frame)
+            seq, streams, caps, pose_array, velocities = decode_update_frame(frame)
         except ValueError as exc:
             return self._reject(POSES_TOPIC, exc)
-        return self.record_update(user, seq, arrival, streams, caps, pose_array)
+        return self.record_update(user, seq, arrival, streams, caps, pose_array, velocities)
 
     def offer_encoded(
         self, channel: str, log_ns: int, publish_ns: int, data: bytes, poses: int

@@ -144,3 +144,37 @@ def test_decode_poses_matches_decode_pose_one_by_one() -> None:
     )
     with pytest.raises(FormatError):
         decode_poses([datas[1][:-3]])
+
+
+def test_pose_messages_with_velocities_round_trip_bit_exact() -> None:
+    """Flags bit 0: float16 velocities after the poses, 12 B a stream; mixed batches decode."""
+    from recorder import decode_poses
+    from recorder.format import VELOCITY_FLAG, pose_message_size
+
+    rng = np.random.default_rng(3)
+    streams = np.array([4, 5, 6], np.uint16)
+    caps = 10.0 + rng.uniform(0, 1, 3)
+    poses = rng.normal(size=(3, 7)).astype(np.float32)
+    vel = rng.normal(size=(3, 6)).astype(np.float16)
+    vel[0, 0] = np.float16(-0.0)
+    data = encode_pose(2, 9, 10.5, streams, caps, poses, vel)
+    assert data[1] == VELOCITY_FLAG and len(data) == pose_message_size(3, True)
+    assert len(data) == pose_message_size(3) + 36
+    rec = decode_pose(data)
+    assert rec.velocities is not None
+    assert rec.velocities.tobytes() == vel.astype("<f2").tobytes()
+    assert rec.poses.tobytes() == poses.tobytes()
+    plain = encode_pose(3, 1, 10.6, streams[:2], caps[:2], poses[:2])
+    assert decode_pose(plain).velocities is None
+    cols = decode_poses([data, plain, data])
+    assert cols.velocities is not None and cols.velocities.shape == (8, 6)
+    np.testing.assert_array_equal(cols.velocities[:3], vel.astype(np.float32))
+    assert np.isnan(cols.velocities[3:5]).all()
+    np.testing.assert_array_equal(cols.user, [2, 2, 2, 3, 3, 2, 2, 2])
+    assert decode_poses([plain]).velocities is None
+    with pytest.raises(FormatError, match="velocities must have shape"):
+        encode_pose(2, 9, 10.5, streams, caps, poses, vel[:2])
+    with pytest.raises(FormatError, match="flags"):
+        decode_pose(data[:1] + b"\x02" + data[2:])
+    with pytest.raises(FormatError):
+        decode_pose(data[:-2])

@@ -132,13 +132,44 @@ def test_replay_qoe_is_the_scenarios_definition(recording: Path) -> None:
 
 
 def test_replay_refuses_velocity_methods_and_bad_formats(recording: Path, tmp_path: Path) -> None:
-    """Recordings carry no velocities; only csv and npz are written."""
+    """A recording without velocities refuses velocity methods; only csv and npz are written."""
     with pytest.raises(ValueError, match="velocities"):
         replay_offline(recording, ["motor-hermite"], 10.0, tmp_path)
     with pytest.raises(ValueError, match="format"):
         replay_offline(recording, ["soa"], 10.0, tmp_path, formats=("parquet",))
     with pytest.raises(KeyError):
         replay_offline(recording, ["nope"], 10.0, tmp_path)
+
+
+def test_replay_uses_recorded_velocities_for_velocity_methods(tmp_path: Path) -> None:
+    """Updates of the velocity variant are recorded, read back bit-exact and drive
+    motor-hermite and motor-quintic (a 6-keyframe window) exactly as the QoE definition."""
+    path = synthesize_recording(tmp_path, users=2, duration=4.0, seed=2, velocities=True)
+    data = read_session(path)
+    methods = ["soa", "motor-hermite", "motor-quintic"]
+    result = replay_offline(path, methods, 10.0, None)
+    groups = []
+    for user in sorted(data.users):
+        streams = [s for s in data.streams if s.user == user]
+        assert all(s.velocities is not None and s.velocities.shape == (len(s), 6) for s in streams)
+        times = streams[0].times
+        truth = Trace(
+            "u",
+            times,
+            np.stack([s.poses for s in streams], 1).astype(float),
+            tuple(s.name or "" for s in streams),
+        )
+        vel = np.stack([s.velocities for s in streams if s.velocities is not None], 1)
+        assert np.isfinite(vel).all() and np.abs(vel).max() > 0
+        assert np.array_equal(vel, vel.astype(np.float16).astype(np.float32))  # wire float16
+        send, idx = sample_keyframes(times, 10.0)
+        log = KeyframeLog(times[idx], send, truth.poses[idx], velocities=vel[idx].astype(float))
+        for m in methods:
+            d = ideal_delay(10.0, truth.native_rate, interp_info(m).lookahead)
+            groups.append(evaluate_group(truth, log, d, [m]))
+    assert result["qoe"] == summarize(groups)
+    herm = result["qoe"]["motor-hermite"]["hands"]
+    assert 0 < herm["tip_p50_mm"] < herm["tip_p95_mm"]
 
 
 def test_bench_replay_prints_figures(tmp_path: Path) -> None:

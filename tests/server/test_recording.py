@@ -19,7 +19,9 @@ from recorder import find_leftovers, info, load_streams, recover
 from server.app import ServerConfig
 
 
-async def _recorded_session(tmp: Path) -> tuple[list[BotReport], list[Path]]:
+async def _recorded_session(
+    tmp: Path, methods: tuple[str, ...] = ("soa",)
+) -> tuple[list[BotReport], list[Path]]:
     """Three bots for 3 s on a recording server; the recordings once it stopped."""
     config = ServerConfig(host="127.0.0.1", port=0, record_dir=tmp)
     async with running_server(config) as server:
@@ -35,7 +37,7 @@ async def _recorded_session(tmp: Path) -> tuple[list[BotReport], list[Path]]:
                             motion="synthetic:orbit",
                             seed=i,
                             duration=3.0,
-                            methods=("soa",),
+                            methods=methods,
                         )
                     )
                 )
@@ -64,6 +66,26 @@ def test_every_relayed_keyframe_is_in_the_recording_bit_exact(tmp_path: Path) ->
     assert checked > 500
     summary = info(files[0])
     assert len(summary["users"]) == 3
+
+
+def test_velocity_keyframes_are_recorded_bit_exact(tmp_path: Path) -> None:
+    """Bots rendering a velocity method send the velocity variant; the recording keeps
+    each update's velocities (float16, as on the wire) beside its poses."""
+    reports, files = asyncio.run(_recorded_session(tmp_path, ("soa", "motor-hermite")))
+    streams = load_streams(files[0])
+    checked = 0
+    for rep in reports:
+        for (user, sid), rs in rep.streams.items():
+            rec = streams[(user, sid)]
+            assert rs.sends_velocities and rec.velocities is not None
+            assert len(rs.velocities) == len(rs.poses)
+            for cap, pose, vel in zip(rs.capture, rs.poses, rs.velocities, strict=True):
+                i = int(np.argmin(np.abs(rec.times - cap)))
+                assert rec.poses[i].tobytes() == np.asarray(pose, dtype=np.float32).tobytes()
+                assert np.array_equal(rec.velocities[i], vel)
+                checked += 1
+            assert np.abs(rec.velocities).max() > 0  # real motion, not the zero filler
+    assert checked > 500
 
 
 _PUBLISHER = r"""
