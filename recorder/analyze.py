@@ -27,8 +27,8 @@ Choices the paper leaves open, made explicit here:
 - Pair methods run at ``a = j/k``; window methods get the kept neighbours, on
   a time axis of frame indices (so the fractions are the same); velocity
   methods use :meth:`Trace.velocities` with the real time span between the
-  kept frames, and are skipped (with a note) for recordings, which carry no
-  velocities.
+  kept frames on traces, and on recordings the velocities the updates carried
+  (the velocity variant); a recording without them skips them with a note.
 - A recording's "full-rate" sequence is each stream's recorded keyframes
   (capture time order, duplicate capture times dropped), one stream at a time.
 
@@ -217,13 +217,17 @@ def reconstruct(seq: Sequence7, keep_every: int, method: str) -> tuple[NDArray[n
     entry = interp_info(method)
     last_kept = ((n - 1) // keep_every) * keep_every
     if entry.kind == "window":
-        # Kept neighbours; a missing one repeats its bracket keyframe. Time axis:
-        # frame indices, so the query sits at the same fraction a as for pairs.
-        prev = np.where(lo - keep_every >= 0, lo - keep_every, lo)
-        nxt = np.where(hi + keep_every <= last_kept, hi + keep_every, hi)
+        # Kept neighbours (``lookbehind`` before, ``lookahead`` after); a missing
+        # one repeats its inward neighbour, which for kept frames 0, k, 2k, ...
+        # is clipping to the first and last kept frame. Time axis: frame
+        # indices, so the query sits at the same fraction a as for pairs.
+        steps_back = np.arange(max(1, entry.lookbehind), 0, -1) * keep_every  # oldest first
+        steps_on = np.arange(1, max(1, entry.lookahead) + 1) * keep_every  # nearest first
+        before = np.maximum(lo[:, None] - steps_back, 0)
+        after = np.minimum(hi[:, None] + steps_on, last_kept)
         times: F64 = np.arange(n, dtype=np.float64)
         rendered = interpolate_brackets(
-            seq.poses, lo, hi, a, method, times=times, prev=prev, nxt=nxt
+            seq.poses, lo, hi, a, method, times=times, before=before, after=after
         )
     elif entry.kind == "velocity":
         if seq.velocities is None:
@@ -254,13 +258,16 @@ def _recording_sequences(path: Path) -> list[Sequence7]:
         if int(keep.sum()) < 3:
             continue
         name = s.name or f"stream{s.stream}"
+        vel = None  # the velocities the updates carried (velocity variant), if all did
+        if s.velocities is not None and not np.isnan(s.velocities[keep]).any():
+            vel = s.velocities[keep].astype(np.float64)[:, None, :]
         out.append(
             Sequence7(
                 f"{path.stem}/user{s.user}/{name}",
                 t[keep],
                 s.poses[keep].astype(np.float64)[:, None, :],
                 (name,),
-                None,
+                vel,
                 "recording",
             )
         )
@@ -425,8 +432,8 @@ def analyze(
                     pooled.setdefault(cls, _Pool()).add(pool)
             if skipped:
                 note = (
-                    f"{m}: skipped for {', '.join(sorted(set(skipped)))} (recordings carry "
-                    "no velocities; velocity methods need a trace)"
+                    f"{m}: skipped for {', '.join(sorted(set(skipped)))} (recorded without "
+                    "velocities: record bots that send the velocity variant, or use a trace)"
                 )
                 if note not in notes:
                     notes.append(note)

@@ -161,6 +161,24 @@ def test_analyze_a_recording_skips_velocity_methods(tmp_path: Path) -> None:
     assert "skipped" in format_analysis(result)
 
 
+def test_analyze_a_recording_with_velocities_and_a_wide_window(tmp_path: Path) -> None:
+    """Recorded velocities drive motor-hermite; motor-quintic gets 2 kept neighbours a side."""
+    path = synthesize_recording(tmp_path, users=2, rate=30.0, duration=4.0, velocities=True)
+    methods = ("soa", "motor-cubic", "motor-quintic", "motor-hermite")
+    result = analyze(path, keep_every=(2, 3), methods=methods)
+    assert not any("skipped" in n for n in result["notes"])
+    for k in ("2", "3"):
+        table = result["tables"][k]["methods"]
+        for m in methods:
+            hands = table[m]["classes"]["hands"]
+            assert hands["frames"] > 0 and 0 < hands["translation_rel_pct"] < 100, (k, m)
+        # the wider window sees more of the motion than the 4-keyframe one: it differs
+        assert (
+            table["motor-quintic"]["classes"]["hands"]["pos_p95_mm"]
+            != table["motor-cubic"]["classes"]["hands"]["pos_p95_mm"]
+        )
+
+
 def test_analyze_refuses_unknown_methods_and_keep_one(dev_trace_path: Path) -> None:
     """An unknown interpolator or keep_every < 2 is refused."""
     with pytest.raises(KeyError):
