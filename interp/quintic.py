@@ -47,9 +47,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from interp.cubic import _align_to, _checked, _dq_rows, _dq_to_pose_rows, _finish
-from interp.methods import _rows
-from interp.pose import F64
+from interp.cubic import _checked, _dq_to_pose_rows, _finish
+from interp.methods import _rows, hemisphere_sign
+from interp.pose import F64, UNIT_TOLERANCE
 
 __all__ = ["QUINTIC_LOOKAHEAD", "QUINTIC_LOOKBEHIND", "motor_quintic", "motor_window_spline"]
 
@@ -57,38 +57,42 @@ QUINTIC_LOOKBEHIND = 2
 QUINTIC_LOOKAHEAD = 2
 
 
-def _stencil_weights(
-    x: list[F64], ok: list[F64], i: int, nodes: range
-) -> tuple[dict[int, F64], dict[int, F64]]:
+#: Stand-in offset (in bracket spans) of a missing neighbour: a node this far away
+#: drops out of the polynomial (its factors ``u_m / (u_m - u_j)`` round to 1 and
+#: its ``1 / u_m`` to nothing against the others) without any branch.
+_FAR = 1e30
+
+
+def _stencil_weights(x: list[F64], i: int, nodes: range) -> tuple[dict[int, F64], dict[int, F64]]:
     """First and second derivative weights at node ``i`` of the polynomial through ``nodes``.
 
-    ``x`` are node times (``(M,)`` each, in units of the bracket span), ``ok``
-    1.0 where a node is available. Unavailable nodes get weight 0 and drop out
-    of the polynomial. Returns ``{j: L_j'(x_i)}`` and ``{j: L_j''(x_i)}``,
-    including ``j = i`` (minus the sum of the others: constants have no
-    derivative).
+    ``x`` are node times (``(M,)`` each, in bracket spans; missing nodes at
+    ``+-_FAR``). Returns ``{j: L_j'(x_i)}`` and ``{j: L_j''(x_i)}`` for every
+    node, ``j = i`` included (minus the sum of the others). With ``u_m = x_m -
+    x_i``: ``L_j' = prod_{m != i, j} u_m / (u_j^2 prod_{m != i, j} (u_m - u_j))``
+    and ``L_j'' = 2 L_j' sum_{m != i, j} (-1 / u_m)``.
     """
     others = [j for j in nodes if j != i]
-    here = ok[i] > 0
-    avail = {j: (ok[j] > 0) & here for j in others}
-    u = {j: np.where(avail[j], x[j] - x[i], 1.0) for j in others}
-    inv = {j: np.where(avail[j], -1.0 / u[j], 0.0) for j in others}  # 1/(x_i - x_j)
+    u = {j: x[j] - x[i] for j in others}
+    inv = {j: 1.0 / u[j] for j in others}
+    total_inv = sum(inv.values(), np.zeros_like(x[i]))
+    prod_u = np.ones_like(x[i])
+    for j in others:
+        prod_u = prod_u * u[j]
+    diff: dict[tuple[int, int], F64] = {}
+    for a_, m in enumerate(others):
+        for j in others[a_ + 1 :]:
+            diff[m, j] = u[m] - u[j]
     d1: dict[int, F64] = {}
     d2: dict[int, F64] = {}
     for j in others:
-        # L_j'(x_i) = prod_{m != i, j} (x_i - x_m) / (x_j - x_m) / (x_j - x_i)
-        w = 1.0 / u[j]
-        acc = np.zeros_like(w)
+        den = u[j] * u[j]
         for m in others:
-            if m == j:
-                continue
-            both = avail[m] & avail[j]
-            w = w * np.where(both, -u[m] / np.where(both, u[j] - u[m], 1.0), 1.0)
-            acc = acc + inv[m]
-        w = np.where(avail[j], w, 0.0)
+            if m != j:
+                den = den * (diff[m, j] if (m, j) in diff else -diff[j, m])
+        w = prod_u / den
         d1[j] = w
-        # L_j''(x_i) = 2 L_j'(x_i) * sum_{m != i, j} 1 / (x_i - x_m)
-        d2[j] = 2.0 * w * acc
+        d2[j] = 2.0 * w * (inv[j] - total_inv)
     d1[i] = -sum(d1.values(), np.zeros_like(x[i]))
     d2[i] = -sum(d2.values(), np.zeros_like(x[i]))
     return d1, d2
@@ -146,38 +150,95 @@ def motor_window_spline(
     held = span <= 0
     h = np.where(held, 1.0, span)
     s = np.where(held, 0.0, np.clip((q - T[lo]) / h, 0.0, 1.0))
-    # Available nodes: the bracket, and neighbours outwards until the first repeat.
-    ok: list[F64] = [np.ones_like(span)] * k
-    ok[hi] = (~held).astype(np.float64)
-    for j in range(lo - 1, -1, -1):
-        ok[j] = ok[j + 1] * (T[j] < T[j + 1])
+    # Node times in spans; a missing neighbour (a repeat outwards of the bracket,
+    # or anything after a held one) goes far away, each to its own place.
+    x: list[F64] = [(T[j] - T[lo]) / h for j in range(k)]
+    x[hi] = np.where(held, 1.0, x[hi])
+    gone = held
     for j in range(hi + 1, k):
-        ok[j] = ok[j - 1] * (T[j] > T[j - 1])
-    x = [(T[j] - T[lo]) / h for j in range(k)]
-    v_lo, a_lo = _stencil_weights(x, ok, lo, range(lo - lookbehind, lo + lookahead + 1))
-    v_hi, a_hi = _stencil_weights(x, ok, hi, range(hi - lookbehind, hi + lookahead + 1))
-    b_p0, b_v0, b_a0, b_a1, b_v1, b_p1 = _quintic_basis(s)
-    # Motor of each keyframe, signs chained outwards from lo.
-    d: list[F64] = [_dq_rows(_rows(p[..., j, :])) for j in range(k)]
-    for j in range(lo + 1, k):
-        d[j], _ = _align_to(d[j - 1], d[j])
+        gone = gone | (T[j] <= T[j - 1])
+        x[j] = np.where(gone, _FAR * (j - lo), x[j])
+    gone = np.zeros_like(held)
     for j in range(lo - 1, -1, -1):
-        d[j], _ = _align_to(d[j + 1], d[j])
-    blend = np.zeros_like(d[lo])
-    for j in range(k):
-        c = (
-            b_v0 * v_lo.get(j, 0.0)
-            + b_v1 * v_hi.get(j, 0.0)
-            + b_a0 * a_lo.get(j, 0.0)
-            + b_a1 * a_hi.get(j, 0.0)
-        )
-        if j == lo:
-            c = c + b_p0
-        elif j == hi:
-            c = c + b_p1
-        blend += c * d[j]
+        gone = gone | (T[j] >= T[j + 1])
+        x[j] = np.where(gone, -_FAR * (lo - j + 1), x[j])
+    v_lo, a_lo = _stencil_weights(x, lo, range(lo - lookbehind, lo + lookahead + 1))
+    v_hi, a_hi = _stencil_weights(x, hi, range(hi - lookbehind, hi + lookahead + 1))
+    b_p0, b_v0, b_a0, b_a1, b_v1, b_p1 = _quintic_basis(s)
+    # The curve's weight of each keyframe's motor: positions, velocities and
+    # accelerations at both ends, each a combination of the keyframes.
+    m = q.shape[0]
+    coef = np.zeros((k, m))
+    coef[lo] = b_p0
+    coef[hi] = b_p1
+    for basis, weights in ((b_v0, v_lo), (b_v1, v_hi), (b_a0, a_lo), (b_a1, a_hi)):
+        for j, w in weights.items():
+            coef[j] += basis * w
+    real, dual = _motor_rows(p.reshape(m, k, 7))
+    coef *= _chained_signs(real, lo)
+    # Element-wise sums over each query's own keyframes (no reductions across the
+    # batch): a query's result does not depend on the rest of its batch.
+    blend = np.empty((8, m))
+    np.multiply(coef[0], real[:, 0], out=blend[:4])
+    np.multiply(coef[0], dual[:, 0], out=blend[4:])
+    for j in range(1, k):
+        blend[:4] += coef[j] * real[:, j]
+        blend[4:] += coef[j] * dual[:, j]
     rows = _dq_to_pose_rows(blend)
     return _finish(rows, batch, s, p[..., lo, :], p[..., hi, :])
+
+
+def _motor_rows(p: F64) -> tuple[F64, F64]:
+    """Unit dual quaternions of windows ``(M, K, 7)``: real and dual parts ``(4, K, M)``."""
+    m, k, _ = p.shape
+    rows = np.empty((7, k, m))
+    for j in range(k):  # one transpose per keyframe: contiguous component rows
+        rows[:, j] = p[:, j, :].T
+    q = rows[3:]
+    n2 = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]
+    if not np.all(n2 > 1e-24):
+        raise ValueError("expected poses to hold non-zero quaternions")
+    if np.any(np.abs(n2 - 1.0) > 2.0 * UNIT_TOLERANCE):
+        q = q / np.sqrt(n2)
+    w, x, y, z = q
+    tx, ty, tz = rows[0], rows[1], rows[2]
+    dual = np.empty_like(q)
+    tmp = np.empty_like(w)
+    # qd = 1/2 (0, t) q, summed in place
+    for out, terms in (
+        (dual[0], ((tx, x, -0.5), (ty, y, -0.5), (tz, z, -0.5))),
+        (dual[1], ((tx, w, 0.5), (ty, z, 0.5), (tz, y, -0.5))),
+        (dual[2], ((tx, z, -0.5), (ty, w, 0.5), (tz, x, 0.5))),
+        (dual[3], ((tx, y, 0.5), (ty, x, -0.5), (tz, w, 0.5))),
+    ):
+        (a0, b0, c0), *rest = terms
+        np.multiply(a0, b0, out=out)
+        for a1, b1, c1 in rest:
+            np.multiply(a1, b1, out=tmp)
+            if c1 == c0:
+                out += tmp
+            else:
+                out -= tmp
+        out *= c0
+    return q, dual
+
+
+def _chained_signs(real: F64, lo: int) -> F64:
+    """``(K, M)`` signs putting each keyframe in its inward neighbour's hemisphere, from ``lo``.
+
+    The sign of keyframe ``j > lo`` is its neighbour ``j - 1``'s times the one that
+    aligns ``j`` with ``j - 1`` (``hemisphere_sign``, which handles exact half
+    turns); before ``lo`` likewise towards ``j + 1``.
+    """
+    k = real.shape[1]
+    a, b = real[:, :-1], real[:, 1:]
+    dots = a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3]  # (K - 1, M): j with j + 1
+    sign = np.ones((k, real.shape[2]))
+    for j in range(lo + 1, k):
+        sign[j] = sign[j - 1] * hemisphere_sign(real[:, j - 1], real[:, j], dots[j - 1])
+    for j in range(lo - 1, -1, -1):
+        sign[j] = sign[j + 1] * hemisphere_sign(real[:, j + 1], real[:, j], dots[j])
+    return sign
 
 
 def motor_quintic(keys: ArrayLike, times: ArrayLike, t: ArrayLike) -> F64:

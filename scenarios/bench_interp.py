@@ -3,9 +3,10 @@
 For each batch size, every posecast interpolator is timed on random pose pairs
 (poses in, poses out, validation included) in the same run as the reference
 implementations of the same maths. The window and velocity methods
-(``motor-cubic``: 4 keyframes and their times per pose; ``motor-hermite``: 2
-keyframes, their velocities and the interval per pose) are timed on the same
-batch sizes with their own random inputs; they have no reference library.
+(``motor-cubic``: 4 keyframes and their times per pose; ``motor-quintic``: 6;
+``motor-hermite``: 2 keyframes, their velocities and the interval per pose) are
+timed on the same batch sizes with their own random inputs; they have no
+reference library.
 
 - SoA (position LERP + SLERP): scipy ``Rotation`` vectorised slerp
   ``r0 * from_rotvec(s * (r0^-1 r1).as_rotvec())`` plus a numpy LERP, and one
@@ -61,13 +62,14 @@ TARGETS: dict[str, float] = {
     "motor-lerp": 10e6,
     "motor-cubic": 2e6,
     "motor-hermite": 2e6,
+    "motor-quintic": 2e6,
     "track_us": 50.0,
 }
 TARGET_BATCH = 10_000
 #: Pair methods (with reference libraries).
 METHODS = ("soa", "dq-slerp", "motor-lerp")
 #: Window and velocity methods (posecast's own; no reference).
-EXTRA_METHODS = ("motor-cubic", "motor-hermite")
+EXTRA_METHODS = ("motor-cubic", "motor-hermite", "motor-quintic")
 ALL_METHODS = METHODS + EXTRA_METHODS
 
 #: Pairs timed for per-pose reference loops (their rate does not depend on batch).
@@ -98,12 +100,13 @@ def _random_velocities(rng: np.random.Generator, n: int) -> F64:
 def _extra_call(name: str, rng: np.random.Generator, n: int) -> Callable[[], object]:
     """The timed call of a window or velocity method on ``n`` random queries."""
     f = interp.get(name)
-    kind = interp.info(name).kind
+    entry = interp.info(name)
     s = rng.uniform(0.0, 1.0, n)
-    if kind == "window":
-        keys = _random_poses(rng, 4 * n).reshape(n, 4, 7)
-        times = np.cumsum(rng.uniform(0.03, 0.2, (n, 4)), axis=1)
-        t = times[:, 1] + s * (times[:, 2] - times[:, 1])
+    if entry.kind == "window":
+        k, lo = entry.window_size, entry.lookbehind
+        keys = _random_poses(rng, k * n).reshape(n, k, 7)
+        times = np.cumsum(rng.uniform(0.03, 0.2, (n, k)), axis=1)
+        t = times[:, lo] + s * (times[:, lo + 1] - times[:, lo])
         return partial(f, keys, times, t)
     a, b = _random_poses(rng, n), _random_poses(rng, n)
     va, vb = _random_velocities(rng, n), _random_velocities(rng, n)
