@@ -83,6 +83,7 @@ _KIND_STOP: Final = 3
 _HEAD: Final = struct.Struct("<BI")
 _FRAME: Final = struct.Struct("<BIHId")  # head + user, poses, arrival
 _FRAME_EXTRA: Final = _FRAME.size - _HEAD.size
+_FRAME_PACK: Final = _FRAME.pack
 _RECORD: Final = struct.Struct("<BIBqqI")  # head + channel, log ns, publish ns, poses
 _RECORD_EXTRA: Final = _RECORD.size - _HEAD.size
 _STOP: Final = struct.Struct("<BId")
@@ -123,11 +124,13 @@ def decode_update_frame(
 class _Batch:
     """Records waiting on the relay's thread; what a loss of the batch would lose."""
 
-    __slots__ = ("first", "last", "parts", "poses", "records", "since", "topics")
+    __slots__ = ("first", "frames", "last", "parts", "poses", "records", "since", "topics")
 
     def __init__(self) -> None:
         self.parts: list[bytes] = []
         self.records = 0
+        #: Update frames among the records (the others are counted in ``topics``).
+        self.frames = 0
         self.poses = 0
         self.first = 0.0
         self.last = 0.0
@@ -148,6 +151,8 @@ class _Loss:
         self.last = max(self.last, batch.last)
         self.records += batch.records
         self.poses += batch.poses
+        if batch.frames:
+            topics[POSES_TOPIC] = topics.get(POSES_TOPIC, 0) + batch.frames
         for k, v in batch.topics.items():
             topics[k] = topics.get(k, 0) + v
 
@@ -291,12 +296,14 @@ class ProcessRecorder:
         if not b.records:
             b.since = _time.monotonic()
             b.first = arrival
-        b.parts.append(_FRAME.pack(_KIND_FRAME, _FRAME_EXTRA + len(frame), user, poses, arrival))
-        b.parts.append(frame)
+        b.parts += (
+            _FRAME_PACK(_KIND_FRAME, _FRAME_EXTRA + len(frame), user, poses, arrival),
+            frame,
+        )
         b.records += 1
+        b.frames += 1
         b.poses += poses
         b.last = arrival
-        b.topics[POSES_TOPIC] = b.topics.get(POSES_TOPIC, 0) + 1
         if b.records >= self._batch_size:
             self._handoff()
         return True
