@@ -51,6 +51,7 @@ from recorder.reader import SessionReader, StreamData, UserInfo, decode_poses, s
 __all__ = [
     "FRAME_TRANSFORM_SCHEMA",
     "POSE_COLUMNS",
+    "VELOCITY_COLUMNS",
     "ExportFormat",
     "SessionArrays",
     "csv_bytes",
@@ -64,6 +65,8 @@ ExportFormat = Literal["csv", "npz", "foxglove"]
 
 #: The 7 pose columns of every CSV posecast writes.
 POSE_COLUMNS = ("px", "py", "pz", "qw", "qx", "qy", "qz")
+#: Extra CSV columns of a stream whose updates carried velocities (world frame).
+VELOCITY_COLUMNS = ("vx", "vy", "vz", "wx", "wy", "wz")
 #: Decimals printed for capture times, positions and quaternion components.
 _TIME_DECIMALS = 9
 _POS_DECIMALS = 7
@@ -444,7 +447,14 @@ def _export_csv(streams: Sequence[StreamData], out: Path) -> Path:
         name = stream_label(s).replace(".", "_", 1) + ".csv"
         poses = s.poses.astype(np.float64)
         cols = [s.times, *(poses[:, j] for j in range(7))]
-        (out / name).write_bytes(csv_bytes(header, cols, decimals))
+        names: tuple[str, ...] = header
+        digits: tuple[int, ...] = decimals
+        if s.velocities is not None:
+            # 7 decimals: float16 velocities to within 5e-8 m/s (rad/s)
+            vel = s.velocities.astype(np.float64)
+            cols += [vel[:, j] for j in range(6)]
+            names, digits = (*header, *VELOCITY_COLUMNS), (*decimals, *(7,) * 6)
+        (out / name).write_bytes(csv_bytes(names, cols, digits))
         files.append(name)
     (out / "streams.json").write_text(json.dumps(_index(streams, files), indent=1) + "\n")
     return out
@@ -460,6 +470,8 @@ def _export_npz(streams: Sequence[StreamData], out: Path) -> Path:
         arrays[f"{label}.time"] = s.times
         arrays[f"{label}.arrival"] = s.arrival
         arrays[f"{label}.poses"] = s.poses
+        if s.velocities is not None:
+            arrays[f"{label}.velocities"] = s.velocities
     arrays["streams"] = np.array(json.dumps(_index(streams)))
     with out.open("wb") as fh:
         np.savez(fh, **arrays)  # type: ignore[arg-type]

@@ -94,6 +94,32 @@ def test_npz_export_is_bit_exact(recording: Path, tmp_path: Path) -> None:
             assert np.array_equal(z[f"{label}.poses"].view(np.uint32), poses.view(np.uint32))
 
 
+def test_recorded_velocities_are_exported(tmp_path: Path) -> None:
+    """Velocity-variant updates: both readers agree, CSV gets vx..wz, NPZ the float32 array."""
+    path = synthesize_recording(tmp_path / "rec", users=2, duration=2.0, velocities=True)
+    with SessionReader(path) as r:
+        ref = r.load_streams()
+    data = read_session(path)
+    for s in data.streams:
+        want = ref[(s.user, s.stream)]
+        assert s.velocities is not None and want.velocities is not None
+        o = np.argsort(want.times, kind="stable")
+        assert np.array_equal(s.velocities, want.velocities[o])
+    out = export(path, "csv", tmp_path / "csv")
+    entry = json.loads((out / "streams.json").read_text())[0]
+    with (out / entry["file"]).open(newline="") as fh:
+        rows = list(csv.reader(fh))
+    assert rows[0][8:] == ["vx", "vy", "vz", "wx", "wy", "wz"]
+    s = next(x for x in data.streams if (x.user, x.stream) == (entry["user"], entry["stream"]))
+    assert s.velocities is not None
+    np.testing.assert_allclose(
+        np.array(rows[1:], dtype=np.float64)[:, 8:], s.velocities, atol=5e-8, rtol=0
+    )
+    npz = export(path, "npz", tmp_path / "v")
+    with np.load(npz) as z:
+        assert np.array_equal(z[f"{stream_label(s)}.velocities"], s.velocities)
+
+
 def test_foxglove_export_uses_the_frame_transform_schema(recording: Path, tmp_path: Path) -> None:
     """An MCAP of JSON foxglove.FrameTransform channels, one per stream, values as recorded."""
     out = export(recording, "foxglove", tmp_path / "fox")
