@@ -582,6 +582,7 @@ def _info(reader: SessionReader) -> dict[str, Any]:
                 "keyframes": len(s),
                 "duration": s.duration,
                 "rate": s.rate,
+                "velocities": s.velocities is not None,
             }
             for s in sorted(streams.values(), key=lambda s: (s.user, s.stream))
         ],
@@ -682,6 +683,6 @@ def format_info(data: dict[str, Any]) -> str:
             lines.append(
                 f"          stream {s['stream']:>5} {s['name'] or '?':<10}"
                 f" {s['keyframes']:>8} keyframes {_num(s['duration'])} s"
-                f" {_num(s['rate'])} /s"
+                f" {_num(s['rate'])} /s" + (" + velocities" if s.get("velocities") else "")
             )
     return "\n".join(lines)

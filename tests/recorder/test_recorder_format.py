@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -178,3 +179,15 @@ def test_pose_messages_with_velocities_round_trip_bit_exact() -> None:
         decode_pose(data[:1] + b"\x02" + data[2:])
     with pytest.raises(FormatError):
         decode_pose(data[:-2])
+
+
+def test_info_says_which_streams_carry_velocities(tmp_path: Path) -> None:
+    from recorder import format_info, info
+    from recorder.replay import synthesize_recording
+
+    plain = info(synthesize_recording(tmp_path / "a", users=1, duration=1.0))
+    assert [s["velocities"] for s in plain["streams"]] == [False] * 3
+    with_v = info(synthesize_recording(tmp_path / "b", users=1, duration=1.0, velocities=True))
+    assert [s["velocities"] for s in with_v["streams"]] == [True] * 3
+    assert format_info(with_v).count("+ velocities") == 3
+    assert "+ velocities" not in format_info(plain)
