@@ -63,38 +63,29 @@ QUINTIC_LOOKAHEAD = 2
 _FAR = 1e30
 
 
-def _stencil_weights(x: list[F64], i: int, nodes: range) -> tuple[dict[int, F64], dict[int, F64]]:
-    """First and second derivative weights at node ``i`` of the polynomial through ``nodes``.
+def _stencil_weights(x: F64, i: int) -> tuple[F64, F64]:
+    """First and second derivative weights at node ``i`` of the polynomial through all of ``x``.
 
-    ``x`` are node times (``(M,)`` each, in bracket spans; missing nodes at
-    ``+-_FAR``). Returns ``{j: L_j'(x_i)}`` and ``{j: L_j''(x_i)}`` for every
-    node, ``j = i`` included (minus the sum of the others). With ``u_m = x_m -
-    x_i``: ``L_j' = prod_{m != i, j} u_m / (u_j^2 prod_{m != i, j} (u_m - u_j))``
+    ``x`` ``(N, M)``: node times (in bracket spans; missing nodes at ``+-_FAR``).
+    Returns ``L_j'(x_i)`` and ``L_j''(x_i)`` as ``(N, M)``, row ``i`` included
+    (minus the sum of the others: constants have no derivative). With ``u_m =
+    x_m - x_i``: ``L_j' = prod_{m != i} u_m / (u_j^2 prod_{m != i, j} (u_m - u_j))``
     and ``L_j'' = 2 L_j' sum_{m != i, j} (-1 / u_m)``.
     """
-    others = [j for j in nodes if j != i]
-    u = {j: x[j] - x[i] for j in others}
-    inv = {j: 1.0 / u[j] for j in others}
-    total_inv = sum(inv.values(), np.zeros_like(x[i]))
-    prod_u = np.ones_like(x[i])
-    for j in others:
-        prod_u = prod_u * u[j]
-    diff: dict[tuple[int, int], F64] = {}
-    for a_, m in enumerate(others):
-        for j in others[a_ + 1 :]:
-            diff[m, j] = u[m] - u[j]
-    d1: dict[int, F64] = {}
-    d2: dict[int, F64] = {}
-    for j in others:
-        den = u[j] * u[j]
-        for m in others:
-            if m != j:
-                den = den * (diff[m, j] if (m, j) in diff else -diff[j, m])
-        w = prod_u / den
-        d1[j] = w
-        d2[j] = 2.0 * w * (inv[j] - total_inv)
-    d1[i] = -sum(d1.values(), np.zeros_like(x[i]))
-    d2[i] = -sum(d2.values(), np.zeros_like(x[i]))
+    n = x.shape[0]
+    others = [j for j in range(n) if j != i]
+    u = x[others] - x[i]  # (N - 1, M)
+    inv = 1.0 / u
+    diff = u[None, :, :] - u[:, None, :]  # [j, m] = u_m - u_j
+    diag = np.arange(n - 1)
+    diff[diag, diag] = 1.0
+    w1 = np.prod(u, axis=0) / (u * u * np.prod(diff, axis=1))
+    w2 = 2.0 * w1 * (inv - np.sum(inv, axis=0))
+    d1 = np.empty_like(x)
+    d2 = np.empty_like(x)
+    d1[others], d2[others] = w1, w2
+    d1[i] = -np.sum(w1, axis=0)
+    d2[i] = -np.sum(w2, axis=0)
     return d1, d2
 
 
@@ -144,26 +135,27 @@ def motor_window_spline(
     except ValueError:
         raise ValueError(f"expected `t` broadcastable to {batch}") from None
     T = _rows(tt)
-    if k > 1 and not np.all(T[1:] >= T[:-1]):
+    step = T[1:] - T[:-1]
+    if not np.all(step >= 0):
         raise ValueError("expected non-decreasing window `times`")
-    span = T[hi] - T[lo]
+    span = step[lo]
     held = span <= 0
     h = np.where(held, 1.0, span)
     s = np.where(held, 0.0, np.clip((q - T[lo]) / h, 0.0, 1.0))
     # Node times in spans; a missing neighbour (a repeat outwards of the bracket,
     # or anything after a held one) goes far away, each to its own place.
-    x: list[F64] = [(T[j] - T[lo]) / h for j in range(k)]
+    x = (T - T[lo]) / h
     x[hi] = np.where(held, 1.0, x[hi])
-    gone = held
-    for j in range(hi + 1, k):
-        gone = gone | (T[j] <= T[j - 1])
-        x[j] = np.where(gone, _FAR * (j - lo), x[j])
-    gone = np.zeros_like(held)
-    for j in range(lo - 1, -1, -1):
-        gone = gone | (T[j] >= T[j + 1])
-        x[j] = np.where(gone, -_FAR * (lo - j + 1), x[j])
-    v_lo, a_lo = _stencil_weights(x, lo, range(lo - lookbehind, lo + lookahead + 1))
-    v_hi, a_hi = _stencil_weights(x, hi, range(hi - lookbehind, hi + lookahead + 1))
+    if k > hi + 1:
+        gone = np.logical_or.accumulate(step[hi:] <= 0, axis=0) | held
+        far = _FAR * np.arange(2, k - lo)[:, None]
+        x[hi + 1 :] = np.where(gone, far, x[hi + 1 :])
+    if lo > 0:
+        gone = np.logical_or.accumulate(step[lo - 1 :: -1] <= 0, axis=0)[::-1]
+        far = -_FAR * np.arange(lo + 1, 1, -1)[:, None]
+        x[:lo] = np.where(gone, far, x[:lo])
+    v_lo, a_lo = _stencil_weights(x[: lo + lookahead + 1], lo)
+    v_hi, a_hi = _stencil_weights(x[hi - lookbehind :], lookbehind)
     b_p0, b_v0, b_a0, b_a1, b_v1, b_p1 = _quintic_basis(s)
     # The curve's weight of each keyframe's motor: positions, velocities and
     # accelerations at both ends, each a combination of the keyframes.
@@ -171,13 +163,12 @@ def motor_window_spline(
     coef = np.zeros((k, m))
     coef[lo] = b_p0
     coef[hi] = b_p1
-    for basis, weights in ((b_v0, v_lo), (b_v1, v_hi), (b_a0, a_lo), (b_a1, a_hi)):
-        for j, w in weights.items():
-            coef[j] += basis * w
+    coef[: lo + lookahead + 1] += b_v0 * v_lo + b_a0 * a_lo
+    coef[hi - lookbehind :] += b_v1 * v_hi + b_a1 * a_hi
     real, dual = _motor_rows(p.reshape(m, k, 7))
     coef *= _chained_signs(real, lo)
-    # Element-wise sums over each query's own keyframes (no reductions across the
-    # batch): a query's result does not depend on the rest of its batch.
+    # Sums over each query's own keyframes only: a query's result does not depend
+    # on the rest of its batch.
     blend = np.empty((8, m))
     np.multiply(coef[0], real[:, 0], out=blend[:4])
     np.multiply(coef[0], dual[:, 0], out=blend[4:])
@@ -227,17 +218,21 @@ def _chained_signs(real: F64, lo: int) -> F64:
     """``(K, M)`` signs putting each keyframe in its inward neighbour's hemisphere, from ``lo``.
 
     The sign of keyframe ``j > lo`` is its neighbour ``j - 1``'s times the one that
-    aligns ``j`` with ``j - 1`` (``hemisphere_sign``, which handles exact half
-    turns); before ``lo`` likewise towards ``j + 1``.
+    aligns ``j`` with ``j - 1``; before ``lo`` likewise towards ``j + 1``. Exact
+    half turns (dot 0) are decided by ``hemisphere_sign``'s rule.
     """
-    k = real.shape[1]
     a, b = real[:, :-1], real[:, 1:]
     dots = a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3]  # (K - 1, M): j with j + 1
-    sign = np.ones((k, real.shape[2]))
-    for j in range(lo + 1, k):
-        sign[j] = sign[j - 1] * hemisphere_sign(real[:, j - 1], real[:, j], dots[j - 1])
-    for j in range(lo - 1, -1, -1):
-        sign[j] = sign[j + 1] * hemisphere_sign(real[:, j + 1], real[:, j], dots[j])
+    fwd = np.copysign(1.0, dots)  # aligns j + 1 to j
+    back = fwd.copy()  # aligns j to j + 1
+    ties = np.flatnonzero((dots == 0.0).any(axis=1))
+    for j in ties:
+        fwd[j] = hemisphere_sign(real[:, j], real[:, j + 1], dots[j])
+        back[j] = hemisphere_sign(real[:, j + 1], real[:, j], dots[j])
+    sign = np.ones((real.shape[1], real.shape[2]))
+    sign[lo + 1 :] = np.cumprod(fwd[lo:], axis=0)
+    if lo > 0:
+        sign[:lo] = np.cumprod(back[lo - 1 :: -1], axis=0)[::-1]
     return sign
 
 

@@ -193,10 +193,11 @@ def render_buffers(
     for m in methods:
         entry = interp_info(m)
         lb, la = max(lb, entry.lookbehind), max(la, entry.lookahead)
-    # Each stream's window (before..., lo, hi, after...) as a (K, n, 7) track.
+    # Each stream's window (before..., lo, hi, after...) as a (K, n, 7) track,
+    # converted from the buffers' float32 poses in one call.
     k = lb + 2 + la
-    keys = np.empty((k, n, 7))
-    times = np.empty((k, n))
+    flat_poses: list[NDArray[np.float32]] = []
+    flat_times: list[float] = []
     s = np.empty((1, n))
     stalled = np.zeros(n, dtype=bool)
     for j, buf in enumerate(live):
@@ -205,11 +206,13 @@ def render_buffers(
         rows = [max(lo - i, 0) for i in range(lb, 0, -1)]
         rows += [lo, hi]
         rows += [min(hi + i, last) if hi > lo else hi for i in range(1, la + 1)]
-        for row, i in enumerate(rows):
-            keys[row, j] = buf.poses[i]
-            times[row, j] = buf.times[i]
+        poses, times_j = buf.poses, buf.times
+        flat_poses += [poses[i] for i in rows]
+        flat_times += [times_j[i] for i in rows]
         s[0, j] = frac
         stalled[j] = stall
+    keys = np.array(flat_poses, dtype=np.float64).reshape(n, k, 7).transpose(1, 0, 2)
+    times = np.array(flat_times, dtype=np.float64).reshape(n, k).T
     lo_idx = np.full((1, n), lb, dtype=np.intp)
     before = np.broadcast_to(np.arange(lb, dtype=np.intp)[:, None], (lb, n)).T[None]
     after = np.broadcast_to(np.arange(lb + 2, k, dtype=np.intp)[:, None], (la, n)).T[None]
