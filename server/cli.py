@@ -532,15 +532,32 @@ def table1(
     frontier_rates: Annotated[
         str | None, typer.Option(help="Rates for the latency view (default: the tiers').")
     ] = None,
+    live: Annotated[
+        bool,
+        typer.Option(
+            "--live",
+            help="Also run every tier through the real relay (link emulation) with "
+            "trace-driven bots and report live beside offline, with a tolerance.",
+        ),
+    ] = False,
+    live_duration: Annotated[
+        float, typer.Option(help="--live: seconds each bot runs, per tier.")
+    ] = 20.0,
+    live_bots: Annotated[int, typer.Option(help="--live: bots in the room, per tier.")] = 4,
 ) -> None:
     """Reproduce the paper's Table 1: QoE vs rate, equal-QoE rates per network tier.
 
     Also the error-versus-latency view: the headline (hands, p95 tip error)
     against total latency for every method and rate, with and without dead
-    reckoning, and the frontier of the best method at each latency.
+    reckoning, and the frontier of the best method at each latency. With
+    --live, every tier also runs through the real relay and bots, beside its
+    offline counterpart ("Live vs offline" in table1.md, key "live" in the JSON);
+    the command exits 1 if they disagree beyond the stated tolerance.
     """
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
+    import interp
+    from scenarios.network import TierError, load_tiers
     from scenarios.table1 import run_table1
     from scenarios.traces import TraceError
 
@@ -548,6 +565,27 @@ def table1(
     method_list = _parse_methods(methods)
     if transport not in ("datagram", "stream"):
         raise _fail("--transport must be datagram or stream")
+    f_rates = None if frontier_rates is None else [int(r) for r in _parse_rates(frontier_rates)]
+    live_cfg: Any = None
+    if live:
+        # Everything --live needs is checked before the offline sweep starts.
+        from server.table1_live import LiveConfig, live_motions
+
+        live_methods = tuple(
+            dict.fromkeys(m for m in ["soa", *method_list] if not interp.info(m).needs_velocity)
+        )
+        try:
+            live_cfg = LiveConfig(duration=live_duration, bots=live_bots, methods=live_methods)
+            live_motions(traces)
+            tier_list = list(load_tiers(tiers).values())
+        except (TraceError, TierError, ValueError) as exc:
+            raise _fail(f"--live: {exc}") from None
+        skipped = [m for m in method_list if m not in live_methods]
+        if skipped:
+            err_console.print(
+                f"--live: {', '.join(skipped)} need keyframe velocities, which live sessions "
+                "do not carry: offline only"
+            )
     command = "posecast table1 " + " ".join(sys.argv[2:])
     bar = Progress(
         TextColumn("{task.description:<24}"),
@@ -579,9 +617,39 @@ def table1(
                 bench=bench,
                 plots=plots,
                 command=command,
+                frontier=frontier,
+                frontier_rates=f_rates,
             )
     except (TraceError, ValueError, KeyError) as exc:
         raise _fail(str(exc)) from None
+    live_report: dict[str, Any] | None = None
+    if live_cfg is not None:
+        from scenarios.live_agreement import write_live
+        from server.table1_live import run_live
+
+        live_bar = Progress(
+            TextColumn("{task.description:<24}"),
+            BarColumn(),
+            TextColumn("{task.fields[note]}"),
+            TimeElapsedColumn(),
+            console=console,
+            transient=True,
+        )
+        live_tasks: dict[str, Any] = {}
+
+        def live_progress(stage: str, done: float, total: float) -> None:
+            if stage not in live_tasks:
+                live_tasks[stage] = live_bar.add_task(stage, total=total, note="")
+            note = f"{done:.0f}/{total:.0f} s" if stage.startswith("live") else ""
+            live_bar.update(live_tasks[stage], completed=done, total=total, note=note)
+
+        try:
+            with live_bar:
+                live_report = _run_async(run_live(traces, tier_list, live_cfg, live_progress))
+        except (TraceError, ValueError, RuntimeError, OSError, TimeoutError) as exc:
+            raise _fail(f"--live: {exc}") from None
+        assert live_report is not None
+        write_live(out, live_report)
     table = Table(
         title="Table 1: equal-QoE rate (saving vs SoA), ideal network", title_justify="left"
     )
@@ -601,7 +669,39 @@ def table1(
     console.print(table)
     if paper:
         console.print(f"paper: {json.dumps(paper)[:300]}")
+    if live_report is not None:
+        lt = Table(
+            title="Live vs offline (equal D): hands p95 tip error (mm), D (ms)",
+            title_justify="left",
+        )
+        for col in ("tier", "verdict", "method", "live", "offline", "D live", "D rule", "failed"):
+            lt.add_column(col, justify="left" if col in ("tier", "verdict", "failed") else "right")
+        for row in live_report["tiers"]:
+            lv, of = row["live"], row["offline"]
+            failed = [c["what"] for c in row["agreement"]["checks"] if not c["ok"]]
+            for i, m in enumerate(lv["methods"]):
+                lt.add_row(
+                    row["tier"] if i == 0 else "",
+                    ("[green]pass[/]" if row["agreement"]["pass"] else "[red]FAIL[/]")
+                    if i == 0
+                    else "",
+                    m,
+                    _fmt(lv["methods"][m].get("hands", {}).get("tip_p95_mm", float("nan"))),
+                    _fmt(of["methods"].get(m, {}).get("hands", {}).get("tip_p95_mm", float("nan"))),
+                    _fmt(lv["delay_ms"]) if i == 0 else "",
+                    _fmt(of["delay_ms"]) if i == 0 else "",
+                    ", ".join(failed) if i == 0 else "",
+                )
+            lt.add_section()
+        console.print(lt)
     console.print(f"wrote {out}/table1.md, table1.json and plots")
+    if live_report is not None and not live_report["pass"]:
+        bad = [r["tier"] for r in live_report["tiers"] if not r["agreement"]["pass"]]
+        err_console.print(
+            f"[bold red]live and offline disagree beyond the tolerance[/] in {', '.join(bad)}; "
+            f"see {out}/table1.md"
+        )
+        raise typer.Exit(1)
 
 
 @app.command()

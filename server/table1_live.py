@@ -1,0 +1,473 @@
+"""``posecast table1 --live``: every tier through the real relay, beside the offline simulator.
+
+For each tier, :func:`run_live_tier` starts a :class:`~server.app.RelayServer`
+on ``127.0.0.1`` port 0 with the tier emulated in its egress
+(``ServerConfig.link``), runs N trace-driven bots (:func:`client.bot.run_bot`)
+in one room for a while, and collects what they measured (QoE per method and
+class, scored by :mod:`scenarios.qoe` inside each bot; keyframes/s; playout
+delay D) and what the server measured (the rate it chose for each subscriber,
+bytes, delivered and lost snapshots on the emulated link, sampled while the
+bots are connected). Then, off the event loop, the offline counterpart of
+every bot (:func:`scenarios.live_agreement.simulate_receiver`) and the
+verdict (:func:`scenarios.live_agreement.check_agreement`).
+
+Bots publish every native sample of their trace (polled at 90 Hz, the
+headsets' frame rate) and subscribe at the tier's rate, so the server's tick is
+the one sampling stage, as in the offline Table 1 (keyframe = newest native
+sample at each send time). The offline counterpart models the publisher's poll
+grid, the room's tick grid and the tier's link, so the keyframes match without
+peeking at the live run. Bots render at 10 Hz (QoE does not depend on it, see
+:class:`LiveConfig`); an event-loop lag monitor tells whether the process kept
+real time, without which the live figures would measure CPU starvation.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+import interp
+from client.bot import BotConfig, BotReport, remote_log, run_bot
+from protocol import frame_size
+from scenarios.live_agreement import (
+    AMPLE_DELAY_S,
+    ReceiverSim,
+    SenderView,
+    Tolerance,
+    check_agreement,
+    model_rate,
+    simulate_receiver,
+)
+from scenarios.motion import MotionSpec
+from scenarios.network import Tier, websocket_header_bytes
+from scenarios.qoe import ErrorSamples, evaluate_group, summarize
+from scenarios.traces import DEVICE_NAMES, Trace, TraceError, find_traces
+from server.app import RelayServer, ServerConfig
+from server.room import room_phase
+
+__all__ = ["LiveConfig", "LiveProgress", "live_motions", "run_live", "run_live_tier"]
+
+F64 = NDArray[np.float64]
+#: ``progress(stage, done, total)``: a tier's session seconds, then its scoring.
+LiveProgress = Callable[[str, float, float], None]
+
+
+@dataclass(frozen=True)
+class LiveConfig:
+    """What one live run does per tier."""
+
+    #: Seconds each bot runs.
+    duration: float = 20.0
+    bots: int = 4
+    #: How often a bot polls its trace and publishes the newest sample if it is new
+    #: (Hz); 90 Hz, the headsets' frame rate, publishes every sample of the
+    #: <= 90 Hz traces. None: the tier's rate (a second sampling stage before the
+    #: server's, whose phase against the tick grid changes the keyframes' ages).
+    send_rate: float | None = 90.0
+    #: Render rate of the bots (Hz). QoE is scored at the traces' own sample
+    #: times whatever this is; rendering only costs CPU, which on a shared
+    #: machine would show up as event-loop lag in the network timing.
+    render_rate: float = 10.0
+    methods: tuple[str, ...] = ("soa", "dq-slerp", "motor-lerp")
+    #: Seed of the offline link realisations.
+    seed: int = 0
+    tolerance: Tolerance = field(default_factory=Tolerance)
+    #: Delay between bot starts (s), to avoid a burst of handshakes.
+    stagger: float = 0.05
+    #: How often the server's per-connection statistics are sampled (s).
+    poll: float = 0.25
+
+    def __post_init__(self) -> None:
+        if not self.duration > 0:
+            raise ValueError(f"live duration must be positive, got {self.duration}")
+        if self.bots < 2:
+            raise ValueError(
+                f"a live run needs at least 2 bots (one to watch another), got {self.bots}"
+            )
+        if self.send_rate is not None and not self.send_rate > 0:
+            raise ValueError(f"send rate must be positive, got {self.send_rate}")
+        needs = [m for m in self.methods if interp.info(m).needs_velocity]
+        if needs:
+            raise ValueError(
+                f"{', '.join(needs)} need keyframe velocities, which live sessions do not carry"
+            )
+
+
+def live_motions(specs: Sequence[str]) -> list[tuple[str, int]]:
+    """Bot motions for trace specs: ``(CSV path or synthetic:NAME, seed)``, in order.
+
+    Trace files, folders and ``traces:dev``/``traces:eval`` give one motion per
+    CSV; ``synthetic:NAME[:SEED]`` one synthetic motion. Synthetic suites have
+    no live counterpart (bots play one motion each).
+    """
+    out: list[tuple[str, int]] = []
+    for spec in specs:
+        s = str(spec)
+        if s.startswith("synthetic:"):
+            _, name, seed = [*s.split(":"), "0"][:3]
+            try:
+                out.append((f"synthetic:{name}", int(seed)))
+            except ValueError:
+                raise TraceError(
+                    f"malformed synthetic spec {s!r}; use synthetic:NAME[:SEED]"
+                ) from None
+        elif s == "synthetic" or s.endswith(".toml"):
+            raise TraceError(
+                f"--live needs trace files or synthetic:NAME motions; {s!r} is a synthetic suite"
+            )
+        else:
+            out.extend((str(p), 0) for p in find_traces(s))
+    if not out:
+        raise TraceError("no traces given")
+    return out
+
+
+@dataclass
+class _LinkSamples:
+    """The server's view of one subscriber's emulated link over time."""
+
+    times: list[float] = field(default_factory=list)
+    frames: list[int] = field(default_factory=list)
+    bytes: list[int] = field(default_factory=list)
+    lost: list[int] = field(default_factory=list)
+    cap_skips: list[int] = field(default_factory=list)
+    rate: list[float] = field(default_factory=list)
+    #: Whether the whole room was present at each sample.
+    full: list[bool] = field(default_factory=list)
+
+
+async def _watch(
+    server: RelayServer,
+    bots: int,
+    samples: dict[int, _LinkSamples],
+    poll: float,
+    tick: Callable[[float], None],
+) -> None:
+    """Sample every connected subscriber's link figures until cancelled."""
+    loop = asyncio.get_running_loop()
+    start = loop.time()
+    while True:
+        await asyncio.sleep(poll)
+        now = server.clock()
+        stats = server.statistics()["connection_stats"]
+        assert isinstance(stats, list)
+        linked = [s for s in stats if s.user is not None and s.link_rate_hz is not None]
+        for s in linked:
+            ls = samples.setdefault(s.user, _LinkSamples())
+            ls.times.append(now)
+            ls.frames.append(s.link_frames)
+            ls.bytes.append(s.link_bytes)
+            ls.lost.append(s.link_lost)
+            ls.cap_skips.append(s.link_cap_skips)
+            ls.rate.append(float(s.link_rate_hz))
+            ls.full.append(len(linked) == bots)
+        tick(loop.time() - start)
+
+
+def _server_figures(samples: dict[int, _LinkSamples]) -> dict[str, float]:
+    """Per subscriber means over the time the whole room was present."""
+    rates, bps, fps, skips = [], [], [], []
+    lost = offered = 0
+    for ls in samples.values():
+        full = [i for i, f in enumerate(ls.full) if f]
+        if len(full) < 2:
+            continue
+        a, b = full[0], full[-1]
+        dt = ls.times[b] - ls.times[a]
+        if dt <= 0:
+            continue
+        rates.append(ls.rate[b])
+        bps.append((ls.bytes[b] - ls.bytes[a]) / dt)
+        fps.append((ls.frames[b] - ls.frames[a]) / dt)
+        offered += ls.frames[-1] + ls.lost[-1]
+        lost += ls.lost[-1]
+        skips.append(float(ls.cap_skips[-1]))
+    if not rates:
+        raise RuntimeError(
+            "the server never saw the whole room at once: the bots' sessions did not overlap "
+            "(raise --live-duration)"
+        )
+    return {
+        "server_rate_hz": float(np.mean(rates)),
+        "server_rate_min_hz": float(np.min(rates)),
+        "server_rate_max_hz": float(np.max(rates)),
+        "bytes_per_s": float(np.mean(bps)),
+        "snapshots_per_s": float(np.mean(fps)),
+        "lost_fraction": lost / offered if offered else float("nan"),
+        "offered": float(offered),
+        "cap_skips": float(np.sum(skips)),
+        "subscribers_measured": float(len(rates)),
+    }
+
+
+def _score(
+    reports: Sequence[BotReport],
+    tier: Tier,
+    tier_index: int,
+    cfg: LiveConfig,
+    send_rate: float,
+    rate: float,
+    phase: float,
+    frame_bytes: int,
+) -> tuple[
+    list[dict[str, dict[str, ErrorSamples]]],
+    list[dict[str, dict[str, ErrorSamples]]],
+    list[ReceiverSim],
+    list[float],
+]:
+    """Each bot's QoE (at its D, at an ample D), its offline counterpart, its median D (s).
+
+    Blocking (loads traces, scores): run it off the event loop. The live QoE is
+    scored from the bot's own arrival log and playout delays with
+    :func:`scenarios.qoe.evaluate_group`, exactly as the bot scores itself, over
+    the windows where its sender was still publishing (a bot that left early
+    leaves no keyframes to bracket the rest of the receiver's session: those
+    samples would count as stalls that no network caused).
+    """
+    truths: dict[str, Trace] = {}
+    live: list[dict[str, dict[str, ErrorSamples]]] = []
+    live_ample: list[dict[str, dict[str, ErrorSamples]]] = []
+    sims: list[ReceiverSim] = []
+    live_d: list[float] = []
+    for i, rep in enumerate(reports):
+        if not rep.render_log:
+            continue
+        pt = np.array([r[0] for r in rep.render_log])
+        pd = np.array([r[1] for r in rep.render_log])
+
+        def delay_at(taus: F64, pt: F64 = pt, pd: F64 = pd) -> F64:
+            d: F64 = np.interp(taus, pt, pd)
+            return d
+
+        by_label: dict[str, dict[str, tuple[float, float]]] = {}
+        got: dict[str, dict[str, ErrorSamples]] = {}
+        ample: dict[str, dict[str, ErrorSamples]] = {}
+        for rs in rep.streams.values():
+            if rs.label is None or not rs.capture:
+                continue
+            if rs.label not in truths:
+                try:
+                    truths[rs.label] = MotionSpec.parse(rs.label).truth(until=float(pt[-1]) + 1.0)
+                except TraceError:
+                    continue
+            truth = truths[rs.label]
+            if rs.name not in truth.streams:
+                continue
+            log = remote_log(rs)
+            window = (
+                max(float(log.capture[0]), float(pt[0])),
+                min(float(pt[-1]), float(log.capture[-1])),
+            )
+            if window[1] <= window[0]:
+                continue
+            by_label.setdefault(rs.label, {})[rs.name] = window
+            one = truth.select([rs.name])
+            for into, delay in ((got, delay_at), (ample, AMPLE_DELAY_S)):
+                part = evaluate_group(one, log, delay, cfg.methods, window)
+                for m, classes in part.items():
+                    for cls, samples in classes.items():
+                        into.setdefault(m, {}).setdefault(cls, ErrorSamples()).merge(samples)
+        senders = []
+        for label, windows in by_label.items():
+            t0 = MotionSpec.parse(label).t0
+            senders.append(SenderView(truths[label], windows, t0, send_rate, end=t0 + cfg.duration))
+        if not senders:
+            continue
+        live.append(got)
+        live_ample.append(ample)
+        live_d.append(float(np.median(pd)))
+        sims.append(
+            simulate_receiver(
+                senders,
+                tier=tier,
+                rate=rate,
+                phase=phase,
+                frame_bytes=frame_bytes,
+                methods=cfg.methods,
+                delay=delay_at,
+                seed=(cfg.seed, tier_index, i),
+            )
+        )
+    return live, live_ample, sims, live_d
+
+
+async def _loop_lag(lags: list[float], period: float = 0.01) -> None:
+    """Record how late the event loop wakes a 10 ms sleeper, until cancelled."""
+    loop = asyncio.get_running_loop()
+    while True:
+        t = loop.time()
+        await asyncio.sleep(period)
+        lags.append(max(0.0, loop.time() - t - period))
+
+
+async def run_live_tier(
+    tier: Tier,
+    motions: Sequence[tuple[str, int]],
+    cfg: LiveConfig,
+    *,
+    tier_index: int = 0,
+    progress: LiveProgress | None = None,
+) -> dict[str, Any]:
+    """One tier through the real relay and its offline counterpart (see the module doc)."""
+    room = f"table1-{tier.name}"
+    poses = len(DEVICE_NAMES) * cfg.bots
+    payload = frame_size(poses, "snapshot")
+    frame_bytes = payload + websocket_header_bytes(payload)
+    asked = tier.max_rate_hz
+    send_rate = asked if cfg.send_rate is None else cfg.send_rate
+    server = RelayServer(
+        ServerConfig(
+            host="127.0.0.1",
+            port=0,
+            rate=asked,
+            min_rate=min(5.0, asked),
+            max_rate=max(30.0, asked),
+            link=tier,
+        )
+    )
+    stage = f"live {tier.name}"
+    samples: dict[int, _LinkSamples] = {}
+    lags: list[float] = []
+
+    def tick(elapsed: float) -> None:
+        if progress is not None:
+            progress(stage, min(elapsed, cfg.duration), cfg.duration)
+
+    async with asyncio.timeout(cfg.duration + cfg.bots * cfg.stagger + 120.0):
+        async with asyncio.TaskGroup() as tg:
+            tg.create_task(server.run())
+            try:
+                await asyncio.wait_for(server.ready.wait(), 10)
+                base = BotConfig(
+                    url=f"ws://127.0.0.1:{server.port}",
+                    room=room,
+                    rate=asked,
+                    send_rate=send_rate,
+                    methods=cfg.methods,
+                    duration=cfg.duration,
+                    render_rate=cfg.render_rate,
+                    keep_render_log=True,
+                )
+                helpers = [
+                    tg.create_task(_watch(server, cfg.bots, samples, cfg.poll, tick)),
+                    tg.create_task(_loop_lag(lags)),
+                ]
+
+                async def one(i: int) -> BotReport:
+                    motion, seed = motions[i % len(motions)]
+                    await asyncio.sleep(i * cfg.stagger)
+                    return await run_bot(
+                        replace(base, motion=motion, seed=seed, name=f"{tier.name}-bot{i}")
+                    )
+
+                try:
+                    async with asyncio.TaskGroup() as bots:
+                        tasks = [bots.create_task(one(i)) for i in range(cfg.bots)]
+                finally:
+                    for h in helpers:
+                        h.cancel()
+            finally:
+                server.stop()
+    reports = [t.result() for t in tasks]
+    if progress is not None:
+        progress(f"score {tier.name}", 0, 1)
+    server_fig = _server_figures(samples)
+    rate = model_rate(tier, asked, frame_bytes)
+    groups, groups_ample, sims, live_d = await asyncio.to_thread(
+        _score, reports, tier, tier_index, cfg, send_rate, rate, room_phase(room), frame_bytes
+    )
+    if not sims:
+        raise RuntimeError(f"tier {tier.name}: no bot received anything to score")
+    rates = [r.rate_hz for r in reports if r.rate_hz > 0]
+    lag = np.array(lags) if lags else np.zeros(1)
+    live = {
+        "methods": summarize(groups),
+        "methods_ample": summarize(groups_ample),
+        "rate_hz": float(np.mean(rates)) if rates else float("nan"),
+        "delay_ms": 1000.0 * float(np.mean(live_d)),
+        **server_fig,
+        "bot_bytes_per_s": float(np.mean([r.snapshot_bytes / r.duration for r in reports])),
+        "render_stall_fraction": float(np.mean([r.render_stall_fraction for r in reports])),
+        "clock_rtt_ms": float(np.mean([r.clock_rtt_ms for r in reports])),
+        "loop_lag_p50_ms": 1000.0 * float(np.percentile(lag, 50)),
+        "loop_lag_p95_ms": 1000.0 * float(np.percentile(lag, 95)),
+        "loop_lag_max_ms": 1000.0 * float(lag.max()),
+        # What the bots reported themselves (their windows run to their own end,
+        # past the end of senders that left earlier).
+        "bots_own_methods": summarize(r.qoe for r in reports),
+    }
+    delivered = sum(s.delivered for s in sims)
+    lost = sum(s.lost for s in sims)
+    offline = {
+        "methods": summarize([s.equal_d for s in sims]),
+        "methods_rule_d": summarize([s.rule_d for s in sims]),
+        "methods_ample": summarize([s.ample_d for s in sims]),
+        "rate_hz": float(np.nanmean([s.rate_hz for s in sims])),
+        "server_rate_hz": rate,
+        "bytes_per_s": float(np.mean([s.bytes_per_s for s in sims])),
+        "delay_ms": 1000.0 * float(np.mean([s.rule_delay_s for s in sims])),
+        "lost_fraction": lost / (delivered + lost) if delivered + lost else float("nan"),
+        "offered": float(delivered + lost),
+        "tier_loss": tier.loss_pct / 100.0,
+        "frame_bytes": frame_bytes,
+    }
+    if progress is not None:
+        progress(f"score {tier.name}", 1, 1)
+    return {
+        "tier": tier.name,
+        "tier_params": tier.as_dict(),
+        "asked_rate_hz": asked,
+        "send_rate_hz": send_rate,
+        "room_poses": poses,
+        "bots": [
+            {
+                "name": r.name,
+                "user": r.user,
+                "rate_hz": r.rate_hz,
+                "delay_ms": r.delay_ms,
+                "duration_s": r.duration,
+                "render_stall_fraction": r.render_stall_fraction,
+                "frames_rendered": r.frames_rendered,
+            }
+            for r in reports
+        ],
+        "live": live,
+        "offline": offline,
+        "agreement": check_agreement(live, offline, cfg.tolerance),
+    }
+
+
+async def run_live(
+    traces: Sequence[str],
+    tiers: Sequence[Tier],
+    cfg: LiveConfig,
+    progress: LiveProgress | None = None,
+) -> dict[str, Any]:
+    """Every tier in turn (one relay each); the ``live`` key of ``table1.json``."""
+    if not tiers:
+        raise ValueError("no tiers to run")
+    motions = await asyncio.to_thread(live_motions, traces)
+    rows = []
+    for i, tier in enumerate(tiers):
+        rows.append(await run_live_tier(tier, motions, cfg, tier_index=i, progress=progress))
+    return {
+        "config": {
+            "bots": cfg.bots,
+            "duration_s": cfg.duration,
+            "send_rate_hz": "the tier's rate" if cfg.send_rate is None else cfg.send_rate,
+            "render_rate_hz": cfg.render_rate,
+            "methods": list(cfg.methods),
+            "seed": cfg.seed,
+            "motions": [m.rsplit("/", 1)[-1] for m, _ in motions[: cfg.bots]],
+            "tolerance": cfg.tolerance.as_dict(),
+            "compared": "offline counterpart of each bot at the bot's own playout delay D(tau); "
+            "D itself against Table 1's rule 1/rate + p95(age)",
+        },
+        "tiers": rows,
+        "pass": all(r["agreement"]["pass"] for r in rows),
+    }

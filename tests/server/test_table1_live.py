@@ -1,0 +1,102 @@
+"""posecast table1 --live: a real relay with link emulation and real bots beside offline."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import pytest
+from typer.testing import CliRunner
+
+from scenarios.live_agreement import Tolerance
+from scenarios.network import load_tiers
+from server.cli import app
+from server.table1_live import LiveConfig, live_motions, run_live_tier
+
+runner = CliRunner()
+
+
+async def test_short_live_run_agrees_with_offline(trace_root: Path) -> None:
+    """Two trace bots, 6 s through a mediocre link: live and offline agree within tolerance.
+
+    The mediocre tier without its loss: in a run this short, which few snapshots
+    two independent loss draws hit decides the hands' p95 (the eval run covers
+    the lossy tiers over longer runs). The offline counterpart sees neither the
+    live arrivals nor the live keyframes: only the tier, the room's grid, the
+    senders' start times and each bot's D.
+    """
+    tier = replace(load_tiers()["mediocre"], name="mediocre-lossless", loss_pct=0.0)
+    motions = live_motions([str(trace_root / "dev")])
+    row = await run_live_tier(tier, motions, LiveConfig(duration=6.0, bots=2))
+    failed = [c for c in row["agreement"]["checks"] if not c["ok"]]
+    assert row["agreement"]["pass"], failed
+    live, offline = row["live"], row["offline"]
+    # What was compared: every method and class at both D, the server's own rate choice.
+    assert set(live["methods_ample"]) == set(offline["methods_ample"]) == set(LiveConfig().methods)
+    assert set(live["methods"]["soa"]) == {"hands", "head"}
+    assert live["server_rate_hz"] == pytest.approx(tier.max_rate_hz)
+    assert live["methods"]["soa"]["hands"]["tip_p95_mm"] > 0
+    assert len(row["bots"]) == 2 and all(b["rate_hz"] > 0 for b in row["bots"])
+
+
+def test_live_config_refuses_what_cannot_run() -> None:
+    """One bot, a non-positive duration or a velocity method are refused with the reason."""
+    with pytest.raises(ValueError, match="at least 2 bots"):
+        LiveConfig(bots=1)
+    with pytest.raises(ValueError, match="duration"):
+        LiveConfig(duration=0)
+    with pytest.raises(ValueError, match="velocities"):
+        LiveConfig(methods=("soa", "motor-hermite"))
+
+
+def _run_cli(args: list[str]) -> Any:
+    return runner.invoke(app, ["table1", *args])
+
+
+def test_table1_live_command_writes_the_live_key(dev_trace_path: Path, tmp_path: Path) -> None:
+    """posecast table1 --live keeps the offline JSON and adds "live" with every tier's verdict."""
+    out = tmp_path / "t1"
+    res = _run_cli(
+        [
+            "--traces",
+            str(dev_trace_path),
+            "--rates",
+            "10,20,30",
+            "--out",
+            str(out),
+            "--no-link",
+            "--no-bench",
+            "--no-plots",
+            "--no-frontier",
+            "--live",
+            "--live-duration",
+            "2.5",
+            "--live-bots",
+            "2",
+        ]
+    )
+    data = json.loads((out / "table1.json").read_text())
+    live = data["live"]
+    # The exit code follows the verdict: 0 when every tier agrees, 1 otherwise.
+    assert res.exit_code == (0 if live["pass"] else 1), res.output
+    assert {"curves", "tiers", "paper", "config"} <= set(data)
+    assert [t["tier"] for t in live["tiers"]] == ["excellent", "good", "mediocre", "poor"]
+    assert live["config"]["tolerance"] == Tolerance().as_dict()
+    for t in live["tiers"]:
+        assert {"live", "offline", "agreement"} <= set(t)
+        assert t["agreement"]["pass"] == all(c["ok"] for c in t["agreement"]["checks"])
+        assert set(t["live"]["methods"]) == {"soa", "dq-slerp", "motor-lerp"}
+    md = (out / "table1.md").read_text()
+    assert "## Live vs offline" in md and "Verdict:" in md
+    assert "Live vs offline" in res.output
+
+
+def test_table1_live_refuses_a_synthetic_suite_before_the_sweep(tmp_path: Path) -> None:
+    """A synthetic suite has no live counterpart: exit 2 with the reason, nothing written."""
+    out = tmp_path / "t1"
+    res = _run_cli(["--traces", "synthetic", "--out", str(out), "--live"])
+    assert res.exit_code == 2
+    assert "--live" in res.output and "synthetic suite" in res.output
+    assert not (out / "table1.json").exists()
