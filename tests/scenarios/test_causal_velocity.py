@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -12,7 +14,9 @@ from scenarios.traces import (
     VELOCITY_SOURCES,
     Trace,
     causal_velocities,
+    load_trace,
 )
+from scenarios.velocity_sources import compare_velocity_sources, source_velocities
 
 
 def uneven_times(n: int, seed: int = 0) -> np.ndarray:
@@ -100,3 +104,22 @@ def test_sources_and_defaults() -> None:
     for samples, degree in ((1, 1), (3, 0), (3, 3)):
         with pytest.raises(ValueError, match="samples"):
             trace.causal_velocities(samples, degree)
+
+
+def test_compare_velocity_sources_scores_each_source(dev_trace_path: Path) -> None:
+    """The source comparison rounds to float16 and scores hands at each rate per source."""
+    trace = load_trace(dev_trace_path).window(10.0, 25.0)
+    vel = source_velocities(trace, "causal:2,1")
+    np.testing.assert_array_equal(
+        vel, trace.causal_velocities(2, 1).astype(np.float16).astype(np.float64)
+    )
+    res = compare_velocity_sources([trace], [10.0, 20.0], ["central", "causal", "causal:2,1"])
+    assert set(res) == {"central", "causal", "causal:2,1"}
+    for per_rate in res.values():
+        assert set(per_rate) == {10.0, 20.0}
+        for st in per_rate.values():
+            assert 0 < st["tip_p50_mm"] <= st["tip_p95_mm"] < 1e4
+    # Different velocities give different errors (the source is really used).
+    assert res["central"][20.0] != res["causal:2,1"][20.0]
+    with pytest.raises(ValueError, match="malformed source"):
+        source_velocities(trace, "causal:x")
