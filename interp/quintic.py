@@ -63,29 +63,38 @@ QUINTIC_LOOKAHEAD = 2
 _FAR = 1e30
 
 
-def _stencil_weights(x: F64, i: int) -> tuple[F64, F64]:
-    """First and second derivative weights at node ``i`` of the polynomial through all of ``x``.
+def _stencil_weights(x: list[F64], i: int, nodes: range) -> tuple[dict[int, F64], dict[int, F64]]:
+    """First and second derivative weights at node ``i`` of the polynomial through ``nodes``.
 
-    ``x`` ``(N, M)``: node times (in bracket spans; missing nodes at ``+-_FAR``).
-    Returns ``L_j'(x_i)`` and ``L_j''(x_i)`` as ``(N, M)``, row ``i`` included
-    (minus the sum of the others: constants have no derivative). With ``u_m =
-    x_m - x_i``: ``L_j' = prod_{m != i} u_m / (u_j^2 prod_{m != i, j} (u_m - u_j))``
+    ``x`` are node times (``(M,)`` each, in bracket spans; missing nodes at
+    ``+-_FAR``). Returns ``{j: L_j'(x_i)}`` and ``{j: L_j''(x_i)}`` for every
+    node, ``j = i`` included (minus the sum of the others). With ``u_m = x_m -
+    x_i``: ``L_j' = prod_{m != i} u_m / (u_j^2 prod_{m != i, j} (u_m - u_j))``
     and ``L_j'' = 2 L_j' sum_{m != i, j} (-1 / u_m)``.
     """
-    n = x.shape[0]
-    others = [j for j in range(n) if j != i]
-    u = x[others] - x[i]  # (N - 1, M)
-    inv = 1.0 / u
-    diff = u[None, :, :] - u[:, None, :]  # [j, m] = u_m - u_j
-    diag = np.arange(n - 1)
-    diff[diag, diag] = 1.0
-    w1 = np.prod(u, axis=0) / (u * u * np.prod(diff, axis=1))
-    w2 = 2.0 * w1 * (inv - np.sum(inv, axis=0))
-    d1 = np.empty_like(x)
-    d2 = np.empty_like(x)
-    d1[others], d2[others] = w1, w2
-    d1[i] = -np.sum(w1, axis=0)
-    d2[i] = -np.sum(w2, axis=0)
+    others = [j for j in nodes if j != i]
+    u = {j: x[j] - x[i] for j in others}
+    inv = {j: 1.0 / u[j] for j in others}
+    total_inv = sum(inv.values(), np.zeros_like(x[i]))
+    prod_u = np.ones_like(x[i])
+    for j in others:
+        prod_u = prod_u * u[j]
+    diff: dict[tuple[int, int], F64] = {}
+    for a_, m in enumerate(others):
+        for j in others[a_ + 1 :]:
+            diff[m, j] = u[m] - u[j]
+    d1: dict[int, F64] = {}
+    d2: dict[int, F64] = {}
+    for j in others:
+        den = u[j] * u[j]
+        for m in others:
+            if m != j:
+                den = den * (diff[m, j] if (m, j) in diff else -diff[j, m])
+        w = prod_u / den
+        d1[j] = w
+        d2[j] = 2.0 * w * (inv[j] - total_inv)
+    d1[i] = -sum(d1.values(), np.zeros_like(x[i]))
+    d2[i] = -sum(d2.values(), np.zeros_like(x[i]))
     return d1, d2
 
 
@@ -154,8 +163,9 @@ def motor_window_spline(
         gone = np.logical_or.accumulate(step[lo - 1 :: -1] <= 0, axis=0)[::-1]
         far = -_FAR * np.arange(lo + 1, 1, -1)[:, None]
         x[:lo] = np.where(gone, far, x[:lo])
-    v_lo, a_lo = _stencil_weights(x[: lo + lookahead + 1], lo)
-    v_hi, a_hi = _stencil_weights(x[hi - lookbehind :], lookbehind)
+    xs = list(x)
+    v_lo, a_lo = _stencil_weights(xs, lo, range(lo - lookbehind, lo + lookahead + 1))
+    v_hi, a_hi = _stencil_weights(xs, hi, range(hi - lookbehind, hi + lookahead + 1))
     b_p0, b_v0, b_a0, b_a1, b_v1, b_p1 = _quintic_basis(s)
     # The curve's weight of each keyframe's motor: positions, velocities and
     # accelerations at both ends, each a combination of the keyframes.
@@ -163,8 +173,9 @@ def motor_window_spline(
     coef = np.zeros((k, m))
     coef[lo] = b_p0
     coef[hi] = b_p1
-    coef[: lo + lookahead + 1] += b_v0 * v_lo + b_a0 * a_lo
-    coef[hi - lookbehind :] += b_v1 * v_hi + b_a1 * a_hi
+    for basis, weights in ((b_v0, v_lo), (b_v1, v_hi), (b_a0, a_lo), (b_a1, a_hi)):
+        for j, w in weights.items():
+            coef[j] += basis * w
     real, dual = _motor_rows(p.reshape(m, k, 7))
     coef *= _chained_signs(real, lo)
     # Sums over each query's own keyframes only: a query's result does not depend
