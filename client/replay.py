@@ -23,6 +23,11 @@ carrying the newest keyframe of each stream -- what the server's latest-wins
 relay would have kept anyway. ``speed="max"`` replays as fast as that limit
 allows: 90 % of ``max_send_rate`` over the busiest user's mean update rate.
 
+Velocities: a user whose every recorded update carried velocities (the
+velocity variant) is replayed with them (joined with ``sends_velocities``),
+scaled by ``speed`` along with the time line, so velocity subscribers get
+them as recorded (as float16, bit for bit at speed 1).
+
 Motion labels are re-based too (``t0`` shifted to the replay) when ``speed`` is
 1, so live bots can score the replayed motion against its ground truth; at
 other speeds the label becomes ``replay:<label>`` (not a ground truth).
@@ -88,6 +93,9 @@ class UserPlan:
     updates: list[tuple[NDArray[np.uint16], F64, NDArray[np.float32]]]
     joined: float | None = None
     left: float | None = None
+    #: ``(n, 6)`` float32 velocities of each update (parallel to ``updates``) when
+    #: every recorded update of the user carried them, else None.
+    velocities: list[NDArray[np.float32]] | None = None
 
     @property
     def update_rate(self) -> float:
@@ -116,30 +124,45 @@ def _stream_name(sid: int, name: str | None) -> str:
 
 def _user_updates(
     streams: list[StreamData],
-) -> tuple[F64, list[tuple[NDArray[np.uint16], F64, NDArray[np.float32]]]]:
+) -> tuple[
+    F64,
+    list[tuple[NDArray[np.uint16], F64, NDArray[np.float32]]],
+    list[NDArray[np.float32]] | None,
+]:
     """Regroup one user's per-stream keyframes into updates by arrival time.
 
     Keyframes recorded with the same arrival time came in one update (the
     server stamps each update on arrival); if a stream appears twice at one
-    arrival time, its newest capture is kept.
+    arrival time, its newest capture is kept. The third item holds each
+    update's velocities if every keyframe of the user carried one.
     """
     sid = np.concatenate([np.full(len(s), s.stream, dtype=np.uint16) for s in streams])
     arr = np.concatenate([s.arrival for s in streams])
     cap = np.concatenate([s.times for s in streams])
     poses = np.concatenate([s.poses for s in streams])
+    vel: NDArray[np.float32] | None = None
+    if all(s.velocities is not None for s in streams):
+        vel = np.concatenate([s.velocities for s in streams if s.velocities is not None])
+        if np.isnan(vel).any():
+            vel = None  # some updates carried none: replay the poses only
     order = np.lexsort((cap, sid, arr))
     sid, arr, cap, poses = sid[order], arr[order], cap[order], poses[order]
+    if vel is not None:
+        vel = vel[order]
     cuts = np.flatnonzero(np.diff(arr) != 0) + 1
     bounds = [0, *cuts.tolist(), arr.size]
     arrivals = []
     updates = []
+    velocities: list[NDArray[np.float32]] | None = None if vel is None else []
     for lo, hi in itertools.pairwise(bounds):
         ids, caps, ps = sid[lo:hi], cap[lo:hi], poses[lo:hi]
         last = np.ones(ids.size, dtype=bool)
         last[:-1] = ids[1:] != ids[:-1]  # sorted by (sid, capture): keep the newest
         arrivals.append(float(arr[lo]))
         updates.append((ids[last], caps[last], ps[last]))
-    return np.asarray(arrivals, dtype=np.float64), updates
+        if velocities is not None and vel is not None:
+            velocities.append(vel[lo:hi][last])
+    return np.asarray(arrivals, dtype=np.float64), updates, velocities
 
 
 def plan_replay(path: str | os.PathLike[str], room: str | None = None) -> ReplayPlan:
@@ -151,7 +174,7 @@ def plan_replay(path: str | os.PathLike[str], room: str | None = None) -> Replay
     users: list[UserPlan] = []
     for user in sorted(by_user):
         info = data.users.get(user, UserInfo(user))
-        arrival, updates = _user_updates(by_user[user])
+        arrival, updates, velocities = _user_updates(by_user[user])
         # Every stream the user joined with (those never published too), then any
         # published stream the presence records did not name.
         names = {sid: _stream_name(sid, n) for sid, n in info.streams.items()}
@@ -168,6 +191,7 @@ def plan_replay(path: str | os.PathLike[str], room: str | None = None) -> Replay
                 updates=updates,
                 joined=info.joined,
                 left=info.left,
+                velocities=velocities,
             )
         )
     arrivals = [u.arrival for u in users if u.arrival.size]
@@ -201,6 +225,8 @@ class _ReplayBot:
         self.poses = 0
         self.lateness: list[float] = []
         self.joined_at: float | None = None
+        #: Velocities are multiplied by this (the replay speed: time runs faster).
+        self.velocity_scale = 1.0
         #: Set once every update has been sent.
         self.done = asyncio.Event()
 
@@ -228,7 +254,14 @@ class _ReplayBot:
         plan, conn = self.plan, self.conn
         await asyncio.sleep(max(0.0, to_local(join_at) - clock()))
         names = tuple(plan.streams[sid] for sid in sorted(plan.streams))
-        joined = await conn.join(room=room, streams=names, rate=rate, token=token, label=label)
+        joined = await conn.join(
+            room=room,
+            streams=names,
+            rate=rate,
+            token=token,
+            label=label,
+            sends_velocities=plan.velocities is not None,
+        )
         self.joined_at = to_server(clock())
         self.ids = {sid: joined.streams[plan.streams[sid]] for sid in plan.streams}
         async with asyncio.TaskGroup() as tg:
@@ -277,15 +310,28 @@ class _ReplayBot:
             j = i + 1
             while j < n and due[j] <= now:
                 j += 1
+            vels = plan.velocities
             if j - i == 1:
                 ids, caps, poses = plan.updates[i]
+                vel = None if vels is None else vels[i]
             else:  # merge the due updates: newest keyframe of each stream
-                ids, caps, poses = _merge(plan.updates[i:j])
+                ids, caps, poses, vel = _merge(
+                    plan.updates[i:j], None if vels is None else vels[i:j]
+                )
                 self.merged += j - i - 1
             new_caps = np.array([scale(c) for c in caps.tolist()], dtype=np.float64)
             new_ids = np.array([self.ids[int(s)] for s in ids.tolist()], dtype=np.uint16)
             seq += 1
-            data = encode_update(seq, new_ids, new_caps, poses, base_time=float(new_caps.max()))
+            if vel is not None and self.velocity_scale != 1.0:
+                vel = vel * np.float32(self.velocity_scale)
+            data = encode_update(
+                seq,
+                new_ids,
+                new_caps,
+                poses,
+                base_time=float(new_caps.max()),
+                velocities=vel,
+            )
             await self.conn.send_bytes(data)
             self.lateness.append(now - due[j - 1])
             self.sent += 1
@@ -295,18 +341,25 @@ class _ReplayBot:
 
 def _merge(
     updates: list[tuple[NDArray[np.uint16], F64, NDArray[np.float32]]],
-) -> tuple[NDArray[np.uint16], F64, NDArray[np.float32]]:
-    newest: dict[int, tuple[float, NDArray[np.float32]]] = {}
-    for ids, caps, poses in updates:
+    velocities: list[NDArray[np.float32]] | None = None,
+) -> tuple[NDArray[np.uint16], F64, NDArray[np.float32], NDArray[np.float32] | None]:
+    """The newest keyframe of each stream (and its velocity, if given)."""
+    newest: dict[int, tuple[float, NDArray[np.float32], NDArray[np.float32] | None]] = {}
+    for u, (ids, caps, poses) in enumerate(updates):
         for k, sid in enumerate(ids.tolist()):
             c = float(caps[k])
             if sid not in newest or c > newest[sid][0]:
-                newest[sid] = (c, poses[k])
+                v = None if velocities is None else velocities[u][k]
+                newest[sid] = (c, poses[k], v)
     keys = sorted(newest)
+    vel = None
+    if velocities is not None:
+        vel = np.stack([v for k in keys if (v := newest[k][2]) is not None]).astype(np.float32)
     return (
         np.array(keys, dtype=np.uint16),
         np.array([newest[k][0] for k in keys], dtype=np.float64),
         np.stack([newest[k][1] for k in keys]).astype(np.float32),
+        vel,
     )
 
 
@@ -356,7 +409,8 @@ async def replay_live(
          "users", "updates_recorded", "updates_sent", "updates_merged", "poses_sent",
          "lateness_ms": {"p50", "p95", "max"}, "clock_rtt_ms",
          "streams": [{"recorded_user", "recorded_stream", "name", "user", "stream"}],
-         "bots": [{"recorded_user", "user", "name", "updates_sent", "joined_at"}]}
+         "bots": [{"recorded_user", "user", "name", "updates_sent", "joined_at",
+                   "velocities"}]}
 
     A recorded update arriving at ``a`` (capture ``c``) is sent at server time
     ``server_start + (a - origin) / speed`` with capture ``server_start + (c -
@@ -383,6 +437,7 @@ async def replay_live(
         for k, up in enumerate(plan.users):
             conn = await ClientConnection.connect(url, agent=f"{agent}:{up.name}", clock=clock)
             bots.append(_ReplayBot(up, conn))
+            bots[-1].velocity_scale = factor
             if k == 0:  # one process, one clock: one offset serves every bot
                 await _sync_clock(conn, est, _SYNC_PINGS, clock)
         welcome = bots[0].conn.welcome
@@ -466,6 +521,7 @@ async def replay_live(
                 "name": b.plan.name,
                 "updates_sent": b.sent,
                 "joined_at": b.joined_at,
+                "velocities": b.plan.velocities is not None,
             }
             for b in bots
         ],

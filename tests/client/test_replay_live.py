@@ -31,6 +31,8 @@ class Viewer:
     conn: ClientConnection
     seen: dict[tuple[int, int], list[tuple[float, float, np.ndarray]]] = field(default_factory=dict)
     labels: dict[int, str | None] = field(default_factory=dict)
+    #: With velocity snapshots: (user, stream) -> the float16 velocity of each new keyframe.
+    velocities: dict[tuple[int, int], list[np.ndarray]] = field(default_factory=dict)
 
     async def run(self) -> None:
         newest: dict[tuple[int, int], float] = {}
@@ -51,6 +53,9 @@ class Viewer:
                         self.seen.setdefault(key, []).append(
                             (cap, snap.send_time, np.array(snap.poses[i]))
                         )
+                        if snap.velocities is not None:
+                            vel = np.array(snap.velocities[i])
+                            self.velocities.setdefault(key, []).append(vel)
 
 
 @pytest.fixture(scope="module")
@@ -61,11 +66,21 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 async def _replay_and_watch(
-    path: Path, speed: float | Literal["max"], room: str | None, viewer_room: str
+    path: Path,
+    speed: float | Literal["max"],
+    room: str | None,
+    viewer_room: str,
+    wants_velocities: bool = False,
 ) -> tuple[dict[str, Any], Viewer]:
     async with running_server() as server:
         url = f"ws://127.0.0.1:{server.port}"
-        conn = await ClientConnection.open(url, room=viewer_room, streams=("head",), rate=SUB_RATE)
+        conn = await ClientConnection.open(
+            url,
+            room=viewer_room,
+            streams=("head",),
+            rate=SUB_RATE,
+            wants_velocities=wants_velocities,
+        )
         viewer = Viewer(conn)
         task = asyncio.create_task(viewer.run())
         try:
@@ -171,3 +186,49 @@ async def test_replay_refuses_a_bad_speed(recording: Path) -> None:
     """A speed that is not positive is refused before connecting."""
     with pytest.raises(ValueError, match="speed"):
         await replay_live(recording, "ws://127.0.0.1:9", speed=0.0)
+
+
+@pytest.fixture(scope="module")
+def velocity_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Like ``recording``, with velocity-variant updates (causal float16 velocities)."""
+    out = tmp_path_factory.mktemp("vrec")
+    return synthesize_recording(
+        out, users=2, rate=30.0, duration=2.0, room="recorded", velocities=True
+    )
+
+
+def test_plan_keeps_recorded_velocities(recording: Path, velocity_recording: Path) -> None:
+    plain = plan_replay(recording)
+    assert all(u.velocities is None for u in plain.users)
+    plan = plan_replay(velocity_recording)
+    for u in plan.users:
+        assert u.velocities is not None and len(u.velocities) == len(u.updates)
+        assert all(
+            v.shape == (len(ids), 6)
+            for v, (ids, _c, _p) in zip(u.velocities, u.updates, strict=True)
+        )
+
+
+@pytest.mark.parametrize("speed", [1.0, 10.0])
+async def test_replay_relays_recorded_velocities(velocity_recording: Path, speed: float) -> None:
+    """A velocity viewer gets each replayed keyframe's recorded velocity (times the speed)."""
+    report, viewer = await _replay_and_watch(
+        velocity_recording, speed, None, "recorded", wants_velocities=True
+    )
+    assert all(b["velocities"] for b in report["bots"])
+    recorded = {(s.user, s.stream): s for s in read_session(velocity_recording).streams}
+    start, origin = float(report["server_start"]), float(report["origin"])
+    checked = 0
+    for m in report["streams"]:
+        rec = recorded[(m["recorded_user"], m["recorded_stream"])]
+        assert rec.velocities is not None
+        key = (m["user"], m["stream"])
+        caps = np.array([g[0] for g in viewer.seen[key]])
+        expected = start + (rec.times - origin) / speed
+        idx = np.abs(expected[None, :] - caps[:, None]).argmin(axis=1)
+        got = np.stack(viewer.velocities[key])
+        want = (rec.velocities[idx] * np.float32(speed)).astype(np.float16)
+        assert np.array_equal(got.view(np.uint16), want.view(np.uint16))
+        assert np.abs(got.astype(np.float64)).max() > 0.01
+        checked += len(got)
+    assert checked >= 6 * 3
