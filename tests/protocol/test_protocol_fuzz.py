@@ -64,6 +64,20 @@ def joined_client() -> ClientSession:
     return pair.client
 
 
+def velocity_server() -> ServerSession:
+    """A joined server session whose client declared velocity updates."""
+    pair = SessionPair()
+    pair.handshake(sends_velocities=True, wants_velocities=True)
+    return pair.server
+
+
+def velocity_client() -> ClientSession:
+    """A joined client session that asked for velocity snapshots."""
+    pair = SessionPair()
+    pair.handshake(sends_velocities=True, wants_velocities=True)
+    return pair.client
+
+
 Factory = Callable[[], ServerSession | ClientSession]
 
 SESSIONS: list[Factory] = [
@@ -71,6 +85,8 @@ SESSIONS: list[Factory] = [
     hello_client,
     joined_server,
     joined_client,
+    velocity_server,
+    velocity_client,
 ]
 
 
@@ -115,8 +131,8 @@ FIELDS: dict[str, list[str]] = {
     cls.TYPE: [f.name for f in dataclasses.fields(cls)]  # type: ignore[arg-type]
     for cls in ControlMessage.__subclasses__()
 }
-FIELDS["update"] = ["seq", "time", "poses"]
-FIELDS["snapshot"] = ["tick", "time", "poses"]
+FIELDS["update"] = ["seq", "time", "poses", "vpose"]
+FIELDS["snapshot"] = ["tick", "time", "poses", "vpose"]
 
 
 def maps_of(type_: str) -> st.SearchStrategy[bytes]:
@@ -174,6 +190,8 @@ def test_mutated_frames_never_raise(data: st.DataObject) -> None:
     frames = [
         encode_update(3, [0, 1], [1.0, 1.0], np.tile([0, 1, 0, 1, 0, 0, 0.0], (2, 1))),
         encode_snapshot(3, 1.0, [2], [0], [1.0], [[0, 1, 0, 1, 0, 0, 0.0]]),
+        encode_update(4, [0], [1.0], [[0, 1, 0, 1, 0, 0, 0.0]], velocities=[[1, 2, 3, 4, 5, 6]]),
+        encode_snapshot(4, 1.0, [2], [0], [1.0], [[0, 1, 0, 1, 0, 0, 0.0]], velocities=[[0.5] * 6]),
         raw_frame("join", room="lab", streams=["head", "object:drill"], rate=20.0),
         raw_frame("event", kind="grab", stream=1, user=None, time=1.0, payload={"a": [1]}),
     ]
