@@ -15,9 +15,15 @@ from client.bot import BotConfig, BotReport, RemoteStream, motion_for_bot, remot
 from client.render import VelocityBuffer, render_velocity_buffers
 from client.swarm import swarm_report
 from interp import get, interpolate_brackets
-from protocol import VELOCITY_BYTES, VELOCITY_MAX
+from protocol import VELOCITY_BYTES, VELOCITY_MAX, frame_size
 from scenarios.motion import MotionSpec
-from scenarios.network import VELOCITY_BYTES_PER_POSE
+from scenarios.network import (
+    TCP_IP_HEADER_BYTES,
+    TCP_MSS,
+    VELOCITY_BYTES_PER_POSE,
+    websocket_header_bytes,
+    wire_bytes,
+)
 from scenarios.qoe import (
     KeyframeLog,
     evaluate_group,
@@ -34,9 +40,14 @@ def pose(x: float) -> np.ndarray:
     return np.array([x, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0], dtype=np.float32)
 
 
-def test_wire_velocity_bytes_match_the_offline_accounting() -> None:
-    """The protocol's velocity bytes are the ones table1 and the link model count."""
+@pytest.mark.parametrize("n", [1, 3, 18, 48, 200, 1500])
+def test_wire_velocity_bytes_match_the_offline_accounting(n: int) -> None:
+    """The link model's and Table 1's velocity frames are exactly the protocol's frames."""
     assert VELOCITY_BYTES == VELOCITY_BYTES_PER_POSE == 12
+    payload = frame_size(n, "snapshot", velocities=True)
+    segments = -(-(payload + websocket_header_bytes(payload)) // TCP_MSS)
+    want = payload + websocket_header_bytes(payload) + segments * TCP_IP_HEADER_BYTES
+    assert wire_bytes(n, VELOCITY_BYTES_PER_POSE) == want
 
 
 def test_velocity_buffer_keeps_velocities_with_their_keyframes() -> None:
