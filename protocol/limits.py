@@ -2,7 +2,8 @@
 
 The constants are the defaults; a session takes a ``Limits`` to change them (for
 example a client in a large room needs a bigger ``max_frame_size`` for snapshots:
-every pose costs 36 bytes, so 64 KiB hold about 1800 poses).
+every pose costs 36 bytes, 48 in the velocity variant, so 64 KiB hold about 1800
+poses, or 1360 with velocities).
 """
 
 from __future__ import annotations
