@@ -51,15 +51,10 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import IO, Any, Final
 
-import numpy as np
-from numpy.typing import NDArray
-
 from recorder.format import (
     CHANNELS,
     DROPS_TOPIC,
-    EVENTS_TOPIC,
     POSES_TOPIC,
-    PRESENCE_TOPIC,
     QUEUE_OVERFLOW_KIND,
     encode_json,
     to_ns,
@@ -70,10 +65,11 @@ from recorder.writer import (
     DEFAULT_QUEUE_SIZE,
     RecorderError,
     RecorderStatistics,
+    RecordTap,
     SessionRecorder,
 )
 
-__all__ = ["ProcessRecorder", "RoomRecorder", "decode_update_frame"]
+__all__ = ["ProcessRecorder", "RoomRecorder"]
 
 log = logging.getLogger("posecast.recorder")
 
@@ -98,27 +94,6 @@ _CHILD_BATCH: Final = 256
 _CHILD_BATCH_DELAY: Final = 0.05
 
 Clock = Callable[[], float]
-
-
-def decode_update_frame(
-    frame: bytes,
-) -> tuple[
-    int, NDArray[np.uint16], NDArray[np.float64], NDArray[np.float32], NDArray[np.float16] | None
-]:
-    """``(seq, streams, capture_times, poses, velocities)`` of an ``update`` frame.
-
-    ``velocities`` is ``None`` for a plain update; not an update: ``ValueError``.
-    """
-    from protocol import PoseUpdate, decode_message
-    from protocol.errors import RemoteProtocolError
-
-    try:
-        msg = decode_message(frame)
-    except RemoteProtocolError as exc:
-        raise ValueError(f"not a valid frame: {exc}") from exc
-    if not isinstance(msg, PoseUpdate):
-        raise ValueError(f"expected an update frame, got {type(msg).__name__}")
-    return msg.seq, msg.streams, msg.capture_times, msg.poses, msg.velocities
 
 
 class _Batch:
@@ -157,7 +132,7 @@ class _Loss:
             topics[k] = topics.get(k, 0) + v
 
 
-class ProcessRecorder:
+class ProcessRecorder(RecordTap):
     """Records one room's session from a child process; see the module docstring.
 
     Make one with :meth:`open`; the relay-facing methods match
@@ -308,79 +283,33 @@ class ProcessRecorder:
             self._handoff()
         return True
 
-    def record_update(
-        self,
-        user: int,
-        seq: int,
-        arrival: float,
-        streams: Any,
-        capture_times: Any,
-        poses: Any,
-        velocities: Any = None,
-    ) -> bool:
-        """Take one pose update as arrays (see :meth:`SessionRecorder.record_update`)."""
-        from recorder.format import encode_pose
-
-        try:
-            caps = np.asarray(capture_times, dtype="<f8")
-            data = encode_pose(user, seq, arrival, streams, caps, poses, velocities)
-        except (TypeError, ValueError) as exc:
-            return self._reject(POSES_TOPIC, exc)
-        newest = max(caps.tolist()) if len(caps) else arrival
-        return self._record(POSES_TOPIC, arrival, to_ns(newest), data, len(caps))
-
-    def record_event(self, event: Mapping[str, Any], time: float | None = None) -> bool:
-        """Take an event (grab, release, button, ...) for the ``events`` channel."""
-        return self._json(EVENTS_TOPIC, event, time)
-
-    def record_presence(self, presence: Mapping[str, Any], time: float | None = None) -> bool:
-        """Take a join / leave / rate record (see :meth:`SessionRecorder.record_presence`)."""
-        return self._json(PRESENCE_TOPIC, presence, time)
-
-    def record_drop(self, drop: Mapping[str, Any], time: float | None = None) -> bool:
-        """Take a server-side drop or skip record."""
-        return self._json(DROPS_TOPIC, drop, time)
-
-    def _json(self, topic: str, record: Mapping[str, Any], time: float | None) -> bool:
-        try:
-            if time is None:
-                t = record.get("time")
-                time = float(t) if isinstance(t, int | float) else self._clock()
-            data = encode_json(record)
-        except (TypeError, ValueError) as exc:
-            return self._reject(topic, exc)
-        return self._record(topic, time, to_ns(time), data, 0)
-
-    def _record(self, topic: str, time: float, publish_ns: int, data: bytes, poses: int) -> bool:
+    def _take(self, topic: str, log_time: float, publish_ns: int, data: bytes, poses: int) -> bool:
         if self._closing or self._error is not None:
             return self._refuse(1)
         b = self._batch
         if not b.records:
             b.since = _time.monotonic()
-            b.first = time
-        b.parts.append(
-            _RECORD.pack(
-                _KIND_RECORD,
-                _RECORD_EXTRA + len(data),
-                _CHANNEL_INDEX[topic],
-                to_ns(time),
-                publish_ns,
-                poses,
-            )
+            b.first = b.last = log_time
+        head = _RECORD.pack(
+            _KIND_RECORD,
+            _RECORD_EXTRA + len(data),
+            _CHANNEL_INDEX[topic],
+            to_ns(log_time),
+            publish_ns,
+            poses,
         )
-        b.parts.append(data)
+        b.parts += (head, data)
         b.records += 1
         b.poses += poses
-        b.first = min(b.first, time)
-        b.last = max(b.last, time)
+        b.first = min(b.first, log_time)
+        b.last = max(b.last, log_time)
         b.topics[topic] = b.topics.get(topic, 0) + 1
         if b.records >= self._batch_size:
             self._handoff()
         return True
 
-    def _reject(self, topic: str, exc: Exception) -> bool:
-        log.warning("recorder: %s record not recorded: %s", topic, exc)
-        return self._refuse(1)
+    def _count_rejected(self, n: int = 1) -> None:
+        self._refuse(n)
 
     def _refuse(self, n: int) -> bool:
         with self._lock:

@@ -53,6 +53,7 @@ from recorder.format import (
     QUEUE_OVERFLOW_KIND,
     SESSION_END_METADATA,
     SESSION_METADATA,
+    decode_update_frame,
     encode_json,
     encode_pose,
     posecast_version,
@@ -63,6 +64,7 @@ __all__ = [
     "DEFAULT_FLUSH_INTERVAL",
     "DEFAULT_QUEUE_SIZE",
     "PART_SUFFIX",
+    "RecordTap",
     "RecorderError",
     "RecorderStatistics",
     "SessionRecorder",
@@ -187,7 +189,81 @@ class _Loss:
         return (_DROPS, self.last, self.last, encode_json(record), 0)
 
 
-class SessionRecorder:
+class RecordTap:
+    """The relay-facing ``record_*`` methods both recorders share.
+
+    They encode a record on the caller's thread and hand it to ``_take``, which
+    never blocks: it returns ``True`` if the record was taken, ``False`` if it
+    was lost or refused (always counted). Subclasses set ``_clock`` (the server
+    clock, for a JSON record without a time) and implement ``_take`` and
+    ``_count_rejected``.
+    """
+
+    _clock: Clock
+
+    def _take(self, topic: str, log_time: float, publish_ns: int, data: bytes, poses: int) -> bool:
+        raise NotImplementedError
+
+    def _count_rejected(self, n: int = 1) -> None:
+        raise NotImplementedError
+
+    def record_update(
+        self,
+        user: int,
+        seq: int,
+        arrival: float,
+        streams: ArrayLike,
+        capture_times: ArrayLike,
+        poses: ArrayLike,
+        velocities: ArrayLike | None = None,
+    ) -> bool:
+        """Take one pose update: stream ids (n,), capture times (n,), poses (n, 7).
+
+        ``velocities`` (n, 6), if the update carried them, are recorded too.
+        """
+        try:
+            caps = np.asarray(capture_times, dtype="<f8")
+            data = encode_pose(user, seq, arrival, streams, caps, poses, velocities)
+        except (TypeError, ValueError) as exc:
+            return self._reject(POSES_TOPIC, exc)
+        # publish_time: the newest capture time of the update
+        newest = max(caps.tolist()) if len(caps) else arrival
+        return self._take(POSES_TOPIC, arrival, to_ns(newest), data, len(caps))
+
+    def record_event(self, event: Mapping[str, Any], time: float | None = None) -> bool:
+        """Take an event (grab, release, button, ...) as JSON on ``events``."""
+        return self._json(EVENTS_TOPIC, event, time)
+
+    def record_presence(self, presence: Mapping[str, Any], time: float | None = None) -> bool:
+        """Take a join / leave / rate record on ``presence``.
+
+        Join: ``{"kind": "join", "user", "name", "label", "streams": {name: id},
+        "rate"}``; leave: ``{"kind": "leave", "user", "reason"}``; rate change:
+        ``{"kind": "rate", "user", "rate"}``.
+        """
+        return self._json(PRESENCE_TOPIC, presence, time)
+
+    def record_drop(self, drop: Mapping[str, Any], time: float | None = None) -> bool:
+        """Take a server-side drop or skip, e.g. ``{"kind": "flood", "user": 3, "count": 1}``."""
+        return self._json(DROPS_TOPIC, drop, time)
+
+    def _json(self, topic: str, record: Mapping[str, Any], time: float | None) -> bool:
+        try:
+            if time is None:
+                t = record.get("time")
+                time = float(t) if isinstance(t, int | float) else self._clock()
+            data = encode_json(record)
+        except (TypeError, ValueError) as exc:
+            return self._reject(topic, exc)
+        return self._take(topic, time, to_ns(time), data, 0)
+
+    def _reject(self, topic: str, exc: Exception) -> bool:
+        self._count_rejected()
+        log.warning("recorder: %s record not recorded: %s", topic, exc)
+        return False
+
+
+class SessionRecorder(RecordTap):
     """Records one room's session to ``NAME.mcap.part``; see the module docstring.
 
     Make one with :meth:`open`. ``record_*`` return ``True`` if the record was
@@ -368,58 +444,6 @@ class SessionRecorder:
 
     # -- the relay's side: never blocks ----------------------------------------------
 
-    def record_update(
-        self,
-        user: int,
-        seq: int,
-        arrival: float,
-        streams: ArrayLike,
-        capture_times: ArrayLike,
-        poses: ArrayLike,
-        velocities: ArrayLike | None = None,
-    ) -> bool:
-        """Queue one pose update: stream ids (n,), capture times (n,), poses (n, 7).
-
-        ``velocities`` (n, 6), if the update carried them, are recorded too.
-        """
-        try:
-            caps = np.asarray(capture_times, dtype="<f8")
-            data = encode_pose(user, seq, arrival, streams, caps, poses, velocities)
-        except (TypeError, ValueError) as exc:
-            return self._reject(POSES_TOPIC, exc)
-        # publish_time: the newest capture time of the update
-        newest = max(caps.tolist()) if len(caps) else arrival
-        n = len(caps)
-        return self._offer((_POSES, to_ns(arrival), to_ns(newest), data, n))
-
-    def record_event(self, event: Mapping[str, Any], time: float | None = None) -> bool:
-        """Queue an event (grab, release, button, ...) as JSON on ``events``."""
-        return self._json(_EVENTS, event, time)
-
-    def record_presence(self, presence: Mapping[str, Any], time: float | None = None) -> bool:
-        """Queue a join / leave / rate record on ``presence``.
-
-        Join: ``{"kind": "join", "user", "name", "label", "streams": {name: id},
-        "rate"}``; leave: ``{"kind": "leave", "user", "reason"}``; rate change:
-        ``{"kind": "rate", "user", "rate"}``.
-        """
-        return self._json(_PRESENCE, presence, time)
-
-    def record_drop(self, drop: Mapping[str, Any], time: float | None = None) -> bool:
-        """Queue a server-side drop or skip, e.g. ``{"kind": "flood", "user": 3, "count": 1}``."""
-        return self._json(_DROPS, drop, time)
-
-    def _json(self, channel: int, record: Mapping[str, Any], time: float | None) -> bool:
-        try:
-            if time is None:
-                t = record.get("time")
-                time = float(t) if isinstance(t, int | float) else self._clock()
-            data = encode_json(record)
-        except (TypeError, ValueError) as exc:
-            return self._reject(CHANNELS[channel - 1].topic, exc)
-        ns = to_ns(time)
-        return self._offer((channel, ns, ns, data, 0))
-
     def record_update_frame(self, user: int, arrival: float, frame: bytes, poses: int) -> bool:
         """Queue one pose update given as the ``update`` frame it arrived in.
 
@@ -427,8 +451,6 @@ class SessionRecorder:
         which hands the frame to another process); here it is decoded and
         recorded as :meth:`record_update`. ``poses`` is the count in the frame.
         """
-        from recorder.process import decode_update_frame
-
         try:
             seq, streams, caps, pose_array, velocities = decode_update_frame(frame)
         except ValueError as exc:
@@ -441,11 +463,12 @@ class SessionRecorder:
         """Queue a record already encoded for ``channel`` (a topic of :data:`CHANNELS`)."""
         return self._offer((_CHANNEL_IDS[channel], log_ns, publish_ns, data, poses))
 
-    def _reject(self, topic: str, exc: Exception) -> bool:
+    def _take(self, topic: str, log_time: float, publish_ns: int, data: bytes, poses: int) -> bool:
+        return self._offer((_CHANNEL_IDS[topic], to_ns(log_time), publish_ns, data, poses))
+
+    def _count_rejected(self, n: int = 1) -> None:
         with self._lock:
-            self._rejected += 1
-        log.warning("recorder: %s record not recorded: %s", topic, exc)
-        return False
+            self._rejected += n
 
     def _offer(self, item: _Item) -> bool:
         if self._batch_size <= 1:
