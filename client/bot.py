@@ -37,7 +37,14 @@ from protocol import PeerJoined, PeerLeft, Ping, Pong, Snapshot, encode_update
 from scenarios.motion import MotionSpec, sample_at
 from scenarios.qoe import ErrorSamples, KeyframeLog, evaluate_group
 from scenarios.receiver import ClockEstimator, PlayoutDelay, StreamBuffer, render_buffers
-from scenarios.traces import DEVICE_NAMES, Trace, TraceError, find_traces
+from scenarios.traces import (
+    CAUSAL_SAMPLES,
+    DEVICE_NAMES,
+    Trace,
+    TraceError,
+    causal_velocities,
+    find_traces,
+)
 
 __all__ = ["BotConfig", "BotReport", "RemoteStream", "motion_for_bot", "run_bot"]
 
@@ -129,6 +136,34 @@ def motion_for_bot(spec: str, index: int) -> tuple[str, int]:
     return str(files[index % len(files)]), 0
 
 
+class _CausalVelocities:
+    """The causal velocity of each native sample of a trace, computed when first needed.
+
+    Equal to ``trace.causal_velocities()[i]`` (the estimate at sample ``i`` only
+    uses samples ``i - CAUSAL_SAMPLES + 1 .. i``), computed a chunk of samples at
+    a time: a few milliseconds now and then instead of the whole trace up front.
+    """
+
+    CHUNK = 256
+
+    def __init__(self, trace: Trace) -> None:
+        self.trace = trace
+        self._chunks: dict[int, NDArray[np.float64]] = {}
+
+    def __getitem__(self, i: int) -> NDArray[np.float64]:
+        c, k = divmod(i, self.CHUNK)
+        chunk = self._chunks.get(c)
+        if chunk is None:
+            lo = c * self.CHUNK
+            start = max(0, lo - (CAUSAL_SAMPLES - 1))  # the history the first sample needs
+            hi = lo + self.CHUNK
+            tr = self.trace
+            chunk = causal_velocities(tr.times[start:hi], tr.poses[start:hi])[lo - start :]
+            self._chunks[c] = chunk
+        row: NDArray[np.float64] = chunk[k]
+        return row
+
+
 class _Bot:
     def __init__(self, cfg: BotConfig, clock: Callable[[], float]) -> None:
         self.cfg = cfg
@@ -141,7 +176,7 @@ class _Bot:
         self.velocity_methods = tuple(needs)
         self.plain_methods = tuple(m for m in cfg.methods if m not in needs)
         #: Causal velocities of the bot's own motion at its native samples, if it sends them.
-        self.send_velocities: NDArray[np.float64] | None = None
+        self.send_velocities: _CausalVelocities | None = None
         # A window method waits for the keyframe after the bracket: one more interval.
         lookahead = max(interp_info(m).lookahead for m in cfg.methods)
         self.delay = PlayoutDelay(interval=(1.0 + lookahead) / cfg.rate)
@@ -334,7 +369,7 @@ class _Bot:
             motion = await asyncio.to_thread(self.spec.load)
             self.trace = motion.select(DEVICE_NAMES)
             if self.velocities:
-                self.send_velocities = await asyncio.to_thread(self.trace.causal_velocities)
+                self.send_velocities = _CausalVelocities(self.trace)
             await conn.join(
                 room=cfg.room,
                 streams=self.trace.streams,

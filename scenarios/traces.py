@@ -148,6 +148,26 @@ def _rotation_vector(q1: NDArray[np.float64], q0: NDArray[np.float64]) -> NDArra
     return out
 
 
+def _first_row_of_inverse(m: NDArray[np.float64]) -> NDArray[np.float64]:
+    """First rows of the inverses of symmetric positive definite matrices ``(N, D, D)``.
+
+    Closed forms for D = 1, 2 (no LAPACK call per tiny matrix); a batched solve above.
+    """
+    d = m.shape[-1]
+    if d == 1:
+        one: NDArray[np.float64] = 1.0 / m[:, 0, :]
+        return one
+    if d == 2:
+        det = m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0]
+        two: NDArray[np.float64] = np.stack([m[:, 1, 1], -m[:, 0, 1]], axis=-1) / det[:, None]
+        return two
+    e0 = np.zeros((m.shape[0], d, 1))
+    e0[:, 0, 0] = 1.0
+    # Symmetric: the first row of the inverse is the solution of M x = e0.
+    solved: NDArray[np.float64] = np.linalg.solve(m, e0)[:, :, 0].astype(np.float64)
+    return solved
+
+
 def causal_velocities(
     times: NDArray[np.float64],
     poses: NDArray[np.float64],
@@ -186,9 +206,17 @@ def causal_velocities(
     available = exists.sum(axis=1)  # (N,)
     powers = np.arange(1, degree + 1)
     a = dt[:, :, None] ** powers[None, None, :]  # (N, L, D)
-    a = a * (powers[None, None, :] <= available[:, None, None])
-    pinv = np.linalg.pinv(a)  # (N, D, L): min-norm least squares
-    coef = np.einsum("nl,nlsk->nsk", pinv[:, 0, :], y)  # slope at t_n
+    used = powers[None, :] <= available[:, None]  # (N, D)
+    a = a * used[:, None, :]
+    # Least squares through the normal equations: the slope's weights per lag are
+    # the first row of (A^T A)^-1 A^T. An unused power gets a unit diagonal, which
+    # decouples it (its column of A is zero); no past sample at all gives zeros.
+    m = np.einsum("nld,nle->nde", a, a)
+    diag = np.arange(degree)
+    m[:, diag, diag] = np.where(used, m[:, diag, diag], 1.0)
+    weights = _first_row_of_inverse(m)  # (N, D)
+    w = np.einsum("nd,nld->nl", weights, a)  # (N, L)
+    coef = np.einsum("nl,nlsk->nsk", w, y)  # slope at t_n
     out[1:] = coef[1:]
     return out
 
