@@ -21,9 +21,9 @@ Window methods
 --------------
 A window method is called as ``f(keys (..., K, 7), times (..., K), t (...))``
 with ``K = lookbehind + 2 + lookahead``: ``keys[..., :lookbehind]`` are the
-keyframes before the bracket (oldest first), ``keys[..., lookbehind]`` and
-``keys[..., lookbehind + 1]`` the bracket ``lo``/``hi`` (``T[lb] <= t <=
-T[lb + 1]``), the rest the keyframes after it (nearest first). The receiver
+keyframes before the bracket, ``keys[..., lookbehind]`` and ``keys[...,
+lookbehind + 1]`` the bracket ``lo``/``hi`` (``T[lb] <= t <= T[lb + 1]``), the
+rest the keyframes after it; the window is in time order. The receiver
 needs ``lookahead`` keyframes past the bracket, so it plays out ``lookahead``
 intervals later (:func:`scenarios.qoe.ideal_delay`).
 
@@ -32,9 +32,10 @@ has not arrived by the query's deadline (QoE and live paths: not-yet-arrived
 keyframes are skipped, as the receiver cannot see them) or lies past a held
 bracket is given as a *copy of its inward neighbour with the same time*. So
 window times never decrease, and ``T[j] == T[j + 1]`` (before the bracket) or
-``T[j] == T[j - 1]`` (after it) means "nothing from here outwards". A held
-query has ``lo == hi`` (``T[lb] == T[lb + 1]``) and must return ``keys[...,
-lb, :]``. Window functions fall back to what the available keyframes allow.
+``T[j] == T[j - 1]`` (after it) means "nothing from here outwards". A bracket
+with ``lo == hi`` (a held query, or one exactly on a keyframe; ``T[lb] == T[lb +
+1]``) must return ``keys[..., lb, :]``, whatever the neighbours. Window functions
+fall back to what the available keyframes allow.
 """
 
 from __future__ import annotations
