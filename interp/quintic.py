@@ -63,39 +63,42 @@ QUINTIC_LOOKAHEAD = 2
 _FAR = 1e30
 
 
-def _stencil_weights(x: list[F64], i: int, nodes: range) -> tuple[dict[int, F64], dict[int, F64]]:
-    """First and second derivative weights at node ``i`` of the polynomial through ``nodes``.
+def _add_derivatives(coef: F64, x: list[F64], i: int, nodes: range, bv: F64, ba: F64) -> None:
+    """``coef[j] += bv L_j'(x_i) + ba L_j''(x_i)`` for the polynomial through ``nodes``.
 
-    ``x`` are node times (``(M,)`` each, in bracket spans; missing nodes at
-    ``+-_FAR``). Returns ``{j: L_j'(x_i)}`` and ``{j: L_j''(x_i)}`` for every
-    node, ``j = i`` included (minus the sum of the others). With ``u_m = x_m -
-    x_i``: ``L_j' = prod_{m != i} u_m / (u_j^2 prod_{m != i, j} (u_m - u_j))``
-    and ``L_j'' = 2 L_j' sum_{m != i, j} (-1 / u_m)``.
+    ``L_j`` are the Lagrange basis polynomials of the node times ``x`` (``(M,)``
+    each, in bracket spans; missing nodes at ``+-_FAR``), so this adds ``bv``
+    times the velocity and ``ba`` times the acceleration at node ``i`` as
+    weights of the keyframes. With ``u_m = x_m - x_i``: ``L_j' = prod_{m != i}
+    u_m / (u_j^2 prod_{m != i, j} (u_m - u_j))`` and ``L_j'' = 2 L_j' sum_{m !=
+    i, j} (-1 / u_m)`` for ``j != i``; ``L_i^(n) = -sum_{j != i} L_j^(n)``
+    (constants have no derivative).
     """
     others = [j for j in nodes if j != i]
     u = {j: x[j] - x[i] for j in others}
     inv = {j: 1.0 / u[j] for j in others}
-    total_inv = sum(inv.values(), np.zeros_like(x[i]))
-    prod_u = np.ones_like(x[i])
-    for j in others:
+    first, *rest = others
+    total_inv = inv[first]
+    prod_u = u[first]
+    for j in rest:
+        total_inv = total_inv + inv[j]
         prod_u = prod_u * u[j]
     diff: dict[tuple[int, int], F64] = {}
     for a_, m in enumerate(others):
         for j in others[a_ + 1 :]:
             diff[m, j] = u[m] - u[j]
-    d1: dict[int, F64] = {}
-    d2: dict[int, F64] = {}
+    ba2 = 2.0 * ba
+    acc: F64 | None = None
     for j in others:
         den = u[j] * u[j]
         for m in others:
             if m != j:
                 den = den * (diff[m, j] if (m, j) in diff else -diff[j, m])
-        w = prod_u / den
-        d1[j] = w
-        d2[j] = 2.0 * w * (inv[j] - total_inv)
-    d1[i] = -sum(d1.values(), np.zeros_like(x[i]))
-    d2[i] = -sum(d2.values(), np.zeros_like(x[i]))
-    return d1, d2
+        c = (prod_u / den) * (bv + ba2 * (inv[j] - total_inv))
+        coef[j] += c
+        acc = c if acc is None else acc + c
+    if acc is not None:
+        coef[i] -= acc
 
 
 def _quintic_basis(s: F64) -> tuple[F64, F64, F64, F64, F64, F64]:
@@ -163,9 +166,6 @@ def motor_window_spline(
         gone = np.logical_or.accumulate(step[lo - 1 :: -1] <= 0, axis=0)[::-1]
         far = -_FAR * np.arange(lo + 1, 1, -1)[:, None]
         x[:lo] = np.where(gone, far, x[:lo])
-    xs = list(x)
-    v_lo, a_lo = _stencil_weights(xs, lo, range(lo - lookbehind, lo + lookahead + 1))
-    v_hi, a_hi = _stencil_weights(xs, hi, range(hi - lookbehind, hi + lookahead + 1))
     b_p0, b_v0, b_a0, b_a1, b_v1, b_p1 = _quintic_basis(s)
     # The curve's weight of each keyframe's motor: positions, velocities and
     # accelerations at both ends, each a combination of the keyframes.
@@ -173,9 +173,9 @@ def motor_window_spline(
     coef = np.zeros((k, m))
     coef[lo] = b_p0
     coef[hi] = b_p1
-    for basis, weights in ((b_v0, v_lo), (b_v1, v_hi), (b_a0, a_lo), (b_a1, a_hi)):
-        for j, w in weights.items():
-            coef[j] += basis * w
+    xs = list(x)
+    _add_derivatives(coef, xs, lo, range(lo - lookbehind, lo + lookahead + 1), b_v0, b_a0)
+    _add_derivatives(coef, xs, hi, range(hi - lookbehind, hi + lookahead + 1), b_v1, b_a1)
     real, dual = _motor_rows(p.reshape(m, k, 7))
     coef *= _chained_signs(real, lo)
     # Sums over each query's own keyframes only: a query's result does not depend
