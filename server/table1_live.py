@@ -15,8 +15,9 @@ Bots publish every native sample of their trace (polled at 90 Hz, the
 headsets' frame rate) and subscribe at the tier's rate, so the server's tick is
 the one sampling stage, as in the offline Table 1 (keyframe = newest native
 sample at each send time). The offline counterpart models the publisher's poll
-grid, the room's tick grid and the tier's link, so the keyframes match without
-peeking at the live run. Bots render at 10 Hz (QoE does not depend on it, see
+grid, the room's tick grid (both firing late by the host's measured
+event-loop lag) and the tier's link, so the keyframes match without peeking at
+the live arrivals or keyframes. Bots render at 10 Hz (QoE does not depend on it, see
 :class:`LiveConfig`); an event-loop lag monitor tells whether the process kept
 real time, without which the live figures would measure CPU starvation.
 """
@@ -63,7 +64,7 @@ class LiveConfig:
 
     #: Seconds each bot runs.
     duration: float = 20.0
-    bots: int = 4
+    bots: int = 3
     #: How often a bot polls its trace and publishes the newest sample if it is new
     #: (Hz); 90 Hz, the headsets' frame rate, publishes every sample of the
     #: <= 90 Hz traces. None: the tier's rate (a second sampling stage before the
@@ -214,6 +215,7 @@ def _score(
     rate: float,
     phase: float,
     frame_bytes: int,
+    host_lag: F64,
 ) -> tuple[
     list[dict[str, dict[str, ErrorSamples]]],
     list[dict[str, dict[str, ErrorSamples]]],
@@ -291,6 +293,7 @@ def _score(
                 methods=cfg.methods,
                 delay=delay_at,
                 seed=(cfg.seed, tier_index, i),
+                host_lag=host_lag,
             )
         )
     return live, live_ample, sims, live_d
@@ -378,13 +381,22 @@ async def run_live_tier(
         progress(f"score {tier.name}", 0, 1)
     server_fig = _server_figures(samples)
     rate = model_rate(tier, asked, frame_bytes)
+    lag = np.array(lags) if lags else np.zeros(1)
     groups, groups_ample, sims, live_d = await asyncio.to_thread(
-        _score, reports, tier, tier_index, cfg, send_rate, rate, room_phase(room), frame_bytes
+        _score,
+        reports,
+        tier,
+        tier_index,
+        cfg,
+        send_rate,
+        rate,
+        room_phase(room),
+        frame_bytes,
+        lag,
     )
     if not sims:
         raise RuntimeError(f"tier {tier.name}: no bot received anything to score")
     rates = [r.rate_hz for r in reports if r.rate_hz > 0]
-    lag = np.array(lags) if lags else np.zeros(1)
     live = {
         "methods": summarize(groups),
         "methods_ample": summarize(groups_ample),

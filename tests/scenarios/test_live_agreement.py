@@ -148,6 +148,18 @@ def test_published_is_the_newest_sample_at_the_last_poll() -> None:
     assert idx.tolist() == want
 
 
+def test_a_late_poll_publishes_a_newer_sample_later() -> None:
+    """With 12 ms of timer lag the poll due at 10.002 runs at 10.014 and takes a newer sample."""
+    tr = _trace(90.0, 1.0, t0=10.0)  # samples at 10 + j/90
+    sv = SenderView(tr, {"left": (10.0, 11.0)}, t0=10.002, send_rate=30.0)
+    times = np.array([10.005, 10.02, 10.04, 10.05])
+    # polls at 10.002, 10.0353: samples 0, 0, 3, 3
+    assert sv.published(times).tolist() == [0, 0, 3, 3]
+    late = sv.published(times, np.array([0.012]), np.random.default_rng(0))
+    # polls at 10.014, 10.0473: nothing yet at 10.005; then samples 1, 1 and 4.
+    assert late.tolist() == [-1, 1, 1, 4]
+
+
 def test_offline_counterpart_on_a_fixed_delay_link() -> None:
     """No jitter, no loss: every tick delivered after the latency; D rule and bytes follow."""
     tier = Tier("fixed", 20.0, 1000.0, latency_ms=30.0, jitter_ms=0.0, loss_pct=0.0)
