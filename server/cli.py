@@ -583,8 +583,8 @@ def table1(
         skipped = [m for m in method_list if m not in live_methods]
         if skipped:
             err_console.print(
-                f"--live: {', '.join(skipped)} need keyframe velocities, which live sessions "
-                "do not carry: offline only"
+                f"--live: {', '.join(skipped)} need keyframe velocities, which the live "
+                "comparison does not model yet: offline only"
             )
     command = "posecast table1 " + " ".join(sys.argv[2:])
     bar = Progress(

@@ -95,7 +95,8 @@ class LiveConfig:
         needs = [m for m in self.methods if interp.info(m).needs_velocity]
         if needs:
             raise ValueError(
-                f"{', '.join(needs)} need keyframe velocities, which live sessions do not carry"
+                f"{', '.join(needs)} need keyframe velocities, which the live Table 1 "
+                "comparison does not model yet (its offline counterpart has no velocity variant)"
             )
 
 
