@@ -4,8 +4,9 @@ For each tier, :func:`run_live_tier` starts a :class:`~server.app.RelayServer`
 on ``127.0.0.1`` port 0 with the tier emulated in its egress
 (``ServerConfig.link``), runs N trace-driven bots (:func:`client.bot.run_bot`)
 in one room for a while, and collects what they measured (QoE per method and
-class, scored by :mod:`scenarios.qoe` inside each bot; keyframes/s; playout
-delay D) and what the server measured (the rate it chose for each subscriber,
+class, scored with :mod:`scenarios.qoe` from each bot's own arrival log and
+playout delays exactly as the bot scores itself; keyframes/s; playout delay D)
+and what the server measured (the rate it chose for each subscriber,
 bytes, delivered and lost snapshots on the emulated link, sampled while the
 bots are connected). Then, off the event loop, the offline counterpart of
 every bot (:func:`scenarios.live_agreement.simulate_receiver`) and the
@@ -15,11 +16,11 @@ Bots publish every native sample of their trace (polled at 90 Hz, the
 headsets' frame rate) and subscribe at the tier's rate, so the server's tick is
 the one sampling stage, as in the offline Table 1 (keyframe = newest native
 sample at each send time). The offline counterpart models the publisher's poll
-grid, the room's tick grid (both firing late by the host's measured
-event-loop lag) and the tier's link, so the keyframes match without peeking at
-the live arrivals or keyframes. Bots render at 10 Hz (QoE does not depend on it, see
-:class:`LiveConfig`); an event-loop lag monitor tells whether the process kept
-real time, without which the live figures would measure CPU starvation.
+grid, the room's tick grid and the tier's link, every timer firing late by the
+host's measured event-loop lag, so the keyframes match without peeking at the
+live arrivals or keyframes. Bots render at 10 Hz (QoE does not depend on it,
+see :class:`LiveConfig`); an event-loop lag monitor tells whether the process
+kept real time, without which the live figures would measure CPU starvation.
 """
 
 from __future__ import annotations
