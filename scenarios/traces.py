@@ -9,6 +9,7 @@ resolves ``traces:dev`` / ``traces:eval`` / a directory / a file into paths.
 from __future__ import annotations
 
 import csv
+import functools
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -70,9 +71,9 @@ class Trace:
     def duration(self) -> float:
         return float(self.times[-1] - self.times[0])
 
-    @property
+    @functools.cached_property
     def native_rate(self) -> float:
-        """Median sample rate in Hz."""
+        """Median sample rate in Hz (computed once: a looping sender asks at every send)."""
         return float(1.0 / np.median(np.diff(self.times)))
 
     def velocities(self) -> NDArray[np.float64]:
