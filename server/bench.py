@@ -605,6 +605,7 @@ def run_relay_bench(
     *,
     record: bool = False,
     record_writer: str = "process",
+    repeat: int = 1,
     console: Console | None = None,
     warmup: float = 5.0,
     ramp_rate: float = 50.0,
@@ -615,9 +616,11 @@ def run_relay_bench(
     ``clients`` load clients join rooms of ``room_size``, each publishes 3 streams
     at ``rate`` Hz and subscribes at ``rate``; connections ramp up at
     ``ramp_rate`` per second, measuring starts ``warmup`` s after the last join
-    and lasts ``duration`` s. With ``record`` the same load runs twice in this
-    call, recorder off then on (the paper's Table 4), and the report adds
-    ``{"recorder": {...}}`` with the cost ratio and bytes per pose on disk.
+    and lasts ``duration`` s. With ``record`` the same load runs recorder off,
+    then on (with each of ``record_writer``: ``process``, ``thread`` or
+    ``both``), ``repeat`` times alternating (the paper's Table 4), and the report
+    adds ``{"recorder": {...}}`` with the cost ratio and bytes per pose on disk
+    (medians over the rounds, each round's loss listed).
     """
     console = console or Console()
     args = (clients, room_size, rate, duration)
@@ -627,25 +630,48 @@ def run_relay_bench(
     writers = ["process", "thread"] if record_writer == "both" else [record_writer]
     if any(w not in ("process", "thread") for w in writers):
         raise ValueError(f"record_writer must be process, thread or both, not {record_writer!r}")
-    off = _run_once(*args, record_dir=None, console=console, **opts)
-    summaries: dict[str, dict[str, Any]] = {}
+    if repeat < 1:
+        raise ValueError("repeat must be at least 1")
+    # Off and on alternate, so slow drifts of a shared machine hit both alike;
+    # each on-run is compared with the off-run just before it.
+    pairs: dict[str, list[dict[str, Any]]] = {w: [] for w in writers}
     runs: dict[str, dict[str, Any]] = {}
-    for writer in writers:
-        with tempfile.TemporaryDirectory(prefix="posecast-bench-") as tmp:
-            on = _run_once(
-                *args, record_dir=Path(tmp), record_writer=writer, console=console, **opts
-            )
-            summaries[writer] = _recorder_summary(off, on, sorted(Path(tmp).glob("*.mcap")))
-            runs[writer] = on
+    offs: list[dict[str, Any]] = []
+    for k in range(repeat):
+        if repeat > 1:
+            console.print(f"[bold]recorder cost: round {k + 1} of {repeat}[/bold]")
+        off = _run_once(*args, record_dir=None, console=console, **opts)
+        offs.append(off)
+        for writer in writers:
+            with tempfile.TemporaryDirectory(prefix="posecast-bench-") as tmp:
+                on = _run_once(
+                    *args, record_dir=Path(tmp), record_writer=writer, console=console, **opts
+                )
+                pairs[writer].append(_recorder_summary(off, on, sorted(Path(tmp).glob("*.mcap"))))
+                runs[writer] = on
+    summaries = {w: _median_summary(pairs[w]) for w in writers}
     first = writers[0]
     on = runs[first]
     on["recorder"] = summaries[first]
     on["recorder_by_writer"] = summaries
-    on["recorder_off"] = off
+    on["recorder_off"] = offs[-1]
     for writer in writers[1:]:
         on[f"recorder_on_{writer}"] = runs[writer]
-    _print_recorder_table(off, runs, summaries, console)
+    _print_recorder_table(offs[-1], runs, summaries, console)
     return on
+
+
+def _median_summary(rounds: list[dict[str, Any]]) -> dict[str, Any]:
+    """The median of each figure over the rounds, with every round's loss kept."""
+    out = dict(rounds[-1])
+    if len(rounds) > 1:
+        for key, value in rounds[-1].items():
+            if isinstance(value, float):
+                out[key] = float(np.median([r[key] for r in rounds]))
+    out["rounds"] = len(rounds)
+    out["throughput_loss_pct_rounds"] = [r["throughput_loss_pct"] for r in rounds]
+    out["total_cpu_overhead_pct_rounds"] = [r["total_cpu_overhead_pct"] for r in rounds]
+    return out
 
 
 def _recorder_summary(
@@ -707,11 +733,14 @@ def _print_recorder_table(
     row("writer process CPU per pose (us)", "recorder_cpu_us_per_pose", 2)
     row("delivered poses/s", "poses_per_s", 0)
     row("capture->receipt p99 (ms)", "latency_p99_ms", 1)
-    row("relay throughput loss (%)", "throughput_loss_pct", 1, source="summary")
+    row("relay throughput loss (%, median)", "throughput_loss_pct", 1, source="summary")
     row("total CPU overhead (%)", "total_cpu_overhead_pct", 1, source="summary")
     row("bytes per pose on disk", "disk_bytes_per_pose", 1, source="summary")
     console.print(table)
     for writer, summary in summaries.items():
+        if summary["rounds"] > 1:
+            each = ", ".join(_f(x, 1) for x in summary["throughput_loss_pct_rounds"])
+            console.print(f"{writer} writer, relay throughput loss per round (%): {each}")
         console.print(
             f"{writer} writer: CPU-bound relay throughput with the recorder "
             f"x{_f(summary['throughput_ratio'], 3)} ({_f(summary['throughput_loss_pct'], 1)} % "

@@ -475,6 +475,12 @@ def bench_relay(
             help="With --record: process, thread, or both (three runs: off, process, thread)."
         ),
     ] = "process",
+    repeat: Annotated[
+        int,
+        typer.Option(
+            help="With --record: rounds of off/on runs, alternating; figures are medians."
+        ),
+    ] = 1,
     json_out: Annotated[
         Path | None, typer.Option("--json", help="Also write the report as JSON here.")
     ] = None,
@@ -484,6 +490,8 @@ def bench_relay(
 
     if clients < 1 or room_size < 1 or rate <= 0 or duration <= 0:
         raise _fail("--clients, --room-size, --rate and --duration must be positive")
+    if repeat < 1:
+        raise _fail("--repeat must be at least 1")
     if record_writer not in ("process", "thread", "both"):
         raise _fail(f"--record-writer must be process, thread or both, not {record_writer!r}")
     try:
@@ -494,6 +502,7 @@ def bench_relay(
             duration,
             record=record,
             record_writer=record_writer,
+            repeat=repeat,
             console=console,
         )
     except (ValueError, RuntimeError) as exc:

@@ -7,6 +7,7 @@ import math
 
 import msgpack
 import numpy as np
+import pytest
 from rich.console import Console
 
 from protocol import encode_update
@@ -89,3 +90,24 @@ def test_relay_bench_smoke() -> None:
     assert thread["files"] == 4 and thread["recorder_process_cpu_us_per_pose"] == 0
     assert report["recorder_on_thread"]["record_writer"] == "thread"
     assert "on (process writer)" in text and "on (thread writer)" in text
+
+
+def test_recorder_rounds_report_medians_and_every_round() -> None:
+    """With --repeat, each figure is the median over rounds and every round's loss is kept."""
+    from server.bench import _median_summary
+
+    rounds = [
+        {
+            "writer": "process",
+            "throughput_loss_pct": x,
+            "total_cpu_overhead_pct": 10 * x,
+            "files": 4,
+        }
+        for x in (3.0, -1.0, 1.5)
+    ]
+    out = _median_summary(rounds)
+    assert out["throughput_loss_pct"] == 1.5 and out["total_cpu_overhead_pct"] == 15.0
+    assert out["throughput_loss_pct_rounds"] == [3.0, -1.0, 1.5]
+    assert out["rounds"] == 3 and out["files"] == 4 and out["writer"] == "process"
+    with pytest.raises(ValueError, match="repeat"):
+        run_relay_bench(2, 2, 20.0, 1.0, record=True, repeat=0)
