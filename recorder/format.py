@@ -85,6 +85,7 @@ __all__ = [
     "decode_update_frame",
     "encode_json",
     "encode_pose",
+    "encode_pose_batch",
     "pose_message_size",
     "posecast_version",
     "seconds",
@@ -291,7 +292,9 @@ def encode_pose(
     raw = p.tobytes()
     return b"".join(
         (
-            _HEAD.pack(FORMAT_VERSION, VELOCITY_FLAG if tail else 0, user, n, seq, arrival),
+            _HEAD.pack(
+                FORMAT_VERSION, 0 if velocities is None else VELOCITY_FLAG, user, n, seq, arrival
+            ),
             s.tobytes(),
             _xor_times(c.tobytes(), arrival),
             raw[0::4],
@@ -301,6 +304,74 @@ def encode_pose(
             tail,
         )
     )
+
+
+_HEAD_DTYPE = np.dtype(
+    [
+        ("version", "u1"),
+        ("flags", "u1"),
+        ("user", "<u2"),
+        ("n", "<u2"),
+        ("seq", "<u8"),
+        ("arrival", "<f8"),
+    ]
+)
+
+
+def encode_pose_batch(
+    users: ArrayLike,
+    seqs: ArrayLike,
+    arrivals: ArrayLike,
+    streams: ArrayLike,
+    capture_times: ArrayLike,
+    poses: ArrayLike,
+    velocities: ArrayLike | None = None,
+) -> list[bytes]:
+    """:func:`encode_pose` for ``m`` updates of ``n`` streams each, in a few numpy passes.
+
+    ``users``, ``seqs``, ``arrivals`` ``(m,)``; ``streams``, ``capture_times``
+    ``(m, n)``; ``poses`` ``(m, n, 7)``; ``velocities`` ``(m, n, 6)`` or ``None``.
+    Returns the ``m`` messages, each byte for byte what :func:`encode_pose` makes.
+    """
+    p = np.ascontiguousarray(poses, dtype="<f4")
+    if p.ndim != 3 or p.shape[2] != 7:
+        raise FormatError(f"poses must have shape (m, n, 7), got {p.shape}")
+    m, n = p.shape[:2]
+    u = np.asarray(users)
+    q = np.asarray(seqs)
+    a = np.ascontiguousarray(arrivals, dtype="<f8")
+    s = np.asarray(streams)
+    c = np.ascontiguousarray(capture_times, dtype="<f8")
+    if u.shape != (m,) or q.shape != (m,) or a.shape != (m,) or s.shape != (m, n):
+        raise FormatError("users, seqs, arrivals must be (m,) and streams (m, n)")
+    if c.shape != (m, n) or n > _U16_MAX:
+        raise FormatError("capture_times must be (m, n), n at most 65535")
+    if m and (u.min() < 0 or u.max() > _U16_MAX or q.min() < 0):
+        raise FormatError("user ids must be u16, sequence numbers u64")
+    if s.size and (s.min() < 0 or s.max() > _U16_MAX):
+        raise FormatError("stream ids must be integers in 0..65535")
+    v = None if velocities is None else np.asarray(velocities).astype("<f2")
+    if v is not None and v.shape != (m, n, 6):
+        raise FormatError(f"velocities must have shape ({m}, {n}, 6), got {v.shape}")
+    head = np.empty(m, _HEAD_DTYPE)
+    head["version"] = FORMAT_VERSION
+    head["flags"] = 0 if v is None else VELOCITY_FLAG
+    head["user"] = u
+    head["n"] = n
+    head["seq"] = q
+    head["arrival"] = a
+    parts = [
+        head.view(np.uint8).reshape(m, _HEAD.size),
+        np.ascontiguousarray(s, dtype="<u2").view(np.uint8).reshape(m, 2 * n),
+        (c.view("<u8") ^ a.view("<u8")[:, None]).view(np.uint8).reshape(m, 8 * n),
+        # byte plane b holds byte b of every float32, in row-major order
+        p.view(np.uint8).reshape(m, 7 * n, 4).transpose(0, 2, 1).reshape(m, 28 * n),
+    ]
+    if v is not None:
+        parts.append(v.view(np.uint8).reshape(m, 12 * n))
+    blob = np.concatenate(parts, axis=1).tobytes()
+    size = pose_message_size(n, v is not None)
+    return [blob[i * size : (i + 1) * size] for i in range(m)]
 
 
 def decode_pose(data: bytes | bytearray | memoryview) -> PoseRecord:

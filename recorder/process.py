@@ -51,12 +51,22 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import IO, Any, Final
 
+import msgpack
+import numpy as np
+
+from protocol.poses import (
+    POSES_KEY,
+    UPDATE_DTYPE,
+    UPDATE_VELOCITY_DTYPE,
+    VELOCITY_POSES_KEY,
+)
 from recorder.format import (
     CHANNELS,
     DROPS_TOPIC,
     POSES_TOPIC,
     QUEUE_OVERFLOW_KIND,
     encode_json,
+    encode_pose_batch,
     to_ns,
 )
 from recorder.writer import (
@@ -542,11 +552,83 @@ def _emit(event: Mapping[str, Any]) -> None:
     sys.stdout.flush()
 
 
+def _update_parts(frame: bytes) -> tuple[int, float, bytes, bool] | None:
+    """``(seq, base time, records, velocity variant)`` of an update frame, or ``None``.
+
+    A light parse: the relay has decoded and checked this very frame before it
+    recorded it. Anything unexpected returns ``None`` and goes the careful way.
+    """
+    try:
+        wire = msgpack.unpackb(frame, raw=False)
+    except Exception:
+        return None
+    if not isinstance(wire, dict) or wire.get("type") != "update" or len(wire) != 4:
+        return None
+    seq, base = wire.get("seq"), wire.get("time")
+    body = wire.get(POSES_KEY)
+    velocity = body is None
+    if velocity:
+        body = wire.get(VELOCITY_POSES_KEY)
+    dtype = UPDATE_VELOCITY_DTYPE if velocity else UPDATE_DTYPE
+    if (
+        type(body) is not bytes
+        or len(body) % dtype.itemsize
+        or type(seq) is not int
+        or not 0 <= seq < 2**64
+        or type(base) is not float
+    ):
+        return None
+    return seq, base, body, velocity
+
+
+def _record_frames(rec: SessionRecorder, frames: list[tuple[int, float, bytes]]) -> None:
+    """Record consecutive update frames, encoding same-shaped ones together.
+
+    Each group of updates with the same number of streams and layout is decoded
+    and encoded in a few numpy passes (:func:`encode_pose_batch`, the same bytes
+    as :func:`encode_pose`); records are offered in the frames' order.
+    """
+    out: list[tuple[int, int, bytes, int] | None] = [None] * len(frames)
+    groups: dict[tuple[int, bool], list[tuple[int, int, float, bytes]]] = {}
+    for i, (_user, _arrival, frame) in enumerate(frames):
+        parts = _update_parts(frame)
+        if parts is None:
+            continue
+        seq, base, body, velocity = parts
+        dtype = UPDATE_VELOCITY_DTYPE if velocity else UPDATE_DTYPE
+        groups.setdefault((len(body) // dtype.itemsize, velocity), []).append((i, seq, base, body))
+    for (n, velocity), rows in groups.items():
+        dtype = UPDATE_VELOCITY_DTYPE if velocity else UPDATE_DTYPE
+        idx = [r[0] for r in rows]
+        entries = np.frombuffer(b"".join(r[3] for r in rows), dtype).reshape(len(rows), n)
+        bases = np.array([r[2] for r in rows])
+        caps = entries["dt"].astype(np.float64) + bases[:, None]
+        arrivals = np.array([frames[i][1] for i in idx])
+        datas = encode_pose_batch(
+            [frames[i][0] for i in idx],
+            np.array([r[1] for r in rows], dtype=np.uint64),
+            arrivals,
+            entries["stream"],
+            caps,
+            entries["pose"],
+            entries["velocity"] if velocity else None,
+        )
+        newest = caps.max(axis=1).tolist() if n else arrivals.tolist()
+        for k, i in enumerate(idx):
+            out[i] = (to_ns(frames[i][1]), to_ns(newest[k]), datas[k], n)
+    for (user, arrival, frame), done in zip(frames, out, strict=True):
+        if done is None:
+            rec.record_update_frame(user, arrival, frame, 0)  # refused and counted, or odd
+        else:
+            rec.offer_encoded(POSES_TOPIC, *done)
+
+
 def _pump(rec: SessionRecorder, fd: int) -> float | None:
     """Record what comes through the pipe; the stop's end time, or ``None`` at its end."""
     buf = bytearray()
     head_size = _HEAD.size
     frame_at, record_at = _FRAME.size, _RECORD.size
+    frames: list[tuple[int, float, bytes]] = []
     while True:
         # Wake at least every batch delay so a waiting batch reaches the writer
         # (and the disk) even when the room has gone quiet.
@@ -564,18 +646,26 @@ def _pump(rec: SessionRecorder, fd: int) -> float | None:
                 if stop > end:
                     break
                 if kind == _KIND_FRAME:
-                    _k, _n, user, poses, arrival = _FRAME.unpack_from(buf, at)
-                    rec.record_update_frame(user, arrival, bytes(buf[at + frame_at : stop]), poses)
-                elif kind == _KIND_RECORD:
-                    _k, _n, channel, log_ns, pub_ns, poses = _RECORD.unpack_from(buf, at)
-                    data = bytes(buf[at + record_at : stop])
-                    rec.offer_encoded(_TOPICS[channel], log_ns, pub_ns, data, poses)
-                elif kind == _KIND_STOP:
-                    return float(_STOP.unpack_from(buf, at)[2])
+                    _k, _n, user, _poses, arrival = _FRAME.unpack_from(buf, at)
+                    frames.append((user, arrival, bytes(buf[at + frame_at : stop])))
                 else:
-                    raise ValueError(f"unknown pipe message kind {kind}")
+                    # Keep the file's record order: the updates before this record first.
+                    if frames:
+                        _record_frames(rec, frames)
+                        frames = []
+                    if kind == _KIND_RECORD:
+                        _k, _n, channel, log_ns, pub_ns, poses = _RECORD.unpack_from(buf, at)
+                        data = bytes(buf[at + record_at : stop])
+                        rec.offer_encoded(_TOPICS[channel], log_ns, pub_ns, data, poses)
+                    elif kind == _KIND_STOP:
+                        return float(_STOP.unpack_from(buf, at)[2])
+                    else:
+                        raise ValueError(f"unknown pipe message kind {kind}")
                 at = stop
             del buf[:at]
+            if frames:
+                _record_frames(rec, frames)
+                frames = []
         rec.poll()
 
 

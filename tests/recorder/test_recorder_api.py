@@ -14,6 +14,7 @@ PACKAGE_DIR = Path(recorder.__file__).parent
 MODULES = sorted(f"recorder.{info.name}" for info in pkgutil.iter_modules([str(PACKAGE_DIR)]))
 # recorder sits beside scenarios: it may use its QoE and traces (never the reverse).
 ALLOWED_ROOTS = {"recorder", "protocol", "interp", "scenarios", "numpy", "mcap", "zstandard", "lz4"}
+ALLOWED_ROOTS |= {"msgpack"}  # the writer process reads update frames
 ALLOWED_ROOTS |= {"__future__"} | set(sys.stdlib_module_names)
 
 

@@ -191,3 +191,37 @@ def test_info_says_which_streams_carry_velocities(tmp_path: Path) -> None:
     assert [s["velocities"] for s in with_v["streams"]] == [True] * 3
     assert format_info(with_v).count("+ velocities") == 3
     assert "+ velocities" not in format_info(plain)
+
+
+@pytest.mark.parametrize("n", [0, 1, 3])
+@pytest.mark.parametrize("with_velocities", [False, True])
+def test_encode_pose_batch_is_encode_pose_row_by_row(n: int, with_velocities: bool) -> None:
+    """The writer process's vectorised encoder makes the same bytes, NaN payloads included."""
+    from recorder.format import encode_pose_batch
+
+    rng = np.random.default_rng(n)
+    m = 17
+    users = rng.integers(0, 65536, m)
+    seqs = rng.integers(0, 2**63, m, dtype=np.uint64)
+    arrivals = 1000.0 + rng.uniform(0, 100, m)
+    streams = rng.integers(0, 65536, (m, n))
+    caps = arrivals[:, None] - rng.uniform(0, 0.1, (m, n))
+    poses = rng.normal(size=(m, n, 7)).astype(np.float32)
+    if n:
+        poses.view(np.uint32)[0, 0, 0] = 0x7FC00123  # a NaN with a payload
+    vel = rng.normal(size=(m, n, 6)).astype(np.float16) if with_velocities else None
+    got = encode_pose_batch(users, seqs, arrivals, streams, caps, poses, vel)
+    assert len(got) == m
+    for i in range(m):
+        want = encode_pose(
+            int(users[i]),
+            int(seqs[i]),
+            float(arrivals[i]),
+            streams[i],
+            caps[i],
+            poses[i],
+            None if vel is None else vel[i],
+        )
+        assert got[i] == want
+    with pytest.raises(FormatError):
+        encode_pose_batch(users[:3], seqs, arrivals, streams, caps, poses)
