@@ -31,7 +31,6 @@ from numpy.typing import NDArray
 from websockets.exceptions import ConnectionClosed
 
 from client.connection import ClientConnection
-from client.render import VelocityBuffer, render_velocity_buffers
 from interp import info as interp_info
 from protocol import PeerJoined, PeerLeft, Ping, Pong, Snapshot, encode_update
 from scenarios.motion import MotionSpec, sample_at
@@ -84,7 +83,7 @@ class RemoteStream:
     stream: int
     name: str
     label: str | None
-    buffer: StreamBuffer = field(default_factory=VelocityBuffer)
+    buffer: StreamBuffer = field(default_factory=StreamBuffer)
     capture: list[float] = field(default_factory=list)
     #: Arrival times in server time (with the clock offset known on arrival).
     arrival: list[float] = field(default_factory=list)
@@ -173,8 +172,6 @@ class _Bot:
         self.velocities = bool(needs) if cfg.velocities is None else cfg.velocities
         if needs and not self.velocities:
             raise ValueError(f"{', '.join(needs)} need keyframe velocities (velocities=False)")
-        self.velocity_methods = tuple(needs)
-        self.plain_methods = tuple(m for m in cfg.methods if m not in needs)
         #: Causal velocities of the bot's own motion at its native samples, if it sends them.
         self.send_velocities: _CausalVelocities | None = None
         # A window method waits for the keyframe after the bracket: one more interval.
@@ -260,13 +257,11 @@ class _Bot:
             rs.arrival.append(arrival_srv)
             rs.arrival_local.append(arrival)
             rs.poses.append(pose)
-            if vel64 is None:
-                rs.buffer.push(cap, pose, floor)
-            else:
-                rs.velocities.append(vel64[i])
-                buf = rs.buffer
-                assert isinstance(buf, VelocityBuffer)
-                buf.push(cap, pose, floor, vel64[i])
+            vel = None
+            if vel64 is not None:
+                vel = vel64[i]
+                rs.velocities.append(vel)
+            rs.buffer.push(cap, pose, floor, vel)
             self.delay.observe(arrival_srv - cap)
 
     async def _publish(self, conn: ClientConnection, stop: float) -> None:
@@ -312,7 +307,6 @@ class _Bot:
     async def _render(self, stop: float) -> None:
         period = 1.0 / self.cfg.render_rate
         methods = self.cfg.methods
-        plain, with_velocity = self.plain_methods, self.velocity_methods
         nxt = self.clock()
         while self.server_now() < stop:
             local = self.clock()
@@ -321,16 +315,11 @@ class _Bot:
             t_play = now_srv - d
             c0 = time.process_time()
             buffers = [rs.buffer for rs in self.remote.values()]
-            frame = render_buffers(buffers, t_play, plain)
-            rendered = frame.poses
-            if with_velocity:
-                vbufs = [b for b in buffers if isinstance(b, VelocityBuffer)]
-                assert len(vbufs) == len(buffers)  # RemoteStream's default buffer
-                rendered = {**rendered, **render_velocity_buffers(vbufs, t_play, with_velocity)}
+            frame = render_buffers(buffers, t_play, methods)
             self.render_cpu += time.process_time() - c0
             if self.cfg.keep_render_log:
                 keys = [k for k, rs in self.remote.items() if len(rs.buffer)]
-                first = rendered[methods[0]]
+                first = frame.poses[methods[0]]
                 self.render_log.append(
                     (
                         t_play,

@@ -5,13 +5,14 @@ Shared by the live bots and the offline simulator; nothing here reads a clock
 
 - :class:`ClockEstimator`: NTP-style offset to the server clock from ping/pong
   samples, keeping the lowest round trip of a sliding window.
-- :class:`StreamBuffer`: one remote stream's keyframes ordered by capture time;
-  duplicates and stale frames dropped; bounded (oldest evicted).
+- :class:`StreamBuffer`: one remote stream's keyframes ordered by capture time,
+  each with the velocity it came with (zeros without one); duplicates and
+  stale frames dropped; bounded (oldest evicted).
 - :class:`PlayoutDelay`: delay D that starts at one interval plus the measured
   arrival jitter and follows the observed keyframe age (Mirror-style dynamic
   buffer: ``D = interval + p95(age)``), slewing smoothly, never jumping.
 - :func:`render_buffers`: every buffer at its playout time in one batched
-  interpolator call.
+  interpolator call per method, pair, window and velocity methods alike.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from numpy.typing import NDArray
 
 from interp import info as interp_info
 from interp import interpolate_brackets
+from scenarios.qoe import window_depth
 
 __all__ = [
     "DEFAULT_BUFFER_CAPACITY",
@@ -37,6 +39,10 @@ __all__ = [
 ]
 
 DEFAULT_BUFFER_CAPACITY = 64
+
+#: The velocity of a keyframe that came without one (shared, read-only).
+_NO_VELOCITY = np.zeros(6)
+_NO_VELOCITY.setflags(write=False)
 
 
 @dataclass
@@ -73,17 +79,28 @@ class StreamBuffer:
     everything kept in a full buffer. A late keyframe just before the playout
     time is kept: it is the lower bracket. Beyond ``capacity`` the oldest is
     evicted.
+
+    ``velocities[i]`` is the velocity ``(6,)`` (linear m/s, angular rad/s, world
+    frame) that came with ``times[i]``/``poses[i]``, for velocity interpolators;
+    a keyframe pushed without one gets zeros.
     """
 
     def __init__(self, capacity: int = DEFAULT_BUFFER_CAPACITY) -> None:
         self.capacity = capacity
         self.times: list[float] = []
         self.poses: list[NDArray[np.float32]] = []
+        self.velocities: list[NDArray[np.float64]] = []
         self.duplicates = 0
         self.stale = 0
         self.evicted = 0
 
-    def push(self, capture: float, pose: NDArray[np.float32], floor: float = -np.inf) -> bool:
+    def push(
+        self,
+        capture: float,
+        pose: NDArray[np.float32],
+        floor: float = -np.inf,
+        velocity: NDArray[np.float64] | None = None,
+    ) -> bool:
         times = self.times
         i = bisect.bisect_left(times, capture)
         if i < len(times) and times[i] == capture:
@@ -95,9 +112,11 @@ class StreamBuffer:
             return False
         times.insert(i, capture)
         self.poses.insert(i, pose)
+        self.velocities.insert(i, _NO_VELOCITY if velocity is None else velocity)
         if len(times) > self.capacity:
             del times[0]
             del self.poses[0]
+            del self.velocities[0]
             self.evicted += 1
         return True
 
@@ -183,21 +202,22 @@ def render_buffers(
     ``lookahead`` keyframes either side of it (``interp.info(m)``), gathered once
     for the widest window among ``methods``. A neighbour the buffer does not
     have, and every neighbour after a held (stalled) bracket, repeats its inward
-    neighbour (the rule of :mod:`interp.registry`).
+    neighbour (the rule of :mod:`interp.registry`). Velocity methods
+    (``needs_velocity``) see the bracket with its keyframes' buffered
+    velocities. A stall holds the bracket's keyframe for every kind of method.
     """
     live = [b for b in buffers if len(b)]
     n = len(live)
     if not n:
         return RenderFrame({m: np.empty((0, 7)) for m in methods}, np.zeros(0, dtype=bool))
-    lb, la = 1, 1
-    for m in methods:
-        entry = interp_info(m)
-        lb, la = max(lb, entry.lookbehind), max(la, entry.lookahead)
+    lb, la = window_depth(methods)
+    with_velocity = any(interp_info(m).needs_velocity for m in methods)
     # Each stream's window (before..., lo, hi, after...) as a (K, n, 7) track,
     # converted from the buffers' float32 poses in one call.
     k = lb + 2 + la
     flat_poses: list[NDArray[np.float32]] = []
     flat_times: list[float] = []
+    flat_vels: list[NDArray[np.float64]] = []
     s = np.empty((1, n))
     stalled = np.zeros(n, dtype=bool)
     for j, buf in enumerate(live):
@@ -209,16 +229,32 @@ def render_buffers(
         poses, times_j = buf.poses, buf.times
         flat_poses += [poses[i] for i in rows]
         flat_times += [times_j[i] for i in rows]
+        if with_velocity:
+            vels = buf.velocities
+            flat_vels += [vels[i] for i in rows]
         s[0, j] = frac
         stalled[j] = stall
     keys = np.array(flat_poses, dtype=np.float64).reshape(n, k, 7).transpose(1, 0, 2)
     times = np.array(flat_times, dtype=np.float64).reshape(n, k).T
+    vel = (
+        np.array(flat_vels, dtype=np.float64).reshape(n, k, 6).transpose(1, 0, 2)
+        if with_velocity
+        else None
+    )
     lo_idx = np.full((1, n), lb, dtype=np.intp)
     before = np.broadcast_to(np.arange(lb, dtype=np.intp)[:, None], (lb, n)).T[None]
     after = np.broadcast_to(np.arange(lb + 2, k, dtype=np.intp)[:, None], (la, n)).T[None]
     out = {
         m: interpolate_brackets(
-            keys, lo_idx, lo_idx + 1, s, m, times=times, before=before, after=after
+            keys,
+            lo_idx,
+            lo_idx + 1,
+            s,
+            m,
+            times=times,
+            velocities=vel,
+            before=before,
+            after=after,
         )[0]
         for m in methods
     }

@@ -12,9 +12,8 @@ from support import running_server
 from typer.testing import CliRunner
 
 from client.bot import BotConfig, BotReport, RemoteStream, motion_for_bot, remote_log, run_bot
-from client.render import VelocityBuffer, render_velocity_buffers
 from client.swarm import swarm_report
-from interp import get, interpolate_brackets
+from interp import interpolate_brackets
 from protocol import VELOCITY_BYTES, VELOCITY_MAX, frame_size
 from scenarios.motion import MotionSpec
 from scenarios.network import (
@@ -32,12 +31,9 @@ from scenarios.qoe import (
     sample_keyframes,
     summarize,
 )
+from scenarios.receiver import StreamBuffer, render_buffers
 from scenarios.traces import DEVICE_NAMES
 from server.cli import app
-
-
-def pose(x: float) -> np.ndarray:
-    return np.array([x, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0], dtype=np.float32)
 
 
 @pytest.mark.parametrize("n", [1, 3, 18, 48, 200, 1500])
@@ -48,49 +44,6 @@ def test_wire_velocity_bytes_match_the_offline_accounting(n: int) -> None:
     segments = -(-(payload + websocket_header_bytes(payload)) // TCP_MSS)
     want = payload + websocket_header_bytes(payload) + segments * TCP_IP_HEADER_BYTES
     assert wire_bytes(n, VELOCITY_BYTES_PER_POSE) == want
-
-
-def test_velocity_buffer_keeps_velocities_with_their_keyframes() -> None:
-    """Out of order, duplicates, stale frames and eviction keep velocities aligned."""
-    buf = VelocityBuffer(capacity=4)
-    for t in (1.0, 3.0, 2.0, 3.0, 5.0, 4.0, 6.0, 0.5):
-        buf.push(t, pose(t), velocity=np.full(6, t))
-    assert buf.times == [3.0, 4.0, 5.0, 6.0]
-    assert [float(v[0]) for v in buf.velocities] == buf.times
-    assert buf.duplicates == 1 and buf.evicted == 2 and buf.stale == 1
-    assert not buf.push(4.5, pose(4.5), floor=5.5, velocity=np.ones(6))  # superseded
-    assert buf.push(4.5, pose(4.5), floor=4.2, velocity=np.full(6, 4.5))  # late lower bracket
-    assert [float(v[0]) for v in buf.velocities] == buf.times == [4.0, 4.5, 5.0, 6.0]
-    assert buf.push(7.0, pose(7.0))  # no velocity: zeros
-    assert buf.velocities[-1].tolist() == [0.0] * 6
-
-
-def test_render_velocity_buffers_is_motor_hermite_on_the_bracket() -> None:
-    """Each stream renders as motor_hermite of its bracket with the buffered velocities."""
-    rng = np.random.default_rng(1)
-    bufs = [VelocityBuffer(), VelocityBuffer(), VelocityBuffer()]
-    for j, buf in enumerate(bufs):
-        for k in range(4):
-            q = rng.normal(size=4)
-            p = np.r_[rng.normal(size=3), q / np.linalg.norm(q)].astype(np.float32)
-            buf.push(0.1 * k + 0.01 * j, p, velocity=rng.normal(size=6))
-    hermite = get("motor-hermite")
-    t = 0.215
-    out = render_velocity_buffers(bufs, t, ["motor-hermite"])["motor-hermite"]
-    assert out.shape == (3, 7)
-    for j, buf in enumerate(bufs):
-        lo, hi, s, stall = buf.bracket(t)
-        assert not stall
-        dt = buf.times[hi] - buf.times[lo]
-        want = hermite(buf.poses[lo], buf.poses[hi], buf.velocities[lo], buf.velocities[hi], dt, s)
-        np.testing.assert_allclose(out[j], want, atol=1e-12)
-    # Past the newest keyframe: a stall holds it, as render_buffers does.
-    held = render_velocity_buffers(bufs, 9.0, ["motor-hermite"])["motor-hermite"]
-    for j, buf in enumerate(bufs):
-        np.testing.assert_allclose(held[j], buf.poses[-1], atol=1e-7)
-    assert render_velocity_buffers([VelocityBuffer()], 1.0, ["motor-hermite"])[
-        "motor-hermite"
-    ].shape == (0, 7)
 
 
 def test_velocity_methods_need_velocities() -> None:
@@ -214,7 +167,7 @@ def test_live_hermite_render_equals_offline_computation(mixed_room: list[BotRepo
                     times=log.capture,
                     velocities=log.velocities,
                 )[0, 0]
-                buf = VelocityBuffer()
+                buf = StreamBuffer()
                 arrived = log.arrival <= rendered_at
                 for c, p, v in zip(
                     log.capture[arrived],
@@ -223,7 +176,7 @@ def test_live_hermite_render_equals_offline_computation(mixed_room: list[BotRepo
                     strict=True,
                 ):
                     buf.push(float(c), p.astype(np.float32), velocity=v)
-                live = render_velocity_buffers([buf], t_play, ["motor-hermite"])["motor-hermite"]
+                live = render_buffers([buf], t_play, ["motor-hermite"]).poses["motor-hermite"]
                 np.testing.assert_allclose(live[0], offline, atol=1e-6)
                 hermite_checked += 1
     assert hermite_checked > 100
