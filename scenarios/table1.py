@@ -40,8 +40,9 @@ its look-ahead (``interp.info(m).lookahead``); methods that need keyframe
 velocities get the trace's velocities (:data:`VELOCITY_SOURCE`: causal by
 default, what a live sender has at capture time) rounded to float16 and the bigger wire
 frame of the velocity variant (:func:`method_wire_bytes`), so savings are
-reported in updates/s and in bytes/s. The receiver running time leaves out
-velocity methods (the live receiver cannot render them yet).
+reported in updates/s and in bytes/s. The receiver running time covers every
+method; velocity methods decode velocity snapshots and render from the
+velocities their buffers keep, as the live receiver does.
 
 Run: ``python -m scenarios.table1 --traces traces:dev --out DIR`` (see ``--help``).
 """
@@ -487,8 +488,14 @@ class _ReceiverRun:
 
 
 def _prepare_receiver(
-    rate: float, streams: int, seconds: float, render_hz: float, source: Trace | None
+    rate: float,
+    streams: int,
+    seconds: float,
+    render_hz: float,
+    source: Trace | None,
+    velocities: bool = False,
 ) -> _ReceiverRun:
+    """Snapshots at ``rate`` (the velocity variant with ``velocities``) and the render times."""
     n_snap = math.floor(seconds * rate + 1e-9) + 1
     n_frames = round(seconds * render_hz)
     if source is None:
@@ -496,15 +503,25 @@ def _prepare_receiver(
         poses = np.zeros((n_snap, 3, 7))
         poses[..., 0] = np.sin(t)[:, None]
         poses[..., 3] = 1.0
+        vel = np.zeros((n_snap, 3, 6))
+        vel[..., 0] = np.cos(t)[:, None]  # d/dt of the x above
     else:
         idx = np.arange(n_snap) / rate * source.native_rate
-        poses = source.poses[np.minimum(idx.astype(int), len(source.times) - 1)]
+        idx = np.minimum(idx.astype(int), len(source.times) - 1)
+        poses = source.poses[idx]
+        vel = keyframe_velocities(source)[idx] if velocities else np.zeros((*poses.shape[:2], 6))
     users = np.repeat(np.arange(streams // 3 + 1), 3)[:streams].astype(np.uint16)
     sids = np.tile(np.arange(3), streams // 3 + 1)[:streams].astype(np.uint16)
     cols = np.arange(streams) % poses.shape[1]
     frames = [
         encode_snapshot(
-            k, k / rate, users, sids, np.full(streams, k / rate - 0.005), poses[k, cols]
+            k,
+            k / rate,
+            users,
+            sids,
+            np.full(streams, k / rate - 0.005),
+            poses[k, cols],
+            vel[k, cols] if velocities else None,
         )
         for k in range(n_snap)
     ]
@@ -518,7 +535,10 @@ def _prepare_receiver(
 
 
 def _run_receiver(run: _ReceiverRun, method: str) -> tuple[float, float]:
-    """One pass: CPU seconds spent decoding and rendering."""
+    """One pass: CPU seconds spent decoding and rendering.
+
+    Velocity snapshots' velocities go into the buffers with their poses.
+    """
     methods = [method]
     buffers: dict[tuple[int, int], StreamBuffer] = {}
     decode = render = 0.0
@@ -530,12 +550,13 @@ def _run_receiver(run: _ReceiverRun, method: str) -> tuple[float, float]:
             snap = decode_message(run.frames[nxt])
             assert isinstance(snap, Snapshot)
             u, s, caps, ps = snap.users, snap.streams, snap.capture_times, snap.poses
+            vs = None if snap.velocities is None else snap.velocities.astype(np.float64)
             for i in range(len(snap)):
                 key = (int(u[i]), int(s[i]))
                 buf = buffers.get(key)
                 if buf is None:
                     buf = buffers[key] = StreamBuffer()
-                buf.push(float(caps[i]), np.array(ps[i]), floor)
+                buf.push(float(caps[i]), np.array(ps[i]), floor, None if vs is None else vs[i])
             nxt += 1
         c1 = time.process_time()
         render_buffers(list(buffers.values()), floor, methods)
@@ -561,22 +582,30 @@ def receiver_cpu_times(
     is decoded with ``protocol.decode_message`` as it arrives and its poses are
     pushed into one :class:`~scenarios.receiver.StreamBuffer` per stream; every
     render frame interpolates all streams with the method in one batched call
-    (:func:`~scenarios.receiver.render_buffers`). The number of rendered
-    frames depends only on ``seconds`` and ``render_hz``, not on the rate.
+    (:func:`~scenarios.receiver.render_buffers`). Velocity methods
+    (``needs_velocity``) get the velocity variant of the snapshots (12 B more a
+    pose; the source's :func:`keyframe_velocities`) and their buffers keep the
+    decoded velocities. The number of rendered frames depends only on
+    ``seconds`` and ``render_hz``, not on the rate.
 
     CPU time is ``time.process_time`` (garbage collection paused). The
     configurations run round-robin, ``repeats`` times each, so that load from
     other processes hits all of them alike. Returned per configuration, in
     seconds: ``decode_s``, ``render_s`` and ``total_s`` as the **median** over
     the repeats (what savings are computed from), ``best_total_s`` (the
-    smallest), and the counts of snapshots, frames and streams. The median,
+    smallest), the counts of snapshots, frames and streams, and the mean
+    ``snapshot_bytes`` of a snapshot frame. The median,
     not the best, is the headline because on a loaded machine the best of a
     few runs varied by a third between configurations doing identical render
     work, while the median stayed within a few per cent.
     """
+
+    def run_key(config: tuple[str, float]) -> tuple[float, bool]:
+        return config[1], interp.info(config[0]).needs_velocity
+
     runs = {
-        rate: _prepare_receiver(rate, streams, seconds, render_hz, source)
-        for rate in sorted({r for _, r in configs})
+        key: _prepare_receiver(key[0], streams, seconds, render_hz, source, key[1])
+        for key in sorted({run_key(c) for c in configs})
     }
     samples: dict[tuple[str, float], list[tuple[float, float]]] = {c: [] for c in configs}
     was_enabled = gc.isenabled()
@@ -584,20 +613,22 @@ def receiver_cpu_times(
     try:
         for _ in range(max(1, repeats)):
             for method, rate in samples:
-                samples[(method, rate)].append(_run_receiver(runs[rate], method))
+                samples[(method, rate)].append(_run_receiver(runs[run_key((method, rate))], method))
     finally:
         if was_enabled:
             gc.enable()
     out: dict[tuple[str, float], dict[str, float]] = {}
     for c, v in samples.items():
         a = np.asarray(v)
+        run = runs[run_key(c)]
         out[c] = {
             "decode_s": float(np.median(a[:, 0])),
             "render_s": float(np.median(a[:, 1])),
             "total_s": float(np.median(a.sum(axis=1))),
             "best_total_s": float(a.sum(axis=1).min()),
-            "snapshots": float(len(runs[c[1]].frames)),
-            "frames": float(len(runs[c[1]].render_times)),
+            "snapshots": float(len(run.frames)),
+            "snapshot_bytes": float(np.mean([len(f) for f in run.frames])),
+            "frames": float(len(run.render_times)),
             "streams": float(streams),
         }
     return out
@@ -1337,19 +1368,12 @@ def run_table1(
                 if m in PAPER["ga_methods"]
             }
         tier_rows.append(row)
-    # The live receiver cannot render velocity methods yet (its buffers keep no
-    # velocities): they are left out of the running-time bench.
-    benched = [m for m in meths if not interp.info(m).needs_velocity]
     if bench:
         # Every configuration needed, measured round-robin in one go.
         configs: list[tuple[str, float]] = []
         for row in tier_rows:
-            configs += [(m, float(row["soa_rate"])) for m in benched]
-            configs += [
-                (m, float(r))
-                for m, r in row["equal_qoe_rate"].items()
-                if r is not None and m in benched
-            ]
+            configs += [(m, float(row["soa_rate"])) for m in meths]
+            configs += [(m, float(r)) for m, r in row["equal_qoe_rate"].items() if r is not None]
             if "paper" in row:
                 configs += [(m, float(row["paper"]["ga_rate"])) for m in row["reproduced"]]
         if progress is not None:
@@ -1373,12 +1397,12 @@ def run_table1(
                         else {"rate": r, **cpu[(m, float(r))]}
                     ),
                 }
-                for m in benched
+                for m in meths
             }
             row["running_time_saving_pct"] = {
                 m: (
                     None
-                    if (r := row["equal_qoe_rate"][m]) is None or m not in benched
+                    if (r := row["equal_qoe_rate"][m]) is None
                     else saving_pct(cpu[(m, float(r))]["total_s"], base["total_s"])
                 )
                 for m in meths
@@ -1575,7 +1599,6 @@ def run_table1(
                 )
                 + "), rounded to float16",
             },
-            "running_time_methods": benched,
             "seed": seed,
             "transport": transport,
             "bench": {"seconds": bench_seconds, "repeats": bench_repeats, "render_hz": 90.0},
@@ -1996,8 +2019,7 @@ def _markdown(report: Mapping[str, Any], trs: Sequence[Trace], plots: Sequence[s
         "saving in updates/s (the paper's measure) and in bytes/s (velocity methods send "
         f"{cfg['velocity_variant']['bytes_per_pose']} B more per pose: "
         f"{cfg['velocity_variant']['encoding']}). Latency: the method's playout delay at its "
-        "equal-QoE rate, one interval plus its look-ahead (SoA's at the tier rate in brackets). "
-        "`n/a`: the live receiver cannot render the method yet, so it has no running time.",
+        "equal-QoE rate, one interval plus its look-ahead (SoA's at the tier rate in brackets).",
         "",
         "| tier | SoA rate | SoA p95 tip (mm) | method | rate paper "
         "| p95 tip at the paper's rate (mm) | rate measured "
@@ -2005,7 +2027,6 @@ def _markdown(report: Mapping[str, Any], trs: Sequence[Trace], plots: Sequence[s
         "| latency (ms) | running-time saving paper | measured | at the paper's rate |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    benched = set(cfg.get("running_time_methods", meths))
     paper_rt = report["paper"]["running_time_saving_pct"]
     for row in report["tiers"]:
         paper = row.get("paper", {})
@@ -2022,7 +2043,7 @@ def _markdown(report: Mapping[str, Any], trs: Sequence[Trace], plots: Sequence[s
                 f"| {_f(row.get('latency_at_equal_rate_ms', {}).get(m), 0)} "
                 f"({_f(row.get('latency_at_soa_rate_ms'), 0)}) "
                 f"| {paper_rt if paper else '-'} % "
-                f"| {_f(row['running_time_saving_pct'][m], 1, ' %') if m in benched else 'n/a'} "
+                f"| {_f(row['running_time_saving_pct'][m], 1, ' %')} "
                 f"| {_f(row.get('running_time_saving_at_paper_rate_pct', {}).get(m), 1, ' %')} |"
             )
     lines += [""]
