@@ -47,9 +47,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from interp.cubic import _checked, _dq_to_pose_rows, _finish
-from interp.methods import _rows, hemisphere_sign
-from interp.pose import F64, UNIT_TOLERANCE
+from interp.cubic import _checked, _float_array, _window_curve
+from interp.methods import _rows
+from interp.pose import F64
 
 __all__ = ["QUINTIC_LOOKAHEAD", "QUINTIC_LOOKBEHIND", "motor_quintic", "motor_window_spline"]
 
@@ -63,19 +63,23 @@ QUINTIC_LOOKAHEAD = 2
 _FAR = 1e30
 
 
-def _add_derivatives(coef: F64, x: list[F64], i: int, nodes: range, bv: F64, ba: F64) -> None:
+def _add_derivatives(
+    coef: F64, x: list[F64 | float], i: int, nodes: range, bv: F64, ba: F64
+) -> None:
     """``coef[j] += bv L_j'(x_i) + ba L_j''(x_i)`` for the polynomial through ``nodes``.
 
     ``L_j`` are the Lagrange basis polynomials of the node times ``x`` (``(M,)``
-    each, in bracket spans; missing nodes at ``+-_FAR``), so this adds ``bv``
-    times the velocity and ``ba`` times the acceleration at node ``i`` as
-    weights of the keyframes. With ``u_m = x_m - x_i``: ``L_j' = prod_{m != i}
-    u_m / (u_j^2 prod_{m != i, j} (u_m - u_j))`` and ``L_j'' = 2 L_j' sum_{m !=
-    i, j} (-1 / u_m)`` for ``j != i``; ``L_i^(n) = -sum_{j != i} L_j^(n)``
-    (constants have no derivative).
+    each, in bracket spans; missing nodes at ``+-_FAR``; the bracket's own nodes
+    are the plain numbers 0 and 1, which saves whole-array operations), so this
+    adds ``bv`` times the velocity and ``ba`` times the acceleration at node
+    ``i`` as weights of the keyframes. With ``u_m = x_m - x_i``: ``L_j' =
+    prod_{m != i} u_m / (u_j^2 prod_{m != i, j} (u_m - u_j))`` and ``L_j'' = 2
+    L_j' sum_{m != i, j} (-1 / u_m)`` for ``j != i``; ``L_i^(n) = -sum_{j != i}
+    L_j^(n)`` (constants have no derivative).
     """
     others = [j for j in nodes if j != i]
-    u = {j: x[j] - x[i] for j in others}
+    xi = x[i]
+    u = {j: (x[j] - xi if isinstance(xi, np.ndarray) or xi != 0.0 else x[j]) for j in others}
     inv = {j: 1.0 / u[j] for j in others}
     first, *rest = others
     total_inv = inv[first]
@@ -83,7 +87,7 @@ def _add_derivatives(coef: F64, x: list[F64], i: int, nodes: range, bv: F64, ba:
     for j in rest:
         total_inv = total_inv + inv[j]
         prod_u = prod_u * u[j]
-    diff: dict[tuple[int, int], F64] = {}
+    diff: dict[tuple[int, int], F64 | float] = {}
     for a_, m in enumerate(others):
         for j in others[a_ + 1 :]:
             diff[m, j] = u[m] - u[j]
@@ -94,9 +98,14 @@ def _add_derivatives(coef: F64, x: list[F64], i: int, nodes: range, bv: F64, ba:
         for m in others:
             if m != j:
                 den = den * (diff[m, j] if (m, j) in diff else -diff[j, m])
-        c = (prod_u / den) * (bv + ba2 * (inv[j] - total_inv))
+        c = ba2 * (inv[j] - total_inv)
+        c += bv
+        c *= prod_u / den
         coef[j] += c
-        acc = c if acc is None else acc + c
+        if acc is None:
+            acc = c
+        else:
+            acc += c
     if acc is not None:
         coef[i] -= acc
 
@@ -129,11 +138,10 @@ def motor_window_spline(
     """
     if lookbehind < 0 or lookahead < 0:
         raise ValueError("expected lookbehind, lookahead >= 0")
-    lo, hi = lookbehind, lookbehind + 1
     k = lookbehind + 2 + lookahead
-    p = _checked(keys, "keys", (k, 7))
-    tt = _checked(times, "times", (k,))
+    p = _float_array(keys, "keys", (k, 7))
     batch = p.shape[:-2]
+    tt = _checked(times, "times", (k,))
     if tt.shape[:-1] != batch:
         try:
             tt = np.broadcast_to(tt, (*batch, k))
@@ -146,7 +154,22 @@ def motor_window_spline(
         q = np.broadcast_to(tq, batch).reshape(-1).astype(np.float64)
     except ValueError:
         raise ValueError(f"expected `t` broadcastable to {batch}") from None
-    T = _rows(tt)
+    flat = p.reshape(-1, k, 7)
+    tflat = tt.reshape(-1, k)
+    T = _rows(tflat)
+    s, coef = _window_weights(T, q, lookbehind, lookahead)
+    out = _window_curve(flat, coef, lookbehind)
+    lo, hi = lookbehind, lookbehind + 1
+    for mask, j in ((s == 0.0, lo), (s == 1.0, hi)):
+        if mask.any():
+            out[mask] = flat[mask, j]
+    return out.reshape((*batch, 7))
+
+
+def _window_weights(T: F64, q: F64, lookbehind: int, lookahead: int) -> tuple[F64, F64]:
+    """Fractions ``s (M,)`` and the keyframes' weights ``(K, M)`` for window times ``T (K, M)``."""
+    lo, hi = lookbehind, lookbehind + 1
+    k, m = T.shape
     step = T[1:] - T[:-1]
     if not np.all(step >= 0):
         raise ValueError("expected non-decreasing window `times`")
@@ -155,96 +178,30 @@ def motor_window_spline(
     h = np.where(held, 1.0, span)
     s = np.where(held, 0.0, np.clip((q - T[lo]) / h, 0.0, 1.0))
     # Node times in spans; a missing neighbour (a repeat outwards of the bracket,
-    # or anything after a held one) goes far away, each to its own place.
+    # or anything after a held one) goes far away, each to its own place. The
+    # bracket's nodes are exactly 0 and 1 (a held bracket's upper one is moved to 1).
     x = (T - T[lo]) / h
-    x[hi] = np.where(held, 1.0, x[hi])
-    if k > hi + 1:
-        gone = np.logical_or.accumulate(step[hi:] <= 0, axis=0) | held
-        far = _FAR * np.arange(2, k - lo)[:, None]
-        x[hi + 1 :] = np.where(gone, far, x[hi + 1 :])
+    gone = held
+    for j in range(hi + 1, k):
+        gone = gone | (step[j - 1] <= 0)
+        x[j] = np.where(gone, _FAR * (j - lo), x[j])
     if lo > 0:
-        gone = np.logical_or.accumulate(step[lo - 1 :: -1] <= 0, axis=0)[::-1]
-        far = -_FAR * np.arange(lo + 1, 1, -1)[:, None]
-        x[:lo] = np.where(gone, far, x[:lo])
+        gone = step[lo - 1] <= 0
+        for j in range(lo - 1, -1, -1):
+            if j < lo - 1:
+                gone = gone | (step[j] <= 0)
+            x[j] = np.where(gone, -_FAR * (lo + 1 - j), x[j])
     b_p0, b_v0, b_a0, b_a1, b_v1, b_p1 = _quintic_basis(s)
     # The curve's weight of each keyframe's motor: positions, velocities and
     # accelerations at both ends, each a combination of the keyframes.
-    m = q.shape[0]
     coef = np.zeros((k, m))
     coef[lo] = b_p0
     coef[hi] = b_p1
-    xs = list(x)
+    xs: list[F64 | float] = list(x)
+    xs[lo], xs[hi] = 0.0, 1.0
     _add_derivatives(coef, xs, lo, range(lo - lookbehind, lo + lookahead + 1), b_v0, b_a0)
     _add_derivatives(coef, xs, hi, range(hi - lookbehind, hi + lookahead + 1), b_v1, b_a1)
-    real, dual = _motor_rows(p.reshape(m, k, 7))
-    coef *= _chained_signs(real, lo)
-    # Sums over each query's own keyframes only: a query's result does not depend
-    # on the rest of its batch.
-    blend = np.empty((8, m))
-    np.multiply(coef[0], real[:, 0], out=blend[:4])
-    np.multiply(coef[0], dual[:, 0], out=blend[4:])
-    for j in range(1, k):
-        blend[:4] += coef[j] * real[:, j]
-        blend[4:] += coef[j] * dual[:, j]
-    rows = _dq_to_pose_rows(blend)
-    return _finish(rows, batch, s, p[..., lo, :], p[..., hi, :])
-
-
-def _motor_rows(p: F64) -> tuple[F64, F64]:
-    """Unit dual quaternions of windows ``(M, K, 7)``: real and dual parts ``(4, K, M)``."""
-    m, k, _ = p.shape
-    rows = np.empty((7, k, m))
-    for j in range(k):  # one transpose per keyframe: contiguous component rows
-        rows[:, j] = p[:, j, :].T
-    q = rows[3:]
-    n2 = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]
-    if not np.all(n2 > 1e-24):
-        raise ValueError("expected poses to hold non-zero quaternions")
-    if np.any(np.abs(n2 - 1.0) > 2.0 * UNIT_TOLERANCE):
-        q = q / np.sqrt(n2)
-    w, x, y, z = q
-    tx, ty, tz = rows[0], rows[1], rows[2]
-    dual = np.empty_like(q)
-    tmp = np.empty_like(w)
-    # qd = 1/2 (0, t) q, summed in place
-    for out, terms in (
-        (dual[0], ((tx, x, -0.5), (ty, y, -0.5), (tz, z, -0.5))),
-        (dual[1], ((tx, w, 0.5), (ty, z, 0.5), (tz, y, -0.5))),
-        (dual[2], ((tx, z, -0.5), (ty, w, 0.5), (tz, x, 0.5))),
-        (dual[3], ((tx, y, 0.5), (ty, x, -0.5), (tz, w, 0.5))),
-    ):
-        (a0, b0, c0), *rest = terms
-        np.multiply(a0, b0, out=out)
-        for a1, b1, c1 in rest:
-            np.multiply(a1, b1, out=tmp)
-            if c1 == c0:
-                out += tmp
-            else:
-                out -= tmp
-        out *= c0
-    return q, dual
-
-
-def _chained_signs(real: F64, lo: int) -> F64:
-    """``(K, M)`` signs putting each keyframe in its inward neighbour's hemisphere, from ``lo``.
-
-    The sign of keyframe ``j > lo`` is its neighbour ``j - 1``'s times the one that
-    aligns ``j`` with ``j - 1``; before ``lo`` likewise towards ``j + 1``. Exact
-    half turns (dot 0) are decided by ``hemisphere_sign``'s rule.
-    """
-    a, b = real[:, :-1], real[:, 1:]
-    dots = a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3]  # (K - 1, M): j with j + 1
-    fwd = np.copysign(1.0, dots)  # aligns j + 1 to j
-    back = fwd.copy()  # aligns j to j + 1
-    ties = np.flatnonzero((dots == 0.0).any(axis=1))
-    for j in ties:
-        fwd[j] = hemisphere_sign(real[:, j], real[:, j + 1], dots[j])
-        back[j] = hemisphere_sign(real[:, j + 1], real[:, j], dots[j])
-    sign = np.ones((real.shape[1], real.shape[2]))
-    sign[lo + 1 :] = np.cumprod(fwd[lo:], axis=0)
-    if lo > 0:
-        sign[:lo] = np.cumprod(back[lo - 1 :: -1], axis=0)[::-1]
-    return sign
+    return s, coef
 
 
 def motor_quintic(keys: ArrayLike, times: ArrayLike, t: ArrayLike) -> F64:
