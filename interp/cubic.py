@@ -208,78 +208,6 @@ def _window_curve(flat: F64, coef: F64, lo: int) -> F64:
     return out
 
 
-def _dq_rows(rows: F64) -> F64:
-    """Pose rows (7, M) to unit dual-quaternion rows (8, M); quaternions normalised."""
-    q = rows[3:]
-    n2 = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]
-    if not np.all(n2 > 1e-24):
-        raise ValueError("expected poses to hold non-zero quaternions")
-    if np.any(np.abs(n2 - 1.0) > 2.0 * UNIT_TOLERANCE):
-        q = q / np.sqrt(n2)
-    w, x, y, z = q
-    tx, ty, tz = rows[0], rows[1], rows[2]
-    # qd = 1/2 (0, t) q
-    return np.stack(
-        [
-            w,
-            x,
-            y,
-            z,
-            0.5 * (-tx * x - ty * y - tz * z),
-            0.5 * (tx * w + ty * z - tz * y),
-            0.5 * (-tx * z + ty * w + tz * x),
-            0.5 * (tx * y - ty * x + tz * w),
-        ]
-    )
-
-
-def _align_to(ref: F64, d: F64) -> tuple[F64, F64]:
-    """``d`` (8, M) flipped into ``ref``'s hemisphere; also the sign used."""
-    dot = ref[0] * d[0] + ref[1] * d[1] + ref[2] * d[2] + ref[3] * d[3]
-    sign = hemisphere_sign(ref[:4], d[:4], dot)
-    return d * sign, sign
-
-
-def _dq_to_pose_rows(b: F64) -> F64:
-    """Blended (unnormalised) dual-quaternion rows to pose rows (7, M).
-
-    Dividing by the Study number: the rotation is ``qr/|qr|`` and the
-    translation ``vec(2 qd qr*) / |qr|^2`` (the dual part of the Study number
-    only affects the scalar part, which is never formed).
-    """
-    w, x, y, z, dw, dx, dy, dz = b
-    n2 = w * w + x * x + y * y + z * z
-    inv = 1.0 / n2
-    out = np.empty((7, b.shape[1]))
-    # 2 qd qr*, vector part
-    out[0] = 2.0 * (-dw * x + dx * w - dy * z + dz * y) * inv
-    out[1] = 2.0 * (-dw * y + dx * z + dy * w - dz * x) * inv
-    out[2] = 2.0 * (-dw * z - dx * y + dy * x + dz * w) * inv
-    r = np.sqrt(inv)
-    out[3], out[4], out[5], out[6] = w * r, x * r, y * r, z * r
-    return out
-
-
-def _hermite(d1: F64, d2: F64, m1: F64, m2: F64, s: F64) -> F64:
-    s2 = s * s
-    s3 = s2 * s
-    h00 = 2.0 * s3 - 3.0 * s2 + 1.0
-    h10 = s3 - 2.0 * s2 + s
-    h01 = 3.0 * s2 - 2.0 * s3
-    h11 = s3 - s2
-    out: F64 = h00 * d1 + h10 * m1 + h01 * d2 + h11 * m2
-    return out
-
-
-def _finish(rows: F64, batch: tuple[int, ...], s: F64, p1: F64, p2: F64) -> F64:
-    out = np.ascontiguousarray(rows.T).reshape((*batch, 7))
-    flat = out.reshape(-1, 7)
-    for mask, src in ((s == 0.0, p1), (s == 1.0, p2)):
-        if mask.any():
-            flat[mask] = src.reshape(-1, 7)[mask]
-    return out
-
-
 def motor_cubic(keys: ArrayLike, times: ArrayLike, t: ArrayLike) -> F64:
     """Catmull-Rom cubic on motors through a window of 4 keyframes, at times ``t``.
 
@@ -339,37 +267,48 @@ def _hermite_basis(s: F64) -> tuple[F64, F64, F64, F64]:
     return h00, h10, h01, h11
 
 
-def _dq_rate_rows(d: F64, vel: F64) -> F64:
-    """Time derivative of dual-quaternion rows for world-frame velocities (6, M).
+def _unit_quats(rows: F64, name: str) -> F64:
+    """Pose rows ``(7, M)`` with finite values and unit quaternions (a copy if normalised)."""
+    if not np.isfinite(rows.sum()) and not np.all(np.isfinite(rows)):
+        raise ValueError(f"expected `{name}` to hold finite values")
+    w, x, y, z = rows[3:]
+    n2 = w * w + x * x + y * y + z * z
+    if not np.all(n2 > 1e-24):
+        raise ValueError("expected poses to hold non-zero quaternions")
+    if np.any(np.abs(n2 - 1.0) > 2.0 * UNIT_TOLERANCE):
+        rows = rows.copy()
+        rows[3:] /= np.sqrt(n2)
+    return rows
 
-    ``qr' = 1/2 w qr`` and, from ``qd = 1/2 t qr``, ``qd' = 1/2 (v qr + t qr')``,
-    with ``v``, ``w`` and ``t`` as pure quaternions.
+
+def _hermite_end(rows: F64, vel: F64, g: F64, c: F64) -> tuple[F64, F64]:
+    """One keyframe's share of the motor Hermite curve: real part and twice the dual part.
+
+    The keyframe's motor ``M = q + e 1/2 (0, t) q`` enters with weight ``g`` and
+    its time derivative ``M' = 1/2 (0, a) q + e 1/2 ((0, v) q + (0, t) 1/2 (0, a) q)``
+    (world-frame velocities ``v``, ``a``) with weight ``c``. Both real parts
+    together are ``Q = (g + (0, c a / 2)) q``, and twice both dual parts
+    ``(0, t) Q + (0, c v) q``.
     """
-    w, x, y, z = d[:4]
+    tx, ty, tz, w, x, y, z = rows
     vx, vy, vz, ax, ay, az = vel
-    # qr' = 1/2 (0, a) qr
-    rw = 0.5 * (-ax * x - ay * y - az * z)
-    rx = 0.5 * (ax * w + ay * z - az * y)
-    ry = 0.5 * (-ax * z + ay * w + az * x)
-    rz = 0.5 * (ax * y - ay * x + az * w)
-    # t = 2 qd qr* (vector part), recovered from the unit dual quaternion
-    dw, dx, dy, dz = d[4:]
-    tx = 2.0 * (-dw * x + dx * w - dy * z + dz * y)
-    ty = 2.0 * (-dw * y + dx * z + dy * w - dz * x)
-    tz = 2.0 * (-dw * z - dx * y + dy * x + dz * w)
-    # qd' = 1/2 ((0, v) qr + (0, t) qr')
-    return np.stack(
+    k = 0.5 * c
+    ux, uy, uz = k * ax, k * ay, k * az
+    qw = g * w - (ux * x + uy * y + uz * z)
+    qx = g * x + w * ux + uy * z - uz * y
+    qy = g * y + w * uy + uz * x - ux * z
+    qz = g * z + w * uz + ux * y - uy * x
+    ex, ey, ez = c * vx, c * vy, c * vz
+    real = np.stack([qw, qx, qy, qz])
+    dual = np.stack(
         [
-            rw,
-            rx,
-            ry,
-            rz,
-            0.5 * ((-vx * x - vy * y - vz * z) + (-tx * rx - ty * ry - tz * rz)),
-            0.5 * ((vx * w + vy * z - vz * y) + (tx * rw + ty * rz - tz * ry)),
-            0.5 * ((-vx * z + vy * w + vz * x) + (-tx * rz + ty * rw + tz * rx)),
-            0.5 * ((vx * y - vy * x + vz * w) + (tx * ry - ty * rx + tz * rw)),
+            -(tx * qx + ty * qy + tz * qz) - (ex * x + ey * y + ez * z),
+            tx * qw + ty * qz - tz * qy + (ex * w + ey * z - ez * y),
+            ty * qw + tz * qx - tx * qz + (ey * w + ez * x - ex * z),
+            tz * qw + tx * qy - ty * qx + (ez * w + ex * y - ey * x),
         ]
     )
+    return real, dual
 
 
 def motor_hermite(
@@ -387,9 +326,13 @@ def motor_hermite(
     the fraction in ``[0, 1]``. With zero velocities and the tangents of a
     constant-speed path it reduces to a smooth ease; with the true velocities of
     a constant screw it follows the screw to third order.
+
+    The curve ``h00 M_a + h10 dt M_a' + h01 M_b + h11 dt M_b'`` (``M_b`` and its
+    derivative in ``M_a``'s hemisphere) is formed directly as one real and one
+    dual quaternion per query, then normalised by its Study number.
     """
-    pa = _checked(a, "a", (7,))
-    pb = _checked(b, "b", (7,))
+    pa = _float_array(a, "a", (7,))
+    pb = _float_array(b, "b", (7,))
     if pa.shape != pb.shape:
         pa, pb = np.broadcast_arrays(pa, pb)
     batch = pa.shape[:-1]
@@ -399,14 +342,23 @@ def motor_hermite(
     if not np.all(span > 0):
         raise ValueError("expected `dt` to be positive")
     ss = np.broadcast_to(_checked(s, "s", ()), batch).reshape(-1).astype(np.float64)
-    d1 = _dq_rows(_rows(pa))
-    d2 = _dq_rows(_rows(pb))
-    m1 = _dq_rate_rows(d1, _rows(vva)) * span
-    d2, sign = _align_to(d1, d2)
-    # The derivative of -M is -M': flip it with its motor.
-    m2 = _dq_rate_rows(d2 * sign, _rows(vvb)) * (span * sign)
-    rows = _dq_to_pose_rows(_hermite(d1, d2, m1, m2, ss))
-    return _finish(rows, batch, ss, pa, pb)
+    rows_a, rows_b = _rows(pa), _rows(pb)
+    A = _unit_quats(rows_a, "a")
+    B = _unit_quats(rows_b, "b")
+    qa, qb = A[3:], B[3:]
+    dot = qa[0] * qb[0] + qa[1] * qb[1] + qa[2] * qb[2] + qa[3] * qb[3]
+    # The derivative of -M is -M': b's sign is a factor of both its weights.
+    sign = hemisphere_sign(qa, qb, dot)
+    h00, h10, h01, h11 = _hermite_basis(ss)
+    real, dual = _hermite_end(A, _rows(vva), h00, h10 * span)
+    real_b, dual_b = _hermite_end(B, _rows(vvb), h01 * sign, h11 * (span * sign))
+    real += real_b
+    dual += dual_b
+    out = _pose_rows(real, dual)
+    for mask, src in ((ss == 0.0, rows_a), (ss == 1.0, rows_b)):
+        if mask.any():
+            out[:, mask] = src[:, mask]
+    return np.ascontiguousarray(out.T).reshape((*batch, 7))
 
 
 def screw_extrapolate(a: ArrayLike, b: ArrayLike, s: ArrayLike, max_s: float = 2.0) -> F64:
