@@ -25,6 +25,8 @@ then falls back to the one-sided difference.
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 from numpy.typing import ArrayLike
 
@@ -76,12 +78,13 @@ def _window_rows(p: F64) -> F64:
     the quaternions normalised in place when any is off unit length.
     """
     rows = np.ascontiguousarray(p.transpose(2, 1, 0))  # fast on a chunk of queries
-    # One reduction first: a non-finite sum is rare, then we look closer.
-    if not np.isfinite(rows.sum()) and not np.all(np.isfinite(rows)):
-        raise ValueError("expected `keys` to hold finite values")
     q = rows[3:]
     n2 = np.einsum("ckm,ckm->km", q, q)
     lo, hi = n2.min(), n2.max()
+    # |q|^2 is finite exactly when q is; one sum covers the positions.
+    finite = np.isfinite(hi) and np.isfinite(rows[:3].sum())
+    if not finite and not np.all(np.isfinite(rows)):
+        raise ValueError("expected `keys` to hold finite values")
     if not lo > 1e-24:
         raise ValueError("expected poses to hold non-zero quaternions")
     if hi - 1.0 > 2.0 * UNIT_TOLERANCE or 1.0 - lo > 2.0 * UNIT_TOLERANCE:
@@ -121,17 +124,16 @@ def _chain_signs(coef: F64, real: F64, lo: int) -> None:
             coef[j] *= sign
 
 
-def _blend(rows: F64, coef: F64) -> tuple[F64, F64]:
-    """``sum_j coef_j M_j`` of the windows' motors: real part and twice the dual part, ``(4, M)``.
+def _blend(rows: F64, coef: F64, real: F64, dual: F64) -> None:
+    """``sum_j coef_j M_j`` of the windows' motors into ``real`` and ``dual`` (twice the dual part).
 
     With ``M_j = q_j + e 1/2 (0, t_j) q_j``, twice the dual part of the blend is
     ``sum_j coef_j (0, t_j) q_j``: from the 12 sums ``sum_j coef_j t_j q_j^T``
     (one ``einsum`` pass, no temporaries). Each query only sums its own keyframes.
     """
     q = rows[3:]
-    real = np.einsum("km,ckm->cm", coef, q)
+    np.einsum("km,ckm->cm", coef, q, out=real)
     tq = np.einsum("km,ikm,jkm->ijm", coef, rows[:3], q)  # (3, 4, M): t_i q_j
-    dual = np.empty_like(real)
     # (0, t) q = (-t.v, w t + t x v), with v the vector part of q
     np.add(tq[0, 1], tq[1, 2], out=dual[0])
     dual[0] += tq[2, 3]
@@ -142,7 +144,6 @@ def _blend(rows: F64, coef: F64) -> tuple[F64, F64]:
     dual[2] -= tq[0, 3]
     np.add(tq[2, 0], tq[0, 2], out=dual[3])
     dual[3] -= tq[1, 1]
-    return real, dual
 
 
 def _pose_rows(real: F64, dual2: F64) -> F64:
@@ -198,14 +199,17 @@ def _window_curve(flat: F64, coef: F64, lo: int) -> F64:
     m = flat.shape[0]
     if m == 1:  # two copies: keeps einsum's sums off its contiguous (reordered) path
         return _window_curve(np.concatenate([flat, flat]), coef.repeat(2, axis=1), lo)[:1]
-    out = np.empty((m, 7))
-    for c0 in range(0, m, CHUNK):
-        c1 = min(c0 + CHUNK, m)
+    real = np.empty((4, m))
+    dual = np.empty((4, m))
+    bounds = [*range(0, m, CHUNK), m]
+    if len(bounds) > 2 and m - bounds[-2] == 1:
+        del bounds[-2]  # no chunk of one query (see above)
+    for c0, c1 in itertools.pairwise(bounds):
         rows = _window_rows(flat[c0:c1])
         w = coef[:, c0:c1]
         _chain_signs(w, rows[3:], lo)
-        out[c0:c1] = _pose_rows(*_blend(rows, w)).T
-    return out
+        _blend(rows, w, real[:, c0:c1], dual[:, c0:c1])
+    return np.ascontiguousarray(_pose_rows(real, dual).T)
 
 
 def motor_cubic(keys: ArrayLike, times: ArrayLike, t: ArrayLike) -> F64:

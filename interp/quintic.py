@@ -64,18 +64,18 @@ _FAR = 1e30
 
 
 def _add_derivatives(
-    coef: F64, x: list[F64 | float], i: int, nodes: range, bv: F64, ba: F64
+    coef: F64, x: list[F64 | float], i: int, nodes: range, bv: F64, ba2: F64
 ) -> None:
-    """``coef[j] += bv L_j'(x_i) + ba L_j''(x_i)`` for the polynomial through ``nodes``.
+    """``coef[j] += bv L_j'(x_i) + ba2 L_j''(x_i) / 2`` for the polynomial through ``nodes``.
 
     ``L_j`` are the Lagrange basis polynomials of the node times ``x`` (``(M,)``
     each, in bracket spans; missing nodes at ``+-_FAR``; the bracket's own nodes
     are the plain numbers 0 and 1, which saves whole-array operations), so this
-    adds ``bv`` times the velocity and ``ba`` times the acceleration at node
-    ``i`` as weights of the keyframes. With ``u_m = x_m - x_i``: ``L_j' =
+    adds ``bv`` times the velocity and ``ba2 / 2`` times the acceleration at
+    node ``i`` as weights of the keyframes. With ``u_m = x_m - x_i``: ``L_j' =
     prod_{m != i} u_m / (u_j^2 prod_{m != i, j} (u_m - u_j))`` and ``L_j'' = 2
     L_j' sum_{m != i, j} (-1 / u_m)`` for ``j != i``; ``L_i^(n) = -sum_{j != i}
-    L_j^(n)`` (constants have no derivative).
+    L_j^(n)`` (constants have no derivative). Temporaries are updated in place.
     """
     others = [j for j in nodes if j != i]
     xi = x[i]
@@ -87,20 +87,43 @@ def _add_derivatives(
     for j in rest:
         total_inv = total_inv + inv[j]
         prod_u = prod_u * u[j]
+    # Each difference once; the other order is the same number negated, and the
+    # negations of a product are counted instead of applied.
     diff: dict[tuple[int, int], F64 | float] = {}
     for a_, m in enumerate(others):
         for j in others[a_ + 1 :]:
             diff[m, j] = u[m] - u[j]
-    ba2 = 2.0 * ba
     acc: F64 | None = None
     for j in others:
-        den = u[j] * u[j]
+        uj = u[j]
+        den: F64 | float = 1.0 if isinstance(uj, float) and abs(uj) == 1.0 else uj * uj
+        owned = isinstance(den, np.ndarray)  # a fresh array: multiply in place
+        negative = False
         for m in others:
             if m != j:
-                den = den * (diff[m, j] if (m, j) in diff else -diff[j, m])
-        c = ba2 * (inv[j] - total_inv)
-        c += bv
-        c *= prod_u / den
+                if (m, j) in diff:
+                    d = diff[m, j]
+                else:
+                    d = diff[j, m]
+                    negative = not negative
+                if owned:
+                    den *= d
+                elif isinstance(den, float) and den == 1.0:
+                    den = d
+                else:
+                    den = den * d
+                    owned = isinstance(den, np.ndarray)
+        ratio = np.divide(prod_u, den)
+        # c = (bv + ba2 (inv_j - total_inv)) prod_u / den, the sign folded into the first factor
+        if negative:
+            c = np.subtract(total_inv, inv[j])
+            c *= ba2
+            c -= bv
+        else:
+            c = np.subtract(inv[j], total_inv)
+            c *= ba2
+            c += bv
+        c *= ratio
         coef[j] += c
         if acc is None:
             acc = c
@@ -111,17 +134,36 @@ def _add_derivatives(
 
 
 def _quintic_basis(s: F64) -> tuple[F64, F64, F64, F64, F64, F64]:
-    """Quintic Hermite basis: p0, v0, a0, a1, v1, p1 (unit interval)."""
+    """Quintic Hermite basis: p0, v0, twice a0, twice a1, v1, p1 (unit interval), by Horner."""
     s2 = s * s
     s3 = s2 * s
-    s4 = s3 * s
-    s5 = s4 * s
-    h_p1 = 10.0 * s3 - 15.0 * s4 + 6.0 * s5
+    h_p1 = 6.0 * s
+    h_p1 -= 15.0
+    h_p1 *= s
+    h_p1 += 10.0
+    h_p1 *= s3  # 10 s^3 - 15 s^4 + 6 s^5
     h_p0 = 1.0 - h_p1
-    h_v0 = s - 6.0 * s3 + 8.0 * s4 - 3.0 * s5
-    h_v1 = -4.0 * s3 + 7.0 * s4 - 3.0 * s5
-    h_a0 = 0.5 * (s2 - 3.0 * s3 + 3.0 * s4 - s5)
-    h_a1 = 0.5 * (s3 - 2.0 * s4 + s5)
+    h_v0 = -3.0 * s
+    h_v0 += 8.0
+    h_v0 *= s
+    h_v0 -= 6.0
+    h_v0 *= s3
+    h_v0 += s  # s - 6 s^3 + 8 s^4 - 3 s^5
+    h_v1 = -3.0 * s
+    h_v1 += 7.0
+    h_v1 *= s
+    h_v1 -= 4.0
+    h_v1 *= s3  # -4 s^3 + 7 s^4 - 3 s^5
+    h_a0 = 3.0 - s
+    h_a0 *= s
+    h_a0 -= 3.0
+    h_a0 *= s
+    h_a0 += 1.0
+    h_a0 *= s2  # s^2 - 3 s^3 + 3 s^4 - s^5 (twice the basis function)
+    h_a1 = s - 2.0
+    h_a1 *= s
+    h_a1 += 1.0
+    h_a1 *= s3  # s^3 - 2 s^4 + s^5 (twice the basis function)
     return h_p0, h_v0, h_a0, h_a1, h_v1, h_p1
 
 
