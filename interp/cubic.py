@@ -273,46 +273,111 @@ def _hermite_basis(s: F64) -> tuple[F64, F64, F64, F64]:
 
 def _unit_quats(rows: F64, name: str) -> F64:
     """Pose rows ``(7, M)`` with finite values and unit quaternions (a copy if normalised)."""
-    if not np.isfinite(rows.sum()) and not np.all(np.isfinite(rows)):
+    q = rows[3:]
+    n2 = np.einsum("cm,cm->m", q, q)
+    lo, hi = n2.min(initial=1.0), n2.max(initial=1.0)
+    # |q|^2 is finite exactly when q is; one sum covers the positions.
+    finite = np.isfinite(hi) and np.isfinite(rows[:3].sum())
+    if not finite and not np.all(np.isfinite(rows)):
         raise ValueError(f"expected `{name}` to hold finite values")
-    w, x, y, z = rows[3:]
-    n2 = w * w + x * x + y * y + z * z
-    if not np.all(n2 > 1e-24):
+    if not lo > 1e-24:
         raise ValueError("expected poses to hold non-zero quaternions")
-    if np.any(np.abs(n2 - 1.0) > 2.0 * UNIT_TOLERANCE):
+    if hi - 1.0 > 2.0 * UNIT_TOLERANCE or 1.0 - lo > 2.0 * UNIT_TOLERANCE:
         rows = rows.copy()
         rows[3:] /= np.sqrt(n2)
     return rows
 
 
-def _hermite_end(rows: F64, vel: F64, g: F64, c: F64) -> tuple[F64, F64]:
-    """One keyframe's share of the motor Hermite curve: real part and twice the dual part.
+def _finite_rows(x: F64, name: str) -> F64:
+    """``_rows(x)``, checked for finite values with one reduction."""
+    rows = _rows(x)
+    if not np.isfinite(rows.sum()) and not np.all(np.isfinite(rows)):
+        raise ValueError(f"expected `{name}` to hold finite values")
+    return rows
+
+
+def _sum_products(out: F64, terms: tuple[tuple[F64, F64, bool], ...], tmp: F64, add: bool) -> None:
+    """``out (+)= sum(+-a * b)`` over ``terms`` of ``(a, b, negative)``, in place."""
+    for n, (a, b, negative) in enumerate(terms):
+        if n == 0 and not add and not negative:
+            np.multiply(a, b, out=out)
+            continue
+        np.multiply(a, b, out=tmp)
+        if n == 0 and not add:
+            np.negative(tmp, out=out)
+        elif negative:
+            out -= tmp
+        else:
+            out += tmp
+
+
+def _hermite_end(rows: F64, vel: F64, g: F64, c: F64, real: F64, dual: F64, add: bool) -> None:
+    """One keyframe's share of the motor Hermite curve, into ``real`` and ``dual`` (times 2).
 
     The keyframe's motor ``M = q + e 1/2 (0, t) q`` enters with weight ``g`` and
     its time derivative ``M' = 1/2 (0, a) q + e 1/2 ((0, v) q + (0, t) 1/2 (0, a) q)``
     (world-frame velocities ``v``, ``a``) with weight ``c``. Both real parts
     together are ``Q = (g + (0, c a / 2)) q``, and twice both dual parts
-    ``(0, t) Q + (0, c v) q``.
+    ``(0, t) Q + (0, c v) q``. ``add``: accumulate instead of overwrite.
     """
     tx, ty, tz, w, x, y, z = rows
-    vx, vy, vz, ax, ay, az = vel
     k = 0.5 * c
-    ux, uy, uz = k * ax, k * ay, k * az
-    qw = g * w - (ux * x + uy * y + uz * z)
-    qx = g * x + w * ux + uy * z - uz * y
-    qy = g * y + w * uy + uz * x - ux * z
-    qz = g * z + w * uz + ux * y - uy * x
-    ex, ey, ez = c * vx, c * vy, c * vz
-    real = np.stack([qw, qx, qy, qz])
-    dual = np.stack(
-        [
-            -(tx * qx + ty * qy + tz * qz) - (ex * x + ey * y + ez * z),
-            tx * qw + ty * qz - tz * qy + (ex * w + ey * z - ez * y),
-            ty * qw + tz * qx - tx * qz + (ey * w + ez * x - ex * z),
-            tz * qw + tx * qy - ty * qx + (ez * w + ex * y - ey * x),
-        ]
+    ux, uy, uz = vel[3:] * k
+    ex, ey, ez = vel[:3] * c
+    tmp = np.empty_like(g)
+    q = np.empty((4, g.shape[0]))
+    qw, qx, qy, qz = q
+    _sum_products(qw, ((g, w, False), (ux, x, True), (uy, y, True), (uz, z, True)), tmp, False)
+    _sum_products(qx, ((g, x, False), (ux, w, False), (uy, z, False), (uz, y, True)), tmp, False)
+    _sum_products(qy, ((g, y, False), (uy, w, False), (uz, x, False), (ux, z, True)), tmp, False)
+    _sum_products(qz, ((g, z, False), (uz, w, False), (ux, y, False), (uy, x, True)), tmp, False)
+    if add:
+        real += q
+    else:
+        real[...] = q
+    dw, dx, dy, dz = dual
+    dot_terms = ((tx, qx, True), (ty, qy, True), (tz, qz, True))
+    dot_terms += ((ex, x, True), (ey, y, True), (ez, z, True))
+    _sum_products(dw, dot_terms, tmp, add)
+    _sum_products(
+        dx,
+        (
+            (tx, qw, False),
+            (ty, qz, False),
+            (tz, qy, True),
+            (ex, w, False),
+            (ey, z, False),
+            (ez, y, True),
+        ),
+        tmp,
+        add,
     )
-    return real, dual
+    _sum_products(
+        dy,
+        (
+            (ty, qw, False),
+            (tz, qx, False),
+            (tx, qz, True),
+            (ey, w, False),
+            (ez, x, False),
+            (ex, z, True),
+        ),
+        tmp,
+        add,
+    )
+    _sum_products(
+        dz,
+        (
+            (tz, qw, False),
+            (tx, qy, False),
+            (ty, qx, True),
+            (ez, w, False),
+            (ex, y, False),
+            (ey, x, True),
+        ),
+        tmp,
+        add,
+    )
 
 
 def motor_hermite(
@@ -340,8 +405,8 @@ def motor_hermite(
     if pa.shape != pb.shape:
         pa, pb = np.broadcast_arrays(pa, pb)
     batch = pa.shape[:-1]
-    vva = np.broadcast_to(_checked(va, "va", (VELOCITY_SIZE,)), (*batch, VELOCITY_SIZE))
-    vvb = np.broadcast_to(_checked(vb, "vb", (VELOCITY_SIZE,)), (*batch, VELOCITY_SIZE))
+    vva = np.broadcast_to(_float_array(va, "va", (VELOCITY_SIZE,)), (*batch, VELOCITY_SIZE))
+    vvb = np.broadcast_to(_float_array(vb, "vb", (VELOCITY_SIZE,)), (*batch, VELOCITY_SIZE))
     span = np.broadcast_to(_checked(dt, "dt", ()), batch).reshape(-1)
     if not np.all(span > 0):
         raise ValueError("expected `dt` to be positive")
@@ -354,10 +419,11 @@ def motor_hermite(
     # The derivative of -M is -M': b's sign is a factor of both its weights.
     sign = hemisphere_sign(qa, qb, dot)
     h00, h10, h01, h11 = _hermite_basis(ss)
-    real, dual = _hermite_end(A, _rows(vva), h00, h10 * span)
-    real_b, dual_b = _hermite_end(B, _rows(vvb), h01 * sign, h11 * (span * sign))
-    real += real_b
-    dual += dual_b
+    vel_a, vel_b = _finite_rows(vva, "va"), _finite_rows(vvb, "vb")
+    real = np.empty((4, ss.shape[0]))
+    dual = np.empty((4, ss.shape[0]))
+    _hermite_end(A, vel_a, h00, h10 * span, real, dual, False)
+    _hermite_end(B, vel_b, h01 * sign, h11 * (span * sign), real, dual, True)
     out = _pose_rows(real, dual)
     for mask, src in ((ss == 0.0, rows_a), (ss == 1.0, rows_b)):
         if mask.any():
