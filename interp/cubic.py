@@ -336,9 +336,19 @@ def _hermite_end(rows: F64, vel: F64, g: F64, c: F64, real: F64, dual: F64, add:
     else:
         real[...] = q
     dw, dx, dy, dz = dual
-    dot_terms = ((tx, qx, True), (ty, qy, True), (tz, qz, True))
-    dot_terms += ((ex, x, True), (ey, y, True), (ez, z, True))
-    _sum_products(dw, dot_terms, tmp, add)
+    _sum_products(
+        dw,
+        (
+            (tx, qx, True),
+            (ty, qy, True),
+            (tz, qz, True),
+            (ex, x, True),
+            (ey, y, True),
+            (ez, z, True),
+        ),
+        tmp,
+        add,
+    )
     _sum_products(
         dx,
         (
