@@ -52,7 +52,8 @@ def _checked(x: ArrayLike, name: str, tail: tuple[int, ...]) -> F64:
     if arr.ndim < len(tail) or arr.shape[arr.ndim - len(tail) :] != tail:
         shape = "(..., " + ", ".join(str(d) for d in tail) + ")"
         raise ValueError(f"expected `{name}` to have shape {shape}, got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
+    # One reduction first: a non-finite sum is rare, then we look closer.
+    if not np.isfinite(arr.sum()) and not np.all(np.isfinite(arr)):
         raise ValueError(f"expected `{name}` to hold finite values")
     return arr
 
@@ -103,8 +104,8 @@ def _chain_signs(coef: F64, real: F64, lo: int) -> None:
     dots = np.einsum("ckm,ckm->km", real[:, :-1], real[:, 1:])  # (K - 1, M): j with j + 1
     fwd = np.copysign(1.0, dots)  # aligns j + 1 to j
     back = fwd  # aligns j to j + 1
-    ties = np.flatnonzero((dots == 0.0).any(axis=1))
-    if ties.size:
+    if not dots.all():  # a zero dot: an exact half turn somewhere
+        ties = np.flatnonzero(~dots.all(axis=1))
         back = fwd.copy()
         for tie in ties:
             fwd[tie] = hemisphere_sign(real[:, tie], real[:, tie + 1], dots[tie])

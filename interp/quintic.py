@@ -213,16 +213,21 @@ def _window_weights(T: F64, q: F64, lookbehind: int, lookahead: int) -> tuple[F6
     lo, hi = lookbehind, lookbehind + 1
     k, m = T.shape
     step = T[1:] - T[:-1]
-    if not np.all(step >= 0):
+    if m and step.min() < 0:  # the times are finite
         raise ValueError("expected non-decreasing window `times`")
     span = step[lo]
     held = span <= 0
     h = np.where(held, 1.0, span)
-    s = np.where(held, 0.0, np.clip((q - T[lo]) / h, 0.0, 1.0))
+    r = q - T[lo]
+    r /= h
+    np.maximum(r, 0.0, out=r)
+    np.minimum(r, 1.0, out=r)
+    s = np.where(held, 0.0, r)
     # Node times in spans; a missing neighbour (a repeat outwards of the bracket,
     # or anything after a held one) goes far away, each to its own place. The
     # bracket's nodes are exactly 0 and 1 (a held bracket's upper one is moved to 1).
-    x = (T - T[lo]) / h
+    x = T - T[lo]
+    x /= h
     gone = held
     for j in range(hi + 1, k):
         gone = gone | (step[j - 1] <= 0)
