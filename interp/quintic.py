@@ -217,27 +217,36 @@ def _window_weights(T: F64, q: F64, lookbehind: int, lookahead: int) -> tuple[F6
         raise ValueError("expected non-decreasing window `times`")
     span = step[lo]
     held = span <= 0
-    h = np.where(held, 1.0, span)
-    r = q - T[lo]
-    r /= h
-    np.maximum(r, 0.0, out=r)
-    np.minimum(r, 1.0, out=r)
-    s = np.where(held, 0.0, r)
+    any_held = bool(held.any())
+    h = np.where(held, 1.0, span) if any_held else span
+    s = q - T[lo]
+    s /= h
+    np.maximum(s, 0.0, out=s)
+    np.minimum(s, 1.0, out=s)
+    if any_held:
+        s[held] = 0.0
     # Node times in spans; a missing neighbour (a repeat outwards of the bracket,
     # or anything after a held one) goes far away, each to its own place. The
     # bracket's nodes are exactly 0 and 1 (a held bracket's upper one is moved to 1).
     x = T - T[lo]
     x /= h
+    # Complete windows (the rule, not the exception) skip the substitutions.
+    missing = (step <= 0).any(axis=1)
     gone = held
+    any_gone = any_held
     for j in range(hi + 1, k):
-        gone = gone | (step[j - 1] <= 0)
-        x[j] = np.where(gone, _FAR * (j - lo), x[j])
+        if missing[j - 1]:
+            gone = gone | (step[j - 1] <= 0)
+            any_gone = True
+        if any_gone:
+            x[j] = np.where(gone, _FAR * (j - lo), x[j])
     if lo > 0:
         gone = step[lo - 1] <= 0
         for j in range(lo - 1, -1, -1):
             if j < lo - 1:
                 gone = gone | (step[j] <= 0)
-            x[j] = np.where(gone, -_FAR * (lo + 1 - j), x[j])
+            if missing[j:lo].any():
+                x[j] = np.where(gone, -_FAR * (lo + 1 - j), x[j])
     b_p0, b_v0, b_a0, b_a1, b_v1, b_p1 = _quintic_basis(s)
     # The curve's weight of each keyframe's motor: positions, velocities and
     # accelerations at both ends, each a combination of the keyframes.

@@ -226,6 +226,12 @@ def windows(seed: int, n: int, k: int, lo: int) -> tuple[F64, F64, F64]:
         times[i, -1] = times[i, -2]
     for i in np.flatnonzero(case == 4):  # held bracket
         times[i, lo + 1 :] = times[i, lo]
+    if lo > 0 and k > lo + 2:  # the nearest neighbours missing, the outer ones not
+        for i in np.flatnonzero(case == 5):
+            times[i, lo - 1] = times[i, lo]
+            times[i, : lo - 1] -= 0.5
+            times[i, lo + 2] = times[i, lo + 1]
+            times[i, lo + 3 :] += 0.5
     s = rng.uniform(-0.2, 1.2, n)
     s[::11] = 0.0
     s[3::11] = 1.0
@@ -263,6 +269,23 @@ def test_motor_quintic_matches_reference(n: int) -> None:
     assert_poses_close(got, np.tile(want, (reps, 1))[:n])
 
 
+def test_motor_quintic_each_window_alone_matches_reference() -> None:
+    """Windows of one kind per call: nothing borrowed from other windows of the batch."""
+    keys, times, t = windows(77, 400, 6, 2)
+    kinds = {
+        "complete": np.all(np.diff(times, axis=1) > 0, axis=1),
+        "inner after missing": (times[:, 3] == times[:, 4]) & (times[:, 5] > times[:, 4]),
+        "inner before missing": (times[:, 1] == times[:, 2]) & (times[:, 0] < times[:, 1]),
+    }
+    for name, rows in kinds.items():
+        assert rows.sum() > 5, name
+        got = interp.motor_quintic(keys[rows], times[rows], t[rows])
+        assert_poses_close(got, ref_quintic(keys[rows], times[rows], t[rows]))
+    for i in range(0, 400, 37):
+        got = interp.motor_quintic(keys[i], times[i], t[i])
+        assert_poses_close(got, ref_quintic(keys[i : i + 1], times[i : i + 1], t[i : i + 1])[0])
+
+
 @pytest.mark.parametrize(("lb", "la"), [(1, 1), (3, 3), (2, 0), (0, 2), (1, 3)])
 def test_window_spline_other_sizes_match_reference(lb: int, la: int) -> None:
     from interp.quintic import motor_window_spline
@@ -295,6 +318,8 @@ def test_references_see_the_edge_cases() -> None:
     span = times[:, 3] - times[:, 2]
     assert np.any(span == 0) and np.any(times[:, 0] == times[:, 1])
     assert np.any(times[:, 5] == times[:, 4]) and np.any(times[:, 3] == times[:, 4])
+    assert np.any((times[:, 3] == times[:, 4]) & (times[:, 5] > times[:, 4]))
+    assert np.any((times[:, 1] == times[:, 2]) & (times[:, 0] < times[:, 1]))
     s = (t - times[:, 2]) / np.where(span > 0, span, 1.0)
     assert np.any(s < 0) and np.any(s > 1) and np.any(s == 0) and np.any(s == 1)
     dots = np.sum(keys[:, :-1, 3:] * keys[:, 1:, 3:], axis=-1)
