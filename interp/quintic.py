@@ -45,7 +45,7 @@ keyframes, which are exact samples of the true motion.
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from interp.cubic import _checked, _float_array, _window_curve
 from interp.methods import _rows
@@ -231,7 +231,7 @@ def _window_weights(T: F64, q: F64, lookbehind: int, lookahead: int) -> tuple[F6
     x = T - T[lo]
     x /= h
     # Complete windows (the rule, not the exception) skip the substitutions.
-    missing = (step <= 0).any(axis=1)
+    missing: NDArray[np.bool_] = np.any(step <= 0, axis=1)
     gone = held
     any_gone = any_held
     for j in range(hi + 1, k):
