@@ -84,9 +84,16 @@ def _add_derivatives(
     first, *rest = others
     total_inv = inv[first]
     prod_u = u[first]
-    for j in rest:
-        total_inv = total_inv + inv[j]
-        prod_u = prod_u * u[j]
+    for n, j in enumerate(rest):
+        if n == 0:  # a new array: the rest in place
+            total_inv = total_inv + inv[j]
+            prod_u = prod_u * u[j]
+        else:
+            total_inv += inv[j]
+            prod_u *= u[j]
+    # c_j = (bv + ba2 (inv_j - total_inv)) prod_u / den_j = (ba2 inv_j + base) prod_u / den_j
+    base = ba2 * total_inv
+    np.subtract(bv, base, out=base)
     # Each difference once; the other order is the same number negated, and the
     # negations of a product are counted instead of applied.
     diff: dict[tuple[int, int], F64 | float] = {}
@@ -113,21 +120,23 @@ def _add_derivatives(
                 else:
                     den = den * d
                     owned = isinstance(den, np.ndarray)
-        ratio = np.divide(prod_u, den)
-        # c = (bv + ba2 (inv_j - total_inv)) prod_u / den, the sign folded into the first factor
-        if negative:
-            c = np.subtract(total_inv, inv[j])
-            c *= ba2
-            c -= bv
+        if owned and isinstance(den, np.ndarray):
+            ratio = np.divide(prod_u, den, out=den)
         else:
-            c = np.subtract(inv[j], total_inv)
-            c *= ba2
-            c += bv
+            ratio = np.divide(prod_u, den)
+        c = ba2 * inv[j]
+        c += base
         c *= ratio
-        coef[j] += c
         if acc is None:
+            if negative:
+                np.negative(c, out=c)
+            coef[j] += c
             acc = c
+        elif negative:
+            coef[j] -= c
+            acc -= c
         else:
+            coef[j] += c
             acc += c
     if acc is not None:
         coef[i] -= acc
