@@ -2,8 +2,8 @@
 
 :class:`recorder.writer.SessionRecorder` encodes records on the relay's thread
 and writes them from a thread of the relay's process, so every record costs the
-relay some GIL time (encoding, MCAP framing, compression bookkeeping): 26-32 %
-of a CPU-bound relay's throughput in ``posecast bench relay --record``.
+relay some GIL time (encoding, MCAP framing, compression bookkeeping): about a
+third of a CPU-bound relay's throughput in ``posecast bench relay --record``.
 :class:`ProcessRecorder` has the same relay-facing methods but keeps almost all
 of that work out of the relay's process:
 
@@ -12,15 +12,18 @@ of that work out of the relay's process:
   decoding, no copying), and the few JSON records (presence, events, drops)
   already encoded;
 - at most every ``batch_delay`` s (the room tick calls :meth:`poll`) or every
-  ``batch_size`` records the batch is joined into one blob and offered to a
-  bounded queue; a feeder thread writes the blobs into a pipe;
-- a child process (:func:`main` here) reads the pipe, decodes the
-  frames and records them with a :class:`SessionRecorder` of its own (same
+  ``batch_size`` records the batch is joined into one blob and written into a
+  non-blocking pipe (1 MiB) by the relay's own thread: one system call, no
+  thread hand-off (a feeder thread woken per batch cost the relay far more
+  than the writing); what the pipe cannot take yet waits, bounded;
+- a child process (:func:`main` here) reads the pipe, decodes the frames in
+  groups and records them with a :class:`SessionRecorder` of its own (same
   file layout, chunking, fsync schedule, ``.part`` and rename).
 
-Nothing is silent: a full queue (the child or its disk cannot keep up, and the
-pipe is full) loses the batch, counts it and records the loss in the file as a
-``recorder-queue-overflow`` drops record, as the thread recorder does. If the
+Nothing is silent: when more than ``queue_size`` records wait (the child or its
+disk cannot keep up and the pipe is full) a batch is lost, counted and the loss
+recorded in the file as a ``recorder-queue-overflow`` drops record, as the
+thread recorder does. If the
 relay dies, the child sees the pipe close without a stop message, makes what it
 received durable and leaves the ``.part`` for recovery.
 
@@ -34,11 +37,12 @@ Pipe messages (little-endian): ``u8 kind, u32 length, payload``:
 
 from __future__ import annotations
 
+import collections
 import contextlib
+import fcntl
 import json
 import logging
 import os
-import queue
 import select
 import signal
 import struct
@@ -98,6 +102,9 @@ _CHANNEL_INDEX: Final = {topic: i for i, topic in enumerate(_TOPICS)}
 #: Seconds to wait for the child to open the file, and to finish it on close.
 _START_TIMEOUT: Final = 60.0
 _CLOSE_TIMEOUT: Final = 120.0
+#: Linux's fcntl to resize a pipe (Python 3.11's fcntl lacks the name), and the size asked.
+_F_SETPIPE_SZ: Final = getattr(fcntl, "F_SETPIPE_SZ", 1031)
+_PIPE_BYTES: Final = 1 << 20
 _CHILD_BOOT: Final = "import sys; from recorder.process import main; sys.exit(main())"
 #: The child's own hand-off to its writer thread: records per batch, seconds at most.
 _CHILD_BATCH: Final = 256
@@ -167,10 +174,19 @@ class ProcessRecorder(RecordTap):
         self._clock = clock
         self._batch_size = max(1, batch_size)
         self._batch_delay = batch_delay
-        # Blobs of about ``batch_size`` records: the bound is ``queue_size`` records.
-        self._queue: queue.Queue[tuple[bytes, _Batch] | None] = queue.Queue(
-            maxsize=max(2, queue_size // self._batch_size)
-        )
+        # The pipe is written without blocking, from the relay's own thread: no
+        # thread hand-off (which cost the relay more than the writing itself).
+        # What the pipe cannot take now waits in ``_pending``, at most
+        # ``queue_size`` records; beyond that a batch is lost and the loss recorded.
+        assert proc.stdin is not None
+        self._fd = proc.stdin.fileno()
+        os.set_blocking(self._fd, False)
+        with contextlib.suppress(OSError):  # a bigger pipe: seconds of records in flight
+            fcntl.fcntl(self._fd, _F_SETPIPE_SZ, _PIPE_BYTES)
+        self._bound = max(1, queue_size)
+        self._pending: collections.deque[list[Any]] = collections.deque()  # [view, records]
+        self._pending_records = 0
+        self._held = False
         self._lock = threading.Lock()
         self._batch = _Batch()
         self._loss = _Loss()
@@ -179,8 +195,6 @@ class ProcessRecorder(RecordTap):
         self._closed = False
         self._error: str | None = None
         self._final: dict[str, Any] | None = None
-        self._resume = threading.Event()
-        self._resume.set()
         self._offered = 0
         self._queue_drops = 0
         self._queue_drop_poses = 0
@@ -188,10 +202,7 @@ class ProcessRecorder(RecordTap):
         self._rejected = 0
         self._high_water = 0
         self._sent_records = 0
-        self._feeder = threading.Thread(
-            target=self._feed, name=f"recorder-feed:{final_path.name}", daemon=True
-        )
-        self._feeder.start()
+        self._checked = _time.monotonic()
 
     # -- opening ---------------------------------------------------------------------
 
@@ -329,10 +340,15 @@ class ProcessRecorder(RecordTap):
     def poll(self) -> None:
         """Hand the waiting batch over once it is ``batch_delay`` old (call every tick)."""
         b = self._batch
-        if b.records and _time.monotonic() - b.since >= self._batch_delay:
+        now = _time.monotonic()
+        if b.records and now - b.since >= self._batch_delay:
             self._handoff()
-        if self._error is None and self._proc.poll() is not None and not self._closing:
-            self._fail(f"the recorder process exited with code {self._proc.returncode}")
+        elif self._pending:
+            self._drain()
+        if now - self._checked >= 1.0:
+            self._checked = now
+            if self._error is None and not self._closing and self._proc.poll() is not None:
+                self._fail(f"the recorder process exited with code {self._proc.returncode}")
 
     def _handoff(self) -> None:
         batch, self._batch = self._batch, _Batch()
@@ -343,22 +359,56 @@ class ProcessRecorder(RecordTap):
         blob = b"".join(batch.parts)
         batch.parts = []
         with self._lock:
-            q = self._queue
-            try:
-                if self._loss.records:
-                    q.put_nowait((self._loss_blob(), _Batch()))
-                    self._loss_records += 1
-                    self._loss = _Loss()
-                    self._loss_topics = {}
-                q.put_nowait((blob, batch))
-            except queue.Full:
+            if self._error is not None:
+                self._rejected += batch.records
+                return False
+            if self._pending and self._pending_records + batch.records > self._bound:
                 self._loss.add(batch, self._loss_topics)
                 self._queue_drops += batch.records
                 self._queue_drop_poses += batch.poses
                 return False
+            if self._loss.records:
+                self._push(self._loss_blob(), 0)
+                self._loss_records += 1
+                self._loss = _Loss()
+                self._loss_topics = {}
+            self._push(blob, batch.records)
             self._offered += batch.records
-            self._high_water = max(self._high_water, q.qsize())
-            return True
+            self._high_water = max(self._high_water, self._pending_records)
+        self._drain()
+        return True
+
+    def _push(self, data: bytes, records: int) -> None:
+        self._pending.append([memoryview(data), records])
+        self._pending_records += records
+
+    def _drain(self, block: bool = False) -> None:
+        """Write pending blobs into the pipe until it is full (or all, with ``block``)."""
+        with self._lock:
+            if self._held and not block:
+                return
+            pending = self._pending
+            while pending:
+                entry = pending[0]
+                view: memoryview = entry[0]
+                try:
+                    written = os.write(self._fd, view)
+                except BlockingIOError:
+                    if not block:
+                        return
+                    select.select([], [self._fd], [], 1.0)
+                    continue
+                except OSError as exc:  # the child died: its .part stays for recovery
+                    self._fail_locked(f"the recorder process stopped taking records ({exc})")
+                    pending.clear()
+                    self._pending_records = 0
+                    return
+                if written < len(view):
+                    entry[0] = view[written:]
+                    continue
+                pending.popleft()
+                self._pending_records -= entry[1]
+                self._sent_records += entry[1]
 
     def _loss_blob(self) -> bytes:
         loss = self._loss
@@ -378,43 +428,26 @@ class ProcessRecorder(RecordTap):
         )
         return head + data
 
-    # -- the feeder thread -------------------------------------------------------------
-
-    def _feed(self) -> None:
-        stdin = self._proc.stdin
-        assert stdin is not None
-        fd = stdin.fileno()
-        try:
-            while True:
-                item = self._queue.get()
-                self._resume.wait()
-                if item is None:
-                    return
-                blob, batch = item
-                view = memoryview(blob)
-                while view:
-                    view = view[os.write(fd, view) :]
-                with self._lock:
-                    self._sent_records += batch.records
-        except OSError as exc:  # the child died: its .part stays for recovery
-            self._fail(f"the recorder process stopped taking records ({exc})")
-
     def _fail(self, message: str) -> None:
         with self._lock:
-            if self._error is None:
-                self._error = message
-                log.error("recorder for %s failed: %s; the .part file is kept", self.path, message)
+            self._fail_locked(message)
+
+    def _fail_locked(self, message: str) -> None:
+        if self._error is None:
+            self._error = message
+            log.error("recorder for %s failed: %s; the .part file is kept", self.path, message)
 
     # -- control -----------------------------------------------------------------------
 
     def hold(self, timeout: float = 10.0) -> None:
-        """Stop feeding the child (tests: a stalled writer); the queue then fills."""
+        """Stop feeding the child (tests: a stalled writer); records then wait, up to the bound."""
         del timeout
-        self._resume.clear()
+        self._held = True
 
     def release(self) -> None:
         """Resume feeding after :meth:`hold`."""
-        self._resume.set()
+        self._held = False
+        self._drain()
 
     def close(self, time: float | None = None) -> Path:
         """Send what is waiting and a stop; wait for the child to finish and rename.
@@ -427,15 +460,13 @@ class ProcessRecorder(RecordTap):
             self._handoff()
             with self._lock:
                 self._closing = True
-                tail = [self._loss_blob()] if self._loss.records else []
-                if tail:
+                if self._loss.records:
+                    self._push(self._loss_blob(), 0)
                     self._loss_records += 1
                     self._loss = _Loss()
-                tail.append(_STOP.pack(_KIND_STOP, 8, end))
-            self.release()
-            self._put_blocking((b"".join(tail), _Batch()))
-            self._put_blocking(None)
-        self._feeder.join()
+                self._push(_STOP.pack(_KIND_STOP, 8, end), 0)
+            self._held = False
+            self._drain(block=True)
         proc = self._proc
         assert proc.stdin is not None and proc.stdout is not None
         with contextlib.suppress(OSError):
@@ -458,14 +489,6 @@ class ProcessRecorder(RecordTap):
                 f"recording failed ({self._error}); partial file kept at {self.part_path}"
             )
         return self.path
-
-    def _put_blocking(self, item: tuple[bytes, _Batch] | None) -> None:
-        while self._feeder.is_alive():
-            try:
-                self._queue.put(item, timeout=0.05)
-                return
-            except queue.Full:
-                continue
 
     async def aclose(self, time: float | None = None) -> Path:
         """:meth:`close` in a worker thread, for the event loop."""
@@ -504,7 +527,7 @@ class ProcessRecorder(RecordTap):
                 bytes_written=size,
                 chunks=int(final.get("chunks", 0)),
                 fsyncs=int(final.get("fsyncs", 0)),
-                queue_depth=self._queue.qsize(),
+                queue_depth=self._pending_records,
                 queue_high_water=self._high_water,
                 error=self._error,
                 closed=self._closed,
