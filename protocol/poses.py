@@ -249,8 +249,38 @@ def _base_time(base_time: float | None, capture_times: NDArray[np.float64]) -> f
     return 0.0
 
 
+class _PoseRecords:
+    """The record views both pose frames offer (``entries``: one record per pose)."""
+
+    __slots__ = ()
+    entries: NDArray[np.void]
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    @property
+    def streams(self) -> NDArray[np.uint16]:
+        """Stream ids, (n,) view."""
+        return self.entries["stream"]
+
+    @property
+    def poses(self) -> NDArray[np.float32]:
+        """Poses [px, py, pz, qw, qx, qy, qz], (n, 7) float32 view."""
+        return self.entries["pose"]
+
+    @property
+    def has_velocities(self) -> bool:
+        """Whether this is the velocity variant."""
+        return has_velocity(self.entries)
+
+    @property
+    def velocities(self) -> NDArray[np.float16] | None:
+        """Velocities [vx, vy, vz, wx, wy, wz] (m/s, rad/s, world), (n, 6) float16 view."""
+        return self.entries["velocity"] if self.has_velocities else None
+
+
 @dataclass(frozen=True, slots=True, eq=False)
-class PoseUpdate:
+class PoseUpdate(_PoseRecords):
     """Client -> server: the latest pose of some of the user's streams.
 
     Build one with ``PoseUpdate.from_arrays``; a received one wraps the frame's
@@ -319,9 +349,6 @@ class PoseUpdate:
         object.__setattr__(self, "entries", entries)
         return self
 
-    def __len__(self) -> int:
-        return len(self.entries)
-
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, PoseUpdate):
             return NotImplemented
@@ -334,29 +361,9 @@ class PoseUpdate:
     __hash__ = None  # type: ignore[assignment]
 
     @property
-    def streams(self) -> NDArray[np.uint16]:
-        """Stream ids, (n,) view."""
-        return self.entries["stream"]
-
-    @property
     def capture_times(self) -> NDArray[np.float64]:
         """Capture times in server time, (n,) float64."""
         return self.entries["dt"].astype(np.float64) + self.base_time
-
-    @property
-    def poses(self) -> NDArray[np.float32]:
-        """Poses [px, py, pz, qw, qx, qy, qz], (n, 7) float32 view."""
-        return self.entries["pose"]
-
-    @property
-    def has_velocities(self) -> bool:
-        """Whether this is the velocity variant."""
-        return has_velocity(self.entries)
-
-    @property
-    def velocities(self) -> NDArray[np.float16] | None:
-        """Velocities [vx, vy, vz, wx, wy, wz] (m/s, rad/s, world), (n, 6) float16 view."""
-        return self.entries["velocity"] if self.has_velocities else None
 
     def to_wire(self) -> dict[str, object]:
         """The msgpack map for this update."""
@@ -369,7 +376,7 @@ class PoseUpdate:
 
 
 @dataclass(frozen=True, slots=True, eq=False)
-class Snapshot:
+class Snapshot(_PoseRecords):
     """Server -> client: the latest pose of every stream the subscriber is due.
 
     The server builds the bytes once per tick with ``encode_snapshot``; clients
@@ -436,9 +443,6 @@ class Snapshot:
         object.__setattr__(self, "entries", entries)
         return self
 
-    def __len__(self) -> int:
-        return len(self.entries)
-
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Snapshot):
             return NotImplemented
@@ -456,29 +460,9 @@ class Snapshot:
         return self.entries["user"]
 
     @property
-    def streams(self) -> NDArray[np.uint16]:
-        """Stream ids, (n,) view."""
-        return self.entries["stream"]
-
-    @property
     def capture_times(self) -> NDArray[np.float64]:
         """Capture times in server time, (n,) float64."""
         return self.entries["dt"].astype(np.float64) + self.send_time
-
-    @property
-    def poses(self) -> NDArray[np.float32]:
-        """Poses [px, py, pz, qw, qx, qy, qz], (n, 7) float32 view."""
-        return self.entries["pose"]
-
-    @property
-    def has_velocities(self) -> bool:
-        """Whether this is the velocity variant."""
-        return has_velocity(self.entries)
-
-    @property
-    def velocities(self) -> NDArray[np.float16] | None:
-        """Velocities [vx, vy, vz, wx, wy, wz] (m/s, rad/s, world), (n, 6) float16 view."""
-        return self.entries["velocity"] if self.has_velocities else None
 
     def to_wire(self) -> dict[str, object]:
         """The msgpack map for this snapshot."""
