@@ -653,9 +653,10 @@ def _pump(rec: SessionRecorder, fd: int) -> float | None:
     frame_at, record_at = _FRAME.size, _RECORD.size
     frames: list[tuple[int, float, bytes]] = []
     while True:
-        # Wake at least every batch delay so a waiting batch reaches the writer
-        # (and the disk) even when the room has gone quiet.
-        ready, _, _ = select.select([fd], [], [], _CHILD_BATCH_DELAY)
+        # Everything read goes to the writer thread at once (below), so this
+        # process wakes only when the relay writes (every 0.25 s a room) or,
+        # idle, once a second.
+        ready, _, _ = select.select([fd], [], [], 1.0)
         if ready:
             chunk = os.read(fd, 1 << 20)
             if not chunk:
@@ -689,6 +690,7 @@ def _pump(rec: SessionRecorder, fd: int) -> float | None:
             if frames:
                 _record_frames(rec, frames)
                 frames = []
+            rec.hand_off()
         rec.poll()
 
 

@@ -502,6 +502,10 @@ class SessionRecorder(RecordTap):
         if batch:
             self._enqueue(batch)
 
+    def hand_off(self) -> None:
+        """Hand the waiting batch to the writer thread now (whatever its age)."""
+        self._handoff()
+
     def _enqueue(self, item: _Item | list[_Item]) -> bool:
         """Queue a record (or a batch of them); on overflow count and remember the loss."""
         q = self._queue
