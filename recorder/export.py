@@ -46,7 +46,14 @@ from recorder.format import (
     posecast_version,
     to_ns,
 )
-from recorder.reader import SessionReader, StreamData, UserInfo, decode_poses, split_streams
+from recorder.reader import (
+    SessionReader,
+    StreamData,
+    UserInfo,
+    decode_poses,
+    split_streams,
+    users_from,
+)
 
 __all__ = [
     "FRAME_TRANSFORM_SCHEMA",
@@ -357,46 +364,13 @@ def _fast_read(path: Path) -> SessionArrays | None:
 
 def _users(session: dict[str, str], presence: list[tuple[int, bytes]]) -> dict[int, UserInfo]:
     """What :meth:`SessionReader.users` gives, from already-read presence records."""
-    out: dict[int, UserInfo] = {}
-
-    def join(d: dict[str, Any], t: float | None) -> None:
-        u = out.setdefault(int(d["user"]), UserInfo(int(d["user"])))
-        if isinstance(d.get("name"), str):
-            u.name = d["name"]
-        if isinstance(d.get("label"), str):
-            u.label = d["label"]
-        if isinstance(d.get("rate"), int | float):
-            u.rate = float(d["rate"])
-        if isinstance(d.get("streams"), dict):
-            for name, sid in d["streams"].items():
-                if isinstance(sid, int):
-                    u.streams[sid] = str(name)
-        if t is not None and u.joined is None:
-            u.joined = t
-
-    try:
-        initial = json.loads(session.get("users", "{}")).get("users", [])
-    except (ValueError, AttributeError):
-        initial = []
-    for d in initial:
-        if isinstance(d, dict) and "user" in d:
-            join(d, None)
+    decoded: list[tuple[float, dict[str, Any]]] = []
     for log_time, data in presence:
         try:
-            d = decode_json(data)
+            decoded.append((log_time / 1e9, decode_json(data)))
         except ValueError:
             continue
-        if not isinstance(d.get("user"), int):
-            continue
-        t = log_time / 1e9
-        kind = d.get("kind")
-        if kind == "join":
-            join(d, t)
-        elif kind == "leave":
-            out.setdefault(d["user"], UserInfo(d["user"])).left = t
-        elif kind == "rate" and isinstance(d.get("rate"), int | float):
-            out.setdefault(d["user"], UserInfo(d["user"])).rate = float(d["rate"])
-    return out
+    return users_from(session, decoded)
 
 
 def read_session(path: str | os.PathLike[str]) -> SessionArrays:

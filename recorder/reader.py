@@ -69,6 +69,7 @@ __all__ = [
     "load_streams",
     "read_records",
     "split_streams",
+    "users_from",
 ]
 
 
@@ -310,25 +311,7 @@ class SessionReader:
 
     def users(self) -> dict[int, UserInfo]:
         """Users from the session metadata and the presence records, by id."""
-        out: dict[int, UserInfo] = {}
-        try:
-            initial = json.loads(self.session.get("users", "{}")).get("users", [])
-        except (ValueError, AttributeError):
-            initial = []
-        for u in initial:
-            if isinstance(u, dict) and "user" in u:
-                _apply_join(out, u, None)
-        for rec in self.presence():
-            d = rec.data
-            if not isinstance(d.get("user"), int):
-                continue
-            if rec.kind == "join":
-                _apply_join(out, d, rec.time)
-            elif rec.kind == "leave":
-                out.setdefault(d["user"], UserInfo(d["user"])).left = rec.time
-            elif rec.kind == "rate" and isinstance(d.get("rate"), int | float):
-                out.setdefault(d["user"], UserInfo(d["user"])).rate = float(d["rate"])
-        return out
+        return users_from(self.session, ((rec.time, rec.data) for rec in self.presence()))
 
     # -- arrays ----------------------------------------------------------------------
 
@@ -377,6 +360,32 @@ class SessionReader:
     def info(self) -> dict[str, Any]:
         """What :func:`info` returns."""
         return _info(self)
+
+
+def users_from(
+    session: Mapping[str, str], presence: Iterable[tuple[float, dict[str, Any]]]
+) -> dict[int, UserInfo]:
+    """Users, by id, from the ``posecast.session`` metadata and the presence
+    records as ``(time, record)`` in file order (joins, leaves, rate changes)."""
+    out: dict[int, UserInfo] = {}
+    try:
+        initial = json.loads(session.get("users", "{}")).get("users", [])
+    except (ValueError, AttributeError):
+        initial = []
+    for u in initial:
+        if isinstance(u, dict) and "user" in u:
+            _apply_join(out, u, None)
+    for time, d in presence:
+        if not isinstance(d.get("user"), int):
+            continue
+        kind = d.get("kind")
+        if kind == "join":
+            _apply_join(out, d, time)
+        elif kind == "leave":
+            out.setdefault(d["user"], UserInfo(d["user"])).left = time
+        elif kind == "rate" and isinstance(d.get("rate"), int | float):
+            out.setdefault(d["user"], UserInfo(d["user"])).rate = float(d["rate"])
+    return out
 
 
 def _apply_join(out: dict[int, UserInfo], d: dict[str, Any], time: float | None) -> None:
