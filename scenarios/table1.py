@@ -377,6 +377,16 @@ class _Wire:
         return [(fb, v, ms) for (fb, v), ms in out.items()]
 
 
+def _bytes_saving(
+    eq: Mapping[str, int | None], soa_rate: int, wire: _Wire
+) -> dict[str, float | None]:
+    """Each method's bytes/s saving at its equal-QoE rate against SoA at ``soa_rate``."""
+    ref = soa_rate * wire.frame_bytes["soa"]
+    return {
+        m: saving_pct(None if r is None else r * wire.frame_bytes[m], ref) for m, r in eq.items()
+    }
+
+
 def _wire(trs: Sequence[Trace], methods: Sequence[str], room_poses: int) -> _Wire:
     needs = any(interp.info(m).needs_velocity for m in methods)
     return _Wire(
@@ -1336,13 +1346,7 @@ def run_table1(
             "reference_headline_mm": ref,
             "equal_qoe_rate": eq,
             "bandwidth_saving_pct": {m: saving_pct(eq[m], r_soa) for m in meths},
-            "bytes_saving_pct": {
-                m: saving_pct(
-                    None if (r := eq[m]) is None else r * wire.frame_bytes[m],
-                    r_soa * wire.frame_bytes["soa"],
-                )
-                for m in meths
-            },
+            "bytes_saving_pct": _bytes_saving(eq, r_soa, wire),
             "wire_bytes_per_snapshot": dict(wire.frame_bytes),
             "latency_at_equal_rate_ms": {
                 m: (None if (r := eq[m]) is None else ideal.network_by_method[r][m]["latency_ms"])
@@ -1459,13 +1463,7 @@ def run_table1(
                 "reference_headline_mm": ref,
                 "equal_qoe_rate": eq,
                 "bandwidth_saving_pct": {m: saving_pct(eq[m], r_soa) for m in meths},
-                "bytes_saving_pct": {
-                    m: saving_pct(
-                        None if (r := eq[m]) is None else r * wire.frame_bytes[m],
-                        r_soa * wire.frame_bytes["soa"],
-                    )
-                    for m in meths
-                },
+                "bytes_saving_pct": _bytes_saving(eq, r_soa, wire),
                 "at_soa_rate": {m: at(m, r_soa) for m in meths},
                 "at_equal_rate": {m: at(m, eq[m]) for m in meths},
                 "curves": _curves_json(sw.pooled, meths),
