@@ -201,7 +201,6 @@ class ProcessRecorder(RecordTap):
         self._loss_records = 0
         self._rejected = 0
         self._high_water = 0
-        self._sent_records = 0
         self._checked = _time.monotonic()
 
     # -- opening ---------------------------------------------------------------------
@@ -408,7 +407,6 @@ class ProcessRecorder(RecordTap):
                     continue
                 pending.popleft()
                 self._pending_records -= entry[1]
-                self._sent_records += entry[1]
 
     def _loss_blob(self) -> bytes:
         loss = self._loss
