@@ -434,8 +434,15 @@ def _raise_nofile(needed: int) -> None:
 class _Child:
     """A subprocess whose stdout lines arrive on a queue and whose stderr goes to a file."""
 
-    def __init__(self, name: str, argv: list[str], stdin: bool = False) -> None:
+    def __init__(
+        self, name: str, argv: list[str], stdin: bool = False, hash_seed: int | None = None
+    ) -> None:
         self.name = name
+        env = None
+        if hash_seed is not None and "PYTHONHASHSEED" not in os.environ:
+            # The same string hashes (dict and set layouts) in every run: the
+            # relay's CPU per pose then varies less from one process to the next.
+            env = {**os.environ, "PYTHONHASHSEED": str(hash_seed)}
         # Closed in stop(): it must outlive this call, as the child writes to it.
         self.stderr_file: IO[bytes] = tempfile.TemporaryFile()  # noqa: SIM115
         self.proc = subprocess.Popen(
@@ -446,6 +453,7 @@ class _Child:
             text=True,
             bufsize=1,
             cwd=str(Path(__file__).resolve().parent.parent),
+            env=env,
         )
         self.lines: queue.Queue[str | None] = queue.Queue()
         self._pump_thread = threading.Thread(target=self._pump, daemon=True)
@@ -632,23 +640,37 @@ def run_relay_bench(
         raise ValueError(f"record_writer must be process, thread or both, not {record_writer!r}")
     if repeat < 1:
         raise ValueError("repeat must be at least 1")
-    # Off and on alternate, so slow drifts of a shared machine hit both alike;
-    # each on-run is compared with the off-run just before it.
+    # Off and on alternate in a balanced order (off first in even rounds, last
+    # in odd ones): a drift of a shared machine, or anything that favours the
+    # first or second run of a round, hits both alike. Each on-run is compared
+    # with the off-run of its own round.
     pairs: dict[str, list[dict[str, Any]]] = {w: [] for w in writers}
     runs: dict[str, dict[str, Any]] = {}
     offs: list[dict[str, Any]] = []
     for k in range(repeat):
         if repeat > 1:
             console.print(f"[bold]recorder cost: round {k + 1} of {repeat}[/bold]")
-        off = _run_once(*args, record_dir=None, console=console, **opts)
-        offs.append(off)
-        for writer in writers:
+        order: list[str | None] = [None, *writers]
+        if k % 2:
+            order.reverse()
+        off: dict[str, Any] | None = None
+        for writer in order:
+            if writer is None:
+                off = _run_once(*args, record_dir=None, console=console, **opts)
+                offs.append(off)
+                continue
             with tempfile.TemporaryDirectory(prefix="posecast-bench-") as tmp:
                 on = _run_once(
                     *args, record_dir=Path(tmp), record_writer=writer, console=console, **opts
                 )
-                pairs[writer].append(_recorder_summary(off, on, sorted(Path(tmp).glob("*.mcap"))))
+                # Read what the summary needs while the files exist.
+                disk = _disk_figures(sorted(Path(tmp).glob("*.mcap")))
+                pairs[writer].append({"on": on, "disk": disk})
                 runs[writer] = on
+        assert off is not None
+        for writer in writers:
+            last = pairs[writer][-1]
+            pairs[writer][-1] = _recorder_summary(off, last["on"], last["disk"])
     summaries = {w: _median_summary(pairs[w]) for w in writers}
     first = writers[0]
     on = runs[first]
@@ -657,7 +679,7 @@ def run_relay_bench(
     on["recorder_off"] = offs[-1]
     for writer in writers[1:]:
         on[f"recorder_on_{writer}"] = runs[writer]
-    _print_recorder_table(offs[-1], runs, summaries, console)
+    _print_recorder_table(summaries, console)
     return on
 
 
@@ -669,19 +691,33 @@ def _median_summary(rounds: list[dict[str, Any]]) -> dict[str, Any]:
             if isinstance(value, float):
                 out[key] = float(np.median([r[key] for r in rounds]))
     out["rounds"] = len(rounds)
-    out["throughput_loss_pct_rounds"] = [r["throughput_loss_pct"] for r in rounds]
+    losses = [r["throughput_loss_pct"] for r in rounds]
+    out["throughput_loss_pct_rounds"] = losses
+    out["throughput_loss_pct_mean"] = float(np.mean(losses))
+    # Standard error of that mean (the rounds are independent pairs).
+    out["throughput_loss_pct_se"] = (
+        float(np.std(losses, ddof=1) / math.sqrt(len(losses))) if len(losses) > 1 else math.nan
+    )
     out["total_cpu_overhead_pct_rounds"] = [r["total_cpu_overhead_pct"] for r in rounds]
     return out
 
 
-def _recorder_summary(
-    off: Mapping[str, Any], on: Mapping[str, Any], files: list[Path]
-) -> dict[str, Any]:
-    """Table 4 figures of one recorder-on run against the recorder-off run."""
+def _disk_figures(files: list[Path]) -> dict[str, Any]:
+    """Files, bytes and poses of a run's recordings (read before they are deleted)."""
     from recorder import info as recording_info
 
-    disk = sum(f.stat().st_size for f in files)
-    poses_on_disk = sum(int(recording_info(f)["sizes"]["poses"]) for f in files)
+    return {
+        "files": len(files),
+        "disk_bytes": sum(f.stat().st_size for f in files),
+        "poses_on_disk": sum(int(recording_info(f)["sizes"]["poses"]) for f in files),
+    }
+
+
+def _recorder_summary(
+    off: Mapping[str, Any], on: Mapping[str, Any], disk_figures: Mapping[str, Any]
+) -> dict[str, Any]:
+    """Table 4 figures of one recorder-on run against the recorder-off run."""
+    disk, poses_on_disk = disk_figures["disk_bytes"], disk_figures["poses_on_disk"]
     cost_off, cost_on = off["server_cpu_us_per_pose"], on["server_cpu_us_per_pose"]
     writer_cost = on["recorder_cpu_us_per_pose"]
     total_on = cost_on + writer_cost
@@ -701,7 +737,7 @@ def _recorder_summary(
         "delivered_poses_per_s_on": on["poses_per_s"],
         "latency_p99_ms_off": off["latency_p99_ms"],
         "latency_p99_ms_on": on["latency_p99_ms"],
-        "files": len(files),
+        "files": disk_figures["files"],
         "disk_bytes": disk,
         "poses_on_disk": poses_on_disk,
         "disk_bytes_per_pose": disk / poses_on_disk if poses_on_disk else math.nan,
@@ -709,38 +745,47 @@ def _recorder_summary(
 
 
 def _print_recorder_table(
-    off: Mapping[str, Any],
-    runs: Mapping[str, Mapping[str, Any]],
     summaries: Mapping[str, Mapping[str, Any]],
     console: Console,
 ) -> None:
+    first = next(iter(summaries.values()))
+    rounds = int(first["rounds"])
     table = Table(
-        title="recorder cost (Table 4): same load, recorder off then on", title_justify="left"
+        title="recorder cost (Table 4): same load, recorder off and on"
+        + (f"; medians over {rounds} rounds" if rounds > 1 else ""),
+        title_justify="left",
     )
     table.add_column("figure")
     table.add_column("off", justify="right")
-    for writer in runs:
+    for writer in summaries:
         table.add_column(f"on ({writer} writer)", justify="right")
 
-    def row(name: str, key: str, digits: int, source: str = "run") -> None:
-        cells = [_f(off.get(key, math.nan), digits) if source == "run" else "-"]
-        for writer, run in runs.items():
-            value = run.get(key) if source == "run" else summaries[writer].get(key)
-            cells.append(_f(value if value is not None else math.nan, digits))
+    def row(name: str, on_key: str, digits: int, off_key: str | None = None) -> None:
+        cells = [_f(first[off_key], digits) if off_key else "-"]
+        cells += [_f(s.get(on_key, math.nan), digits) for s in summaries.values()]
         table.add_row(name, *cells)
 
-    row("relay process CPU per pose (us)", "server_cpu_us_per_pose", 2)
-    row("writer process CPU per pose (us)", "recorder_cpu_us_per_pose", 2)
-    row("delivered poses/s", "poses_per_s", 0)
-    row("capture->receipt p99 (ms)", "latency_p99_ms", 1)
-    row("relay throughput loss (%, median)", "throughput_loss_pct", 1, source="summary")
-    row("total CPU overhead (%)", "total_cpu_overhead_pct", 1, source="summary")
-    row("bytes per pose on disk", "disk_bytes_per_pose", 1, source="summary")
+    row(
+        "relay process CPU per pose (us)",
+        "server_cpu_us_per_pose_on",
+        2,
+        "server_cpu_us_per_pose_off",
+    )
+    row("writer process CPU per pose (us)", "recorder_process_cpu_us_per_pose", 2)
+    row("delivered poses/s", "delivered_poses_per_s_on", 0, "delivered_poses_per_s_off")
+    row("capture->receipt p99 (ms)", "latency_p99_ms_on", 1, "latency_p99_ms_off")
+    row("relay throughput loss (%)", "throughput_loss_pct", 1)
+    row("total CPU overhead (%)", "total_cpu_overhead_pct", 1)
+    row("bytes per pose on disk", "disk_bytes_per_pose", 1)
     console.print(table)
     for writer, summary in summaries.items():
         if summary["rounds"] > 1:
             each = ", ".join(_f(x, 1) for x in summary["throughput_loss_pct_rounds"])
-            console.print(f"{writer} writer, relay throughput loss per round (%): {each}")
+            console.print(
+                f"{writer} writer, relay throughput loss per round (%): {each}; "
+                f"mean {_f(summary['throughput_loss_pct_mean'], 1)} "
+                f"+- {_f(summary['throughput_loss_pct_se'], 1)} (standard error)"
+            )
         console.print(
             f"{writer} writer: CPU-bound relay throughput with the recorder "
             f"x{_f(summary['throughput_ratio'], 3)} ({_f(summary['throughput_loss_pct'], 1)} % "
@@ -815,6 +860,7 @@ def _run_once(
                         else []
                     ),
                 ],
+                hash_seed=seed,
             )
             found = _LISTENING.search(
                 server.wait_line(lambda line: _LISTENING.search(line) is not None, timeout=30.0)
@@ -832,7 +878,12 @@ def _run_once(
                 "hard_timeout": hard_timeout,
             }
             status.update(f"relay bench: ramping up {clients} clients at {ramp_rate:g}/s ...")
-            load = _Child("load", [sys.executable, "-c", _LOAD_BOOT, json.dumps(cfg)], stdin=True)
+            load = _Child(
+                "load",
+                [sys.executable, "-c", _LOAD_BOOT, json.dumps(cfg)],
+                stdin=True,
+                hash_seed=seed,
+            )
             ramped = load.wait_json("ramped", timeout=ramp_s + 60.0)
             report["clients_joined"] = int(ramped["joined"])
             report["clients_failed"] = int(ramped["failed"])

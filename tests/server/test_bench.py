@@ -108,6 +108,51 @@ def test_recorder_rounds_report_medians_and_every_round() -> None:
     out = _median_summary(rounds)
     assert out["throughput_loss_pct"] == 1.5 and out["total_cpu_overhead_pct"] == 15.0
     assert out["throughput_loss_pct_rounds"] == [3.0, -1.0, 1.5]
+    assert out["throughput_loss_pct_mean"] == pytest.approx(3.5 / 3)
+    assert out["throughput_loss_pct_se"] == pytest.approx(np.std([3.0, -1.0, 1.5], ddof=1) / 3**0.5)
     assert out["rounds"] == 3 and out["files"] == 4 and out["writer"] == "process"
     with pytest.raises(ValueError, match="repeat"):
         run_relay_bench(2, 2, 20.0, 1.0, record=True, repeat=0)
+
+
+def test_recorder_rounds_alternate_which_run_goes_first(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Off runs first in even rounds, last in odd ones; each on run pairs with its round's off."""
+    import server.bench as bench
+
+    calls: list[str] = []
+
+    def fake_run(*args: object, record_dir: object, record_writer: str = "process", **_: object):
+        name = "off" if record_dir is None else record_writer
+        calls.append(name)
+        k = len(calls)
+        # Relay CPU per pose: off runs cost 10 + k, on runs 11 + k (k = call index).
+        cost = 10.0 + k + (0.0 if record_dir is None else 1.0)
+        return {
+            "record_writer": None if record_dir is None else record_writer,
+            "record": record_dir is not None,
+            "server_cpu_us_per_pose": cost,
+            "recorder_cpu_us_per_pose": 0.0,
+            "poses_per_s": 1.0,
+            "latency_p99_ms": 1.0,
+        }
+
+    monkeypatch.setattr(bench, "_run_once", fake_run)
+    console = Console(file=io.StringIO(), width=160)
+    report = bench.run_relay_bench(
+        2, 2, 20.0, 1.0, record=True, record_writer="both", repeat=3, console=console
+    )
+    assert calls == [
+        "off",
+        "process",
+        "thread",
+        "thread",
+        "process",
+        "off",
+        "off",
+        "process",
+        "thread",
+    ]
+    by = report["recorder_by_writer"]
+    # Round 2 runs off last (call 6, cost 16) after process (call 5, cost 16): a 0 % loss there.
+    expected = [100.0 * (1 - off / on) for off, on in [(11, 13), (16, 16), (17, 19)]]
+    assert by["process"]["throughput_loss_pct_rounds"] == pytest.approx(expected)
