@@ -82,7 +82,6 @@ __all__ = [
     "PoseRecord",
     "decode_json",
     "decode_pose",
-    "decode_update_frame",
     "encode_json",
     "encode_pose",
     "encode_pose_batch",
@@ -404,28 +403,6 @@ def decode_pose(data: bytes | bytearray | memoryview) -> PoseRecord:
     if has_v:
         velocities = np.frombuffer(data, "<f2", 6 * n, off + 4 * k).reshape(n, 6)
     return PoseRecord(user, seq, arrival, streams, caps, poses, velocities)
-
-
-def decode_update_frame(
-    frame: bytes,
-) -> tuple[
-    int, NDArray[np.uint16], NDArray[np.float64], NDArray[np.float32], NDArray[np.float16] | None
-]:
-    """``(seq, streams, capture_times, poses, velocities)`` of a protocol ``update`` frame.
-
-    What the relay received, as :func:`encode_pose` takes it; ``velocities`` is
-    ``None`` for a plain update. Anything but a valid update: ``ValueError``.
-    """
-    from protocol import PoseUpdate, decode_message
-    from protocol.errors import RemoteProtocolError
-
-    try:
-        msg = decode_message(frame)
-    except RemoteProtocolError as exc:
-        raise ValueError(f"not a valid frame: {exc}") from exc
-    if not isinstance(msg, PoseUpdate):
-        raise ValueError(f"expected an update frame, got {type(msg).__name__}")
-    return msg.seq, msg.streams, msg.capture_times, msg.poses, msg.velocities
 
 
 def _json_default(obj: object) -> Any:

@@ -7,17 +7,17 @@ third of a CPU-bound relay's throughput in ``posecast bench relay --record``.
 :class:`ProcessRecorder` has the same relay-facing methods but keeps almost all
 of that work out of the relay's process:
 
-- the relay hands over each pose update as the very ``update`` frame it
-  received (:meth:`ProcessRecorder.record_update_frame`: two list appends, no
-  decoding, no copying), and the few JSON records (presence, events, drops)
-  already encoded;
+- the relay hands over each pose update as it decoded it
+  (:meth:`ProcessRecorder.record_pose_update`: the update's sequence number,
+  base time and entries' bytes, packed behind a small header; two list
+  appends), and the few JSON records (presence, events, drops) already encoded;
 - at most every ``batch_delay`` s (the room tick calls :meth:`poll`) or every
   ``batch_size`` records the batch is joined into one blob and written into a
   non-blocking pipe (1 MiB) by the relay's own thread: one system call, no
   thread hand-off (a feeder thread woken per batch cost the relay far more
   than the writing); what the pipe cannot take yet waits, bounded;
-- a child process (:func:`main` here) reads the pipe, decodes the frames in
-  groups and records them with a :class:`SessionRecorder` of its own (same
+- a child process (:func:`main` here) reads the pipe, encodes the updates in
+  groups of the same shape and records them with a :class:`SessionRecorder` of its own (same
   file layout, chunking, fsync schedule, ``.part`` and rename).
 
 Nothing is silent: when more than ``queue_size`` records wait (the child or its
@@ -28,7 +28,9 @@ relay dies, the child sees the pipe close without a stop message, makes what it
 received durable and leaves the ``.part`` for recovery.
 
 Pipe messages (little-endian): ``u8 kind, u32 length, payload``:
-``FRAME``: ``u16 user, u32 poses, f64 arrival`` + the update frame;
+``UPDATE``: ``u16 user, u32 poses, f64 arrival, u64 seq, f64 base time, u8
+velocity variant`` + the update's entries (:data:`protocol.UPDATE_DTYPE` or
+:data:`protocol.UPDATE_VELOCITY_DTYPE` records);
 ``RECORD``: ``u8 channel index, i64 log ns, i64 publish ns, u32 poses`` + data;
 ``STOP``: ``f64 end time``. The child's standard output carries JSON lines:
 ``{"event": "ready", "part": ..., "path": ...}`` once the file is open and
@@ -55,15 +57,9 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import IO, Any, Final
 
-import msgpack
 import numpy as np
 
-from protocol.poses import (
-    POSES_KEY,
-    UPDATE_DTYPE,
-    UPDATE_VELOCITY_DTYPE,
-    VELOCITY_POSES_KEY,
-)
+from protocol.poses import UPDATE_DTYPE, UPDATE_VELOCITY_DTYPE, PoseUpdate
 from recorder.format import (
     CHANNELS,
     DROPS_TOPIC,
@@ -87,13 +83,15 @@ __all__ = ["ProcessRecorder", "RoomRecorder"]
 
 log = logging.getLogger("posecast.recorder")
 
-_KIND_FRAME: Final = 1
+_KIND_UPDATE: Final = 1
 _KIND_RECORD: Final = 2
 _KIND_STOP: Final = 3
 _HEAD: Final = struct.Struct("<BI")
-_FRAME: Final = struct.Struct("<BIHId")  # head + user, poses, arrival
-_FRAME_EXTRA: Final = _FRAME.size - _HEAD.size
-_FRAME_PACK: Final = _FRAME.pack
+# head + user, poses, arrival, seq, base time, velocity variant
+_UPDATE: Final = struct.Struct("<BIHIdQdB")
+_UPDATE_EXTRA: Final = _UPDATE.size - _HEAD.size
+_UPDATE_PACK: Final = _UPDATE.pack
+_PLAIN_ITEM: Final = UPDATE_DTYPE.itemsize
 _RECORD: Final = struct.Struct("<BIBqqI")  # head + channel, log ns, publish ns, poses
 _RECORD_EXTRA: Final = _RECORD.size - _HEAD.size
 _STOP: Final = struct.Struct("<BId")
@@ -116,13 +114,13 @@ Clock = Callable[[], float]
 class _Batch:
     """Records waiting on the relay's thread; what a loss of the batch would lose."""
 
-    __slots__ = ("first", "frames", "last", "parts", "poses", "records", "since", "topics")
+    __slots__ = ("first", "last", "parts", "poses", "records", "since", "topics", "updates")
 
     def __init__(self) -> None:
         self.parts: list[bytes] = []
         self.records = 0
-        #: Update frames among the records (the others are counted in ``topics``).
-        self.frames = 0
+        #: Pose updates among the records (the others are counted in ``topics``).
+        self.updates = 0
         self.poses = 0
         self.first = 0.0
         self.last = 0.0
@@ -143,8 +141,8 @@ class _Loss:
         self.last = max(self.last, batch.last)
         self.records += batch.records
         self.poses += batch.poses
-        if batch.frames:
-            topics[POSES_TOPIC] = topics.get(POSES_TOPIC, 0) + batch.frames
+        if batch.updates:
+            topics[POSES_TOPIC] = topics.get(POSES_TOPIC, 0) + batch.updates
         for k, v in batch.topics.items():
             topics[k] = topics.get(k, 0) + v
 
@@ -283,21 +281,32 @@ class ProcessRecorder(RecordTap):
 
     # -- the relay's side: never blocks ----------------------------------------------
 
-    def record_update_frame(self, user: int, arrival: float, frame: bytes, poses: int) -> bool:
-        """Take one pose update as the ``update`` frame it arrived in (``poses`` in it)."""
+    def record_pose_update(self, user: int, arrival: float, update: PoseUpdate) -> bool:
+        """Take one pose update of ``user`` as the relay decoded it, arrived at ``arrival``."""
         if self._closing or self._error is not None:
             return self._refuse(1)
+        entries = update.entries
+        body = entries.tobytes()
         b = self._batch
         if not b.records:
             b.since = _time.monotonic()
             b.first = arrival
         b.parts += (
-            _FRAME_PACK(_KIND_FRAME, _FRAME_EXTRA + len(frame), user, poses, arrival),
-            frame,
+            _UPDATE_PACK(
+                _KIND_UPDATE,
+                _UPDATE_EXTRA + len(body),
+                user,
+                len(entries),
+                arrival,
+                update.seq,
+                update.base_time,
+                entries.itemsize != _PLAIN_ITEM,
+            ),
+            body,
         )
         b.records += 1
-        b.frames += 1
-        b.poses += poses
+        b.updates += 1
+        b.poses += len(entries)
         b.last = arrival
         if b.records >= self._batch_size:
             self._handoff()
@@ -573,73 +582,47 @@ def _emit(event: Mapping[str, Any]) -> None:
     sys.stdout.flush()
 
 
-def _update_parts(frame: bytes) -> tuple[int, float, bytes, bool] | None:
-    """``(seq, base time, records, velocity variant)`` of an update frame, or ``None``.
+#: One update from the pipe: user, poses, arrival, seq, base time, velocity variant, entries.
+_Update = tuple[int, int, float, int, float, int, bytes]
 
-    A light parse: the relay has decoded and checked this very frame before it
-    recorded it. Anything unexpected returns ``None`` and goes the careful way.
+
+def _record_updates(rec: SessionRecorder, updates: list[_Update]) -> None:
+    """Record consecutive updates, encoding same-shaped ones together.
+
+    Each group of updates with the same number of streams and layout is encoded
+    in a few numpy passes (:func:`encode_pose_batch`, the same bytes as
+    :func:`encode_pose`); records are offered in the pipe's order. An update
+    whose entries do not match its header is refused and counted.
     """
-    try:
-        wire = msgpack.unpackb(frame, raw=False)
-    except Exception:
-        return None
-    if not isinstance(wire, dict) or wire.get("type") != "update" or len(wire) != 4:
-        return None
-    seq, base = wire.get("seq"), wire.get("time")
-    body = wire.get(POSES_KEY)
-    velocity = body is None
-    if velocity:
-        body = wire.get(VELOCITY_POSES_KEY)
-    dtype = UPDATE_VELOCITY_DTYPE if velocity else UPDATE_DTYPE
-    if (
-        type(body) is not bytes
-        or len(body) % dtype.itemsize
-        or type(seq) is not int
-        or not 0 <= seq < 2**64
-        or type(base) is not float
-    ):
-        return None
-    return seq, base, body, velocity
-
-
-def _record_frames(rec: SessionRecorder, frames: list[tuple[int, float, bytes]]) -> None:
-    """Record consecutive update frames, encoding same-shaped ones together.
-
-    Each group of updates with the same number of streams and layout is decoded
-    and encoded in a few numpy passes (:func:`encode_pose_batch`, the same bytes
-    as :func:`encode_pose`); records are offered in the frames' order.
-    """
-    out: list[tuple[int, int, bytes, int] | None] = [None] * len(frames)
-    groups: dict[tuple[int, bool], list[tuple[int, int, float, bytes]]] = {}
-    for i, (_user, _arrival, frame) in enumerate(frames):
-        parts = _update_parts(frame)
-        if parts is None:
-            continue
-        seq, base, body, velocity = parts
+    out: list[tuple[int, int, bytes, int] | None] = [None] * len(updates)
+    groups: dict[tuple[int, int], list[int]] = {}
+    for i, (_user, n, _arrival, _seq, _base, velocity, body) in enumerate(updates):
         dtype = UPDATE_VELOCITY_DTYPE if velocity else UPDATE_DTYPE
-        groups.setdefault((len(body) // dtype.itemsize, velocity), []).append((i, seq, base, body))
-    for (n, velocity), rows in groups.items():
+        if len(body) == n * dtype.itemsize:
+            groups.setdefault((n, velocity), []).append(i)
+    for (n, velocity), idx in groups.items():
         dtype = UPDATE_VELOCITY_DTYPE if velocity else UPDATE_DTYPE
-        idx = [r[0] for r in rows]
-        entries = np.frombuffer(b"".join(r[3] for r in rows), dtype).reshape(len(rows), n)
-        bases = np.array([r[2] for r in rows])
+        rows = [updates[i] for i in idx]
+        entries = np.frombuffer(b"".join(r[6] for r in rows), dtype).reshape(len(rows), n)
+        bases = np.array([r[4] for r in rows])
         caps = entries["dt"].astype(np.float64) + bases[:, None]
-        arrivals = np.array([frames[i][1] for i in idx])
+        arrivals = np.array([r[2] for r in rows])
         datas = encode_pose_batch(
-            [frames[i][0] for i in idx],
-            np.array([r[1] for r in rows], dtype=np.uint64),
+            [r[0] for r in rows],
+            np.array([r[3] for r in rows], dtype=np.uint64),
             arrivals,
             entries["stream"],
             caps,
             entries["pose"],
             entries["velocity"] if velocity else None,
         )
+        # publish time: the newest capture time of the update (its arrival if empty)
         newest = caps.max(axis=1).tolist() if n else arrivals.tolist()
         for k, i in enumerate(idx):
-            out[i] = (to_ns(frames[i][1]), to_ns(newest[k]), datas[k], n)
-    for (user, arrival, frame), done in zip(frames, out, strict=True):
+            out[i] = (to_ns(rows[k][2]), to_ns(newest[k]), datas[k], n)
+    for update, done in zip(updates, out, strict=True):
         if done is None:
-            rec.record_update_frame(user, arrival, frame, 0)  # refused and counted, or odd
+            rec.refuse(POSES_TOPIC, f"update of user {update[0]}: entries do not match its header")
         else:
             rec.offer_encoded(POSES_TOPIC, *done)
 
@@ -648,8 +631,8 @@ def _pump(rec: SessionRecorder, fd: int) -> float | None:
     """Record what comes through the pipe; the stop's end time, or ``None`` at its end."""
     buf = bytearray()
     head_size = _HEAD.size
-    frame_at, record_at = _FRAME.size, _RECORD.size
-    frames: list[tuple[int, float, bytes]] = []
+    update_at, record_at = _UPDATE.size, _RECORD.size
+    updates: list[_Update] = []
     while True:
         # Everything read goes to the writer thread at once (below), so this
         # process wakes only when the relay writes (every 0.25 s a room) or,
@@ -667,14 +650,14 @@ def _pump(rec: SessionRecorder, fd: int) -> float | None:
                 stop = at + head_size + length
                 if stop > end:
                     break
-                if kind == _KIND_FRAME:
-                    _k, _n, user, _poses, arrival = _FRAME.unpack_from(buf, at)
-                    frames.append((user, arrival, bytes(buf[at + frame_at : stop])))
+                if kind == _KIND_UPDATE:
+                    head = _UPDATE.unpack_from(buf, at)
+                    updates.append((*head[2:], bytes(buf[at + update_at : stop])))
                 else:
                     # Keep the file's record order: the updates before this record first.
-                    if frames:
-                        _record_frames(rec, frames)
-                        frames = []
+                    if updates:
+                        _record_updates(rec, updates)
+                        updates = []
                     if kind == _KIND_RECORD:
                         _k, _n, channel, log_ns, pub_ns, poses = _RECORD.unpack_from(buf, at)
                         data = bytes(buf[at + record_at : stop])
@@ -685,9 +668,9 @@ def _pump(rec: SessionRecorder, fd: int) -> float | None:
                         raise ValueError(f"unknown pipe message kind {kind}")
                 at = stop
             del buf[:at]
-            if frames:
-                _record_frames(rec, frames)
-                frames = []
+            if updates:
+                _record_updates(rec, updates)
+                updates = []
             rec.hand_off()
         rec.poll()
 

@@ -42,6 +42,7 @@ import numpy as np
 from mcap.writer import CompressionType, IndexType, Writer
 from numpy.typing import ArrayLike
 
+from protocol.poses import PoseUpdate
 from recorder.format import (
     CHANNELS,
     DROPS_TOPIC,
@@ -53,7 +54,6 @@ from recorder.format import (
     QUEUE_OVERFLOW_KIND,
     SESSION_END_METADATA,
     SESSION_METADATA,
-    decode_update_frame,
     encode_json,
     encode_pose,
     posecast_version,
@@ -258,8 +258,12 @@ class RecordTap:
         return self._take(topic, time, to_ns(time), data, 0)
 
     def _reject(self, topic: str, exc: Exception) -> bool:
+        return self.refuse(topic, str(exc))
+
+    def refuse(self, topic: str, reason: str) -> bool:
+        """Count a ``topic`` record that cannot be recorded, and log why; returns ``False``."""
         self._count_rejected()
-        log.warning("recorder: %s record not recorded: %s", topic, exc)
+        log.warning("recorder: %s record not recorded: %s", topic, reason)
         return False
 
 
@@ -444,18 +448,17 @@ class SessionRecorder(RecordTap):
 
     # -- the relay's side: never blocks ----------------------------------------------
 
-    def record_update_frame(self, user: int, arrival: float, frame: bytes, poses: int) -> bool:
-        """Queue one pose update given as the ``update`` frame it arrived in.
-
-        The relay's fast path (see :class:`recorder.process.ProcessRecorder`,
-        which hands the frame to another process); here it is decoded and
-        recorded as :meth:`record_update`. ``poses`` is the count in the frame.
-        """
-        try:
-            seq, streams, caps, pose_array, velocities = decode_update_frame(frame)
-        except ValueError as exc:
-            return self._reject(POSES_TOPIC, exc)
-        return self.record_update(user, seq, arrival, streams, caps, pose_array, velocities)
+    def record_pose_update(self, user: int, arrival: float, update: PoseUpdate) -> bool:
+        """Queue one pose update of ``user`` as the relay decoded it (see :meth:`record_update`)."""
+        return self.record_update(
+            user,
+            update.seq,
+            arrival,
+            update.streams,
+            update.capture_times,
+            update.poses,
+            update.velocities,
+        )
 
     def offer_encoded(
         self, channel: str, log_ns: int, publish_ns: int, data: bytes, poses: int

@@ -140,8 +140,6 @@ class _Connection:
         self.ws = ws
         cfg = server.config
         self.session = ServerSession(server.limits)
-        #: The frame being handled (a recorded update is the frame it arrived in).
-        self._frame = b""
         self.outbox = Outbox(cfg.max_event_queue, self._buffered, cfg.congested_bytes)
         self.user: int | None = None
         self.name = ""
@@ -210,7 +208,6 @@ class _Connection:
                     )
                 else:
                     self.bytes_in += len(data)
-                    self._frame = data  # an update is recorded as the frame it came in
                     now = self.server.clock()
                     for event in self.session.receive_data(data):
                         if (
@@ -470,7 +467,7 @@ class _Connection:
             stale = room.ingest(user, update)
             rec = room.recorder
             if rec is not None:
-                rec.record_update_frame(user, now, self._frame, len(update.streams))
+                rec.record_pose_update(user, now, update)
                 if stale:
                     room.note_drop("stale", user, stale)
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from reckit import T0, make_updates
 
-from protocol import PoseUpdate, encode_message
+from protocol import PoseUpdate, decode_message, encode_message
 from recorder import (
     DropRecord,
     EventRecord,
@@ -21,27 +21,31 @@ from recorder import (
     RecorderError,
     SessionReader,
     SessionRecorder,
+    process,
     read_records,
     recover,
 )
 
+Update = tuple[int, float, PoseUpdate]
 
-def _frames(count: int, seed: int = 0) -> list[tuple[int, float, bytes, int]]:
-    """(user, arrival, update frame, poses) as a relay receives them."""
+
+def _updates(count: int, seed: int = 0) -> list[Update]:
+    """(user, arrival, update) as the relay decodes them from the frames it receives."""
     out = []
     for u in make_updates(count, seed=seed):
         poses = u.poses.astype(np.float64)
         poses[:, 3:] /= np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)
-        msg = PoseUpdate.from_arrays(u.seq, u.streams, u.capture_times, poses)
-        out.append((u.user, u.arrival, encode_message(msg), len(u.streams)))
+        msg = decode_message(
+            encode_message(PoseUpdate.from_arrays(u.seq, u.streams, u.capture_times, poses))
+        )
+        assert isinstance(msg, PoseUpdate)
+        out.append((u.user, u.arrival, msg))
     return out
 
 
-def _feed(
-    rec: ProcessRecorder | SessionRecorder, frames: list[tuple[int, float, bytes, int]]
-) -> None:
-    for k, (user, arrival, frame, n) in enumerate(frames):
-        assert rec.record_update_frame(user, arrival, frame, n)
+def _feed(rec: ProcessRecorder | SessionRecorder, updates: list[Update]) -> None:
+    for k, (user, arrival, update) in enumerate(updates):
+        assert rec.record_pose_update(user, arrival, update)
         if k % 40 == 0:
             rec.record_presence({"kind": "rate", "user": user, "rate": 20.0}, arrival)
             rec.record_event({"kind": "grab", "user": user, "object": k}, arrival)
@@ -70,7 +74,7 @@ def _content(path: Path) -> list[tuple[object, ...]]:
 
 def test_process_recorder_writes_what_the_thread_recorder_writes(tmp_path: Path) -> None:
     """Same frames and records into both recorders: the same records, bit for bit."""
-    frames = _frames(400)
+    frames = _updates(400)
     proc = ProcessRecorder.open(tmp_path / "p", "r", name="s", clock=lambda: T0, batch_size=32)
     assert proc.part_path.exists() and proc.part_path.name == "s.mcap.part"
     _feed(proc, frames)
@@ -87,7 +91,7 @@ def test_process_recorder_writes_what_the_thread_recorder_writes(tmp_path: Path)
     assert stats.closed and stats.error is None
     assert stats.records_offered == 400 + 2 * 10
     assert stats.records_written == stats.records_offered + 1  # + the recording-start event
-    assert stats.poses_written == sum(f[3] for f in frames)
+    assert stats.poses_written == sum(len(f[2].entries) for f in frames)
     assert stats.queue_drops == 0 and stats.rejected == 0 and stats.fsyncs >= 1
     assert stats.bytes_written == path_p.stat().st_size
     with SessionReader(path_p) as reader:
@@ -95,29 +99,29 @@ def test_process_recorder_writes_what_the_thread_recorder_writes(tmp_path: Path)
 
 
 def test_a_full_queue_loses_batches_counts_them_and_records_the_loss(tmp_path: Path) -> None:
-    frames = _frames(200)
+    frames = _updates(200)
     rec = ProcessRecorder.open(
         tmp_path, "r", name="o", clock=lambda: T0, queue_size=8, batch_size=4
     )
     rec.hold()  # the pipe is not written: 8 records (2 batches) may wait, then batches are lost
-    for user, arrival, frame, n in frames[:40]:
-        rec.record_update_frame(user, arrival, frame, n)
+    for user, arrival, update in frames[:40]:
+        rec.record_pose_update(user, arrival, update)
     stats = rec.statistics()
     assert stats.records_offered == 8 and stats.queue_drops == 32 and stats.queue_depth == 8
     lost = [f for f in frames[stats.records_offered : 40]]
-    assert stats.queue_drop_poses == sum(f[3] for f in lost)
+    assert stats.queue_drop_poses == sum(len(f[2].entries) for f in lost)
     rec.release()
     for k in (40, 44, 48):
         while rec.statistics().queue_depth:
             time.sleep(0.001)
-        for user, arrival, frame, n in frames[k : k + 4]:  # one batch each
-            rec.record_update_frame(user, arrival, frame, n)
+        for user, arrival, update in frames[k : k + 4]:  # one batch each
+            rec.record_pose_update(user, arrival, update)
     path = rec.close()
     assert rec.statistics().loss_records == 1
     records = [r for r in read_records(path) if isinstance(r, PoseRecord | DropRecord)]
     kept = stats.records_offered
     assert [r.seq for r in records[:kept] if isinstance(r, PoseRecord)] == [
-        PoseUpdate_seq(f) for f in frames[:kept]
+        f[2].seq for f in frames[:kept]
     ]
     loss = records[kept]
     assert isinstance(loss, DropRecord) and loss.kind == "recorder-queue-overflow"
@@ -128,17 +132,9 @@ def test_a_full_queue_loses_batches_counts_them_and_records_the_loss(tmp_path: P
     assert len(records) == kept + 1 + 12
 
 
-def PoseUpdate_seq(frame: tuple[int, float, bytes, int]) -> int:
-    from protocol import decode_message
-
-    msg = decode_message(frame[2])
-    assert isinstance(msg, PoseUpdate)
-    return msg.seq
-
-
 def test_when_the_relay_vanishes_the_child_keeps_a_recoverable_part(tmp_path: Path) -> None:
     """The pipe closes without a stop (the server was SIGKILLed): nothing taken is lost."""
-    frames = _frames(300)
+    frames = _updates(300)
     rec = ProcessRecorder.open(tmp_path, "r", name="c", clock=lambda: T0, batch_size=16)
     _feed(rec, frames)
     rec._handoff()
@@ -154,23 +150,23 @@ def test_when_the_relay_vanishes_the_child_keeps_a_recoverable_part(tmp_path: Pa
     report = recover(rec.part_path, out)
     assert report.chunks_lost == 0 and not report.complete
     poses = [r for r in read_records(out) if isinstance(r, PoseRecord)]
-    assert [(r.user, r.seq) for r in poses] == [(f[0], PoseUpdate_seq(f)) for f in frames]
+    assert [(r.user, r.seq) for r in poses] == [(f[0], f[2].seq) for f in frames]
 
 
 def test_a_dead_writer_process_fails_the_recorder_not_the_relay(tmp_path: Path) -> None:
-    frames = _frames(100)
+    frames = _updates(100)
     rec = ProcessRecorder.open(tmp_path, "r", name="d", clock=lambda: T0, batch_size=4)
     _feed(rec, frames[:20])
     os.kill(rec._proc.pid, signal.SIGKILL)
     rec._proc.wait(10)
     deadline = time.monotonic() + 10
     while not rec.failed and time.monotonic() < deadline:
-        for user, arrival, frame, n in frames[20:40]:
-            rec.record_update_frame(user, arrival, frame, n)  # never raises, never blocks
+        for user, arrival, update in frames[20:40]:
+            rec.record_pose_update(user, arrival, update)  # never raises, never blocks
         rec.poll()
         time.sleep(0.01)
     assert rec.failed and "recorder process" in (rec.statistics().error or "")
-    assert not rec.record_update_frame(*frames[50])
+    assert not rec.record_pose_update(*frames[50])
     with pytest.raises(RecorderError, match="partial file kept"):
         rec.close()
     assert rec.part_path.exists()
@@ -180,8 +176,11 @@ def test_bad_records_are_refused_and_counted(tmp_path: Path) -> None:
     rec = ProcessRecorder.open(tmp_path, "r", name="b", clock=lambda: T0)
     assert not rec.record_update(1, 0, T0, [1, 2], [T0], np.zeros((2, 7)))
     assert not rec.record_event({"bad": object()}, T0)
-    # a frame that is not an update reaches the child, which refuses and counts it
-    assert rec.record_update_frame(1, T0, b"\x00garbage", 1)
+    # An update whose entries do not match its header (the relay never sends
+    # one) reaches the child, which refuses and counts it.
+    bad = process._UPDATE.pack(process._KIND_UPDATE, process._UPDATE_EXTRA + 5, 1, 1, T0, 0, T0, 0)
+    rec._batch.parts += (bad, b"short")
+    rec._batch.records += 1
     path = rec.close(T0 + 1)
     stats = rec.statistics()
     assert stats.rejected == 3
