@@ -68,6 +68,7 @@ from recorder.format import (
     encode_json,
     encode_pose_batch,
     to_ns,
+    to_ns_many,
 )
 from recorder.writer import (
     DEFAULT_CHUNK_BYTES,
@@ -617,14 +618,18 @@ def _record_updates(rec: SessionRecorder, updates: list[_Update]) -> None:
             entries["velocity"] if velocity else None,
         )
         # publish time: the newest capture time of the update (its arrival if empty)
-        newest = caps.max(axis=1).tolist() if n else arrivals.tolist()
-        for k, i in enumerate(idx):
-            out[i] = (to_ns(rows[k][2]), to_ns(newest[k]), datas[k], n)
+        newest = caps.max(axis=1) if n else arrivals
+        for i, log_ns, pub_ns, data in zip(
+            idx, to_ns_many(arrivals), to_ns_many(newest), datas, strict=True
+        ):
+            out[i] = (log_ns, pub_ns, data, n)
+    encoded = []
     for update, done in zip(updates, out, strict=True):
         if done is None:
             rec.refuse(POSES_TOPIC, f"update of user {update[0]}: entries do not match its header")
         else:
-            rec.offer_encoded(POSES_TOPIC, *done)
+            encoded.append(done)
+    rec.offer_encoded_many(POSES_TOPIC, encoded)
 
 
 def _pump(rec: SessionRecorder, fd: int) -> float | None:

@@ -8,7 +8,7 @@ the record is lost, counted, and the loss itself is recorded: the next time the
 queue has room, a ``drops`` record of kind ``recorder-queue-overflow`` goes in
 first, with how many records (and poses) were lost and between which times.
 
-Durability: the writer closes the current zstd chunk (``Writer.flush``) and
+Durability: the writer closes the current zstd chunk (``ChunkWriter.flush``) and
 ``os.fsync``\\ s the file at most ``flush_interval`` seconds (default 0.5 s) after
 it wrote a record, so after a crash every record older than that (plus the queue
 delay) is in a complete chunk on disk. The file is written as ``NAME.mcap.part``
@@ -39,7 +39,6 @@ from types import TracebackType
 from typing import IO, Any, Final
 
 import numpy as np
-from mcap.writer import CompressionType, IndexType, Writer
 from numpy.typing import ArrayLike
 
 from protocol.poses import PoseUpdate
@@ -59,6 +58,7 @@ from recorder.format import (
     posecast_version,
     to_ns,
 )
+from recorder.mcapfile import MESSAGE_OVERHEAD, ChunkWriter
 
 __all__ = [
     "DEFAULT_FLUSH_INTERVAL",
@@ -85,8 +85,6 @@ _POSES = _CHANNEL_IDS[POSES_TOPIC]
 _EVENTS = _CHANNEL_IDS[EVENTS_TOPIC]
 _PRESENCE = _CHANNEL_IDS[PRESENCE_TOPIC]
 _DROPS = _CHANNEL_IDS[DROPS_TOPIC]
-#: MCAP Message record overhead, for the chunk-size estimate.
-_MESSAGE_OVERHEAD = 31
 
 Clock = Callable[[], float]
 # A queued record: channel id, log time ns, publish time ns, data, poses in it.
@@ -279,7 +277,7 @@ class SessionRecorder(RecordTap):
         part_path: Path,
         final_path: Path,
         stream: IO[bytes],
-        writer: Writer,
+        writer: ChunkWriter,
         *,
         clock: Clock,
         queue_size: int,
@@ -392,15 +390,11 @@ class SessionRecorder(RecordTap):
         if stream is None:
             raise FileExistsError(f"no free file name for {base!r} in {folder}")
         try:
-            writer = Writer(
-                stream,
-                chunk_size=1 << 62,  # chunks are closed by the recorder, never by size
-                compression=CompressionType.ZSTD,
-                # Message indexes would cost 16 B per message outside the chunks,
-                # about 5 B per pose; readers find messages through the chunk
-                # indexes, and recovery re-indexes from the chunks.
-                index_types=IndexType.ALL & ~IndexType.MESSAGE,
-            )
+            # Chunks are closed by the recorder (time and size), never by the
+            # writer. No message indexes: they would cost 16 B per message
+            # outside the chunks, about 5 B per pose; readers find messages
+            # through the chunk indexes, and recovery re-indexes from the chunks.
+            writer = ChunkWriter(stream)
             writer.start(profile=PROFILE, library=f"posecast-recorder/{posecast_version()}")
             session = {
                 "room": room,
@@ -465,6 +459,29 @@ class SessionRecorder(RecordTap):
     ) -> bool:
         """Queue a record already encoded for ``channel`` (a topic of :data:`CHANNELS`)."""
         return self._offer((_CHANNEL_IDS[channel], log_ns, publish_ns, data, poses))
+
+    def offer_encoded_many(self, channel: str, rows: Iterable[tuple[int, int, bytes, int]]) -> bool:
+        """Queue records already encoded for ``channel``: ``(log ns, publish ns, data, poses)``.
+
+        As :meth:`offer_encoded` for each, in order, batched the same way.
+        """
+        cid = _CHANNEL_IDS[channel]
+        items = [(cid, *row) for row in rows]
+        if self._batch_size <= 1 or self._closing or self._error is not None:
+            return all([self._offer(item) for item in items])
+        size = self._batch_size
+        while items:
+            batch = self._batch
+            if not batch:
+                self._batch_since = _time.monotonic()
+            room = size - len(batch)
+            batch += items[:room]
+            del items[:room]
+            if len(batch) >= size:
+                self._handoff()
+        if self._batch and _time.monotonic() - self._batch_since >= self._batch_delay:
+            self._handoff()
+        return True
 
     def _take(self, topic: str, log_time: float, publish_ns: int, data: bytes, poses: int) -> bool:
         return self._offer((_CHANNEL_IDS[topic], to_ns(log_time), publish_ns, data, poses))
@@ -540,14 +557,14 @@ class SessionRecorder(RecordTap):
 
     def _write(self, item: _Item) -> None:
         channel, log_ns, pub_ns, data, poses = item
-        self._mcap.add_message(channel, log_ns, data, pub_ns, self._sequence & 0xFFFFFFFF)
+        self._mcap.add_message(channel, log_ns, data, pub_ns, self._sequence)
         self._sequence += 1
         self._written += 1
         self._poses_written += poses
         self._pending += 1
 
     def _close_chunk(self) -> None:
-        self._mcap.flush()  # type: ignore[no-untyped-call]
+        self._mcap.flush()
         if self._pending:
             self._chunks += 1
             self._pending = 0
@@ -604,7 +621,7 @@ class SessionRecorder(RecordTap):
                     if deadline is None:
                         deadline = monotonic() + interval
                     in_chunk += 1
-                    chunk_size += len(rec[3]) + _MESSAGE_OVERHEAD
+                    chunk_size += len(rec[3]) + MESSAGE_OVERHEAD
                     if (chunk_records and in_chunk >= chunk_records) or chunk_size >= chunk_bytes:
                         self._close_chunk()
                         in_chunk = chunk_size = 0
@@ -614,6 +631,7 @@ class SessionRecorder(RecordTap):
                 in_chunk = chunk_size = 0
 
     def _finish(self, end_time: float) -> None:
+        self._close_chunk()  # every message before the session's end record
         self._mcap.add_metadata(
             SESSION_END_METADATA,
             {
@@ -622,10 +640,7 @@ class SessionRecorder(RecordTap):
                 "queue_drops": str(self._queue_drops),
             },
         )
-        if self._pending:
-            self._chunks += 1
-            self._pending = 0
-        self._mcap.finish()  # type: ignore[no-untyped-call]
+        self._mcap.finish()
         self._file.flush()
         os.fsync(self._file.fileno())
         self._fsyncs += 1

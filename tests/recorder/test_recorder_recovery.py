@@ -93,8 +93,42 @@ def test_flipped_bit_in_compressed_data_loses_only_that_chunk(
     assert report.problems[0].length == bad.length
     if which != -1:
         assert report.lost_records == len(bad.messages)
-    if which == 0:  # the first chunk held the channel definitions
-        assert set(report.restored_channels) == {"poses", "events", "presence"}
+    # The channel definitions are written outside the chunks: none is lost with one.
+    assert report.restored_channels == ()
+
+
+def test_channels_lost_with_a_chunk_are_restored(
+    tmp_path: Path, many_chunks: tuple[bytes, list[OracleChunk]]
+) -> None:
+    """mcap's own Writer puts channel records into the first chunk: lost with it, restored."""
+    from mcap.writer import CompressionType, Writer
+
+    from recorder.format import CHANNELS, PROFILE
+
+    _data, chunks = many_chunks
+    part = tmp_path / "old.mcap.part"
+    with part.open("wb") as f:
+        writer = Writer(f, compression=CompressionType.ZSTD, chunk_size=1 << 62)
+        writer.start(profile=PROFILE, library="mcap")
+        ids = {}
+        for spec in CHANNELS:
+            schema = writer.register_schema(
+                spec.schema_name, spec.schema_encoding, spec.schema_data
+            )
+            ids[spec.topic] = writer.register_channel(spec.topic, spec.message_encoding, schema)
+        for chunk in chunks[:6]:
+            for topic, seq, log_ns, pub_ns, payload in chunk.messages:
+                writer.add_message(ids[topic], log_ns, payload, pub_ns, seq)
+            writer.flush()  # type: ignore[no-untyped-call]
+        writer.finish()  # type: ignore[no-untyped-call]
+    old = oracle_chunks(part.read_bytes())
+    corrupted = bytearray(part.read_bytes())
+    corrupted[old[0].offset + old[0].length // 2] ^= 0x04
+    part.write_bytes(bytes(corrupted))
+    report = recover(part)
+    later = [m for c in chunks[1:6] for m in c.messages]
+    assert messages_of(report.output) == later
+    assert set(report.restored_channels) == {m[0] for m in later}
 
 
 def test_flipped_bit_in_a_chunk_length_field(
