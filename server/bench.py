@@ -559,12 +559,17 @@ def _children_cpu(pid: int) -> float:
     return total
 
 
-def _machine_cpu() -> tuple[float, float]:
-    """(busy, total) jiffies of all cores from /proc/stat."""
+def _machine_cpu() -> tuple[float, float, float]:
+    """(busy, stolen, total) jiffies of all cores from /proc/stat.
+
+    ``busy`` is what this machine ran; ``stolen`` is time the hypervisor gave
+    its cores to other guests (a virtual machine on a busy host).
+    """
     values = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
     total = float(sum(values[:8]))  # guest time is already inside user
     idle = float(values[3] + values[4])
-    return total - idle, total
+    steal = float(values[7])
+    return total - idle - steal, steal, total
 
 
 def _scrape(port: int, timeout: float = 20.0) -> dict[str, float] | None:
@@ -693,6 +698,9 @@ def _median_summary(rounds: list[dict[str, Any]]) -> dict[str, Any]:
     out["rounds"] = len(rounds)
     losses = [r["throughput_loss_pct"] for r in rounds]
     out["throughput_loss_pct_rounds"] = losses
+    out["steal_pct_rounds"] = [
+        [r.get("steal_pct_off", math.nan), r.get("steal_pct_on", math.nan)] for r in rounds
+    ]
     out["throughput_loss_pct_mean"] = float(np.mean(losses))
     # Standard error of that mean (the rounds are independent pairs).
     out["throughput_loss_pct_se"] = (
@@ -737,6 +745,8 @@ def _recorder_summary(
         "delivered_poses_per_s_on": on["poses_per_s"],
         "latency_p99_ms_off": off["latency_p99_ms"],
         "latency_p99_ms_on": on["latency_p99_ms"],
+        "steal_pct_off": off.get("steal_pct", math.nan),
+        "steal_pct_on": on.get("steal_pct", math.nan),
         "files": disk_figures["files"],
         "disk_bytes": disk,
         "poses_on_disk": poses_on_disk,
@@ -786,6 +796,8 @@ def _print_recorder_table(
                 f"mean {_f(summary['throughput_loss_pct_mean'], 1)} "
                 f"+- {_f(summary['throughput_loss_pct_se'], 1)} (standard error)"
             )
+            steal = ", ".join(f"{_f(a, 0)}/{_f(b, 0)}" for a, b in summary["steal_pct_rounds"])
+            console.print(f"  stolen by the host per round, off/on (% of a core): {steal}")
         console.print(
             f"{writer} writer: CPU-bound relay throughput with the recorder "
             f"x{_f(summary['throughput_ratio'], 3)} ({_f(summary['throughput_loss_pct'], 1)} % "
@@ -929,7 +941,8 @@ def _run_once(
     load_cpu = sum(l1) - sum(l0)
     delivered = int(result["poses_delivered"])
     snapshots = int(result["snapshots"])
-    busy, total = c1[0] - c0[0], c1[1] - c0[1]
+    busy, steal, total = (c1[i] - c0[i] for i in range(3))
+    ncpu = os.cpu_count() or 1
     # Remote poses/s the clients ask for: each gets its room mates' 3 streams at ``rate``.
     full, last = divmod(clients, room_size)
     offered = rate * len(STREAMS) * (full * room_size * (room_size - 1) + last * (last - 1))
@@ -946,11 +959,14 @@ def _run_once(
             "server_sys_pct": 100.0 * server_sys / wall,
             "load_cpu_pct": 100.0 * load_cpu / wall,
             "machine_cpu_pct": 100.0 * busy / total if total > 0 else math.nan,
-            # CPU used by neither the server nor the load (other jobs on the host).
-            "other_cpu_pct": 100.0 * (busy / total * (os.cpu_count() or 1))
+            # CPU used by neither the server nor the load (other jobs on this machine).
+            "other_cpu_pct": 100.0 * (busy / total * ncpu)
             - 100.0 * (server_cpu + load_cpu + r1 - r0) / wall
             if total > 0
             else math.nan,
+            # Of one core: time the hypervisor ran other guests on our cores. A
+            # busy host slows every figure here; compare runs with little of it.
+            "steal_pct": 100.0 * steal / total * ncpu if total > 0 else math.nan,
             "poses_per_s": delivered / wall,
             "offered_poses_per_s": offered,
             # What the server would need at full rate, at the CPU cost per pose measured.
@@ -1009,6 +1025,11 @@ def print_relay_report(report: dict[str, Any], console: Console) -> None:
             "machine CPU / other jobs",
             f"{_f(r['machine_cpu_pct'])} % / {_f(r['other_cpu_pct'])} %",
             "all cores / of one core, neither server nor load",
+        ),
+        (
+            "stolen by the host",
+            f"{_f(r['steal_pct'])} %",
+            "of one core, given to other virtual machines; high: the figures are noisy",
         ),
         (
             "capture->receipt p50 / p99",

@@ -34,6 +34,7 @@ EXPECTED_KEYS = {
     "bytes_per_pose",
     "poses_delivered",
     "clients_without_snapshots",
+    "steal_pct",
 }
 
 
