@@ -427,7 +427,7 @@ class SessionRecorder(RecordTap):
                 batch_size=batch_size,
                 batch_delay=batch_delay,
             )
-            # The first chunk holds the schemas and channels: make it durable now.
+            # Header, schemas, channels and the first chunk: durable from the start.
             start_ns = to_ns(start)
             rec._write((_EVENTS, start_ns, start_ns, encode_json(_start_event(room, start)), 0))
             rec._sync()
