@@ -467,6 +467,9 @@ class _Connection:
             stale = room.ingest(user, update)
             rec = room.recorder
             if rec is not None:
+                if room.recording_paused:
+                    room.paused_updates += 1
+                    return
                 rec.record_pose_update(user, now, update)
                 if stale:
                     room.note_drop("stale", user, stale)
@@ -533,6 +536,8 @@ class RelayServer:
         self.ready = asyncio.Event()
         self.port: int | None = None
         self.closed_connections = 0
+        #: Pose updates are not recorded while set (see :meth:`pause_recording`).
+        self.recording_paused = False
         #: Counters of connections that have ended (live ones are added on demand),
         #: so that the Prometheus counters never go down.
         self.totals = dict.fromkeys(_COUNTERS, 0)
@@ -588,16 +593,21 @@ class RelayServer:
                 room.recorder = rec
                 if rec is not None:
                     log.info("recording room %r to %s", name, rec.path)
+                    if self.recording_paused:
+                        room.pause_recording(self.clock())
             elif rec is not None:
                 await rec.aclose()
         finally:
             self._opening.pop(name, None)
 
     async def _close_recorder(self, room: Room) -> None:
-        rec, room.recorder = room.recorder, None
+        rec = room.recorder
         if rec is None:
             return
-        room.flush_drops(self.clock(), force=True)
+        now = self.clock()
+        room.resume_recording(now)  # a pause in progress goes into the file
+        room.flush_drops(now, force=True)  # the drops of the last second too
+        room.recorder = None
         try:
             path = await rec.aclose(self.clock())
             self.recordings.append(path)
@@ -676,6 +686,33 @@ class RelayServer:
         return None
 
     # -- lifecycle ---------------------------------------------------------------------
+
+    def pause_recording(self) -> None:
+        """Stop recording pose updates in every room, and in rooms opened later.
+
+        Presence, events and drops are still recorded; each file gets one
+        ``recording-paused`` drops record (with the updates not recorded) when
+        recording resumes or the room closes. ``posecast serve`` does this on
+        SIGUSR1 (and resumes on SIGUSR2).
+        """
+        if self.config.record_dir is None:
+            log.warning("pause requested, but this server does not record")
+            return
+        if not self.recording_paused:
+            self.recording_paused = True
+            now = self.clock()
+            for room in self.rooms.values():
+                room.pause_recording(now)
+            log.info("recording paused")
+
+    def resume_recording(self) -> None:
+        """Record pose updates again after :meth:`pause_recording`."""
+        if self.recording_paused:
+            self.recording_paused = False
+            now = self.clock()
+            for room in self.rooms.values():
+                room.resume_recording(now)
+            log.info("recording resumed")
 
     def stop(self) -> None:
         """Stop accepting, close every connection with 1001 "going away"; run() returns.
@@ -759,6 +796,12 @@ class RelayServer:
             [("", self.closed_connections)],
         )
         metric("posecast_rooms", "gauge", "Rooms with members.", [("", len(self.rooms))])
+        metric(
+            "posecast_recording_paused",
+            "gauge",
+            "1 while the recording of pose updates is paused (SIGUSR1; SIGUSR2 resumes).",
+            [("", int(self.recording_paused))],
+        )
         metric("posecast_frames_in_total", "counter", "Frames received.", total("frames_in"))
         metric("posecast_bytes_in_total", "counter", "Bytes received.", total("bytes_in"))
         metric("posecast_frames_out_total", "counter", "Frames sent.", total("frames_out"))

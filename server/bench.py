@@ -43,7 +43,7 @@ import time
 import urllib.request
 from collections.abc import Callable, Coroutine, Mapping
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, Final
 
 import msgpack
 import numpy as np
@@ -543,19 +543,40 @@ def _proc_cpu(pid: int) -> tuple[float, float]:
     return int(fields[11]) / tick, int(fields[12]) / tick
 
 
+def _run_time(pid: int) -> float:
+    """CPU seconds process ``pid``'s threads have run, to the nanosecond (schedstat).
+
+    Falls back to :func:`_proc_cpu` (clock ticks) where schedstat is missing.
+    """
+    total = 0
+    try:
+        for stat in Path(f"/proc/{pid}/task").glob("*/schedstat"):
+            with contextlib.suppress(OSError, ValueError, IndexError):
+                total += int(stat.read_text().split()[0])
+    except OSError:
+        total = 0
+    return total / 1e9 if total else sum(_proc_cpu(pid))
+
+
+def _children_run_time(pid: int) -> float:
+    """:func:`_run_time` of the live child processes of ``pid`` (its recorders)."""
+    return sum(_run_time(kid) for kid in _children(pid))
+
+
+def _children(pid: int) -> list[int]:
+    kids: list[int] = []
+    for children in Path(f"/proc/{pid}/task").glob("*/children"):
+        with contextlib.suppress(OSError, ValueError):
+            kids += [int(k) for k in children.read_text().split()]
+    return kids
+
+
 def _children_cpu(pid: int) -> float:
     """CPU seconds (user + system) of the live child processes of ``pid`` (its recorders)."""
     total = 0.0
-    for children in Path(f"/proc/{pid}/task").glob("*/children"):
-        try:
-            kids = children.read_text().split()
-        except OSError:
-            continue
-        for kid in kids:
-            try:
-                total += sum(_proc_cpu(int(kid)))
-            except (OSError, ValueError):
-                continue  # it ended between the listing and the read
+    for kid in _children(pid):
+        with contextlib.suppress(OSError, ValueError):  # it ended since the listing
+            total += sum(_proc_cpu(kid))
     return total
 
 
@@ -623,6 +644,7 @@ def run_relay_bench(
     warmup: float = 5.0,
     ramp_rate: float = 50.0,
     seed: int = 0,
+    interleave: float = 0.0,
 ) -> dict[str, Any]:
     """Run the relay benchmark; print and return its report (figures, never pass/fail).
 
@@ -634,6 +656,11 @@ def run_relay_bench(
     ``both``), ``repeat`` times alternating (the paper's Table 4), and the report
     adds ``{"recorder": {...}}`` with the cost ratio and bytes per pose on disk
     (medians over the rounds, each round's loss listed).
+
+    With ``interleave`` > 0 each round is instead one recording run whose window
+    is cut into phases of ``interleave`` s, recording paused and resumed in
+    turn; ``{"recorder_interleaved": {...}}`` compares paired phases of the
+    same server process (:func:`_interleaved_summary`).
     """
     console = console or Console()
     args = (clients, room_size, rate, duration)
@@ -645,6 +672,10 @@ def run_relay_bench(
         raise ValueError(f"record_writer must be process, thread or both, not {record_writer!r}")
     if repeat < 1:
         raise ValueError("repeat must be at least 1")
+    if interleave < 0 or (interleave > 0 and interleave < 2 * _PHASE_SETTLE):
+        raise ValueError(f"interleave must be 0 or at least {2 * _PHASE_SETTLE:g} s")
+    if interleave > 0:
+        return _run_interleaved(args, writers, repeat, interleave, console, opts)
     # Off and on alternate in a balanced order (off first in even rounds, last
     # in odd ones): a drift of a shared machine, or anything that favours the
     # first or second run of a round, hits both alike. Each on-run is compared
@@ -686,6 +717,74 @@ def run_relay_bench(
         on[f"recorder_on_{writer}"] = runs[writer]
     _print_recorder_table(summaries, console)
     return on
+
+
+def _run_interleaved(
+    args: tuple[int, int, float, float],
+    writers: list[str],
+    repeat: int,
+    interleave: float,
+    console: Console,
+    opts: dict[str, Any],
+) -> dict[str, Any]:
+    """``repeat`` recording runs per writer, each window in paused/recording phases."""
+    phases: dict[str, list[dict[str, Any]]] = {w: [] for w in writers}
+    last: dict[str, Any] = {}
+    for k in range(repeat):
+        for writer in writers:
+            if repeat > 1:
+                console.print(f"[bold]recorder cost, interleaved: round {k + 1} of {repeat}[/bold]")
+            with tempfile.TemporaryDirectory(prefix="posecast-bench-") as tmp:
+                last = _run_once(
+                    *args,
+                    record_dir=Path(tmp),
+                    record_writer=writer,
+                    console=console,
+                    interleave=interleave,
+                    **opts,
+                )
+            phases[writer] += last.get("phases", [])
+    summaries = {w: _interleaved_summary(p) for w, p in phases.items()}
+    last["recorder_interleaved"] = summaries
+    _print_interleaved(summaries, interleave, console)
+    return last
+
+
+def _print_interleaved(
+    summaries: Mapping[str, Mapping[str, Any]], interleave: float, console: Console
+) -> None:
+    table = Table(
+        title=(
+            "recorder cost (Table 4), interleaved: one recording server, pose recording "
+            f"paused and resumed every {interleave:g} s"
+        ),
+        title_justify="left",
+    )
+    table.add_column("figure")
+    for writer in summaries:
+        table.add_column(f"{writer} writer", justify="right")
+
+    def row(name: str, key: str, digits: int) -> None:
+        table.add_row(name, *(_f(s.get(key, math.nan), digits) for s in summaries.values()))
+
+    row("phases (pairs)", "phases", 0)
+    row("relay CPU per pose, paused (us)", "relay_cpu_us_per_pose_paused", 3)
+    row("relay CPU per pose, recording (us)", "relay_cpu_us_per_pose_recording", 3)
+    row("writer process CPU per pose, recording (us)", "writer_cpu_us_per_pose_recording", 3)
+    row("relay throughput loss, pooled (%)", "throughput_loss_pct_pooled", 2)
+    row("relay throughput loss, median of pairs (%)", "throughput_loss_pct", 2)
+    row("relay throughput loss, mean of pairs (%)", "throughput_loss_pct_mean", 2)
+    row("  standard error of that mean", "throughput_loss_pct_se", 2)
+    row("stolen by the host, median / max (% of a core)", "steal_pct_median", 0)
+    console.print(table)
+    for writer, summary in summaries.items():
+        console.print(
+            f"{writer} writer: CPU-bound relay throughput loss while recording "
+            f"{_f(summary['throughput_loss_pct_mean'], 2)} % +- "
+            f"{_f(summary['throughput_loss_pct_se'], 2)} (mean of {summary['pairs']} pairs, "
+            f"standard error; median {_f(summary['throughput_loss_pct'], 2)} %; target <= 2 %, "
+            "the paper lost 4.9 %)"
+        )
 
 
 def _median_summary(rounds: list[dict[str, Any]]) -> dict[str, Any]:
@@ -807,6 +906,110 @@ def _print_recorder_table(
         )
 
 
+#: Recording state of the phases of an interleaved window, repeating: paused,
+#: recording, recording, paused (each pair has one of each, in both orders).
+_PHASE_PATTERN: Final = (False, True, True, False)
+#: Seconds after a pause or resume before a phase is measured: the writer
+#: process finishes what the relay handed it before (batches of <= 0.25 s).
+_PHASE_SETTLE: Final = 0.5
+
+
+def _interleaved_phases(pid: int, port: int, end: float, length: float) -> list[dict[str, Any]]:
+    """Pause and resume the recording of server ``pid`` in phases until ``end``.
+
+    The server records when this starts. Each phase sets its state (SIGUSR1
+    pauses, SIGUSR2 resumes), waits :data:`_PHASE_SETTLE` s and measures the
+    rest: the relay's and the writer processes' CPU (their threads' run time
+    from ``/proc/*/task/*/schedstat``, in ns), the poses the relay sent
+    (its ``posecast_room_poses_out_total``) and the CPU the host stole.
+    Same process, same clients, phases seconds apart: what differs between a
+    paused and a recording phase is the recording.
+    """
+    phases: list[dict[str, Any]] = []
+    recording = True
+    k = 0
+    while time.monotonic() + length <= end:
+        want = _PHASE_PATTERN[k % len(_PHASE_PATTERN)]
+        start = time.monotonic()
+        if want != recording:
+            os.kill(pid, signal.SIGUSR2 if want else signal.SIGUSR1)
+            recording = want
+        _sleep_until(start + _PHASE_SETTLE)
+        m0, s0, r0, c0, w0 = (
+            _scrape(port),
+            _run_time(pid),
+            _children_run_time(pid),
+            _machine_cpu(),
+            time.monotonic(),
+        )
+        _sleep_until(start + length)
+        m1, s1, r1, c1, w1 = (
+            _scrape(port),
+            _run_time(pid),
+            _children_run_time(pid),
+            _machine_cpu(),
+            time.monotonic(),
+        )
+        poses = _delta(m0, m1, "posecast_room_poses_out_total")
+        total = c1[2] - c0[2]
+        phases.append(
+            {
+                "recording": recording,
+                "wall_s": w1 - w0,
+                "relay_cpu_s": s1 - s0,
+                "writer_cpu_s": r1 - r0,
+                "poses": poses,
+                "relay_cpu_us_per_pose": 1e6 * (s1 - s0) / poses if poses > 0 else math.nan,
+                "steal_pct": 100.0 * (c1[1] - c0[1]) / total * (os.cpu_count() or 1)
+                if total > 0
+                else math.nan,
+            }
+        )
+        k += 1
+    if not recording:
+        os.kill(pid, signal.SIGUSR2)
+    return phases
+
+
+def _interleaved_summary(phases: list[dict[str, Any]]) -> dict[str, Any]:
+    """Table 4 from paired phases: each pair is one paused and one recording phase."""
+    losses: list[float] = []
+    for a, b in zip(phases[0::2], phases[1::2], strict=False):
+        paused, recording = (a, b) if b["recording"] else (b, a)
+        cost_off = paused["relay_cpu_us_per_pose"]
+        cost_on = recording["relay_cpu_us_per_pose"]
+        if math.isfinite(cost_off) and math.isfinite(cost_on) and cost_on > 0:
+            losses.append(100.0 * (1.0 - cost_off / cost_on))
+
+    def per_pose(recording: bool, key: str) -> float:
+        chosen = [p for p in phases if p["recording"] == recording]
+        poses = sum(p["poses"] for p in chosen)
+        return 1e6 * sum(p[key] for p in chosen) / poses if poses > 0 else math.nan
+
+    off, on = per_pose(False, "relay_cpu_s"), per_pose(True, "relay_cpu_s")
+    n = len(losses)
+    return {
+        "phases": len(phases),
+        "pairs": n,
+        "relay_cpu_us_per_pose_paused": off,
+        "relay_cpu_us_per_pose_recording": on,
+        "writer_cpu_us_per_pose_recording": per_pose(True, "writer_cpu_s"),
+        "writer_cpu_us_per_pose_paused": per_pose(False, "writer_cpu_s"),
+        # pooled over all phases of each state
+        "throughput_loss_pct_pooled": 100.0 * (1.0 - off / on) if on > 0 else math.nan,
+        "throughput_loss_pct": float(np.median(losses)) if n else math.nan,
+        "throughput_loss_pct_mean": float(np.mean(losses)) if n else math.nan,
+        "throughput_loss_pct_se": float(np.std(losses, ddof=1) / math.sqrt(n))
+        if n > 1
+        else math.nan,
+        "throughput_loss_pct_pairs": losses,
+        "steal_pct_max": max((p["steal_pct"] for p in phases), default=math.nan),
+        "steal_pct_median": float(np.median([p["steal_pct"] for p in phases]))
+        if phases
+        else math.nan,
+    }
+
+
 def _run_once(
     clients: int,
     room_size: int,
@@ -819,8 +1022,14 @@ def _run_once(
     warmup: float,
     ramp_rate: float,
     seed: int,
+    interleave: float = 0.0,
 ) -> dict[str, Any]:
-    """One measured run; ``record_dir`` turns the server's recorder on."""
+    """One measured run; ``record_dir`` turns the server's recorder on.
+
+    With ``interleave`` (and ``record_dir``) the window is cut into phases of
+    that many seconds in which the server records or has recording paused
+    (``report["phases"]``, see :func:`_interleaved_phases`).
+    """
     if clients < 1 or room_size < 1:
         raise ValueError("clients and room_size must be at least 1")
     if not 0 < rate <= 100:
@@ -917,6 +1126,9 @@ def _run_once(
                 time.monotonic(),
             )
             m0 = _scrape(port)
+            if interleave > 0 and record_dir is not None:
+                status.update(f"relay bench: measuring for {duration:g} s, recording on/off ...")
+                report["phases"] = _interleaved_phases(server.pid, port, t1, interleave)
             _sleep_until(t1)
             r1 = _children_cpu(server.pid)
             s1, l1, c1, w1 = (

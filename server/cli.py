@@ -227,7 +227,11 @@ def serve(
     ] = None,
     log_level: Annotated[str, typer.Option(help="debug, info, warning, error.")] = "info",
 ) -> None:
-    """Run the relay server until SIGINT/SIGTERM (then close all with 1001, exit 0)."""
+    """Run the relay server until SIGINT/SIGTERM (then close all with 1001, exit 0).
+
+    With --record, SIGUSR1 pauses the recording of pose updates and SIGUSR2
+    resumes it (each pause is written into the files as a drops record).
+    """
     import asyncio
     import logging
     import signal
@@ -258,6 +262,9 @@ def serve(
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, server.stop)
+        # kill -USR1 PID pauses the recording of pose updates, kill -USR2 PID resumes it.
+        loop.add_signal_handler(signal.SIGUSR1, server.pause_recording)
+        loop.add_signal_handler(signal.SIGUSR2, server.resume_recording)
 
         async def announce() -> None:
             await server.ready.wait()
@@ -481,6 +488,16 @@ def bench_relay(
             help="With --record: rounds of off/on runs, alternating; figures are medians."
         ),
     ] = 1,
+    interleave: Annotated[
+        float,
+        typer.Option(
+            help=(
+                "With --record: instead of separate off and on runs, one recording run per "
+                "round whose window pauses and resumes the recording every INTERLEAVE s "
+                "(e.g. 2.5); the loss compares paired phases of the same server."
+            )
+        ),
+    ] = 0.0,
     json_out: Annotated[
         Path | None, typer.Option("--json", help="Also write the report as JSON here.")
     ] = None,
@@ -492,6 +509,8 @@ def bench_relay(
         raise _fail("--clients, --room-size, --rate and --duration must be positive")
     if repeat < 1:
         raise _fail("--repeat must be at least 1")
+    if interleave and not record:
+        raise _fail("--interleave needs --record")
     if record_writer not in ("process", "thread", "both"):
         raise _fail(f"--record-writer must be process, thread or both, not {record_writer!r}")
     try:
@@ -504,6 +523,7 @@ def bench_relay(
             record_writer=record_writer,
             repeat=repeat,
             console=console,
+            interleave=interleave,
         )
     except (ValueError, RuntimeError) as exc:
         raise _fail(str(exc)) from None

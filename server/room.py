@@ -221,6 +221,35 @@ class Room:
     _drops: dict[tuple[str, int], int] = field(default_factory=dict)
     _skips_reported: dict[int, int] = field(default_factory=dict)
     _drops_flushed: float = 0.0
+    #: Pose updates are not recorded while paused (SIGUSR1 / SIGUSR2 of the server);
+    #: presence, events and drops still are, and the pause itself is a drops record.
+    recording_paused: bool = False
+    #: Pose updates not recorded since the pause began, and when it began.
+    paused_updates: int = 0
+    _paused_since: float = 0.0
+
+    def pause_recording(self, now: float) -> None:
+        """Stop recording pose updates (counted, written as one drops record on resume)."""
+        if self.recorder is not None and not self.recording_paused:
+            self.recording_paused = True
+            self.paused_updates = 0
+            self._paused_since = now
+
+    def resume_recording(self, now: float) -> None:
+        """Record pose updates again; the pause goes into the file as a drops record."""
+        if not self.recording_paused:
+            return
+        self.recording_paused = False
+        if self.recorder is not None:
+            self.recorder.record_drop(
+                {
+                    "kind": "recording-paused",
+                    "updates": self.paused_updates,
+                    "first_time": self._paused_since,
+                    "last_time": now,
+                },
+                now,
+            )
 
     def note_drop(self, kind: str, user: int, count: int = 1) -> None:
         """Count a server-side drop; recorded (aggregated) at most once a second."""

@@ -157,3 +157,46 @@ def test_recorder_rounds_alternate_which_run_goes_first(monkeypatch: pytest.Monk
     # Round 2 runs off last (call 6, cost 16) after process (call 5, cost 16): a 0 % loss there.
     expected = [100.0 * (1 - off / on) for off, on in [(11, 13), (16, 16), (17, 19)]]
     assert by["process"]["throughput_loss_pct_rounds"] == pytest.approx(expected)
+
+
+def test_interleaved_recorder_bench_pauses_and_resumes_one_server() -> None:
+    """--interleave: one recording run, phases alternate paused/recording, pairs compared."""
+    out = io.StringIO()
+    console = Console(file=out, width=200)
+    report = run_relay_bench(
+        20, 5, 20.0, 4.5, record=True, interleave=1.0, console=console, warmup=1.0, ramp_rate=100.0
+    )
+    phases = report["phases"]
+    assert [p["recording"] for p in phases] == [False, True, True, False]
+    for p in phases:
+        assert p["poses"] > 0 and p["relay_cpu_s"] > 0 and math.isfinite(p["steal_pct"])
+    summary = report["recorder_interleaved"]["process"]
+    assert summary["pairs"] == 2 and len(summary["throughput_loss_pct_pairs"]) == 2
+    assert math.isfinite(summary["throughput_loss_pct_mean"])
+    assert "interleaved" in out.getvalue()
+    assert report["server_exit_code"] == 0
+
+
+def test_interleaved_summary_pairs_each_paused_phase_with_its_recording_neighbour() -> None:
+    from server.bench import _interleaved_summary
+
+    def phase(recording: bool, cpu: float) -> dict[str, object]:
+        return {
+            "recording": recording,
+            "relay_cpu_s": cpu,
+            "writer_cpu_s": 0.5 if recording else 0.0,
+            "poses": 1e6,
+            "relay_cpu_us_per_pose": cpu,
+            "steal_pct": 1.0,
+        }
+
+    # paused 10 / recording 11, then recording 12 / paused 12, then a lone phase
+    out = _interleaved_summary(
+        [phase(False, 10), phase(True, 11), phase(True, 12), phase(False, 12), phase(False, 9)]
+    )
+    assert out["pairs"] == 2
+    assert out["throughput_loss_pct_pairs"] == pytest.approx([100 * (1 - 10 / 11), 0.0])
+    assert out["relay_cpu_us_per_pose_recording"] == pytest.approx(11.5)
+    assert out["relay_cpu_us_per_pose_paused"] == pytest.approx((10 + 12 + 9) / 3)
+    with pytest.raises(ValueError, match="interleave"):
+        run_relay_bench(2, 2, 20.0, 1.0, record=True, interleave=0.2)

@@ -169,3 +169,119 @@ def test_killed_recording_server_loses_nothing_older_than_one_second(tmp_path: P
     assert len(old) > 50
     missing = [seq for seq in old if seq not in recorded]
     assert not missing, f"lost {len(missing)} old updates, e.g. {missing[:5]}"
+
+
+async def _paused_session(tmp: Path, counts: tuple[int, int, int]) -> tuple[Path, float, float]:
+    """One client sends counts[0] updates, recording paused for counts[1], resumed for counts[2]."""
+    from client.connection import ClientConnection
+    from protocol import encode_update
+
+    config = ServerConfig(host="127.0.0.1", port=0, record_dir=tmp)
+    async with running_server(config) as server:
+        conn = await ClientConnection.open(
+            f"ws://127.0.0.1:{server.port}", room="pause", streams=("head",), rate=20
+        )
+        sid = np.array([conn.joined.streams["head"]])  # type: ignore[union-attr]
+        room = server.rooms["pause"]
+        seq = 0
+        marks: list[float] = []
+        for phase, count in enumerate(counts):
+            if phase == 1:
+                marks.append(server.clock())
+                server.pause_recording()
+            elif phase == 2:
+                marks.append(server.clock())
+                server.resume_recording()
+            for _ in range(count):
+                seq += 1
+                pose = np.array([[seq * 1e-3, 0, 0, 1, 0, 0, 0]], dtype=np.float32)
+                await conn.send_bytes(encode_update(seq, sid, np.array([time.monotonic()]), pose))
+            # The relay has handled every update sent so far before the state changes.
+            for _ in range(1000):
+                if room.statistics().updates_in >= seq:
+                    break
+                await asyncio.sleep(0.01)
+            assert room.statistics().updates_in == seq
+        await conn.close()
+    (path,) = server.recordings
+    return path, marks[0], marks[1]
+
+
+def test_paused_recording_skips_pose_updates_and_says_so(tmp_path: Path) -> None:
+    """While paused no pose update is recorded; the file has one drops record for the pause."""
+    from recorder import DropRecord, PoseRecord, read_records
+
+    path, paused_at, resumed_at = asyncio.run(_paused_session(tmp_path, (30, 25, 20)))
+    records = read_records(path)
+    seqs = [r.seq for r in records if isinstance(r, PoseRecord)]
+    assert seqs == list(range(1, 31)) + list(range(56, 76))
+    (pause,) = [r for r in records if isinstance(r, DropRecord) and r.kind == "recording-paused"]
+    assert pause.data["updates"] == 25
+    # the server's clock when the pause began and ended (read just after our marks)
+    assert paused_at <= pause.data["first_time"] < resumed_at <= pause.data["last_time"]
+    assert pause.data["last_time"] - resumed_at < 1.0
+
+
+def test_a_room_closed_while_paused_records_the_pause(tmp_path: Path) -> None:
+    from recorder import DropRecord, PoseRecord, read_records
+
+    path, _paused, _resumed = asyncio.run(_paused_session(tmp_path, (10, 0, 0)))
+    assert len([r for r in read_records(path) if isinstance(r, PoseRecord)]) == 10
+    path2, _p, _r = asyncio.run(_paused_session(tmp_path / "b", (5, 7, 0)))
+    records = read_records(path2)
+    assert [r.seq for r in records if isinstance(r, PoseRecord)] == [1, 2, 3, 4, 5]
+    (pause,) = [r for r in records if isinstance(r, DropRecord) and r.kind == "recording-paused"]
+    assert pause.data["updates"] == 7
+
+
+def test_sigusr1_pauses_and_sigusr2_resumes_a_recording_server(tmp_path: Path) -> None:
+    """`posecast serve --record` wires the signals: /metrics shows the state."""
+    import urllib.request
+
+    server = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "from server.cli import main; main()",
+            "serve",
+            "--port",
+            "0",
+            "--record",
+            str(tmp_path),
+            "--log-level",
+            "warning",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    try:
+        assert server.stdout is not None
+        port = int(re.search(r"ws://[^:]+:(\d+)", server.stdout.readline()).group(1))  # type: ignore[union-attr]
+
+        def paused() -> float:
+            url = f"http://127.0.0.1:{port}/metrics"
+            with urllib.request.urlopen(url, timeout=10) as resp:
+                text = resp.read().decode()
+            return float(re.search(r"^posecast_recording_paused (\S+)$", text, re.M).group(1))  # type: ignore[union-attr]
+
+        def wait_for(value: float) -> None:
+            deadline = time.monotonic() + 10
+            while paused() != value and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert paused() == value
+
+        wait_for(0.0)
+        server.send_signal(signal.SIGUSR1)
+        wait_for(1.0)
+        server.send_signal(signal.SIGUSR2)
+        wait_for(0.0)
+        server.send_signal(signal.SIGTERM)
+        assert server.wait(30) == 0
+    finally:
+        if server.poll() is None:
+            server.kill()
+            server.wait(10)
+        if server.stdout is not None:
+            server.stdout.close()
