@@ -108,6 +108,8 @@ _CHILD_BOOT: Final = "import sys; from recorder.process import main; sys.exit(ma
 #: The child's own hand-off to its writer thread: records per batch, seconds at most.
 _CHILD_BATCH: Final = 256
 _CHILD_BATCH_DELAY: Final = 0.05
+#: Niceness the writer process adds to its own (a lower CPU priority than the relay's).
+_CHILD_NICE: Final = 10
 
 Clock = Callable[[], float]
 
@@ -686,6 +688,11 @@ def _child(config: Mapping[str, Any]) -> int:
     # when the session ends, by a stop message or by closing the pipe.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    # A background job beside a real-time relay: when the cores are contended the
+    # scheduler runs the relay (and its clients) first; the writer has a second of
+    # slack (the fsync schedule), and if it ever falls behind, losses are recorded.
+    with contextlib.suppress(OSError):
+        os.nice(_CHILD_NICE)
     start, start_wall = float(config["start"]), float(config["start_wall"])
     try:
         rec = SessionRecorder.open(

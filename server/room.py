@@ -244,7 +244,7 @@ class Room:
             self.recorder.record_drop(
                 {
                     "kind": "recording-paused",
-                    "updates": self.paused_updates,
+                    "count": self.paused_updates,
                     "first_time": self._paused_since,
                     "last_time": now,
                 },

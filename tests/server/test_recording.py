@@ -216,7 +216,7 @@ def test_paused_recording_skips_pose_updates_and_says_so(tmp_path: Path) -> None
     seqs = [r.seq for r in records if isinstance(r, PoseRecord)]
     assert seqs == list(range(1, 31)) + list(range(56, 76))
     (pause,) = [r for r in records if isinstance(r, DropRecord) and r.kind == "recording-paused"]
-    assert pause.data["updates"] == 25
+    assert pause.data["count"] == 25
     # the server's clock when the pause began and ended (read just after our marks)
     assert paused_at <= pause.data["first_time"] < resumed_at <= pause.data["last_time"]
     assert pause.data["last_time"] - resumed_at < 1.0
@@ -231,7 +231,7 @@ def test_a_room_closed_while_paused_records_the_pause(tmp_path: Path) -> None:
     records = read_records(path2)
     assert [r.seq for r in records if isinstance(r, PoseRecord)] == [1, 2, 3, 4, 5]
     (pause,) = [r for r in records if isinstance(r, DropRecord) and r.kind == "recording-paused"]
-    assert pause.data["updates"] == 7
+    assert pause.data["count"] == 7
 
 
 def test_sigusr1_pauses_and_sigusr2_resumes_a_recording_server(tmp_path: Path) -> None:
