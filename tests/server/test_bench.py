@@ -197,6 +197,19 @@ def test_interleaved_summary_pairs_each_paused_phase_with_its_recording_neighbou
     assert out["pairs"] == 2
     assert out["throughput_loss_pct_pairs"] == pytest.approx([100 * (1 - 10 / 11), 0.0])
     assert out["relay_cpu_us_per_pose_recording"] == pytest.approx(11.5)
+    assert out["quiet_pairs"] == 2 and out["throughput_loss_pct_quiet_mean"] == pytest.approx(
+        np.mean(out["throughput_loss_pct_pairs"])
+    )
+    noisy = _interleaved_summary(
+        [
+            phase(False, 10),
+            phase(True, 11),
+            {**phase(True, 20), "steal_pct": 40.0},
+            phase(False, 10),
+        ]
+    )
+    assert noisy["pairs"] == 2 and noisy["quiet_pairs"] == 1
+    assert noisy["throughput_loss_pct_quiet_mean"] == pytest.approx(100 * (1 - 10 / 11))
     assert out["relay_cpu_us_per_pose_paused"] == pytest.approx((10 + 12 + 9) / 3)
     with pytest.raises(ValueError, match="interleave"):
         run_relay_bench(2, 2, 20.0, 1.0, record=True, interleave=0.2)
