@@ -28,9 +28,9 @@ relay dies, the child sees the pipe close without a stop message, makes what it
 received durable and leaves the ``.part`` for recovery.
 
 Pipe messages (little-endian): ``u8 kind, u32 length, payload``:
-``UPDATE``: ``u16 user, u32 poses, f64 arrival, u64 seq, f64 base time, u8
-velocity variant`` + the update's entries (:data:`protocol.UPDATE_DTYPE` or
-:data:`protocol.UPDATE_VELOCITY_DTYPE` records);
+``UPDATE``: ``u16 user, u32 poses, f64 arrival, u64 seq, f64 base time`` + the
+update's entries (:data:`protocol.UPDATE_DTYPE` or, for the velocity variant,
+:data:`protocol.UPDATE_VELOCITY_DTYPE` records: their size tells which);
 ``RECORD``: ``u8 channel index, i64 log ns, i64 publish ns, u32 poses`` + data;
 ``STOP``: ``f64 end time``. The child's standard output carries JSON lines:
 ``{"event": "ready", "part": ..., "path": ...}`` once the file is open and
@@ -88,11 +88,12 @@ _KIND_UPDATE: Final = 1
 _KIND_RECORD: Final = 2
 _KIND_STOP: Final = 3
 _HEAD: Final = struct.Struct("<BI")
-# head + user, poses, arrival, seq, base time, velocity variant
-_UPDATE: Final = struct.Struct("<BIHIdQdB")
+# head + user, poses, arrival, seq, base time (the entries' size tells their layout)
+_UPDATE: Final = struct.Struct("<BIHIdQd")
 _UPDATE_EXTRA: Final = _UPDATE.size - _HEAD.size
 _UPDATE_PACK: Final = _UPDATE.pack
 _PLAIN_ITEM: Final = UPDATE_DTYPE.itemsize
+_VELOCITY_ITEM: Final = UPDATE_VELOCITY_DTYPE.itemsize
 _RECORD: Final = struct.Struct("<BIBqqI")  # head + channel, log ns, publish ns, poses
 _RECORD_EXTRA: Final = _RECORD.size - _HEAD.size
 _STOP: Final = struct.Struct("<BId")
@@ -289,6 +290,7 @@ class ProcessRecorder(RecordTap):
         if self._closing or self._error is not None:
             return self._refuse(1)
         entries = update.entries
+        n = len(entries)
         body = entries.tobytes()
         b = self._batch
         if not b.records:
@@ -299,17 +301,16 @@ class ProcessRecorder(RecordTap):
                 _KIND_UPDATE,
                 _UPDATE_EXTRA + len(body),
                 user,
-                len(entries),
+                n,
                 arrival,
                 update.seq,
                 update.base_time,
-                entries.itemsize != _PLAIN_ITEM,
             ),
             body,
         )
         b.records += 1
         b.updates += 1
-        b.poses += len(entries)
+        b.poses += n
         b.last = arrival
         if b.records >= self._batch_size:
             self._handoff()
@@ -585,8 +586,8 @@ def _emit(event: Mapping[str, Any]) -> None:
     sys.stdout.flush()
 
 
-#: One update from the pipe: user, poses, arrival, seq, base time, velocity variant, entries.
-_Update = tuple[int, int, float, int, float, int, bytes]
+#: One update from the pipe: user, poses, arrival, seq, base time, entries.
+_Update = tuple[int, int, float, int, float, bytes]
 
 
 def _record_updates(rec: SessionRecorder, updates: list[_Update]) -> None:
@@ -598,15 +599,17 @@ def _record_updates(rec: SessionRecorder, updates: list[_Update]) -> None:
     whose entries do not match its header is refused and counted.
     """
     out: list[tuple[int, int, bytes, int] | None] = [None] * len(updates)
-    groups: dict[tuple[int, int], list[int]] = {}
-    for i, (_user, n, _arrival, _seq, _base, velocity, body) in enumerate(updates):
-        dtype = UPDATE_VELOCITY_DTYPE if velocity else UPDATE_DTYPE
-        if len(body) == n * dtype.itemsize:
-            groups.setdefault((n, velocity), []).append(i)
+    groups: dict[tuple[int, bool], list[int]] = {}
+    for i, (_user, n, _arrival, _seq, _base, body) in enumerate(updates):
+        size = len(body)
+        if size == n * _PLAIN_ITEM:
+            groups.setdefault((n, False), []).append(i)
+        elif size == n * _VELOCITY_ITEM:
+            groups.setdefault((n, True), []).append(i)
     for (n, velocity), idx in groups.items():
         dtype = UPDATE_VELOCITY_DTYPE if velocity else UPDATE_DTYPE
         rows = [updates[i] for i in idx]
-        entries = np.frombuffer(b"".join(r[6] for r in rows), dtype).reshape(len(rows), n)
+        entries = np.frombuffer(b"".join(r[5] for r in rows), dtype).reshape(len(rows), n)
         bases = np.array([r[4] for r in rows])
         caps = entries["dt"].astype(np.float64) + bases[:, None]
         arrivals = np.array([r[2] for r in rows])

@@ -73,9 +73,18 @@ def test_each_bot_receives_every_other_stream(three_bots: list[BotReport]) -> No
 
 
 def test_keyframe_rate_matches_subscription(three_bots: list[BotReport]) -> None:
-    """Bots publishing at 30 Hz and subscribing at 15 Hz receive ~15 new keyframes/s."""
+    """Bots publishing at 30 Hz and subscribing at 15 Hz get every other keyframe.
+
+    The typical gap between the capture times of consecutive new keyframes is
+    1/15 s, and no stream arrives faster than the subscription. (The mean rate
+    alone would depend on how busy the machine is: a stalled loop skips ticks.)
+    """
     for rep in three_bots:
-        assert rep.rate_hz == pytest.approx(15.0, rel=0.1)
+        assert rep.rate_hz <= 15.0 * 1.1
+        for rs in rep.streams.values():
+            gaps = np.diff(np.unique(rs.capture))
+            assert gaps.size > 20
+            assert float(np.median(gaps)) == pytest.approx(1 / 15, rel=0.1)
 
 
 def test_qoe_is_reported_for_every_method_and_class(three_bots: list[BotReport]) -> None:

@@ -178,7 +178,7 @@ def test_bad_records_are_refused_and_counted(tmp_path: Path) -> None:
     assert not rec.record_event({"bad": object()}, T0)
     # An update whose entries do not match its header (the relay never sends
     # one) reaches the child, which refuses and counts it.
-    bad = process._UPDATE.pack(process._KIND_UPDATE, process._UPDATE_EXTRA + 5, 1, 1, T0, 0, T0, 0)
+    bad = process._UPDATE.pack(process._KIND_UPDATE, process._UPDATE_EXTRA + 5, 1, 1, T0, 0, T0)
     rec._batch.parts += (bad, b"short")
     rec._batch.records += 1
     path = rec.close(T0 + 1)
