@@ -1342,7 +1342,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--warmup", type=float, default=5.0)
     parser.add_argument("--ramp-rate", type=float, default=50.0, help="connections per second")
     parser.add_argument(
-        "--record", action="store_true", help="run twice: recorder off, then on (Table 4)"
+        "--record",
+        action="store_true",
+        help="recorder off and on, one round (Table 4); more: posecast bench relay --help",
     )
     parser.add_argument("--json", type=Path, default=None, help="also write the report as JSON")
     args = parser.parse_args(argv)
