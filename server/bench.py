@@ -571,15 +571,6 @@ def _children(pid: int) -> list[int]:
     return kids
 
 
-def _children_cpu(pid: int) -> float:
-    """CPU seconds (user + system) of the live child processes of ``pid`` (its recorders)."""
-    total = 0.0
-    for kid in _children(pid):
-        with contextlib.suppress(OSError, ValueError):  # it ended since the listing
-            total += sum(_proc_cpu(kid))
-    return total
-
-
 def _machine_cpu() -> tuple[float, float, float]:
     """(busy, stolen, total) jiffies of all cores from /proc/stat.
 
@@ -1147,7 +1138,7 @@ def _run_once(
             status.update(f"relay bench: warm-up {warmup:g} s ...")
             _sleep_until(t0)
             status.update(f"relay bench: measuring for {duration:g} s ...")
-            r0 = _children_cpu(server.pid)
+            r0 = _children_run_time(server.pid)
             s0, l0, c0, w0 = (
                 _proc_cpu(server.pid),
                 _proc_cpu(load.pid),
@@ -1159,7 +1150,7 @@ def _run_once(
                 status.update(f"relay bench: measuring for {duration:g} s, recording on/off ...")
                 report["phases"] = _interleaved_phases(server.pid, port, t1, interleave)
             _sleep_until(t1)
-            r1 = _children_cpu(server.pid)
+            r1 = _children_run_time(server.pid)
             s1, l1, c1, w1 = (
                 _proc_cpu(server.pid),
                 _proc_cpu(load.pid),
