@@ -13,7 +13,7 @@
 """
 
 from recorder.format import FormatError, PoseRecord, decode_pose, encode_pose
-from recorder.process import ProcessRecorder, RoomRecorder
+from recorder.process import ProcessRecorder, RecorderHost, RoomRecorder
 from recorder.reader import (
     DropRecord,
     EventRecord,
@@ -49,6 +49,7 @@ __all__ = [
     "ProcessRecorder",
     "Record",
     "RecorderError",
+    "RecorderHost",
     "RecorderStatistics",
     "RecoveryError",
     "RecoveryReport",

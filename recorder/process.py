@@ -1,40 +1,50 @@
-"""A session recorder whose MCAP writer runs in its own process.
+"""Session recorders whose MCAP writers run in one process of their own.
 
 :class:`recorder.writer.SessionRecorder` encodes records on the relay's thread
 and writes them from a thread of the relay's process, so every record costs the
 relay some GIL time (encoding, MCAP framing, compression bookkeeping): about a
 third of a CPU-bound relay's throughput in ``posecast bench relay --record``.
 :class:`ProcessRecorder` has the same relay-facing methods but keeps almost all
-of that work out of the relay's process:
+of that work out of the relay's process, and :class:`RecorderHost` is the one
+writer process a server shares between all its recorded rooms (a room opens in
+milliseconds, and a server recording 100 rooms runs one writer, not 100):
 
 - the relay hands over each pose update as it decoded it
   (:meth:`ProcessRecorder.record_pose_update`: the update's sequence number,
   base time and entries' bytes, packed behind a small header; two list
   appends), and the few JSON records (presence, events, drops) already encoded;
-- at most every ``batch_delay`` s (the room tick calls :meth:`poll`) or every
-  ``batch_size`` records the batch is joined into one blob and written into a
-  non-blocking pipe (1 MiB) by the relay's own thread: one system call, no
-  thread hand-off (a feeder thread woken per batch cost the relay far more
-  than the writing); what the pipe cannot take yet waits, bounded;
-- a child process (:func:`main` here) reads the pipe, encodes the updates in
-  groups of the same shape and records them with a :class:`SessionRecorder` of its own (same
-  file layout, chunking, fsync schedule, ``.part`` and rename).
+- at most every ``batch_delay`` s (the room tick calls :meth:`ProcessRecorder.poll`)
+  or every ``batch_size`` records a room's batch is joined into one blob and
+  written into the host's non-blocking pipe (1 MiB) by the relay's own thread:
+  one system call, no thread hand-off (a feeder thread woken per batch cost the
+  relay far more than the writing); what the pipe cannot take yet waits, bounded
+  per room;
+- the host's child process (:func:`main` here) reads the pipe, encodes each
+  room's updates in groups of the same shape and records them with one
+  :class:`SessionRecorder` per room (same file layout, chunking, fsync schedule,
+  ``.part`` and rename).
 
-Nothing is silent: when more than ``queue_size`` records wait (the child or its
-disk cannot keep up and the pipe is full) a batch is lost, counted and the loss
-recorded in the file as a ``recorder-queue-overflow`` drops record, as the
-thread recorder does. If the
-relay dies, the child sees the pipe close without a stop message, makes what it
-received durable and leaves the ``.part`` for recovery.
+Nothing is silent: when more than ``queue_size`` of a room's records wait (the
+child or its disk cannot keep up and the pipe is full) a batch of that room is
+lost, counted and the loss recorded in its file as a ``recorder-queue-overflow``
+drops record, as the thread recorder does. If the relay dies, the child sees the
+pipe close without the rooms' stops, makes what it received durable and leaves
+every open room's ``.part`` for recovery. If the child dies, every room it was
+recording fails (the relay goes on, the ``.part`` files stay) and the server
+starts a new host for the rooms opened after that.
 
-Pipe messages (little-endian): ``u8 kind, u32 length, payload``:
-``UPDATE``: ``u16 user, u32 poses, f64 arrival, u64 seq, f64 base time`` + the
-update's entries (:data:`protocol.UPDATE_DTYPE` or, for the velocity variant,
+Pipe frames (little-endian): ``u8 kind, u32 length, u32 room id`` + payload:
+``OPEN``: the room's configuration as JSON; ``BATCH``: messages of that room,
+each ``u8 kind, u32 length, payload``: ``UPDATE``: ``u16 user, u32 poses, f64
+arrival, u64 seq, f64 base time`` + the update's entries
+(:data:`protocol.UPDATE_DTYPE` or, for the velocity variant,
 :data:`protocol.UPDATE_VELOCITY_DTYPE` records: their size tells which);
 ``RECORD``: ``u8 channel index, i64 log ns, i64 publish ns, u32 poses`` + data;
-``STOP``: ``f64 end time``. The child's standard output carries JSON lines:
-``{"event": "ready", "part": ..., "path": ...}`` once the file is open and
-``{"event": "closed", "statistics": {...}}`` at the end.
+``STOP``: ``f64 end time`` (the room's last message). The child's standard
+output carries JSON lines, each with the room id: ``{"event": "ready", "room":
+id, "part": ..., "path": ...}`` once the room's file is open, ``{"event":
+"closed", "room": id, "statistics": {...}}`` at its end and ``{"event":
+"error", "room": id, "error": ...}`` (room ``null``: the whole process).
 """
 
 from __future__ import annotations
@@ -42,9 +52,11 @@ from __future__ import annotations
 import collections
 import contextlib
 import fcntl
+import itertools
 import json
 import logging
 import os
+import queue
 import select
 import signal
 import struct
@@ -55,7 +67,7 @@ import time as _time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import IO, Any, Final
+from typing import Any, Final
 
 import numpy as np
 
@@ -80,10 +92,16 @@ from recorder.writer import (
     SessionRecorder,
 )
 
-__all__ = ["ProcessRecorder", "RoomRecorder"]
+__all__ = ["ProcessRecorder", "RecorderHost", "RoomRecorder"]
 
 log = logging.getLogger("posecast.recorder")
 
+# Frames of the pipe: kind, length, room id.
+_FRAME_OPEN: Final = 1
+_FRAME_BATCH: Final = 2
+_FRAME: Final = struct.Struct("<BII")
+_FRAME_EXTRA: Final = _FRAME.size - 5  # the room id counts in the length
+# Messages inside a batch.
 _KIND_UPDATE: Final = 1
 _KIND_RECORD: Final = 2
 _KIND_STOP: Final = 3
@@ -99,18 +117,22 @@ _RECORD_EXTRA: Final = _RECORD.size - _HEAD.size
 _STOP: Final = struct.Struct("<BId")
 _TOPICS: Final = [spec.topic for spec in CHANNELS]
 _CHANNEL_INDEX: Final = {topic: i for i, topic in enumerate(_TOPICS)}
-#: Seconds to wait for the child to open the file, and to finish it on close.
+#: Seconds to wait for the child to open a room's file, and to finish it on close.
 _START_TIMEOUT: Final = 60.0
 _CLOSE_TIMEOUT: Final = 120.0
 #: Linux's fcntl to resize a pipe (Python 3.11's fcntl lacks the name), and the size asked.
 _F_SETPIPE_SZ: Final = getattr(fcntl, "F_SETPIPE_SZ", 1031)
 _PIPE_BYTES: Final = 1 << 20
 _CHILD_BOOT: Final = "import sys; from recorder.process import main; sys.exit(main())"
-#: The child's own hand-off to its writer thread: records per batch, seconds at most.
+#: The child's own hand-off to a room's writer thread: records per batch, seconds at most.
 _CHILD_BATCH: Final = 256
 _CHILD_BATCH_DELAY: Final = 0.05
 #: Niceness the writer process adds to its own (a lower CPU priority than the relay's).
 _CHILD_NICE: Final = 10
+#: The child's exit codes: all rooms finished; a room or the pipe was bad; the relay vanished.
+EXIT_OK: Final = 0
+EXIT_ERROR: Final = 1
+EXIT_RELAY_GONE: Final = 2
 
 Clock = Callable[[], float]
 
@@ -151,65 +173,79 @@ class _Loss:
             topics[k] = topics.get(k, 0) + v
 
 
-class ProcessRecorder(RecordTap):
-    """Records one room's session from a child process; see the module docstring.
+def _frame(kind: int, room: int, payload_size: int) -> bytes:
+    return _FRAME.pack(kind, _FRAME_EXTRA + payload_size, room)
 
-    Make one with :meth:`open`; the relay-facing methods match
-    :class:`SessionRecorder` (``record_*`` return ``True`` if the record was
-    taken, ``False`` if it was lost or refused, always counted).
+
+class RecorderHost:
+    """One writer process that records any number of rooms; see the module docstring.
+
+    Start it with :meth:`start` (blocks for the child's start-up: run it off the
+    event loop), open rooms with :meth:`open_room`, and :meth:`close` it once its
+    rooms are closed. Thread-safe: rooms open and close from worker threads while
+    the relay's thread feeds the others.
     """
 
-    def __init__(
-        self,
-        proc: subprocess.Popen[bytes],
-        part_path: Path,
-        final_path: Path,
-        *,
-        clock: Clock,
-        queue_size: int,
-        batch_size: int,
-        batch_delay: float,
-    ) -> None:
+    def __init__(self, proc: subprocess.Popen[bytes]) -> None:
         self._proc = proc
-        self.part_path = part_path
-        self.path = final_path
-        self._clock = clock
-        self._batch_size = max(1, batch_size)
-        self._batch_delay = batch_delay
-        # The pipe is written without blocking, from the relay's own thread: no
-        # thread hand-off (which cost the relay more than the writing itself).
-        # What the pipe cannot take now waits in ``_pending``, at most
-        # ``queue_size`` records; beyond that a batch is lost and the loss recorded.
-        assert proc.stdin is not None
+        assert proc.stdin is not None and proc.stdout is not None
+        # The pipe is written without blocking, from the relay's own thread.
         self._fd = proc.stdin.fileno()
         os.set_blocking(self._fd, False)
         with contextlib.suppress(OSError):  # a bigger pipe: seconds of records in flight
             fcntl.fcntl(self._fd, _F_SETPIPE_SZ, _PIPE_BYTES)
-        self._bound = max(1, queue_size)
-        self._pending: collections.deque[list[Any]] = collections.deque()  # [view, records]
-        self._pending_records = 0
+        #: Guards the pipe, the pending blobs and every room handle's counters.
+        self.lock = threading.Lock()
+        # [view, records, handle or None]: blobs not yet (fully) in the pipe, in order.
+        self._pending: collections.deque[list[Any]] = collections.deque()
         self._held = False
-        self._lock = threading.Lock()
-        self._batch = _Batch()
-        self._loss = _Loss()
-        self._loss_topics: dict[str, int] = {}
-        self._closing = False
-        self._closed = False
         self._error: str | None = None
-        self._final: dict[str, Any] | None = None
-        self._offered = 0
-        self._queue_drops = 0
-        self._queue_drop_poses = 0
-        self._loss_records = 0
-        self._rejected = 0
-        self._high_water = 0
-        self._checked = _time.monotonic()
-
-    # -- opening ---------------------------------------------------------------------
+        self._ids = itertools.count(1)
+        self._rooms: dict[int, ProcessRecorder] = {}
+        self._replies: dict[int, queue.SimpleQueue[dict[str, Any] | None]] = {}
+        self._eof = False
+        self._closed = False
+        self._reader = threading.Thread(
+            target=self._read_events, name=f"recorder-host-{proc.pid}", daemon=True
+        )
+        self._reader.start()
 
     @classmethod
-    def open(
-        cls,
+    def start(cls) -> RecorderHost:
+        """Start the writer process (a fraction of a second: its Python start-up)."""
+        env = dict(os.environ)
+        # The child imports this package the way the parent did.
+        root = str(Path(__file__).resolve().parent.parent)
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
+        proc = subprocess.Popen(
+            [sys.executable, "-c", _CHILD_BOOT],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            env=env,
+        )
+        return cls(proc)
+
+    # -- state -------------------------------------------------------------------------
+
+    @property
+    def pid(self) -> int:
+        return self._proc.pid
+
+    @property
+    def alive(self) -> bool:
+        """True while the child runs and the pipe to it works."""
+        return self._error is None and not self._closed and self._proc.poll() is None
+
+    @property
+    def rooms(self) -> int:
+        """Rooms opened on this host and not closed yet."""
+        with self.lock:
+            return len(self._rooms)
+
+    # -- rooms -------------------------------------------------------------------------
+
+    def open_room(
+        self,
         directory: str | os.PathLike[str],
         room: str,
         *,
@@ -223,12 +259,13 @@ class ProcessRecorder(RecordTap):
         metadata: Mapping[str, str] | None = None,
         batch_size: int = 256,
         batch_delay: float = 0.05,
+        timeout: float = _START_TIMEOUT,
     ) -> ProcessRecorder:
-        """Start the writer process; return once it has created ``NAME.mcap.part``.
+        """Open room ``room``'s recording; return once the child created its ``.part``.
 
-        Blocks for the child's start-up (a fraction of a second; run it off the
-        event loop). Arguments as for :meth:`SessionRecorder.open`; the child's
-        own queue is ``queue_size`` records as well.
+        Blocks for a round trip to the child (run it off the event loop).
+        Arguments as for :meth:`SessionRecorder.open`. Raises
+        :class:`RecorderError` if the child cannot open the file or is gone.
         """
         if queue_size < 1:
             raise ValueError("queue_size must be at least 1")
@@ -246,35 +283,31 @@ class ProcessRecorder(RecordTap):
             "chunk_bytes": chunk_bytes,
             "metadata": dict(metadata or {}),
         }
-        env = dict(os.environ)
-        # The child imports this package the way the parent did.
-        root = str(Path(__file__).resolve().parent.parent)
-        env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
-        proc = subprocess.Popen(
-            [sys.executable, "-c", _CHILD_BOOT, json.dumps(config)],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            env=env,
-        )
-        assert proc.stdout is not None
-        try:
-            ready = _read_event(proc, proc.stdout, _START_TIMEOUT)
-            if ready is None or ready.get("event") != "ready":
+        payload = json.dumps(config).encode()
+        replies: queue.SimpleQueue[dict[str, Any] | None] = queue.SimpleQueue()
+        with self.lock:
+            if self._eof or self._closed or self._error is not None:
                 raise RecorderError(
-                    f"the recorder process did not start (exit code {proc.poll()}): "
-                    f"{(ready or {}).get('error', 'see its log')}"
+                    f"the recorder process is not running ({self._error or 'it ended'})"
                 )
-        except BaseException:
-            with contextlib.suppress(Exception):
-                proc.kill()
-                proc.wait(5)
-            for pipe in (proc.stdin, proc.stdout):
-                with contextlib.suppress(Exception):
-                    if pipe is not None:
-                        pipe.close()
-            raise
-        return cls(
-            proc,
+            room_id = next(self._ids)
+            self._replies[room_id] = replies
+            self._pending.append(
+                [memoryview(_frame(_FRAME_OPEN, room_id, len(payload)) + payload), 0, None]
+            )
+        self.drain(block=True)
+        try:
+            ready = replies.get(timeout=timeout)
+        except queue.Empty:
+            ready = None
+        if ready is None or ready.get("event") != "ready":
+            with self.lock:
+                self._replies.pop(room_id, None)
+            detail = (ready or {}).get("error") or self._error or f"exit code {self._proc.poll()}"
+            raise RecorderError(f"the recorder process did not start room {room!r}: {detail}")
+        handle = ProcessRecorder(
+            self,
+            room_id,
             Path(ready["part"]),
             Path(ready["path"]),
             clock=clock,
@@ -282,6 +315,251 @@ class ProcessRecorder(RecordTap):
             batch_size=batch_size,
             batch_delay=batch_delay,
         )
+        with self.lock:
+            self._rooms[room_id] = handle
+        return handle
+
+    def _finished(self, room_id: int, timeout: float | None) -> dict[str, Any] | None:
+        """The room's ``closed`` (or ``error``) reply, and forget the room.
+
+        ``None`` if the child is gone or did not answer within ``timeout``
+        (``None``: take only a reply already there).
+        """
+        with self.lock:
+            replies = self._replies.get(room_id)
+        try:
+            if replies is None:
+                return None
+            if timeout is None:
+                return replies.get_nowait()
+            return replies.get(timeout=timeout)
+        except queue.Empty:
+            return None
+        finally:
+            with self.lock:
+                self._replies.pop(room_id, None)
+                self._rooms.pop(room_id, None)
+
+    # -- the pipe: never blocks the relay ----------------------------------------------
+
+    def _push(self, handle: ProcessRecorder | None, data: bytes, records: int) -> None:
+        """Queue one blob (under :attr:`lock`)."""
+        self._pending.append([memoryview(data), records, handle])
+        if handle is not None:
+            handle._pending_records += records
+
+    def drain(self, block: bool = False) -> None:
+        """Write pending blobs into the pipe until it is full (or all, with ``block``).
+
+        The lock is never held while waiting for the pipe, so the relay's thread
+        goes on feeding other rooms while a closing room waits here.
+        """
+        while True:
+            with self.lock:
+                if self._held and not block:
+                    return
+                if self._write_locked():
+                    return
+                if not block:
+                    return
+            select.select([], [self._fd], [], 1.0)
+
+    def _write_locked(self) -> bool:
+        """Write what the pipe takes now; True once nothing is pending (or it failed)."""
+        pending = self._pending
+        while pending:
+            entry = pending[0]
+            view: memoryview = entry[0]
+            try:
+                written = os.write(self._fd, view)
+            except BlockingIOError:
+                return False
+            except OSError as exc:  # the child died: its .part files stay for recovery
+                self._fail_locked(f"the recorder process stopped taking records ({exc})")
+                return True
+            if written < len(view):
+                entry[0] = view[written:]
+                continue
+            pending.popleft()
+            handle = entry[2]
+            if handle is not None:
+                handle._pending_records -= entry[1]
+        return True
+
+    def hold(self) -> None:
+        """Stop feeding the child (tests: a stalled writer); records wait, up to each bound."""
+        self._held = True
+
+    def release(self) -> None:
+        """Resume feeding after :meth:`hold`."""
+        self._held = False
+        self.drain()
+
+    def check(self) -> None:
+        """Fail every room if the child has exited (the rooms call it once a second)."""
+        if self._error is None and not self._closed and self._proc.poll() is not None:
+            with self.lock:
+                self._fail_locked(f"the recorder process exited with code {self._proc.returncode}")
+
+    def _fail_locked(self, message: str) -> None:
+        if self._error is None:
+            self._error = message
+            log.error("%s; the rooms' .part files are kept for recovery", message)
+        for handle in self._rooms.values():
+            handle._fail_locked(message)
+        for entry in self._pending:
+            if entry[2] is not None:
+                entry[2]._pending_records -= entry[1]
+        self._pending.clear()
+
+    # -- the child's replies -----------------------------------------------------------
+
+    def _read_events(self) -> None:
+        """Dispatch the child's JSON lines to the rooms waiting for them (a thread)."""
+        stream = self._proc.stdout
+        assert stream is not None
+        try:
+            for line in stream:
+                try:
+                    event: dict[str, Any] = json.loads(line)
+                except ValueError:
+                    log.error("recorder process: unreadable reply %r", line[:200])
+                    continue
+                self._dispatch(event)
+        except (OSError, ValueError):  # the stream was closed under us
+            pass
+        with self.lock:
+            self._eof = True
+            for replies in self._replies.values():
+                replies.put(None)
+            if self._rooms:
+                self._fail_locked("the recorder process ended while rooms were recording")
+
+    def _dispatch(self, event: dict[str, Any]) -> None:
+        room_id = event.get("room")
+        with self.lock:
+            if room_id is None:
+                self._fail_locked(f"the recorder process failed: {event.get('error')}")
+                return
+            if event.get("event") == "error" and room_id in self._rooms:
+                self._rooms[room_id]._fail_locked(str(event.get("error")))
+            replies = self._replies.get(room_id)
+        if replies is not None:
+            replies.put(event)
+
+    # -- closing -----------------------------------------------------------------------
+
+    def close(self, timeout: float = _CLOSE_TIMEOUT) -> int:
+        """Close the pipe and wait for the child; its exit code.
+
+        Rooms still open are not finished: their ``.part`` files stay for
+        recovery (close the rooms first).
+        """
+        if not self._closed:
+            with contextlib.suppress(Exception):
+                self.drain(block=self._error is None)
+            self._closed = True
+            with contextlib.suppress(OSError):
+                assert self._proc.stdin is not None
+                self._proc.stdin.close()
+        try:
+            code = self._proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+            code = self._proc.wait()
+        self._reader.join(timeout)
+        with contextlib.suppress(OSError):
+            assert self._proc.stdout is not None
+            self._proc.stdout.close()
+        return code
+
+    def __enter__(self) -> RecorderHost:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class ProcessRecorder(RecordTap):
+    """Records one room's session through a :class:`RecorderHost`; see the module docstring.
+
+    :meth:`RecorderHost.open_room` makes one on a shared host; :meth:`open`
+    starts a host of its own (closed with the room). The relay-facing methods
+    match :class:`SessionRecorder` (``record_*`` return ``True`` if the record
+    was taken, ``False`` if it was lost or refused, always counted).
+    """
+
+    def __init__(
+        self,
+        host: RecorderHost,
+        room_id: int,
+        part_path: Path,
+        final_path: Path,
+        *,
+        clock: Clock,
+        queue_size: int,
+        batch_size: int,
+        batch_delay: float,
+        owns_host: bool = False,
+    ) -> None:
+        self._host = host
+        self._id = room_id
+        self._owns_host = owns_host
+        self.part_path = part_path
+        self.path = final_path
+        self._clock = clock
+        self._batch_size = max(1, batch_size)
+        self._batch_delay = batch_delay
+        # At most ``queue_size`` of this room's records wait for the pipe;
+        # beyond that a batch is lost and the loss recorded.
+        self._bound = max(1, queue_size)
+        self._pending_records = 0
+        self._lock = host.lock
+        self._batch = _Batch()
+        self._loss = _Loss()
+        self._loss_topics: dict[str, int] = {}
+        self._closing = False
+        self._closed = False
+        self._error: str | None = None
+        self._final: dict[str, Any] | None = None
+        self._offered = 0
+        self._queue_drops = 0
+        self._queue_drop_poses = 0
+        self._loss_records = 0
+        self._rejected = 0
+        self._high_water = 0
+        self._checked = _time.monotonic()
+
+    @classmethod
+    def open(
+        cls,
+        directory: str | os.PathLike[str],
+        room: str,
+        **options: Any,
+    ) -> ProcessRecorder:
+        """Start a writer process for this room alone; return once its ``.part`` exists.
+
+        Blocks for the child's start-up (a fraction of a second; run it off the
+        event loop). Arguments as for :meth:`RecorderHost.open_room`.
+        """
+        host = RecorderHost.start()
+        try:
+            rec = host.open_room(directory, room, **options)
+        except BaseException:
+            with contextlib.suppress(Exception):
+                host.close(5.0)
+            raise
+        rec._owns_host = True
+        return rec
+
+    @property
+    def host(self) -> RecorderHost:
+        return self._host
+
+    @property
+    def _proc(self) -> subprocess.Popen[bytes]:
+        """The writer process (shared with the host's other rooms)."""
+        return self._host._proc
 
     # -- the relay's side: never blocks ----------------------------------------------
 
@@ -355,12 +633,12 @@ class ProcessRecorder(RecordTap):
         now = _time.monotonic()
         if b.records and now - b.since >= self._batch_delay:
             self._handoff()
-        elif self._pending:
-            self._drain()
+        elif self._host._pending:
+            self._host.drain()
         if now - self._checked >= 1.0:
             self._checked = now
-            if self._error is None and not self._closing and self._proc.poll() is not None:
-                self._fail(f"the recorder process exited with code {self._proc.returncode}")
+            if self._error is None and not self._closing:
+                self._host.check()
 
     def _handoff(self) -> None:
         batch, self._batch = self._batch, _Batch()
@@ -368,60 +646,32 @@ class ProcessRecorder(RecordTap):
             self._enqueue(batch)
 
     def _enqueue(self, batch: _Batch) -> bool:
-        blob = b"".join(batch.parts)
+        parts = batch.parts
         batch.parts = []
+        host = self._host
         with self._lock:
             if self._error is not None:
                 self._rejected += batch.records
                 return False
-            if self._pending and self._pending_records + batch.records > self._bound:
+            if self._pending_records and self._pending_records + batch.records > self._bound:
                 self._loss.add(batch, self._loss_topics)
                 self._queue_drops += batch.records
                 self._queue_drop_poses += batch.poses
                 return False
             if self._loss.records:
-                self._push(self._loss_blob(), 0)
+                parts.insert(0, self._loss_message())
                 self._loss_records += 1
                 self._loss = _Loss()
                 self._loss_topics = {}
-            self._push(blob, batch.records)
+            size = sum(map(len, parts))
+            parts.insert(0, _frame(_FRAME_BATCH, self._id, size))
+            host._push(self, b"".join(parts), batch.records)
             self._offered += batch.records
             self._high_water = max(self._high_water, self._pending_records)
-        self._drain()
+        host.drain()
         return True
 
-    def _push(self, data: bytes, records: int) -> None:
-        self._pending.append([memoryview(data), records])
-        self._pending_records += records
-
-    def _drain(self, block: bool = False) -> None:
-        """Write pending blobs into the pipe until it is full (or all, with ``block``)."""
-        with self._lock:
-            if self._held and not block:
-                return
-            pending = self._pending
-            while pending:
-                entry = pending[0]
-                view: memoryview = entry[0]
-                try:
-                    written = os.write(self._fd, view)
-                except BlockingIOError:
-                    if not block:
-                        return
-                    select.select([], [self._fd], [], 1.0)
-                    continue
-                except OSError as exc:  # the child died: its .part stays for recovery
-                    self._fail_locked(f"the recorder process stopped taking records ({exc})")
-                    pending.clear()
-                    self._pending_records = 0
-                    return
-                if written < len(view):
-                    entry[0] = view[written:]
-                    continue
-                pending.popleft()
-                self._pending_records -= entry[1]
-
-    def _loss_blob(self) -> bytes:
+    def _loss_message(self) -> bytes:
         loss = self._loss
         record = {
             "kind": QUEUE_OVERFLOW_KIND,
@@ -439,6 +689,10 @@ class ProcessRecorder(RecordTap):
         )
         return head + data
 
+    def _drain(self, block: bool = False) -> None:
+        """Write the host's pending blobs into the pipe (see :meth:`RecorderHost.drain`)."""
+        self._host.drain(block)
+
     def _fail(self, message: str) -> None:
         with self._lock:
             self._fail_locked(message)
@@ -451,14 +705,13 @@ class ProcessRecorder(RecordTap):
     # -- control -----------------------------------------------------------------------
 
     def hold(self, timeout: float = 10.0) -> None:
-        """Stop feeding the child (tests: a stalled writer); records then wait, up to the bound."""
+        """Stop feeding the host's child (tests: a stalled writer); records then wait."""
         del timeout
-        self._held = True
+        self._host.hold()
 
     def release(self) -> None:
         """Resume feeding after :meth:`hold`."""
-        self._held = False
-        self._drain()
+        self._host.release()
 
     def close(self, time: float | None = None) -> Path:
         """Send what is waiting and a stop; wait for the child to finish and rename.
@@ -466,36 +719,40 @@ class ProcessRecorder(RecordTap):
         Blocks (use :meth:`aclose` from the event loop). Raises
         :class:`RecorderError` if the child failed, keeping the ``.part``.
         """
+        host = self._host
         if not self._closing:
             end = self._clock() if time is None else time
             self._handoff()
+            stop = _STOP.pack(_KIND_STOP, 8, end)
             with self._lock:
                 self._closing = True
+                parts = [stop]
                 if self._loss.records:
-                    self._push(self._loss_blob(), 0)
+                    parts.insert(0, self._loss_message())
                     self._loss_records += 1
                     self._loss = _Loss()
-                self._push(_STOP.pack(_KIND_STOP, 8, end), 0)
-            self._held = False
-            self._drain(block=True)
-        proc = self._proc
-        assert proc.stdin is not None and proc.stdout is not None
-        with contextlib.suppress(OSError):
-            proc.stdin.close()
-        closed = _read_event(proc, proc.stdout, _CLOSE_TIMEOUT)
-        try:
-            code = proc.wait(_CLOSE_TIMEOUT)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            code = proc.wait()
-        with contextlib.suppress(OSError):
-            proc.stdout.close()
+                size = sum(map(len, parts))
+                if self._error is None:
+                    host._push(self, _frame(_FRAME_BATCH, self._id, size) + b"".join(parts), 0)
+            host._held = False
+            host.drain(block=True)
+        # A failed room gets no reply; its entries on the host go all the same.
+        closed = host._finished(self._id, _CLOSE_TIMEOUT if self._error is None else None)
+        code = host.close() if self._owns_host else None
         self._closed = True
         if closed is not None and closed.get("event") == "closed":
             self._final = closed.get("statistics")
-        if code != 0 or self._final is None or (self._final or {}).get("error"):
-            detail = (closed or {}).get("error") or (self._final or {}).get("error") or self._error
-            self._fail(f"exit code {code}: {detail}")
+        final = self._final or {}
+        if (
+            closed is None
+            or closed.get("event") != "closed"
+            or closed.get("error")
+            or final.get("error")
+        ):
+            detail = (closed or {}).get("error") or final.get("error") or self._error
+            if code not in (None, 0):
+                detail = f"{detail} (exit code {code})"
+            self._fail(str(detail or "no reply from the recorder process"))
             raise RecorderError(
                 f"recording failed ({self._error}); partial file kept at {self.part_path}"
             )
@@ -549,41 +806,15 @@ class ProcessRecorder(RecordTap):
 RoomRecorder = SessionRecorder | ProcessRecorder
 
 
-def _read_event(
-    proc: subprocess.Popen[bytes], stream: IO[bytes], timeout: float
-) -> dict[str, Any] | None:
-    """The child's next JSON line, or ``None`` if it closed its output or timed out."""
-    deadline = _time.monotonic() + timeout
-    fd = stream.fileno()
-    buf = b""
-    while True:
-        left = deadline - _time.monotonic()
-        if left <= 0:
-            return None
-        ready, _, _ = select.select([fd], [], [], min(left, 0.5))
-        if not ready:
-            if proc.poll() is not None:
-                return None
-            continue
-        chunk = os.read(fd, 65536)
-        if not chunk:
-            return None
-        buf += chunk
-        if b"\n" in buf:
-            line = buf.split(b"\n", 1)[0]
-            try:
-                event: dict[str, Any] = json.loads(line)
-            except ValueError:
-                return None
-            return event
-
-
 # -- the child process -------------------------------------------------------------------
+
+_emit_lock = threading.Lock()
 
 
 def _emit(event: Mapping[str, Any]) -> None:
-    sys.stdout.write(json.dumps(event) + "\n")
-    sys.stdout.flush()
+    with _emit_lock:
+        sys.stdout.write(json.dumps(event) + "\n")
+        sys.stdout.flush()
 
 
 #: One update from the pipe: user, poses, arrival, seq, base time, entries.
@@ -637,65 +868,44 @@ def _record_updates(rec: SessionRecorder, updates: list[_Update]) -> None:
     rec.offer_encoded_many(POSES_TOPIC, encoded)
 
 
-def _pump(rec: SessionRecorder, fd: int) -> float | None:
-    """Record what comes through the pipe; the stop's end time, or ``None`` at its end."""
-    buf = bytearray()
+def _record_batch(rec: SessionRecorder, body: bytearray, at: int, end: int) -> float | None:
+    """Record a room's batch, ``body[at:end]``; the stop's end time if it ends the room."""
     head_size = _HEAD.size
     update_at, record_at = _UPDATE.size, _RECORD.size
     updates: list[_Update] = []
-    while True:
-        # Everything read goes to the writer thread at once (below), so this
-        # process wakes only when the relay writes (every 0.25 s a room) or,
-        # idle, once a second.
-        ready, _, _ = select.select([fd], [], [], 1.0)
-        if ready:
-            chunk = os.read(fd, 1 << 20)
-            if not chunk:
-                return None
-            buf += chunk
-            at = 0
-            end = len(buf)
-            while end - at >= head_size:
-                kind, length = _HEAD.unpack_from(buf, at)
-                stop = at + head_size + length
-                if stop > end:
-                    break
-                if kind == _KIND_UPDATE:
-                    head = _UPDATE.unpack_from(buf, at)
-                    updates.append((*head[2:], bytes(buf[at + update_at : stop])))
-                else:
-                    # Keep the file's record order: the updates before this record first.
-                    if updates:
-                        _record_updates(rec, updates)
-                        updates = []
-                    if kind == _KIND_RECORD:
-                        _k, _n, channel, log_ns, pub_ns, poses = _RECORD.unpack_from(buf, at)
-                        data = bytes(buf[at + record_at : stop])
-                        rec.offer_encoded(_TOPICS[channel], log_ns, pub_ns, data, poses)
-                    elif kind == _KIND_STOP:
-                        return float(_STOP.unpack_from(buf, at)[2])
-                    else:
-                        raise ValueError(f"unknown pipe message kind {kind}")
-                at = stop
-            del buf[:at]
+    stop: float | None = None
+    while at < end:
+        if end - at < head_size:
+            raise ValueError("a batch ends inside a message header")
+        kind, length = _HEAD.unpack_from(body, at)
+        nxt = at + head_size + length
+        if nxt > end:
+            raise ValueError("a message runs past the end of its batch")
+        if kind == _KIND_UPDATE:
+            if nxt - at < update_at:
+                raise ValueError("an update message is shorter than its header")
+            head = _UPDATE.unpack_from(body, at)
+            updates.append((*head[2:], bytes(body[at + update_at : nxt])))
+        else:
+            # Keep the file's record order: the updates before this record first.
             if updates:
                 _record_updates(rec, updates)
                 updates = []
-            rec.hand_off()
-        rec.poll()
+            if kind == _KIND_RECORD:
+                _k, _n, channel, log_ns, pub_ns, poses = _RECORD.unpack_from(body, at)
+                data = bytes(body[at + record_at : nxt])
+                rec.offer_encoded(_TOPICS[channel], log_ns, pub_ns, data, poses)
+            elif kind == _KIND_STOP:
+                stop = float(_STOP.unpack_from(body, at)[2])
+            else:
+                raise ValueError(f"unknown message kind {kind}")
+        at = nxt
+    if updates:
+        _record_updates(rec, updates)
+    return stop
 
 
-def _child(config: Mapping[str, Any]) -> int:
-    """Read the pipe until a stop (finish the file) or its end (keep the ``.part``)."""
-    # Ctrl-C in a terminal signals the whole process group: the relay decides
-    # when the session ends, by a stop message or by closing the pipe.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    # A background job beside a real-time relay: when the cores are contended the
-    # scheduler runs the relay (and its clients) first; the writer has a second of
-    # slack (the fsync schedule), and if it ever falls behind, losses are recorded.
-    with contextlib.suppress(OSError):
-        os.nice(_CHILD_NICE)
+def _open_room(room_id: int, config: Mapping[str, Any]) -> SessionRecorder | None:
     start, start_wall = float(config["start"]), float(config["start_wall"])
     try:
         rec = SessionRecorder.open(
@@ -714,36 +924,106 @@ def _child(config: Mapping[str, Any]) -> int:
             batch_delay=_CHILD_BATCH_DELAY,
         )
     except Exception as exc:
-        _emit({"event": "error", "error": repr(exc)})
-        return 1
-    _emit({"event": "ready", "part": str(rec.part_path), "path": str(rec.path)})
-    try:
-        end = _pump(rec, sys.stdin.buffer.fileno())
-    except ValueError as exc:
-        _emit({"event": "error", "error": str(exc)})
-        rec.abandon()
-        return 1
-    if end is None:
-        # The relay vanished (crash, SIGKILL): make what arrived durable, keep the .part.
-        rec.abandon()
-        log.warning("recorder: the relay went away; %s kept for recovery", rec.part_path)
-        return 2
+        _emit({"event": "error", "room": room_id, "error": repr(exc)})
+        return None
+    _emit({"event": "ready", "room": room_id, "part": str(rec.part_path), "path": str(rec.path)})
+    return rec
+
+
+def _close_room(room_id: int, rec: SessionRecorder, end: float) -> bool:
     try:
         rec.close(end)
     except RecorderError as exc:
-        _emit({"event": "closed", "statistics": asdict(rec.statistics()), "error": str(exc)})
-        return 1
-    _emit({"event": "closed", "statistics": asdict(rec.statistics())})
-    return 0
+        statistics = asdict(rec.statistics())
+        _emit({"event": "closed", "room": room_id, "statistics": statistics, "error": str(exc)})
+        return False
+    _emit({"event": "closed", "room": room_id, "statistics": asdict(rec.statistics())})
+    return True
+
+
+def _serve(fd: int) -> int:
+    """Record every room the pipe opens until the pipe ends; the exit code."""
+    rooms: dict[int, SessionRecorder] = {}
+    failed = False
+    buf = bytearray()
+    frame_size = _FRAME.size
+    while True:
+        # Everything read goes to the rooms' writer threads at once (below), so
+        # this process wakes only when the relay writes (every 0.25 s a room) or,
+        # idle, once a second.
+        ready, _, _ = select.select([fd], [], [], 1.0)
+        if ready:
+            chunk = os.read(fd, 1 << 20)
+            if not chunk:
+                break
+            buf += chunk
+            at, end = 0, len(buf)
+            touched: set[int] = set()
+            while end - at >= frame_size:
+                kind, length, room_id = _FRAME.unpack_from(buf, at)
+                start, nxt = at + frame_size, at + 5 + length
+                if nxt > end:
+                    break
+                at = nxt
+                if kind == _FRAME_OPEN:
+                    rec = _open_room(room_id, json.loads(bytes(buf[start:nxt])))
+                    if rec is not None:
+                        rooms[room_id] = rec
+                    continue
+                if kind != _FRAME_BATCH or nxt < start:
+                    # The stream itself is corrupt: nothing after this can be trusted.
+                    _emit({"event": "error", "room": None, "error": f"bad frame {kind}"})
+                    for rec in rooms.values():
+                        rec.abandon()
+                    return EXIT_ERROR
+                rec = rooms.get(room_id)
+                if rec is None:
+                    continue  # a room whose file could not be opened, or that failed
+                try:
+                    stop = _record_batch(rec, buf, start, nxt)
+                except (ValueError, IndexError, struct.error) as exc:
+                    _emit({"event": "error", "room": room_id, "error": str(exc)})
+                    rec.abandon()
+                    del rooms[room_id]
+                    failed = True
+                    continue
+                if stop is None:
+                    touched.add(room_id)
+                else:
+                    del rooms[room_id]
+                    touched.discard(room_id)
+                    failed = not _close_room(room_id, rec, stop) or failed
+            del buf[:at]
+            for room_id in touched:
+                rooms[room_id].hand_off()
+        for rec in rooms.values():
+            rec.poll()
+    if rooms:
+        # The relay vanished (crash, SIGKILL): make what arrived durable, keep the .part files.
+        for rec in rooms.values():
+            rec.abandon()
+            log.warning("recorder: the relay went away; %s kept for recovery", rec.part_path)
+        return EXIT_RELAY_GONE
+    return EXIT_ERROR if failed else EXIT_OK
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The writer process: records the rooms the relay sends through standard input."""
     args = sys.argv[1:] if argv is None else argv
-    if len(args) != 1:
-        sys.stderr.write("usage: recorder.process.main CONFIG_JSON (started by the server)\n")
+    if args:
+        sys.stderr.write("usage: recorder.process.main (started by the server; no arguments)\n")
         return 2
     logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
-    return _child(json.loads(args[0]))
+    # Ctrl-C in a terminal signals the whole process group: the relay decides
+    # when a session ends, by a room's stop message or by closing the pipe.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    # A background job beside a real-time relay: when the cores are contended the
+    # scheduler runs the relay (and its clients) first; the writer has a second of
+    # slack (the fsync schedule), and if it ever falls behind, losses are recorded.
+    with contextlib.suppress(OSError):
+        os.nice(_CHILD_NICE)
+    return _serve(sys.stdin.buffer.fileno())
 
 
 if __name__ == "__main__":

@@ -15,12 +15,13 @@ import contextlib
 import heapq
 import logging
 import math
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from http import HTTPStatus
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
@@ -53,7 +54,7 @@ from server.auth import TokenError, verify_token
 from server.room import DEFAULT_EVENT_QUEUE, IdAllocator, Member, Outbox, Room, room_phase
 
 if TYPE_CHECKING:
-    from recorder import RoomRecorder
+    from recorder import RecorderHost, RoomRecorder
 
 __all__ = ["ConnectionStatistics", "RelayServer", "ServerConfig"]
 
@@ -529,6 +530,11 @@ class RelayServer:
         self._all: set[_Connection] = set()
         self._tg: asyncio.TaskGroup | None = None
         self._opening: dict[str, asyncio.Task[None]] = {}
+        # The one writer process every recorded room shares (started with the
+        # first recorded room, again after a crash of the previous one).
+        self._recorder_host: RecorderHost | None = None
+        self._host_lock = threading.Lock()
+        self._retired_hosts: list[RecorderHost] = []
         #: Finished recordings, in the order they closed.
         self.recordings: list[Path] = []
         self._stop = asyncio.Event()
@@ -565,12 +571,12 @@ class RelayServer:
         await asyncio.shield(pending)
 
     async def _open_room(self, name: str) -> None:
-        from recorder import ProcessRecorder, SessionRecorder
+        from recorder import SessionRecorder
 
         directory = self.config.record_dir
         assert directory is not None
         opener: Callable[..., RoomRecorder] = (
-            SessionRecorder.open if self.config.record_writer == "thread" else ProcessRecorder.open
+            SessionRecorder.open if self.config.record_writer == "thread" else self._open_on_host
         )
         try:
             rec: RoomRecorder | None = await asyncio.to_thread(
@@ -599,6 +605,34 @@ class RelayServer:
                 await rec.aclose()
         finally:
             self._opening.pop(name, None)
+
+    def _open_on_host(self, directory: Path, name: str, **options: Any) -> RoomRecorder:
+        """Open room ``name``'s recording on the shared writer process (a worker thread)."""
+        return self._ensure_host().open_room(directory, name, **options)
+
+    def _ensure_host(self) -> RecorderHost:
+        """The running writer process; a new one if there is none or it died (blocks)."""
+        from recorder import RecorderHost
+
+        with self._host_lock:
+            host = self._recorder_host
+            if host is None or not host.alive:
+                if host is not None:
+                    log.warning("the recorder process is gone; starting a new one")
+                    self._retired_hosts.append(host)
+                host = self._recorder_host = RecorderHost.start()
+                log.info("recorder process started (pid %d)", host.pid)
+            return host
+
+    async def _close_hosts(self) -> None:
+        """Wait for the writer process(es) to end, once every room is closed."""
+        hosts = [*self._retired_hosts, self._recorder_host]
+        self._recorder_host, self._retired_hosts = None, []
+        for host in hosts:
+            if host is not None:
+                code = await asyncio.to_thread(host.close)
+                if code != 0:
+                    log.warning("the recorder process exited with code %s", code)
 
     async def _close_recorder(self, room: Room) -> None:
         rec = room.recorder
@@ -732,36 +766,47 @@ class RelayServer:
             cfg.record_dir.mkdir(parents=True, exist_ok=True)
             for report in await asyncio.to_thread(recover_leftovers, cfg.record_dir):
                 log.warning("recovered leftover recording: %s", report.summary())
-        async with asyncio.TaskGroup() as tg:
-            self._tg = tg
-            async with serve(
-                self._handler,
-                cfg.host,
-                cfg.port,
-                process_request=self._process_request,
-                max_size=self.limits.max_frame_size,
-                close_timeout=cfg.close_timeout,
-                compression=None,
-            ) as ws_server:
-                self._ws_server = ws_server
-                sock = next(iter(ws_server.sockets))
-                self.port = int(sock.getsockname()[1])
-                self.ready.set()
-                await self._stop.wait()
-                log.info("stopping: closing %d connections", len(self._all))
-                # Every connection closes through its own bounded path (see
-                # _Connection.close_now); websockets' own close could wait forever
-                # on a peer that does not read. Handshakes from now on get a 503.
-                ws_server.close(close_connections=False)
-                for conn in list(self._all):
-                    conn.close(1001, "going away")
-                await ws_server.wait_closed()
-            for room in list(self.rooms.values()):
-                room.members.clear()
-                room.retire()
-                if room.recorder is not None:
-                    tg.create_task(self._close_recorder(room))
-            self.rooms.clear()
+            if cfg.record_writer == "process":
+                # Up front, so that no join waits for the writer's start-up.
+                try:
+                    await asyncio.to_thread(self._ensure_host)
+                except Exception:
+                    log.exception("cannot start the recorder process; each new room will retry")
+        try:
+            async with asyncio.TaskGroup() as tg:
+                self._tg = tg
+                async with serve(
+                    self._handler,
+                    cfg.host,
+                    cfg.port,
+                    process_request=self._process_request,
+                    max_size=self.limits.max_frame_size,
+                    close_timeout=cfg.close_timeout,
+                    compression=None,
+                ) as ws_server:
+                    self._ws_server = ws_server
+                    sock = next(iter(ws_server.sockets))
+                    self.port = int(sock.getsockname()[1])
+                    self.ready.set()
+                    await self._stop.wait()
+                    log.info("stopping: closing %d connections", len(self._all))
+                    # Every connection closes through its own bounded path (see
+                    # _Connection.close_now); websockets' own close could wait forever
+                    # on a peer that does not read. Handshakes from now on get a 503.
+                    ws_server.close(close_connections=False)
+                    for conn in list(self._all):
+                        conn.close(1001, "going away")
+                    await ws_server.wait_closed()
+                for room in list(self.rooms.values()):
+                    room.members.clear()
+                    room.retire()
+                    if room.recorder is not None:
+                        tg.create_task(self._close_recorder(room))
+                self.rooms.clear()
+        finally:
+            # Every room's recording is finished (the task group waited for them);
+            # after a failure, rooms still open keep their .part for recovery.
+            await self._close_hosts()
 
     # -- statistics ----------------------------------------------------------------------
 

@@ -19,6 +19,7 @@ from recorder import (
     PresenceRecord,
     ProcessRecorder,
     RecorderError,
+    RecorderHost,
     SessionReader,
     SessionRecorder,
     process,
@@ -192,3 +193,101 @@ def test_open_fails_clearly_when_the_folder_cannot_be_written(tmp_path: Path) ->
     blocker.write_text("not a folder")
     with pytest.raises(RecorderError, match="did not start"):
         ProcessRecorder.open(blocker / "sub", "r")
+
+
+# -- one writer process for many rooms ------------------------------------------------
+
+
+def test_one_host_records_many_rooms_each_into_its_own_file(tmp_path: Path) -> None:
+    """Three rooms fed interleaved through one writer process: each file holds exactly
+    its room's records, in order, bit for bit what a thread recorder writes."""
+    feeds = [_updates(150, seed=s) for s in range(3)]
+    with RecorderHost.start() as host:
+        rooms = [
+            host.open_room(tmp_path / "p", f"r{i}", name=f"s{i}", clock=lambda: T0, batch_size=7)
+            for i in range(3)
+        ]
+        assert host.rooms == 3 and {r.host.pid for r in rooms} == {host.pid}
+        for k in range(150):
+            for rec, feed in zip(rooms, feeds, strict=True):
+                user, arrival, update = feed[k]
+                assert rec.record_pose_update(user, arrival, update)
+                if k % 40 == 0:
+                    rec.record_event({"kind": "grab", "user": user, "object": k}, arrival)
+                rec.poll()
+        # Closing one room leaves the others recording through the same process.
+        paths = [rooms[1].close(T0 + 60)]
+        assert host.alive and host.rooms == 2
+        for user, arrival, update in _updates(20, seed=9):
+            rooms[0].record_pose_update(user, arrival, update)
+        paths += [rooms[0].close(T0 + 60), rooms[2].close(T0 + 60)]
+        assert host.rooms == 0
+    assert host.close() == 0
+    extra = _updates(20, seed=9)
+    for i, path in zip((1, 0, 2), paths, strict=True):
+        assert path.exists() and path.name == f"s{i}.mcap"
+        thread = SessionRecorder.open(tmp_path / "t", f"r{i}", name=f"s{i}", clock=lambda: T0)
+        for k, (user, arrival, update) in enumerate(feeds[i]):
+            thread.record_pose_update(user, arrival, update)
+            if k % 40 == 0:
+                thread.record_event({"kind": "grab", "user": user, "object": k}, arrival)
+        if i == 0:
+            for user, arrival, update in extra:
+                thread.record_pose_update(user, arrival, update)
+        expected = thread.close(T0 + 60)
+        assert _content(path) == _content(expected)
+        assert rooms[i].statistics().queue_drops == 0
+
+
+def test_a_room_that_cannot_open_or_goes_bad_leaves_the_other_rooms_alone(
+    tmp_path: Path,
+) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    frames = _updates(60)
+    with RecorderHost.start() as host:
+        good = host.open_room(tmp_path, "good", name="good", clock=lambda: T0, batch_size=4)
+        with pytest.raises(RecorderError, match="did not start room 'bad'"):
+            host.open_room(blocker / "sub", "bad")
+        bad = host.open_room(tmp_path, "corrupt", name="corrupt", clock=lambda: T0, batch_size=4)
+        # A message of an unknown kind inside one room's batch fails that room only.
+        bad._batch.parts += (process._HEAD.pack(99, 3), b"abc")
+        bad._batch.records += 1
+        bad._handoff()
+        _feed(good, frames)
+        deadline = time.monotonic() + 20
+        while not bad.failed and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert bad.failed and "unknown message kind 99" in (bad.statistics().error or "")
+        assert not bad.record_pose_update(*frames[0])
+        with pytest.raises(RecorderError, match="partial file kept"):
+            bad.close()
+        assert host.alive
+        path = good.close(T0 + 60)
+        assert good.statistics().queue_drops == 0 and not good.failed
+    poses = [r for r in read_records(path) if isinstance(r, PoseRecord)]
+    assert [(r.user, r.seq) for r in poses] == [(f[0], f[2].seq) for f in frames]
+
+
+def test_when_the_relay_vanishes_every_open_room_keeps_a_recoverable_part(
+    tmp_path: Path,
+) -> None:
+    feeds = [_updates(100, seed=s) for s in range(2)]
+    host = RecorderHost.start()
+    rooms = [host.open_room(tmp_path, f"r{i}", name=f"v{i}", clock=lambda: T0) for i in range(2)]
+    for rec, feed in zip(rooms, feeds, strict=True):
+        _feed(rec, feed)
+        rec._handoff()
+    host.drain(block=True)
+    proc = host._proc
+    assert proc.stdin is not None
+    proc.stdin.close()  # as a dying relay's pipe closes
+    assert proc.wait(30) == process.EXIT_RELAY_GONE
+    host.close()
+    for rec, feed in zip(rooms, feeds, strict=True):
+        assert rec.part_path.exists() and not rec.path.exists()
+        out = tmp_path / f"recovered-{rec.part_path.name}.mcap"
+        report = recover(rec.part_path, out)
+        assert report.chunks_lost == 0
+        poses = [r for r in read_records(out) if isinstance(r, PoseRecord)]
+        assert [(r.user, r.seq) for r in poses] == [(f[0], f[2].seq) for f in feed]

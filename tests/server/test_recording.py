@@ -15,8 +15,15 @@ import numpy as np
 from support import running_server
 
 from client.bot import BotConfig, BotReport, run_bot
-from recorder import find_leftovers, info, load_streams, recover
-from server.app import ServerConfig
+from client.connection import ClientConnection
+from protocol import Snapshot, encode_update
+from recorder import ProcessRecorder, find_leftovers, info, load_streams, recover
+from server.app import RelayServer, ServerConfig
+
+
+def _proc_state(pid: int) -> str:
+    text = Path(f"/proc/{pid}/stat").read_text()
+    return text[text.rindex(")") + 2 :].split()[0]
 
 
 async def _recorded_session(
@@ -285,3 +292,79 @@ def test_sigusr1_pauses_and_sigusr2_resumes_a_recording_server(tmp_path: Path) -
             server.wait(10)
         if server.stdout is not None:
             server.stdout.close()
+
+
+async def _publish(conn: ClientConnection, seq: int) -> None:
+    sid = np.array([conn.joined.streams["head"]])
+    pose = np.array([[seq * 1e-3, 1.6, 0, 1, 0, 0, 0]], dtype=np.float32)
+    await conn.send_bytes(encode_update(seq, sid, np.array([time.monotonic()]), pose))
+
+
+async def _snapshot_from(conn: ClientConnection, user: int) -> None:
+    """Wait (10 s at most) until ``conn`` receives a snapshot carrying a pose of ``user``."""
+    async with asyncio.timeout(10):
+        while True:
+            got = (await conn.recv()).event
+            if isinstance(got, Snapshot) and user in got.users.tolist():
+                return
+
+
+async def _rooms_share_one_writer(tmp: Path) -> tuple[RelayServer, list[Path], set[int]]:
+    config = ServerConfig(host="127.0.0.1", port=0, record_dir=tmp)
+    async with running_server(config) as server:
+        url = f"ws://127.0.0.1:{server.port}"
+        conns = [
+            await ClientConnection.open(url, room=f"r{i // 2}", streams=("head",), rate=20)
+            for i in range(6)
+        ]
+        recorders = [room.recorder for room in server.rooms.values()]
+        assert len(recorders) == 3
+        first = server._recorder_host
+        assert first is not None and first.rooms == 3
+        assert {rec.host.pid for rec in recorders if isinstance(rec, ProcessRecorder)} == {
+            first.pid
+        }
+        for seq in range(1, 11):
+            for conn in conns:
+                await _publish(conn, seq)
+            await asyncio.sleep(0.02)
+        # The writer process dies: the recordings fail, the relay goes on.
+        os.kill(first.pid, signal.SIGKILL)
+        for _ in range(200):  # the host's reader sees the pipe close at once
+            if all(rec is not None and rec.failed for rec in recorders):
+                break
+            await asyncio.sleep(0.05)
+        assert all(rec is not None and rec.failed for rec in recorders)
+        await _publish(conns[0], 11)
+        await _snapshot_from(conns[1], conns[0].user)
+        # A room opened now records through a new writer process.
+        late = [
+            await ClientConnection.open(url, room="late", streams=("head",), rate=20)
+            for _ in range(2)
+        ]
+        second = server._recorder_host
+        assert second is not None and second.pid != first.pid and second.alive
+        for seq in range(1, 21):
+            for conn in late:
+                await _publish(conn, seq)
+            await asyncio.sleep(0.02)
+        await _snapshot_from(late[1], late[0].user)
+        for conn in conns + late:
+            await conn.close()
+    return server, server.recordings, {first.pid, second.pid}
+
+
+def test_rooms_share_one_writer_process_and_survive_its_death(tmp_path: Path) -> None:
+    server, files, pids = asyncio.run(_rooms_share_one_writer(tmp_path))
+    assert server._recorder_host is None  # closed with the server
+    for pid in pids:  # no writer process outlives the server
+        assert not Path(f"/proc/{pid}").exists() or "Z" in _proc_state(pid)
+    # The late room finished cleanly; the three rooms the dead writer held left .part files.
+    assert [f.name.split("-")[0] for f in files] == ["late"]
+    late = load_streams(files[0])
+    assert sorted(len(s.times) for s in late.values()) == [20, 20]
+    leftovers = find_leftovers(tmp_path)
+    assert len(leftovers) == 3
+    for part in leftovers:
+        report = recover(part, tmp_path / f"{part.name}.recovered.mcap")
+        assert report.chunks_lost == 0
