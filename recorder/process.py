@@ -13,12 +13,13 @@ milliseconds, and a server recording 100 rooms runs one writer, not 100):
   (:meth:`ProcessRecorder.record_pose_update`: the update's sequence number,
   base time and entries' bytes, packed behind a small header; two list
   appends), and the few JSON records (presence, events, drops) already encoded;
-- at most every ``batch_delay`` s (the room tick calls :meth:`ProcessRecorder.poll`)
-  or every ``batch_size`` records a room's batch is joined into one blob and
-  written into the host's non-blocking pipe (1 MiB) by the relay's own thread:
-  one system call, no thread hand-off (a feeder thread woken per batch cost the
-  relay far more than the writing); what the pipe cannot take yet waits, bounded
-  per room;
+- every ``batch_delay`` s (the room ticks call :meth:`ProcessRecorder.poll`)
+  each room's batch is joined into one blob (sooner, once it holds
+  ``batch_size`` records), and all rooms' blobs are written into the host's
+  non-blocking pipe (1 MiB) by the relay's own thread: one ``writev``, one
+  wake-up of the child, whatever the number of rooms, and no thread hand-off (a
+  feeder thread woken per batch cost the relay far more than the writing);
+  what the pipe cannot take yet waits, bounded per room;
 - the host's child process (:func:`main` here) reads the pipe, encodes each
   room's updates in groups of the same shape and records them with one
   :class:`SessionRecorder` per room (same file layout, chunking, fsync schedule,
@@ -123,6 +124,8 @@ _CLOSE_TIMEOUT: Final = 120.0
 #: Linux's fcntl to resize a pipe (Python 3.11's fcntl lacks the name), and the size asked.
 _F_SETPIPE_SZ: Final = getattr(fcntl, "F_SETPIPE_SZ", 1031)
 _PIPE_BYTES: Final = 1 << 20
+#: Blobs per writev (Linux's IOV_MAX is 1024).
+_WRITEV_MAX: Final = 512
 _CHILD_BOOT: Final = "import sys; from recorder.process import main; sys.exit(main())"
 #: The child's own hand-off to a room's writer thread: records per batch, seconds at most.
 _CHILD_BATCH: Final = 256
@@ -205,6 +208,10 @@ class RecorderHost:
         self._replies: dict[int, queue.SimpleQueue[dict[str, Any] | None]] = {}
         self._eof = False
         self._closed = False
+        # All rooms' batches go over together (one writev, one wake-up of the
+        # child) every ``_flush_delay`` s: the shortest ``batch_delay`` of its rooms.
+        self._flush_delay: float | None = None
+        self._due = 0.0
         self._reader = threading.Thread(
             target=self._read_events, name=f"recorder-host-{proc.pid}", daemon=True
         )
@@ -317,6 +324,8 @@ class RecorderHost:
         )
         with self.lock:
             self._rooms[room_id] = handle
+            if self._flush_delay is None or batch_delay < self._flush_delay:
+                self._flush_delay = batch_delay
         return handle
 
     def _finished(self, room_id: int, timeout: float | None) -> dict[str, Any] | None:
@@ -368,23 +377,38 @@ class RecorderHost:
         """Write what the pipe takes now; True once nothing is pending (or it failed)."""
         pending = self._pending
         while pending:
-            entry = pending[0]
-            view: memoryview = entry[0]
+            views = [entry[0] for entry in itertools.islice(pending, _WRITEV_MAX)]
             try:
-                written = os.write(self._fd, view)
+                written = os.writev(self._fd, views)
             except BlockingIOError:
                 return False
             except OSError as exc:  # the child died: its .part files stay for recovery
                 self._fail_locked(f"the recorder process stopped taking records ({exc})")
                 return True
-            if written < len(view):
-                entry[0] = view[written:]
-                continue
-            pending.popleft()
-            handle = entry[2]
-            if handle is not None:
-                handle._pending_records -= entry[1]
+            while written:
+                entry = pending[0]
+                size = len(entry[0])
+                if written < size:
+                    entry[0] = entry[0][written:]
+                    break
+                written -= size
+                pending.popleft()
+                handle = entry[2]
+                if handle is not None:
+                    handle._pending_records -= entry[1]
         return True
+
+    def flush(self, now: float) -> None:
+        """Hand every room's waiting batch over and write them all at once (relay thread).
+
+        The rooms' :meth:`ProcessRecorder.poll` calls it every flush delay.
+        """
+        with self.lock:
+            self._due = now + (self._flush_delay or 0.05)
+            for handle in self._rooms.values():
+                if handle._batch.records and not handle._closing:
+                    handle._handoff_locked()
+        self.drain()
 
     def hold(self) -> None:
         """Stop feeding the child (tests: a stalled writer); records wait, up to each bound."""
@@ -628,48 +652,48 @@ class ProcessRecorder(RecordTap):
         return False
 
     def poll(self) -> None:
-        """Hand the waiting batch over once it is ``batch_delay`` old (call every tick)."""
-        b = self._batch
+        """Call every tick: hands the rooms' batches over every flush delay."""
+        host = self._host
         now = _time.monotonic()
-        if b.records and now - b.since >= self._batch_delay:
-            self._handoff()
-        elif self._host._pending:
-            self._host.drain()
+        if now >= host._due:
+            host.flush(now)
+        elif host._pending:
+            host.drain()
         if now - self._checked >= 1.0:
             self._checked = now
             if self._error is None and not self._closing:
-                self._host.check()
+                host.check()
 
     def _handoff(self) -> None:
-        batch, self._batch = self._batch, _Batch()
-        if batch.records:
-            self._enqueue(batch)
+        """Queue the waiting batch for the pipe and write what the pipe takes."""
+        with self._lock:
+            self._handoff_locked()
+        self._host.drain()
 
-    def _enqueue(self, batch: _Batch) -> bool:
+    def _handoff_locked(self) -> None:
+        batch, self._batch = self._batch, _Batch()
+        if not batch.records:
+            return
         parts = batch.parts
         batch.parts = []
-        host = self._host
-        with self._lock:
-            if self._error is not None:
-                self._rejected += batch.records
-                return False
-            if self._pending_records and self._pending_records + batch.records > self._bound:
-                self._loss.add(batch, self._loss_topics)
-                self._queue_drops += batch.records
-                self._queue_drop_poses += batch.poses
-                return False
-            if self._loss.records:
-                parts.insert(0, self._loss_message())
-                self._loss_records += 1
-                self._loss = _Loss()
-                self._loss_topics = {}
-            size = sum(map(len, parts))
-            parts.insert(0, _frame(_FRAME_BATCH, self._id, size))
-            host._push(self, b"".join(parts), batch.records)
-            self._offered += batch.records
-            self._high_water = max(self._high_water, self._pending_records)
-        host.drain()
-        return True
+        if self._error is not None:
+            self._rejected += batch.records
+            return
+        if self._pending_records and self._pending_records + batch.records > self._bound:
+            self._loss.add(batch, self._loss_topics)
+            self._queue_drops += batch.records
+            self._queue_drop_poses += batch.poses
+            return
+        if self._loss.records:
+            parts.insert(0, self._loss_message())
+            self._loss_records += 1
+            self._loss = _Loss()
+            self._loss_topics = {}
+        size = sum(map(len, parts))
+        parts.insert(0, _frame(_FRAME_BATCH, self._id, size))
+        self._host._push(self, b"".join(parts), batch.records)
+        self._offered += batch.records
+        self._high_water = max(self._high_water, self._pending_records)
 
     def _loss_message(self) -> bytes:
         loss = self._loss
@@ -722,9 +746,10 @@ class ProcessRecorder(RecordTap):
         host = self._host
         if not self._closing:
             end = self._clock() if time is None else time
-            self._handoff()
             stop = _STOP.pack(_KIND_STOP, 8, end)
             with self._lock:
+                # One step: a flush on the relay's thread cannot slip records behind the stop.
+                self._handoff_locked()
                 self._closing = True
                 parts = [stop]
                 if self._loss.records:

@@ -920,7 +920,7 @@ def _interleaved_phases(pid: int, port: int, end: float, length: float) -> list[
 
     The server records when this starts. Each phase sets its state (SIGUSR1
     pauses, SIGUSR2 resumes), waits :data:`_PHASE_SETTLE` s and measures the
-    rest: the relay's and the writer processes' CPU (their threads' run time
+    rest: the relay's and its writer process's CPU (their threads' run time
     from ``/proc/*/task/*/schedstat``, in ns), the poses the relay sent
     (its ``posecast_room_poses_out_total``) and the CPU the host stole.
     Same process, same clients, phases seconds apart: what differs between a
