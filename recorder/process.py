@@ -598,7 +598,10 @@ class ProcessRecorder(RecordTap):
         if not b.records:
             b.since = _time.monotonic()
             b.first = arrival
-        b.parts += (
+        # Two appends, not ``+= (head, body)``: a tuple per update is a GC-tracked
+        # allocation, and the relay's cyclic collections run per 700 of those.
+        parts = b.parts
+        parts.append(
             _UPDATE_PACK(
                 _KIND_UPDATE,
                 _UPDATE_EXTRA + len(body),
@@ -607,9 +610,9 @@ class ProcessRecorder(RecordTap):
                 arrival,
                 update.seq,
                 update.base_time,
-            ),
-            body,
+            )
         )
+        parts.append(body)
         b.records += 1
         b.updates += 1
         b.poses += n
