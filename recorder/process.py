@@ -357,12 +357,15 @@ class RecorderHost:
         if handle is not None:
             handle._pending_records += records
 
-    def drain(self, block: bool = False) -> None:
+    def drain(self, block: bool = False, timeout: float = _CLOSE_TIMEOUT) -> None:
         """Write pending blobs into the pipe until it is full (or all, with ``block``).
 
         The lock is never held while waiting for the pipe, so the relay's thread
-        goes on feeding other rooms while a closing room waits here.
+        goes on feeding other rooms while a closing room waits here. A child that
+        takes nothing for ``timeout`` s while blocked on fails every room (their
+        ``.part`` files stay): a stalled disk must not hang the server's shutdown.
         """
+        deadline = _time.monotonic() + timeout
         while True:
             with self.lock:
                 if self._held and not block:
@@ -370,6 +373,9 @@ class RecorderHost:
                 if self._write_locked():
                     return
                 if not block:
+                    return
+                if _time.monotonic() >= deadline:
+                    self._fail_locked(f"the recorder process took no records for {timeout:g} s")
                     return
             select.select([], [self._fd], [], 1.0)
 

@@ -291,3 +291,25 @@ def test_when_the_relay_vanishes_every_open_room_keeps_a_recoverable_part(
         assert report.chunks_lost == 0
         poses = [r for r in read_records(out) if isinstance(r, PoseRecord)]
         assert [(r.user, r.seq) for r in poses] == [(f[0], f[2].seq) for f in feed]
+
+
+def test_a_stalled_writer_fails_a_blocking_drain_instead_of_hanging(tmp_path: Path) -> None:
+    """A writer process that takes nothing (a stalled disk; here SIGSTOP) cannot hang
+    a closing room or the server's shutdown: the blocking drain gives up and says why."""
+    host = RecorderHost.start()
+    rec = host.open_room(tmp_path, "s", name="s", clock=lambda: T0)
+    os.kill(host.pid, signal.SIGSTOP)
+    try:
+        more_than_the_pipe = 2 << 20
+        blob = process._frame(process._FRAME_BATCH, rec._id, more_than_the_pipe)
+        with host.lock:
+            host._push(rec, blob + bytes(more_than_the_pipe), 1)
+        host.drain(block=True, timeout=1.0)
+        assert rec.failed and "took no records for 1 s" in (rec.statistics().error or "")
+        assert not host.alive and rec.statistics().queue_depth == 0
+    finally:
+        os.kill(host.pid, signal.SIGCONT)
+    with pytest.raises(RecorderError, match="partial file kept"):
+        rec.close()
+    assert host.close() == process.EXIT_RELAY_GONE  # the room never finished: .part kept
+    assert rec.part_path.exists()
