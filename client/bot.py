@@ -14,7 +14,8 @@ Velocity keyframes: when a rendered method needs them (``motor-hermite``) or
 could report at capture time (:meth:`scenarios.traces.Trace.causal_velocities`,
 past native samples only), receives velocity snapshots, keeps the velocities in
 its buffers and arrival log, and renders and scores velocity methods from them
-(streams of peers that send no velocities arrive with zeros).
+(streams of peers that send no velocities arrive with zeros, and velocity
+methods render and score those streams with ``motor-lerp`` instead).
 """
 
 from __future__ import annotations
@@ -35,7 +36,13 @@ from interp import info as interp_info
 from protocol import PeerJoined, PeerLeft, Ping, Pong, Snapshot, encode_update
 from scenarios.motion import MotionSpec, sample_at
 from scenarios.qoe import ErrorSamples, KeyframeLog, evaluate_group
-from scenarios.receiver import ClockEstimator, PlayoutDelay, StreamBuffer, render_buffers
+from scenarios.receiver import (
+    ClockEstimator,
+    PlayoutDelay,
+    StreamBuffer,
+    render_buffers,
+    rendered_method,
+)
 from scenarios.traces import (
     CAUSAL_SAMPLES,
     DEVICE_NAMES,
@@ -93,8 +100,12 @@ class RemoteStream:
     #: With velocity snapshots: the velocity received with each pose, (6,) float64
     #: from float16 (linear m/s, angular rad/s, world frame).
     velocities: list[NDArray[np.float64]] = field(default_factory=list)
-    #: Whether the sender reports velocities (else the received ones are zeros).
+    #: Whether the sender reports velocities (else the received ones are zeros,
+    #: and velocity methods render and score it with ``VELOCITY_FALLBACK``).
     sends_velocities: bool = False
+
+    def __post_init__(self) -> None:
+        self.buffer.has_velocities = self.sends_velocities
 
 
 @dataclass
@@ -215,6 +226,9 @@ class _Bot:
         self.peers[ev.user] = ({sid: name for name, sid in ev.streams.items()}, ev.label)
         if ev.velocities:
             self.velocity_peers.add(ev.user)
+            for (user, _sid), rs in self.remote.items():  # snapshots that came first
+                if user == ev.user:
+                    rs.sends_velocities = rs.buffer.has_velocities = True
 
     def _on_event(self, ev: object, arrival: float, size: int) -> None:
         if isinstance(ev, Snapshot):
@@ -420,7 +434,8 @@ class _Bot:
 def remote_log(rs: RemoteStream) -> KeyframeLog:
     """The stream's arrival log as a KeyframeLog (sorted by capture, deduplicated).
 
-    With the received velocities when every keyframe came with one.
+    With the received velocities when the sender reports them and every keyframe
+    came with one (a sender that reports none gets zeros: no velocities here).
     """
     cap = np.asarray(rs.capture, dtype=np.float64)
     arr = np.asarray(rs.arrival, dtype=np.float64)
@@ -430,7 +445,7 @@ def remote_log(rs: RemoteStream) -> KeyframeLog:
     keep = np.ones(cap.shape, dtype=bool)
     keep[1:] = cap[1:] != cap[:-1]  # a duplicate: the first arrival counts
     vel = None
-    if rs.velocities and len(rs.velocities) == len(rs.capture):
+    if rs.sends_velocities and rs.velocities and len(rs.velocities) == len(rs.capture):
         vel = np.asarray(rs.velocities, dtype=np.float64).reshape(-1, 1, 6)[order][keep]
     return KeyframeLog(cap[keep], arr[keep], poses[keep], vel)
 
@@ -466,9 +481,12 @@ def evaluate_remote(
             continue
         log = remote_log(rs)
         window = (max(float(log.capture[0]), float(pt[0])), float(pt[-1]))
-        res = evaluate_group(truth.select([rs.name]), log, delay_at, methods, window)
-        for m, classes in res.items():
-            for cls, samples in classes.items():
+        # What the render loop showed: velocity methods fall back on streams without.
+        shown = {m: rendered_method(m, log.velocities is not None) for m in methods}
+        unique = list(dict.fromkeys(shown.values()))
+        res = evaluate_group(truth.select([rs.name]), log, delay_at, unique, window)
+        for m in methods:
+            for cls, samples in res[shown[m]].items():
                 out[m].setdefault(cls, ErrorSamples()).merge(samples)
     return out
 

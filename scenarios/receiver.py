@@ -31,11 +31,13 @@ from scenarios.qoe import window_depth
 
 __all__ = [
     "DEFAULT_BUFFER_CAPACITY",
+    "VELOCITY_FALLBACK",
     "ClockEstimator",
     "PlayoutDelay",
     "RenderFrame",
     "StreamBuffer",
     "render_buffers",
+    "rendered_method",
 ]
 
 DEFAULT_BUFFER_CAPACITY = 64
@@ -82,11 +84,16 @@ class StreamBuffer:
 
     ``velocities[i]`` is the velocity ``(6,)`` (linear m/s, angular rad/s, world
     frame) that came with ``times[i]``/``poses[i]``, for velocity interpolators;
-    a keyframe pushed without one gets zeros.
+    a keyframe pushed without one gets zeros. ``has_velocities`` says whether the
+    sender reports velocities at all: if not, the zeros are fillers, not data,
+    and velocity methods render the stream with :data:`VELOCITY_FALLBACK`.
     """
 
-    def __init__(self, capacity: int = DEFAULT_BUFFER_CAPACITY) -> None:
+    def __init__(
+        self, capacity: int = DEFAULT_BUFFER_CAPACITY, *, has_velocities: bool = True
+    ) -> None:
         self.capacity = capacity
+        self.has_velocities = has_velocities
         self.times: list[float] = []
         self.poses: list[NDArray[np.float32]] = []
         self.velocities: list[NDArray[np.float64]] = []
@@ -185,6 +192,19 @@ class PlayoutDelay:
         return self.value
 
 
+#: What a velocity method renders a stream with when its sender reports no
+#: velocities (zero velocities would make a Hermite curve stop at every keyframe).
+VELOCITY_FALLBACK = "motor-lerp"
+
+
+def rendered_method(method: str, has_velocities: bool) -> str:
+    """The method that actually renders a stream: ``method``, or the fallback for a
+    velocity method on a stream without velocities."""
+    if not has_velocities and interp_info(method).needs_velocity:
+        return VELOCITY_FALLBACK
+    return method
+
+
 @dataclass(frozen=True)
 class RenderFrame:
     """Rendered poses ``(S, 7)`` per method, and which streams stalled."""
@@ -204,7 +224,9 @@ def render_buffers(
     have, and every neighbour after a held (stalled) bracket, repeats its inward
     neighbour (the rule of :mod:`interp.registry`). Velocity methods
     (``needs_velocity``) see the bracket with its keyframes' buffered
-    velocities. A stall holds the bracket's keyframe for every kind of method.
+    velocities; on buffers without velocities (``has_velocities`` false) they
+    render :data:`VELOCITY_FALLBACK` instead (:func:`rendered_method`). A stall
+    holds the bracket's keyframe for every kind of method.
     """
     live = [b for b in buffers if len(b)]
     n = len(live)
@@ -244,18 +266,29 @@ def render_buffers(
     lo_idx = np.full((1, n), lb, dtype=np.intp)
     before = np.broadcast_to(np.arange(lb, dtype=np.intp)[:, None], (lb, n)).T[None]
     after = np.broadcast_to(np.arange(lb + 2, k, dtype=np.intp)[:, None], (la, n)).T[None]
-    out = {
-        m: interpolate_brackets(
-            keys,
-            lo_idx,
-            lo_idx + 1,
-            s,
-            m,
-            times=times,
-            velocities=vel,
-            before=before,
-            after=after,
-        )[0]
-        for m in methods
-    }
-    return RenderFrame(out, stalled)
+    no_velocity = np.array([not b.has_velocities for b in live])
+    out: dict[str, NDArray[np.float64]] = {}
+    for m in methods:
+        names = {m}
+        if no_velocity.any():
+            names.add(rendered_method(m, False))
+        for name in names - out.keys():
+            out[name] = interpolate_brackets(
+                keys,
+                lo_idx,
+                lo_idx + 1,
+                s,
+                name,
+                times=times,
+                velocities=vel,
+                before=before,
+                after=after,
+            )[0]
+    frame: dict[str, NDArray[np.float64]] = {}
+    for m in methods:
+        fallback = rendered_method(m, False)
+        if fallback != m and no_velocity.any():
+            frame[m] = np.where(no_velocity[:, None], out[fallback], out[m])
+        else:
+            frame[m] = out[m]
+    return RenderFrame(frame, stalled)

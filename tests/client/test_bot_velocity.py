@@ -11,7 +11,15 @@ import pytest
 from support import running_server
 from typer.testing import CliRunner
 
-from client.bot import BotConfig, BotReport, RemoteStream, motion_for_bot, remote_log, run_bot
+from client.bot import (
+    BotConfig,
+    BotReport,
+    RemoteStream,
+    evaluate_remote,
+    motion_for_bot,
+    remote_log,
+    run_bot,
+)
 from client.swarm import swarm_report
 from interp import interpolate_brackets
 from protocol import VELOCITY_BYTES, VELOCITY_MAX, frame_size
@@ -31,7 +39,7 @@ from scenarios.qoe import (
     sample_keyframes,
     summarize,
 )
-from scenarios.receiver import StreamBuffer, render_buffers
+from scenarios.receiver import VELOCITY_FALLBACK, StreamBuffer, render_buffers, rendered_method
 from scenarios.traces import DEVICE_NAMES
 from server.cli import app
 
@@ -136,17 +144,21 @@ def test_received_velocities_are_the_senders_causal_velocities(
 
 
 def test_live_hermite_render_equals_offline_computation(mixed_room: list[BotReport]) -> None:
-    """Every live motor-hermite frame is the QoE definition's pose from the arrival log."""
-    hermite_checked = 0
+    """Every live motor-hermite frame is the QoE definition's pose from the arrival log;
+    on the plain bot's streams (no velocities) that is the fallback, motor-lerp."""
+    checked = {"motor-hermite": 0, VELOCITY_FALLBACK: 0}
     for rep in mixed_room[:2]:
         assert rep.render_log
         logs: dict[tuple[int, int], KeyframeLog] = {}
         for k, rs in rep.streams.items():
-            local = RemoteStream(rs.user, rs.stream, rs.name, rs.label)
+            local = RemoteStream(
+                rs.user, rs.stream, rs.name, rs.label, sends_velocities=rs.sends_velocities
+            )
             local.capture, local.arrival, local.poses = rs.capture, rs.arrival_local, rs.poses
             local.velocities = rs.velocities
             logs[k] = remote_log(local)
-            assert logs[k].velocities is not None
+            # zeros from a sender that reports none are fillers, not velocities
+            assert (logs[k].velocities is not None) == rs.sends_velocities
         # The render log keeps the first method: soa. Re-render motor-hermite from the
         # same arrivals and check it against the live renderer's own code path below.
         for t_play, _d, rendered_at, shown in rep.render_log[5::7]:
@@ -157,29 +169,43 @@ def test_live_hermite_render_equals_offline_computation(mixed_room: list[BotRepo
                 )
                 if play.missing[0]:
                     continue
-                assert log.velocities is not None
+                method = rendered_method("motor-hermite", log.velocities is not None)
                 offline = interpolate_brackets(
                     log.poses,
                     play.lo,
                     play.hi,
                     play.s,
-                    "motor-hermite",
+                    method,
                     times=log.capture,
                     velocities=log.velocities,
                 )[0, 0]
-                buf = StreamBuffer()
+                buf = StreamBuffer(has_velocities=log.velocities is not None)
                 arrived = log.arrival <= rendered_at
-                for c, p, v in zip(
-                    log.capture[arrived],
-                    log.poses[arrived, 0],
-                    log.velocities[arrived, 0],
-                    strict=True,
+                for n, (c, p) in enumerate(
+                    zip(log.capture[arrived], log.poses[arrived, 0], strict=True)
                 ):
+                    v = None if log.velocities is None else log.velocities[arrived, 0][n]
                     buf.push(float(c), p.astype(np.float32), velocity=v)
                 live = render_buffers([buf], t_play, ["motor-hermite"]).poses["motor-hermite"]
                 np.testing.assert_allclose(live[0], offline, atol=1e-6)
-                hermite_checked += 1
-    assert hermite_checked > 100
+                checked[method] += 1
+    assert checked["motor-hermite"] > 100 and checked[VELOCITY_FALLBACK] > 50
+
+
+def test_velocity_methods_are_scored_like_the_fallback_on_streams_without_velocities(
+    mixed_room: list[BotReport],
+) -> None:
+    """The live QoE of motor-hermite on the plain bot's streams is motor-lerp's, exactly."""
+    v0, _v1, plain = mixed_room
+    assert v0.render_log
+    play_t = [r[0] for r in v0.render_log]
+    play_d = [r[1] for r in v0.render_log]
+    streams = {k: rs for k, rs in v0.streams.items() if rs.user == plain.user}
+    assert streams and not any(rs.sends_velocities for rs in streams.values())
+    res = evaluate_remote(streams, play_t, play_d, ["motor-hermite", VELOCITY_FALLBACK])
+    assert res["motor-hermite"].keys() == res[VELOCITY_FALLBACK].keys() == {"hands", "head"}
+    for cls, samples in res["motor-hermite"].items():
+        assert samples.stats() == res[VELOCITY_FALLBACK][cls].stats()
 
 
 def test_live_hermite_qoe_is_finite_and_in_the_offline_ballpark(

@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 
 import interp
 from scenarios.qoe import KeyframeLog, evaluate_group, playout_brackets, render_playout
-from scenarios.receiver import StreamBuffer, render_buffers
+from scenarios.receiver import VELOCITY_FALLBACK, StreamBuffer, render_buffers, rendered_method
 from scenarios.traces import DEVICE_NAMES, Trace, load_trace
 
 F64 = NDArray[np.float64]
@@ -180,3 +180,36 @@ def test_live_velocity_render_equals_the_offline_qoe_path(dev_trace_path: Path, 
     # Velocities pay off where the keyframes bracket the sample.
     hands = [res[m]["hands"].stats()["tip_p50_mm"] for m in methods]
     assert hands[1] < hands[0]
+
+
+def test_velocity_methods_render_streams_without_velocities_with_the_fallback() -> None:
+    """In one batch: a stream whose sender reports velocities gets motor-hermite, one
+    whose sender reports none gets motor-lerp (not a Hermite curve through zeros)."""
+    rng = np.random.default_rng(5)
+    times = [0.0, 0.1, 0.2]
+    poses = np.zeros((3, 7), dtype=np.float32)
+    poses[:, :3] = rng.normal(size=(3, 3))
+    q = rng.normal(size=(3, 4))
+    poses[:, 3:] = q / np.linalg.norm(q, axis=1, keepdims=True)
+    vels = rng.normal(size=(3, 6))
+    with_v = StreamBuffer()
+    without = StreamBuffer(has_velocities=False)
+    for t, p, v in zip(times, poses, vels, strict=True):
+        with_v.push(t, p, velocity=v)
+        without.push(t, p)
+    methods = ["soa", "motor-hermite"]
+    frame = render_buffers([with_v, without], 0.13, methods).poses
+    k = poses[:, None].astype(np.float64)
+    lo, hi, s = np.array([[1]]), np.array([[2]]), np.array([[0.3]])
+    t = np.array(times)
+    hermite = interp.interpolate_brackets(
+        k, lo, hi, s, "motor-hermite", times=t, velocities=vels[:, None]
+    )[0, 0]
+    lerp = interp.interpolate_brackets(k, lo, hi, s, VELOCITY_FALLBACK, times=t)[0, 0]
+    np.testing.assert_allclose(frame["motor-hermite"][0], hermite, atol=1e-12)
+    np.testing.assert_allclose(frame["motor-hermite"][1], lerp, atol=1e-12)
+    assert np.abs(hermite - lerp).max() > 1e-3  # the two really differ here
+    np.testing.assert_allclose(frame["soa"][0], frame["soa"][1], atol=1e-12)
+    assert rendered_method("motor-hermite", False) == VELOCITY_FALLBACK
+    assert rendered_method("motor-hermite", True) == "motor-hermite"
+    assert rendered_method("soa", False) == "soa"
