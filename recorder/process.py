@@ -101,7 +101,6 @@ log = logging.getLogger("posecast.recorder")
 _FRAME_OPEN: Final = 1
 _FRAME_BATCH: Final = 2
 _FRAME: Final = struct.Struct("<BII")
-_FRAME_EXTRA: Final = _FRAME.size - 5  # the room id counts in the length
 # Messages inside a batch.
 _KIND_UPDATE: Final = 1
 _KIND_RECORD: Final = 2
@@ -116,6 +115,8 @@ _VELOCITY_ITEM: Final = UPDATE_VELOCITY_DTYPE.itemsize
 _RECORD: Final = struct.Struct("<BIBqqI")  # head + channel, log ns, publish ns, poses
 _RECORD_EXTRA: Final = _RECORD.size - _HEAD.size
 _STOP: Final = struct.Struct("<BId")
+#: What a frame's length counts beyond the kind and length: the room id.
+_FRAME_EXTRA: Final = _FRAME.size - _HEAD.size
 _TOPICS: Final = [spec.topic for spec in CHANNELS]
 _CHANNEL_INDEX: Final = {topic: i for i, topic in enumerate(_TOPICS)}
 #: Seconds to wait for the child to open a room's file, and to finish it on close.
@@ -143,7 +144,7 @@ Clock = Callable[[], float]
 class _Batch:
     """Records waiting on the relay's thread; what a loss of the batch would lose."""
 
-    __slots__ = ("first", "last", "parts", "poses", "records", "since", "topics", "updates")
+    __slots__ = ("first", "last", "parts", "poses", "records", "topics", "updates")
 
     def __init__(self) -> None:
         self.parts: list[bytes] = []
@@ -153,7 +154,6 @@ class _Batch:
         self.poses = 0
         self.first = 0.0
         self.last = 0.0
-        self.since = 0.0
         self.topics: dict[str, int] = {}
 
 
@@ -320,7 +320,6 @@ class RecorderHost:
             clock=clock,
             queue_size=queue_size,
             batch_size=batch_size,
-            batch_delay=batch_delay,
         )
         with self.lock:
             self._rooms[room_id] = handle
@@ -529,17 +528,15 @@ class ProcessRecorder(RecordTap):
         clock: Clock,
         queue_size: int,
         batch_size: int,
-        batch_delay: float,
-        owns_host: bool = False,
     ) -> None:
         self._host = host
         self._id = room_id
-        self._owns_host = owns_host
+        #: Set by :meth:`open`: this room's host is its own, closed with it.
+        self._owns_host = False
         self.part_path = part_path
         self.path = final_path
         self._clock = clock
         self._batch_size = max(1, batch_size)
-        self._batch_delay = batch_delay
         # At most ``queue_size`` of this room's records wait for the pipe;
         # beyond that a batch is lost and the loss recorded.
         self._bound = max(1, queue_size)
@@ -602,7 +599,6 @@ class ProcessRecorder(RecordTap):
         body = entries.tobytes()
         b = self._batch
         if not b.records:
-            b.since = _time.monotonic()
             b.first = arrival
         # Two appends, not ``+= (head, body)``: a tuple per update is a GC-tracked
         # allocation, and the relay's cyclic collections run per 700 of those.
@@ -632,7 +628,6 @@ class ProcessRecorder(RecordTap):
             return self._refuse(1)
         b = self._batch
         if not b.records:
-            b.since = _time.monotonic()
             b.first = b.last = log_time
         head = _RECORD.pack(
             _KIND_RECORD,
@@ -693,6 +688,12 @@ class ProcessRecorder(RecordTap):
             self._queue_drops += batch.records
             self._queue_drop_poses += batch.poses
             return
+        self._send_locked(parts, batch.records)
+        self._offered += batch.records
+        self._high_water = max(self._high_water, self._pending_records)
+
+    def _send_locked(self, parts: list[bytes], records: int) -> None:
+        """Queue ``parts`` as one batch frame, behind the record of any loss not yet sent."""
         if self._loss.records:
             parts.insert(0, self._loss_message())
             self._loss_records += 1
@@ -700,9 +701,7 @@ class ProcessRecorder(RecordTap):
             self._loss_topics = {}
         size = sum(map(len, parts))
         parts.insert(0, _frame(_FRAME_BATCH, self._id, size))
-        self._host._push(self, b"".join(parts), batch.records)
-        self._offered += batch.records
-        self._high_water = max(self._high_water, self._pending_records)
+        self._host._push(self, b"".join(parts), records)
 
     def _loss_message(self) -> bytes:
         loss = self._loss
@@ -721,10 +720,6 @@ class ProcessRecorder(RecordTap):
             _KIND_RECORD, _RECORD_EXTRA + len(data), _CHANNEL_INDEX[DROPS_TOPIC], ns, ns, 0
         )
         return head + data
-
-    def _drain(self, block: bool = False) -> None:
-        """Write the host's pending blobs into the pipe (see :meth:`RecorderHost.drain`)."""
-        self._host.drain(block)
 
     def _fail(self, message: str) -> None:
         with self._lock:
@@ -760,14 +755,8 @@ class ProcessRecorder(RecordTap):
                 # One step: a flush on the relay's thread cannot slip records behind the stop.
                 self._handoff_locked()
                 self._closing = True
-                parts = [stop]
-                if self._loss.records:
-                    parts.insert(0, self._loss_message())
-                    self._loss_records += 1
-                    self._loss = _Loss()
-                size = sum(map(len, parts))
                 if self._error is None:
-                    host._push(self, _frame(_FRAME_BATCH, self._id, size) + b"".join(parts), 0)
+                    self._send_locked([stop], 0)
             host._held = False
             host.drain(block=True)
         # A failed room gets no reply; its entries on the host go all the same.
@@ -995,7 +984,7 @@ def _serve(fd: int) -> int:
             touched: set[int] = set()
             while end - at >= frame_size:
                 kind, length, room_id = _FRAME.unpack_from(buf, at)
-                start, nxt = at + frame_size, at + 5 + length
+                start, nxt = at + frame_size, at + _HEAD.size + length
                 if nxt > end:
                     break
                 at = nxt

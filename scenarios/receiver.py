@@ -266,29 +266,25 @@ def render_buffers(
     lo_idx = np.full((1, n), lb, dtype=np.intp)
     before = np.broadcast_to(np.arange(lb, dtype=np.intp)[:, None], (lb, n)).T[None]
     after = np.broadcast_to(np.arange(lb + 2, k, dtype=np.intp)[:, None], (la, n)).T[None]
+    # A velocity method shows its fallback on the rows whose sender reports no velocities.
     no_velocity = np.array([not b.has_velocities for b in live])
-    out: dict[str, NDArray[np.float64]] = {}
-    for m in methods:
-        names = {m}
-        if no_velocity.any():
-            names.add(rendered_method(m, False))
-        for name in names - out.keys():
-            out[name] = interpolate_brackets(
-                keys,
-                lo_idx,
-                lo_idx + 1,
-                s,
-                name,
-                times=times,
-                velocities=vel,
-                before=before,
-                after=after,
-            )[0]
-    frame: dict[str, NDArray[np.float64]] = {}
-    for m in methods:
-        fallback = rendered_method(m, False)
-        if fallback != m and no_velocity.any():
-            frame[m] = np.where(no_velocity[:, None], out[fallback], out[m])
-        else:
-            frame[m] = out[m]
+    shown = {m: rendered_method(m, not no_velocity.any()) for m in methods}
+    out = {
+        name: interpolate_brackets(
+            keys,
+            lo_idx,
+            lo_idx + 1,
+            s,
+            name,
+            times=times,
+            velocities=vel,
+            before=before,
+            after=after,
+        )[0]
+        for name in dict.fromkeys([*methods, *shown.values()])
+    }
+    frame = {
+        m: out[m] if shown[m] == m else np.where(no_velocity[:, None], out[shown[m]], out[m])
+        for m in methods
+    }
     return RenderFrame(frame, stalled)

@@ -531,7 +531,7 @@ class RelayServer:
         self._tg: asyncio.TaskGroup | None = None
         self._opening: dict[str, asyncio.Task[None]] = {}
         # The one writer process every recorded room shares (started with the
-        # first recorded room, again after a crash of the previous one).
+        # server, again for the next room after a crash of the previous one).
         self._recorder_host: RecorderHost | None = None
         self._host_lock = threading.Lock()
         self._retired_hosts: list[RecorderHost] = []

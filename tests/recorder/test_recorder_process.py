@@ -139,7 +139,7 @@ def test_when_the_relay_vanishes_the_child_keeps_a_recoverable_part(tmp_path: Pa
     rec = ProcessRecorder.open(tmp_path, "r", name="c", clock=lambda: T0, batch_size=16)
     _feed(rec, frames)
     rec._handoff()
-    rec._drain(block=True)  # everything is in the pipe; now close it as a dying process does
+    rec.host.drain(block=True)  # everything is in the pipe; now close it as a dying process does
     proc = rec._proc
     assert proc.stdin is not None
     proc.stdin.close()
@@ -202,6 +202,7 @@ def test_one_host_records_many_rooms_each_into_its_own_file(tmp_path: Path) -> N
     """Three rooms fed interleaved through one writer process: each file holds exactly
     its room's records, in order, bit for bit what a thread recorder writes."""
     feeds = [_updates(150, seed=s) for s in range(3)]
+    extra = _updates(20, seed=9)
     with RecorderHost.start() as host:
         rooms = [
             host.open_room(tmp_path / "p", f"r{i}", name=f"s{i}", clock=lambda: T0, batch_size=7)
@@ -218,12 +219,11 @@ def test_one_host_records_many_rooms_each_into_its_own_file(tmp_path: Path) -> N
         # Closing one room leaves the others recording through the same process.
         paths = [rooms[1].close(T0 + 60)]
         assert host.alive and host.rooms == 2
-        for user, arrival, update in _updates(20, seed=9):
+        for user, arrival, update in extra:
             rooms[0].record_pose_update(user, arrival, update)
         paths += [rooms[0].close(T0 + 60), rooms[2].close(T0 + 60)]
         assert host.rooms == 0
     assert host.close() == 0
-    extra = _updates(20, seed=9)
     for i, path in zip((1, 0, 2), paths, strict=True):
         assert path.exists() and path.name == f"s{i}.mcap"
         thread = SessionRecorder.open(tmp_path / "t", f"r{i}", name=f"s{i}", clock=lambda: T0)
