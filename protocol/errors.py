@@ -2,12 +2,15 @@
 
 Exceptions::
 
-    ProtocolViolation             base: .code (ErrorCode), .message, .in_reply_to,
-    │                             .fatal, .close_code
-    ├── LocalProtocolError        this side tried to build or send something invalid
-    │                             (a bug here): raised by message constructors and
-    │                             Session.send(); never caused by the peer
-    └── RemoteProtocolError       the peer sent something invalid: raised only by the
+    PosecastError                 root of every user-facing posecast error (also the
+    │                             recorder's, the tiers', the tokens'...): the CLI turns
+    │                             any of them into one line on stderr and an exit code
+    └── ProtocolViolation         base: .code (ErrorCode), .message, .in_reply_to,
+        │                         .fatal, .close_code
+        ├── LocalProtocolError    this side tried to build or send something invalid
+        │                         (a bug here): raised by message constructors and
+        │                         Session.send(); never caused by the peer
+        └── RemoteProtocolError   the peer sent something invalid: raised only by the
                                   plain decoders (decode_message); Session.receive_data()
                                   never raises it but returns a ProtocolError event
 
@@ -66,6 +69,7 @@ __all__ = [
     "MAX_CLOSE_REASON_BYTES",
     "ErrorCode",
     "LocalProtocolError",
+    "PosecastError",
     "ProtocolViolation",
     "RemoteProtocolError",
     "close_reason",
@@ -137,7 +141,16 @@ def close_reason(message: str) -> str:
     return data.decode("utf-8", errors="ignore")
 
 
-class ProtocolViolation(Exception):
+class PosecastError(Exception):
+    """Root of the errors a user can cause and fix: a bad file, argument or setting.
+
+    Its message is one line that says what was wrong (and, where it helps, what to
+    do); the command line prints it without a traceback. ``protocol`` imports
+    nothing else of ours, so every other package can derive from this root.
+    """
+
+
+class ProtocolViolation(PosecastError):
     """Base of posecast protocol errors: a code from the table and a short message."""
 
     def __init__(self, code: ErrorCode, message: str, *, in_reply_to: str | None = None) -> None:

@@ -47,6 +47,7 @@ from recorder.format import (
     to_ns,
 )
 from recorder.reader import (
+    EXPORT_LIBRARY_PREFIX,
     SessionReader,
     StreamData,
     UserInfo,
@@ -481,7 +482,7 @@ def _export_foxglove(streams: Sequence[StreamData], out: Path, session: dict[str
     order = np.argsort(times, kind="stable")
     with out.open("wb") as fh:
         writer = Writer(fh, compression=CompressionType.ZSTD)
-        writer.start(profile="", library=f"posecast-export/{posecast_version()}")
+        writer.start(profile="", library=f"{EXPORT_LIBRARY_PREFIX}{posecast_version()}")
         if session:
             writer.add_metadata("posecast.session", session)
         schema_id = writer.register_schema(

@@ -61,6 +61,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from protocol.errors import PosecastError
+
 __all__ = [
     "CHANNELS",
     "DROPS_TOPIC",
@@ -116,7 +118,7 @@ _U16_MAX = 0xFFFF
 _U64_MAX = (1 << 64) - 1
 
 
-class FormatError(ValueError):
+class FormatError(PosecastError, ValueError):
     """Bytes that are not a valid posecast record, with the reason."""
 
 

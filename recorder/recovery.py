@@ -26,6 +26,7 @@ from pathlib import Path
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, IndexType, Writer
 
+from protocol.errors import PosecastError
 from recorder.format import CHANNELS, POSE_ENCODING, PROFILE, posecast_version
 from recorder.scan import (
     ChannelRecord,
@@ -51,7 +52,7 @@ log = logging.getLogger("posecast.recorder")
 RECOVERY_METADATA = "posecast.recovery"
 
 
-class RecoveryError(RuntimeError):
+class RecoveryError(PosecastError, RuntimeError):
     """The recovered file did not read back as written (it is not kept)."""
 
 

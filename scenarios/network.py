@@ -49,6 +49,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from protocol import SNAPSHOT_ENTRY_SIZE, frame_size
+from protocol.errors import PosecastError
 
 __all__ = [
     "GAMMA_SHAPE",
@@ -87,7 +88,7 @@ VELOCITY_WIRE_DTYPE = np.float16
 VELOCITY_BYTES_PER_POSE = 6 * np.dtype(VELOCITY_WIRE_DTYPE).itemsize
 
 
-class TierError(ValueError):
+class TierError(PosecastError, ValueError):
     """A tier file or tier definition that cannot be used, with the reason."""
 
 
@@ -187,9 +188,15 @@ def load_tiers(path: str | Path | None = None) -> dict[str, Tier]:
         return tiers
     p = Path(path)
     try:
-        text = p.read_text()
+        text = p.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise TierError(f"{p}: no such tier file") from None
+    except IsADirectoryError:
+        raise TierError(f"{p}: is a directory; give a tiers file ([tier.NAME] tables)") from None
+    except UnicodeDecodeError:
+        raise TierError(f"{p}: not a tiers file (TOML text with [tier.NAME] tables)") from None
+    except OSError as exc:
+        raise TierError(f"{p}: cannot read the tier file ({exc.strerror or exc})") from None
     return _parse_tiers(text, str(p), tiers)
 
 

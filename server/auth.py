@@ -14,13 +14,15 @@ import hmac
 import json
 from dataclasses import dataclass
 
+from protocol.errors import PosecastError
+
 __all__ = ["TokenClaims", "TokenError", "make_token", "verify_token"]
 
 _PREFIX = "v1"
 
 
-class TokenError(ValueError):
-    """Why a token was refused (short lowercase message, safe to send back)."""
+class TokenError(PosecastError, ValueError):
+    """Why a token was refused, or cannot be made (short lowercase message, safe to send back)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,9 +48,9 @@ def _sign(secret: str, payload: str) -> str:
 def make_token(secret: str, room: str, user: str, ttl: float, now: float) -> str:
     """A token for ``user`` in ``room``, valid for ``ttl`` seconds from ``now``."""
     if not secret:
-        raise ValueError("the secret must not be empty")
+        raise TokenError("the secret must not be empty")
     if ttl <= 0:
-        raise ValueError("ttl must be positive")
+        raise TokenError("ttl must be positive")
     body = json.dumps({"room": room, "user": user, "exp": now + ttl}, separators=(",", ":"))
     payload = _b64(body.encode())
     return f"{_PREFIX}.{payload}.{_sign(secret, payload)}"
