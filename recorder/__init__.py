@@ -2,8 +2,11 @@
 
 - :class:`SessionRecorder` (``recorder.writer``): the relay's non-blocking tap;
   a bounded queue and a writer thread; ``NAME.mcap.part`` renamed on close.
-- :class:`ProcessRecorder` (``recorder.process``): the same tap with the writer
-  in a child process fed the raw update frames (what the server uses).
+- :class:`ProcessRecorder`, :class:`RecorderHost` (``recorder.host``): the same
+  tap with the writer in a child process (``recorder.writerproc``) fed the raw
+  update frames through a pipe (``recorder.pipe``); what the server uses.
+- :class:`RecordOptions` (``recorder.options``): how a room is recorded, for
+  either recorder.
 - :func:`recover`, :func:`find_leftovers`, :func:`recover_leftovers`
   (``recorder.recovery``): chunk-by-chunk recovery of a ``.part`` file.
 - :class:`SessionReader`, :func:`info`, :func:`format_info`, :func:`load_streams`,
@@ -13,7 +16,8 @@
 """
 
 from recorder.format import FormatError, PoseRecord, decode_pose, encode_pose
-from recorder.process import ProcessRecorder, RecorderHost, RoomRecorder
+from recorder.host import ProcessRecorder, RecorderHost, RoomRecorder
+from recorder.options import RecordOptions
 from recorder.reader import (
     DropRecord,
     EventRecord,
@@ -48,6 +52,7 @@ __all__ = [
     "PresenceRecord",
     "ProcessRecorder",
     "Record",
+    "RecordOptions",
     "RecorderError",
     "RecorderHost",
     "RecorderStatistics",

@@ -31,7 +31,7 @@ import queue
 import re
 import threading
 import time as _time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -41,6 +41,7 @@ from typing import IO, Any, Final
 import numpy as np
 from numpy.typing import ArrayLike
 
+from protocol.errors import PosecastError
 from protocol.poses import PoseUpdate
 from recorder.format import (
     CHANNELS,
@@ -59,11 +60,20 @@ from recorder.format import (
     to_ns,
 )
 from recorder.mcapfile import MESSAGE_OVERHEAD, ChunkWriter
+from recorder.options import (
+    DEFAULT_CHUNK_BYTES,
+    DEFAULT_FLUSH_INTERVAL,
+    DEFAULT_QUEUE_SIZE,
+    Clock,
+    RecordOptions,
+)
 
 __all__ = [
+    "DEFAULT_CHUNK_BYTES",
     "DEFAULT_FLUSH_INTERVAL",
     "DEFAULT_QUEUE_SIZE",
     "PART_SUFFIX",
+    "RecordOptions",
     "RecordTap",
     "RecorderError",
     "RecorderStatistics",
@@ -72,12 +82,6 @@ __all__ = [
 
 log = logging.getLogger("posecast.recorder")
 
-#: Records the queue holds: 20 s of a 20-user room at 20 updates/s.
-DEFAULT_QUEUE_SIZE = 8192
-#: Seconds between closing a chunk and fsync-ing it, while records come in.
-DEFAULT_FLUSH_INTERVAL = 0.5
-#: A chunk is also closed once this many uncompressed bytes are in it.
-DEFAULT_CHUNK_BYTES = 1 << 20
 PART_SUFFIX = ".part"
 
 _CHANNEL_IDS: Final = {spec.topic: i + 1 for i, spec in enumerate(CHANNELS)}
@@ -86,12 +90,11 @@ _EVENTS = _CHANNEL_IDS[EVENTS_TOPIC]
 _PRESENCE = _CHANNEL_IDS[PRESENCE_TOPIC]
 _DROPS = _CHANNEL_IDS[DROPS_TOPIC]
 
-Clock = Callable[[], float]
 # A queued record: channel id, log time ns, publish time ns, data, poses in it.
 _Item = tuple[int, int, int, bytes, int]
 
 
-class RecorderError(RuntimeError):
+class RecorderError(PosecastError, RuntimeError):
     """The recorder failed (disk full, I/O error); the ``.part`` file is kept."""
 
 
@@ -339,93 +342,39 @@ class SessionRecorder(RecordTap):
         cls,
         directory: str | os.PathLike[str],
         room: str,
-        *,
-        name: str | None = None,
-        users: Iterable[Mapping[str, Any]] = (),
-        clock: Clock = _time.monotonic,
-        wall_clock: Clock = _time.time,
-        queue_size: int = DEFAULT_QUEUE_SIZE,
-        flush_interval: float = DEFAULT_FLUSH_INTERVAL,
-        chunk_records: int | None = None,
-        chunk_bytes: int = DEFAULT_CHUNK_BYTES,
-        metadata: Mapping[str, str] | None = None,
-        batch_size: int = 1,
-        batch_delay: float = 0.05,
+        options: RecordOptions | None = None,
+        **keywords: Any,
     ) -> SessionRecorder:
         """Create ``directory/NAME.mcap.part``, write the session header, start the writer.
 
-        ``NAME`` defaults to ``ROOM-YYYYmmddTHHMMSSZ`` (made unique with ``-2``,
-        ``-3``, ...). ``users`` are the members present at the start, as presence
-        join dicts (``user``, ``name``, ``label``, ``streams`` {name: id},
-        ``rate``). ``clock`` is the server clock the record times use.
-        ``chunk_records`` closes a chunk every that many records (tests);
-        ``metadata`` adds string pairs to the ``posecast.session`` metadata.
-        ``batch_size`` > 1 hands records to the writer thread in batches (at
-        most ``batch_delay`` s old; call :meth:`poll` regularly): far fewer
-        thread wake-ups for a busy relay. The default hands over each record.
+        ``options`` (or the same as keywords, replacing its fields): see
+        :class:`RecordOptions`. ``batch_size`` > 1 hands records to the writer
+        thread in batches (call :meth:`poll` regularly): far fewer thread
+        wake-ups for a busy relay. The default hands over each record.
         """
-        if queue_size < 1:
-            raise ValueError("queue_size must be at least 1")
-        if not flush_interval > 0:
-            raise ValueError("flush_interval must be positive")
+        opts = RecordOptions.of(options, keywords)
         folder = Path(directory)
         folder.mkdir(parents=True, exist_ok=True)
-        start_wall = wall_clock()
-        start = clock()
-        base = name or (
+        start_wall = opts.wall_clock()
+        start = opts.clock()
+        base = opts.name or (
             f"{_safe_name(room)}-{datetime.fromtimestamp(start_wall, UTC):%Y%m%dT%H%M%SZ}"
         )
-        stream: IO[bytes] | None = None
-        for k in range(1, 10_000):
-            stem = base if k == 1 else f"{base}-{k}"
-            final = folder / f"{stem}.mcap"
-            part = folder / f"{stem}.mcap{PART_SUFFIX}"
-            if final.exists():
-                continue
-            try:
-                stream = part.open("xb")
-            except FileExistsError:
-                continue
-            break
-        if stream is None:
-            raise FileExistsError(f"no free file name for {base!r} in {folder}")
+        part, final, stream = _create_part(folder, base)
         try:
-            # Chunks are closed by the recorder (time and size), never by the
-            # writer. No message indexes: they would cost 16 B per message
-            # outside the chunks, about 5 B per pose; readers find messages
-            # through the chunk indexes, and recovery re-indexes from the chunks.
-            writer = ChunkWriter(stream)
-            writer.start(profile=PROFILE, library=f"posecast-recorder/{posecast_version()}")
-            session = {
-                "room": room,
-                "posecast_version": posecast_version(),
-                "format_version": str(FORMAT_VERSION),
-                "start_time": repr(start),
-                "start_wall_time": repr(start_wall),
-                "start_utc": datetime.fromtimestamp(start_wall, UTC).isoformat(),
-                "users": encode_json({"users": [dict(u) for u in users]}).decode(),
-                "flush_interval": repr(flush_interval),
-                "queue_size": str(queue_size),
-            }
-            session.update(metadata or {})
-            writer.add_metadata(SESSION_METADATA, session)
-            for spec in CHANNELS:
-                schema_id = writer.register_schema(
-                    spec.schema_name, spec.schema_encoding, spec.schema_data
-                )
-                writer.register_channel(spec.topic, spec.message_encoding, schema_id)
+            writer = _start_file(stream, room, opts, start, start_wall)
             rec = cls(
                 part,
                 final,
                 stream,
                 writer,
-                clock=clock,
-                queue_size=queue_size,
-                flush_interval=flush_interval,
-                chunk_records=chunk_records,
-                chunk_bytes=chunk_bytes,
-                batch_size=batch_size,
-                batch_delay=batch_delay,
+                clock=opts.clock,
+                queue_size=opts.queue_size,
+                flush_interval=opts.flush_interval,
+                chunk_records=opts.chunk_records,
+                chunk_bytes=opts.chunk_bytes,
+                batch_size=1 if opts.batch_size is None else opts.batch_size,
+                batch_delay=opts.batch_delay,
             )
             # Header, schemas, channels and the first chunk: durable from the start.
             start_ns = to_ns(start)
@@ -758,6 +707,50 @@ class SessionRecorder(RecordTap):
                 error=None if self._error is None else repr(self._error),
                 closed=self._closed,
             )
+
+
+def _create_part(folder: Path, base: str) -> tuple[Path, Path, IO[bytes]]:
+    """Create the first free ``BASE[-k].mcap.part`` in ``folder``: part, final path, stream."""
+    for k in range(1, 10_000):
+        stem = base if k == 1 else f"{base}-{k}"
+        final = folder / f"{stem}.mcap"
+        part = folder / f"{stem}.mcap{PART_SUFFIX}"
+        if final.exists():
+            continue
+        try:
+            return part, final, part.open("xb")
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"no free file name for {base!r} in {folder}")
+
+
+def _start_file(
+    stream: IO[bytes], room: str, opts: RecordOptions, start: float, start_wall: float
+) -> ChunkWriter:
+    """Write the file's header, the session metadata, the schemas and the channels."""
+    # Chunks are closed by the recorder (time and size), never by the
+    # writer. No message indexes: they would cost 16 B per message
+    # outside the chunks, about 5 B per pose; readers find messages
+    # through the chunk indexes, and recovery re-indexes from the chunks.
+    writer = ChunkWriter(stream)
+    writer.start(profile=PROFILE, library=f"posecast-recorder/{posecast_version()}")
+    session = {
+        "room": room,
+        "posecast_version": posecast_version(),
+        "format_version": str(FORMAT_VERSION),
+        "start_time": repr(start),
+        "start_wall_time": repr(start_wall),
+        "start_utc": datetime.fromtimestamp(start_wall, UTC).isoformat(),
+        "users": encode_json({"users": [dict(u) for u in opts.users]}).decode(),
+        "flush_interval": repr(opts.flush_interval),
+        "queue_size": str(opts.queue_size),
+    }
+    session.update(opts.metadata or {})
+    writer.add_metadata(SESSION_METADATA, session)
+    for spec in CHANNELS:
+        schema_id = writer.register_schema(spec.schema_name, spec.schema_encoding, spec.schema_data)
+        writer.register_channel(spec.topic, spec.message_encoding, schema_id)
+    return writer
 
 
 def _start_event(room: str, start: float) -> dict[str, Any]:

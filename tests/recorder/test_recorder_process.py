@@ -22,7 +22,7 @@ from recorder import (
     RecorderHost,
     SessionReader,
     SessionRecorder,
-    process,
+    pipe,
     read_records,
     recover,
 )
@@ -179,7 +179,7 @@ def test_bad_records_are_refused_and_counted(tmp_path: Path) -> None:
     assert not rec.record_event({"bad": object()}, T0)
     # An update whose entries do not match its header (the relay never sends
     # one) reaches the child, which refuses and counts it.
-    bad = process._UPDATE.pack(process._KIND_UPDATE, process._UPDATE_EXTRA + 5, 1, 1, T0, 0, T0)
+    bad = pipe._UPDATE.pack(pipe._KIND_UPDATE, pipe._UPDATE_EXTRA + 5, 1, 1, T0, 0, T0)
     rec._batch.parts += (bad, b"short")
     rec._batch.records += 1
     path = rec.close(T0 + 1)
@@ -251,7 +251,7 @@ def test_a_room_that_cannot_open_or_goes_bad_leaves_the_other_rooms_alone(
             host.open_room(blocker / "sub", "bad")
         bad = host.open_room(tmp_path, "corrupt", name="corrupt", clock=lambda: T0, batch_size=4)
         # A message of an unknown kind inside one room's batch fails that room only.
-        bad._batch.parts += (process._HEAD.pack(99, 3), b"abc")
+        bad._batch.parts += (pipe._HEAD.pack(99, 3), b"abc")
         bad._batch.records += 1
         bad._handoff()
         _feed(good, frames)
@@ -282,7 +282,7 @@ def test_when_the_relay_vanishes_every_open_room_keeps_a_recoverable_part(
     proc = host._proc
     assert proc.stdin is not None
     proc.stdin.close()  # as a dying relay's pipe closes
-    assert proc.wait(30) == process.EXIT_RELAY_GONE
+    assert proc.wait(30) == pipe.EXIT_RELAY_GONE
     host.close()
     for rec, feed in zip(rooms, feeds, strict=True):
         assert rec.part_path.exists() and not rec.path.exists()
@@ -301,7 +301,7 @@ def test_a_stalled_writer_fails_a_blocking_drain_instead_of_hanging(tmp_path: Pa
     os.kill(host.pid, signal.SIGSTOP)
     try:
         more_than_the_pipe = 2 << 20
-        blob = process._frame(process._FRAME_BATCH, rec._id, more_than_the_pipe)
+        blob = pipe._frame(pipe._FRAME_BATCH, rec._id, more_than_the_pipe)
         with host.lock:
             host._push(rec, blob + bytes(more_than_the_pipe), 1)
         host.drain(block=True, timeout=1.0)
@@ -311,5 +311,5 @@ def test_a_stalled_writer_fails_a_blocking_drain_instead_of_hanging(tmp_path: Pa
         os.kill(host.pid, signal.SIGCONT)
     with pytest.raises(RecorderError, match="partial file kept"):
         rec.close()
-    assert host.close() == process.EXIT_RELAY_GONE  # the room never finished: .part kept
+    assert host.close() == pipe.EXIT_RELAY_GONE  # the room never finished: .part kept
     assert rec.part_path.exists()

@@ -20,10 +20,10 @@ milliseconds, and a server recording 100 rooms runs one writer, not 100):
   wake-up of the child, whatever the number of rooms, and no thread hand-off (a
   feeder thread woken per batch cost the relay far more than the writing);
   what the pipe cannot take yet waits, bounded per room;
-- the host's child process (:func:`main` here) reads the pipe, encodes each
-  room's updates in groups of the same shape and records them with one
-  :class:`SessionRecorder` per room (same file layout, chunking, fsync schedule,
-  ``.part`` and rename).
+- the host's child process (:func:`recorder.writerproc.main`) reads the pipe,
+  encodes each room's updates in groups of the same shape and records them with
+  one :class:`SessionRecorder` per room (same file layout, chunking, fsync
+  schedule, ``.part`` and rename).
 
 Nothing is silent: when more than ``queue_size`` of a room's records wait (the
 child or its disk cannot keep up and the pipe is full) a batch of that room is
@@ -34,18 +34,7 @@ every open room's ``.part`` for recovery. If the child dies, every room it was
 recording fails (the relay goes on, the ``.part`` files stay) and the server
 starts a new host for the rooms opened after that.
 
-Pipe frames (little-endian): ``u8 kind, u32 length, u32 room id`` + payload:
-``OPEN``: the room's configuration as JSON; ``BATCH``: messages of that room,
-each ``u8 kind, u32 length, payload``: ``UPDATE``: ``u16 user, u32 poses, f64
-arrival, u64 seq, f64 base time`` + the update's entries
-(:data:`protocol.UPDATE_DTYPE` or, for the velocity variant,
-:data:`protocol.UPDATE_VELOCITY_DTYPE` records: their size tells which);
-``RECORD``: ``u8 channel index, i64 log ns, i64 publish ns, u32 poses`` + data;
-``STOP``: ``f64 end time`` (the room's last message). The child's standard
-output carries JSON lines, each with the room id: ``{"event": "ready", "room":
-id, "part": ..., "path": ...}`` once the room's file is open, ``{"event":
-"closed", "room": id, "statistics": {...}}`` at its end and ``{"event":
-"error", "room": id, "error": ...}`` (room ``null``: the whole process).
+The pipe's layout and what the child answers: :mod:`recorder.pipe`.
 """
 
 from __future__ import annotations
@@ -59,66 +48,37 @@ import logging
 import os
 import queue
 import select
-import signal
-import struct
 import subprocess
 import sys
 import threading
 import time as _time
-from collections.abc import Callable, Iterable, Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
 
-import numpy as np
-
-from protocol.poses import UPDATE_DTYPE, UPDATE_VELOCITY_DTYPE, PoseUpdate
-from recorder.format import (
-    CHANNELS,
-    DROPS_TOPIC,
-    POSES_TOPIC,
-    QUEUE_OVERFLOW_KIND,
-    encode_json,
-    encode_pose_batch,
-    to_ns,
-    to_ns_many,
+from protocol.poses import PoseUpdate
+from recorder.format import DROPS_TOPIC, POSES_TOPIC, QUEUE_OVERFLOW_KIND, encode_json, to_ns
+from recorder.options import Clock, RecordOptions
+from recorder.pipe import (
+    _CHANNEL_INDEX,
+    _FRAME_BATCH,
+    _FRAME_OPEN,
+    _KIND_RECORD,
+    _KIND_STOP,
+    _KIND_UPDATE,
+    _RECORD,
+    _RECORD_EXTRA,
+    _STOP,
+    _UPDATE_EXTRA,
+    _UPDATE_PACK,
+    _frame,
 )
-from recorder.writer import (
-    DEFAULT_CHUNK_BYTES,
-    DEFAULT_FLUSH_INTERVAL,
-    DEFAULT_QUEUE_SIZE,
-    RecorderError,
-    RecorderStatistics,
-    RecordTap,
-    SessionRecorder,
-)
+from recorder.writer import RecorderError, RecorderStatistics, RecordTap, SessionRecorder
 
 __all__ = ["ProcessRecorder", "RecorderHost", "RoomRecorder"]
 
 log = logging.getLogger("posecast.recorder")
 
-# Frames of the pipe: kind, length, room id.
-_FRAME_OPEN: Final = 1
-_FRAME_BATCH: Final = 2
-_FRAME: Final = struct.Struct("<BII")
-# Messages inside a batch.
-_KIND_UPDATE: Final = 1
-_KIND_RECORD: Final = 2
-_KIND_STOP: Final = 3
-_HEAD: Final = struct.Struct("<BI")
-# head + user, poses, arrival, seq, base time (the entries' size tells their layout)
-_UPDATE: Final = struct.Struct("<BIHIdQd")
-_UPDATE_EXTRA: Final = _UPDATE.size - _HEAD.size
-_UPDATE_PACK: Final = _UPDATE.pack
-_PLAIN_ITEM: Final = UPDATE_DTYPE.itemsize
-_VELOCITY_ITEM: Final = UPDATE_VELOCITY_DTYPE.itemsize
-_RECORD: Final = struct.Struct("<BIBqqI")  # head + channel, log ns, publish ns, poses
-_RECORD_EXTRA: Final = _RECORD.size - _HEAD.size
-_STOP: Final = struct.Struct("<BId")
-#: What a frame's length counts beyond the kind and length: the room id.
-_FRAME_EXTRA: Final = _FRAME.size - _HEAD.size
-_TOPICS: Final = [spec.topic for spec in CHANNELS]
-_CHANNEL_INDEX: Final = {topic: i for i, topic in enumerate(_TOPICS)}
 #: Seconds to wait for the child to open a room's file, and to finish it on close.
 _START_TIMEOUT: Final = 60.0
 _CLOSE_TIMEOUT: Final = 120.0
@@ -127,18 +87,9 @@ _F_SETPIPE_SZ: Final = getattr(fcntl, "F_SETPIPE_SZ", 1031)
 _PIPE_BYTES: Final = 1 << 20
 #: Blobs per writev (Linux's IOV_MAX is 1024).
 _WRITEV_MAX: Final = 512
-_CHILD_BOOT: Final = "import sys; from recorder.process import main; sys.exit(main())"
-#: The child's own hand-off to a room's writer thread: records per batch, seconds at most.
-_CHILD_BATCH: Final = 256
-_CHILD_BATCH_DELAY: Final = 0.05
-#: Niceness the writer process adds to its own (a lower CPU priority than the relay's).
-_CHILD_NICE: Final = 10
-#: The child's exit codes: all rooms finished; a room or the pipe was bad; the relay vanished.
-EXIT_OK: Final = 0
-EXIT_ERROR: Final = 1
-EXIT_RELAY_GONE: Final = 2
-
-Clock = Callable[[], float]
+_CHILD_BOOT: Final = "import sys; from recorder.writerproc import main; sys.exit(main())"
+#: Records a room hands over at a time unless its options say otherwise.
+_BATCH_SIZE: Final = 256
 
 
 class _Batch:
@@ -174,10 +125,6 @@ class _Loss:
             topics[POSES_TOPIC] = topics.get(POSES_TOPIC, 0) + batch.updates
         for k, v in batch.topics.items():
             topics[k] = topics.get(k, 0) + v
-
-
-def _frame(kind: int, room: int, payload_size: int) -> bytes:
-    return _FRAME.pack(kind, _FRAME_EXTRA + payload_size, room)
 
 
 class RecorderHost:
@@ -255,54 +202,23 @@ class RecorderHost:
         self,
         directory: str | os.PathLike[str],
         room: str,
+        options: RecordOptions | None = None,
         *,
-        name: str | None = None,
-        users: Iterable[Mapping[str, Any]] = (),
-        clock: Clock = _time.monotonic,
-        wall_clock: Clock = _time.time,
-        queue_size: int = DEFAULT_QUEUE_SIZE,
-        flush_interval: float = DEFAULT_FLUSH_INTERVAL,
-        chunk_bytes: int = DEFAULT_CHUNK_BYTES,
-        metadata: Mapping[str, str] | None = None,
-        batch_size: int = 256,
-        batch_delay: float = 0.05,
         timeout: float = _START_TIMEOUT,
+        **keywords: Any,
     ) -> ProcessRecorder:
         """Open room ``room``'s recording; return once the child created its ``.part``.
 
         Blocks for a round trip to the child (run it off the event loop).
-        Arguments as for :meth:`SessionRecorder.open`. Raises
-        :class:`RecorderError` if the child cannot open the file or is gone.
+        ``options`` (or the same as keywords, replacing its fields) as for
+        :meth:`SessionRecorder.open`, but ``batch_size`` defaults to 256 and
+        ``chunk_records`` is not taken. Raises :class:`RecorderError` if the
+        child cannot open the file or is gone.
         """
-        if queue_size < 1:
-            raise ValueError("queue_size must be at least 1")
-        if not flush_interval > 0:
-            raise ValueError("flush_interval must be positive")
-        config = {
-            "directory": str(Path(directory).resolve()),
-            "room": room,
-            "name": name,
-            "users": [dict(u) for u in users],
-            "start": clock(),
-            "start_wall": wall_clock(),
-            "queue_size": queue_size,
-            "flush_interval": flush_interval,
-            "chunk_bytes": chunk_bytes,
-            "metadata": dict(metadata or {}),
-        }
-        payload = json.dumps(config).encode()
-        replies: queue.SimpleQueue[dict[str, Any] | None] = queue.SimpleQueue()
-        with self.lock:
-            if self._eof or self._closed or self._error is not None:
-                raise RecorderError(
-                    f"the recorder process is not running ({self._error or 'it ended'})"
-                )
-            room_id = next(self._ids)
-            self._replies[room_id] = replies
-            self._pending.append(
-                [memoryview(_frame(_FRAME_OPEN, room_id, len(payload)) + payload), 0, None]
-            )
-        self.drain(block=True)
+        opts = RecordOptions.of(options, keywords)
+        if opts.chunk_records is not None:
+            raise TypeError("chunk_records is an option of the thread recorder only")
+        room_id, replies = self._send_open(_room_config(directory, room, opts))
         try:
             ready = replies.get(timeout=timeout)
         except queue.Empty:
@@ -317,15 +233,34 @@ class RecorderHost:
             room_id,
             Path(ready["part"]),
             Path(ready["path"]),
-            clock=clock,
-            queue_size=queue_size,
-            batch_size=batch_size,
+            clock=opts.clock,
+            queue_size=opts.queue_size,
+            batch_size=_BATCH_SIZE if opts.batch_size is None else opts.batch_size,
         )
         with self.lock:
             self._rooms[room_id] = handle
-            if self._flush_delay is None or batch_delay < self._flush_delay:
-                self._flush_delay = batch_delay
+            if self._flush_delay is None or opts.batch_delay < self._flush_delay:
+                self._flush_delay = opts.batch_delay
         return handle
+
+    def _send_open(
+        self, config: dict[str, Any]
+    ) -> tuple[int, queue.SimpleQueue[dict[str, Any] | None]]:
+        """Send a room's ``OPEN`` frame; its id and where the child's replies arrive."""
+        payload = json.dumps(config).encode()
+        replies: queue.SimpleQueue[dict[str, Any] | None] = queue.SimpleQueue()
+        with self.lock:
+            if self._eof or self._closed or self._error is not None:
+                raise RecorderError(
+                    f"the recorder process is not running ({self._error or 'it ended'})"
+                )
+            room_id = next(self._ids)
+            self._replies[room_id] = replies
+            self._pending.append(
+                [memoryview(_frame(_FRAME_OPEN, room_id, len(payload)) + payload), 0, None]
+            )
+        self.drain(block=True)
+        return room_id, replies
 
     def _finished(self, room_id: int, timeout: float | None) -> dict[str, Any] | None:
         """The room's ``closed`` (or ``error``) reply, and forget the room.
@@ -562,7 +497,10 @@ class ProcessRecorder(RecordTap):
         cls,
         directory: str | os.PathLike[str],
         room: str,
-        **options: Any,
+        options: RecordOptions | None = None,
+        *,
+        timeout: float = _START_TIMEOUT,
+        **keywords: Any,
     ) -> ProcessRecorder:
         """Start a writer process for this room alone; return once its ``.part`` exists.
 
@@ -571,7 +509,7 @@ class ProcessRecorder(RecordTap):
         """
         host = RecorderHost.start()
         try:
-            rec = host.open_room(directory, room, **options)
+            rec = host.open_room(directory, room, options, timeout=timeout, **keywords)
         except BaseException:
             with contextlib.suppress(Exception):
                 host.close(5.0)
@@ -825,229 +763,23 @@ class ProcessRecorder(RecordTap):
             )
 
 
+def _room_config(
+    directory: str | os.PathLike[str], room: str, opts: RecordOptions
+) -> dict[str, Any]:
+    """The configuration an ``OPEN`` frame carries (its JSON is the frame's payload)."""
+    return {
+        "directory": str(Path(directory).resolve()),
+        "room": room,
+        "name": opts.name,
+        "users": [dict(u) for u in opts.users],
+        "start": opts.clock(),
+        "start_wall": opts.wall_clock(),
+        "queue_size": opts.queue_size,
+        "flush_interval": opts.flush_interval,
+        "chunk_bytes": opts.chunk_bytes,
+        "metadata": dict(opts.metadata or {}),
+    }
+
+
 #: What a server room records through: either recorder has the relay-facing methods.
 RoomRecorder = SessionRecorder | ProcessRecorder
-
-
-# -- the child process -------------------------------------------------------------------
-
-_emit_lock = threading.Lock()
-
-
-def _emit(event: Mapping[str, Any]) -> None:
-    with _emit_lock:
-        sys.stdout.write(json.dumps(event) + "\n")
-        sys.stdout.flush()
-
-
-#: One update from the pipe: user, poses, arrival, seq, base time, entries.
-_Update = tuple[int, int, float, int, float, bytes]
-
-
-def _record_updates(rec: SessionRecorder, updates: list[_Update]) -> None:
-    """Record consecutive updates, encoding same-shaped ones together.
-
-    Each group of updates with the same number of streams and layout is encoded
-    in a few numpy passes (:func:`encode_pose_batch`, the same bytes as
-    :func:`encode_pose`); records are offered in the pipe's order. An update
-    whose entries do not match its header is refused and counted.
-    """
-    out: list[tuple[int, int, bytes, int] | None] = [None] * len(updates)
-    groups: dict[tuple[int, bool], list[int]] = {}
-    for i, (_user, n, _arrival, _seq, _base, body) in enumerate(updates):
-        size = len(body)
-        if size == n * _PLAIN_ITEM:
-            groups.setdefault((n, False), []).append(i)
-        elif size == n * _VELOCITY_ITEM:
-            groups.setdefault((n, True), []).append(i)
-    for (n, velocity), idx in groups.items():
-        dtype = UPDATE_VELOCITY_DTYPE if velocity else UPDATE_DTYPE
-        rows = [updates[i] for i in idx]
-        entries = np.frombuffer(b"".join(r[5] for r in rows), dtype).reshape(len(rows), n)
-        bases = np.array([r[4] for r in rows])
-        caps = entries["dt"].astype(np.float64) + bases[:, None]
-        arrivals = np.array([r[2] for r in rows])
-        datas = encode_pose_batch(
-            [r[0] for r in rows],
-            np.array([r[3] for r in rows], dtype=np.uint64),
-            arrivals,
-            entries["stream"],
-            caps,
-            entries["pose"],
-            entries["velocity"] if velocity else None,
-        )
-        # publish time: the newest capture time of the update (its arrival if empty)
-        newest = caps.max(axis=1) if n else arrivals
-        for i, log_ns, pub_ns, data in zip(
-            idx, to_ns_many(arrivals), to_ns_many(newest), datas, strict=True
-        ):
-            out[i] = (log_ns, pub_ns, data, n)
-    encoded = []
-    for update, done in zip(updates, out, strict=True):
-        if done is None:
-            rec.refuse(POSES_TOPIC, f"update of user {update[0]}: entries do not match its header")
-        else:
-            encoded.append(done)
-    rec.offer_encoded_many(POSES_TOPIC, encoded)
-
-
-def _record_batch(rec: SessionRecorder, body: bytearray, at: int, end: int) -> float | None:
-    """Record a room's batch, ``body[at:end]``; the stop's end time if it ends the room."""
-    head_size = _HEAD.size
-    update_at, record_at = _UPDATE.size, _RECORD.size
-    updates: list[_Update] = []
-    stop: float | None = None
-    while at < end:
-        if end - at < head_size:
-            raise ValueError("a batch ends inside a message header")
-        kind, length = _HEAD.unpack_from(body, at)
-        nxt = at + head_size + length
-        if nxt > end:
-            raise ValueError("a message runs past the end of its batch")
-        if kind == _KIND_UPDATE:
-            if nxt - at < update_at:
-                raise ValueError("an update message is shorter than its header")
-            head = _UPDATE.unpack_from(body, at)
-            updates.append((*head[2:], bytes(body[at + update_at : nxt])))
-        else:
-            # Keep the file's record order: the updates before this record first.
-            if updates:
-                _record_updates(rec, updates)
-                updates = []
-            if kind == _KIND_RECORD:
-                _k, _n, channel, log_ns, pub_ns, poses = _RECORD.unpack_from(body, at)
-                data = bytes(body[at + record_at : nxt])
-                rec.offer_encoded(_TOPICS[channel], log_ns, pub_ns, data, poses)
-            elif kind == _KIND_STOP:
-                stop = float(_STOP.unpack_from(body, at)[2])
-            else:
-                raise ValueError(f"unknown message kind {kind}")
-        at = nxt
-    if updates:
-        _record_updates(rec, updates)
-    return stop
-
-
-def _open_room(room_id: int, config: Mapping[str, Any]) -> SessionRecorder | None:
-    start, start_wall = float(config["start"]), float(config["start_wall"])
-    try:
-        rec = SessionRecorder.open(
-            config["directory"],
-            config["room"],
-            name=config.get("name"),
-            users=config.get("users", ()),
-            clock=lambda: start,
-            wall_clock=lambda: start_wall,
-            queue_size=int(config["queue_size"]),
-            flush_interval=float(config["flush_interval"]),
-            chunk_bytes=int(config["chunk_bytes"]),
-            metadata={**config.get("metadata", {}), "writer": "process"},
-            # Records reach the writer thread in batches: one wake-up per batch.
-            batch_size=_CHILD_BATCH,
-            batch_delay=_CHILD_BATCH_DELAY,
-        )
-    except Exception as exc:
-        _emit({"event": "error", "room": room_id, "error": repr(exc)})
-        return None
-    _emit({"event": "ready", "room": room_id, "part": str(rec.part_path), "path": str(rec.path)})
-    return rec
-
-
-def _close_room(room_id: int, rec: SessionRecorder, end: float) -> bool:
-    try:
-        rec.close(end)
-    except RecorderError as exc:
-        statistics = asdict(rec.statistics())
-        _emit({"event": "closed", "room": room_id, "statistics": statistics, "error": str(exc)})
-        return False
-    _emit({"event": "closed", "room": room_id, "statistics": asdict(rec.statistics())})
-    return True
-
-
-def _serve(fd: int) -> int:
-    """Record every room the pipe opens until the pipe ends; the exit code."""
-    rooms: dict[int, SessionRecorder] = {}
-    failed = False
-    buf = bytearray()
-    frame_size = _FRAME.size
-    while True:
-        # Everything read goes to the rooms' writer threads at once (below), so
-        # this process wakes only when the relay writes (every 0.25 s a room) or,
-        # idle, once a second.
-        ready, _, _ = select.select([fd], [], [], 1.0)
-        if ready:
-            chunk = os.read(fd, 1 << 20)
-            if not chunk:
-                break
-            buf += chunk
-            at, end = 0, len(buf)
-            touched: set[int] = set()
-            while end - at >= frame_size:
-                kind, length, room_id = _FRAME.unpack_from(buf, at)
-                start, nxt = at + frame_size, at + _HEAD.size + length
-                if nxt > end:
-                    break
-                at = nxt
-                if kind == _FRAME_OPEN:
-                    rec = _open_room(room_id, json.loads(bytes(buf[start:nxt])))
-                    if rec is not None:
-                        rooms[room_id] = rec
-                    continue
-                if kind != _FRAME_BATCH or nxt < start:
-                    # The stream itself is corrupt: nothing after this can be trusted.
-                    _emit({"event": "error", "room": None, "error": f"bad frame {kind}"})
-                    for rec in rooms.values():
-                        rec.abandon()
-                    return EXIT_ERROR
-                rec = rooms.get(room_id)
-                if rec is None:
-                    continue  # a room whose file could not be opened, or that failed
-                try:
-                    stop = _record_batch(rec, buf, start, nxt)
-                except (ValueError, IndexError, struct.error) as exc:
-                    _emit({"event": "error", "room": room_id, "error": str(exc)})
-                    rec.abandon()
-                    del rooms[room_id]
-                    failed = True
-                    continue
-                if stop is None:
-                    touched.add(room_id)
-                else:
-                    del rooms[room_id]
-                    touched.discard(room_id)
-                    failed = not _close_room(room_id, rec, stop) or failed
-            del buf[:at]
-            for room_id in touched:
-                rooms[room_id].hand_off()
-        for rec in rooms.values():
-            rec.poll()
-    if rooms:
-        # The relay vanished (crash, SIGKILL): make what arrived durable, keep the .part files.
-        for rec in rooms.values():
-            rec.abandon()
-            log.warning("recorder: the relay went away; %s kept for recovery", rec.part_path)
-        return EXIT_RELAY_GONE
-    return EXIT_ERROR if failed else EXIT_OK
-
-
-def main(argv: list[str] | None = None) -> int:
-    """The writer process: records the rooms the relay sends through standard input."""
-    args = sys.argv[1:] if argv is None else argv
-    if args:
-        sys.stderr.write("usage: recorder.process.main (started by the server; no arguments)\n")
-        return 2
-    logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
-    # Ctrl-C in a terminal signals the whole process group: the relay decides
-    # when a session ends, by a room's stop message or by closing the pipe.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    # A background job beside a real-time relay: when the cores are contended the
-    # scheduler runs the relay (and its clients) first; the writer has a second of
-    # slack (the fsync schedule), and if it ever falls behind, losses are recorded.
-    with contextlib.suppress(OSError):
-        os.nice(_CHILD_NICE)
-    return _serve(sys.stdin.buffer.fileno())
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,0 +1,59 @@
+"""The pipe between the relay's :class:`~recorder.host.RecorderHost` and its writer process.
+
+Both ends share what is here: the frame and message layouts, :func:`_frame`, and
+the writer process's exit codes (:mod:`recorder.writerproc` is the child's end).
+
+Pipe frames (little-endian): ``u8 kind, u32 length, u32 room id`` + payload:
+``OPEN``: the room's configuration as JSON; ``BATCH``: messages of that room,
+each ``u8 kind, u32 length, payload``: ``UPDATE``: ``u16 user, u32 poses, f64
+arrival, u64 seq, f64 base time`` + the update's entries
+(:data:`protocol.UPDATE_DTYPE` or, for the velocity variant,
+:data:`protocol.UPDATE_VELOCITY_DTYPE` records: their size tells which);
+``RECORD``: ``u8 channel index, i64 log ns, i64 publish ns, u32 poses`` + data;
+``STOP``: ``f64 end time`` (the room's last message). The child's standard
+output carries JSON lines, each with the room id: ``{"event": "ready", "room":
+id, "part": ..., "path": ...}`` once the room's file is open, ``{"event":
+"closed", "room": id, "statistics": {...}}`` at its end and ``{"event":
+"error", "room": id, "error": ...}`` (room ``null``: the whole process).
+"""
+
+from __future__ import annotations
+
+import struct
+from typing import Final
+
+from protocol.poses import UPDATE_DTYPE, UPDATE_VELOCITY_DTYPE
+from recorder.format import CHANNELS
+
+__all__ = ["EXIT_ERROR", "EXIT_OK", "EXIT_RELAY_GONE"]
+
+# Frames of the pipe: kind, length, room id.
+_FRAME_OPEN: Final = 1
+_FRAME_BATCH: Final = 2
+_FRAME: Final = struct.Struct("<BII")
+# Messages inside a batch.
+_KIND_UPDATE: Final = 1
+_KIND_RECORD: Final = 2
+_KIND_STOP: Final = 3
+_HEAD: Final = struct.Struct("<BI")
+# head + user, poses, arrival, seq, base time (the entries' size tells their layout)
+_UPDATE: Final = struct.Struct("<BIHIdQd")
+_UPDATE_EXTRA: Final = _UPDATE.size - _HEAD.size
+_UPDATE_PACK: Final = _UPDATE.pack
+_PLAIN_ITEM: Final = UPDATE_DTYPE.itemsize
+_VELOCITY_ITEM: Final = UPDATE_VELOCITY_DTYPE.itemsize
+_RECORD: Final = struct.Struct("<BIBqqI")  # head + channel, log ns, publish ns, poses
+_RECORD_EXTRA: Final = _RECORD.size - _HEAD.size
+_STOP: Final = struct.Struct("<BId")
+#: What a frame's length counts beyond the kind and length: the room id.
+_FRAME_EXTRA: Final = _FRAME.size - _HEAD.size
+_TOPICS: Final = [spec.topic for spec in CHANNELS]
+_CHANNEL_INDEX: Final = {topic: i for i, topic in enumerate(_TOPICS)}
+#: The child's exit codes: all rooms finished; a room or the pipe was bad; the relay vanished.
+EXIT_OK: Final = 0
+EXIT_ERROR: Final = 1
+EXIT_RELAY_GONE: Final = 2
+
+
+def _frame(kind: int, room: int, payload_size: int) -> bytes:
+    return _FRAME.pack(kind, _FRAME_EXTRA + payload_size, room)
