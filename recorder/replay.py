@@ -297,7 +297,7 @@ def synthesize_recording(
     users: int = 20,
     rate: float = 30.0,
     duration: float = 60.0,
-    traces: str = "traces:dev",
+    traces: str = "traces:sample",
     room: str = "synthetic",
     name: str | None = None,
     start: float = 1000.0,

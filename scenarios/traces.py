@@ -1,15 +1,24 @@
 """Real head and hand traces in the ``shared/data/vr-traces`` CSV format.
 
-One CSV per recording: ``t`` then 7 columns (``px, py, pz, qw, qx, qy, qz``) for
-each of ``head``, ``left``, ``right``. :func:`load_trace` reads one into a
-:class:`Trace` (times ``(N,)``, poses ``(N, S, 7)`` float64); :func:`find_traces`
-resolves ``traces:dev`` / ``traces:eval`` / a directory / a file into paths.
+One CSV per recording (plain ``.csv`` or gzip ``.csv.gz``): ``t`` then 7 columns
+(``px, py, pz, qw, qx, qy, qz``) for each of ``head``, ``left``, ``right``.
+:func:`load_trace` reads one into a :class:`Trace` (times ``(N,)``, poses
+``(N, S, 7)`` float64); :func:`find_traces` resolves a trace set into paths:
+
+- ``traces:sample``: the excerpt shipped inside the package
+  (``scenarios/data/traces``: the first 60 s of four ``dev`` recordings), so a
+  fresh clone demos and tests with nothing beside it;
+- ``traces:dev`` / ``traces:eval``: the full sets, under ``POSECAST_TRACES`` or
+  ``shared/data/vr-traces`` in a parent folder of the checkout;
+- a directory (every ``*.csv`` / ``*.csv.gz`` in it) or one file.
 """
 
 from __future__ import annotations
 
 import csv
 import functools
+import gzip
+import io
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,16 +26,20 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from protocol.errors import PosecastError
+
 __all__ = [
     "CAUSAL_DEGREE",
     "CAUSAL_SAMPLES",
     "DEVICE_NAMES",
+    "SAMPLE_DIR",
     "VELOCITY_SOURCES",
     "Trace",
     "TraceError",
     "default_trace_root",
     "device_class",
     "find_traces",
+    "full_traces_available",
     "load_trace",
 ]
 
@@ -45,7 +58,12 @@ CAUSAL_SAMPLES = 4
 CAUSAL_DEGREE = 2
 
 
-class TraceError(ValueError):
+#: The bundled excerpt of the real traces (``traces:sample``).
+SAMPLE_DIR = Path(__file__).resolve().parent / "data" / "traces"
+_SUFFIXES = (".csv", ".csv.gz")
+
+
+class TraceError(PosecastError, ValueError):
     """A trace file or trace set that cannot be used, with the reason."""
 
 
@@ -226,14 +244,16 @@ def load_trace(path: str | os.PathLike[str]) -> Trace:
     """Read a trace CSV; errors name the file and the problem."""
     p = Path(path)
     try:
-        with p.open(newline="") as fh:
+        with _open_text(p) as fh:
             header = next(csv.reader(fh))
             data = np.loadtxt(fh, delimiter=",", dtype=np.float64, ndmin=2)
     except FileNotFoundError:
         raise TraceError(f"{p}: no such trace file") from None
+    except IsADirectoryError:
+        raise TraceError(f"{p}: is a directory, not a trace file") from None
     except StopIteration:
         raise TraceError(f"{p}: empty file") from None
-    except ValueError as exc:
+    except (ValueError, UnicodeDecodeError, gzip.BadGzipFile, EOFError) as exc:
         raise TraceError(f"{p}: not a numeric trace CSV ({exc})") from None
     expected = ["t"] + [f"{d}_{c}" for d in DEVICE_NAMES for c in _COMPONENTS]
     if [h.strip() for h in header] != expected:
@@ -248,11 +268,29 @@ def load_trace(path: str | os.PathLike[str]) -> Trace:
     poses = data[:, 1:].reshape(-1, len(DEVICE_NAMES), 7).copy()
     q = poses[..., 3:]
     q /= np.linalg.norm(q, axis=-1, keepdims=True)
-    return Trace(p.stem, times, poses, DEVICE_NAMES)
+    return Trace(_trace_name(p), times, poses, DEVICE_NAMES)
+
+
+def _trace_name(p: Path) -> str:
+    """``S02_riftS`` for ``S02_riftS.csv`` and ``S02_riftS.csv.gz`` alike."""
+    name = p.name
+    for suffix in (".csv.gz", ".gz", ".csv"):
+        if name.endswith(suffix):
+            return name[: -len(suffix)]
+    return p.stem
+
+
+def _open_text(p: Path) -> io.TextIOWrapper:
+    """A text reader of ``p``, gunzipped when it is a gzip file (by its magic bytes)."""
+    with p.open("rb") as probe:
+        gz = probe.read(2) == b"\x1f\x8b"
+    if gz:
+        return io.TextIOWrapper(gzip.open(p, "rb"), encoding="utf-8", newline="")
+    return p.open(newline="", encoding="utf-8")
 
 
 def default_trace_root() -> Path:
-    """``shared/data/vr-traces`` beside the checkout (override: POSECAST_TRACES)."""
+    """The full trace sets: ``POSECAST_TRACES``, else ``shared/data/vr-traces`` in a parent."""
     env = os.environ.get("POSECAST_TRACES")
     if env:
         return Path(env)
@@ -264,24 +302,45 @@ def default_trace_root() -> Path:
     return here.parent / "shared" / "data" / "vr-traces"
 
 
+def full_traces_available(split: str = "dev") -> bool:
+    """Whether the full ``split`` set (``dev`` or ``eval``) can be found."""
+    return _trace_files(default_trace_root() / split) != []
+
+
+def _trace_files(folder: Path) -> list[Path]:
+    if not folder.is_dir():
+        return []
+    return sorted(f for f in folder.iterdir() if f.name.endswith(_SUFFIXES) and f.is_file())
+
+
 def find_traces(spec: str | os.PathLike[str]) -> list[Path]:
-    """Trace CSVs for ``traces:dev``, ``traces:eval``, a directory or a file."""
+    """Trace files for ``traces:sample|dev|eval``, a directory or a file."""
     s = str(spec)
     if s.startswith("traces:"):
         split = s.split(":", 1)[1]
-        path = default_trace_root() / split
-        if not path.is_dir():
+        if split == "sample":
+            path = SAMPLE_DIR
+        elif split in ("dev", "eval"):
+            path = default_trace_root() / split
+            if not _trace_files(path):
+                where = (
+                    "POSECAST_TRACES" if os.environ.get("POSECAST_TRACES") else "no POSECAST_TRACES"
+                )
+                raise TraceError(
+                    f"the full {split!r} traces are not here ({path}, {where}): set "
+                    "POSECAST_TRACES=/path/to/vr-traces, or use traces:sample (bundled)"
+                )
+        else:
             raise TraceError(
-                f"trace split {split!r} not found at {path} (set POSECAST_TRACES to the "
-                "vr-traces folder)"
+                f"unknown trace set {s!r}: use traces:sample, traces:dev or traces:eval"
             )
     else:
         path = Path(s)
     if path.is_file():
         return [path]
     if path.is_dir():
-        files = sorted(path.glob("*.csv"))
+        files = _trace_files(path)
         if not files:
-            raise TraceError(f"{path}: no .csv traces in this directory")
+            raise TraceError(f"{path}: no .csv or .csv.gz traces in this directory")
         return files
     raise TraceError(f"{path}: no such trace file or directory")

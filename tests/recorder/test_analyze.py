@@ -19,7 +19,7 @@ from recorder.analyze import (
     relative_error_pct,
 )
 from recorder.replay import synthesize_recording
-from scenarios.traces import Trace, load_trace
+from scenarios.traces import SAMPLE_DIR, Trace, load_trace
 
 SEQUENCES = [
     "".join(a) for a in itertools.product("xyz", repeat=3) if a[0] != a[1] and a[1] != a[2]
@@ -149,7 +149,9 @@ def test_analyze_pools_several_sources(dev_trace_path: Path) -> None:
 
 def test_analyze_a_recording_skips_velocity_methods(tmp_path: Path) -> None:
     """A recording's streams are its keyframes; velocity methods are skipped with a note."""
-    path = synthesize_recording(tmp_path, users=2, rate=30.0, duration=4.0)
+    # A 90 Hz trace: every 30 Hz send time finds a fresh native sample.
+    quest2 = SAMPLE_DIR / "S03_quest2_expert_FS.csv.gz"
+    path = synthesize_recording(tmp_path, users=2, rate=30.0, duration=4.0, traces=str(quest2))
     result = analyze(path, keep_every=(2, 3), methods=("soa", "motor-lerp", "motor-hermite"))
     (src,) = result["sources"]
     assert src["kind"] == "recording" and src["streams"] == 6

@@ -17,9 +17,9 @@ USERS, RATE, SECONDS = 20, 20.0, 15.0
 UPDATES_PER_CHUNK = {"0.5 s": 200, "1 s": 400}
 
 
-def _room_updates(trace_root: Path) -> list[tuple[float, int, PoseUpdate]]:
+def _room_updates(sample_dir: Path) -> list[tuple[float, int, PoseUpdate]]:
     """(arrival, user, update) for every user, as the server would receive them."""
-    traces = [load_trace(p) for p in find_traces(trace_root / "dev")]
+    traces = [load_trace(p) for p in find_traces(sample_dir)]
     rng = np.random.default_rng(11)
     server_t0 = 8765.4321  # server monotonic clock at the start
     out = []
@@ -41,10 +41,10 @@ def _room_updates(trace_root: Path) -> list[tuple[float, int, PoseUpdate]]:
 
 
 def test_bytes_per_pose_on_disk(
-    tmp_path: Path, trace_root: Path, capsys: pytest.CaptureFixture[str]
+    tmp_path: Path, sample_dir: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """Real head/hand motion costs at most ~36 B per pose on disk (measured and reported)."""
-    updates = _room_updates(trace_root)
+    updates = _room_updates(sample_dir)
     results = {}
     for label, per_chunk in UPDATES_PER_CHUNK.items():
         rec = SessionRecorder.open(

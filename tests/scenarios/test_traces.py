@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gzip
 from pathlib import Path
 
 import numpy as np
@@ -57,3 +58,64 @@ def test_device_classes() -> None:
     assert device_class("head") == "head"
     assert device_class("left") == device_class("right") == "hands"
     assert device_class("object:drill") == "objects"
+
+
+def test_sample_set_is_bundled_and_loads(sample_dir: Path) -> None:
+    """traces:sample resolves to the bundled .csv.gz excerpts: real motion, about 60 s each."""
+    files = find_traces("traces:sample")
+    assert [p.parent for p in files] == [sample_dir] * 4
+    assert all(p.name.endswith(".csv.gz") for p in files)
+    for p in files:
+        tr = load_trace(p)
+        assert not tr.name.endswith((".csv", ".gz"))
+        assert 59.0 < tr.duration <= 60.0
+        assert tr.poses.shape == (tr.times.size, 3, 7)
+    assert (sample_dir / "README.md").is_file() and (sample_dir / "LICENSE-MIT.txt").is_file()
+
+
+def test_gzip_and_plain_csv_load_alike(dev_trace_path: Path, tmp_path: Path) -> None:
+    """A trace reads the same from .csv and .csv.gz, and takes the same name."""
+    plain = tmp_path / "S02_riftS_expertplus.csv"
+    plain.write_bytes(gzip.decompress(dev_trace_path.read_bytes()))
+    a, b = load_trace(plain), load_trace(dev_trace_path)
+    assert a.name == b.name == "S02_riftS_expertplus"
+    np.testing.assert_array_equal(a.times, b.times)
+    np.testing.assert_array_equal(a.poses, b.poses)
+    assert find_traces(tmp_path) == [plain]
+
+
+def test_sample_is_the_start_of_the_full_dev_trace(trace_root: Path, dev_trace_path: Path) -> None:
+    """The bundled excerpt holds the full dev recording's first 60 s, bit for bit."""
+    full = load_trace(trace_root / "dev" / "S02_riftS_expertplus.csv")
+    part = load_trace(dev_trace_path)
+    np.testing.assert_array_equal(full.window(0.0, 60.0).times, part.times)
+    np.testing.assert_array_equal(full.window(0.0, 60.0).poses, part.poses)
+
+
+def test_missing_full_sets_say_how_to_point_at_them(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """traces:dev/eval without the full sets: one line naming POSECAST_TRACES and traces:sample."""
+    monkeypatch.setenv("POSECAST_TRACES", str(tmp_path / "nowhere"))
+    for split in ("dev", "eval"):
+        with pytest.raises(TraceError) as err:
+            find_traces(f"traces:{split}")
+        text = str(err.value)
+        assert "\n" not in text
+        assert f"'{split}'" in text and "POSECAST_TRACES" in text and "traces:sample" in text
+    with pytest.raises(TraceError, match="unknown trace set"):
+        find_traces("traces:devv")
+
+
+def test_not_a_trace_file_is_one_clear_error(tmp_path: Path) -> None:
+    """A directory, a binary file or a broken gzip give a TraceError, not a traceback."""
+    with pytest.raises(TraceError, match="directory"):
+        load_trace(tmp_path)
+    junk = tmp_path / "junk.csv.gz"
+    junk.write_bytes(b"\x1f\x8b\x08\x00garbage")
+    with pytest.raises(TraceError, match="not a numeric trace CSV"):
+        load_trace(junk)
+    binary = tmp_path / "bin.csv"
+    binary.write_bytes(bytes(range(256)))
+    with pytest.raises(TraceError):
+        load_trace(binary)

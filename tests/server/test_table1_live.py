@@ -18,7 +18,7 @@ from server.table1_live import LiveConfig, live_motions, run_live_tier
 runner = CliRunner()
 
 
-async def test_short_live_run_agrees_with_offline(trace_root: Path) -> None:
+async def test_short_live_run_agrees_with_offline(sample_dir: Path) -> None:
     """Two trace bots, 6 s through a mediocre link: live and offline agree within tolerance.
 
     The mediocre tier without its loss: in a run this short, which few snapshots
@@ -28,7 +28,7 @@ async def test_short_live_run_agrees_with_offline(trace_root: Path) -> None:
     senders' start times and each bot's D.
     """
     tier = replace(load_tiers()["mediocre"], name="mediocre-lossless", loss_pct=0.0)
-    motions = live_motions([str(trace_root / "dev")])
+    motions = live_motions([str(sample_dir)])
     row = await run_live_tier(tier, motions, LiveConfig(duration=6.0, bots=2))
     failed = [c for c in row["agreement"]["checks"] if not c["ok"]]
     assert row["agreement"]["pass"], failed
