@@ -112,6 +112,7 @@ __all__ = [
     "PAPER",
     "Progress",
     "cheapest_point",
+    "describe_rates",
     "equal_qoe_rate",
     "keyframe_velocities",
     "main",
@@ -122,6 +123,7 @@ __all__ = [
     "resolve_traces",
     "run_table1",
     "saving_pct",
+    "snapped_range",
     "tier_rate",
 ]
 
@@ -199,6 +201,52 @@ def equal_qoe_rate(
         if not math.isnan(v) and not math.isnan(reference) and v <= reference:
             return int(r)
     return None
+
+
+def snapped_range(rate: int | None, rates: Iterable[int]) -> tuple[int, int] | None:
+    """Where the 1 Hz-step equal-QoE rate lies when ``rate`` was found on a sparse list.
+
+    The equal-QoE rate is defined in 1 Hz steps; searched over ``rates`` with gaps,
+    the rate found is the lowest *listed* rate that meets the bar, and the true
+    one may be any integer rate above the listed rate below it. Returns
+    ``(lowest, rate)``, the range it lies in, when ``rate`` was snapped up over
+    such a gap; ``None`` when the rate just below ``rate`` was searched too, or
+    ``rate`` is the lowest searched (or ``None``).
+    """
+    if rate is None:
+        return None
+    below = [int(r) for r in rates if int(r) < rate]
+    if not below or max(below) == rate - 1:
+        return None
+    return max(below) + 1, int(rate)
+
+
+def describe_rates(rates: Iterable[int]) -> str:
+    """``10-30 Hz in 1 Hz steps`` for a contiguous range, else e.g. ``5-8, 10, 20 Hz``."""
+    rs = sorted({int(r) for r in rates})
+    if not rs:
+        return "no rates"
+    if len(rs) == 1:
+        return f"{rs[0]} Hz"
+    if rs[-1] - rs[0] == len(rs) - 1:
+        return f"{rs[0]}-{rs[-1]} Hz in 1 Hz steps"
+    runs: list[list[int]] = []
+    for r in rs:
+        if runs and r == runs[-1][-1] + 1:
+            runs[-1].append(r)
+        else:
+            runs.append([r])
+    parts: list[str] = []
+    for run in runs:
+        if len(run) >= 3:
+            parts.append(f"{run[0]}-{run[-1]}")
+        else:
+            parts.extend(str(r) for r in run)
+    return ", ".join(parts) + " Hz"
+
+
+def _contiguous(rates: Sequence[int]) -> bool:
+    return not rates or rates[-1] - rates[0] == len(rates) - 1
 
 
 def saving_pct(value: float | None, reference: float | None) -> float | None:
@@ -1345,6 +1393,7 @@ def run_table1(
             "tier": tier.as_dict(),
             "reference_headline_mm": ref,
             "equal_qoe_rate": eq,
+            "equal_qoe_rate_snapped": {m: snapped_range(eq[m], rate_list) for m in meths},
             "bandwidth_saving_pct": {m: saving_pct(eq[m], r_soa) for m in meths},
             "bytes_saving_pct": _bytes_saving(eq, r_soa, wire),
             "wire_bytes_per_snapshot": dict(wire.frame_bytes),
@@ -1462,6 +1511,7 @@ def run_table1(
                 "playout": "fixed per run: D = 1/rate + p95(arrival - capture)",
                 "reference_headline_mm": ref,
                 "equal_qoe_rate": eq,
+                "equal_qoe_rate_snapped": {m: snapped_range(eq[m], rate_list) for m in meths},
                 "bandwidth_saving_pct": {m: saving_pct(eq[m], r_soa) for m in meths},
                 "bytes_saving_pct": _bytes_saving(eq, r_soa, wire),
                 "at_soa_rate": {m: at(m, r_soa) for m in meths},
@@ -1577,6 +1627,15 @@ def run_table1(
         "config": {
             "traces": [tr.name for tr in trs],
             "rates": rate_list,
+            "rates_contiguous": _contiguous(rate_list),
+            "equal_qoe_search": "the lowest of `rates` meeting the bar"
+            + (
+                ""
+                if _contiguous(rate_list)
+                else "; with gaps between them the 1 Hz-step rate may lie between listed "
+                "rates (`equal_qoe_rate_snapped`: the range it lies in)"
+            ),
+            "reference_rates": [r for r in all_rates if r not in rate_list],
             "methods": meths,
             "headline": "p95 tip error of the hands (mm), tip 0.20 m along -z",
             "keyframes": "latest native sample at each send time t0 + k/rate",
@@ -1985,10 +2044,49 @@ def _f(x: Any, digits: int = 1, unit: str = "") -> str:
     return f"{x:.{digits}f}{unit}"
 
 
+#: Marks an equal-QoE rate snapped up to a listed rate (the 1 Hz-step rate is at
+#: most it), and the saving that follows from it (at least that).
+SNAPPED_RATE, SNAPPED_SAVING = "≤", "≥"
+
+
+def _eq_cell(rate: int | None, rates: Sequence[int]) -> str:
+    """An equal-QoE rate, ``≤20`` when it was snapped up to a listed rate."""
+    return ("" if snapped_range(rate, rates) is None else SNAPPED_RATE) + _f(rate)
+
+
+def _saving_cell(
+    pct: float | None, rate: int | None, rates: Sequence[int], unit: str = " %"
+) -> str:
+    """A saving from an equal-QoE rate, ``≥50 %`` when the rate was snapped."""
+    mark = "" if pct is None or snapped_range(rate, rates) is None else SNAPPED_SAVING
+    return mark + _f(pct, 0, unit)
+
+
+def _rates_text(cfg: Mapping[str, Any]) -> str:
+    """What rates were swept, and what a sparse list means for equal-QoE rates."""
+    rates: list[int] = cfg["rates"]
+    contiguous = cfg.get("rates_contiguous", _contiguous(rates))
+    text = f"Rates {describe_rates(rates)}"
+    if not contiguous:
+        text += (
+            " (listed rates, not a 1 Hz range: equal-QoE rates are the lowest listed rate "
+            "meeting the bar; the true rate may lie between listed rates, so a rate snapped "
+            f"up to a listed one is marked {SNAPPED_RATE} and its savings {SNAPPED_SAVING})"
+        )
+    refs = cfg.get("reference_rates") or []
+    if refs:
+        text += (
+            f"; also measured as the tiers' and the paper's reference rates, not searched: "
+            f"{describe_rates(refs)}"
+        )
+    return text
+
+
 def _markdown(report: Mapping[str, Any], trs: Sequence[Trace], plots: Sequence[str]) -> str:
     cfg = report["config"]
     meths: list[str] = cfg["methods"]
     others = [m for m in meths if m != "soa"]
+    rates: list[int] = cfg["rates"]
     lines: list[str] = ["# Table 1: equal-QoE update rates per network tier", ""]
     if cfg.get("command"):
         lines += ["Command:", "", f"    {cfg['command']}", ""]
@@ -1998,7 +2096,8 @@ def _markdown(report: Mapping[str, Any], trs: Sequence[Trace], plots: Sequence[s
         + ", ".join(f"`{tr.name}` ({tr.duration:.0f} s, {tr.native_rate:.0f} Hz)" for tr in trs)
         + ".",
         "",
-        f"Rates {cfg['rates'][0]}-{cfg['rates'][-1]} Hz in 1 Hz steps; methods "
+        _rates_text(cfg)
+        + "; methods "
         + ", ".join(f"`{m}`" for m in meths)
         + f". Headline: {cfg['headline']}. Keyframes: {cfg['keyframes']}. "
         f"Ideal network playout: {cfg['ideal_playout']}. Wire size of a snapshot: "
@@ -2009,8 +2108,15 @@ def _markdown(report: Mapping[str, Any], trs: Sequence[Trace], plots: Sequence[s
         "",
         "## Measured beside the paper (ideal network)",
         "",
-        "Equal-QoE rate: the lowest rate whose headline is no worse than SoA's at the tier "
-        "rate; `null` = no rate in the range reaches SoA's quality. Running time: receiver "
+        "Equal-QoE rate: the lowest rate swept whose headline is no worse than SoA's at the "
+        "tier rate; `null` = no rate swept reaches SoA's quality"
+        + (
+            ""
+            if cfg.get("rates_contiguous", _contiguous(rates))
+            else f" ({SNAPPED_RATE}: snapped up to a listed rate; the true rate lies between "
+            "the listed rate below and it, and the saving is at least the one shown)"
+        )
+        + ". Running time: receiver "
         "CPU time (decode + interpolate the same number of 90 Hz frames), method at its "
         "equal-QoE rate vs SoA at the tier rate; last column: the method at the paper's rate "
         "for it (granting the paper's equal-QoE rate) vs SoA at the tier rate. Bandwidth "
@@ -2029,15 +2135,16 @@ def _markdown(report: Mapping[str, Any], trs: Sequence[Trace], plots: Sequence[s
     for row in report["tiers"]:
         paper = row.get("paper", {})
         for m in others:
+            eq = row["equal_qoe_rate"][m]
             lines.append(
                 f"| {row['name']} | {row['soa_rate']} | {_f(row['reference_headline_mm'])} "
                 f"| `{m}` | {paper.get('ga_rate', '-')} "
                 f"| {_f(row.get('headline_at_paper_rate_mm', {}).get(m))} "
-                f"| {_f(row['equal_qoe_rate'][m])} "
+                f"| {_eq_cell(eq, rates)} "
                 f"| {_f(row['headline_at_equal_rate_mm'][m])} "
                 f"| {paper.get('bandwidth_saving_pct', '-')} % "
-                f"| {_f(row['bandwidth_saving_pct'][m], 0, ' %')} "
-                f"| {_f(row.get('bytes_saving_pct', {}).get(m), 0, ' %')} "
+                f"| {_saving_cell(row['bandwidth_saving_pct'][m], eq, rates)} "
+                f"| {_saving_cell(row.get('bytes_saving_pct', {}).get(m), eq, rates)} "
                 f"| {_f(row.get('latency_at_equal_rate_ms', {}).get(m), 0)} "
                 f"({_f(row.get('latency_at_soa_rate_ms'), 0)}) "
                 f"| {paper_rt if paper else '-'} % "
@@ -2101,8 +2208,9 @@ def _markdown(report: Mapping[str, Any], trs: Sequence[Trace], plots: Sequence[s
                     f"| {_f(a['playout_delay_ms'])} | {_f(a['network_delay_ms'])} "
                     f"| {_f(a['latency_ms'])} "
                     f"| {_f(100 * a['loss_fraction'] if a['loss_fraction'] is not None else None, 2, ' %')} "  # noqa: E501
-                    f"| {_f(eq)} | {_f(row['bandwidth_saving_pct'][m], 0, ' %')} "
-                    f"| {_f(row.get('bytes_saving_pct', {}).get(m), 0, ' %')} |"
+                    f"| {_eq_cell(eq, rates)} "
+                    f"| {_saving_cell(row['bandwidth_saving_pct'][m], eq, rates)} "
+                    f"| {_saving_cell(row.get('bytes_saving_pct', {}).get(m), eq, rates)} |"
                 )
         lines += [""]
     lines += [
@@ -2113,8 +2221,8 @@ def _markdown(report: Mapping[str, Any], trs: Sequence[Trace], plots: Sequence[s
         "| rate | " + " | ".join(f"`{m}`" for m in meths) + " |",
         "|---|" + "---|" * len(meths),
     ]
-    rates = sorted(int(r) for r in report["curves"][meths[0]])
-    for r in rates:
+    refs = set(cfg.get("reference_rates") or [])
+    for r in sorted(int(r) for r in report["curves"][meths[0]]):
         cells = []
         for m in meths:
             c = report["curves"][m][str(r)]
@@ -2122,8 +2230,11 @@ def _markdown(report: Mapping[str, Any], trs: Sequence[Trace], plots: Sequence[s
                 f"{_f(c.get('hands', {}).get('tip_p95_mm'))} "
                 f"({_f(c.get('head', {}).get('tip_p95_mm'))})"
             )
-        lines.append(f"| {r} | " + " | ".join(cells) + " |")
+        label = f"{r} (ref.)" if r in refs else str(r)
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
     lines += [""]
+    if refs:
+        lines += ["(ref.): a tier's or the paper's rate, measured but not searched.", ""]
     tier_names = [row["name"] for row in report["tiers"]]
     by_class = [row.get("equal_qoe_rate_by_class", {}) for row in report["tiers"]]
     classes = [c for c in ("hands", "head", "objects") if any(c in b for b in by_class)]
@@ -2143,7 +2254,9 @@ def _markdown(report: Mapping[str, Any], trs: Sequence[Trace], plots: Sequence[s
             "|---|" + "---|" * len(tier_names),
         ]
         for cls in classes:
-            cells = [" / ".join(_f(b.get(cls, {}).get(m)) for m in others) for b in by_class]
+            cells = [
+                " / ".join(_eq_cell(b.get(cls, {}).get(m), rates) for m in others) for b in by_class
+            ]
             lines.append(f"| {cls} | " + " | ".join(cells) + " |")
         lines += [""]
     if len(report["per_trace"]) > 1:
@@ -2164,7 +2277,8 @@ def _markdown(report: Mapping[str, Any], trs: Sequence[Trace], plots: Sequence[s
             for cls, curves in pt["tip_p95_mm_by_class"].items():
                 cells = [
                     " / ".join(
-                        _f(pt["equal_qoe_rate_by_class"][t].get(cls, {}).get(m)) for m in others
+                        _eq_cell(pt["equal_qoe_rate_by_class"][t].get(cls, {}).get(m), rates)
+                        for m in others
                     )
                     for t in tier_names
                 ]
@@ -2273,13 +2387,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(
         f"{'tier':10s} {'SoA':>4s}  " + "  ".join(f"{m:>16s}" for m in report["config"]["methods"])
     )
+    searched = report["config"]["rates"]
+    snapped = False
     for row in report["tiers"]:
         cells = []
         for m in report["config"]["methods"]:
             r = row["equal_qoe_rate"][m]
             bw = row["bandwidth_saving_pct"][m]
-            cells.append(f"{_f(r):>5s} ({_f(bw, 0, '%'):>6s})".rjust(16))
+            snapped = snapped or snapped_range(r, searched) is not None
+            cells.append(f"{_eq_cell(r, searched):>5s} ({_f(bw, 0, '%'):>6s})".rjust(16))
         print(f"{row['name']:10s} {row['soa_rate']:>4d}  " + "  ".join(cells))
+    print(f"rates swept: {describe_rates(searched)}")
+    if snapped:
+        print(
+            f"{SNAPPED_RATE}: equal-QoE rates are the lowest listed rate meeting the bar; "
+            "the true rate may lie between listed rates"
+        )
     print(f"wrote {Path(args.out) / 'table1.md'} in {report['config']['elapsed_s']:.0f} s")
     return 0
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gzip
 import json
 import math
 from pathlib import Path
@@ -14,11 +15,13 @@ from scenarios.network import Tier, builtin_tiers, wire_bytes
 from scenarios.synthetic import synthetic_motion
 from scenarios.table1 import (
     PAPER,
+    describe_rates,
     equal_qoe_rate,
     main,
     receiver_cpu_time,
     run_table1,
     saving_pct,
+    snapped_range,
     tier_rate,
 )
 from scenarios.traces import load_trace
@@ -153,7 +156,9 @@ def test_objects_are_reported_as_their_own_class() -> None:
 def test_cli_writes_a_report(dev_trace_path: Path, tmp_path: Path) -> None:
     """`python -m scenarios.table1 --traces FILE --out DIR` writes table1.md and exits 0."""
     short = tmp_path / "short.csv"
-    short.write_text("".join(dev_trace_path.read_text().splitlines(keepends=True)[:900]))
+    with gzip.open(dev_trace_path, "rt") as f:
+        head = f.read().splitlines(keepends=True)[:900]
+    short.write_text("".join(head))
     code = main(
         [
             "--traces",
@@ -248,3 +253,107 @@ def test_link_sweep_sends_velocity_methods_through_the_link(dev_trace_path: Path
     )
     assert at["motor-hermite"]["bytes_per_s"] == 12 * 2460
     assert at["soa"]["bytes_per_s"] == 12 * 1884
+
+
+# -- reduced rate lists: say what was swept, and what a sparse list means -------------------
+
+
+def test_describe_rates_names_a_1_hz_range_only_when_it_is_one() -> None:
+    """A contiguous list is a range in 1 Hz steps; anything else is listed."""
+    assert describe_rates(range(5, 31)) == "5-30 Hz in 1 Hz steps"
+    assert describe_rates([30, 10, 20]) == "10, 20, 30 Hz"
+    assert describe_rates([5, 6, 7, 8, 10, 20, 21]) == "5-8, 10, 20, 21 Hz"
+    assert describe_rates([12]) == "12 Hz"
+
+
+def test_snapped_range_is_the_gap_below_a_listed_rate() -> None:
+    """Found on 10, 20, 30: 20 means somewhere in 11..20; the lowest listed rate is not snapped."""
+    assert snapped_range(20, [10, 20, 30]) == (11, 20)
+    assert snapped_range(30, [10, 20, 30]) == (21, 30)
+    assert snapped_range(10, [10, 20, 30]) is None
+    assert snapped_range(12, range(5, 31)) is None
+    assert snapped_range(None, [10, 20]) is None
+
+
+QUICK = ("--no-link", "--no-bench", "--no-plots", "--no-frontier")
+
+
+def _sparse_run(tmp_path: Path, rates: list[int]) -> tuple[dict[str, Any], str]:
+    report = run_table1(
+        [synthetic_motion("drill", 0, duration_s=8.0)],
+        rates=rates,
+        out_dir=tmp_path,
+        link=False,
+        bench=False,
+        plots=False,
+        frontier=False,
+    )
+    return report, (tmp_path / "table1.md").read_text()
+
+
+def test_report_of_a_sparse_rate_list_says_which_rates_and_marks_snapped_cells(
+    tmp_path: Path,
+) -> None:
+    """--rates 5,10,20,30: no "1 Hz steps" claim; snapped equal-QoE rates are marked ≤."""
+    report, md = _sparse_run(tmp_path, [5, 10, 20, 30])
+    assert "1 Hz steps" not in md
+    assert "Rates 5, 10, 20, 30 Hz" in md
+    assert "the true rate may lie between listed rates" in md
+    assert "not searched: 7, 12, 15 Hz" in md  # tier and paper rates measured beside
+    cfg = report["config"]
+    assert cfg["rates"] == [5, 10, 20, 30] and cfg["rates_contiguous"] is False
+    marked = 0
+    for row in report["tiers"]:
+        for m, r in row["equal_qoe_rate"].items():
+            snapped = row["equal_qoe_rate_snapped"][m]
+            if r is None or r == 5:
+                assert snapped is None
+            else:
+                # found at a listed rate above a gap: the 1 Hz-step rate is in (below, r]
+                assert snapped == [{10: 6, 20: 11, 30: 21}[r], r]
+                marked += 1
+            if m != "soa" and snapped is not None:
+                assert f"| ≤{r} |" in md.split(f"| {row['name']} | {row['soa_rate']} |")[1]
+    assert marked > 0  # the drill needs more than 5 Hz, so some cell is snapped
+
+
+def test_report_of_a_contiguous_range_keeps_the_1_hz_wording(tmp_path: Path) -> None:
+    """A 1 Hz range is described as one, and nothing is marked as snapped."""
+    report, md = _sparse_run(tmp_path, list(range(10, 16)))
+    assert "Rates 10-15 Hz in 1 Hz steps" in md
+    assert "between listed rates" not in md and "≤" not in md
+    assert report["config"]["rates_contiguous"] is True
+    for row in report["tiers"]:
+        assert set(row["equal_qoe_rate_snapped"].values()) == {None}
+
+
+def test_module_cli_prints_readable_lines_not_json(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`python -m scenarios.table1` with sparse rates: a table and a note, no JSON."""
+    args = ["--traces", "synthetic:drill", "--rates", "5,10,20,30", "--out", str(tmp_path)]
+    code = main([*args, *QUICK])
+    assert code == 0
+    out, err = capsys.readouterr()
+    for line in (out + err).splitlines():
+        assert not line.lstrip().startswith(("{", "[")) and '": ' not in line, line
+    assert "rates swept: 5, 10, 20, 30 Hz" in out
+    assert "the true rate may lie between listed rates" in out
+
+
+def test_posecast_table1_prints_readable_lines_not_json(tmp_path: Path) -> None:
+    """`posecast table1 --rates 10,20,30`: the summary table and plain notes, no JSON dump."""
+    from typer.testing import CliRunner
+
+    from server.cli import app
+
+    args = ["--traces", "synthetic:drill", "--rates", "5,10,20,30", "--out", str(tmp_path)]
+    res = CliRunner().invoke(app, ["table1", *args, *QUICK])
+    assert res.exit_code == 0, res.output
+    for line in res.output.splitlines():
+        assert not line.lstrip().startswith(("{", "[")) and '": ' not in line, line
+    assert "rates swept: 5, 10, 20, 30 Hz" in res.output
+    assert "≤" in res.output and "between listed rates" in res.output
+    assert "16.5 % less running time" in res.output
+    assert "and plots" not in res.output  # --no-plots: none written
+    assert "1 Hz steps" not in (tmp_path / "table1.md").read_text()
