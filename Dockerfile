@@ -4,18 +4,27 @@ FROM python:3.11-slim
 ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1
 WORKDIR /app
 
-COPY pyproject.toml README.md ./
+# pyproject.toml names README.md (readme) and LICENSE (license-files): the build needs both.
+COPY pyproject.toml README.md LICENSE ./
 COPY protocol ./protocol
 COPY interp ./interp
 COPY recorder ./recorder
+# scenarios/ carries its data: tiers, the synthetic suite and scenarios/data/traces,
+# the bundled excerpt of real traces behind `traces:sample` (package data).
 COPY scenarios ./scenarios
 COPY client ./client
 COPY server ./server
-RUN pip install . && useradd --create-home posecast
+# The check runs from / so that it imports the installed package, not /app: the
+# image is not built if the wheel left the bundled traces out.
+RUN pip install . \
+    && cd / && python -c "from scenarios.traces import find_traces; print(len(find_traces('traces:sample')), 'sample traces')" \
+    && useradd --create-home posecast
 
 USER posecast
-# Real traces can be mounted here (docker-compose.yml does); synthetic motion needs none.
+# The full trace sets (traces:dev, traces:eval) are read from here when mounted
+# (docker-compose.yml does, optionally); traces:sample and synthetic motion need nothing.
 ENV POSECAST_TRACES=/data/vr-traces
 EXPOSE 8765
 ENTRYPOINT ["posecast"]
+# The secret comes from the environment (POSECAST_SECRET), never from the image.
 CMD ["serve", "--host", "0.0.0.0", "--port", "8765"]
