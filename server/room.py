@@ -11,13 +11,12 @@ velocity beside its pose (zeros for a sender that reports none). Nothing
 here touches a socket: members receive bytes through an :class:`Outbox`, whose
 single pose slot is latest-wins (an unsent snapshot replaced by a newer one is a
 skip) and whose event queue is bounded (overflow is reported to the caller,
-which closes the connection). Time is always an argument.
+which closes the connection). Time is always an argument; nothing here waits
+(the relay core, ``server/core.py``, decides when a room ticks).
 """
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
 import math
 import zlib
 from collections import deque
@@ -97,10 +96,8 @@ class Outbox:
         self.max_events = max_events
         self.buffered = buffered
         self.congested_bytes = congested_bytes
-        self.wake = asyncio.Event()
-        #: Set while no event is waiting to be written.
-        self.idle = asyncio.Event()
-        self.idle.set()
+        #: Called whenever something new waits to be written (the owner wakes its writer).
+        self.on_ready: Callable[[], None] | None = None
         self.skips = 0
         self.snapshots_offered = 0
 
@@ -113,15 +110,16 @@ class Outbox:
             self.skips += 1
         self.pose = data
         self.snapshots_offered += 1
-        self.wake.set()
+        if self.on_ready is not None:
+            self.on_ready()
 
     def offer_event(self, data: bytes) -> bool:
         """Queue a reliable message; ``False`` if the queue is full (caller closes)."""
         if len(self.events) >= self.max_events:
             return False
         self.events.append(data)
-        self.idle.clear()
-        self.wake.set()
+        if self.on_ready is not None:
+            self.on_ready()
         return True
 
     def take(self) -> bytes | None:
@@ -212,7 +210,6 @@ class Room:
     _lag_max: float = 0.0
     _lag_sum: float = 0.0
     _lag_n: int = 0
-    changed: asyncio.Event = field(default_factory=asyncio.Event)
     retired: bool = False
     #: Offset of this room's tick grid, as a fraction of an interval (see room_phase).
     phase: float = 0.0
@@ -285,7 +282,6 @@ class Room:
         member.next_due = self._grid_after(now, member.rate)
         member.last_version = member.delivered_version = 0
         self.members[member.user] = member
-        self.changed.set()
 
     def remove(self, user: int) -> Member | None:
         member = self.members.pop(user, None)
@@ -293,14 +289,12 @@ class Room:
             for sid in member.streams.values():
                 self._streams.pop(sid, None)
                 self.stream_ids.give_back(sid)
-            self.changed.set()
         return member
 
     def set_rate(self, user: int, rate: float, now: float) -> None:
         member = self.members[user]
         member.rate = rate
         member.next_due = self._grid_after(now, rate)
-        self.changed.set()
 
     # -- ingest -------------------------------------------------------------------
 
@@ -395,28 +389,8 @@ class Room:
         return data, len(fresh)
 
     def retire(self) -> None:
-        """End :meth:`run` (the server calls this when the room is removed)."""
+        """Mark the room as removed (its members are gone or the server stops)."""
         self.retired = True
-        self.changed.set()
-
-    async def run(self, clock: Callable[[], float]) -> None:
-        """Tick at every due time until the room is retired.
-
-        An empty room waits for members instead of ending: a room is created
-        before its first member is added (its recorder opens in between).
-        """
-        while not self.retired:
-            due = self.next_due()
-            now = clock()
-            if due is None or due > now:
-                self.changed.clear()
-                with contextlib.suppress(TimeoutError):
-                    timeout = None if due is None else due - now
-                    await asyncio.wait_for(self.changed.wait(), timeout=timeout)
-                continue
-            self.tick(now)
-            self.flush_drops(now)
-            await asyncio.sleep(0)
 
     # -- events -------------------------------------------------------------------
 

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
-
 import numpy as np
 import pytest
 
@@ -267,10 +265,13 @@ def test_outbox_latest_wins_counts_skips() -> None:
 def test_outbox_events_bounded_and_first() -> None:
     """Events queue in order up to max_events, ahead of the snapshot; overflow is refused."""
     box = Outbox(max_events=3)
+    woken: list[int] = []
+    box.on_ready = lambda: woken.append(len(box.events))
     box.offer_snapshot(b"snap")
     assert all(box.offer_event(bytes([i])) for i in range(3))
-    assert not box.idle.is_set()
+    assert woken == [0, 1, 2, 3]  # its owner hears of every new frame
     assert not box.offer_event(b"x")
+    assert woken == [0, 1, 2, 3]
     assert len(box.events) == 3
     assert [box.take() for _ in range(5)] == [b"\x00", b"\x01", b"\x02", b"snap", None]
 
@@ -296,23 +297,23 @@ def test_id_allocator_reuses_oldest_freed_only_when_exhausted() -> None:
         ids.take()
 
 
-async def test_run_ticks_until_retired() -> None:
-    """Room.run offers snapshots on its own, waits while empty, returns once retired."""
+def test_a_tick_wakes_the_member_it_offers_a_snapshot() -> None:
+    """The room never waits: the due time is a number, a tick an offer its owner hears of."""
     room = Room("r")
-    loop = asyncio.get_running_loop()
     pub = member(room, 1, ("head",), 30.0)
-    room.add(pub, loop.time())
-    task = asyncio.create_task(room.run(loop.time))
-    room.ingest(1, update([pub.streams["head"]], [loop.time()], [1.0]))
-    async with asyncio.timeout(5):
-        await pub.outbox.wake.wait()
+    woken: list[bytes | None] = []
+    pub.outbox.on_ready = lambda: woken.append(pub.outbox.pose)
+    room.add(pub, 10.0)
+    due = room.next_due()
+    assert due is not None and 10.0 < due <= 10.0 + 1 / 30 + 1e-9
+    room.ingest(1, update([pub.streams["head"]], [10.0], [1.0]))
+    assert room.tick(due - 0.001) == 0 and woken == []  # not due yet
+    assert room.tick(due) == 1 and len(woken) == 1
     assert contents(pub.outbox.take()) == {(1, pub.streams["head"]): 1.0}
     room.remove(1)
-    await asyncio.sleep(0.05)
-    assert not task.done()  # empty is not the end: a member may be about to join
+    assert room.next_due() is None
     room.retire()
-    async with asyncio.timeout(5):
-        await task
+    assert room.retired
 
 
 def test_room_phase_offsets_the_tick_grid() -> None:

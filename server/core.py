@@ -1,0 +1,806 @@
+"""The relay, sans I/O: every rule of a posecast server, with no socket, task or clock.
+
+:class:`RelayCore` is driven by its adapter (``server/app.py``) with what
+happened and when: a connection opened (:meth:`~RelayCore.connect`), a frame
+arrived (:meth:`~RelayCore.frame` then :meth:`~RelayCore.handle` for each
+event it decodes to), a tick is due (:meth:`~RelayCore.tick`), the adapter can
+write (:meth:`~RelayCore.take`), a connection ended
+(:meth:`~RelayCore.disconnect`). Each call takes the time as an argument
+(seconds on the server's monotonic clock; wall time only where an access token
+is checked) and returns the :data:`Action` s the adapter must carry out:
+
+``Wake(conn)``
+    the connection's outbox holds frames: call ``take(conn, now)`` and write them.
+``Close(conn, code, reason)``
+    close the websocket with that code and reason, once the queued messages
+    (the error that explains the close) are written; the first close wins.
+``Reschedule()``
+    the earliest tick may have moved: ask :meth:`~RelayCore.next_deadline` again.
+``FinishRecording(room, recorder)``
+    a recorded room was removed (its last drops and presence are in): close its
+    recording, which may block, off the event loop.
+
+The wire protocol (hello, join, the message state table, codes) is
+:class:`protocol.ServerSession`'s; this module adds the relay's rules on top:
+
+==================  ==========================================================
+a connection ...    the relay ...
+==================  ==========================================================
+says hello          takes a user id (u16, reused oldest-freed first), welcomes
+joins a room        checks the token (``secret`` set: HMAC, room, expiry;
+                    refused -> ``unauthorized``, close 1008), creates the room
+                    on first join, allocates one stream id per stream name,
+                    answers ``joined``, tells it every member (``peer_joined``)
+                    and every member about it, schedules it on its rate grid
+publishes poses     admits at most ``max_update_rate`` updates and events a
+                    second (a one-second token bucket; excess dropped and
+                    counted, over ten seconds' worth closes 1008), keeps the
+                    newest keyframe per stream by capture time (older: stale,
+                    counted), taps the room's recorder
+sends an event      the same bucket; relays it, in order, to every other
+                    member; records it
+asks a new rate     reschedules it (an emulated link's cap applies)
+pings               answers with a pong stamped with the server time
+sends bad data      answers ``error`` with the code; fatal ones close with
+                    the code's close code (1002, 1008, 1009)
+says bye / leaves   closes 1000; the room hears ``peer_left``; an empty room is
+                    removed and its recording finished
+is too slow         latest-wins snapshots are skipped (counted) while one is
+                    unsent or the socket holds over ``congested_bytes``;
+                    overflowing the reliable queue (256) closes 1008 too-slow
+==================  ==========================================================
+
+A room (:class:`server.room.Room`) ticks each member on its own rate grid and
+encodes one snapshot per tick group, shared by every due member.
+"""
+
+from __future__ import annotations
+
+import heapq
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Literal
+
+from protocol import (
+    Bye,
+    ErrorCode,
+    ErrorMessage,
+    Hello,
+    Join,
+    Joined,
+    Limits,
+    LocalProtocolError,
+    PeerJoined,
+    PeerLeft,
+    Ping,
+    Pong,
+    PoseUpdate,
+    ProtocolError,
+    ServerSession,
+    SetRate,
+    UserEvent,
+    close_reason,
+)
+from protocol.events import Event, Message
+from scenarios.network import EgressLink, Tier
+from server.auth import TokenError, verify_token
+from server.room import DEFAULT_EVENT_QUEUE, IdAllocator, Member, Outbox, Room, room_phase
+
+if TYPE_CHECKING:
+    from recorder import RoomRecorder
+
+__all__ = [
+    "COUNTERS",
+    "Action",
+    "Close",
+    "ConnectionStatistics",
+    "FinishRecording",
+    "LogLimiter",
+    "Peer",
+    "RelayCore",
+    "Reschedule",
+    "ServerConfig",
+    "Wake",
+]
+
+log = logging.getLogger("posecast.server")
+
+# Websocket framing of a server frame of 126-65535 bytes (no mask): what the
+# emulated link charges on top of the frame itself.
+_WS_HEADER = 4
+
+
+@dataclass(frozen=True)
+class ServerConfig:
+    """Everything ``posecast serve`` can set."""
+
+    host: str = "127.0.0.1"
+    port: int = 8765
+    rate: float = 20.0
+    min_rate: float = 5.0
+    max_rate: float = 30.0
+    secret: str | None = None
+    max_event_queue: int = DEFAULT_EVENT_QUEUE
+    #: A subscriber with more than this many bytes unsent gets no new snapshot.
+    congested_bytes: int = 64 * 1024
+    #: Pose updates per second one connection may publish (bucket of one second).
+    max_update_rate: float = 120.0
+    close_timeout: float = 2.0
+    #: Record every room session into this folder (``posecast serve --record``).
+    record_dir: Path | None = None
+    #: Where the recorder's MCAP writer runs: ``process`` (a child process fed the
+    #: raw update frames through a pipe; the relay's own cost per update is two
+    #: list appends) or ``thread`` (a thread of the server's process).
+    record_writer: Literal["process", "thread"] = "process"
+    #: Emulate this network tier on every subscriber's downlink (``--link``).
+    link: Tier | None = None
+    #: Snapshots held in one subscriber's emulated link at most (older ones drop).
+    link_max_in_flight: int = 64
+    #: What a peer causes (its protocol errors, the errors it reports) is logged
+    #: at most once per this many seconds per connection, with a count of the
+    #: records held back, so that a misbehaving peer cannot fill the disk.
+    peer_log_interval: float = 1.0
+
+
+# -- actions -----------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Wake:
+    """Connection ``conn`` has frames to write: ``take(conn, now)``."""
+
+    conn: int
+
+
+@dataclass(frozen=True, slots=True)
+class Close:
+    """Close connection ``conn`` (after its queued messages) with ``code`` and ``reason``."""
+
+    conn: int
+    code: int
+    reason: str
+
+
+@dataclass(frozen=True, slots=True)
+class Reschedule:
+    """The earliest tick may have changed: consult ``next_deadline()`` again."""
+
+
+@dataclass(frozen=True, slots=True)
+class FinishRecording:
+    """Room ``room`` is gone: close ``recorder`` (blocking work: off the event loop)."""
+
+    room: str
+    recorder: RoomRecorder
+
+
+Action = Wake | Close | Reschedule | FinishRecording
+
+
+# -- logging -------------------------------------------------------------------------
+
+
+class LogLimiter:
+    """At most one log record per ``interval`` seconds; counts the ones held back.
+
+    Pure: time comes from ``clock`` only. :meth:`admit` before each record says
+    whether to log it, and how many were held back since the previous logged one
+    (:meth:`note` words that count); :meth:`flush` hands over the count still
+    held back, e.g. when the connection ends.
+    """
+
+    def __init__(self, interval: float = 1.0, clock: Callable[[], float] | None = None) -> None:
+        if not interval >= 0:
+            raise ValueError(f"interval must be >= 0, got {interval}")
+        self.interval = interval
+        self.clock = clock
+        self._last: float | None = None
+        self._held = 0
+        #: Seconds from the previous logged record to the last admit() or flush().
+        self.span = 0.0
+        #: Records held back so far, in all.
+        self.suppressed = 0
+
+    def _now(self, now: float | None) -> float:
+        if now is not None:
+            return now
+        if self.clock is None:
+            raise ValueError("LogLimiter without a clock needs the time")
+        return self.clock()
+
+    def admit(self, now: float | None = None) -> int | None:
+        """None: hold this record back (it is counted). Otherwise log it: the
+        number held back since the previous logged record (0 if none)."""
+        t = self._now(now)
+        if self._last is not None and t - self._last < self.interval:
+            self._held += 1
+            self.suppressed += 1
+            return None
+        held, self._held = self._held, 0
+        self.span = 0.0 if self._last is None else t - self._last
+        self._last = t
+        return held
+
+    def flush(self, now: float | None = None) -> int:
+        """The number held back since the last logged record; the count restarts."""
+        held, self._held = self._held, 0
+        self.span = 0.0 if self._last is None else self._now(now) - self._last
+        return held
+
+    def note(self, held: int) -> str:
+        """`` (and N more in the last S s)`` for a count held back, else ``""``."""
+        if held <= 0:
+            return ""
+        return f" (and {held} more in the last {self.span:.1f} s)"
+
+
+# -- connections -----------------------------------------------------------------------
+
+#: ConnectionStatistics fields that only ever grow, summed over ended connections.
+COUNTERS = (
+    "frames_in",
+    "bytes_in",
+    "frames_out",
+    "bytes_out",
+    "snapshots_offered",
+    "skips",
+    "congestion_skips",
+    "event_drops",
+    "flood_drops",
+    "protocol_errors",
+)
+
+
+@dataclass(frozen=True, slots=True)
+class ConnectionStatistics:
+    user: int | None
+    room: str | None
+    frames_in: int
+    bytes_in: int
+    frames_out: int
+    bytes_out: int
+    snapshots_offered: int
+    skips: int
+    congestion_skips: int
+    event_drops: int
+    flood_drops: int
+    protocol_errors: int
+    #: With an emulated link: the rate the server chose for this subscriber (Hz),
+    #: snapshots delivered / skipped at the cap / lost, and bytes on the link.
+    link_rate_hz: float | None = None
+    link_frames: int = 0
+    link_cap_skips: int = 0
+    link_lost: int = 0
+    link_bytes: int = 0
+
+
+class Peer:
+    """One connection as the relay sees it: session state, outbox, bucket, counters."""
+
+    def __init__(self, conn: int, core: RelayCore, buffered: Callable[[], int], now: float) -> None:
+        cfg = core.config
+        self.conn = conn
+        self.session = ServerSession(core.limits)
+        self.outbox = Outbox(cfg.max_event_queue, buffered, cfg.congested_bytes)
+        self.outbox.on_ready = self._ready
+        self._core = core
+        self.user: int | None = None
+        self.name = ""
+        self.room: Room | None = None
+        self.member: Member | None = None
+        self.close_request: tuple[int, str] | None = None
+        self.frames_in = self.bytes_in = self.frames_out = self.bytes_out = 0
+        self.event_drops = self.flood_drops = self.protocol_errors = 0
+        #: The emulated downlink (``ServerConfig.link``), set at join.
+        self.link: EgressLink | None = None
+        self.delayed: list[tuple[float, int, bytes]] = []
+        self._link_seq = 0
+        self.link_overflow = 0
+        self._bucket = cfg.max_update_rate
+        self._bucket_time = now
+        self.log_limit = LogLimiter(cfg.peer_log_interval)
+
+    def _ready(self) -> None:
+        self._core.emit(Wake(self.conn))
+
+    def statistics(self) -> ConnectionStatistics:
+        m, link = self.member, self.link
+        return ConnectionStatistics(
+            user=self.user,
+            room=self.room.name if self.room else None,
+            frames_in=self.frames_in,
+            bytes_in=self.bytes_in,
+            frames_out=self.frames_out,
+            bytes_out=self.bytes_out,
+            snapshots_offered=self.outbox.snapshots_offered,
+            skips=self.outbox.skips,
+            congestion_skips=m.congestion_skips if m else 0,
+            event_drops=self.event_drops,
+            flood_drops=self.flood_drops,
+            protocol_errors=self.protocol_errors,
+            link_rate_hz=m.rate if (m is not None and link is not None) else None,
+            link_frames=link.frames if link else 0,
+            link_cap_skips=link.cap_skips if link else 0,
+            link_lost=link.lost if link else 0,
+            link_bytes=link.bytes if link else 0,
+        )
+
+
+class RelayCore:
+    """The relay's state and rules; see the module docstring for the protocol."""
+
+    def __init__(self, config: ServerConfig | None = None) -> None:
+        self.config = config or ServerConfig()
+        self.limits = Limits(min_rate=self.config.min_rate, max_rate=self.config.max_rate)
+        self.users = IdAllocator()
+        self.rooms: dict[str, Room] = {}
+        self.peers: dict[int, Peer] = {}
+        self._by_user: dict[int, Peer] = {}
+        self._next_conn = 0
+        self._out: list[Action] = []
+        self.closed_connections = 0
+        #: Counters of connections that have ended, so that totals never go down.
+        self.totals = dict.fromkeys(COUNTERS, 0)
+        #: Pose updates are not recorded while set (see :meth:`pause_recording`).
+        self.recording_paused = False
+
+    # -- plumbing ----------------------------------------------------------------
+
+    def emit(self, action: Action) -> None:
+        """Queue an action for the caller (used by outboxes and rooms)."""
+        self._out.append(action)
+
+    def _actions(self) -> list[Action]:
+        out, self._out = self._out, []
+        return out
+
+    def peer(self, conn: int) -> Peer:
+        return self.peers[conn]
+
+    def peer_of(self, user: int) -> Peer:
+        return self._by_user[user]
+
+    # -- connections ---------------------------------------------------------------
+
+    def connect(self, now: float, buffered: Callable[[], int] = lambda: 0) -> int:
+        """A new connection; returns its id. ``buffered`` reports its unsent bytes."""
+        self._next_conn += 1
+        conn = self._next_conn
+        self.peers[conn] = Peer(conn, self, buffered, now)
+        return conn
+
+    def frame(self, conn: int, data: bytes | str) -> list[Event]:
+        """The events one received frame decodes to (none while the connection closes)."""
+        peer = self.peers[conn]
+        peer.frames_in += 1
+        if peer.close_request is not None:
+            # Closing: what it still sends cannot matter to anyone.
+            peer.bytes_in += len(data)
+            return []
+        if isinstance(data, str):
+            peer.bytes_in += len(data.encode())
+            return [ProtocolError(ErrorCode.BAD_FRAME, "text frames are not allowed")]
+        peer.bytes_in += len(data)
+        return peer.session.receive_data(data)
+
+    def room_to_open(self, conn: int, event: Event, wall: float) -> str | None:
+        """The room a recording server must open (off the loop) before ``event``."""
+        if (
+            self.config.record_dir is None
+            or not isinstance(event, Join)
+            or event.room in self.rooms
+            or not self._join_permitted(event, wall)
+        ):
+            return None
+        return event.room
+
+    def handle(self, conn: int, event: Event, now: float, wall: float = 0.0) -> list[Action]:
+        """Apply one decoded event of connection ``conn``."""
+        peer = self.peers.get(conn)
+        if peer is not None:
+            self._handle(peer, event, now, wall)
+        return self._actions()
+
+    def receive(self, conn: int, data: bytes | str, now: float, wall: float = 0.0) -> list[Action]:
+        """:meth:`frame` and :meth:`handle` in one (rooms of a recording server must exist)."""
+        peer = self.peers.get(conn)
+        if peer is not None:
+            for event in self.frame(conn, data):
+                self._handle(peer, event, now, wall)
+        return self._actions()
+
+    def take(self, conn: int, now: float) -> tuple[list[bytes], float | None]:
+        """Frames to write now (events in order, then the snapshot), and when the
+        emulated link delivers its next one (None: nothing in flight)."""
+        peer = self.peers.get(conn)
+        if peer is None:
+            return [], None
+        out: list[bytes] = []
+        delayed = peer.delayed
+        while delayed and delayed[0][0] <= now:
+            out.append(heapq.heappop(delayed)[2])
+        outbox = peer.outbox
+        while True:
+            data, is_snapshot = outbox.take_with_kind()
+            if data is None:
+                break
+            if is_snapshot and peer.link is not None:
+                self._into_link(peer, data, now)
+            else:
+                out.append(data)
+        while delayed and delayed[0][0] <= now:
+            out.append(heapq.heappop(delayed)[2])
+        peer.frames_out += len(out)
+        peer.bytes_out += sum(len(d) for d in out)
+        return out, (delayed[0][0] if delayed else None)
+
+    def events_pending(self, conn: int) -> bool:
+        """Whether reliable messages of ``conn`` wait to be written."""
+        peer = self.peers.get(conn)
+        return peer is not None and bool(peer.outbox.events)
+
+    def close(self, conn: int, code: int, reason: str) -> list[Action]:
+        """Close ``conn`` on the server's own decision (e.g. 1001 going away)."""
+        peer = self.peers.get(conn)
+        if peer is not None:
+            self._close(peer, code, reason)
+        return self._actions()
+
+    def disconnect(self, conn: int, now: float) -> list[Action]:
+        """Connection ``conn`` has ended: leave its room, forget it."""
+        peer = self.peers.pop(conn, None)
+        if peer is None:
+            return self._actions()
+        stats = peer.statistics()  # before leaving: the member's counters go with it
+        held = peer.log_limit.flush(now)
+        if held:
+            log.info(
+                "user %s: %d more of its errors not logged in the last %.1f s",
+                peer.user,
+                held,
+                peer.log_limit.span,
+            )
+        self._leave(peer, now)
+        if peer.user is not None:
+            self._by_user.pop(peer.user, None)
+            self.users.give_back(peer.user)
+        self.closed_connections += 1
+        for key in COUNTERS:
+            self.totals[key] += getattr(stats, key)
+        return self._actions()
+
+    # -- rooms and ticks -------------------------------------------------------------
+
+    def add_room(self, name: str, recorder: RoomRecorder | None, now: float) -> bool:
+        """Create room ``name`` with its (opened) recorder; False if it exists already."""
+        if name in self.rooms:
+            return False
+        room = self._room_for(name)
+        room.recorder = recorder
+        if recorder is not None and self.recording_paused:
+            room.pause_recording(now)
+        return True
+
+    def _room_for(self, name: str) -> Room:
+        room = self.rooms.get(name)
+        if room is None:
+            room = self.rooms[name] = Room(name, phase=room_phase(name))
+            log.info("room %r created", name)
+        return room
+
+    def next_deadline(self) -> float | None:
+        """When the next room tick is due (None: no member anywhere)."""
+        dues = [d for d in (r.next_due() for r in self.rooms.values()) if d is not None]
+        return min(dues) if dues else None
+
+    def tick(self, now: float) -> list[Action]:
+        """Send a snapshot to every due member of every room; flush drop counts.
+
+        A room whose tick fails (a bug) is removed and its members closed with
+        1011; the other rooms go on.
+        """
+        for room in list(self.rooms.values()):
+            due = room.next_due()
+            if due is None or due > now + 1e-9:
+                continue
+            try:
+                room.tick(now)
+                room.flush_drops(now)
+            except Exception:
+                log.exception("room %r failed", room.name)
+                self._fail_room(room)
+        return self._actions()
+
+    def _fail_room(self, room: Room) -> None:
+        if self.rooms.get(room.name) is room:
+            del self.rooms[room.name]
+        for member in list(room.members.values()):
+            peer = self._by_user.get(member.user)
+            if peer is not None:
+                self._close(peer, 1011, "internal-error: room failed")
+
+    def _forget_room_if_empty(self, room: Room, now: float) -> None:
+        if not room.members and self.rooms.get(room.name) is room:
+            del self.rooms[room.name]
+            log.info("room %r removed", room.name)
+            self._retire(room, now)
+
+    def _retire(self, room: Room, now: float) -> None:
+        """A room is gone: its recording gets the last drops and is to be finished."""
+        room.retire()
+        rec = room.recorder
+        if rec is not None:
+            room.resume_recording(now)  # a pause in progress goes into the file
+            room.flush_drops(now, force=True)  # the drops of the last second too
+            room.recorder = None
+            self.emit(FinishRecording(room.name, rec))
+
+    def close_rooms(self, now: float) -> list[Action]:
+        """Server shutdown: forget every room; recorded ones are to be finished."""
+        for room in list(self.rooms.values()):
+            room.members.clear()
+            self._retire(room, now)
+        self.rooms.clear()
+        return self._actions()
+
+    def pause_recording(self, now: float) -> None:
+        """Stop recording pose updates in every room, and in rooms opened later."""
+        if not self.recording_paused:
+            self.recording_paused = True
+            for room in self.rooms.values():
+                room.pause_recording(now)
+
+    def resume_recording(self, now: float) -> None:
+        """Record pose updates again after :meth:`pause_recording`."""
+        if self.recording_paused:
+            self.recording_paused = False
+            for room in self.rooms.values():
+                room.resume_recording(now)
+
+    # -- statistics ---------------------------------------------------------------------
+
+    def connection_statistics(self) -> list[ConnectionStatistics]:
+        return [p.statistics() for p in self.peers.values()]
+
+    # -- the rules -------------------------------------------------------------------------
+
+    def _send(self, peer: Peer, message: Message) -> None:
+        """Queue a reliable message; overflow closes that connection, not others.
+
+        A message the session may no longer carry (it ended on a fatal error or
+        bye) is dropped.
+        """
+        if peer.close_request is not None:
+            return
+        try:
+            data = peer.session.send(message)
+        except LocalProtocolError as exc:
+            log.info("user %s: not sent (%s)", peer.user, exc)
+            return
+        if not peer.outbox.offer_event(data):
+            peer.event_drops += 1
+            self._close(
+                peer,
+                ErrorCode.TOO_SLOW.close_code or 1008,
+                f"too-slow: event queue overflow ({peer.outbox.max_events})",
+            )
+
+    def _close(self, peer: Peer, code: int, reason: str) -> None:
+        if peer.close_request is None:
+            peer.close_request = (code, close_reason(reason))
+            self.emit(Close(peer.conn, *peer.close_request))
+
+    @staticmethod
+    def _log_peer(peer: Peer, now: float, msg: str, *args: object) -> None:
+        """Log what the peer caused, at most once per ``peer_log_interval``."""
+        held = peer.log_limit.admit(now)
+        if held is not None:
+            log.info(msg + "%s", *args, peer.log_limit.note(held))
+
+    def _protocol_error(self, peer: Peer, err: ProtocolError, now: float) -> None:
+        peer.protocol_errors += 1
+        self._log_peer(peer, now, "user %s: %s (%s)", peer.user, err.message, err.code)
+        self._send(peer, err.to_message())
+        if err.fatal:
+            self._close(peer, err.close_code or 1002, err.close_reason)
+
+    def _handle(self, peer: Peer, event: Event, now: float, wall: float) -> None:
+        if isinstance(event, PoseUpdate):
+            self._on_update(peer, event, now)
+        elif isinstance(event, Ping):
+            self._send(
+                peer, Pong(seq=event.seq, ping_time=event.time, recv_time=now, send_time=now)
+            )
+        elif isinstance(event, ProtocolError):
+            self._protocol_error(peer, event, now)
+        elif isinstance(event, Hello):
+            peer.user = self.users.take()
+            self._by_user[peer.user] = peer
+            peer.name = event.agent or f"user{peer.user}"
+            self._send(peer, peer.session.make_welcome(peer.user, now))
+        elif isinstance(event, Join):
+            self._on_join(peer, event, now, wall)
+        elif isinstance(event, SetRate):
+            self._on_set_rate(peer, event, now)
+        elif isinstance(event, UserEvent):
+            self._on_user_event(peer, event, now)
+        elif isinstance(event, Bye):
+            self._close(peer, 1000, event.reason or "bye")
+        elif isinstance(event, ErrorMessage):
+            self._log_peer(
+                peer, now, "user %s reports %s: %s", peer.user, event.code, event.message
+            )
+            if event.fatal:
+                # Its session is over (CLOSED): nothing more may be sent to it.
+                self._close(peer, 1000, f"client ended the session: {event.code}")
+
+    def _join_permitted(self, join: Join, wall: float) -> bool:
+        secret = self.config.secret
+        if secret is None:
+            return True
+        try:
+            verify_token(secret, join.token, join.room, wall)
+        except TokenError:
+            return False
+        return True
+
+    def _on_join(self, peer: Peer, join: Join, now: float, wall: float) -> None:
+        if self.config.secret is not None:
+            try:
+                claims = verify_token(self.config.secret, join.token, join.room, wall)
+            except TokenError as exc:
+                self._send(
+                    peer,
+                    ErrorMessage.from_code(ErrorCode.UNAUTHORIZED, str(exc), in_reply_to="join"),
+                )
+                self._close(peer, 1008, str(exc))
+                return
+            peer.name = claims.user
+        assert peer.user is not None  # the state table puts hello before join
+        room = self._room_for(join.room)
+        streams = room.allocate_streams(join.streams)
+        self._send(peer, Joined(room=join.room, streams=streams, rate=join.rate))
+        member = Member(
+            peer.user,
+            peer.name,
+            streams,
+            join.rate,
+            peer.outbox,
+            label=join.label,
+            velocities=join.wants_velocities,
+            sends_velocities=join.sends_velocities,
+        )
+        member.asked_rate = join.rate
+        if self.config.link is not None:
+            peer.link = EgressLink(self.config.link, seed=peer.user)
+        for other in room.members.values():
+            self._send(
+                peer,
+                PeerJoined(
+                    user=other.user,
+                    streams=other.streams,
+                    label=other.label,
+                    velocities=other.sends_velocities,
+                ),
+            )
+            self._send(
+                self._by_user[other.user],
+                PeerJoined(
+                    user=peer.user,
+                    streams=streams,
+                    label=join.label,
+                    velocities=join.sends_velocities,
+                ),
+            )
+        room.add(member, now)
+        self.emit(Reschedule())
+        peer.room, peer.member = room, member
+        if room.recorder is not None:
+            room.recorder.record_presence(
+                {
+                    "kind": "join",
+                    "user": peer.user,
+                    "name": peer.name,
+                    "label": join.label,
+                    "streams": streams,
+                    "rate": join.rate,
+                },
+                now,
+            )
+
+    def _on_set_rate(self, peer: Peer, event: SetRate, now: float) -> None:
+        room, user = peer.room, peer.user
+        if room is None or user is None:
+            return
+        if peer.member is not None:
+            peer.member.asked_rate = event.rate
+        rate = event.rate if peer.link is None else peer.link.rate_for(event.rate)
+        room.set_rate(user, max(self.config.min_rate, rate), now)
+        self.emit(Reschedule())
+        if room.recorder is not None:
+            room.recorder.record_presence({"kind": "rate", "user": user, "rate": event.rate}, now)
+
+    def _on_user_event(self, peer: Peer, event: UserEvent, now: float) -> None:
+        room = peer.room
+        if room is None or not self._admit(peer, now):
+            return
+        for m in list(room.members.values()):
+            if m.user != peer.user:
+                self._send(self._by_user[m.user], event)
+        if room.recorder is not None:
+            room.recorder.record_event(
+                {
+                    "kind": event.kind,
+                    "user": event.user,
+                    "stream": event.stream,
+                    "time": event.time,
+                    "payload": event.payload,
+                },
+                now,
+            )
+
+    def _admit(self, peer: Peer, now: float) -> bool:
+        """Token bucket over pose updates and events: ``max_update_rate`` a second.
+
+        Holds one second's worth, so bursts are fine; what exceeds it is dropped
+        and counted, and a connection that keeps flooding is closed.
+        """
+        rate = self.config.max_update_rate
+        peer._bucket = min(rate, peer._bucket + (now - peer._bucket_time) * rate)
+        peer._bucket_time = now
+        if peer._bucket < 1.0:
+            peer.flood_drops += 1
+            if peer.room is not None and peer.user is not None:
+                peer.room.note_drop("flood", peer.user)
+            if peer.flood_drops > 10 * rate:
+                self._close(peer, 1008, f"update flood: over {rate:g} updates/s")
+            return False
+        peer._bucket -= 1.0
+        return True
+
+    def _on_update(self, peer: Peer, update: PoseUpdate, now: float) -> None:
+        room, user = peer.room, peer.user
+        if self._admit(peer, now) and room is not None and user is not None:
+            stale = room.ingest(user, update)
+            rec = room.recorder
+            if rec is not None:
+                if room.recording_paused:
+                    room.paused_updates += 1
+                    return
+                rec.record_pose_update(user, now, update)
+                if stale:
+                    room.note_drop("stale", user, stale)
+
+    def _into_link(self, peer: Peer, data: bytes, now: float) -> None:
+        """Put a snapshot on the emulated link; adopt the rate its cap allows."""
+        link = peer.link
+        assert link is not None
+        arrival = link.offer(now, len(data) + _WS_HEADER)
+        if arrival is not None:
+            if len(peer.delayed) >= self.config.link_max_in_flight:
+                heapq.heappop(peer.delayed)
+                peer.link_overflow += 1
+            peer._link_seq += 1
+            heapq.heappush(peer.delayed, (arrival, peer._link_seq, data))
+        room, member = peer.room, peer.member
+        if room is not None and member is not None:
+            rate = max(self.config.min_rate, link.rate_for(member.asked_rate))
+            if abs(rate - member.rate) > 0.25:
+                room.set_rate(member.user, rate, now)
+                self.emit(Reschedule())
+
+    def _leave(self, peer: Peer, now: float) -> None:
+        room, user = peer.room, peer.user
+        if room is not None and user is not None:
+            room.remove(user)
+            self.emit(Reschedule())
+            if room.recorder is not None:
+                room.recorder.record_presence(
+                    {"kind": "leave", "user": user, "reason": "left"}, now
+                )
+            for other in list(room.members.values()):
+                self._send(self._by_user[other.user], PeerLeft(user=user, reason="left"))
+            self._forget_room_if_empty(room, now)
+        peer.room = peer.member = None

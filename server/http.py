@@ -1,0 +1,172 @@
+"""The relay's HTTP side: ``GET /healthz``, ``GET /metrics`` (Prometheus text), quiet logs.
+
+Both answer on the websocket port (websockets' ``process_request``); any other
+path goes on to the websocket handshake. Plain HTTP requests are logged at
+DEBUG, not at websockets' INFO, so that a scraper every 15 s fills no log.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from http import HTTPStatus
+from typing import Any
+
+from websockets.asyncio.server import ServerConnection
+from websockets.http11 import Request, Response
+
+from server.core import RelayCore
+
+__all__ = ["QuietHttpLog", "metrics_text", "process_request"]
+
+
+def process_request(
+    core: RelayCore,
+) -> Callable[[ServerConnection, Request], Response | None]:
+    """websockets' ``process_request`` hook answering /healthz and /metrics from ``core``."""
+
+    def respond(connection: ServerConnection, request: Request) -> Response | None:
+        path = request.path.split("?", 1)[0]
+        if path == "/healthz":
+            return connection.respond(HTTPStatus.OK, "ok\n")
+        if path == "/metrics":
+            response = connection.respond(HTTPStatus.OK, metrics_text(core))
+            # Same headers as /healthz (Date, Connection: close), Prometheus' type.
+            del response.headers["Content-Type"]
+            response.headers["Content-Type"] = "text/plain; version=0.0.4; charset=utf-8"
+            return response
+        return None
+
+    return respond
+
+
+#: What websockets logs at INFO for every connection that never became a
+#: websocket (a health probe, a metrics scrape, a rejected handshake).
+_HTTP_ONLY_MESSAGES = frozenset({"HTTP response sent (%d %s)", "connection rejected (%d %s)"})
+
+
+class QuietHttpLog(logging.LoggerAdapter):  # type: ignore[type-arg]
+    """websockets' logger with plain HTTP requests demoted from INFO to DEBUG.
+
+    websockets logs each HTTP response it sends instead of a handshake, and the
+    end of that connection, at INFO: one scrape of /metrics every 15 s would be
+    two lines of log each time. A websocket's own open and close stay at INFO.
+    """
+
+    def process(self, msg: Any, kwargs: Any) -> tuple[Any, Any]:
+        return msg, kwargs  # keep websockets' own ``extra`` (its connection)
+
+    def log(self, level: int, msg: Any, *args: Any, **kwargs: Any) -> None:
+        if level == logging.INFO and _http_only(msg, kwargs.get("extra")):
+            level = logging.DEBUG
+        super().log(level, msg, *args, **kwargs)
+
+
+def _http_only(msg: Any, extra: Any) -> bool:
+    if not isinstance(msg, str):
+        return False
+    if msg in _HTTP_ONLY_MESSAGES:
+        return True
+    if msg != "connection closed" or not isinstance(extra, dict):
+        return False
+    try:
+        response = extra["websocket"].response
+    except (KeyError, AttributeError, ReferenceError):
+        return False
+    # No response yet: the peer left during the handshake, it never was a websocket.
+    return response is None or response.status_code != HTTPStatus.SWITCHING_PROTOCOLS
+
+
+def metrics_text(core: RelayCore) -> str:
+    """Prometheus text exposition of the relay's counters."""
+    conns = core.connection_statistics()
+    lines: list[str] = []
+
+    def metric(name: str, kind: str, help_: str, samples: list[tuple[str, float]]) -> None:
+        lines.append(f"# HELP {name} {help_}")
+        lines.append(f"# TYPE {name} {kind}")
+        for labels, value in samples:
+            lines.append(f"{name}{labels} {_number(value)}")
+
+    def total(*keys: str) -> list[tuple[str, float]]:
+        # Ended connections plus live ones: a counter never goes down.
+        return [("", sum(core.totals[k] + sum(getattr(c, k) for c in conns) for k in keys))]
+
+    metric("posecast_connections", "gauge", "Open websocket connections.", [("", len(conns))])
+    metric(
+        "posecast_connections_closed_total",
+        "counter",
+        "Websocket connections that have ended.",
+        [("", core.closed_connections)],
+    )
+    metric("posecast_rooms", "gauge", "Rooms with members.", [("", len(core.rooms))])
+    metric(
+        "posecast_recording_paused",
+        "gauge",
+        "1 while the recording of pose updates is paused (SIGUSR1; SIGUSR2 resumes).",
+        [("", int(core.recording_paused))],
+    )
+    metric("posecast_frames_in_total", "counter", "Frames received.", total("frames_in"))
+    metric("posecast_bytes_in_total", "counter", "Bytes received.", total("bytes_in"))
+    metric("posecast_frames_out_total", "counter", "Frames sent.", total("frames_out"))
+    metric("posecast_bytes_out_total", "counter", "Bytes sent.", total("bytes_out"))
+    metric(
+        "posecast_snapshot_skips_total",
+        "counter",
+        "Snapshots not delivered because a subscriber had not drained the previous one.",
+        total("skips", "congestion_skips"),
+    )
+    metric(
+        "posecast_flood_drops_total",
+        "counter",
+        "Pose updates and events dropped for exceeding the per-connection rate.",
+        total("flood_drops"),
+    )
+    metric(
+        "posecast_event_drops_total",
+        "counter",
+        "Reliable messages refused by a full event queue (the connection is closed).",
+        total("event_drops"),
+    )
+    metric(
+        "posecast_protocol_errors_total",
+        "counter",
+        "Protocol errors detected in what clients sent.",
+        total("protocol_errors"),
+    )
+    rooms = [r.statistics() for r in core.rooms.values()]
+    metric(
+        "posecast_room_members",
+        "gauge",
+        "Members per room.",
+        [(f'{{room="{_label(r.name)}"}}', r.members) for r in rooms],
+    )
+    metric(
+        "posecast_room_poses_out_total",
+        "counter",
+        "Poses sent in snapshots per room.",
+        [(f'{{room="{_label(r.name)}"}}', r.poses_out) for r in rooms],
+    )
+    metric(
+        "posecast_room_tick_lag_max_ms",
+        "gauge",
+        "Largest delay of a room tick behind its due time.",
+        [(f'{{room="{_label(r.name)}"}}', r.tick_lag_max_ms) for r in rooms],
+    )
+    return "\n".join(lines) + "\n"
+
+
+def _number(value: float) -> str:
+    """A sample value: integers exactly (``:g`` would round 1234567 to 1.23457e+06)."""
+    if isinstance(value, int) or (math.isfinite(value) and value == int(value)):
+        return str(int(value))
+    if math.isnan(value):
+        return "NaN"
+    if math.isinf(value):
+        return "+Inf" if value > 0 else "-Inf"
+    return repr(float(value))
+
+
+def _label(value: str) -> str:
+    return value.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")
