@@ -8,6 +8,19 @@ an arrival log), renderer (every remote stream at ``server_now - D`` in one
 batched call per interpolator) and pinger. At the end it scores what it received
 with :mod:`scenarios.qoe`, exactly as DESIGN.md defines it.
 
+A session ends in one of three ways, recorded in :class:`SessionEnd`: it ran its
+duration (``complete``), the server closed the connection with a close frame
+(``closed``: e.g. 1001 "going away" when it shuts down) or the connection broke
+without one (``lost``: the server was killed, the network went away). In every
+case the bot scores and reports what it received until then; only failing to
+connect at all, or a refused join, is an exception.
+
+The render loop also notes how often it ran late: a frame is *late* when it
+started more than one render period (1/90 s) after its scheduled time, i.e. it
+missed the display slot a headset would have shown it in (the loop then catches
+up; it never skips). A share of late frames is a sign of a starved machine (see
+:func:`client.swarm.starvation`).
+
 Velocity keyframes: when a rendered method needs them (``motor-hermite``) or
 ``BotConfig.velocities`` says so, the bot joins with ``sends_velocities`` and
 ``wants_velocities``: it publishes each pose with the velocity a tracker runtime
@@ -26,6 +39,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -52,7 +66,14 @@ from scenarios.traces import (
     find_traces,
 )
 
-__all__ = ["BotConfig", "BotReport", "RemoteStream", "motion_for_bot", "run_bot"]
+__all__ = [
+    "BotConfig",
+    "BotReport",
+    "RemoteStream",
+    "SessionEnd",
+    "motion_for_bot",
+    "run_bot",
+]
 
 F64 = NDArray[np.float64]
 
@@ -96,6 +117,8 @@ class RemoteStream:
     arrival: list[float] = field(default_factory=list)
     #: The same arrivals on the bot's own clock.
     arrival_local: list[float] = field(default_factory=list)
+    #: The server's send time (its clock at the tick) of the snapshot that brought each.
+    sent: list[float] = field(default_factory=list)
     poses: list[NDArray[np.float32]] = field(default_factory=list)
     #: With velocity snapshots: the velocity received with each pose, (6,) float64
     #: from float16 (linear m/s, angular rad/s, world frame).
@@ -106,6 +129,43 @@ class RemoteStream:
 
     def __post_init__(self) -> None:
         self.buffer.has_velocities = self.sends_velocities
+
+
+#: Close codes of a server that ended the session on purpose (normal, going away).
+GRACEFUL_CLOSE_CODES = frozenset({1000, 1001})
+
+
+@dataclass(frozen=True)
+class SessionEnd:
+    """How a bot's session ended, and after how many seconds of it.
+
+    ``kind``: ``complete`` (ran its duration), ``closed`` (the server sent a close
+    frame: ``code`` and ``reason`` are its) or ``lost`` (no close frame: the
+    connection broke). ``after_s`` counts from the start of the session (clock
+    synced, before joining) on the bot's clock.
+    """
+
+    kind: Literal["complete", "closed", "lost"] = "complete"
+    after_s: float = 0.0
+    code: int | None = None
+    reason: str = ""
+
+    @property
+    def graceful(self) -> bool:
+        """Ran its duration, or the server ended it on purpose (1000/1001)."""
+        return self.kind == "complete" or (
+            self.kind == "closed" and self.code in GRACEFUL_CLOSE_CODES
+        )
+
+    def describe(self) -> str:
+        """``complete``, ``server closed: going away (1001) after 2.0 s``,
+        ``connection lost after 12.3 s``."""
+        if self.kind == "complete":
+            return "complete"
+        if self.kind == "closed":
+            why = self.reason or "no reason given"
+            return f"server closed: {why} ({self.code}) after {self.after_s:.1f} s"
+        return f"connection lost after {self.after_s:.1f} s"
 
 
 @dataclass
@@ -129,6 +189,14 @@ class BotReport:
     clock_rtt_ms: float
     #: Whether it sent and received velocity keyframes (snapshot bytes include them).
     velocities: bool = False
+    #: Render frames that started over one render period after their scheduled time.
+    frames_late: int = 0
+    #: Snapshot rate asked and granted (Hz), and the rate it published at (Hz).
+    asked_hz: float = 0.0
+    granted_hz: float = 0.0
+    send_hz: float = 0.0
+    #: How the session ended (see :class:`SessionEnd`).
+    ending: SessionEnd = field(default_factory=SessionEnd)
     streams: dict[tuple[int, int], RemoteStream] = field(default_factory=dict, repr=False)
     #: With ``keep_render_log``: (playout time, D, bot clock at render,
     #: {stream key: (pose, stalled)}).
@@ -197,6 +265,7 @@ class _Bot:
         self.render_stalls = 0
         self.render_samples = 0
         self.frames = 0
+        self.frames_late = 0
         self.render_cpu = 0.0
         self.snapshot_bytes = 0
         self.poses_in = 0
@@ -207,9 +276,24 @@ class _Bot:
         ] = []
         self.trace: Trace | None = None
         self.spec: MotionSpec | None = None
+        #: The bot's clock when the session started (set on connecting, then after sync).
+        self.started_local = 0.0
+        #: Set when the connection closed before the session's end.
+        self.ending: SessionEnd | None = None
 
     def server_now(self) -> float:
         return self.clock() + self.est.offset
+
+    def _note_closed(self, exc: ConnectionClosed) -> None:
+        """Remember how the connection ended (the first report of it wins)."""
+        if self.ending is not None:
+            return
+        after = max(0.0, self.clock() - self.started_local)
+        rcvd = exc.rcvd
+        if rcvd is not None:
+            self.ending = SessionEnd("closed", after, rcvd.code, rcvd.reason)
+        else:
+            self.ending = SessionEnd("lost", after)
 
     async def _sync(self, conn: ClientConnection, n: int) -> None:
         for _ in range(n):
@@ -245,6 +329,7 @@ class _Bot:
         arrival_srv = arrival + self.est.offset
         users, streams = snap.users, snap.streams
         caps, poses = snap.capture_times, snap.poses
+        sent = snap.send_time
         vels = snap.velocities
         vel64 = None if vels is None else vels.astype(np.float64)
         self.snapshot_bytes += size
@@ -270,6 +355,7 @@ class _Bot:
             rs.capture.append(cap)
             rs.arrival.append(arrival_srv)
             rs.arrival_local.append(arrival)
+            rs.sent.append(sent)
             rs.poses.append(pose)
             vel = None
             if vel64 is not None:
@@ -279,6 +365,12 @@ class _Bot:
             self.delay.observe(arrival_srv - cap)
 
     async def _publish(self, conn: ClientConnection, stop: float) -> None:
+        try:
+            await self._publish_until(conn, stop)
+        except ConnectionClosed as exc:
+            self._note_closed(exc)
+
+    async def _publish_until(self, conn: ClientConnection, stop: float) -> None:
         assert self.trace is not None and self.spec is not None and conn.joined is not None
         trace, t0 = self.trace, self.spec.t0
         ids = np.array([conn.joined.streams[n] for n in trace.streams])
@@ -313,17 +405,21 @@ class _Bot:
             await asyncio.sleep(max(0.0, nxt - self.server_now()))
 
     async def _receive(self, conn: ClientConnection) -> None:
-        with contextlib.suppress(ConnectionClosed):
+        try:
             while True:
                 rec = await conn.recv()
                 self._on_event(rec.event, rec.arrival, rec.size)
+        except ConnectionClosed as exc:
+            self._note_closed(exc)
 
     async def _render(self, stop: float) -> None:
         period = 1.0 / self.cfg.render_rate
         methods = self.cfg.methods
         nxt = self.clock()
-        while self.server_now() < stop:
+        while self.ending is None and self.server_now() < stop:
             local = self.clock()
+            if local - nxt > period:  # missed its display slot
+                self.frames_late += 1
             now_srv = local + self.est.offset
             d = self.delay.update(now_srv)
             t_play = now_srv - d
@@ -351,52 +447,71 @@ class _Bot:
             await asyncio.sleep(max(0.0, nxt - self.clock()))
 
     async def _pinger(self, conn: ClientConnection, stop: float) -> None:
-        while self.server_now() < stop:
-            await asyncio.sleep(self.cfg.ping_interval)
-            self.ping_seq += 1
-            await conn.send(Ping(seq=self.ping_seq, time=self.clock()))
+        try:
+            while self.server_now() < stop:
+                await asyncio.sleep(self.cfg.ping_interval)
+                self.ping_seq += 1
+                await conn.send(Ping(seq=self.ping_seq, time=self.clock()))
+        except ConnectionClosed as exc:
+            self._note_closed(exc)
 
     async def run(self) -> BotReport:
         cfg = self.cfg
         conn = await ClientConnection.connect(cfg.url, agent=cfg.name, clock=self.clock)
         self.conn = conn
+        self.started_local = self.clock()
+        start = self.server_now()
         try:
-            await self._sync(conn, cfg.initial_pings)
-            start = self.server_now()
-            source, seed = cfg.motion, cfg.seed
-            if source.startswith("synthetic:"):
-                self.spec = MotionSpec(source, seed, start)
-            else:
-                self.spec = MotionSpec.for_trace(Path(source), start)
-            # Reading a trace CSV takes a while: not on the event loop.
-            motion = await asyncio.to_thread(self.spec.load)
-            self.trace = motion.select(DEVICE_NAMES)
-            if self.velocities:
-                self.send_velocities = _CausalVelocities(self.trace)
-            await conn.join(
-                room=cfg.room,
-                streams=self.trace.streams,
-                rate=cfg.rate,
-                token=cfg.token,
-                label=self.spec.label(),
-                sends_velocities=self.velocities,
-                wants_velocities=self.velocities,
-            )
-            for ev in conn.early_peers:
-                self._add_peer(ev)
-            stop = start + cfg.duration
-            async with asyncio.TaskGroup() as tg:
-                receiver = tg.create_task(self._receive(conn))
-                tg.create_task(self._publish(conn, stop))
-                tg.create_task(self._pinger(conn, stop))
-                await self._render(stop)
-                receiver.cancel()
+            await self._session(conn)
+        except ConnectionClosed as exc:  # while syncing or joining
+            self._note_closed(exc)
         finally:
             with contextlib.suppress(ConnectionClosed):
                 await conn.close()
+        if self.spec is not None:
+            start = self.spec.t0
         # Loading the peers' ground truth and scoring it is heavy: off the loop,
         # so other bots (and an in-process server) keep their timing.
         return await asyncio.to_thread(self._report, start)
+
+    async def _session(self, conn: ClientConnection) -> None:
+        """Sync, join and run the session; returns at its end or when the connection ends."""
+        cfg = self.cfg
+        await self._sync(conn, cfg.initial_pings)
+        self.started_local = self.clock()
+        start = self.server_now()
+        source, seed = cfg.motion, cfg.seed
+        if source.startswith("synthetic:"):
+            self.spec = MotionSpec(source, seed, start)
+        else:
+            self.spec = MotionSpec.for_trace(Path(source), start)
+        # Reading a trace CSV takes a while: not on the event loop.
+        motion = await asyncio.to_thread(self.spec.load)
+        self.trace = motion.select(DEVICE_NAMES)
+        if self.velocities:
+            self.send_velocities = _CausalVelocities(self.trace)
+        await conn.join(
+            room=cfg.room,
+            streams=self.trace.streams,
+            rate=cfg.rate,
+            token=cfg.token,
+            label=self.spec.label(),
+            sends_velocities=self.velocities,
+            wants_velocities=self.velocities,
+        )
+        for ev in conn.early_peers:
+            self._add_peer(ev)
+        stop = start + cfg.duration
+        async with asyncio.TaskGroup() as tg:
+            tasks = [
+                tg.create_task(self._receive(conn)),
+                tg.create_task(self._publish(conn, stop)),
+                tg.create_task(self._pinger(conn, stop)),
+            ]
+            # The render loop ends at ``stop`` or as soon as the connection ended.
+            await self._render(stop)
+            for task in tasks:
+                task.cancel()
 
     def _report(self, start: float) -> BotReport:
         cfg = self.cfg
@@ -426,6 +541,11 @@ class _Bot:
             duration=span,
             clock_rtt_ms=1000.0 * self.est.rtt,
             velocities=self.velocities,
+            frames_late=self.frames_late,
+            asked_hz=cfg.rate,
+            granted_hz=self.conn.joined.rate if self.conn.joined is not None else cfg.rate,
+            send_hz=cfg.send_rate,
+            ending=self.ending or SessionEnd("complete", max(0.0, end - start)),
             streams=self.remote,
             render_log=self.render_log,
         )

@@ -23,6 +23,7 @@ from protocol import (
     Join,
     Joined,
     PeerJoined,
+    PosecastError,
     ProtocolError,
     Welcome,
 )
@@ -31,13 +32,20 @@ from protocol.events import Event, Message
 __all__ = ["ClientConnection", "JoinRefused", "Received"]
 
 
-class JoinRefused(RuntimeError):
-    """The server refused the handshake or the join; ``code`` says why."""
+class JoinRefused(PosecastError, RuntimeError):
+    """The server refused the handshake or the join; ``code`` says why.
 
-    def __init__(self, code: str, message: str) -> None:
+    For ``bad-rate``, ``rate_range`` is the server's ``(min_rate, max_rate)`` in Hz
+    (from its welcome) when known, and the message names it.
+    """
+
+    def __init__(
+        self, code: str, message: str, *, rate_range: tuple[float, float] | None = None
+    ) -> None:
         super().__init__(f"{code}: {message}")
         self.code = code
         self.message = message
+        self.rate_range = rate_range
 
 
 @dataclass(frozen=True, slots=True)
@@ -102,6 +110,11 @@ class ClientConnection:
         ``sends_velocities``: this client's updates will be of the velocity
         variant; ``wants_velocities``: send it velocity snapshots.
         """
+        welcome = self.welcome
+        if welcome is not None and not welcome.min_rate <= rate <= welcome.max_rate:
+            # The session would refuse to send it (a LocalProtocolError): say it as the
+            # server would, with the range from its welcome.
+            raise self._bad_rate(f"rate {rate:g} Hz is refused")
         await self.send(
             Join(
                 room=room,
@@ -158,11 +171,23 @@ class ClientConnection:
             if isinstance(ev, kind):
                 return ev
             if isinstance(ev, ErrorMessage):
+                if ev.code == "bad-rate":
+                    raise self._bad_rate(ev.message)
                 raise JoinRefused(ev.code, ev.message)
             if isinstance(ev, ProtocolError):
                 raise JoinRefused(str(ev.code), ev.message)
             if isinstance(ev, PeerJoined):
                 self.early_peers.append(ev)
+
+    def _bad_rate(self, detail: str) -> JoinRefused:
+        """A ``bad-rate`` refusal that names the range from the server's welcome."""
+        welcome = self.welcome
+        if welcome is None:
+            return JoinRefused("bad-rate", detail)
+        lo, hi = welcome.min_rate, welcome.max_rate
+        return JoinRefused(
+            "bad-rate", f"{detail}; the server allows {lo:g}-{hi:g} Hz", rate_range=(lo, hi)
+        )
 
     @property
     def user(self) -> int:

@@ -3,19 +3,44 @@
 :func:`run_bots` starts N bots under one ``TaskGroup`` against a server URL;
 :func:`swarm_report` pools their QoE with :func:`scenarios.qoe.summarize` and
 adds the wire figures, in the JSON shape ``posecast bots/demo --json`` write.
+
+Two judgements on a finished swarm, pure functions of its reports:
+
+- :func:`starvation`: did the machine starve the session? The figures of a starved
+  session read worse than the method is. It is starved when the bots' mean
+  keyframe rate is under 90 % of the rate they could get (the asked snapshot
+  rate, or the senders' publish rate if lower), or when over 10 % of all render
+  frames were late (started more than one render period, 1/90 s, after their
+  scheduled time: a headset would have missed showing them).
+- :func:`session_ending`: how the session ended (every bot ran its duration, the
+  server closed it, or the connection was lost), as lines to print and an exit
+  code: 0 when every bot completed or the server closed with 1000/1001, else 1.
 """
 
 from __future__ import annotations
 
 import asyncio
 from collections.abc import Callable, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 from client.bot import BotConfig, BotReport, motion_for_bot, run_bot
 from scenarios.qoe import summarize
 
-__all__ = ["run_bots", "swarm_report"]
+__all__ = [
+    "STARVED_KEYFRAME_SHARE",
+    "STARVED_RENDER_LATE",
+    "Starvation",
+    "run_bots",
+    "session_ending",
+    "starvation",
+    "swarm_report",
+]
+
+#: Starved when the measured keyframe rate is under this share of the expected one.
+STARVED_KEYFRAME_SHARE = 0.9
+#: Starved when over this share of the render frames were late (over a period behind).
+STARVED_RENDER_LATE = 0.1
 
 
 async def run_bots(
@@ -48,12 +73,111 @@ async def run_bots(
     return [t.result() for t in tasks]
 
 
+@dataclass(frozen=True)
+class Starvation:
+    """Whether a session was starved of CPU, from what its bots measured.
+
+    ``keyframe_hz``: mean over the bots that received anything of their keyframe
+    rate (None if none did); ``expected_hz``: what they could get, the asked
+    snapshot rate or the publish rate if lower; ``asked_hz``: the asked rate;
+    ``render_late_fraction``: late render frames over all rendered (None if none).
+    """
+
+    keyframe_hz: float | None
+    expected_hz: float
+    asked_hz: float
+    render_late_fraction: float | None
+
+    @property
+    def keyframes_short(self) -> bool:
+        return (
+            self.keyframe_hz is not None
+            and self.keyframe_hz < STARVED_KEYFRAME_SHARE * self.expected_hz
+        )
+
+    @property
+    def render_late(self) -> bool:
+        return (
+            self.render_late_fraction is not None
+            and self.render_late_fraction > STARVED_RENDER_LATE
+        )
+
+    @property
+    def starved(self) -> bool:
+        return self.keyframes_short or self.render_late
+
+    def warning(self) -> str | None:
+        """The one line to print for a starved session, else None."""
+        if not self.starved:
+            return None
+        parts = []
+        if self.keyframe_hz is not None:
+            of = "asked" if self.expected_hz == self.asked_hz else "possible"
+            parts.append(f"keyframe rate {self.keyframe_hz:.1f} Hz of {self.expected_hz:g} {of}")
+        if self.render_late_fraction is not None:
+            parts.append(f"render loop late {100 * self.render_late_fraction:.0f} % of frames")
+        return (
+            f"warning: this machine starved the session ({'; '.join(parts)}): "
+            "figures may read worse than the method is"
+        )
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "starved": self.starved,
+            "keyframe_hz": self.keyframe_hz,
+            "expected_keyframe_hz": self.expected_hz,
+            "asked_hz": self.asked_hz,
+            "render_late_fraction": self.render_late_fraction,
+            "warning": self.warning(),
+        }
+
+
+def starvation(reports: Sequence[BotReport]) -> Starvation:
+    """Judge whether the machine starved the session the bots of ``reports`` ran."""
+    rates = [r.rate_hz for r in reports if r.streams and r.rate_hz > 0]
+    frames = sum(r.frames_rendered for r in reports)
+    asked = min((r.granted_hz or r.asked_hz for r in reports), default=0.0)
+    sends = [r.send_hz for r in reports if r.send_hz > 0]
+    expected = min([asked, *sends]) if sends else asked
+    return Starvation(
+        keyframe_hz=sum(rates) / len(rates) if rates else None,
+        expected_hz=expected,
+        asked_hz=asked,
+        render_late_fraction=sum(r.frames_late for r in reports) / frames if frames else None,
+    )
+
+
+def session_ending(reports: Sequence[BotReport]) -> tuple[list[str], int]:
+    """Lines that say how the session ended (none if every bot completed), and the exit code.
+
+    One line per way of ending, e.g. ``session ended early: server closed: going
+    away (1001) after 2.0 s (3 of 3 bots); the report covers that time``. Exit
+    code 0 if every bot completed or was closed on purpose by the server (1000,
+    1001), else 1 (a lost connection, or a close for an error).
+    """
+    early = [r for r in reports if r.ending.kind != "complete"]
+    lines = []
+    groups: dict[tuple[str, int | None, str], list[BotReport]] = {}
+    for r in early:
+        groups.setdefault((r.ending.kind, r.ending.code, r.ending.reason), []).append(r)
+    for group in groups.values():
+        # The bot that lasted longest tells how much of the session there is.
+        last = max(group, key=lambda r: r.ending.after_s)
+        lines.append(
+            f"session ended early: {last.ending.describe()} "
+            f"({len(group)} of {len(reports)} bots); the report covers that time"
+        )
+    code = 0 if all(r.ending.graceful for r in reports) else 1
+    return lines, code
+
+
 def swarm_report(reports: Sequence[BotReport]) -> dict[str, Any]:
     """``{"methods": ..., "wire": ..., "bots": [...]}`` (the documented JSON shape)."""
     methods = summarize(r.qoe for r in reports)
     snap_bytes = sum(r.snapshot_bytes for r in reports)
     poses = sum(r.poses_received for r in reports)
     seconds = sum(r.duration for r in reports)
+    lines, exit_code = session_ending(reports)
     return {
         "methods": methods,
         "wire": {
@@ -76,7 +200,15 @@ def swarm_report(reports: Sequence[BotReport]) -> dict[str, Any]:
                 "frames_rendered": r.frames_rendered,
                 "render_cpu_ms_per_frame": 1000.0 * r.render_cpu_s / max(1, r.frames_rendered),
                 "clock_rtt_ms": r.clock_rtt_ms,
+                "render_late_fraction": r.frames_late / max(1, r.frames_rendered),
+                "ended": r.ending.describe(),
             }
             for r in reports
         ],
+        "starvation": starvation(reports).as_dict(),
+        "ending": {
+            "complete": all(r.ending.kind == "complete" for r in reports),
+            "lines": lines,
+            "exit_code": exit_code,
+        },
     }

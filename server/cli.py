@@ -5,19 +5,45 @@ Subcommands import their machinery lazily so ``posecast --help`` stays fast.
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Annotated, Any
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
+from typer.core import TyperGroup
 
 __all__ = ["app", "main"]
 
+
+class _PosecastGroup(TyperGroup):
+    """The command group: a user-facing error ends the command with one line, no traceback.
+
+    This is the one place that turns :class:`protocol.errors.PosecastError` (and
+    ``OSError`` about files and sockets), raised anywhere below a command, also
+    inside an ``ExceptionGroup`` from a task group, into ``error: ...`` on stderr
+    and an exit code (see :func:`_user_error`). Anything else is a bug and keeps
+    its traceback.
+    """
+
+    def invoke(self, ctx: Any) -> Any:
+        try:
+            return super().invoke(ctx)
+        except Exception as exc:
+            found = _user_error(exc)
+            if found is None:
+                raise
+            raise _fail(*found) from None
+
+
 app = typer.Typer(
     name="posecast",
+    cls=_PosecastGroup,
     help=(
         "Networked VR pose streaming: relay server, headless bots, pose interpolators "
         "and a QoE bench."
@@ -39,8 +65,61 @@ DEFAULT_METHODS = "soa,dq-slerp,motor-lerp"
 
 
 def _fail(message: str, code: int = 2) -> typer.Exit:
-    err_console.print(f"[bold red]error:[/] {message}")
+    """Print ``error: MESSAGE`` on stderr (one line); raise the returned Exit.
+
+    Exit codes: 2 for a usage mistake (an argument, option or input file that
+    cannot be used), 1 for a failure at run time.
+    """
+    err_console.print(f"[bold red]error:[/] {escape(message)}", soft_wrap=True)
     return typer.Exit(code)
+
+
+_PATH_ERRORS = (FileNotFoundError, FileExistsError, IsADirectoryError, NotADirectoryError)
+
+
+def _user_error(exc: BaseException) -> tuple[str, int] | None:
+    """The one line and exit code for a user-facing error; None for anything else.
+
+    A :class:`PosecastError` that is also a ``ValueError`` (a bad file, tier, trace,
+    token...) or a refused rate is a usage mistake (2); any other one failed at run
+    time (1). An ``OSError`` naming a path that is missing, present or of the
+    wrong kind is a usage mistake (2), any other (a taken port, a full disk) 1. An
+    exception group counts if all its exceptions do; the first one is reported.
+    """
+    if isinstance(exc, BaseExceptionGroup):
+        found = [_user_error(e) for e in exc.exceptions]
+        if not found or any(f is None for f in found):
+            return None
+        return found[0]
+    from protocol.errors import PosecastError
+
+    if isinstance(exc, PosecastError):
+        from client.connection import JoinRefused
+
+        if isinstance(exc, JoinRefused):
+            message = f"join refused ({exc.code}): {exc.message}"
+        else:
+            message = str(exc)
+        usage = isinstance(exc, ValueError) or getattr(exc, "code", None) == "bad-rate"
+        return message, 2 if usage else 1
+    if isinstance(exc, OSError) and exc.errno != errno.EPIPE:
+        return _os_message(exc), 2 if isinstance(exc, _PATH_ERRORS) else 1
+    return None
+
+
+def _first_leaf(exc: BaseException) -> BaseException:
+    """The first exception in a (nested) exception group, or ``exc`` itself."""
+    while isinstance(exc, BaseExceptionGroup) and exc.exceptions:
+        exc = exc.exceptions[0]
+    return exc
+
+
+def _os_message(exc: OSError) -> str:
+    """``PATH: what is wrong`` for a file error, else the error's own text."""
+    what = exc.strerror.lower() if exc.strerror else str(exc)
+    if exc.filename is not None:
+        return f"{exc.filename}: {what}"
+    return what
 
 
 def _parse_rates(text: str) -> list[float]:
@@ -193,44 +272,105 @@ def print_swarm(report: dict[str, Any], title: str) -> None:
     )
 
 
+_SECRET_HELP = "Require tokens signed with this secret (see `posecast token`); visible in ps."
+_SECRET_FILE_HELP = "Read the secret from the first line of this file (kept out of ps)."
+_LOG_LEVELS = ("debug", "info", "warning", "error")
+
+
+def _secret(ctx: typer.Context, secret: str | None, secret_file: Path | None) -> str | None:
+    """The secret from --secret, --secret-file or their environment variables.
+
+    An option given on the command line wins over the other one's environment
+    variable; both given the same way is a usage mistake.
+    """
+    if secret is not None and secret_file is not None:
+        from_env = [
+            name
+            for name in ("secret", "secret_file")
+            if getattr(ctx.get_parameter_source(name), "name", "") == "ENVIRONMENT"
+        ]
+        if from_env == ["secret"]:
+            secret = None
+        elif from_env == ["secret_file"]:
+            secret_file = None
+        else:
+            raise _fail("give the secret once: --secret or --secret-file, not both")
+    if secret_file is not None:
+        try:
+            lines = secret_file.read_text(encoding="utf-8").splitlines()
+        except (OSError, UnicodeDecodeError) as exc:
+            why = exc.strerror.lower() if isinstance(exc, OSError) and exc.strerror else exc
+            raise _fail(f"--secret-file {secret_file}: cannot read it ({why})") from None
+        secret = lines[0].strip() if lines else ""
+        if not secret:
+            raise _fail(
+                f"--secret-file {secret_file}: the first line is empty; put the secret there"
+            )
+    elif secret is not None and not secret.strip():
+        raise _fail("the secret is empty; give a non-empty --secret or POSECAST_SECRET")
+    return secret
+
+
 @app.command()
 def serve(
-    host: Annotated[str, typer.Option(help="Address to listen on.")] = "127.0.0.1",
-    port: Annotated[int, typer.Option(help="Port (0: pick a free one).")] = 8765,
-    rate: Annotated[float, typer.Option(help="Default snapshot rate (Hz).")] = 20.0,
-    min_rate: Annotated[float, typer.Option(help="Lowest rate a subscriber may ask.")] = 5.0,
-    max_rate: Annotated[float, typer.Option(help="Highest rate a subscriber may ask.")] = 30.0,
-    secret: Annotated[
-        str | None,
-        typer.Option(help="Require tokens signed with this secret (see `posecast token`)."),
+    ctx: typer.Context,
+    host: Annotated[
+        str, typer.Option(help="Address to listen on.", envvar="POSECAST_HOST")
+    ] = "127.0.0.1",
+    port: Annotated[
+        int, typer.Option(help="Port, 0..65535 (0: pick a free one).", envvar="POSECAST_PORT")
+    ] = 8765,
+    rate: Annotated[
+        float, typer.Option(help="Default snapshot rate (Hz).", envvar="POSECAST_RATE")
+    ] = 20.0,
+    min_rate: Annotated[
+        float,
+        typer.Option(help="Lowest rate a subscriber may ask.", envvar="POSECAST_MIN_RATE"),
+    ] = 5.0,
+    max_rate: Annotated[
+        float,
+        typer.Option(help="Highest rate a subscriber may ask.", envvar="POSECAST_MAX_RATE"),
+    ] = 30.0,
+    secret: Annotated[str | None, typer.Option(help=_SECRET_HELP, envvar="POSECAST_SECRET")] = None,
+    secret_file: Annotated[
+        Path | None, typer.Option(help=_SECRET_FILE_HELP, envvar="POSECAST_SECRET_FILE")
     ] = None,
     record: Annotated[
         Path | None,
-        typer.Option(help="Record every room session as MCAP into this folder."),
+        typer.Option(
+            help="Record every room session as MCAP into this folder.", envvar="POSECAST_RECORD"
+        ),
     ] = None,
     record_writer: Annotated[
         str,
         typer.Option(
             help="Where the recorder writes: process (a child process, off the relay's CPU "
-            "time) or thread (inside the server process)."
+            "time) or thread (inside the server process).",
+            envvar="POSECAST_RECORD_WRITER",
         ),
     ] = "process",
     link: Annotated[
         str | None,
         typer.Option(
             help="Emulate a network tier (excellent, good, mediocre, poor, or one of --tiers) "
-            "on every subscriber's downlink: bandwidth cap, delay, jitter, loss."
+            "on every subscriber's downlink: bandwidth cap, delay, jitter, loss.",
+            envvar="POSECAST_LINK",
         ),
     ] = None,
     tiers: Annotated[
-        Path | None, typer.Option(help="TOML tiers merged over the built-in ones.")
+        Path | None,
+        typer.Option(help="TOML tiers merged over the built-in ones.", envvar="POSECAST_TIERS"),
     ] = None,
-    log_level: Annotated[str, typer.Option(help="debug, info, warning, error.")] = "info",
+    log_level: Annotated[
+        str, typer.Option(help="debug, info, warning or error.", envvar="POSECAST_LOG_LEVEL")
+    ] = "info",
 ) -> None:
     """Run the relay server until SIGINT/SIGTERM (then close all with 1001, exit 0).
 
-    With --record, SIGUSR1 pauses the recording of pose updates and SIGUSR2
-    resumes it (each pause is written into the files as a drops record).
+    Every option can also be set by its POSECAST_* environment variable (an
+    option on the command line wins). With --record, SIGUSR1 pauses the
+    recording of pose updates and SIGUSR2 resumes it (each pause is written
+    into the files as a drops record).
     """
     import asyncio
     import logging
@@ -238,10 +378,21 @@ def serve(
 
     from server.app import RelayServer, ServerConfig
 
+    if not 0 <= port <= 65535:
+        raise _fail(f"--port must be in 0..65535 (0 picks a free port), not {port}")
     if not 0 < min_rate <= rate <= max_rate:
         raise _fail("need 0 < --min-rate <= --rate <= --max-rate")
     if record_writer not in ("process", "thread"):
         raise _fail(f"--record-writer must be process or thread, not {record_writer!r}")
+    if log_level.lower() not in _LOG_LEVELS:
+        raise _fail(f"--log-level must be one of {', '.join(_LOG_LEVELS)}, not {log_level!r}")
+    if record is not None and record.exists() and not record.is_dir():
+        raise _fail(
+            f"--record {record} is a file; give a folder for the recordings "
+            "(it is created if missing)"
+        )
+    secret = _secret(ctx, secret, secret_file)
+    tier = _tier(link, tiers)
     logging.basicConfig(
         level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
@@ -254,7 +405,7 @@ def serve(
         secret=secret,
         record_dir=record,
         record_writer="thread" if record_writer == "thread" else "process",
-        link=_tier(link, tiers) if link is not None else None,
+        link=tier,
     )
 
     async def main() -> None:
@@ -278,17 +429,26 @@ def serve(
 
     try:
         _run_async(main())
-    except OSError as exc:
-        raise _fail(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+    except* OSError as eg:
+        exc = _first_leaf(eg)
+        if not isinstance(exc, OSError) or exc.filename is not None:
+            raise  # a file of the recorder: the one line comes from _user_error
+        why = os.strerror(exc.errno).lower() if exc.errno else str(exc)
+        raise _fail(
+            f"cannot listen on {host}:{port}: {why}; is another server running there? "
+            "Pick another --port (0 picks a free one)",
+            1,
+        ) from None
 
 
-def _tier(name: str, path: Path | None) -> Any:
-    from scenarios.network import TierError, load_tiers
+def _tier(name: str | None, path: Path | None) -> Any:
+    """The tier called ``name`` (None: no link emulation) from the built-in tiers and
+    ``path``; a tiers file is read, and checked, even without a name."""
+    from scenarios.network import load_tiers
 
-    try:
-        known = load_tiers(path)
-    except (TierError, OSError) as exc:
-        raise _fail(str(exc)) from None
+    known = load_tiers(path) if path is not None or name is not None else {}
+    if name is None:
+        return None
     if name not in known:
         raise _fail(f"unknown tier {name!r}; known: {', '.join(known)}")
     return known[name]
@@ -307,20 +467,26 @@ def _run_async(coro: Any) -> Any:
 
 @app.command()
 def token(
+    ctx: typer.Context,
     room: Annotated[str, typer.Option(help="Room the token admits to.")],
     user: Annotated[str, typer.Option(help="User name the token is for.")],
-    secret: Annotated[str, typer.Option(help="The server's --secret.")],
+    secret: Annotated[
+        str | None, typer.Option(help="The server's secret.", envvar="POSECAST_SECRET")
+    ] = None,
+    secret_file: Annotated[
+        Path | None, typer.Option(help=_SECRET_FILE_HELP, envvar="POSECAST_SECRET_FILE")
+    ] = None,
     ttl: Annotated[float, typer.Option(help="Validity in seconds.")] = 3600.0,
 ) -> None:
-    """Print an access token for `posecast serve --secret`."""
+    """Print an access token for `posecast serve --secret/--secret-file`."""
     import time
 
     from server.auth import make_token
 
-    try:
-        print(make_token(secret, room, user, ttl, time.time()))
-    except ValueError as exc:
-        raise _fail(str(exc)) from None
+    key = _secret(ctx, secret, secret_file)
+    if key is None:
+        raise _fail("give the server's secret: --secret-file PATH, POSECAST_SECRET or --secret")
+    print(make_token(key, room, user, ttl, time.time()))
 
 
 def _check_bot_args(
@@ -356,8 +522,12 @@ def bots(
         str, typer.Option("--interp", help="Interpolators rendered side by side.")
     ] = DEFAULT_METHODS,
     motion: Annotated[
-        str, typer.Option(help="traces:dev, traces:eval, a CSV or folder, or synthetic[:orbit].")
-    ] = "traces:dev",
+        str,
+        typer.Option(
+            help="traces:sample (bundled), traces:dev, traces:eval (full sets), a CSV or "
+            "folder, or synthetic[:orbit]."
+        ),
+    ] = "traces:sample",
     duration: Annotated[float, typer.Option(help="Seconds to run.")] = 30.0,
     token_: Annotated[str | None, typer.Option("--token", help="Access token.")] = None,
     secret: Annotated[
@@ -373,7 +543,6 @@ def bots(
     from websockets.exceptions import InvalidURI, WebSocketException
 
     from client.bot import BotConfig
-    from client.connection import JoinRefused
     from client.swarm import run_bots, swarm_report
 
     methods = _check_bot_args(rate, n, duration, interp_, motion)
@@ -398,15 +567,19 @@ def bots(
     try:
         with console.status(f"{n} bots in room {room!r} for {duration:g} s ..."):
             reports = _run_async(run_bots(base, n, token_for=token_for))
-    except* JoinRefused as eg:
-        raise _fail(f"join refused: {eg.exceptions[0]}") from None
     except* (OSError, InvalidURI, WebSocketException) as eg:
         raise _fail(f"cannot connect to {url}: {eg.exceptions[0]}") from None
     report = swarm_report(reports)
     print_swarm(report, f"{n} bots at {rate:g} Hz for {duration:g} s ({motion})")
+    # A starved machine, and a session the server ended early, are said in one line each.
+    for line in [report["starvation"]["warning"], *report["ending"]["lines"]]:
+        if line:
+            console.print(line, markup=False, highlight=False, soft_wrap=True)
     if json_out is not None:
         json_out.write_text(json.dumps(report, indent=2))
         console.print(f"wrote {json_out}")
+    if report["ending"]["exit_code"]:  # the connection was lost (or closed for an error)
+        raise typer.Exit(report["ending"]["exit_code"])
 
 
 @app.command()
@@ -415,8 +588,12 @@ def demo(
     rate: Annotated[float, typer.Option(help="Snapshot rate each bot asks for (Hz).")] = 15.0,
     duration: Annotated[float, typer.Option(help="Seconds to run.")] = 20.0,
     motion: Annotated[
-        str, typer.Option(help="traces:dev, traces:eval, a CSV or folder, or synthetic[:orbit].")
-    ] = "traces:dev",
+        str,
+        typer.Option(
+            help="traces:sample (bundled), traces:dev, traces:eval (full sets), a CSV or "
+            "folder, or synthetic[:orbit]."
+        ),
+    ] = "traces:sample",
     interp_: Annotated[
         str, typer.Option("--interp", help="Interpolators rendered side by side.")
     ] = DEFAULT_METHODS,
@@ -429,9 +606,16 @@ def demo(
     no_record: Annotated[bool, typer.Option("--no-record", help="Do not record.")] = False,
 ) -> None:
     """The main job: a server and N bots on loopback, then QoE per interpolator."""
+    from server.app import ServerConfig
     from server.demo import run_demo
 
     methods = _check_bot_args(rate, bots, duration, interp_, motion)
+    server_cfg = ServerConfig()  # what run_demo's own server allows
+    if not server_cfg.min_rate <= rate <= server_cfg.max_rate:
+        raise _fail(
+            f"--rate {rate:g} Hz is outside the demo server's range of "
+            f"{server_cfg.min_rate:g}-{server_cfg.max_rate:g} Hz"
+        )
     report = _run_async(
         run_demo(
             bots=bots,
@@ -448,11 +632,16 @@ def demo(
         f"posecast demo: {bots} bots at {rate:g} Hz for {duration:g} s on loopback ({motion}); "
         "errors vs the senders' own samples",
     )
+    for line in [report["starvation"]["warning"], *report["ending"]["lines"]]:
+        if line:
+            console.print(line, markup=False, highlight=False, soft_wrap=True)
     if report.get("recording"):
         console.print(f"recorded to {report['recording']} (see `posecast info`)")
     if json_out is not None:
         json_out.write_text(json.dumps(report, indent=2))
         console.print(f"wrote {json_out}")
+    if report["ending"]["exit_code"]:
+        raise typer.Exit(report["ending"]["exit_code"])
 
 
 @bench_app.command("interp")
@@ -587,7 +776,7 @@ def table1(
 
     import interp
     from scenarios.network import TierError, load_tiers
-    from scenarios.table1 import run_table1
+    from scenarios.table1 import describe_rates, run_table1, snapped_range
     from scenarios.traces import TraceError
 
     rate_list = [int(r) for r in _parse_rates(rates)]
@@ -684,6 +873,7 @@ def table1(
             raise _fail(f"--live: {exc}") from None
         assert live_report is not None
         write_live(out, live_report)
+    searched = report["config"]["rates"]
     table = Table(
         title="Table 1: equal-QoE rate (saving vs SoA), ideal network", title_justify="left"
     )
@@ -693,16 +883,33 @@ def table1(
     for m in others:
         table.add_column(m, justify="right")
     paper = report.get("paper", {})
+    paper_tiers = {t["name"]: t for t in paper.get("tiers", [])}
+    table.add_column("paper", justify="right")
+    snapped = False
     for row in report["tiers"]:
         cells = []
         for m in others:
             r = row["equal_qoe_rate"].get(m)
             sv = row["bandwidth_saving_pct"].get(m)
-            cells.append("none" if r is None else f"{r} ({sv:.0f} %)")
-        table.add_row(row["name"], str(row["soa_rate"]), *cells)
+            mark = "" if snapped_range(r, searched) is None else "≤"
+            snapped = snapped or bool(mark)
+            cells.append("none" if r is None else f"{mark}{r} ({sv:.0f} %)")
+        pt = paper_tiers.get(row["name"])
+        claim = "-" if pt is None else f"{pt['ga_rate']} ({pt['bandwidth_saving_pct']} %)"
+        table.add_row(row["name"], str(row["soa_rate"]), *cells, claim)
     console.print(table)
+    console.print(f"rates swept: {describe_rates(searched)}")
+    if snapped:
+        console.print(
+            "≤: equal-QoE rates are the lowest listed rate meeting the bar; the true "
+            "rate may lie between listed rates (1 Hz steps: --rates 5-30)"
+        )
     if paper:
-        console.print(f"paper: {json.dumps(paper)[:300]}")
+        console.print(
+            f"paper: its rate for {' and '.join(paper.get('ga_methods', []))} (saving), "
+            f"and {paper.get('running_time_saving_pct')} % less running time claimed; "
+            f"source: {paper.get('source', '')}"
+        )
     if live_report is not None:
         lt = Table(
             title="Live vs offline (equal D): hands p95 tip error (mm), D (ms)",
@@ -728,7 +935,7 @@ def table1(
                 )
             lt.add_section()
         console.print(lt)
-    console.print(f"wrote {out}/table1.md, table1.json and plots")
+    console.print(f"wrote {out}/table1.md, table1.json" + (" and plots" if plots else ""))
     if live_report is not None and not live_report["pass"]:
         bad = [r["tier"] for r in live_report["tiers"] if not r["agreement"]["pass"]]
         err_console.print(
@@ -736,6 +943,19 @@ def table1(
             f"see {out}/table1.md"
         )
         raise typer.Exit(1)
+
+
+def _recording(file: Path) -> None:
+    """Refuse, in one line, a FILE that is not a posecast recording (exit 2)."""
+    from recorder.reader import check_recording
+
+    if file.is_dir():
+        raise _fail(f"{file} is a directory; give a recording file (.mcap) in it")
+    if not file.exists():
+        raise _fail(f"{file}: no such recording")
+    if not file.is_file():
+        raise _fail(f"{file} is not a regular file; give a recording file (.mcap)")
+    check_recording(file)  # a FormatError becomes its one line in _PosecastGroup
 
 
 @app.command()
@@ -747,8 +967,7 @@ def info(
     from recorder import format_info
     from recorder import info as recording_info
 
-    if not file.is_file():
-        raise _fail(f"{file}: no such recording")
+    _recording(file)
     try:
         data = recording_info(file)
     except Exception as exc:  # a damaged file: say so, suggest recovery
@@ -768,8 +987,7 @@ def recover(
     """Recover every intact chunk of a crashed or damaged recording into a complete MCAP."""
     from recorder import recover as recover_file
 
-    if not file.is_file():
-        raise _fail(f"{file}: no such file")
+    _recording(file)  # nothing is written for a file that is not a recording
     try:
         report = recover_file(file, out, overwrite=overwrite)
     except (OSError, ValueError) as exc:
@@ -799,8 +1017,7 @@ def replay(
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the report.")] = None,
 ) -> None:
     """Replay a recording into a live server, or reconstruct it offline with QoE."""
-    if not file.is_file():
-        raise _fail(f"{file}: no such recording")
+    _recording(file)
     if offline == (url is not None):
         raise _fail("give either --url ws://HOST:PORT (live) or --offline")
     if offline:
@@ -823,7 +1040,6 @@ def replay(
     else:
         from websockets.exceptions import InvalidURI, WebSocketException
 
-        from client.connection import JoinRefused
         from client.replay import replay_live
 
         factor: float | str
@@ -839,8 +1055,6 @@ def replay(
                 report = _run_async(
                     replay_live(file, url, factor, room, token=token_)  # type: ignore[arg-type]
                 )
-        except* JoinRefused as eg:
-            raise _fail(f"join refused: {eg.exceptions[0]}") from None
         except* (OSError, InvalidURI, WebSocketException) as eg:
             raise _fail(f"cannot connect to {url}: {eg.exceptions[0]}") from None
         lat = report["lateness_ms"]
@@ -865,8 +1079,7 @@ def export(
 
     if to not in ("csv", "npz", "foxglove"):
         raise _fail("--to takes csv, npz or foxglove")
-    if not file.is_file():
-        raise _fail(f"{file}: no such recording")
+    _recording(file)
     stem = file.name.removesuffix(".part").removesuffix(".mcap")
     target = out or file.with_name(
         {"csv": f"{stem}-csv", "npz": f"{stem}.npz", "foxglove": f"{stem}-foxglove.mcap"}[to]
@@ -905,6 +1118,11 @@ def analyze(
     if not keeps or any(k < 2 for k in keeps):
         raise _fail("--keep-every takes integers >= 2")
     methods = _parse_methods(interp_)
+    if file is not None and (
+        file.name.endswith((".mcap", ".mcap.part"))
+        or not (file.is_dir() or file.name.endswith((".csv", ".csv.gz")))
+    ):
+        _recording(file)  # a trace CSV or folder of them is checked as it is loaded
     source: Any = file if file is not None else trace
     try:
         with console.status("analysing ..."):

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import itertools
+import math
 
 import numpy as np
 import pytest
@@ -12,6 +14,7 @@ from client.bot import BotConfig, BotReport, RemoteStream, remote_log, run_bot
 from client.swarm import run_bots, swarm_report
 from interp import get
 from scenarios.qoe import STAT_KEYS, playout_brackets
+from server.room import room_phase
 
 
 async def _session(configs: list[BotConfig]) -> list[BotReport]:
@@ -52,7 +55,7 @@ def three_bots() -> list[BotReport]:
             url="",
             room="t",
             rate=15,
-            motion="traces:dev",
+            motion="traces:sample",
             duration=4,
             keep_render_log=True,
             name="c",
@@ -60,7 +63,9 @@ def three_bots() -> list[BotReport]:
     ]
     from client.bot import motion_for_bot
 
-    configs[2] = BotConfig(**{**configs[2].__dict__, "motion": motion_for_bot("traces:dev", 1)[0]})
+    configs[2] = BotConfig(
+        **{**configs[2].__dict__, "motion": motion_for_bot("traces:sample", 1)[0]}
+    )
     return asyncio.run(_session(configs))
 
 
@@ -72,19 +77,36 @@ def test_each_bot_receives_every_other_stream(three_bots: list[BotReport]) -> No
         assert rep.user not in {rs.user for rs in rep.streams.values()}
 
 
-def test_keyframe_rate_matches_subscription(three_bots: list[BotReport]) -> None:
-    """Bots publishing at 30 Hz and subscribing at 15 Hz get every other keyframe.
+def _grid_after(now: float, rate: float, phase: float) -> float:
+    """The room's schedule: the first point of the ``(k + phase) / rate`` grid after ``now``."""
+    return (math.floor(now * rate - phase + 1e-9) + 1 + phase) / rate
 
-    The typical gap between the capture times of consecutive new keyframes is
-    1/15 s, and no stream arrives faster than the subscription. (The mean rate
-    alone would depend on how busy the machine is: a stalled loop skips ticks.)
+
+def test_keyframe_rate_matches_subscription(three_bots: list[BotReport]) -> None:
+    """Bots publishing at 30 Hz and subscribing at 15 Hz get at most one keyframe per
+    stream per point of their room's 15 Hz grid, each newer than the last.
+
+    Checked on the server's own send times, so it holds however little CPU the
+    process gets: a starved relay skips grid points (fewer keyframes), but it can
+    never send twice within one grid interval. How many it sends when it is on
+    time is the room's schedule, tested with an injected clock in test_room.py.
     """
+    phase = room_phase("t")
     for rep in three_bots:
-        assert rep.rate_hz <= 15.0 * 1.1
+        assert rep.asked_hz == rep.granted_hz == 15.0
+        # Every snapshot the bot got (the ones carrying remote streams), in send order.
+        sent = sorted({s for rs in rep.streams.values() for s in rs.sent})
+        assert len(sent) >= 5  # liveness only
+        for prev, nxt in itertools.pairwise(sent):
+            assert nxt >= _grid_after(prev, 15.0, phase) - 1e-9, (prev, nxt)
         for rs in rep.streams.values():
-            gaps = np.diff(np.unique(rs.capture))
-            assert gaps.size > 20
-            assert float(np.median(gaps)) == pytest.approx(1 / 15, rel=0.1)
+            # Latest wins: each keyframe of a stream is newer than the one before it.
+            assert np.all(np.diff(rs.capture) > 0)
+            assert np.all(np.diff(rs.sent) > 0)
+            # The received ones are among the sender's 30 Hz keyframes: never more than
+            # the grid points spanned by the snapshots that brought them.
+            span = rs.sent[-1] - rs.sent[0]
+            assert len(rs.capture) <= math.floor(span * 15.0) + 2
 
 
 def test_qoe_is_reported_for_every_method_and_class(three_bots: list[BotReport]) -> None:
@@ -112,6 +134,7 @@ def test_live_render_equals_offline_computation(three_bots: list[BotReport]) -> 
     """
     soa = get("soa")
     checked = 0
+    shown_total = 0
     for rep in three_bots:
         logs = {}
         for k, rs in rep.streams.items():
@@ -119,18 +142,20 @@ def test_live_render_equals_offline_computation(three_bots: list[BotReport]) -> 
             local.capture, local.arrival, local.poses = rs.capture, rs.arrival_local, rs.poses
             logs[k] = remote_log(local)
         for t_play, _d, rendered_at, shown in rep.render_log[5:]:
+            shown_total += len(shown)
             for key, (pose, stalled) in shown.items():
                 log = logs[key]
                 play = playout_brackets(
                     log.capture, log.arrival, np.array([t_play]), np.array([rendered_at - t_play])
                 )
-                if play.missing[0]:
-                    continue
+                # The loop only shows streams with a keyframe in their buffer.
+                assert not play.missing[0]
                 want = soa(log.poses[play.lo[0], 0], log.poses[play.hi[0], 0], play.s[0])
                 assert bool(play.stall[0]) == stalled
                 np.testing.assert_allclose(pose, want, atol=1e-6)
                 checked += 1
-    assert checked > 1000
+    # Every shown pose was checked; how many there are depends on the machine's load.
+    assert checked == shown_total > 0
 
 
 def test_swarm_runs_n_bots_with_trace_motion() -> None:
@@ -142,7 +167,7 @@ def test_swarm_runs_n_bots_with_trace_motion() -> None:
                 url=f"ws://127.0.0.1:{server.port}",
                 room="s",
                 rate=10,
-                motion="traces:dev",
+                motion="traces:sample",
                 duration=2.0,
             )
             return await run_bots(base, 3)
