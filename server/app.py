@@ -116,11 +116,11 @@ class _Connection:
         next_at: float | None = None
         try:
             while True:
-                if next_at is not None:
-                    with contextlib.suppress(TimeoutError):
-                        await asyncio.wait_for(self.wake.wait(), max(0.0, next_at - clock()))
-                else:
-                    await self.wake.wait()
+                # asyncio.timeout, not wait_for: on 3.11 wait_for can swallow a
+                # cancellation that arrives as the wake-up does, and loop forever.
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(None if next_at is None else next_at - clock()):
+                        await self.wake.wait()
                 self.wake.clear()
                 frames, next_at = core.take(self.conn, clock())
                 for data in frames:
@@ -249,9 +249,10 @@ class RelayServer:
             now = self.clock()
             if due is None or due > now:
                 self._reschedule.clear()
+                # (asyncio.timeout: wait_for can swallow a cancellation on 3.11)
                 with contextlib.suppress(TimeoutError):
-                    timeout = None if due is None else due - now
-                    await asyncio.wait_for(self._reschedule.wait(), timeout=timeout)
+                    async with asyncio.timeout(None if due is None else due - now):
+                        await self._reschedule.wait()
                 continue
             self.apply(core.tick(now))
             await asyncio.sleep(0)

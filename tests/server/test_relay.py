@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
+import math
 from collections.abc import Callable
 from functools import partial
 from typing import Any
@@ -20,7 +22,7 @@ from relaykit import Bot, StreamKey, frame, keyframe_rates, rate_of, settle
 from client.connection import ClientConnection
 from protocol import ErrorMessage, PeerJoined, PeerLeft, Ping, Pong, SetRate, UserEvent
 from server.app import RelayServer
-from server.room import Room
+from server.room import Room, room_phase
 
 ServerFactory = Callable[..., Any]
 
@@ -77,7 +79,7 @@ async def test_presence_is_announced_to_the_room_only(server_factory: ServerFact
 
 
 async def test_two_rooms_rates_isolation_and_fidelity(server_factory: ServerFactory) -> None:
-    """Over 5 s each subscriber gets its own rate (10 %), only its room, and exact poses."""
+    """Over 5 s each subscriber gets its own rate grid, only its room, and exact poses."""
     window = 5.0
     plan = {"alpha": (10.0, 20.0, 15.0), "beta": (20.0, 10.0, 20.0)}
     async with server_factory() as srv:
@@ -103,14 +105,16 @@ async def test_two_rooms_rates_isolation_and_fidelity(server_factory: ServerFact
             for bot in bots:
                 await bot.conn.close()
                 remote = mine - own_pairs([bot])
+                in_window = [
+                    snap.send_time for _, snap in bot.snapshots if t0 <= snap.send_time < t1
+                ]
+                # Its own rate, whatever CPU the test gets: never two snapshots
+                # inside one interval of its grid, and a grid finer than 10 Hz
+                # shows in its gaps; the exact timing is test_core's, on a fake clock.
+                assert_own_grid(in_window, bot.rate, room_phase(name))
+                assert len(in_window) >= 0.25 * bot.rate * window, (name, bot.rate, len(in_window))
                 rates = keyframe_rates(bot.snapshots, t0, t1)
-                for key in remote:
-                    assert rates.get(key, 0.0) == pytest.approx(bot.rate, rel=0.1), (
-                        name,
-                        bot.conn.joined,
-                        key,
-                        rates,
-                    )
+                assert remote <= set(rates), (name, bot.conn.joined, rates)
                 check_snapshots(bot, bots)
                 # Isolation: nothing of the other room, ever.
                 seen = {
@@ -121,6 +125,22 @@ async def test_two_rooms_rates_isolation_and_fidelity(server_factory: ServerFact
                 assert seen <= mine, (name, seen - mine)
                 others = {b.user for n, bs in rooms.items() if n != name for b in bs}
                 assert not others & {p.user for p in bot.of_type(PeerJoined)}
+
+
+def _grid_after(t: float, rate: float, phase: float) -> float:
+    """The first point of the ``(k + phase) / rate`` grid strictly after ``t`` (as the room)."""
+    return (math.floor(t * rate - phase + 1e-9) + 1 + phase) / rate
+
+
+def assert_own_grid(send_times: list[float], rate: float, phase: float) -> None:
+    """Snapshots of a ``rate`` subscriber: each at or after the grid point after the
+    previous one (never faster than asked); above 10 Hz, some gap is shorter than
+    a 10 Hz interval (not held to a coarser grid)."""
+    for prev, nxt in itertools.pairwise(send_times):
+        assert nxt >= _grid_after(prev, rate, phase) - 1e-6, (rate, prev, nxt)
+    if rate > 10.0:
+        gaps = [b - a for a, b in itertools.pairwise(send_times)]
+        assert gaps and min(gaps) < 0.1 - 1e-6, (rate, gaps)
 
 
 def check_snapshots(bot: Bot, room: list[Bot]) -> None:
@@ -165,9 +185,14 @@ async def test_set_rate_changes_subscriber_rate(server_factory: ServerFactory) -
             t4 = clock()
             await asyncio.sleep(1.0)
             t5 = clock()
-        assert rate_of(keyframe_rates(sub.snapshots, t0, t1), remote) == pytest.approx(10, rel=0.1)
-        assert rate_of(keyframe_rates(sub.snapshots, t2, t3), remote) == pytest.approx(20, rel=0.1)
-        assert rate_of(keyframe_rates(sub.snapshots, t4, t5), remote) == pytest.approx(20, rel=0.1)
+        # The rate in force at each stage, checked against the subscriber's grid
+        # (a starved machine delivers fewer snapshots, never more than the grid).
+        phase = room_phase("r")
+        for (lo, hi), rate in (((t0, t1), 10.0), ((t2, t3), 20.0), ((t4, t5), 20.0)):
+            times = [snap.send_time for _, snap in sub.snapshots if lo <= snap.send_time < hi]
+            assert_own_grid(times, rate, phase)
+            assert len(times) >= 0.25 * rate * (hi - lo), (rate, len(times))
+            assert rate_of(keyframe_rates(sub.snapshots, lo, hi), remote) > 0
         refusals = sub.of_type(ErrorMessage)
         assert [(e.code, e.fatal, e.in_reply_to) for e in refusals] == [
             ("bad-rate", False, "set_rate")
