@@ -17,14 +17,13 @@ from scenarios.table1 import (
     PAPER,
     describe_rates,
     equal_qoe_rate,
-    main,
     receiver_cpu_time,
     run_table1,
     saving_pct,
     snapped_range,
     tier_rate,
 )
-from scenarios.traces import load_trace
+from scenarios.traces import TraceError, load_trace
 
 STAT_KEYS = {"pos_p50_mm", "pos_p95_mm", "rot_p50_deg", "rot_p95_deg", "tip_p50_mm", "tip_p95_mm"}
 
@@ -153,29 +152,23 @@ def test_objects_are_reported_as_their_own_class() -> None:
     assert set(report["tiers"][0]["equal_qoe_rate_by_class"]) == {"hands", "head", "objects"}
 
 
-def test_cli_writes_a_report(dev_trace_path: Path, tmp_path: Path) -> None:
-    """`python -m scenarios.table1 --traces FILE --out DIR` writes table1.md and exits 0."""
+def test_run_table1_writes_a_report_for_a_csv_path(dev_trace_path: Path, tmp_path: Path) -> None:
+    """run_table1 on a CSV path writes table1.md; a missing file is refused with TraceError."""
     short = tmp_path / "short.csv"
     with gzip.open(dev_trace_path, "rt") as f:
         head = f.read().splitlines(keepends=True)[:900]
     short.write_text("".join(head))
-    code = main(
-        [
-            "--traces",
-            str(short),
-            "--rates",
-            "12,20",
-            "--out",
-            str(tmp_path),
-            "--no-link",
-            "--no-bench",
-            "--no-plots",
-            "--quiet",
-        ]
+    run_table1(
+        [str(short)],
+        rates=[12, 20],
+        out_dir=tmp_path,
+        link=False,
+        bench=False,
+        plots=False,
     )
-    assert code == 0
     assert "Table 1" in (tmp_path / "table1.md").read_text()
-    assert main(["--traces", str(tmp_path / "missing.csv"), "--out", str(tmp_path)]) == 2
+    with pytest.raises(TraceError):
+        run_table1([str(tmp_path / "missing.csv")], out_dir=tmp_path)
 
 
 def test_bad_rates_and_methods_are_refused_before_any_work() -> None:
@@ -327,25 +320,30 @@ def test_report_of_a_contiguous_range_keeps_the_1_hz_wording(tmp_path: Path) -> 
         assert set(row["equal_qoe_rate_snapped"].values()) == {None}
 
 
-def test_module_cli_prints_readable_lines_not_json(
+def test_run_table1_with_sparse_rates_prints_nothing_and_notes_the_gaps(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """`python -m scenarios.table1` with sparse rates: a table and a note, no JSON."""
-    args = ["--traces", "synthetic:drill", "--rates", "5,10,20,30", "--out", str(tmp_path)]
-    code = main([*args, *QUICK])
-    assert code == 0
+    """run_table1 with sparse rates: nothing printed; the rates and the snapping note reported."""
+    report = run_table1(
+        ["synthetic:drill"],
+        rates=[5, 10, 20, 30],
+        out_dir=tmp_path,
+        link=False,
+        bench=False,
+        plots=False,
+        frontier=False,
+    )
     out, err = capsys.readouterr()
-    for line in (out + err).splitlines():
-        assert not line.lstrip().startswith(("{", "[")) and '": ' not in line, line
-    assert "rates swept: 5, 10, 20, 30 Hz" in out
-    assert "the true rate may lie between listed rates" in out
+    assert out == "" and err == ""
+    assert describe_rates(report["config"]["rates"]) == "5, 10, 20, 30 Hz"
+    assert "the true rate may lie between listed rates" in (tmp_path / "table1.md").read_text()
 
 
 def test_posecast_table1_prints_readable_lines_not_json(tmp_path: Path) -> None:
     """`posecast table1 --rates 10,20,30`: the summary table and plain notes, no JSON dump."""
     from typer.testing import CliRunner
 
-    from server.cli import app
+    from posecast.cli import app
 
     args = ["--traces", "synthetic:drill", "--rates", "5,10,20,30", "--out", str(tmp_path)]
     res = CliRunner().invoke(app, ["table1", *args, *QUICK])
