@@ -14,6 +14,8 @@ COPY recorder ./recorder
 COPY scenarios ./scenarios
 COPY client ./client
 COPY server ./server
+# posecast/: the CLI and what composes server, client and experiments.
+COPY posecast ./posecast
 # The check runs from / so that it imports the installed package, not /app: the
 # image is not built if the wheel left the bundled traces out.
 RUN pip install . \

@@ -38,6 +38,7 @@ import contextlib
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Literal
 
@@ -49,19 +50,19 @@ from client.connection import ClientConnection
 from interp import info as interp_info
 from protocol import PeerJoined, PeerLeft, Ping, Pong, Snapshot, encode_update
 from scenarios.motion import MotionSpec, sample_at
-from scenarios.qoe import ErrorSamples, KeyframeLog, evaluate_group
+from scenarios.qoe import ErrorSamples, KeyframeLog
 from scenarios.receiver import (
     ClockEstimator,
     PlayoutDelay,
+    ReceivedStream,
     StreamBuffer,
     render_buffers,
-    rendered_method,
+    score_received,
 )
 from scenarios.traces import (
     CAUSAL_SAMPLES,
     DEVICE_NAMES,
     Trace,
-    TraceError,
     causal_velocities,
     find_traces,
 )
@@ -577,37 +578,14 @@ def evaluate_remote(
     methods: Sequence[str],
 ) -> dict[str, dict[str, ErrorSamples]]:
     """QoE of everything received, with the delay D that was in effect at each tau."""
-    out: dict[str, dict[str, ErrorSamples]] = {m: {} for m in methods}
     if not play_t:
-        return out
-    pt = np.asarray(play_t)
-    pd = np.asarray(play_d)
-
-    def delay_at(taus: F64) -> F64:
-        d: F64 = np.interp(taus, pt, pd)
-        return d
-
-    truths: dict[str, Trace] = {}
-    for rs in remote.values():
-        if rs.label is None or not rs.capture:
-            continue
-        if rs.label not in truths:
-            try:
-                truths[rs.label] = MotionSpec.parse(rs.label).truth(until=float(pt[-1]) + 1.0)
-            except TraceError:
-                continue
-        truth = truths[rs.label]
-        if rs.name not in truth.streams:
-            continue
-        log = remote_log(rs)
-        window = (max(float(log.capture[0]), float(pt[0])), float(pt[-1]))
-        # What the render loop showed: velocity methods fall back on streams without.
-        shown = {m: rendered_method(m, log.velocities is not None) for m in methods}
-        unique = list(dict.fromkeys(shown.values()))
-        res = evaluate_group(truth.select([rs.name]), log, delay_at, unique, window)
-        for m in methods:
-            for cls, samples in res[shown[m]].items():
-                out[m].setdefault(cls, ErrorSamples()).merge(samples)
+        return {m: {} for m in methods}
+    streams = [
+        ReceivedStream(rs.label, rs.name, partial(remote_log, rs))
+        for rs in remote.values()
+        if rs.capture
+    ]
+    (out,) = score_received(streams, np.asarray(play_t), np.asarray(play_d), methods)
     return out
 
 

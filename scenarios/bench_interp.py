@@ -51,7 +51,7 @@ from rich.table import Table
 
 import interp
 
-__all__ = ["TARGETS", "main", "run_interp_bench"]
+__all__ = ["TARGETS", "run_interp_bench"]
 
 F64 = NDArray[np.float64]
 
@@ -552,18 +552,3 @@ def _print_report(console: Console, report: dict[str, Any]) -> None:
             share = f"{t['ratio']:.2f} ({'met' if t['met'] else 'missed'})"
         goals.add_row(key, measured, goal, share)
     console.print(goals)
-
-
-def main(argv: Sequence[str] | None = None) -> None:
-    """``python -m scenarios.bench_interp [--max-batch N]``."""
-    import argparse
-
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
-    parser.add_argument("--max-batch", type=int, default=1_000_000)
-    args = parser.parse_args(argv)
-    sizes = tuple(n for n in (1, 100, 10_000, 1_000_000) if n <= args.max_batch)
-    run_interp_bench(batch_sizes=sizes)
-
-
-if __name__ == "__main__":
-    main()

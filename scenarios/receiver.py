@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import bisect
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -27,18 +27,24 @@ from numpy.typing import NDArray
 
 from interp import info as interp_info
 from interp import interpolate_brackets
-from scenarios.qoe import window_depth
+from scenarios.motion import MotionSpec
+from scenarios.qoe import ErrorSamples, KeyframeLog, evaluate_group, window_depth
+from scenarios.traces import Trace, TraceError
 
 __all__ = [
     "DEFAULT_BUFFER_CAPACITY",
     "VELOCITY_FALLBACK",
     "ClockEstimator",
     "PlayoutDelay",
+    "ReceivedStream",
     "RenderFrame",
     "StreamBuffer",
     "render_buffers",
     "rendered_method",
+    "score_received",
 ]
+
+F64 = NDArray[np.float64]
 
 DEFAULT_BUFFER_CAPACITY = 64
 
@@ -288,3 +294,83 @@ def render_buffers(
         for m in methods
     }
     return RenderFrame(frame, stalled)
+
+
+@dataclass(frozen=True)
+class ReceivedStream:
+    """A remote stream as a receiver saw it, for :func:`score_received`.
+
+    ``label`` is the sender's motion spec (None: unknown, not scored); ``log``
+    builds its arrival log, and is only called for a stream that is scored.
+    """
+
+    label: str | None
+    name: str
+    log: Callable[[], KeyframeLog]
+
+
+def score_received(
+    streams: Iterable[ReceivedStream],
+    play_t: F64,
+    play_d: F64,
+    methods: Sequence[str],
+    *,
+    delays: Sequence[float | None] = (None,),
+    until_sender_left: bool = False,
+    as_rendered: bool = True,
+    truths: dict[str, Trace] | None = None,
+    windows: dict[str, dict[str, tuple[float, float]]] | None = None,
+) -> list[dict[str, dict[str, ErrorSamples]]]:
+    """QoE of what one receiver got, against each sender's motion, one result per delay.
+
+    ``play_t``, ``play_d`` (non-empty): the render loop's playout times and the
+    delay D in effect at each. Each entry of ``delays`` is a fixed D in seconds,
+    or None for the D the render loop used at each tau. A stream is scored over
+    its first keyframe (or the first render) to the last render, or, with
+    ``until_sender_left``, to its last keyframe where that is earlier (streams
+    with nothing in that window are skipped). With ``as_rendered`` a velocity
+    method is scored as what the render loop showed on a stream without
+    velocities (:func:`rendered_method`). ``truths`` caches the motions by
+    label; ``windows`` collects ``{label: {name: window}}`` of scored streams.
+    Returns ``[{method: {device_class: ErrorSamples}}]``, one per delay.
+    """
+    pt = np.asarray(play_t)
+    pd = np.asarray(play_d)
+
+    def delay_at(taus: F64) -> F64:
+        d: F64 = np.interp(taus, pt, pd)
+        return d
+
+    out: list[dict[str, dict[str, ErrorSamples]]] = [{m: {} for m in methods} for _ in delays]
+    truths = {} if truths is None else truths
+    for rs in streams:
+        if rs.label is None:
+            continue
+        if rs.label not in truths:
+            try:
+                truths[rs.label] = MotionSpec.parse(rs.label).truth(until=float(pt[-1]) + 1.0)
+            except TraceError:
+                continue
+        truth = truths[rs.label]
+        if rs.name not in truth.streams:
+            continue
+        log = rs.log()
+        end = float(pt[-1])
+        if until_sender_left:
+            end = min(end, float(log.capture[-1]))
+        window = (max(float(log.capture[0]), float(pt[0])), end)
+        if until_sender_left and window[1] <= window[0]:
+            continue
+        if windows is not None:
+            windows.setdefault(rs.label, {})[rs.name] = window
+        # What the render loop showed: velocity methods fall back on streams without.
+        has_velocities = log.velocities is not None
+        shown = {m: rendered_method(m, has_velocities) if as_rendered else m for m in methods}
+        unique = list(dict.fromkeys(shown.values()))
+        one = truth.select([rs.name])
+        for into, fixed in zip(out, delays, strict=True):
+            res = evaluate_group(one, log, delay_at if fixed is None else fixed, unique, window)
+            for m in methods:
+                for cls, samples in res[shown[m]].items():
+                    into[m].setdefault(cls, ErrorSamples()).merge(samples)
+    return out

@@ -6,21 +6,20 @@ definitions as Table 1's ideal sweep (keyframes = newest native sample at each
 send time, one-interval playout, velocities rounded to float16 as the wire
 carries them), and returns the hands p50/p95 tip error per source and rate.
 
-Run: ``python -m scenarios.velocity_sources --traces traces:eval --rates 10,15,16,17,20,30``.
+Run: ``posecast velocity-sources --traces traces:eval --rates 10,15,16,17,20,30``.
 A source is ``central``, ``causal`` (the default causal estimator) or
 ``causal:SAMPLES,DEGREE`` (e.g. ``causal:2,1``, the backward difference).
 """
 
 from __future__ import annotations
 
-import argparse
 from collections.abc import Sequence
 
 import numpy as np
 
 from scenarios.network import VELOCITY_WIRE_DTYPE
 from scenarios.qoe import KeyframeLog, evaluate_group, ideal_delay, sample_keyframes, summarize
-from scenarios.traces import Trace, find_traces, load_trace
+from scenarios.traces import Trace
 
 __all__ = ["compare_velocity_sources", "source_velocities"]
 
@@ -64,24 +63,3 @@ def compare_velocity_sources(
             per_rate[rate] = {k: hands[k] for k in ("tip_p50_mm", "tip_p95_mm")}
         out[source] = per_rate
     return out
-
-
-def main(argv: Sequence[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--traces", default="traces:dev")
-    ap.add_argument("--rates", default="10,15,20")
-    ap.add_argument("--sources", default="central,causal")
-    ap.add_argument("--method", default="motor-hermite")
-    args = ap.parse_args(argv)
-    traces = [load_trace(f) for f in find_traces(args.traces)]
-    rates = [float(r) for r in args.rates.split(",")]
-    sources = args.sources.split(";") if ";" in args.sources else args.sources.split(",")
-    res = compare_velocity_sources(traces, rates, sources, args.method)
-    print(f"{args.method}, hands tip error p50 / p95 (mm), {args.traces}, ideal network")
-    for source, per_rate in res.items():
-        for rate, st in per_rate.items():
-            print(f"{source:14s} {rate:5g} Hz  {st['tip_p50_mm']:7.1f} / {st['tip_p95_mm']:7.1f}")
-
-
-if __name__ == "__main__":
-    main()

@@ -161,7 +161,7 @@ def test_exit_code_is_0_unless_lost_or_closed_for_an_error(
 
 def _serve() -> tuple[subprocess.Popen[str], int]:
     server = subprocess.Popen(
-        [sys.executable, "-m", "server.cli", "serve", "--port", "0", "--log-level", "warning"],
+        [sys.executable, "-m", "posecast.cli", "serve", "--port", "0", "--log-level", "warning"],
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,
         text=True,
@@ -191,7 +191,7 @@ def _bots_until_the_server(sig: signal.Signals, tmp: Path) -> tuple[int, str]:
             [
                 sys.executable,
                 "-m",
-                "server.cli",
+                "posecast.cli",
                 "bots",
                 "--url",
                 f"ws://127.0.0.1:{port}",

@@ -22,6 +22,7 @@ from client.bot import (
 )
 from client.swarm import swarm_report
 from interp import interpolate_brackets
+from posecast.cli import app
 from protocol import VELOCITY_BYTES, VELOCITY_MAX, frame_size
 from scenarios.motion import MotionSpec
 from scenarios.network import (
@@ -39,7 +40,6 @@ from scenarios.qoe import (
 )
 from scenarios.receiver import VELOCITY_FALLBACK, StreamBuffer, render_buffers, rendered_method
 from scenarios.traces import DEVICE_NAMES
-from server.cli import app
 
 
 @pytest.mark.parametrize("n", [1, 3, 18, 48, 200, 1500])

@@ -142,7 +142,7 @@ def test_killed_recording_server_loses_nothing_older_than_one_second(tmp_path: P
         [
             sys.executable,
             "-c",
-            "from server.cli import main; main()",
+            "from posecast.cli import main; main()",
             "serve",
             "--port",
             "0",
@@ -281,7 +281,7 @@ def test_sigusr1_pauses_and_sigusr2_resumes_a_recording_server(tmp_path: Path) -
         [
             sys.executable,
             "-c",
-            "from server.cli import main; main()",
+            "from posecast.cli import main; main()",
             "serve",
             "--port",
             "0",

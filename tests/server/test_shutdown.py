@@ -23,7 +23,7 @@ from websockets.exceptions import ConnectionClosed
 from client.connection import ClientConnection
 from server.app import RelayServer, ServerConfig
 
-CLI = [sys.executable, "-c", "from server.cli import main; main()"]
+CLI = [sys.executable, "-c", "from posecast.cli import main; main()"]
 LISTENING = re.compile(r"posecast listening on ws://(?P<host>[^\s:]+):(?P<port>\d+)")
 
 

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from rich.console import Console
 
+from posecast.bench import run_relay_bench, update_template
 from protocol import encode_update
-from server.bench import run_relay_bench, update_template
 
 EXPECTED_KEYS = {
     "clients",
@@ -95,7 +95,7 @@ def test_relay_bench_smoke() -> None:
 
 def test_recorder_rounds_report_medians_and_every_round() -> None:
     """With --repeat, each figure is the median over rounds and every round's loss is kept."""
-    from server.bench import _median_summary
+    from posecast.bench.recorder import _median_summary
 
     rounds = [
         {
@@ -118,7 +118,7 @@ def test_recorder_rounds_report_medians_and_every_round() -> None:
 
 def test_recorder_rounds_alternate_which_run_goes_first(monkeypatch: pytest.MonkeyPatch) -> None:
     """Off runs first in even rounds, last in odd ones; each on run pairs with its round's off."""
-    import server.bench as bench
+    import posecast.bench.relay as bench
 
     calls: list[str] = []
 
@@ -178,7 +178,7 @@ def test_interleaved_recorder_bench_pauses_and_resumes_one_server() -> None:
 
 
 def test_interleaved_summary_pairs_each_paused_phase_with_its_recording_neighbour() -> None:
-    from server.bench import _interleaved_summary
+    from posecast.bench.recorder import _interleaved_summary
 
     def phase(recording: bool, cpu: float) -> dict[str, object]:
         return {

@@ -27,7 +27,7 @@ from scenarios.network import TierError
 from server.auth import TokenError, verify_token
 
 _EXE = Path(sys.executable).with_name("posecast")
-_COMMAND = [str(_EXE)] if _EXE.exists() else [sys.executable, "-m", "server.cli"]
+_COMMAND = [str(_EXE)] if _EXE.exists() else [sys.executable, "-m", "posecast.cli"]
 _ROOT = Path(__file__).resolve().parents[2]
 
 

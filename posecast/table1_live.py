@@ -28,6 +28,7 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -47,7 +48,8 @@ from scenarios.live_agreement import (
 )
 from scenarios.motion import MotionSpec
 from scenarios.network import Tier, websocket_header_bytes
-from scenarios.qoe import ErrorSamples, evaluate_group, summarize
+from scenarios.qoe import ErrorSamples, summarize
+from scenarios.receiver import ReceivedStream, score_received
 from scenarios.traces import DEVICE_NAMES, Trace, TraceError, find_traces
 from server.app import RelayServer, ServerConfig
 from server.room import room_phase
@@ -228,7 +230,7 @@ def _score(
 
     Blocking (loads traces, scores): run it off the event loop. The live QoE is
     scored from the bot's own arrival log and playout delays with
-    :func:`scenarios.qoe.evaluate_group`, exactly as the bot scores itself, over
+    :func:`scenarios.receiver.score_received`, exactly as the bot scores itself, over
     the windows where its sender was still publishing (a bot that left early
     leaves no keyframes to bracket the rest of the receiver's session: those
     samples would count as stalls that no network caused).
@@ -249,33 +251,25 @@ def _score(
             return d
 
         by_label: dict[str, dict[str, tuple[float, float]]] = {}
-        got: dict[str, dict[str, ErrorSamples]] = {}
-        ample: dict[str, dict[str, ErrorSamples]] = {}
-        for rs in rep.streams.values():
-            if rs.label is None or not rs.capture:
-                continue
-            if rs.label not in truths:
-                try:
-                    truths[rs.label] = MotionSpec.parse(rs.label).truth(until=float(pt[-1]) + 1.0)
-                except TraceError:
-                    continue
-            truth = truths[rs.label]
-            if rs.name not in truth.streams:
-                continue
-            log = remote_log(rs)
-            window = (
-                max(float(log.capture[0]), float(pt[0])),
-                min(float(pt[-1]), float(log.capture[-1])),
+        streams = [
+            ReceivedStream(rs.label, rs.name, partial(remote_log, rs))
+            for rs in rep.streams.values()
+            if rs.capture
+        ]
+        got, ample = (
+            {m: classes for m, classes in scored.items() if classes}
+            for scored in score_received(
+                streams,
+                pt,
+                pd,
+                cfg.methods,
+                delays=(None, AMPLE_DELAY_S),
+                until_sender_left=True,
+                as_rendered=False,
+                truths=truths,
+                windows=by_label,
             )
-            if window[1] <= window[0]:
-                continue
-            by_label.setdefault(rs.label, {})[rs.name] = window
-            one = truth.select([rs.name])
-            for into, delay in ((got, delay_at), (ample, AMPLE_DELAY_S)):
-                part = evaluate_group(one, log, delay, cfg.methods, window)
-                for m, classes in part.items():
-                    for cls, samples in classes.items():
-                        into.setdefault(m, {}).setdefault(cls, ErrorSamples()).merge(samples)
+        )
         senders = []
         for label, windows in by_label.items():
             t0 = MotionSpec.parse(label).t0

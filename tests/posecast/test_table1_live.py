@@ -10,10 +10,10 @@ from typing import Any
 import pytest
 from typer.testing import CliRunner
 
+from posecast.cli import app
+from posecast.table1_live import LiveConfig, live_motions, run_live_tier
 from scenarios.live_agreement import Tolerance
 from scenarios.network import load_tiers
-from server.cli import app
-from server.table1_live import LiveConfig, live_motions, run_live_tier
 
 runner = CliRunner()
 

@@ -1,0 +1,350 @@
+"""The relay benchmark's controller: one run, recorder rounds, interleaved rounds."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+
+from posecast.bench.common import _LISTENING, _LOAD_BOOT, _SERVER_BOOT, STREAMS, _raise_nofile
+from posecast.bench.procs import (
+    _Child,
+    _children_run_time,
+    _delta,
+    _machine_cpu,
+    _proc_cpu,
+    _scrape,
+    _sleep_until,
+    _value,
+)
+from posecast.bench.recorder import (
+    _PHASE_SETTLE,
+    _disk_figures,
+    _interleaved_phases,
+    _interleaved_summary,
+    _median_summary,
+    _print_interleaved,
+    _print_recorder_table,
+    _recorder_summary,
+)
+from posecast.bench.report import print_relay_report
+
+
+def run_relay_bench(
+    clients: int,
+    room_size: int,
+    rate: float,
+    duration: float,
+    *,
+    record: bool = False,
+    record_writer: str = "process",
+    repeat: int = 1,
+    console: Console | None = None,
+    warmup: float = 5.0,
+    ramp_rate: float = 50.0,
+    seed: int = 0,
+    interleave: float = 0.0,
+) -> dict[str, Any]:
+    """Run the relay benchmark; print and return its report (figures, never pass/fail).
+
+    ``clients`` load clients join rooms of ``room_size``, each publishes 3 streams
+    at ``rate`` Hz and subscribes at ``rate``; connections ramp up at
+    ``ramp_rate`` per second, measuring starts ``warmup`` s after the last join
+    and lasts ``duration`` s. With ``record`` the same load runs recorder off,
+    then on (with each of ``record_writer``: ``process``, ``thread`` or
+    ``both``), ``repeat`` times alternating (the paper's Table 4), and the report
+    adds ``{"recorder": {...}}`` with the cost ratio and bytes per pose on disk
+    (medians over the rounds, each round's loss listed).
+
+    With ``interleave`` > 0 each round is instead one recording run whose window
+    is cut into phases of ``interleave`` s, recording paused and resumed in
+    turn; ``{"recorder_interleaved": {...}}`` compares paired phases of the
+    same server process (:func:`_interleaved_summary`).
+    """
+    console = console or Console()
+    args = (clients, room_size, rate, duration)
+    opts: dict[str, Any] = {"warmup": warmup, "ramp_rate": ramp_rate, "seed": seed}
+    if not record:
+        return _run_once(*args, record_dir=None, console=console, **opts)
+    writers = ["process", "thread"] if record_writer == "both" else [record_writer]
+    if any(w not in ("process", "thread") for w in writers):
+        raise ValueError(f"record_writer must be process, thread or both, not {record_writer!r}")
+    if repeat < 1:
+        raise ValueError("repeat must be at least 1")
+    if interleave < 0 or (interleave > 0 and interleave < 2 * _PHASE_SETTLE):
+        raise ValueError(f"interleave must be 0 or at least {2 * _PHASE_SETTLE:g} s")
+    if interleave > 0:
+        return _run_interleaved(args, writers, repeat, interleave, console, opts)
+    # Off and on alternate in a balanced order (off first in even rounds, last
+    # in odd ones): a drift of a shared machine, or anything that favours the
+    # first or second run of a round, hits both alike. Each on-run is compared
+    # with the off-run of its own round.
+    pairs: dict[str, list[dict[str, Any]]] = {w: [] for w in writers}
+    runs: dict[str, dict[str, Any]] = {}
+    offs: list[dict[str, Any]] = []
+    for k in range(repeat):
+        if repeat > 1:
+            console.print(f"[bold]recorder cost: round {k + 1} of {repeat}[/bold]")
+        order: list[str | None] = [None, *writers]
+        if k % 2:
+            order.reverse()
+        off: dict[str, Any] | None = None
+        for writer in order:
+            if writer is None:
+                off = _run_once(*args, record_dir=None, console=console, **opts)
+                offs.append(off)
+                continue
+            with tempfile.TemporaryDirectory(prefix="posecast-bench-") as tmp:
+                on = _run_once(
+                    *args, record_dir=Path(tmp), record_writer=writer, console=console, **opts
+                )
+                # Read what the summary needs while the files exist.
+                disk = _disk_figures(sorted(Path(tmp).glob("*.mcap")))
+                pairs[writer].append({"on": on, "disk": disk})
+                runs[writer] = on
+        assert off is not None
+        for writer in writers:
+            last = pairs[writer][-1]
+            pairs[writer][-1] = _recorder_summary(off, last["on"], last["disk"])
+    summaries = {w: _median_summary(pairs[w]) for w in writers}
+    first = writers[0]
+    on = runs[first]
+    on["recorder"] = summaries[first]
+    on["recorder_by_writer"] = summaries
+    on["recorder_off"] = offs[-1]
+    for writer in writers[1:]:
+        on[f"recorder_on_{writer}"] = runs[writer]
+    _print_recorder_table(summaries, console)
+    return on
+
+
+def _run_interleaved(
+    args: tuple[int, int, float, float],
+    writers: list[str],
+    repeat: int,
+    interleave: float,
+    console: Console,
+    opts: dict[str, Any],
+) -> dict[str, Any]:
+    """``repeat`` recording runs per writer, each window in paused/recording phases."""
+    phases: dict[str, list[dict[str, Any]]] = {w: [] for w in writers}
+    last: dict[str, Any] = {}
+    for k in range(repeat):
+        for writer in writers:
+            if repeat > 1:
+                console.print(f"[bold]recorder cost, interleaved: round {k + 1} of {repeat}[/bold]")
+            with tempfile.TemporaryDirectory(prefix="posecast-bench-") as tmp:
+                last = _run_once(
+                    *args,
+                    record_dir=Path(tmp),
+                    record_writer=writer,
+                    console=console,
+                    interleave=interleave,
+                    **opts,
+                )
+            phases[writer] += last.get("phases", [])
+    summaries = {w: _interleaved_summary(p) for w, p in phases.items()}
+    last["recorder_interleaved"] = summaries
+    _print_interleaved(summaries, interleave, console)
+    return last
+
+
+def _run_once(
+    clients: int,
+    room_size: int,
+    rate: float,
+    duration: float,
+    *,
+    record_dir: Path | None,
+    console: Console,
+    record_writer: str = "process",
+    warmup: float,
+    ramp_rate: float,
+    seed: int,
+    interleave: float = 0.0,
+) -> dict[str, Any]:
+    """One measured run; ``record_dir`` turns the server's recorder on.
+
+    With ``interleave`` (and ``record_dir``) the window is cut into phases of
+    that many seconds in which the server records or has recording paused
+    (``report["phases"]``, see :func:`_interleaved_phases`).
+    """
+    if clients < 1 or room_size < 1:
+        raise ValueError("clients and room_size must be at least 1")
+    if not 0 < rate <= 100:
+        raise ValueError("rate must be in (0, 100] Hz")
+    if duration <= 0 or warmup < 0 or ramp_rate <= 0:
+        raise ValueError("duration and ramp_rate must be positive, warmup non-negative")
+    _raise_nofile(clients + 256)
+    ramp_s = clients / ramp_rate
+    window_timeout = warmup + 60.0
+    hard_timeout = ramp_s + 30.0 + window_timeout + duration + 60.0
+    server: _Child | None = None
+    load: _Child | None = None
+    report: dict[str, Any] = {
+        "clients": clients,
+        "room_size": room_size,
+        "rooms": math.ceil(clients / room_size),
+        "rate_hz": rate,
+        "duration_s": duration,
+        "warmup_s": warmup,
+        "ramp_per_s": ramp_rate,
+        "record": record_dir is not None,
+        "record_writer": record_writer if record_dir is not None else None,
+        "nproc": os.cpu_count() or 0,
+    }
+    try:
+        with console.status("relay bench: starting the server ...") as status:
+            server = _Child(
+                "server",
+                [
+                    sys.executable,
+                    "-c",
+                    _SERVER_BOOT,
+                    "serve",
+                    "--host",
+                    "127.0.0.1",
+                    "--port",
+                    "0",
+                    "--rate",
+                    f"{rate:g}",
+                    "--min-rate",
+                    f"{min(5.0, rate):g}",
+                    "--max-rate",
+                    f"{max(30.0, rate):g}",
+                    "--log-level",
+                    "warning",
+                    *(
+                        ["--record", str(record_dir), "--record-writer", record_writer]
+                        if record_dir is not None
+                        else []
+                    ),
+                ],
+                hash_seed=seed,
+            )
+            found = _LISTENING.search(
+                server.wait_line(lambda line: _LISTENING.search(line) is not None, timeout=30.0)
+            )
+            assert found is not None
+            port = int(found.group(2))
+            cfg = {
+                "url": f"ws://127.0.0.1:{port}",
+                "clients": clients,
+                "room_size": room_size,
+                "rate": rate,
+                "ramp_rate": ramp_rate,
+                "seed": seed,
+                "window_timeout": window_timeout,
+                "hard_timeout": hard_timeout,
+            }
+            status.update(f"relay bench: ramping up {clients} clients at {ramp_rate:g}/s ...")
+            load = _Child(
+                "load",
+                [sys.executable, "-c", _LOAD_BOOT, json.dumps(cfg)],
+                stdin=True,
+                hash_seed=seed,
+            )
+            ramped = load.wait_json("ramped", timeout=ramp_s + 60.0)
+            report["clients_joined"] = int(ramped["joined"])
+            report["clients_failed"] = int(ramped["failed"])
+            report["join_errors"] = ramped["errors"]
+            report["ramp_s"] = float(ramped["ramp_s"])
+            if ramped["joined"] == 0:
+                raise load.fail(f"no client could join: {ramped['errors']}")
+            t0 = time.monotonic() + warmup
+            t1 = t0 + duration
+            load.tell({"window": [t0, t1]})
+            status.update(f"relay bench: warm-up {warmup:g} s ...")
+            _sleep_until(t0)
+            status.update(f"relay bench: measuring for {duration:g} s ...")
+            r0 = _children_run_time(server.pid)
+            s0, l0, c0, w0 = (
+                _proc_cpu(server.pid),
+                _proc_cpu(load.pid),
+                _machine_cpu(),
+                time.monotonic(),
+            )
+            m0 = _scrape(port)
+            if interleave > 0 and record_dir is not None:
+                status.update(f"relay bench: measuring for {duration:g} s, recording on/off ...")
+                report["phases"] = _interleaved_phases(server.pid, port, t1, interleave)
+            _sleep_until(t1)
+            r1 = _children_run_time(server.pid)
+            s1, l1, c1, w1 = (
+                _proc_cpu(server.pid),
+                _proc_cpu(load.pid),
+                _machine_cpu(),
+                time.monotonic(),
+            )
+            m1 = _scrape(port)
+            status.update("relay bench: collecting ...")
+            result = load.wait_json("result", timeout=60.0)
+    finally:
+        if load is not None:
+            load.stop(grace=15.0)
+        if server is not None:
+            code = server.stop(grace=15.0)
+            report["server_exit_code"] = code
+
+    wall = w1 - w0
+    server_user, server_sys = s1[0] - s0[0], s1[1] - s0[1]
+    server_cpu = server_user + server_sys
+    load_cpu = sum(l1) - sum(l0)
+    delivered = int(result["poses_delivered"])
+    snapshots = int(result["snapshots"])
+    busy, steal, total = (c1[i] - c0[i] for i in range(3))
+    ncpu = os.cpu_count() or 1
+    # Remote poses/s the clients ask for: each gets its room mates' 3 streams at ``rate``.
+    full, last = divmod(clients, room_size)
+    offered = rate * len(STREAMS) * (full * room_size * (room_size - 1) + last * (last - 1))
+    del result["event"]
+    report.update(result)
+    report.update(
+        {
+            "server_cpu_s": server_cpu,
+            "server_cpu_pct": 100.0 * server_cpu / wall,
+            "server_cpu_us_per_pose": 1e6 * server_cpu / delivered if delivered else math.nan,
+            "recorder_cpu_s": r1 - r0,
+            "recorder_cpu_us_per_pose": 1e6 * (r1 - r0) / delivered if delivered else math.nan,
+            "server_cpu_us_per_snapshot": 1e6 * server_cpu / snapshots if snapshots else math.nan,
+            "server_sys_pct": 100.0 * server_sys / wall,
+            "load_cpu_pct": 100.0 * load_cpu / wall,
+            "machine_cpu_pct": 100.0 * busy / total if total > 0 else math.nan,
+            # CPU used by neither the server nor the load (other jobs on this machine).
+            "other_cpu_pct": 100.0 * (busy / total * ncpu)
+            - 100.0 * (server_cpu + load_cpu + r1 - r0) / wall
+            if total > 0
+            else math.nan,
+            # Of one core: time the hypervisor ran other guests on our cores. A
+            # busy host slows every figure here; compare runs with little of it.
+            "steal_pct": 100.0 * steal / total * ncpu if total > 0 else math.nan,
+            "poses_per_s": delivered / wall,
+            "offered_poses_per_s": offered,
+            # What the server would need at full rate, at the CPU cost per pose measured.
+            "server_core_demand_pct": 100.0 * server_cpu / delivered * offered
+            if delivered
+            else math.nan,
+            "snapshot_rate_ratio": float(result["snapshots_per_client_s"]) / rate,
+            "bytes_per_pose": result["wire_bytes"] / delivered if delivered else math.nan,
+            "payload_bytes_per_pose": result["payload_bytes"] / delivered
+            if delivered
+            else math.nan,
+            "metrics_ok": m0 is not None and m1 is not None,
+            "skips": _delta(m0, m1, "posecast_snapshot_skips_total"),
+            "flood_drops": _delta(m0, m1, "posecast_flood_drops_total"),
+            "server_poses_out": _delta(m0, m1, "posecast_room_poses_out_total"),
+            "tick_lag_max_ms_start": _value(m0, "posecast_room_tick_lag_max_ms"),
+            "tick_lag_max_ms_end": _value(m1, "posecast_room_tick_lag_max_ms"),
+            "connections_end": _value(m1, "posecast_connections"),
+        }
+    )
+    report["skips_per_s"] = report["skips"] / wall
+    print_relay_report(report, console)
+    return report

@@ -1,0 +1,316 @@
+"""Experiments: ``compare``, ``table1``, ``interpolators``, ``velocity-sources``."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.table import Table
+
+from posecast.cli.common import (
+    DEFAULT_METHODS,
+    _fail,
+    _fmt,
+    _parse_methods,
+    _parse_rates,
+    _run_async,
+    console,
+    err_console,
+    print_comparison,
+)
+
+
+def compare(
+    trace: Annotated[Path, typer.Option(help="Trace CSV in the vr-traces format.")],
+    rates: Annotated[
+        str, typer.Option(help="Send rates in Hz: 5,10,15 or 5-30.")
+    ] = "5,10,15,20,30",
+    interp_: Annotated[
+        str, typer.Option("--interp", help="Comma-separated interpolators.")
+    ] = DEFAULT_METHODS,
+    json_out: Annotated[
+        Path | None, typer.Option("--json", help="Also write results as JSON.")
+    ] = None,
+) -> None:
+    """Offline interpolator comparison on one trace (ideal network, one-interval playout)."""
+    from scenarios.compare import run_compare
+    from scenarios.traces import TraceError
+
+    rate_list = _parse_rates(rates)
+    methods = _parse_methods(interp_)
+    try:
+        tr, results = run_compare(trace, rate_list, methods)
+    except TraceError as exc:
+        raise _fail(str(exc)) from None
+    print_comparison(
+        f"{tr.name}: {tr.duration:.1f} s at {tr.native_rate:.0f} Hz, ideal network, "
+        "one-interval playout (errors vs native samples)",
+        results,
+    )
+    if json_out is not None:
+        json_out.write_text(json.dumps({str(k): v for k, v in results.items()}, indent=2))
+        console.print(f"wrote {json_out}")
+
+
+def table1(
+    traces: Annotated[
+        list[str],
+        typer.Option(
+            help="traces:dev, traces:eval, a CSV or folder, synthetic[:NAME[:SEED]] or a "
+            "suite .toml (repeatable)."
+        ),
+    ],
+    out: Annotated[Path, typer.Option(help="Output folder for table1.md/.json and plots.")],
+    rates: Annotated[str, typer.Option(help="Rates in Hz (integers): 5-30 or 5,10,15.")] = "5-30",
+    methods: Annotated[str, typer.Option(help="Interpolators to compare.")] = DEFAULT_METHODS,
+    tiers: Annotated[
+        Path | None, typer.Option(help="TOML tiers merged over the built-in ones.")
+    ] = None,
+    transport: Annotated[
+        str, typer.Option(help="Link loss model: datagram (lost) or stream (retransmitted).")
+    ] = "datagram",
+    link: Annotated[bool, typer.Option(help="Also sweep each tier's link model.")] = True,
+    bench: Annotated[bool, typer.Option(help="Measure receiver running time.")] = True,
+    plots: Annotated[bool, typer.Option(help="Write PNG plots.")] = True,
+    seed: Annotated[int, typer.Option(help="Seed of the link model.")] = 0,
+    frontier: Annotated[
+        bool, typer.Option(help="Add the error-versus-latency view and its frontier.")
+    ] = True,
+    frontier_rates: Annotated[
+        str | None, typer.Option(help="Rates for the latency view (default: the tiers').")
+    ] = None,
+    live: Annotated[
+        bool,
+        typer.Option(
+            "--live",
+            help="Also run every tier through the real relay (link emulation) with "
+            "trace-driven bots and report live beside offline, with a tolerance.",
+        ),
+    ] = False,
+    live_duration: Annotated[
+        float, typer.Option(help="--live: seconds each bot runs, per tier.")
+    ] = 20.0,
+    live_bots: Annotated[int, typer.Option(help="--live: bots in the room, per tier.")] = 3,
+) -> None:
+    """Reproduce the paper's Table 1: QoE vs rate, equal-QoE rates per network tier.
+
+    Also the error-versus-latency view: the headline (hands, p95 tip error)
+    against total latency for every method and rate, with and without dead
+    reckoning, and the frontier of the best method at each latency. With
+    --live, every tier also runs through the real relay and bots, beside its
+    offline counterpart ("Live vs offline" in table1.md, key "live" in the JSON);
+    the command exits 1 if they disagree beyond the stated tolerance.
+    """
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    import interp
+    from scenarios.network import TierError, load_tiers
+    from scenarios.table1 import describe_rates, run_table1, snapped_range
+    from scenarios.traces import TraceError
+
+    rate_list = [int(r) for r in _parse_rates(rates)]
+    method_list = _parse_methods(methods)
+    if transport not in ("datagram", "stream"):
+        raise _fail("--transport must be datagram or stream")
+    f_rates = None if frontier_rates is None else [int(r) for r in _parse_rates(frontier_rates)]
+    live_cfg: Any = None
+    if live:
+        # Everything --live needs is checked before the offline sweep starts.
+        from posecast.table1_live import LiveConfig, live_motions
+
+        live_methods = tuple(
+            dict.fromkeys(m for m in ["soa", *method_list] if not interp.info(m).needs_velocity)
+        )
+        try:
+            live_cfg = LiveConfig(duration=live_duration, bots=live_bots, methods=live_methods)
+            live_motions(traces)
+            tier_list = list(load_tiers(tiers).values())
+        except (TraceError, TierError, ValueError) as exc:
+            raise _fail(f"--live: {exc}") from None
+        skipped = [m for m in method_list if m not in live_methods]
+        if skipped:
+            err_console.print(
+                f"--live: {', '.join(skipped)} need keyframe velocities, which the live "
+                "comparison does not model yet: offline only"
+            )
+    command = "posecast table1 " + " ".join(sys.argv[2:])
+    bar = Progress(
+        TextColumn("{task.description:<24}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total}"),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+    )
+    tasks: dict[str, Any] = {}
+
+    def progress(stage: str, done: int, total: int) -> None:
+        if stage not in tasks:
+            tasks[stage] = bar.add_task(stage, total=total)
+        bar.update(tasks[stage], completed=done, total=total)
+
+    try:
+        with bar:
+            report = run_table1(
+                traces,
+                rate_list,
+                method_list,
+                tiers,
+                out,
+                progress,
+                seed=seed,
+                transport=transport,  # type: ignore[arg-type]
+                link=link,
+                bench=bench,
+                plots=plots,
+                command=command,
+                frontier=frontier,
+                frontier_rates=f_rates,
+            )
+    except (TraceError, ValueError, KeyError) as exc:
+        raise _fail(str(exc)) from None
+    live_report: dict[str, Any] | None = None
+    if live_cfg is not None:
+        import logging
+
+        from posecast.table1_live import run_live
+        from scenarios.live_agreement import write_live
+
+        # One open relay per tier on loopback: its "no --secret" warning is noise here.
+        logging.getLogger("posecast.server").setLevel(logging.ERROR)
+
+        live_bar = Progress(
+            TextColumn("{task.description:<24}"),
+            BarColumn(),
+            TextColumn("{task.fields[note]}"),
+            TimeElapsedColumn(),
+            console=console,
+            transient=True,
+        )
+        live_tasks: dict[str, Any] = {}
+
+        def live_progress(stage: str, done: float, total: float) -> None:
+            if stage not in live_tasks:
+                live_tasks[stage] = live_bar.add_task(stage, total=total, note="")
+            note = f"{done:.0f}/{total:.0f} s" if stage.startswith("live") else ""
+            live_bar.update(live_tasks[stage], completed=done, total=total, note=note)
+
+        try:
+            with live_bar:
+                live_report = _run_async(run_live(traces, tier_list, live_cfg, live_progress))
+        except (TraceError, ValueError, RuntimeError, OSError, TimeoutError) as exc:
+            raise _fail(f"--live: {exc}") from None
+        assert live_report is not None
+        write_live(out, live_report)
+    searched = report["config"]["rates"]
+    table = Table(
+        title="Table 1: equal-QoE rate (saving vs SoA), ideal network", title_justify="left"
+    )
+    table.add_column("tier")
+    table.add_column("SoA Hz", justify="right")
+    others = [m for m in method_list if m != "soa"]
+    for m in others:
+        table.add_column(m, justify="right")
+    paper = report.get("paper", {})
+    paper_tiers = {t["name"]: t for t in paper.get("tiers", [])}
+    table.add_column("paper", justify="right")
+    snapped = False
+    for row in report["tiers"]:
+        cells = []
+        for m in others:
+            r = row["equal_qoe_rate"].get(m)
+            sv = row["bandwidth_saving_pct"].get(m)
+            mark = "" if snapped_range(r, searched) is None else "≤"
+            snapped = snapped or bool(mark)
+            cells.append("none" if r is None else f"{mark}{r} ({sv:.0f} %)")
+        pt = paper_tiers.get(row["name"])
+        claim = "-" if pt is None else f"{pt['ga_rate']} ({pt['bandwidth_saving_pct']} %)"
+        table.add_row(row["name"], str(row["soa_rate"]), *cells, claim)
+    console.print(table)
+    console.print(f"rates swept: {describe_rates(searched)}")
+    if snapped:
+        console.print(
+            "≤: equal-QoE rates are the lowest listed rate meeting the bar; the true "
+            "rate may lie between listed rates (1 Hz steps: --rates 5-30)"
+        )
+    if paper:
+        console.print(
+            f"paper: its rate for {' and '.join(paper.get('ga_methods', []))} (saving), "
+            f"and {paper.get('running_time_saving_pct')} % less running time claimed; "
+            f"source: {paper.get('source', '')}"
+        )
+    if live_report is not None:
+        lt = Table(
+            title="Live vs offline (equal D): hands p95 tip error (mm), D (ms)",
+            title_justify="left",
+        )
+        for col in ("tier", "verdict", "method", "live", "offline", "D live", "D rule", "failed"):
+            lt.add_column(col, justify="left" if col in ("tier", "verdict", "failed") else "right")
+        for row in live_report["tiers"]:
+            lv, of = row["live"], row["offline"]
+            failed = [c["what"] for c in row["agreement"]["checks"] if not c["ok"]]
+            for i, m in enumerate(lv["methods"]):
+                lt.add_row(
+                    row["tier"] if i == 0 else "",
+                    ("[green]pass[/]" if row["agreement"]["pass"] else "[red]FAIL[/]")
+                    if i == 0
+                    else "",
+                    m,
+                    _fmt(lv["methods"][m].get("hands", {}).get("tip_p95_mm", float("nan"))),
+                    _fmt(of["methods"].get(m, {}).get("hands", {}).get("tip_p95_mm", float("nan"))),
+                    _fmt(lv["delay_ms"]) if i == 0 else "",
+                    _fmt(of["delay_ms"]) if i == 0 else "",
+                    ", ".join(failed) if i == 0 else "",
+                )
+            lt.add_section()
+        console.print(lt)
+    console.print(f"wrote {out}/table1.md, table1.json" + (" and plots" if plots else ""))
+    if live_report is not None and not live_report["pass"]:
+        bad = [r["tier"] for r in live_report["tiers"] if not r["agreement"]["pass"]]
+        err_console.print(
+            f"[bold red]live and offline disagree beyond the tolerance[/] in {', '.join(bad)}; "
+            f"see {out}/table1.md"
+        )
+        raise typer.Exit(1)
+
+
+def list_interpolators() -> None:
+    """List the registered interpolators (built-in and plug-ins)."""
+    import interp
+
+    for name in interp.names():
+        info = interp.info(name)
+        console.print(f"[bold]{name}[/]: {info.description}")
+
+
+def velocity_sources(
+    traces: Annotated[
+        str, typer.Option(help="traces:dev, traces:eval, traces:sample, a CSV or a folder.")
+    ] = "traces:dev",
+    rates: Annotated[str, typer.Option(help="Comma-separated send rates (Hz).")] = "10,15,20",
+    sources: Annotated[
+        str,
+        typer.Option(
+            help=(
+                "Velocity sources, comma-separated, or ';'-separated when a source has "
+                "parameters (e.g. 'central;causal:2,1')."
+            )
+        ),
+    ] = "central,causal",
+    method: Annotated[str, typer.Option(help="The velocity interpolator.")] = "motor-hermite",
+) -> None:
+    """Hands' tip error of a velocity interpolator per velocity source (ideal network)."""
+    from scenarios.traces import find_traces, load_trace
+    from scenarios.velocity_sources import compare_velocity_sources
+
+    trace_list = [load_trace(f) for f in find_traces(traces)]
+    rate_list = [float(r) for r in rates.split(",")]
+    source_list = sources.split(";") if ";" in sources else sources.split(",")
+    res = compare_velocity_sources(trace_list, rate_list, source_list, method)
+    print(f"{method}, hands tip error p50 / p95 (mm), {traces}, ideal network")
+    for source, per_rate in res.items():
+        for rate, st in per_rate.items():
+            print(f"{source:14s} {rate:5g} Hz  {st['tip_p50_mm']:7.1f} / {st['tip_p95_mm']:7.1f}")

@@ -1,0 +1,203 @@
+"""Session recordings: ``info``, ``recover``, ``replay``, ``export``, ``analyze``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from posecast.cli.common import (
+    DEFAULT_METHODS,
+    _fail,
+    _parse_methods,
+    _run_async,
+    console,
+    print_comparison,
+)
+
+
+def _recording(file: Path) -> None:
+    """Refuse, in one line, a FILE that is not a posecast recording (exit 2)."""
+    from recorder.reader import check_recording
+
+    if file.is_dir():
+        raise _fail(f"{file} is a directory; give a recording file (.mcap) in it")
+    if not file.exists():
+        raise _fail(f"{file}: no such recording")
+    if not file.is_file():
+        raise _fail(f"{file} is not a regular file; give a recording file (.mcap)")
+    check_recording(file)  # a FormatError becomes its one line in _PosecastGroup
+
+
+def info(
+    file: Annotated[Path, typer.Argument(help="A session recording (.mcap or .mcap.part).")],
+    json_out: Annotated[bool, typer.Option("--json", help="Print JSON instead of text.")] = False,
+) -> None:
+    """Users, streams, durations, rates, sizes and drops of a recording."""
+    from recorder import format_info
+    from recorder import info as recording_info
+
+    _recording(file)
+    try:
+        data = recording_info(file)
+    except Exception as exc:  # a damaged file: say so, suggest recovery
+        raise _fail(f"{file}: cannot read ({exc}); try `posecast recover {file}`") from None
+    if json_out:
+        print(json.dumps(data, indent=2, default=str))
+    else:
+        print(format_info(data))
+
+
+def recover(
+    file: Annotated[Path, typer.Argument(help="A leftover NAME.mcap.part (or damaged .mcap).")],
+    out: Annotated[Path | None, typer.Option(help="Output file (default: NAME.mcap).")] = None,
+    overwrite: Annotated[bool, typer.Option(help="Replace an existing output file.")] = False,
+) -> None:
+    """Recover every intact chunk of a crashed or damaged recording into a complete MCAP."""
+    from recorder import recover as recover_file
+
+    _recording(file)  # nothing is written for a file that is not a recording
+    try:
+        report = recover_file(file, out, overwrite=overwrite)
+    except (OSError, ValueError) as exc:
+        raise _fail(f"{file}: {exc}") from None
+    print(report.summary())
+
+
+def replay(
+    file: Annotated[Path, typer.Argument(help="A session recording (.mcap).")],
+    url: Annotated[
+        str | None, typer.Option(help="Replay into this live server (ws://HOST:PORT).")
+    ] = None,
+    speed: Annotated[str, typer.Option(help="Live: 1, 10, ... or max.")] = "1",
+    room: Annotated[
+        str | None, typer.Option(help="Live: room (default: the recorded one).")
+    ] = None,
+    token_: Annotated[str | None, typer.Option("--token", help="Live: access token.")] = None,
+    offline: Annotated[bool, typer.Option(help="Reconstruct headlessly instead.")] = False,
+    interp_: Annotated[
+        str, typer.Option("--interp", help="Offline: interpolators.")
+    ] = DEFAULT_METHODS,
+    rate: Annotated[float, typer.Option(help="Offline: keyframe rate to sample (Hz).")] = 10.0,
+    out: Annotated[
+        Path | None, typer.Option(help="Offline: write rendered poses (CSV, NPZ) here.")
+    ] = None,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write the report.")] = None,
+) -> None:
+    """Replay a recording into a live server, or reconstruct it offline with QoE."""
+    _recording(file)
+    if offline == (url is not None):
+        raise _fail("give either --url ws://HOST:PORT (live) or --offline")
+    if offline:
+        from recorder.replay import replay_offline
+
+        methods = _parse_methods(interp_)
+        if rate <= 0:
+            raise _fail("--rate must be positive")
+        try:
+            with console.status(f"reconstructing {file.name} at {rate:g} Hz ..."):
+                report = replay_offline(file, methods, rate, out)
+        except (OSError, ValueError) as exc:
+            raise _fail(f"{file}: {exc}") from None
+        print_comparison(
+            f"{file.name}: keyframes at {rate:g} Hz, rendered at 90 Hz, vs the recorded streams",
+            {rate: report["qoe"]},
+        )
+        if out is not None:
+            console.print(f"rendered poses written to {out}")
+    else:
+        from websockets.exceptions import InvalidURI, WebSocketException
+
+        from client.replay import replay_live
+
+        factor: float | str
+        try:
+            factor = "max" if speed == "max" else float(speed)
+        except ValueError:
+            raise _fail("--speed takes a number or max") from None
+        if factor != "max" and float(factor) <= 0:
+            raise _fail("--speed must be positive")
+        assert url is not None
+        try:
+            with console.status(f"replaying {file.name} into {url} ..."):
+                report = _run_async(
+                    replay_live(file, url, factor, room, token=token_)  # type: ignore[arg-type]
+                )
+        except* (OSError, InvalidURI, WebSocketException) as eg:
+            raise _fail(f"cannot connect to {url}: {eg.exceptions[0]}") from None
+        lat = report["lateness_ms"]
+        console.print(
+            f"replayed {report['users']} users, {report['updates_sent']} updates "
+            f"({report['updates_merged']} merged) into room {report['room']!r} at speed "
+            f"{report['speed']:g}; lateness p50 {lat['p50']:.1f} ms, p95 {lat['p95']:.1f} ms"
+        )
+    if json_out is not None:
+        json_out.write_text(json.dumps(report, indent=2, default=str))
+        console.print(f"wrote {json_out}")
+
+
+def export(
+    file: Annotated[Path, typer.Argument(help="A session recording (.mcap).")],
+    to: Annotated[str, typer.Option(help="csv, npz or foxglove.")],
+    out: Annotated[Path | None, typer.Option(help="Output path (default beside FILE).")] = None,
+) -> None:
+    """Export a recording as CSV, NPZ, or MCAP with Foxglove frame transforms."""
+    from recorder.export import export as export_file
+
+    if to not in ("csv", "npz", "foxglove"):
+        raise _fail("--to takes csv, npz or foxglove")
+    _recording(file)
+    stem = file.name.removesuffix(".part").removesuffix(".mcap")
+    target = out or file.with_name(
+        {"csv": f"{stem}-csv", "npz": f"{stem}.npz", "foxglove": f"{stem}-foxglove.mcap"}[to]
+    )
+    try:
+        path = export_file(file, to, target)  # type: ignore[arg-type]
+    except (OSError, ValueError) as exc:
+        raise _fail(f"{file}: {exc}") from None
+    console.print(f"wrote {path}")
+
+
+def analyze(
+    file: Annotated[
+        Path | None, typer.Argument(help="A session recording (.mcap), or use --trace.")
+    ] = None,
+    trace: Annotated[
+        list[str] | None,
+        typer.Option(help="Trace CSV, folder, traces:dev or traces:eval (repeatable)."),
+    ] = None,
+    keep_every: Annotated[str, typer.Option(help="Decimations, e.g. 2,3.")] = "2,3",
+    interp_: Annotated[str, typer.Option("--interp", help="Interpolators.")] = DEFAULT_METHODS,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write results as JSON.")] = None,
+) -> None:
+    """The paper's Tables 2 and 3: decimate, interpolate the missing frames, score."""
+    from recorder.analyze import analyze as run_analysis
+    from recorder.analyze import format_analysis
+    from scenarios.traces import TraceError
+
+    if (file is None) == (not trace):
+        raise _fail("give a recording FILE or --trace, not both")
+    try:
+        keeps = [int(k) for k in keep_every.split(",") if k.strip()]
+    except ValueError:
+        raise _fail(f"cannot parse --keep-every {keep_every!r}") from None
+    if not keeps or any(k < 2 for k in keeps):
+        raise _fail("--keep-every takes integers >= 2")
+    methods = _parse_methods(interp_)
+    if file is not None and (
+        file.name.endswith((".mcap", ".mcap.part"))
+        or not (file.is_dir() or file.name.endswith((".csv", ".csv.gz")))
+    ):
+        _recording(file)  # a trace CSV or folder of them is checked as it is loaded
+    source: Any = file if file is not None else trace
+    try:
+        with console.status("analysing ..."):
+            result = run_analysis(source, keeps, methods)
+    except (TraceError, OSError, ValueError) as exc:
+        raise _fail(str(exc)) from None
+    print(format_analysis(result))
+    if json_out is not None:
+        json_out.write_text(json.dumps(result, indent=2, default=str))
+        console.print(f"wrote {json_out}")

@@ -1,0 +1,397 @@
+"""A live session: ``serve``, ``token``, ``bots``, ``demo``."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.table import Table
+
+from posecast.cli.common import (
+    DEFAULT_METHODS,
+    _fail,
+    _first_leaf,
+    _fmt,
+    _parse_methods,
+    _qoe_cells,
+    _qoe_table,
+    _run_async,
+    _tier,
+    console,
+)
+
+
+def print_swarm(report: dict[str, Any], title: str) -> None:
+    """The demo/bots result: QoE per method and class, then bots and wire figures."""
+    table = _qoe_table(title, ("method", "class"))
+    for method, classes in report["methods"].items():
+        for cls, st in classes.items():
+            table.add_row(method, cls, *_qoe_cells(st))
+        table.add_section()
+    console.print(table)
+    bots = Table(title="bots", title_justify="left")
+    for col in ("id", "name", "keyframes/s", "delay D ms", "render ms/frame", "clock rtt ms"):
+        bots.add_column(col, justify="right")
+    for b in report["bots"]:
+        bots.add_row(
+            str(b["id"]),
+            b["name"],
+            _fmt(b["rate_hz"]),
+            _fmt(b["delay_ms"]),
+            _fmt(b["render_cpu_ms_per_frame"], 2),
+            _fmt(b["clock_rtt_ms"], 2),
+        )
+    console.print(bots)
+    wire = report["wire"]
+    console.print(
+        f"wire: {wire['bytes_per_pose']:.1f} bytes per remote pose, "
+        f"{wire['bytes_per_s'] / 1000:.1f} kB/s per bot downstream"
+        + (" (velocity keyframes, 12 B a pose included)" if wire.get("velocity_keyframes") else "")
+    )
+
+
+_SECRET_HELP = "Require tokens signed with this secret (see `posecast token`); visible in ps."
+_SECRET_FILE_HELP = "Read the secret from the first line of this file (kept out of ps)."
+_LOG_LEVELS = ("debug", "info", "warning", "error")
+
+
+def _secret(ctx: typer.Context, secret: str | None, secret_file: Path | None) -> str | None:
+    """The secret from --secret, --secret-file or their environment variables.
+
+    An option given on the command line wins over the other one's environment
+    variable; both given the same way is a usage mistake.
+    """
+    if secret is not None and secret_file is not None:
+        from_env = [
+            name
+            for name in ("secret", "secret_file")
+            if getattr(ctx.get_parameter_source(name), "name", "") == "ENVIRONMENT"
+        ]
+        if from_env == ["secret"]:
+            secret = None
+        elif from_env == ["secret_file"]:
+            secret_file = None
+        else:
+            raise _fail("give the secret once: --secret or --secret-file, not both")
+    if secret_file is not None:
+        try:
+            lines = secret_file.read_text(encoding="utf-8").splitlines()
+        except (OSError, UnicodeDecodeError) as exc:
+            why = exc.strerror.lower() if isinstance(exc, OSError) and exc.strerror else exc
+            raise _fail(f"--secret-file {secret_file}: cannot read it ({why})") from None
+        secret = lines[0].strip() if lines else ""
+        if not secret:
+            raise _fail(
+                f"--secret-file {secret_file}: the first line is empty; put the secret there"
+            )
+    elif secret is not None and not secret.strip():
+        raise _fail("the secret is empty; give a non-empty --secret or POSECAST_SECRET")
+    return secret
+
+
+def serve(
+    ctx: typer.Context,
+    host: Annotated[
+        str, typer.Option(help="Address to listen on.", envvar="POSECAST_HOST")
+    ] = "127.0.0.1",
+    port: Annotated[
+        int, typer.Option(help="Port, 0..65535 (0: pick a free one).", envvar="POSECAST_PORT")
+    ] = 8765,
+    rate: Annotated[
+        float, typer.Option(help="Default snapshot rate (Hz).", envvar="POSECAST_RATE")
+    ] = 20.0,
+    min_rate: Annotated[
+        float,
+        typer.Option(help="Lowest rate a subscriber may ask.", envvar="POSECAST_MIN_RATE"),
+    ] = 5.0,
+    max_rate: Annotated[
+        float,
+        typer.Option(help="Highest rate a subscriber may ask.", envvar="POSECAST_MAX_RATE"),
+    ] = 30.0,
+    secret: Annotated[str | None, typer.Option(help=_SECRET_HELP, envvar="POSECAST_SECRET")] = None,
+    secret_file: Annotated[
+        Path | None, typer.Option(help=_SECRET_FILE_HELP, envvar="POSECAST_SECRET_FILE")
+    ] = None,
+    record: Annotated[
+        Path | None,
+        typer.Option(
+            help="Record every room session as MCAP into this folder.", envvar="POSECAST_RECORD"
+        ),
+    ] = None,
+    record_writer: Annotated[
+        str,
+        typer.Option(
+            help="Where the recorder writes: process (a child process, off the relay's CPU "
+            "time) or thread (inside the server process).",
+            envvar="POSECAST_RECORD_WRITER",
+        ),
+    ] = "process",
+    link: Annotated[
+        str | None,
+        typer.Option(
+            help="Emulate a network tier (excellent, good, mediocre, poor, or one of --tiers) "
+            "on every subscriber's downlink: bandwidth cap, delay, jitter, loss.",
+            envvar="POSECAST_LINK",
+        ),
+    ] = None,
+    tiers: Annotated[
+        Path | None,
+        typer.Option(help="TOML tiers merged over the built-in ones.", envvar="POSECAST_TIERS"),
+    ] = None,
+    log_level: Annotated[
+        str, typer.Option(help="debug, info, warning or error.", envvar="POSECAST_LOG_LEVEL")
+    ] = "info",
+) -> None:
+    """Run the relay server until SIGINT/SIGTERM (then close all with 1001, exit 0).
+
+    Every option can also be set by its POSECAST_* environment variable (an
+    option on the command line wins). With --record, SIGUSR1 pauses the
+    recording of pose updates and SIGUSR2 resumes it (each pause is written
+    into the files as a drops record).
+    """
+    import asyncio
+    import logging
+    import signal
+
+    from server.app import RelayServer, ServerConfig
+
+    if not 0 <= port <= 65535:
+        raise _fail(f"--port must be in 0..65535 (0 picks a free port), not {port}")
+    if not 0 < min_rate <= rate <= max_rate:
+        raise _fail("need 0 < --min-rate <= --rate <= --max-rate")
+    if record_writer not in ("process", "thread"):
+        raise _fail(f"--record-writer must be process or thread, not {record_writer!r}")
+    if log_level.lower() not in _LOG_LEVELS:
+        raise _fail(f"--log-level must be one of {', '.join(_LOG_LEVELS)}, not {log_level!r}")
+    if record is not None and record.exists() and not record.is_dir():
+        raise _fail(
+            f"--record {record} is a file; give a folder for the recordings "
+            "(it is created if missing)"
+        )
+    secret = _secret(ctx, secret, secret_file)
+    tier = _tier(link, tiers)
+    logging.basicConfig(
+        level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    cfg = ServerConfig(
+        host=host,
+        port=port,
+        rate=rate,
+        min_rate=min_rate,
+        max_rate=max_rate,
+        secret=secret,
+        record_dir=record,
+        record_writer="thread" if record_writer == "thread" else "process",
+        link=tier,
+    )
+
+    async def main() -> None:
+        server = RelayServer(cfg)
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, server.stop)
+        # kill -USR1 PID pauses the recording of pose updates, kill -USR2 PID resumes it.
+        loop.add_signal_handler(signal.SIGUSR1, server.pause_recording)
+        loop.add_signal_handler(signal.SIGUSR2, server.resume_recording)
+
+        async def announce() -> None:
+            await server.ready.wait()
+            access = "token required" if secret else "open (no --secret)"
+            print(f"posecast listening on ws://{host}:{server.port} ({access})", flush=True)
+
+        async with asyncio.TaskGroup() as tg:
+            tg.create_task(announce())
+            await server.run()
+        print("posecast stopped", flush=True)
+
+    try:
+        _run_async(main())
+    except* OSError as eg:
+        exc = _first_leaf(eg)
+        if not isinstance(exc, OSError) or exc.filename is not None:
+            raise  # a file of the recorder: the one line comes from _user_error
+        why = os.strerror(exc.errno).lower() if exc.errno else str(exc)
+        raise _fail(
+            f"cannot listen on {host}:{port}: {why}; is another server running there? "
+            "Pick another --port (0 picks a free one)",
+            1,
+        ) from None
+
+
+def token(
+    ctx: typer.Context,
+    room: Annotated[str, typer.Option(help="Room the token admits to.")],
+    user: Annotated[str, typer.Option(help="User name the token is for.")],
+    secret: Annotated[
+        str | None, typer.Option(help="The server's secret.", envvar="POSECAST_SECRET")
+    ] = None,
+    secret_file: Annotated[
+        Path | None, typer.Option(help=_SECRET_FILE_HELP, envvar="POSECAST_SECRET_FILE")
+    ] = None,
+    ttl: Annotated[float, typer.Option(help="Validity in seconds.")] = 3600.0,
+) -> None:
+    """Print an access token for `posecast serve --secret/--secret-file`."""
+    import time
+
+    from server.auth import make_token
+
+    key = _secret(ctx, secret, secret_file)
+    if key is None:
+        raise _fail("give the server's secret: --secret-file PATH, POSECAST_SECRET or --secret")
+    print(make_token(key, room, user, ttl, time.time()))
+
+
+def _check_bot_args(
+    rate: float, n: int, duration: float, interp_text: str, motion: str
+) -> tuple[str, ...]:
+    """Validate what bots and demo share; returns the interpolator names."""
+    from scenarios.traces import TraceError, find_traces
+
+    if n < 1:
+        raise _fail("the number of bots must be at least 1")
+    if duration <= 0:
+        raise _fail("--duration must be positive")
+    if rate <= 0:
+        raise _fail("--rate must be positive")
+    # Velocity methods run live: the bots then send and receive velocity keyframes.
+    methods = tuple(_parse_methods(interp_text))
+    if not motion.startswith("synthetic"):
+        try:
+            find_traces(motion)
+        except TraceError as exc:
+            raise _fail(str(exc)) from None
+    return methods
+
+
+def bots(
+    url: Annotated[str, typer.Option(help="Server URL, e.g. ws://127.0.0.1:8765.")],
+    n: Annotated[int, typer.Option(help="Number of bots.")] = 8,
+    room: Annotated[str, typer.Option(help="Room to join.")] = "lobby",
+    rate: Annotated[float, typer.Option(help="Snapshot rate each bot asks for (Hz).")] = 10.0,
+    send_rate: Annotated[float, typer.Option(help="Rate each bot publishes at (Hz).")] = 30.0,
+    interp_: Annotated[
+        str, typer.Option("--interp", help="Interpolators rendered side by side.")
+    ] = DEFAULT_METHODS,
+    motion: Annotated[
+        str,
+        typer.Option(
+            help="traces:sample (bundled), traces:dev, traces:eval (full sets), a CSV or "
+            "folder, or synthetic[:orbit]."
+        ),
+    ] = "traces:sample",
+    duration: Annotated[float, typer.Option(help="Seconds to run.")] = 30.0,
+    token_: Annotated[str | None, typer.Option("--token", help="Access token.")] = None,
+    secret: Annotated[
+        str | None, typer.Option(help="Mint a token per bot with this secret instead.")
+    ] = None,
+    json_out: Annotated[
+        Path | None, typer.Option("--json", help="Write the report as JSON.")
+    ] = None,
+) -> None:
+    """Run N headless bots against a server and report QoE per interpolator."""
+    import time
+
+    from websockets.exceptions import InvalidURI, WebSocketException
+
+    from client.bot import BotConfig
+    from client.swarm import run_bots, swarm_report
+
+    methods = _check_bot_args(rate, n, duration, interp_, motion)
+    base = BotConfig(
+        url=url,
+        room=room,
+        rate=rate,
+        send_rate=send_rate,
+        methods=methods,
+        motion=motion,
+        duration=duration,
+        token=token_,
+        name="bot",
+    )
+    token_for = None
+    if secret is not None:
+        from server.auth import make_token
+
+        def token_for(i: int) -> str:
+            return make_token(secret, room, f"bot{i}", duration + 600, time.time())
+
+    try:
+        with console.status(f"{n} bots in room {room!r} for {duration:g} s ..."):
+            reports = _run_async(run_bots(base, n, token_for=token_for))
+    except* (OSError, InvalidURI, WebSocketException) as eg:
+        raise _fail(f"cannot connect to {url}: {eg.exceptions[0]}") from None
+    report = swarm_report(reports)
+    print_swarm(report, f"{n} bots at {rate:g} Hz for {duration:g} s ({motion})")
+    # A starved machine, and a session the server ended early, are said in one line each.
+    for line in [report["starvation"]["warning"], *report["ending"]["lines"]]:
+        if line:
+            console.print(line, markup=False, highlight=False, soft_wrap=True)
+    if json_out is not None:
+        json_out.write_text(json.dumps(report, indent=2))
+        console.print(f"wrote {json_out}")
+    if report["ending"]["exit_code"]:  # the connection was lost (or closed for an error)
+        raise typer.Exit(report["ending"]["exit_code"])
+
+
+def demo(
+    bots: Annotated[int, typer.Option("--bots", help="Number of bots.")] = 6,
+    rate: Annotated[float, typer.Option(help="Snapshot rate each bot asks for (Hz).")] = 15.0,
+    duration: Annotated[float, typer.Option(help="Seconds to run.")] = 20.0,
+    motion: Annotated[
+        str,
+        typer.Option(
+            help="traces:sample (bundled), traces:dev, traces:eval (full sets), a CSV or "
+            "folder, or synthetic[:orbit]."
+        ),
+    ] = "traces:sample",
+    interp_: Annotated[
+        str, typer.Option("--interp", help="Interpolators rendered side by side.")
+    ] = DEFAULT_METHODS,
+    json_out: Annotated[
+        Path | None, typer.Option("--json", help="Write the report as JSON.")
+    ] = None,
+    record: Annotated[Path, typer.Option(help="Folder for the session recording (MCAP).")] = Path(
+        "recordings"
+    ),
+    no_record: Annotated[bool, typer.Option("--no-record", help="Do not record.")] = False,
+) -> None:
+    """The main job: a server and N bots on loopback, then QoE per interpolator."""
+    from posecast.demo import run_demo
+    from server.app import ServerConfig
+
+    methods = _check_bot_args(rate, bots, duration, interp_, motion)
+    server_cfg = ServerConfig()  # what run_demo's own server allows
+    if not server_cfg.min_rate <= rate <= server_cfg.max_rate:
+        raise _fail(
+            f"--rate {rate:g} Hz is outside the demo server's range of "
+            f"{server_cfg.min_rate:g}-{server_cfg.max_rate:g} Hz"
+        )
+    report = _run_async(
+        run_demo(
+            bots=bots,
+            rate=rate,
+            duration=duration,
+            methods=methods,
+            motion=motion,
+            console=console,
+            record_dir=None if no_record else record,
+        )
+    )
+    print_swarm(
+        report,
+        f"posecast demo: {bots} bots at {rate:g} Hz for {duration:g} s on loopback ({motion}); "
+        "errors vs the senders' own samples",
+    )
+    for line in [report["starvation"]["warning"], *report["ending"]["lines"]]:
+        if line:
+            console.print(line, markup=False, highlight=False, soft_wrap=True)
+    if report.get("recording"):
+        console.print(f"recorded to {report['recording']} (see `posecast info`)")
+    if json_out is not None:
+        json_out.write_text(json.dumps(report, indent=2))
+        console.print(f"wrote {json_out}")
+    if report["ending"]["exit_code"]:
+        raise typer.Exit(report["ending"]["exit_code"])
