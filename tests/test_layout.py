@@ -1,0 +1,97 @@
+"""The layout of ../shared/DESIGN.md, checked on every module's imports (ast, no import).
+
+Imports point one way: ``protocol`` and ``interp`` import nothing of ours;
+``scenarios`` uses only those two; ``recorder`` uses those and ``scenarios``
+(one way: scenarios never imports recorder); ``server`` and ``client`` use the
+lower packages but never each other, ``posecast`` or experiment code; only
+``posecast`` composes, and nothing imports it.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGES = ("posecast", "server", "client", "protocol", "interp", "recorder", "scenarios")
+
+#: Experiment code in scenarios/: composed only by posecast/.
+EXPERIMENTS = (
+    "scenarios.table1",
+    "scenarios.live_agreement",
+    "scenarios.bench_interp",
+    "scenarios.velocity_sources",
+    "scenarios.compare",
+)
+
+#: Which of our packages each package may import.
+ALLOWED: dict[str, frozenset[str]] = {
+    "protocol": frozenset(),
+    "interp": frozenset(),
+    "scenarios": frozenset({"protocol", "interp"}),
+    "recorder": frozenset({"protocol", "interp", "scenarios"}),
+    "server": frozenset({"protocol", "interp", "recorder", "scenarios"}),
+    "client": frozenset({"protocol", "interp", "recorder", "scenarios"}),
+    "posecast": frozenset(PACKAGES) - {"posecast"},
+}
+
+
+def imports_of(path: Path) -> list[str]:
+    """Absolute module names a file imports (relative imports stay in their package)."""
+    names: list[str] = []
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            names.extend(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names.append(node.module)
+            names.extend(f"{node.module}.{alias.name}" for alias in node.names)
+    return names
+
+
+def edges() -> list[tuple[str, str, str]]:
+    """(file, importing package, imported module) for every import of our packages."""
+    out = []
+    for package in PACKAGES:
+        for path in sorted((ROOT / package).rglob("*.py")):
+            for name in imports_of(path):
+                if name.split(".")[0] in PACKAGES:
+                    out.append((str(path.relative_to(ROOT)), package, name))
+    return out
+
+
+def test_imports_point_one_way() -> None:
+    """No package imports one it may not (see ALLOWED)."""
+    bad = [
+        (f, src, name)
+        for f, src, name in edges()
+        if name.split(".")[0] != src and name.split(".")[0] not in ALLOWED[src]
+    ]
+    assert not bad, bad
+
+
+def test_relay_and_bots_stay_out_of_experiments() -> None:
+    """server/ and client/ never reach experiment code (only posecast/ composes it)."""
+    bad = [
+        (f, name)
+        for f, src, name in edges()
+        if src in ("server", "client") and name.startswith(EXPERIMENTS)
+    ]
+    assert not bad, bad
+
+
+def test_the_checker_sees_a_forbidden_edge(tmp_path: Path) -> None:
+    """The parser finds every form of import (so a clean result means something)."""
+    f = tmp_path / "m.py"
+    f.write_text(
+        "import server.core\nfrom client import bot\nfrom posecast.cli import app\n"
+        "from . import sibling\nimport numpy\n"
+    )
+    found = imports_of(f)
+    assert {"server.core", "client", "client.bot", "posecast.cli"} <= set(found)
+    assert "numpy" in found and not any(n.startswith("sibling") for n in found)
+
+
+def test_server_holds_only_the_relay() -> None:
+    """server/ is the relay: its core, rooms, auth, the asyncio adapter and its HTTP part."""
+    modules = {p.name for p in (ROOT / "server").glob("*.py")}
+    assert modules == {"__init__.py", "core.py", "room.py", "auth.py", "app.py", "http.py"}
