@@ -27,7 +27,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
@@ -39,17 +39,17 @@ from server.core import (
     Close,
     ConnectionStatistics,
     FinishRecording,
-    LogLimiter,
     RelayCore,
     Reschedule,
     ServerConfig,
     Wake,
 )
 from server.http import QuietHttpLog, metrics_text, process_request
+from server.logs import LogLimiter
 from server.room import IdAllocator, Outbox, Room
 
 if TYPE_CHECKING:
-    from recorder import RecorderHost, RoomRecorder
+    from recorder import RecorderHost, RecordOptions, RoomRecorder
 
 __all__ = ["ConnectionStatistics", "LogLimiter", "RelayServer", "ServerConfig"]
 
@@ -271,7 +271,7 @@ class RelayServer:
         await asyncio.shield(pending)
 
     async def _open_room(self, name: str) -> None:
-        from recorder import SessionRecorder
+        from recorder import RecordOptions, SessionRecorder
 
         directory = self.config.record_dir
         assert directory is not None
@@ -279,10 +279,7 @@ class RelayServer:
             SessionRecorder.open if self.config.record_writer == "thread" else self._open_on_host
         )
         try:
-            rec: RoomRecorder | None = await asyncio.to_thread(
-                opener,
-                directory,
-                name,
+            options = RecordOptions(
                 clock=self.clock,
                 wall_clock=self.wall_clock,
                 # A hand-off (one pipe write, one wake-up of the writer) at most
@@ -290,6 +287,7 @@ class RelayServer:
                 batch_size=1024,
                 batch_delay=0.25,
             )
+            rec: RoomRecorder | None = await asyncio.to_thread(opener, directory, name, options)
         except Exception:
             log.exception("cannot record room %r; it runs unrecorded", name)
             rec = None
@@ -302,9 +300,9 @@ class RelayServer:
         finally:
             self._opening.pop(name, None)
 
-    def _open_on_host(self, directory: Path, name: str, **options: Any) -> RoomRecorder:
+    def _open_on_host(self, directory: Path, name: str, options: RecordOptions) -> RoomRecorder:
         """Open room ``name``'s recording on the shared writer process (a worker thread)."""
-        return self._ensure_host().open_room(directory, name, **options)
+        return self._ensure_host().open_room(directory, name, options)
 
     def _ensure_host(self) -> RecorderHost:
         """The running writer process; a new one if there is none or it died (blocks)."""
