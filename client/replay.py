@@ -56,6 +56,7 @@ from protocol import (
     MAX_TEXT_LENGTH,
     Ping,
     Pong,
+    Welcome,
     encode_update,
     is_valid_stream_name,
 )
@@ -384,108 +385,98 @@ def _percentiles_ms(values: list[float]) -> dict[str, float]:
     }
 
 
-async def replay_live(
-    path: str | os.PathLike[str],
-    url: str,
-    speed: float | Literal["max"] = 1.0,
-    room: str | None = None,
-    *,
-    token: str | None = None,
-    max_send_rate: float = DEFAULT_MAX_SEND_RATE,
-    lead: float = 0.5,
-    linger: float = 0.5,
-    agent: str = "posecast-replay",
-    clock: Clock = time.monotonic,
-) -> dict[str, Any]:
-    """Replay the recording at ``path`` into the server at ``url``; returns a report.
-
-    ``speed``: a positive factor (1 = as recorded, 10 = ten times faster) or
-    ``"max"``. ``room`` overrides the recorded room; ``token`` is passed to every
-    join. The replay starts ``lead`` seconds after every bot present at the
-    start has joined; bots that never left in the recording close ``linger``
-    seconds after the last update. The report::
-
-        {"path", "url", "room", "speed", "origin", "server_start", "duration_s",
-         "users", "updates_recorded", "updates_sent", "updates_merged", "poses_sent",
-         "lateness_ms": {"p50", "p95", "max"}, "clock_rtt_ms",
-         "streams": [{"recorded_user", "recorded_stream", "name", "user", "stream"}],
-         "bots": [{"recorded_user", "user", "name", "updates_sent", "joined_at",
-                   "velocities"}]}
-
-    A recorded update arriving at ``a`` (capture ``c``) is sent at server time
-    ``server_start + (a - origin) / speed`` with capture ``server_start + (c -
-    origin) / speed``.
-    """
-    if not max_send_rate > 0:
-        raise ValueError("max_send_rate must be positive")
-    # Reading the recording is file I/O: not on the event loop.
-    plan = await asyncio.to_thread(plan_replay, path, room)
-    if not plan.users:
-        raise ValueError(f"{path}: no pose updates to replay")
+def _replay_factor(plan: ReplayPlan, speed: float | Literal["max"], max_send_rate: float) -> float:
+    """The time compression factor of ``speed`` (see :func:`replay_live`)."""
     if speed == "max":
         busiest = max(u.update_rate for u in plan.users)
         # 10 % headroom: recorded arrivals jitter around their mean rate.
-        factor = 0.9 * max_send_rate / busiest if busiest > 0 else 1.0
-    elif isinstance(speed, int | float) and speed > 0 and math.isfinite(speed):
-        factor = float(speed)
-    else:
-        raise ValueError(f"speed must be a positive number or 'max', got {speed!r}")
-    est = ClockEstimator()
-    bots: list[_ReplayBot] = []
-    start = math.nan
-    try:
-        for k, up in enumerate(plan.users):
-            conn = await ClientConnection.connect(url, agent=f"{agent}:{up.name}", clock=clock)
-            bots.append(_ReplayBot(up, conn))
-            bots[-1].velocity_scale = factor
-            if k == 0:  # one process, one clock: one offset serves every bot
-                await _sync_clock(conn, est, _SYNC_PINGS, clock)
-        welcome = bots[0].conn.welcome
-        assert welcome is not None
-        offset = est.offset
-        # The replay's server-clock start: ``lead`` leaves the bots present at the
-        # start time to join (their labels, re-based to it, go with the join).
-        start = clock() + offset + lead
+        return 0.9 * max_send_rate / busiest if busiest > 0 else 1.0
+    if isinstance(speed, int | float) and speed > 0 and math.isfinite(speed):
+        return float(speed)
+    raise ValueError(f"speed must be a positive number or 'max', got {speed!r}")
 
-        def to_server(local: float) -> float:
-            return local + offset
 
-        def to_local(server: float) -> float:
-            return server - offset
+async def _connect_bots(
+    plan: ReplayPlan,
+    url: str,
+    agent: str,
+    factor: float,
+    est: ClockEstimator,
+    bots: list[_ReplayBot],
+    clock: Clock,
+) -> None:
+    """Connect one bot per user (appended to ``bots`` as they connect); sync ``est``."""
+    for k, up in enumerate(plan.users):
+        conn = await ClientConnection.connect(url, agent=f"{agent}:{up.name}", clock=clock)
+        bots.append(_ReplayBot(up, conn))
+        bots[-1].velocity_scale = factor
+        if k == 0:  # one process, one clock: one offset serves every bot
+            await _sync_clock(conn, est, _SYNC_PINGS, clock)
 
-        def scale(t: float) -> float:
-            return start + (t - plan.origin) / factor
 
-        finished = asyncio.Event()
-        async with asyncio.TaskGroup() as tg:
-            for b in bots:
-                up = b.plan
-                rate = min(max(up.rate or welcome.min_rate, welcome.min_rate), welcome.max_rate)
-                late = up.joined is not None and up.joined > plan.origin
-                tg.create_task(
-                    b.run(
-                        room=plan.room,
-                        label=_replay_label(up.label, factor, start - plan.origin),
-                        token=token,
-                        rate=rate,
-                        to_local=to_local,
-                        to_server=to_server,
-                        scale=scale,
-                        send_rate=max_send_rate,
-                        join_at=scale(up.joined) if late and up.joined is not None else -math.inf,
-                        leave_at=None if up.left is None else scale(up.left),
-                        finished=finished,
-                        clock=clock,
-                    )
-                )
-            for b in bots:
-                await b.done.wait()
-            await asyncio.sleep(linger)
-            finished.set()
-    finally:
+async def _run_bots(
+    plan: ReplayPlan,
+    bots: list[_ReplayBot],
+    welcome: Welcome,
+    *,
+    offset: float,
+    start: float,
+    factor: float,
+    token: str | None,
+    send_rate: float,
+    linger: float,
+    clock: Clock,
+) -> None:
+    """Run every bot to the end of the replay (``start`` on the server clock)."""
+
+    def to_server(local: float) -> float:
+        return local + offset
+
+    def to_local(server: float) -> float:
+        return server - offset
+
+    def scale(t: float) -> float:
+        return start + (t - plan.origin) / factor
+
+    finished = asyncio.Event()
+    async with asyncio.TaskGroup() as tg:
         for b in bots:
-            with contextlib.suppress(Exception):
-                await b.conn.close("replay done")
+            up = b.plan
+            rate = min(max(up.rate or welcome.min_rate, welcome.min_rate), welcome.max_rate)
+            late = up.joined is not None and up.joined > plan.origin
+            tg.create_task(
+                b.run(
+                    room=plan.room,
+                    label=_replay_label(up.label, factor, start - plan.origin),
+                    token=token,
+                    rate=rate,
+                    to_local=to_local,
+                    to_server=to_server,
+                    scale=scale,
+                    send_rate=send_rate,
+                    join_at=scale(up.joined) if late and up.joined is not None else -math.inf,
+                    leave_at=None if up.left is None else scale(up.left),
+                    finished=finished,
+                    clock=clock,
+                )
+            )
+        for b in bots:
+            await b.done.wait()
+        await asyncio.sleep(linger)
+        finished.set()
+
+
+def _report(
+    path: str | os.PathLike[str],
+    url: str,
+    plan: ReplayPlan,
+    speed: float | Literal["max"],
+    factor: float,
+    start: float,
+    bots: list[_ReplayBot],
+    est: ClockEstimator,
+) -> dict[str, Any]:
+    """:func:`replay_live`'s report (see there)."""
     lateness = [x for b in bots for x in b.lateness]
     return {
         "path": str(Path(path)),
@@ -526,3 +517,72 @@ async def replay_live(
             for b in bots
         ],
     }
+
+
+async def replay_live(
+    path: str | os.PathLike[str],
+    url: str,
+    speed: float | Literal["max"] = 1.0,
+    room: str | None = None,
+    *,
+    token: str | None = None,
+    max_send_rate: float = DEFAULT_MAX_SEND_RATE,
+    lead: float = 0.5,
+    linger: float = 0.5,
+    agent: str = "posecast-replay",
+    clock: Clock = time.monotonic,
+) -> dict[str, Any]:
+    """Replay the recording at ``path`` into the server at ``url``; returns a report.
+
+    ``speed``: a positive factor (1 = as recorded, 10 = ten times faster) or
+    ``"max"``. ``room`` overrides the recorded room; ``token`` is passed to every
+    join. The replay starts ``lead`` seconds after every bot present at the
+    start has joined; bots that never left in the recording close ``linger``
+    seconds after the last update. The report::
+
+        {"path", "url", "room", "speed", "origin", "server_start", "duration_s",
+         "users", "updates_recorded", "updates_sent", "updates_merged", "poses_sent",
+         "lateness_ms": {"p50", "p95", "max"}, "clock_rtt_ms",
+         "streams": [{"recorded_user", "recorded_stream", "name", "user", "stream"}],
+         "bots": [{"recorded_user", "user", "name", "updates_sent", "joined_at",
+                   "velocities"}]}
+
+    A recorded update arriving at ``a`` (capture ``c``) is sent at server time
+    ``server_start + (a - origin) / speed`` with capture ``server_start + (c -
+    origin) / speed``.
+    """
+    if not max_send_rate > 0:
+        raise ValueError("max_send_rate must be positive")
+    # Reading the recording is file I/O: not on the event loop.
+    plan = await asyncio.to_thread(plan_replay, path, room)
+    if not plan.users:
+        raise ValueError(f"{path}: no pose updates to replay")
+    factor = _replay_factor(plan, speed, max_send_rate)
+    est = ClockEstimator()
+    bots: list[_ReplayBot] = []
+    start = math.nan
+    try:
+        await _connect_bots(plan, url, agent, factor, est, bots, clock)
+        welcome = bots[0].conn.welcome
+        assert welcome is not None
+        offset = est.offset
+        # The replay's server-clock start: ``lead`` leaves the bots present at the
+        # start time to join (their labels, re-based to it, go with the join).
+        start = clock() + offset + lead
+        await _run_bots(
+            plan,
+            bots,
+            welcome,
+            offset=offset,
+            start=start,
+            factor=factor,
+            token=token,
+            send_rate=max_send_rate,
+            linger=linger,
+            clock=clock,
+        )
+    finally:
+        for b in bots:
+            with contextlib.suppress(Exception):
+                await b.conn.close("replay done")
+    return _report(path, url, plan, speed, factor, start, bots, est)

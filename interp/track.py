@@ -11,6 +11,7 @@ window size (:func:`window_indices`; missing neighbours as in
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -162,6 +163,44 @@ def _neighbours(
     return default
 
 
+def _render_window(
+    f: Callable[..., F64],
+    p: F64,
+    t2: F64,
+    lo_a: NDArray[np.intp],
+    hi_a: NDArray[np.intp],
+    s_a: F64,
+    cols: NDArray[np.intp],
+    depth: tuple[int, int],
+    given: tuple[ArrayLike | None, ArrayLike | None, ArrayLike | None, ArrayLike | None],
+    method: object,
+) -> F64:
+    """A window method's render: gather each bracket's ``lookbehind + 2 + lookahead`` keys.
+
+    ``t2`` is the keyframe times ``(K, S)``, ``s_a`` the fractions ``(Q, S)``, ``cols``
+    the stream indices ``(S,)``, ``depth`` ``(lookbehind, lookahead)`` and ``given``
+    the caller's ``(before, after, prev, nxt)`` neighbours (see
+    :func:`interpolate_brackets`).
+    """
+    lb, la = depth
+    before, after, prev, nxt = given
+    k = p.shape[0]
+    d_before, d_after = window_indices(lo_a, hi_a, k, lb, la)
+    bw = _neighbours(before, prev, lb, d_before, "before", method)
+    aw = _neighbours(after, nxt, la, d_after, "after", method)
+    win = np.concatenate([bw, lo_a[..., None], hi_a[..., None], aw], axis=-1)
+    if win.size and (int(win.min()) < 0 or int(win.max()) >= k):
+        raise ValueError(f"expected window keyframe indices in [0, {k}), got {win.min()}..")
+    if lo_a.ndim == 2:  # one bracket per stream
+        keys = p[win, cols[:, None]]  # (Q, S, K', 7)
+        ktimes = t2[win, cols[:, None]]
+    else:
+        keys = np.moveaxis(p[win], 2, 1)  # (Q, K', S, 7) -> (Q, S, K', 7)
+        ktimes = np.moveaxis(t2[win], 2, 1)
+    t_lo, t_hi = ktimes[..., lb], ktimes[..., lb + 1]
+    return f(keys, ktimes, t_lo + s_a * (t_hi - t_lo))
+
+
 def interpolate_brackets(
     poses: ArrayLike,
     lo: ArrayLike,
@@ -217,21 +256,9 @@ def interpolate_brackets(
     t = np.asarray(times, dtype=np.float64)
     t2 = np.broadcast_to(t[:, None], p.shape[:2]) if t.ndim == 1 else t
     if kind == "window":
-        k = p.shape[0]
-        d_before, d_after = window_indices(lo_a, hi_a, k, lb, la)
-        bw = _neighbours(before, prev, lb, d_before, "before", method)
-        aw = _neighbours(after, nxt, la, d_after, "after", method)
-        win = np.concatenate([bw, lo_a[..., None], hi_a[..., None], aw], axis=-1)
-        if win.size and (int(win.min()) < 0 or int(win.max()) >= k):
-            raise ValueError(f"expected window keyframe indices in [0, {k}), got {win.min()}..")
-        if per_stream:
-            keys = p[win, cols[:, None]]  # (Q, S, K', 7)
-            ktimes = t2[win, cols[:, None]]
-        else:
-            keys = np.moveaxis(p[win], 2, 1)  # (Q, K', S, 7) -> (Q, S, K', 7)
-            ktimes = np.moveaxis(t2[win], 2, 1)
-        t_lo, t_hi = ktimes[..., lb], ktimes[..., lb + 1]
-        return f(keys, ktimes, t_lo + s_a * (t_hi - t_lo))
+        return _render_window(
+            f, p, t2, lo_a, hi_a, s_a, cols, (lb, la), (before, after, prev, nxt), method
+        )
     t_lo, t_hi = take(t2, lo_a), take(t2, hi_a)
     if velocities is None:
         raise ValueError(f"interpolator {method!r} needs keyframe `velocities`")

@@ -376,6 +376,101 @@ def _class_order(classes: Iterable[str]) -> list[str]:
     return [c for c in (*CLASS_ORDER, "all") if c in present]
 
 
+_Sources = list[tuple[str, str, list[Sequence7]]]
+
+
+def _source_pool(
+    seqs: list[Sequence7], keep: int, method: str, needs_velocity: bool, euler_seq: str
+) -> tuple[dict[str, _Pool], bool]:
+    """One source's errors by class, and whether a sequence lacked velocities.
+
+    A velocity method stops at the first sequence without velocities (what
+    came before it still counts).
+    """
+    src_pool: dict[str, _Pool] = {}
+    for seq in seqs:
+        if needs_velocity and seq.velocities is None:
+            return src_pool, True
+        for cls, pool in _errors(seq, keep, method, euler_seq).items():
+            src_pool.setdefault(cls, _Pool()).add(pool)
+    return src_pool, False
+
+
+def _method_pools(
+    sources: _Sources, keep: int, method: str, euler_seq: str
+) -> tuple[dict[str, _Pool], list[str], list[tuple[str, dict[str, Any]]]]:
+    """One method's errors pooled over ``sources``, the sources skipped, per-source stats."""
+    entry = interp_info(method)
+    pooled: dict[str, _Pool] = {}
+    skipped: list[str] = []
+    per_source: list[tuple[str, dict[str, Any]]] = []
+    for name, _kind, seqs in sources:
+        src_pool, lacked = _source_pool(seqs, keep, method, entry.needs_velocity, euler_seq)
+        if lacked:
+            skipped.append(name)
+        if not src_pool:
+            continue
+        per_source.append((name, {cls: src_pool[cls].stats() for cls in _class_order(src_pool)}))
+        for cls, pool in src_pool.items():
+            pooled.setdefault(cls, _Pool()).add(pool)
+    return pooled, skipped, per_source
+
+
+def _table(
+    sources: _Sources, keep: int, methods: Sequence[str], euler_seq: str
+) -> tuple[dict[str, Any], list[str], list[tuple[str, str, dict[str, Any]]]]:
+    """One keep-every table, its notes, and ``(source, method, stats)`` per source."""
+    notes: list[str] = []
+    per_source: list[tuple[str, str, dict[str, Any]]] = []
+    table_methods: dict[str, Any] = {}
+    for m in methods:
+        pooled, skipped, by_source = _method_pools(sources, keep, m, euler_seq)
+        per_source.extend((name, m, stats) for name, stats in by_source)
+        if skipped:
+            notes.append(
+                f"{m}: skipped for {', '.join(sorted(set(skipped)))} (recorded without "
+                "velocities: record bots that send the velocity variant, or use a trace)"
+            )
+        if pooled:
+            table_methods[m] = {
+                "classes": {cls: pooled[cls].stats() for cls in _class_order(pooled)}
+            }
+        else:
+            table_methods[m] = {"skipped": "no source with velocities"}
+    table = {
+        "fractions": [j / keep for j in range(1, keep)],
+        "methods": table_methods,
+    }
+    return table, notes, per_source
+
+
+def _velocity_note(methods: Sequence[str], sources: _Sources) -> str | None:
+    """The caveat on velocity methods run on traces, if any are."""
+    if any(interp_info(m).needs_velocity for m in methods) and any(
+        kind == "trace" for _n, kind, _s in sources
+    ):
+        return (
+            "velocity methods on traces use Trace.velocities(): central differences of the "
+            "full-rate trace, standing in for tracker-reported velocities; at a kept frame they "
+            "draw on its dropped neighbours, which favours these methods here"
+        )
+    return None
+
+
+def _source_summary(sources: _Sources) -> list[dict[str, Any]]:
+    """Name, kind, stream and frame counts and median rate of each source."""
+    return [
+        {
+            "name": name,
+            "kind": kind,
+            "streams": sum(len(s.streams) for s in seqs),
+            "frames": int(sum(s.times.size for s in seqs)),
+            "rate_hz": _median_rate(seqs),
+        }
+        for name, kind, seqs in sources
+    ]
+
+
 def analyze(
     source: str | os.PathLike[str] | Trace | Iterable[str | os.PathLike[str] | Trace],
     keep_every: Sequence[int] = DEFAULT_KEEP_EVERY,
@@ -410,63 +505,19 @@ def analyze(
     tables: dict[str, Any] = {}
     per_source: dict[str, Any] = {}
     for k in keep_every:
-        table_methods: dict[str, Any] = {}
-        for m in methods:
-            entry = interp_info(m)
-            pooled: dict[str, _Pool] = {}
-            skipped: list[str] = []
-            for name, _kind, seqs in sources:
-                src_pool: dict[str, _Pool] = {}
-                for seq in seqs:
-                    if entry.needs_velocity and seq.velocities is None:
-                        skipped.append(name)
-                        break
-                    for cls, pool in _errors(seq, k, m, euler_seq).items():
-                        src_pool.setdefault(cls, _Pool()).add(pool)
-                if not src_pool:
-                    continue
-                per_source.setdefault(name, {}).setdefault(str(k), {})[m] = {
-                    cls: src_pool[cls].stats() for cls in _class_order(src_pool)
-                }
-                for cls, pool in src_pool.items():
-                    pooled.setdefault(cls, _Pool()).add(pool)
-            if skipped:
-                note = (
-                    f"{m}: skipped for {', '.join(sorted(set(skipped)))} (recorded without "
-                    "velocities: record bots that send the velocity variant, or use a trace)"
-                )
-                if note not in notes:
-                    notes.append(note)
-            if pooled:
-                table_methods[m] = {
-                    "classes": {cls: pooled[cls].stats() for cls in _class_order(pooled)}
-                }
-            else:
-                table_methods[m] = {"skipped": "no source with velocities"}
-        tables[str(k)] = {
-            "fractions": [j / k for j in range(1, k)],
-            "methods": table_methods,
-        }
-    if any(interp_info(m).needs_velocity for m in methods) and any(
-        kind == "trace" for _n, kind, _s in sources
-    ):
-        notes.append(
-            "velocity methods on traces use Trace.velocities(): central differences of the "
-            "full-rate trace, standing in for tracker-reported velocities; at a kept frame they "
-            "draw on its dropped neighbours, which favours these methods here"
-        )
+        table, table_notes, by_source = _table(sources, k, methods, euler_seq)
+        for name, m, stats in by_source:
+            per_source.setdefault(name, {}).setdefault(str(k), {})[m] = stats
+        for note in table_notes:
+            if note not in notes:
+                notes.append(note)
+        tables[str(k)] = table
+    velocity_note = _velocity_note(methods, sources)
+    if velocity_note is not None:
+        notes.append(velocity_note)
     notes.append(PAPER_NOTE)
     return {
-        "sources": [
-            {
-                "name": name,
-                "kind": kind,
-                "streams": sum(len(s.streams) for s in seqs),
-                "frames": int(sum(s.times.size for s in seqs)),
-                "rate_hz": _median_rate(seqs),
-            }
-            for name, kind, seqs in sources
-        ],
+        "sources": _source_summary(sources),
         "keep_every": list(keep_every),
         "methods": list(methods),
         "euler": {

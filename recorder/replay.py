@@ -32,6 +32,7 @@ import os
 import tempfile
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -149,6 +150,172 @@ def _write_rendered(
     return files
 
 
+_Row = tuple[StreamData, F64, F64, NDArray[np.bool_]]
+_QoeGroup = dict[str, dict[str, ErrorSamples]]
+
+
+def _check_replay_args(
+    interp_names: Sequence[str],
+    rate: float,
+    render_rate: float,
+    out_dir: str | os.PathLike[str] | None,
+    formats: Sequence[str],
+) -> tuple[list[str], list[str], tuple[str, ...]]:
+    """Validated ``(methods, velocity methods, output formats)`` of :func:`replay_offline`."""
+    if not rate > 0 or not render_rate > 0:
+        raise ValueError("rate and render_rate must be positive")
+    methods = list(interp_names)
+    if not methods:
+        raise ValueError("expected at least one interpolator")
+    velocity_methods = [m for m in methods if interp_info(m).needs_velocity]
+    fmts = tuple(formats) if out_dir is not None else ()
+    for f in fmts:
+        if f not in ("csv", "npz"):
+            raise ValueError(f"unknown output format {f!r}; expected csv or npz")
+    return methods, velocity_methods, fmts
+
+
+def _require_velocities(
+    groups: list[tuple[int, F64, list[_Member]]], velocity_methods: list[str]
+) -> None:
+    """Refuse velocity methods unless every grouped stream carried velocities."""
+    if velocity_methods and any(v is None for _u, _t, ms in groups for _s, _p, v in ms):
+        raise ValueError(
+            f"{', '.join(velocity_methods)} need keyframe velocities, which this recording "
+            "does not carry for every stream (record bots that send the velocity variant); "
+            "use a pair or window method"
+        )
+
+
+def _group_inputs(times: F64, members: list[_Member], rate: float) -> tuple[Trace, KeyframeLog]:
+    """One group's ground truth and its keyframes sampled at ``rate`` on an ideal network."""
+    poses = np.stack([p for _s, p, _v in members], axis=1)  # (N, S, 7)
+    vels = [v for _s, _p, v in members]
+    truth = Trace(
+        f"user{members[0][0].user}",
+        times,
+        poses,
+        tuple(s.name or f"stream{s.stream}" for s, _p, _v in members),
+    )
+    send, idx = sample_keyframes(times, rate)
+    # Ideal network: each keyframe arrives the instant it is sent.
+    log = KeyframeLog(
+        capture=times[idx],
+        arrival=send,
+        poses=poses[idx],
+        velocities=None
+        if any(v is None for v in vels)
+        else np.stack([v for v in vels if v is not None], axis=1)[idx],
+    )
+    return truth, log
+
+
+def _render_group(
+    truth: Trace,
+    log: KeyframeLog,
+    members: list[_Member],
+    taus: F64,
+    methods: list[str],
+    rate: float,
+    depth: tuple[int, int],
+) -> tuple[list[tuple[str, float]], list[tuple[str, _QoeGroup, list[_Row]]]]:
+    """Score and render one group with every method at playout times ``taus``.
+
+    Returns each method's playout delay (in ``methods`` order) and, per method,
+    its QoE group and its rendered rows (one per member stream).
+    """
+    lookbehind, lookahead = depth
+    # Methods with the same look-ahead share the playout delay, so one bracket
+    # search (and one QoE pass) serves them all.
+    by_delay: dict[float, list[str]] = {}
+    delays: list[tuple[str, float]] = []
+    for m in methods:
+        delay = ideal_delay(rate, truth.native_rate, interp_info(m).lookahead)
+        by_delay.setdefault(delay, []).append(m)
+        delays.append((m, delay))
+    outputs: list[tuple[str, _QoeGroup, list[_Row]]] = []
+    for delay, group in by_delay.items():
+        scored = evaluate_group(truth, log, delay, group)
+        play = playout_brackets(
+            log.capture, log.arrival, taus, delay, lookbehind=lookbehind, lookahead=lookahead
+        )
+        for m in group:
+            out = interpolate_brackets(
+                log.poses,
+                play.lo,
+                play.hi,
+                play.s,
+                m,
+                times=log.capture,
+                before=play.before,
+                after=play.after,
+                velocities=log.velocities,
+            )
+            rows = [(s, taus, out[:, j], play.stall) for j, (s, _p, _v) in enumerate(members)]
+            outputs.append((m, {m: scored[m]}, rows))
+    return delays, outputs
+
+
+@dataclass
+class _Reconstruction:
+    """Every method's QoE groups, rendered rows and delays; the session span; frame count."""
+
+    qoe: dict[str, list[_QoeGroup]]
+    rendered: dict[str, list[_Row]]
+    delays: dict[str, list[float]]
+    first: float = math.inf
+    last: float = -math.inf
+    frames: int = 0
+
+
+def _reconstruct(
+    groups: list[tuple[int, F64, list[_Member]]],
+    methods: list[str],
+    rate: float,
+    render_rate: float,
+) -> _Reconstruction:
+    """Render and score every group with every method (see :func:`replay_offline`)."""
+    depth = window_depth(methods)
+    rec = _Reconstruction(
+        qoe={m: [] for m in methods},
+        rendered={m: [] for m in methods},
+        delays={m: [] for m in methods},
+    )
+    for _user, times, members in groups:
+        rec.first, rec.last = min(rec.first, float(times[0])), max(rec.last, float(times[-1]))
+        truth, log = _group_inputs(times, members, rate)
+        n = math.floor((float(times[-1]) - float(times[0])) * render_rate + 1e-9) + 1
+        taus = float(times[0]) + np.arange(n) / render_rate
+        rec.frames += n * len(members)
+        delays, outputs = _render_group(truth, log, members, taus, methods, rate, depth)
+        for m, delay in delays:
+            rec.delays[m].append(delay)
+        for m, scored, rows in outputs:
+            rec.qoe[m].append(scored)
+            rec.rendered[m].extend(rows)
+    return rec
+
+
+def _write_outputs(
+    path: str | os.PathLike[str],
+    out_dir: str | os.PathLike[str] | None,
+    methods: list[str],
+    rate: float,
+    rendered: dict[str, list[_Row]],
+    fmts: tuple[str, ...],
+) -> dict[str, dict[str, str]]:
+    """Each method's rendered files (nothing without ``out_dir`` or formats)."""
+    files: dict[str, dict[str, str]] = {}
+    if fmts and out_dir is not None:
+        folder = Path(out_dir)
+        folder.mkdir(parents=True, exist_ok=True)
+        stem = recording_stem(path)
+        for m in methods:
+            if rendered[m]:
+                files[m] = _write_rendered(folder, stem, m, rate, rendered[m], fmts)
+    return files
+
+
 def replay_offline(
     path: str | os.PathLike[str],
     interp_names: Sequence[str],
@@ -172,94 +339,19 @@ def replay_offline(
     methods use the velocities the recorded updates carried (the protocol's
     velocity variant); a recording without them refuses velocity methods.
     """
-    if not rate > 0 or not render_rate > 0:
-        raise ValueError("rate and render_rate must be positive")
-    methods = list(interp_names)
-    if not methods:
-        raise ValueError("expected at least one interpolator")
-    velocity_methods = [m for m in methods if interp_info(m).needs_velocity]
-    fmts = tuple(formats) if out_dir is not None else ()
-    for f in fmts:
-        if f not in ("csv", "npz"):
-            raise ValueError(f"unknown output format {f!r}; expected csv or npz")
+    methods, velocity_methods, fmts = _check_replay_args(
+        interp_names, rate, render_rate, out_dir, formats
+    )
     t0 = time.perf_counter()
     streams = sorted_streams(path)
     t1 = time.perf_counter()
     groups = _groups(streams)
-    if velocity_methods and any(v is None for _u, _t, ms in groups for _s, _p, v in ms):
-        raise ValueError(
-            f"{', '.join(velocity_methods)} need keyframe velocities, which this recording "
-            "does not carry for every stream (record bots that send the velocity variant); "
-            "use a pair or window method"
-        )
-    lookbehind, lookahead = window_depth(methods)
-    qoe_groups: dict[str, list[dict[str, dict[str, ErrorSamples]]]] = {m: [] for m in methods}
-    rendered: dict[str, list[tuple[StreamData, F64, F64, NDArray[np.bool_]]]] = {
-        m: [] for m in methods
-    }
-    delays: dict[str, list[float]] = {m: [] for m in methods}
-    first, last = math.inf, -math.inf
-    frames = 0
-    for _user, times, members in groups:
-        first, last = min(first, float(times[0])), max(last, float(times[-1]))
-        poses = np.stack([p for _s, p, _v in members], axis=1)  # (N, S, 7)
-        vels = [v for _s, _p, v in members]
-        truth = Trace(
-            f"user{members[0][0].user}",
-            times,
-            poses,
-            tuple(s.name or f"stream{s.stream}" for s, _p, _v in members),
-        )
-        send, idx = sample_keyframes(times, rate)
-        # Ideal network: each keyframe arrives the instant it is sent.
-        log = KeyframeLog(
-            capture=times[idx],
-            arrival=send,
-            poses=poses[idx],
-            velocities=None
-            if any(v is None for v in vels)
-            else np.stack([v for v in vels if v is not None], axis=1)[idx],
-        )
-        n = math.floor((float(times[-1]) - float(times[0])) * render_rate + 1e-9) + 1
-        taus = float(times[0]) + np.arange(n) / render_rate
-        frames += n * len(members)
-        # Methods with the same look-ahead share the playout delay, so one bracket
-        # search (and one QoE pass) serves them all.
-        by_delay: dict[float, list[str]] = {}
-        for m in methods:
-            delay = ideal_delay(rate, truth.native_rate, interp_info(m).lookahead)
-            by_delay.setdefault(delay, []).append(m)
-            delays[m].append(delay)
-        for delay, group in by_delay.items():
-            scored = evaluate_group(truth, log, delay, group)
-            play = playout_brackets(
-                log.capture, log.arrival, taus, delay, lookbehind=lookbehind, lookahead=lookahead
-            )
-            for m in group:
-                qoe_groups[m].append({m: scored[m]})
-                out = interpolate_brackets(
-                    log.poses,
-                    play.lo,
-                    play.hi,
-                    play.s,
-                    m,
-                    times=log.capture,
-                    before=play.before,
-                    after=play.after,
-                    velocities=log.velocities,
-                )
-                for j, (s, _p, _v) in enumerate(members):
-                    rendered[m].append((s, taus, out[:, j], play.stall))
+    _require_velocities(groups, velocity_methods)
+    rec = _reconstruct(groups, methods, rate, render_rate)
     t2 = time.perf_counter()
-    files: dict[str, dict[str, str]] = {}
-    if fmts and out_dir is not None:
-        folder = Path(out_dir)
-        folder.mkdir(parents=True, exist_ok=True)
-        stem = recording_stem(path)
-        for m in methods:
-            if rendered[m]:
-                files[m] = _write_rendered(folder, stem, m, rate, rendered[m], fmts)
+    files = _write_outputs(path, out_dir, methods, rate, rec.rendered, fmts)
     t3 = time.perf_counter()
+    first, last = rec.first, rec.last
     session = max(0.0, last - first) if math.isfinite(first) else 0.0
     total = t3 - t0
     result = {
@@ -267,12 +359,12 @@ def replay_offline(
         "rate": rate,
         "render_rate": render_rate,
         "methods": methods,
-        "delay_s": {m: float(np.median(d)) if d else math.nan for m, d in delays.items()},
+        "delay_s": {m: float(np.median(d)) if d else math.nan for m, d in rec.delays.items()},
         "session_s": session,
         "streams": len(streams),
-        "frames_rendered": frames * len(methods),
+        "frames_rendered": rec.frames * len(methods),
         "files": files,
-        "qoe": summarize(g for m in methods for g in qoe_groups[m]),
+        "qoe": summarize(g for m in methods for g in rec.qoe[m]),
         "timing": {
             "read_s": t1 - t0,
             "reconstruct_s": t2 - t1,
@@ -289,6 +381,78 @@ def replay_offline(
 
 
 # -- synthetic sessions and the benchmark ----------------------------------------------------
+
+
+# send, arrival, capture, poses, velocities of one synthetic user's updates
+_SynthUpdates = tuple[F64, F64, F64, NDArray[np.float32], NDArray[np.float16] | None]
+
+
+def _synth_user(
+    tr: Trace,
+    rng: np.random.Generator,
+    *,
+    rate: float,
+    duration: float,
+    start: float,
+    velocities: bool,
+) -> tuple[_SynthUpdates, float]:
+    """One bot's updates from trace ``tr`` and the server time of trace time 0.
+
+    Draws from ``rng``: the send phase, the offset into the trace, then the
+    arrival delays (in that order).
+    """
+    phase = float(rng.uniform(0.0, 1.0 / rate))
+    room_left = max(0.0, tr.duration - duration)
+    offset = float(rng.uniform(0.0, room_left)) if room_left > 0 else 0.0
+    anchor = start + phase - offset - float(tr.times[0])  # server time of trace time 0
+    n = math.floor(duration * rate)
+    send = start + phase + np.arange(n) / rate
+    idx = np.searchsorted(tr.times, send - anchor, side="right") - 1
+    idx = np.clip(idx, 0, tr.times.size - 1)
+    fresh = np.ones(idx.shape, dtype=bool)
+    fresh[1:] = idx[1:] != idx[:-1]
+    send, idx = send[fresh], idx[fresh]
+    arrival = send + rng.uniform(0.005, 0.020, send.size)
+    capture = anchor + tr.times[idx]
+    vel: NDArray[np.float16] | None = None
+    if velocities:
+        vel = tr.causal_velocities()[idx].astype(np.float16)
+    return (send, arrival, capture, tr.poses[idx].astype(np.float32), vel), anchor
+
+
+def _synth_join(u: int, label: str) -> dict[str, Any]:
+    """The presence join of synthetic bot ``u``."""
+    return {
+        "kind": "join",
+        "user": u + 1,
+        "name": f"bot{u}",
+        "label": label,
+        "streams": {d: int(3 * u + j) for j, d in enumerate(DEVICE_NAMES)},
+        "rate": 15.0,
+    }
+
+
+def _record_updates(rec: SessionRecorder, per_user: list[_SynthUpdates], start: float) -> float:
+    """Record all users' updates in arrival order; returns the last arrival (or ``start``)."""
+    ids = np.arange(3, dtype=np.uint16)
+    # All users' updates in arrival order, as the server would tap them.
+    user_of = np.concatenate([np.full(p[0].size, u) for u, p in enumerate(per_user)])
+    row_of = np.concatenate([np.arange(p[0].size) for p in per_user])
+    arrivals = np.concatenate([p[1] for p in per_user])
+    order = np.argsort(arrivals, kind="stable")
+    for k in order.tolist():
+        u, r = int(user_of[k]), int(row_of[k])
+        _send, arr, cap, poses, vel = per_user[u]
+        rec.record_update(
+            u + 1,
+            r,
+            float(arr[r]),
+            ids + 3 * u,
+            np.full(3, cap[r]),
+            poses[r],
+            None if vel is None else vel[r],
+        )
+    return float(arrivals.max()) if arrivals.size else start
 
 
 def synthesize_recording(
@@ -320,40 +484,15 @@ def synthesize_recording(
     files = find_traces(traces)
     loaded = [load_trace(f) for f in files]
     rng = np.random.default_rng(seed)
-    # send, arrival, capture, poses, velocities
-    per_user: list[tuple[F64, F64, F64, NDArray[np.float32], NDArray[np.float16] | None]] = []
+    per_user: list[_SynthUpdates] = []
     joins = []
-    ids = np.arange(3, dtype=np.uint16)
     for u in range(users):
         tr = loaded[u % len(loaded)].select(DEVICE_NAMES)
-        phase = float(rng.uniform(0.0, 1.0 / rate))
-        room_left = max(0.0, tr.duration - duration)
-        offset = float(rng.uniform(0.0, room_left)) if room_left > 0 else 0.0
-        anchor = start + phase - offset - float(tr.times[0])  # server time of trace time 0
-        n = math.floor(duration * rate)
-        send = start + phase + np.arange(n) / rate
-        idx = np.searchsorted(tr.times, send - anchor, side="right") - 1
-        idx = np.clip(idx, 0, tr.times.size - 1)
-        fresh = np.ones(idx.shape, dtype=bool)
-        fresh[1:] = idx[1:] != idx[:-1]
-        send, idx = send[fresh], idx[fresh]
-        arrival = send + rng.uniform(0.005, 0.020, send.size)
-        capture = anchor + tr.times[idx]
-        vel: NDArray[np.float16] | None = None
-        if velocities:
-            vel = tr.causal_velocities()[idx].astype(np.float16)
-        per_user.append((send, arrival, capture, tr.poses[idx].astype(np.float32), vel))
-        label = MotionSpec.for_trace(files[u % len(files)], anchor).label()
-        joins.append(
-            {
-                "kind": "join",
-                "user": u + 1,
-                "name": f"bot{u}",
-                "label": label,
-                "streams": {d: int(3 * u + j) for j, d in enumerate(DEVICE_NAMES)},
-                "rate": 15.0,
-            }
+        updates, anchor = _synth_user(
+            tr, rng, rate=rate, duration=duration, start=start, velocities=velocities
         )
+        per_user.append(updates)
+        joins.append(_synth_join(u, MotionSpec.for_trace(files[u % len(files)], anchor).label()))
     total = sum(p[0].size for p in per_user)
     rec = SessionRecorder.open(
         directory,
@@ -365,24 +504,7 @@ def synthesize_recording(
     )
     for j in joins:
         rec.record_presence(j, time=start)
-    # All users' updates in arrival order, as the server would tap them.
-    user_of = np.concatenate([np.full(p[0].size, u) for u, p in enumerate(per_user)])
-    row_of = np.concatenate([np.arange(p[0].size) for p in per_user])
-    arrivals = np.concatenate([p[1] for p in per_user])
-    order = np.argsort(arrivals, kind="stable")
-    for k in order.tolist():
-        u, r = int(user_of[k]), int(row_of[k])
-        _send, arr, cap, poses, vel = per_user[u]
-        rec.record_update(
-            u + 1,
-            r,
-            float(arr[r]),
-            ids + 3 * u,
-            np.full(3, cap[r]),
-            poses[r],
-            None if vel is None else vel[r],
-        )
-    end = float(arrivals.max()) if arrivals.size else start
+    end = _record_updates(rec, per_user, start)
     return rec.close(time=end)
 
 
