@@ -463,7 +463,6 @@ def _rate(x: float | None) -> str:
 
 
 def _print_report(console: Console, report: dict[str, Any]) -> None:
-    sizes: list[int] = report["batch_sizes"]
     mach = report["machine"]
     console.print(
         f"[bold]posecast bench interp[/] on {mach['cpu']} ({mach['cores']} cores, "
@@ -471,6 +470,15 @@ def _print_report(console: Console, report: dict[str, Any]) -> None:
         f"core); python {mach['python']}, numpy {mach['numpy']}, "
         f"scipy {mach['scipy']}, pytransform3d {mach['pytransform3d']}, kingdon {mach['kingdon']}"
     )
+    console.print(_throughput_table(report))
+    console.print(_speedup_table(report))
+    console.print(_track_table(report))
+    console.print(_targets_table(report))
+
+
+def _throughput_table(report: dict[str, Any]) -> Table:
+    """Poses/s of posecast's methods and of every reference, per batch size."""
+    sizes: list[int] = report["batch_sizes"]
     table = Table(title="Interpolation throughput, poses/s (best of repeats, one thread)")
     table.add_column("implementation")
     table.add_column("method")
@@ -495,8 +503,12 @@ def _print_report(console: Console, report: dict[str, Any]) -> None:
             table.add_row(
                 row["label"], row["method"], *(_rate(row["rates"].get(n)) for n in sizes), ""
             )
-    console.print(table)
+    return table
 
+
+def _speedup_table(report: dict[str, Any]) -> Table:
+    """posecast's rate over each available reference's, per batch size."""
+    sizes: list[int] = report["batch_sizes"]
     ratio = Table(title="posecast speed-up over each reference (same method)")
     ratio.add_column("reference")
     ratio.add_column("method")
@@ -511,8 +523,11 @@ def _print_report(console: Console, report: dict[str, Any]) -> None:
         else:
             cells = [f"{ours[n] / row['rates'][n]:.1f}x" for n in sizes]
         ratio.add_row(row["label"], row["method"], *cells)
-    console.print(ratio)
+    return ratio
 
+
+def _track_table(report: dict[str, Any]) -> Table:
+    """Median microseconds of one keyframe-track query, split into its parts."""
     track = Table(
         title=f"Keyframe track: {TRACK_STREAMS} streams, K={TRACK_KEYFRAMES}, one query "
         f"(median of {TRACK_RUNS} runs, us)"
@@ -535,8 +550,11 @@ def _print_report(console: Console, report: dict[str, Any]) -> None:
             f"{t['bracket_us']:.1f}",
             f"{t['interpolator_us']:.1f}",
         )
-    console.print(track)
+    return track
 
+
+def _targets_table(report: dict[str, Any]) -> Table:
+    """Each target beside its measured figure (no verdict)."""
     goals = Table(title="Targets (figures, not a verdict)")
     for col in ("target", "measured", "goal", "measured / goal"):
         goals.add_column(col, justify="right")
@@ -551,4 +569,4 @@ def _print_report(console: Console, report: dict[str, Any]) -> None:
             measured, goal = _rate(t["measured"]) + "/s", f">= {_rate(t['target'])}/s"
             share = f"{t['ratio']:.2f} ({'met' if t['met'] else 'missed'})"
         goals.add_row(key, measured, goal, share)
-    console.print(goals)
+    return goals

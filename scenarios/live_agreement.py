@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from scenarios.network import LinkModel, Tier, affordable_rate
+from scenarios.network import Delivery, LinkModel, Tier, affordable_rate
 from scenarios.qoe import ErrorSamples, KeyframeLog, evaluate_group
 from scenarios.traces import Trace
 
@@ -219,50 +219,12 @@ def simulate_receiver(
     ticks = (np.arange(k0, k1 + 1, dtype=np.float64) + phase) / rate
     host = np.random.default_rng(np.random.SeedSequence(seed).spawn(1)[0])
     lag = None if host_lag is None else np.asarray(host_lag, dtype=np.float64)
-    if lag is not None and lag.size:
-        ticks = np.maximum.accumulate(ticks + host.choice(lag, ticks.size))
-    link = LinkModel(tier, np.random.SeedSequence(seed))
-    dl = link.transmit(ticks, frame_bytes)
-    if lag is not None and lag.size:
-        # The server writes a delayed snapshot on a timer: late like the others.
-        dl = replace(dl, arrival=dl.arrival + host.choice(lag, ticks.size))
+    ticks, dl = _transmit_ticks(ticks, tier, frame_bytes, seed, lag, host)
     ok = dl.delivered
-    logs: list[tuple[SenderView, KeyframeLog]] = []
-    ages: list[F64] = []
-    rates: list[float] = []
-    for sv in senders:
-        tr = sv.truth
-        idx = sv.published(ticks, lag, host)
-        keep = ok & (idx >= 0)
-        cap, arr, ix = tr.times[idx[keep]], dl.arrival[keep], idx[keep]
-        # A capture sent twice (rate above the native rate) counts once: its first arrival.
-        order = np.lexsort((arr, cap))
-        cap, arr, ix = cap[order], arr[order], ix[order]
-        first = np.ones(cap.shape, dtype=bool)
-        first[1:] = cap[1:] != cap[:-1]
-        log = KeyframeLog(cap[first], arr[first], tr.poses[ix[first]])
-        logs.append((sv, log))
-        ages.append(log.arrival - log.capture)
-        if log.capture.size > 1 and log.arrival.max() > log.arrival.min():
-            rates.extend(
-                [(log.capture.size - 1) / float(log.arrival.max() - log.arrival.min())]
-                * len(sv.windows)
-            )
+    logs, ages, rates = _keyframe_logs(senders, ticks, ok, dl.arrival, lag, host)
     age = np.concatenate(ages) if ages else np.empty(0)
     rule = 1.0 / rate + (float(np.percentile(age, 95)) if age.size else 0.0)
-    equal: dict[str, dict[str, ErrorSamples]] = {}
-    by_rule: dict[str, dict[str, ErrorSamples]] = {}
-    ample: dict[str, dict[str, ErrorSamples]] = {}
-    for sv, log in logs:
-        if not log.capture.size:
-            continue
-        for name, window in sv.windows.items():
-            j = sv.truth.streams.index(name)
-            one = KeyframeLog(log.capture, log.arrival, log.poses[:, j : j + 1])
-            truth = sv.truth.select([name])
-            _merge(equal, evaluate_group(truth, one, delay, methods, window))
-            _merge(by_rule, evaluate_group(truth, one, rule, methods, window))
-            _merge(ample, evaluate_group(truth, one, AMPLE_DELAY_S, methods, window))
+    equal, by_rule, ample = _score_logs(logs, delay, rule, methods)
     span = hi - lo
     in_span = ok & (dl.arrival >= lo) & (dl.arrival <= hi)
     return ReceiverSim(
@@ -277,6 +239,84 @@ def simulate_receiver(
         lost=int(dl.lost.sum()),
         skipped=int(dl.skipped.sum()),
     )
+
+
+def _transmit_ticks(
+    ticks: F64,
+    tier: Tier,
+    frame_bytes: int,
+    seed: int | Sequence[int],
+    lag: F64 | None,
+    host: np.random.Generator,
+) -> tuple[F64, Delivery]:
+    """Late ticks (host lag) sent over one link realisation; late delayed writes too."""
+    if lag is not None and lag.size:
+        ticks = np.maximum.accumulate(ticks + host.choice(lag, ticks.size))
+    link = LinkModel(tier, np.random.SeedSequence(seed))
+    dl = link.transmit(ticks, frame_bytes)
+    if lag is not None and lag.size:
+        # The server writes a delayed snapshot on a timer: late like the others.
+        dl = replace(dl, arrival=dl.arrival + host.choice(lag, ticks.size))
+    return ticks, dl
+
+
+def _keyframe_logs(
+    senders: Sequence[SenderView],
+    ticks: F64,
+    ok: NDArray[np.bool_],
+    arrival: F64,
+    lag: F64 | None,
+    host: np.random.Generator,
+) -> tuple[list[tuple[SenderView, KeyframeLog]], list[F64], list[float]]:
+    """Per sender: the keyframes received (first arrival of each capture), ages, rates."""
+    logs: list[tuple[SenderView, KeyframeLog]] = []
+    ages: list[F64] = []
+    rates: list[float] = []
+    for sv in senders:
+        tr = sv.truth
+        idx = sv.published(ticks, lag, host)
+        keep = ok & (idx >= 0)
+        cap, arr, ix = tr.times[idx[keep]], arrival[keep], idx[keep]
+        # A capture sent twice (rate above the native rate) counts once: its first arrival.
+        order = np.lexsort((arr, cap))
+        cap, arr, ix = cap[order], arr[order], ix[order]
+        first = np.ones(cap.shape, dtype=bool)
+        first[1:] = cap[1:] != cap[:-1]
+        log = KeyframeLog(cap[first], arr[first], tr.poses[ix[first]])
+        logs.append((sv, log))
+        ages.append(log.arrival - log.capture)
+        if log.capture.size > 1 and log.arrival.max() > log.arrival.min():
+            rates.extend(
+                [(log.capture.size - 1) / float(log.arrival.max() - log.arrival.min())]
+                * len(sv.windows)
+            )
+    return logs, ages, rates
+
+
+_Scores = dict[str, dict[str, ErrorSamples]]
+
+
+def _score_logs(
+    logs: Sequence[tuple[SenderView, KeyframeLog]],
+    delay: Callable[[F64], F64] | float,
+    rule: float,
+    methods: Sequence[str],
+) -> tuple[_Scores, _Scores, _Scores]:
+    """QoE of every stream's window at the live D, the rule D and an ample D."""
+    equal: _Scores = {}
+    by_rule: _Scores = {}
+    ample: _Scores = {}
+    for sv, log in logs:
+        if not log.capture.size:
+            continue
+        for name, window in sv.windows.items():
+            j = sv.truth.streams.index(name)
+            one = KeyframeLog(log.capture, log.arrival, log.poses[:, j : j + 1])
+            truth = sv.truth.select([name])
+            _merge(equal, evaluate_group(truth, one, delay, methods, window))
+            _merge(by_rule, evaluate_group(truth, one, rule, methods, window))
+            _merge(ample, evaluate_group(truth, one, AMPLE_DELAY_S, methods, window))
+    return equal, by_rule, ample
 
 
 # ---------------------------------------------------------------- the verdict
@@ -318,9 +358,28 @@ def check_agreement(
     tier's loss probability) and live may hold ``loop_lag_p95_ms``. Returns
     ``{"checks": [...], "pass": bool}``; a figure missing on either side fails.
     """
+    checks = _error_checks(live, offline, tol)
+    checks += _stall_checks(live.get("methods", {}), offline.get("methods", {}), tol)
+    checks += _link_checks(live, offline, tol)
+    if "loop_lag_p95_ms" in live:
+        checks.append(
+            _check(
+                "event-loop lag p95 (live only)",
+                live["loop_lag_p95_ms"],
+                0.0,
+                0.0,
+                tol.loop_lag_p95_ms,
+                "ms",
+            )
+        )
+    return {"checks": checks, "pass": all(c["ok"] for c in checks)}
+
+
+def _error_checks(
+    live: Mapping[str, Any], offline: Mapping[str, Any], tol: Tolerance
+) -> list[dict[str, Any]]:
+    """Tip error p50/p95 per method and class, at the ample D and at the live D."""
     checks: list[dict[str, Any]] = []
-    lm: Stats = live.get("methods", {})
-    om: Stats = offline.get("methods", {})
     for key_m, label, rel, abs_ in (
         ("methods_ample", "ample D", tol.error_rel, tol.error_abs_mm),
         ("methods", "live D", tol.qoe_rel, tol.qoe_abs_mm),
@@ -343,30 +402,44 @@ def check_agreement(
                             "mm",
                         )
                     )
+    return checks
+
+
+def _stall_checks(lm: Stats, om: Stats, tol: Tolerance) -> list[dict[str, Any]]:
+    """The stall share at the live D: at most one check.
+
+    Stalls depend on neither the method nor the class (streams of one sender
+    share their keyframes): the first method, the first class present.
+    """
     methods = list(dict.fromkeys([*lm, *om]))
-    # Stalls depend on neither the method nor the class (streams of one sender
-    # share their keyframes): one check.
-    if methods:
-        m0 = methods[0]
-        for cls in AGREEMENT_CLASSES:
-            ls, os_ = lm.get(m0, {}).get(cls), om.get(m0, {}).get(cls)
-            if ls is None and os_ is None:
-                continue
-            checks.append(
-                _check(
-                    "stall % at the live D",
-                    None if ls is None else 100.0 * ls["stall_fraction"],
-                    None if os_ is None else 100.0 * os_["stall_fraction"],
-                    tol.stall_rel,
-                    tol.stall_abs_pp,
-                    "%",
-                )
+    if not methods:
+        return []
+    m0 = methods[0]
+    for cls in AGREEMENT_CLASSES:
+        ls, os_ = lm.get(m0, {}).get(cls), om.get(m0, {}).get(cls)
+        if ls is None and os_ is None:
+            continue
+        return [
+            _check(
+                "stall % at the live D",
+                None if ls is None else 100.0 * ls["stall_fraction"],
+                None if os_ is None else 100.0 * os_["stall_fraction"],
+                tol.stall_rel,
+                tol.stall_abs_pp,
+                "%",
             )
-            break
+        ]
+    return []
+
+
+def _link_checks(
+    live: Mapping[str, Any], offline: Mapping[str, Any], tol: Tolerance
+) -> list[dict[str, Any]]:
+    """Lost snapshots, keyframe rate, server rate, link bytes and playout delay."""
     p = float(offline.get("tier_loss", float("nan")))
     n_l, n_o = float(live.get("offered", 0)), float(offline.get("offered", 0))
     sigma = math.sqrt(p * (1 - p) * (1 / n_l + 1 / n_o)) if n_l > 0 and n_o > 0 else math.nan
-    checks.append(
+    return [
         _check(
             "lost snapshots %",
             None if "lost_fraction" not in live else 100.0 * live["lost_fraction"],
@@ -374,9 +447,7 @@ def check_agreement(
             0.0,
             100.0 * tol.loss_sigmas * sigma if math.isfinite(sigma) else 0.0,
             "%",
-        )
-    )
-    checks.append(
+        ),
         _check(
             "keyframes/s per stream",
             live.get("rate_hz"),
@@ -384,9 +455,7 @@ def check_agreement(
             tol.rate_rel,
             0.0,
             "Hz",
-        )
-    )
-    checks.append(
+        ),
         _check(
             "server rate",
             live.get("server_rate_hz"),
@@ -394,9 +463,7 @@ def check_agreement(
             0.0,
             tol.server_rate_abs_hz,
             "Hz",
-        )
-    )
-    checks.append(
+        ),
         _check(
             "link bytes/s per subscriber",
             live.get("bytes_per_s"),
@@ -404,9 +471,7 @@ def check_agreement(
             tol.bytes_rel,
             0.0,
             "B/s",
-        )
-    )
-    checks.append(
+        ),
         _check(
             "playout delay D",
             live.get("delay_ms"),
@@ -414,20 +479,8 @@ def check_agreement(
             tol.delay_rel,
             tol.delay_abs_ms,
             "ms",
-        )
-    )
-    if "loop_lag_p95_ms" in live:
-        checks.append(
-            _check(
-                "event-loop lag p95 (live only)",
-                live["loop_lag_p95_ms"],
-                0.0,
-                0.0,
-                tol.loop_lag_p95_ms,
-                "ms",
-            )
-        )
-    return {"checks": checks, "pass": all(c["ok"] for c in checks)}
+        ),
+    ]
 
 
 # ---------------------------------------------------------------- report
@@ -441,12 +494,36 @@ def _n(x: Any, digits: int = 1) -> str:
 
 def live_markdown(live: Mapping[str, Any]) -> list[str]:
     """The "Live vs offline" section of ``table1.md`` for the report's ``live`` key."""
-    cfg = live["config"]
+    lines = ["## Live vs offline", "", *_live_intro(live["config"])]
+    lines += [
+        "| tier | verdict | server rate (model) Hz | keyframes/s live / offline "
+        "| link B/s live / offline | lost live / offline | D ms live / rule "
+        "| stall at live D, live / offline | loop lag p95 ms | failed checks |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    lines += [_tier_row(t) for t in live["tiers"]]
+    lines += [
+        "",
+        "Tip error (mm), p50 / p95, live vs offline; offline at the rule D in brackets:",
+        "",
+        "| tier | method | class | ample D: live | offline | live D: live | offline (rule D) "
+        "| agree |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for t in live["tiers"]:
+        lines += _error_rows(t)
+    verdict = (
+        "every tier agrees" if live["pass"] else "at least one tier does not agree (see above)"
+    )
+    lines += ["", f"Verdict: {verdict} within the stated tolerance.", ""]
+    return lines
+
+
+def _live_intro(cfg: Mapping[str, Any]) -> list[str]:
+    """The section's text: how the live and offline runs were made, and the tolerance."""
     tol = cfg["tolerance"]
     send = cfg["send_rate_hz"]
-    lines = [
-        "## Live vs offline",
-        "",
+    return [
         f"Each tier ran through the real relay on loopback, the tier's link emulated in the "
         f"server's egress: {cfg['bots']} bots in one room for {cfg['duration_s']:g} s each, "
         f"publishing traces ({', '.join(f'`{t}`' for t in cfg['motions'])}; every native "
@@ -472,67 +549,59 @@ def live_markdown(live: Mapping[str, Any]) -> list[str]:
         f"{100 * tol['delay_rel']:g} %) of the rule D; and the live process must keep real "
         f"time (event-loop lag p95 <= {tol['loop_lag_p95_ms']:g} ms).",
         "",
-        "| tier | verdict | server rate (model) Hz | keyframes/s live / offline "
-        "| link B/s live / offline | lost live / offline | D ms live / rule "
-        "| stall at live D, live / offline | loop lag p95 ms | failed checks |",
-        "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for t in live["tiers"]:
-        lv, of = t["live"], t["offline"]
-        failed = [c["what"] for c in t["agreement"]["checks"] if not c["ok"]]
-        m0 = next(iter(lv["methods"]), None)
-        st_l = st_o = None
-        if m0 is not None:
-            cl: Mapping[str, Any] = next(iter(lv["methods"][m0].values()), {})
-            co: Mapping[str, Any] = next(iter(of["methods"].get(m0, {}).values()), {})
-            st_l, st_o = cl.get("stall_fraction"), co.get("stall_fraction")
-        lines.append(
-            f"| {t['tier']} | {'**pass**' if t['agreement']['pass'] else '**FAIL**'} "
-            f"| {_n(lv['server_rate_hz'])} ({_n(of['server_rate_hz'])}) "
-            f"| {_n(lv['rate_hz'], 2)} / {_n(of['rate_hz'], 2)} "
-            f"| {_n(lv['bytes_per_s'], 0)} / {_n(of['bytes_per_s'], 0)} "
-            f"| {_pc(lv.get('lost_fraction'))} / {_pc(of.get('lost_fraction'))} "
-            f"| {_n(lv['delay_ms'])} / {_n(of['delay_ms'])} "
-            f"| {_pc(st_l)} / {_pc(st_o)} "
-            f"| {_n(lv.get('loop_lag_p95_ms'))} "
-            f"| {', '.join(failed) if failed else 'none'} |"
-        )
-    lines += [
-        "",
-        "Tip error (mm), p50 / p95, live vs offline; offline at the rule D in brackets:",
-        "",
-        "| tier | method | class | ample D: live | offline | live D: live | offline (rule D) "
-        "| agree |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for t in live["tiers"]:
-        checks = {c["what"]: c["ok"] for c in t["agreement"]["checks"]}
-        lv, of = t["live"], t["offline"]
-        for m, classes in lv["methods"].items():
-            for cls in AGREEMENT_CLASSES:
-                if cls not in classes:
-                    continue
 
-                def pair(st: Mapping[str, Any] | None) -> str:
-                    if not st:
-                        return "-"
-                    return f"{_n(st.get('tip_p50_mm'))} / {_n(st.get('tip_p95_mm'))}"
 
-                mine = [v for k, v in checks.items() if k.startswith(f"{m} {cls} ")]
-                lines.append(
-                    f"| {t['tier']} | `{m}` | {cls} "
-                    f"| {pair(lv.get('methods_ample', {}).get(m, {}).get(cls))} "
-                    f"| {pair(of.get('methods_ample', {}).get(m, {}).get(cls))} "
-                    f"| {pair(classes[cls])} "
-                    f"| {pair(of['methods'].get(m, {}).get(cls))} "
-                    f"({pair(of.get('methods_rule_d', {}).get(m, {}).get(cls))}) "
-                    f"| {'yes' if mine and all(mine) else '**no**'} |"
-                )
-    verdict = (
-        "every tier agrees" if live["pass"] else "at least one tier does not agree (see above)"
+def _tier_row(t: Mapping[str, Any]) -> str:
+    """One tier's row of the summary table: verdict, rates, bytes, loss, D, stalls."""
+    lv, of = t["live"], t["offline"]
+    failed = [c["what"] for c in t["agreement"]["checks"] if not c["ok"]]
+    m0 = next(iter(lv["methods"]), None)
+    st_l = st_o = None
+    if m0 is not None:
+        cl: Mapping[str, Any] = next(iter(lv["methods"][m0].values()), {})
+        co: Mapping[str, Any] = next(iter(of["methods"].get(m0, {}).values()), {})
+        st_l, st_o = cl.get("stall_fraction"), co.get("stall_fraction")
+    return (
+        f"| {t['tier']} | {'**pass**' if t['agreement']['pass'] else '**FAIL**'} "
+        f"| {_n(lv['server_rate_hz'])} ({_n(of['server_rate_hz'])}) "
+        f"| {_n(lv['rate_hz'], 2)} / {_n(of['rate_hz'], 2)} "
+        f"| {_n(lv['bytes_per_s'], 0)} / {_n(of['bytes_per_s'], 0)} "
+        f"| {_pc(lv.get('lost_fraction'))} / {_pc(of.get('lost_fraction'))} "
+        f"| {_n(lv['delay_ms'])} / {_n(of['delay_ms'])} "
+        f"| {_pc(st_l)} / {_pc(st_o)} "
+        f"| {_n(lv.get('loop_lag_p95_ms'))} "
+        f"| {', '.join(failed) if failed else 'none'} |"
     )
-    lines += ["", f"Verdict: {verdict} within the stated tolerance.", ""]
-    return lines
+
+
+def _pair(st: Mapping[str, Any] | None) -> str:
+    """``p50 / p95`` tip error of one stats mapping, ``-`` if absent."""
+    if not st:
+        return "-"
+    return f"{_n(st.get('tip_p50_mm'))} / {_n(st.get('tip_p95_mm'))}"
+
+
+def _error_rows(t: Mapping[str, Any]) -> list[str]:
+    """One tier's rows of the tip-error table: per method and class, live vs offline."""
+    rows: list[str] = []
+    checks = {c["what"]: c["ok"] for c in t["agreement"]["checks"]}
+    lv, of = t["live"], t["offline"]
+    for m, classes in lv["methods"].items():
+        for cls in AGREEMENT_CLASSES:
+            if cls not in classes:
+                continue
+            mine = [v for k, v in checks.items() if k.startswith(f"{m} {cls} ")]
+            rows.append(
+                f"| {t['tier']} | `{m}` | {cls} "
+                f"| {_pair(lv.get('methods_ample', {}).get(m, {}).get(cls))} "
+                f"| {_pair(of.get('methods_ample', {}).get(m, {}).get(cls))} "
+                f"| {_pair(classes[cls])} "
+                f"| {_pair(of['methods'].get(m, {}).get(cls))} "
+                f"({_pair(of.get('methods_rule_d', {}).get(m, {}).get(cls))}) "
+                f"| {'yes' if mine and all(mine) else '**no**'} |"
+            )
+    return rows
 
 
 def _pc(x: Any) -> str:

@@ -213,41 +213,11 @@ def playout_brackets(
     q = np.asarray(query, dtype=np.float64)
     deadline = q + delay
     if k == 0:
-        z = np.zeros(q.shape, dtype=np.intp)
-        ones = np.ones(q.shape, dtype=bool)
-        zb = np.zeros((*q.shape, lookbehind), dtype=np.intp)
-        za = np.zeros((*q.shape, lookahead), dtype=np.intp)
-        return Playout(z, z, np.zeros(q.shape), ones, ones, z, z, zb, za)
+        return _empty_playout(q.shape, lookbehind, lookahead)
     n = np.searchsorted(capture, q, side="right")  # first keyframe after tau
-
-    def arrived(i: NDArray[np.intp]) -> NDArray[np.bool_]:
-        inside = (i >= 0) & (i < k)
-        out: NDArray[np.bool_] = inside & (arrival[np.clip(i, 0, k - 1)] <= deadline)
-        return out
-
-    # Newest keyframe (in capture order) arrived by each deadline, for holds.
-    order = np.argsort(arrival, kind="stable")
-    newest_by_arrival = np.maximum.accumulate(order)
-    m = np.searchsorted(arrival[order], deadline, side="right")
-    newest = np.where(m > 0, newest_by_arrival[np.maximum(m - 1, 0)], -1)
-
-    def walk(i: NDArray[np.intp], step: int) -> tuple[NDArray[np.intp], NDArray[np.bool_]]:
-        """Move each index by ``step`` past keyframes not arrived by its deadline.
-
-        Stops at the first arrived keyframe, or just outside ``[0, k)``;
-        reordering deeper than MAX_REORDER_DEPTH counts as not arrived.
-        """
-        ok = arrived(i)
-        for _ in range(MAX_REORDER_DEPTH):
-            move = ~ok & (i >= 0) & (i < k)
-            if not move.any():
-                break
-            i = np.where(move, i + step, i)
-            ok = arrived(i)
-        return i, ok
-
-    lo, ok_lo = walk(n - 1, -1)
-    hi, ok_hi = walk(n, +1)
+    newest = _newest_arrived(arrival, deadline)
+    lo, ok_lo = _walk(n - 1, -1, arrival, deadline, k)
+    hi, ok_hi = _walk(n, +1, arrival, deadline, k)
     lo_c = np.clip(lo, 0, k - 1)
     # A query exactly on an arrived keyframe needs no second keyframe.
     exact = ok_lo & (capture[lo_c] == q)
@@ -258,16 +228,9 @@ def playout_brackets(
     hi_out = np.where(bracketed, np.clip(hi, 0, k - 1), hold)
     span = capture[hi_out] - capture[lo_out]
     s = np.where(span > 0, (q - capture[lo_out]) / np.where(span > 0, span, 1.0), 0.0)
-    # Arrived neighbours of the bracket, for window interpolators: each one the
-    # next arrived keyframe outwards, or a repeat of its inward neighbour.
-    cols_b = [lo_out]
-    for _ in range(lookbehind):
-        cand, ok = walk(cols_b[-1] - 1, -1)
-        cols_b.append(np.where(ok, cand, cols_b[-1]))
-    cols_a = [hi_out]
-    for _ in range(lookahead):
-        cand, ok = walk(cols_a[-1] + 1, +1)
-        cols_a.append(np.where(ok & bracketed, cand, cols_a[-1]))
+    cols_b, cols_a = _window_columns(
+        lo_out, hi_out, bracketed, lookbehind, lookahead, arrival, deadline, k
+    )
     prev, nxt = cols_b[1], cols_a[1]
     before = np.stack(cols_b[:0:-1], axis=-1).astype(np.intp)
     after = np.stack(cols_a[1:], axis=-1).astype(np.intp)
@@ -282,6 +245,75 @@ def playout_brackets(
         before=before,
         after=after,
     )
+
+
+def _empty_playout(shape: tuple[int, ...], lookbehind: int, lookahead: int) -> Playout:
+    """No keyframes at all: every query is missing (and a stall)."""
+    z = np.zeros(shape, dtype=np.intp)
+    ones = np.ones(shape, dtype=bool)
+    zb = np.zeros((*shape, lookbehind), dtype=np.intp)
+    za = np.zeros((*shape, lookahead), dtype=np.intp)
+    return Playout(z, z, np.zeros(shape), ones, ones, z, z, zb, za)
+
+
+def _newest_arrived(arrival: F64, deadline: F64) -> NDArray[np.intp]:
+    """Newest keyframe (in capture order) arrived by each deadline, for holds (-1: none)."""
+    order = np.argsort(arrival, kind="stable")
+    newest_by_arrival = np.maximum.accumulate(order)
+    m = np.searchsorted(arrival[order], deadline, side="right")
+    out: NDArray[np.intp] = np.where(m > 0, newest_by_arrival[np.maximum(m - 1, 0)], -1)
+    return out
+
+
+def _arrived(i: NDArray[np.intp], arrival: F64, deadline: F64, k: int) -> NDArray[np.bool_]:
+    """Whether keyframe ``i`` (per query; may lie outside ``[0, k)``) arrived by the deadline."""
+    inside = (i >= 0) & (i < k)
+    out: NDArray[np.bool_] = inside & (arrival[np.clip(i, 0, k - 1)] <= deadline)
+    return out
+
+
+def _walk(
+    i: NDArray[np.intp], step: int, arrival: F64, deadline: F64, k: int
+) -> tuple[NDArray[np.intp], NDArray[np.bool_]]:
+    """Move each index by ``step`` past keyframes not arrived by its deadline.
+
+    Stops at the first arrived keyframe, or just outside ``[0, k)``;
+    reordering deeper than MAX_REORDER_DEPTH counts as not arrived.
+    """
+    ok = _arrived(i, arrival, deadline, k)
+    for _ in range(MAX_REORDER_DEPTH):
+        move = ~ok & (i >= 0) & (i < k)
+        if not move.any():
+            break
+        i = np.where(move, i + step, i)
+        ok = _arrived(i, arrival, deadline, k)
+    return i, ok
+
+
+def _window_columns(
+    lo_out: NDArray[np.intp],
+    hi_out: NDArray[np.intp],
+    bracketed: NDArray[np.bool_],
+    lookbehind: int,
+    lookahead: int,
+    arrival: F64,
+    deadline: F64,
+    k: int,
+) -> tuple[list[NDArray[np.intp]], list[NDArray[np.intp]]]:
+    """Arrived neighbours of the bracket, for window interpolators.
+
+    Each one is the next arrived keyframe outwards, or a repeat of its inward
+    neighbour. Returns ``[lo, prev, ...]`` and ``[hi, nxt, ...]`` (inside out).
+    """
+    cols_b = [lo_out]
+    for _ in range(lookbehind):
+        cand, ok = _walk(cols_b[-1] - 1, -1, arrival, deadline, k)
+        cols_b.append(np.where(ok, cand, cols_b[-1]))
+    cols_a = [hi_out]
+    for _ in range(lookahead):
+        cand, ok = _walk(cols_a[-1] + 1, +1, arrival, deadline, k)
+        cols_a.append(np.where(ok & bracketed, cand, cols_a[-1]))
+    return cols_b, cols_a
 
 
 @dataclass
