@@ -210,6 +210,9 @@ def _server_figures(samples: dict[int, _LinkSamples]) -> dict[str, float]:
     }
 
 
+_Groups = list[dict[str, dict[str, ErrorSamples]]]
+
+
 def _score(
     reports: Sequence[BotReport],
     tier: Tier,
@@ -220,12 +223,7 @@ def _score(
     phase: float,
     frame_bytes: int,
     host_lag: F64,
-) -> tuple[
-    list[dict[str, dict[str, ErrorSamples]]],
-    list[dict[str, dict[str, ErrorSamples]]],
-    list[ReceiverSim],
-    list[float],
-]:
+) -> tuple[_Groups, _Groups, list[ReceiverSim], list[float]]:
     """Each bot's QoE (at its D, at an ample D), its offline counterpart, its median D (s).
 
     Blocking (loads traces, scores): run it off the event loop. The live QoE is
@@ -236,8 +234,8 @@ def _score(
     samples would count as stalls that no network caused).
     """
     truths: dict[str, Trace] = {}
-    live: list[dict[str, dict[str, ErrorSamples]]] = []
-    live_ample: list[dict[str, dict[str, ErrorSamples]]] = []
+    live: _Groups = []
+    live_ample: _Groups = []
     sims: list[ReceiverSim] = []
     live_d: list[float] = []
     for i, rep in enumerate(reports):
@@ -245,40 +243,17 @@ def _score(
             continue
         pt = np.array([r[0] for r in rep.render_log])
         pd = np.array([r[1] for r in rep.render_log])
-
-        def delay_at(taus: F64, pt: F64 = pt, pd: F64 = pd) -> F64:
-            d: F64 = np.interp(taus, pt, pd)
-            return d
-
-        by_label: dict[str, dict[str, tuple[float, float]]] = {}
-        streams = [
-            ReceivedStream(rs.label, rs.name, partial(remote_log, rs))
-            for rs in rep.streams.values()
-            if rs.capture
-        ]
-        got, ample = (
-            {m: classes for m, classes in scored.items() if classes}
-            for scored in score_received(
-                streams,
-                pt,
-                pd,
-                cfg.methods,
-                delays=(None, AMPLE_DELAY_S),
-                until_sender_left=True,
-                as_rendered=False,
-                truths=truths,
-                windows=by_label,
-            )
-        )
-        senders = []
-        for label, windows in by_label.items():
-            t0 = MotionSpec.parse(label).t0
-            senders.append(SenderView(truths[label], windows, t0, send_rate, end=t0 + cfg.duration))
+        got, ample, senders = _score_bot(rep, pt, pd, cfg, send_rate, truths)
         if not senders:
             continue
         live.append(got)
         live_ample.append(ample)
         live_d.append(float(np.median(pd)))
+
+        def delay_at(taus: F64, pt: F64 = pt, pd: F64 = pd) -> F64:
+            d: F64 = np.interp(taus, pt, pd)
+            return d
+
         sims.append(
             simulate_receiver(
                 senders,
@@ -293,6 +268,48 @@ def _score(
             )
         )
     return live, live_ample, sims, live_d
+
+
+def _score_bot(
+    rep: BotReport,
+    pt: F64,
+    pd: F64,
+    cfg: LiveConfig,
+    send_rate: float,
+    truths: dict[str, Trace],
+) -> tuple[
+    dict[str, dict[str, ErrorSamples]], dict[str, dict[str, ErrorSamples]], list[SenderView]
+]:
+    """One bot's live QoE at its D and at an ample D, and the senders it watched.
+
+    ``pt``, ``pd``: the bot's render times and playout delays; ``truths`` caches
+    the senders' traces across bots.
+    """
+    by_label: dict[str, dict[str, tuple[float, float]]] = {}
+    streams = [
+        ReceivedStream(rs.label, rs.name, partial(remote_log, rs))
+        for rs in rep.streams.values()
+        if rs.capture
+    ]
+    got, ample = (
+        {m: classes for m, classes in scored.items() if classes}
+        for scored in score_received(
+            streams,
+            pt,
+            pd,
+            cfg.methods,
+            delays=(None, AMPLE_DELAY_S),
+            until_sender_left=True,
+            as_rendered=False,
+            truths=truths,
+            windows=by_label,
+        )
+    )
+    senders = []
+    for label, windows in by_label.items():
+        t0 = MotionSpec.parse(label).t0
+        senders.append(SenderView(truths[label], windows, t0, send_rate, end=t0 + cfg.duration))
+    return got, ample, senders
 
 
 async def _loop_lag(lags: list[float], period: float = 0.01) -> None:
@@ -319,6 +336,71 @@ async def run_live_tier(
     frame_bytes = payload + websocket_header_bytes(payload)
     asked = tier.max_rate_hz
     send_rate = asked if cfg.send_rate is None else cfg.send_rate
+    reports, samples, lags = await _session(
+        tier, motions, cfg, room=room, send_rate=send_rate, progress=progress
+    )
+    if progress is not None:
+        progress(f"score {tier.name}", 0, 1)
+    server_fig = _server_figures(samples)
+    rate = model_rate(tier, asked, frame_bytes)
+    lag = np.array(lags) if lags else np.zeros(1)
+    groups, groups_ample, sims, live_d = await asyncio.to_thread(
+        _score,
+        reports,
+        tier,
+        tier_index,
+        cfg,
+        send_rate,
+        rate,
+        room_phase(room),
+        frame_bytes,
+        lag,
+    )
+    if not sims:
+        raise RuntimeError(f"tier {tier.name}: no bot received anything to score")
+    live = _live_figures(reports, groups, groups_ample, live_d, server_fig, lag)
+    offline = _offline_figures(sims, tier, rate, frame_bytes)
+    if progress is not None:
+        progress(f"score {tier.name}", 1, 1)
+    return {
+        "tier": tier.name,
+        "tier_params": tier.as_dict(),
+        "asked_rate_hz": asked,
+        "send_rate_hz": send_rate,
+        "room_poses": poses,
+        "bots": [
+            {
+                "name": r.name,
+                "user": r.user,
+                "rate_hz": r.rate_hz,
+                "delay_ms": r.delay_ms,
+                "duration_s": r.duration,
+                "render_stall_fraction": r.render_stall_fraction,
+                "frames_rendered": r.frames_rendered,
+            }
+            for r in reports
+        ],
+        "live": live,
+        "offline": offline,
+        "agreement": check_agreement(live, offline, cfg.tolerance),
+    }
+
+
+async def _session(
+    tier: Tier,
+    motions: Sequence[tuple[str, int]],
+    cfg: LiveConfig,
+    *,
+    room: str,
+    send_rate: float,
+    progress: LiveProgress | None,
+) -> tuple[list[BotReport], dict[int, _LinkSamples], list[float]]:
+    """A relay emulating ``tier`` and ``cfg.bots`` bots in ``room``, to the bots' end.
+
+    Returns the bots' reports, the server's link samples per subscriber and the
+    event loop's lags (s) while the bots ran.
+    """
+    asked = tier.max_rate_hz
     server = RelayServer(
         ServerConfig(
             host="127.0.0.1",
@@ -372,28 +454,20 @@ async def run_live_tier(
                         h.cancel()
             finally:
                 server.stop()
-    reports = [t.result() for t in tasks]
-    if progress is not None:
-        progress(f"score {tier.name}", 0, 1)
-    server_fig = _server_figures(samples)
-    rate = model_rate(tier, asked, frame_bytes)
-    lag = np.array(lags) if lags else np.zeros(1)
-    groups, groups_ample, sims, live_d = await asyncio.to_thread(
-        _score,
-        reports,
-        tier,
-        tier_index,
-        cfg,
-        send_rate,
-        rate,
-        room_phase(room),
-        frame_bytes,
-        lag,
-    )
-    if not sims:
-        raise RuntimeError(f"tier {tier.name}: no bot received anything to score")
+    return [t.result() for t in tasks], samples, lags
+
+
+def _live_figures(
+    reports: Sequence[BotReport],
+    groups: _Groups,
+    groups_ample: _Groups,
+    live_d: list[float],
+    server_fig: dict[str, float],
+    lag: F64,
+) -> dict[str, Any]:
+    """What the live session measured: QoE, rate, D, the server's link, the loop's lag."""
     rates = [r.rate_hz for r in reports if r.rate_hz > 0]
-    live = {
+    return {
         "methods": summarize(groups),
         "methods_ample": summarize(groups_ample),
         "rate_hz": float(np.mean(rates)) if rates else float("nan"),
@@ -409,9 +483,15 @@ async def run_live_tier(
         # past the end of senders that left earlier).
         "bots_own_methods": summarize(r.qoe for r in reports),
     }
+
+
+def _offline_figures(
+    sims: Sequence[ReceiverSim], tier: Tier, rate: float, frame_bytes: int
+) -> dict[str, Any]:
+    """What the offline counterparts of the bots give, in the live figures' keys."""
     delivered = sum(s.delivered for s in sims)
     lost = sum(s.lost for s in sims)
-    offline = {
+    return {
         "methods": summarize([s.equal_d for s in sims]),
         "methods_rule_d": summarize([s.rule_d for s in sims]),
         "methods_ample": summarize([s.ample_d for s in sims]),
@@ -423,30 +503,6 @@ async def run_live_tier(
         "offered": float(delivered + lost),
         "tier_loss": tier.loss_pct / 100.0,
         "frame_bytes": frame_bytes,
-    }
-    if progress is not None:
-        progress(f"score {tier.name}", 1, 1)
-    return {
-        "tier": tier.name,
-        "tier_params": tier.as_dict(),
-        "asked_rate_hz": asked,
-        "send_rate_hz": send_rate,
-        "room_poses": poses,
-        "bots": [
-            {
-                "name": r.name,
-                "user": r.user,
-                "rate_hz": r.rate_hz,
-                "delay_ms": r.delay_ms,
-                "duration_s": r.duration,
-                "render_stall_fraction": r.render_stall_fraction,
-                "frames_rendered": r.frames_rendered,
-            }
-            for r in reports
-        ],
-        "live": live,
-        "offline": offline,
-        "agreement": check_agreement(live, offline, cfg.tolerance),
     }
 
 

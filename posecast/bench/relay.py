@@ -8,6 +8,7 @@ import os
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -82,6 +83,17 @@ def run_relay_bench(
         raise ValueError(f"interleave must be 0 or at least {2 * _PHASE_SETTLE:g} s")
     if interleave > 0:
         return _run_interleaved(args, writers, repeat, interleave, console, opts)
+    return _run_alternating(args, writers, repeat, console, opts)
+
+
+def _run_alternating(
+    args: tuple[int, int, float, float],
+    writers: list[str],
+    repeat: int,
+    console: Console,
+    opts: dict[str, Any],
+) -> dict[str, Any]:
+    """``repeat`` rounds of a recorder-off run and one run per writer (Table 4)."""
     # Off and on alternate in a balanced order (off first in even rounds, last
     # in odd ones): a drift of a shared machine, or anything that favours the
     # first or second run of a round, hits both alike. Each on-run is compared
@@ -156,6 +168,24 @@ def _run_interleaved(
     return last
 
 
+@dataclass(frozen=True)
+class _Sample:
+    """CPU times, the clock and the server's /metrics at one end of the measured window."""
+
+    recorder: float
+    server: tuple[float, float]
+    load: tuple[float, float]
+    machine: tuple[float, float, float]
+    wall: float
+    metrics: dict[str, float] | None
+
+
+def _sample(server: _Child, load: _Child, port: int) -> _Sample:
+    recorder = _children_run_time(server.pid)
+    cpu = _proc_cpu(server.pid), _proc_cpu(load.pid), _machine_cpu(), time.monotonic()
+    return _Sample(recorder, *cpu, metrics=_scrape(port))
+
+
 def _run_once(
     clients: int,
     room_size: int,
@@ -183,11 +213,6 @@ def _run_once(
     if duration <= 0 or warmup < 0 or ramp_rate <= 0:
         raise ValueError("duration and ramp_rate must be positive, warmup non-negative")
     _raise_nofile(clients + 256)
-    ramp_s = clients / ramp_rate
-    window_timeout = warmup + 60.0
-    hard_timeout = ramp_s + 30.0 + window_timeout + duration + 60.0
-    server: _Child | None = None
-    load: _Child | None = None
     report: dict[str, Any] = {
         "clients": clients,
         "room_size": room_size,
@@ -200,35 +225,68 @@ def _run_once(
         "record_writer": record_writer if record_dir is not None else None,
         "nproc": os.cpu_count() or 0,
     }
+    server_argv = _server_argv(rate, record_dir, record_writer)
+    result, start, end = _run_children(
+        report,
+        server_argv,
+        seed=seed,
+        interleave=interleave if record_dir is not None else 0.0,
+        console=console,
+    )
+    _add_figures(report, result, start, end)
+    print_relay_report(report, console)
+    return report
+
+
+def _server_argv(rate: float, record_dir: Path | None, record_writer: str) -> list[str]:
+    """The command line of the relay under test: ``posecast serve`` on a free port."""
+    return [
+        sys.executable,
+        "-c",
+        _SERVER_BOOT,
+        "serve",
+        "--host",
+        "127.0.0.1",
+        "--port",
+        "0",
+        "--rate",
+        f"{rate:g}",
+        "--min-rate",
+        f"{min(5.0, rate):g}",
+        "--max-rate",
+        f"{max(30.0, rate):g}",
+        "--log-level",
+        "warning",
+        *(
+            ["--record", str(record_dir), "--record-writer", record_writer]
+            if record_dir is not None
+            else []
+        ),
+    ]
+
+
+def _run_children(
+    report: dict[str, Any],
+    server_argv: list[str],
+    *,
+    seed: int,
+    interleave: float,
+    console: Console,
+) -> tuple[dict[str, Any], _Sample, _Sample]:
+    """Start the server and the load, ramp up, measure the window, stop both.
+
+    Adds the ramp's figures (and the phases of ``interleave``) and the server's
+    exit code to ``report``; returns the load's result and both ends' samples.
+    """
+    clients, rate = report["clients"], report["rate_hz"]
+    warmup, duration, ramp_rate = report["warmup_s"], report["duration_s"], report["ramp_per_s"]
+    ramp_s = clients / ramp_rate
+    window_timeout = warmup + 60.0
+    server: _Child | None = None
+    load: _Child | None = None
     try:
         with console.status("relay bench: starting the server ...") as status:
-            server = _Child(
-                "server",
-                [
-                    sys.executable,
-                    "-c",
-                    _SERVER_BOOT,
-                    "serve",
-                    "--host",
-                    "127.0.0.1",
-                    "--port",
-                    "0",
-                    "--rate",
-                    f"{rate:g}",
-                    "--min-rate",
-                    f"{min(5.0, rate):g}",
-                    "--max-rate",
-                    f"{max(30.0, rate):g}",
-                    "--log-level",
-                    "warning",
-                    *(
-                        ["--record", str(record_dir), "--record-writer", record_writer]
-                        if record_dir is not None
-                        else []
-                    ),
-                ],
-                hash_seed=seed,
-            )
+            server = _Child("server", server_argv, hash_seed=seed)
             found = _LISTENING.search(
                 server.wait_line(lambda line: _LISTENING.search(line) is not None, timeout=30.0)
             )
@@ -237,12 +295,12 @@ def _run_once(
             cfg = {
                 "url": f"ws://127.0.0.1:{port}",
                 "clients": clients,
-                "room_size": room_size,
+                "room_size": report["room_size"],
                 "rate": rate,
                 "ramp_rate": ramp_rate,
                 "seed": seed,
                 "window_timeout": window_timeout,
-                "hard_timeout": hard_timeout,
+                "hard_timeout": ramp_s + 30.0 + window_timeout + duration + 60.0,
             }
             status.update(f"relay bench: ramping up {clients} clients at {ramp_rate:g}/s ...")
             load = _Child(
@@ -251,39 +309,19 @@ def _run_once(
                 stdin=True,
                 hash_seed=seed,
             )
-            ramped = load.wait_json("ramped", timeout=ramp_s + 60.0)
-            report["clients_joined"] = int(ramped["joined"])
-            report["clients_failed"] = int(ramped["failed"])
-            report["join_errors"] = ramped["errors"]
-            report["ramp_s"] = float(ramped["ramp_s"])
-            if ramped["joined"] == 0:
-                raise load.fail(f"no client could join: {ramped['errors']}")
+            _ramp(load, report, timeout=ramp_s + 60.0)
             t0 = time.monotonic() + warmup
             t1 = t0 + duration
             load.tell({"window": [t0, t1]})
             status.update(f"relay bench: warm-up {warmup:g} s ...")
             _sleep_until(t0)
             status.update(f"relay bench: measuring for {duration:g} s ...")
-            r0 = _children_run_time(server.pid)
-            s0, l0, c0, w0 = (
-                _proc_cpu(server.pid),
-                _proc_cpu(load.pid),
-                _machine_cpu(),
-                time.monotonic(),
-            )
-            m0 = _scrape(port)
-            if interleave > 0 and record_dir is not None:
+            start = _sample(server, load, port)
+            if interleave > 0:
                 status.update(f"relay bench: measuring for {duration:g} s, recording on/off ...")
                 report["phases"] = _interleaved_phases(server.pid, port, t1, interleave)
             _sleep_until(t1)
-            r1 = _children_run_time(server.pid)
-            s1, l1, c1, w1 = (
-                _proc_cpu(server.pid),
-                _proc_cpu(load.pid),
-                _machine_cpu(),
-                time.monotonic(),
-            )
-            m1 = _scrape(port)
+            end = _sample(server, load, port)
             status.update("relay bench: collecting ...")
             result = load.wait_json("result", timeout=60.0)
     finally:
@@ -292,18 +330,39 @@ def _run_once(
         if server is not None:
             code = server.stop(grace=15.0)
             report["server_exit_code"] = code
+    return result, start, end
 
-    wall = w1 - w0
-    server_user, server_sys = s1[0] - s0[0], s1[1] - s0[1]
+
+def _ramp(load: _Child, report: dict[str, Any], timeout: float) -> None:
+    """Wait for the load to have joined every client it could; into ``report``."""
+    ramped = load.wait_json("ramped", timeout=timeout)
+    report["clients_joined"] = int(ramped["joined"])
+    report["clients_failed"] = int(ramped["failed"])
+    report["join_errors"] = ramped["errors"]
+    report["ramp_s"] = float(ramped["ramp_s"])
+    if ramped["joined"] == 0:
+        raise load.fail(f"no client could join: {ramped['errors']}")
+
+
+def _add_figures(
+    report: dict[str, Any], result: dict[str, Any], start: _Sample, end: _Sample
+) -> None:
+    """The load's result and the window's figures (CPU, throughput, /metrics), into ``report``."""
+    clients, room_size, rate = report["clients"], report["room_size"], report["rate_hz"]
+    wall = end.wall - start.wall
+    server_user = end.server[0] - start.server[0]
+    server_sys = end.server[1] - start.server[1]
     server_cpu = server_user + server_sys
-    load_cpu = sum(l1) - sum(l0)
+    load_cpu = sum(end.load) - sum(start.load)
+    recorder_cpu = end.recorder - start.recorder
     delivered = int(result["poses_delivered"])
     snapshots = int(result["snapshots"])
-    busy, steal, total = (c1[i] - c0[i] for i in range(3))
+    busy, steal, total = (end.machine[i] - start.machine[i] for i in range(3))
     ncpu = os.cpu_count() or 1
     # Remote poses/s the clients ask for: each gets its room mates' 3 streams at ``rate``.
     full, last = divmod(clients, room_size)
     offered = rate * len(STREAMS) * (full * room_size * (room_size - 1) + last * (last - 1))
+    m0, m1 = start.metrics, end.metrics
     del result["event"]
     report.update(result)
     report.update(
@@ -311,15 +370,15 @@ def _run_once(
             "server_cpu_s": server_cpu,
             "server_cpu_pct": 100.0 * server_cpu / wall,
             "server_cpu_us_per_pose": 1e6 * server_cpu / delivered if delivered else math.nan,
-            "recorder_cpu_s": r1 - r0,
-            "recorder_cpu_us_per_pose": 1e6 * (r1 - r0) / delivered if delivered else math.nan,
+            "recorder_cpu_s": recorder_cpu,
+            "recorder_cpu_us_per_pose": 1e6 * recorder_cpu / delivered if delivered else math.nan,
             "server_cpu_us_per_snapshot": 1e6 * server_cpu / snapshots if snapshots else math.nan,
             "server_sys_pct": 100.0 * server_sys / wall,
             "load_cpu_pct": 100.0 * load_cpu / wall,
             "machine_cpu_pct": 100.0 * busy / total if total > 0 else math.nan,
             # CPU used by neither the server nor the load (other jobs on this machine).
             "other_cpu_pct": 100.0 * (busy / total * ncpu)
-            - 100.0 * (server_cpu + load_cpu + r1 - r0) / wall
+            - 100.0 * (server_cpu + load_cpu + end.recorder - start.recorder) / wall
             if total > 0
             else math.nan,
             # Of one core: time the hypervisor ran other guests on our cores. A
@@ -346,5 +405,3 @@ def _run_once(
         }
     )
     report["skips_per_s"] = report["skips"] / wall
-    print_relay_report(report, console)
-    return report

@@ -7,6 +7,9 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
+#: One line of the table: figure, value, note.
+_Row = tuple[str, str, str]
+
 
 def _f(x: Any, digits: int = 1) -> str:
     if isinstance(x, float) and x != x:
@@ -27,7 +30,14 @@ def print_relay_report(report: dict[str, Any], console: Console) -> None:
     table.add_column("figure")
     table.add_column("value", justify="right")
     table.add_column("note")
-    rows = [
+    for row in [*_cpu_rows(r), *_timing_rows(r), *_traffic_rows(r)]:
+        table.add_row(*row)
+    console.print(table)
+
+
+def _cpu_rows(r: dict[str, Any]) -> list[_Row]:
+    """Who joined, and the CPU the server, the load and the rest of the machine used."""
+    return [
         ("clients joined / failed", f"{r['clients_joined']} / {r['clients_failed']}", ""),
         (
             "server CPU",
@@ -47,6 +57,12 @@ def print_relay_report(report: dict[str, Any], console: Console) -> None:
             f"{_f(r['steal_pct'])} %",
             "of one core, given to other virtual machines; high: the figures are noisy",
         ),
+    ]
+
+
+def _timing_rows(r: dict[str, Any]) -> list[_Row]:
+    """Latency from capture to receipt, its parts, and the lag of the server's ticks."""
+    return [
         (
             "capture->receipt p50 / p99",
             f"{_f(r['latency_p50_ms'], 2)} / {_f(r['latency_p99_ms'], 2)} ms",
@@ -72,6 +88,12 @@ def print_relay_report(report: dict[str, Any], console: Console) -> None:
             f"{_f(r['tick_lag_max_ms_start'])} -> {_f(r['tick_lag_max_ms_end'])} ms",
             "/metrics, max over rooms",
         ),
+    ]
+
+
+def _traffic_rows(r: dict[str, Any]) -> list[_Row]:
+    """Snapshots, skips, poses delivered, the server's demand, bytes and late sends."""
+    return [
         (
             "snapshots / client / s",
             f"{_f(r['snapshots_per_client_s'], 2)} (min {_f(r['snapshots_per_client_s_min'], 2)})",
@@ -100,6 +122,3 @@ def print_relay_report(report: dict[str, Any], console: Console) -> None:
             f"send lag p99 {_f(r['send_lag_p99_ms'], 2)} ms",
         ),
     ]
-    for row in rows:
-        table.add_row(*row)
-    console.print(table)

@@ -55,45 +55,59 @@ def compare(
         console.print(f"wrote {json_out}")
 
 
+# The options of `table1`.
+TracesOption = Annotated[
+    list[str],
+    typer.Option(
+        help="traces:dev, traces:eval, a CSV or folder, synthetic[:NAME[:SEED]] or a "
+        "suite .toml (repeatable)."
+    ),
+]
+OutOption = Annotated[Path, typer.Option(help="Output folder for table1.md/.json and plots.")]
+RatesOption = Annotated[str, typer.Option(help="Rates in Hz (integers): 5-30 or 5,10,15.")]
+MethodsOption = Annotated[str, typer.Option(help="Interpolators to compare.")]
+TiersOption = Annotated[Path | None, typer.Option(help="TOML tiers merged over the built-in ones.")]
+TransportOption = Annotated[
+    str, typer.Option(help="Link loss model: datagram (lost) or stream (retransmitted).")
+]
+LinkOption = Annotated[bool, typer.Option(help="Also sweep each tier's link model.")]
+BenchOption = Annotated[bool, typer.Option(help="Measure receiver running time.")]
+PlotsOption = Annotated[bool, typer.Option(help="Write PNG plots.")]
+SeedOption = Annotated[int, typer.Option(help="Seed of the link model.")]
+FrontierOption = Annotated[
+    bool, typer.Option(help="Add the error-versus-latency view and its frontier.")
+]
+FrontierRatesOption = Annotated[
+    str | None, typer.Option(help="Rates for the latency view (default: the tiers').")
+]
+LiveOption = Annotated[
+    bool,
+    typer.Option(
+        "--live",
+        help="Also run every tier through the real relay (link emulation) with "
+        "trace-driven bots and report live beside offline, with a tolerance.",
+    ),
+]
+LiveDurationOption = Annotated[float, typer.Option(help="--live: seconds each bot runs, per tier.")]
+LiveBotsOption = Annotated[int, typer.Option(help="--live: bots in the room, per tier.")]
+
+
 def table1(
-    traces: Annotated[
-        list[str],
-        typer.Option(
-            help="traces:dev, traces:eval, a CSV or folder, synthetic[:NAME[:SEED]] or a "
-            "suite .toml (repeatable)."
-        ),
-    ],
-    out: Annotated[Path, typer.Option(help="Output folder for table1.md/.json and plots.")],
-    rates: Annotated[str, typer.Option(help="Rates in Hz (integers): 5-30 or 5,10,15.")] = "5-30",
-    methods: Annotated[str, typer.Option(help="Interpolators to compare.")] = DEFAULT_METHODS,
-    tiers: Annotated[
-        Path | None, typer.Option(help="TOML tiers merged over the built-in ones.")
-    ] = None,
-    transport: Annotated[
-        str, typer.Option(help="Link loss model: datagram (lost) or stream (retransmitted).")
-    ] = "datagram",
-    link: Annotated[bool, typer.Option(help="Also sweep each tier's link model.")] = True,
-    bench: Annotated[bool, typer.Option(help="Measure receiver running time.")] = True,
-    plots: Annotated[bool, typer.Option(help="Write PNG plots.")] = True,
-    seed: Annotated[int, typer.Option(help="Seed of the link model.")] = 0,
-    frontier: Annotated[
-        bool, typer.Option(help="Add the error-versus-latency view and its frontier.")
-    ] = True,
-    frontier_rates: Annotated[
-        str | None, typer.Option(help="Rates for the latency view (default: the tiers').")
-    ] = None,
-    live: Annotated[
-        bool,
-        typer.Option(
-            "--live",
-            help="Also run every tier through the real relay (link emulation) with "
-            "trace-driven bots and report live beside offline, with a tolerance.",
-        ),
-    ] = False,
-    live_duration: Annotated[
-        float, typer.Option(help="--live: seconds each bot runs, per tier.")
-    ] = 20.0,
-    live_bots: Annotated[int, typer.Option(help="--live: bots in the room, per tier.")] = 3,
+    traces: TracesOption,
+    out: OutOption,
+    rates: RatesOption = "5-30",
+    methods: MethodsOption = DEFAULT_METHODS,
+    tiers: TiersOption = None,
+    transport: TransportOption = "datagram",
+    link: LinkOption = True,
+    bench: BenchOption = True,
+    plots: PlotsOption = True,
+    seed: SeedOption = 0,
+    frontier: FrontierOption = True,
+    frontier_rates: FrontierRatesOption = None,
+    live: LiveOption = False,
+    live_duration: LiveDurationOption = 20.0,
+    live_bots: LiveBotsOption = 3,
 ) -> None:
     """Reproduce the paper's Table 1: QoE vs rate, equal-QoE rates per network tier.
 
@@ -104,38 +118,85 @@ def table1(
     offline counterpart ("Live vs offline" in table1.md, key "live" in the JSON);
     the command exits 1 if they disagree beyond the stated tolerance.
     """
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
-    import interp
-    from scenarios.network import TierError, load_tiers
-    from scenarios.table1 import describe_rates, run_table1, snapped_range
-    from scenarios.traces import TraceError
-
     rate_list = [int(r) for r in _parse_rates(rates)]
     method_list = _parse_methods(methods)
     if transport not in ("datagram", "stream"):
         raise _fail("--transport must be datagram or stream")
     f_rates = None if frontier_rates is None else [int(r) for r in _parse_rates(frontier_rates)]
-    live_cfg: Any = None
-    if live:
-        # Everything --live needs is checked before the offline sweep starts.
-        from posecast.table1_live import LiveConfig, live_motions
-
-        live_methods = tuple(
-            dict.fromkeys(m for m in ["soa", *method_list] if not interp.info(m).needs_velocity)
+    live_plan = _plan_live(traces, tiers, method_list, live_duration, live_bots) if live else None
+    report = _run_offline(
+        traces,
+        rate_list,
+        method_list,
+        tiers,
+        out,
+        seed=seed,
+        transport=transport,
+        link=link,
+        bench=bench,
+        plots=plots,
+        frontier=frontier,
+        frontier_rates=f_rates,
+    )
+    live_report = None if live_plan is None else _run_live_tiers(traces, *live_plan, out)
+    _print_table1(report, method_list)
+    if live_report is not None:
+        _print_live(live_report)
+    console.print(f"wrote {out}/table1.md, table1.json" + (" and plots" if plots else ""))
+    if live_report is not None and not live_report["pass"]:
+        bad = [r["tier"] for r in live_report["tiers"] if not r["agreement"]["pass"]]
+        err_console.print(
+            f"[bold red]live and offline disagree beyond the tolerance[/] in {', '.join(bad)}; "
+            f"see {out}/table1.md"
         )
-        try:
-            live_cfg = LiveConfig(duration=live_duration, bots=live_bots, methods=live_methods)
-            live_motions(traces)
-            tier_list = list(load_tiers(tiers).values())
-        except (TraceError, TierError, ValueError) as exc:
-            raise _fail(f"--live: {exc}") from None
-        skipped = [m for m in method_list if m not in live_methods]
-        if skipped:
-            err_console.print(
-                f"--live: {', '.join(skipped)} need keyframe velocities, which the live "
-                "comparison does not model yet: offline only"
-            )
+        raise typer.Exit(1)
+
+
+def _plan_live(
+    traces: list[str],
+    tiers: Path | None,
+    method_list: list[str],
+    live_duration: float,
+    live_bots: int,
+) -> tuple[list[Any], Any]:
+    """The tiers and LiveConfig of --live, checked before the offline sweep starts."""
+    import interp
+    from posecast.table1_live import LiveConfig, live_motions
+    from scenarios.network import TierError, load_tiers
+    from scenarios.traces import TraceError
+
+    live_methods = tuple(
+        dict.fromkeys(m for m in ["soa", *method_list] if not interp.info(m).needs_velocity)
+    )
+    try:
+        live_cfg = LiveConfig(duration=live_duration, bots=live_bots, methods=live_methods)
+        live_motions(traces)
+        tier_list = list(load_tiers(tiers).values())
+    except (TraceError, TierError, ValueError) as exc:
+        raise _fail(f"--live: {exc}") from None
+    skipped = [m for m in method_list if m not in live_methods]
+    if skipped:
+        err_console.print(
+            f"--live: {', '.join(skipped)} need keyframe velocities, which the live "
+            "comparison does not model yet: offline only"
+        )
+    return tier_list, live_cfg
+
+
+def _run_offline(
+    traces: list[str],
+    rate_list: list[int],
+    method_list: list[str],
+    tiers: Path | None,
+    out: Path,
+    **options: Any,
+) -> dict[str, Any]:
+    """The offline Table 1 sweep (``options``: run_table1's keywords) under a progress bar."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from scenarios.table1 import run_table1
+    from scenarios.traces import TraceError
+
     command = "posecast table1 " + " ".join(sys.argv[2:])
     bar = Progress(
         TextColumn("{task.description:<24}"),
@@ -154,57 +215,61 @@ def table1(
 
     try:
         with bar:
-            report = run_table1(
-                traces,
-                rate_list,
-                method_list,
-                tiers,
-                out,
-                progress,
-                seed=seed,
-                transport=transport,  # type: ignore[arg-type]
-                link=link,
-                bench=bench,
-                plots=plots,
-                command=command,
-                frontier=frontier,
-                frontier_rates=f_rates,
+            report: dict[str, Any] = run_table1(
+                traces, rate_list, method_list, tiers, out, progress, command=command, **options
             )
     except (TraceError, ValueError, KeyError) as exc:
         raise _fail(str(exc)) from None
-    live_report: dict[str, Any] | None = None
-    if live_cfg is not None:
-        import logging
+    return report
 
-        from posecast.table1_live import run_live
-        from scenarios.live_agreement import write_live
 
-        # One open relay per tier on loopback: its "no --secret" warning is noise here.
-        logging.getLogger("posecast.server").setLevel(logging.ERROR)
+def _run_live_tiers(
+    traces: list[str], tier_list: list[Any], live_cfg: Any, out: Path
+) -> dict[str, Any]:
+    """--live: every tier through the real relay under a progress bar; written into ``out``."""
+    import logging
 
-        live_bar = Progress(
-            TextColumn("{task.description:<24}"),
-            BarColumn(),
-            TextColumn("{task.fields[note]}"),
-            TimeElapsedColumn(),
-            console=console,
-            transient=True,
-        )
-        live_tasks: dict[str, Any] = {}
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-        def live_progress(stage: str, done: float, total: float) -> None:
-            if stage not in live_tasks:
-                live_tasks[stage] = live_bar.add_task(stage, total=total, note="")
-            note = f"{done:.0f}/{total:.0f} s" if stage.startswith("live") else ""
-            live_bar.update(live_tasks[stage], completed=done, total=total, note=note)
+    from posecast.table1_live import run_live
+    from scenarios.live_agreement import write_live
+    from scenarios.traces import TraceError
 
-        try:
-            with live_bar:
-                live_report = _run_async(run_live(traces, tier_list, live_cfg, live_progress))
-        except (TraceError, ValueError, RuntimeError, OSError, TimeoutError) as exc:
-            raise _fail(f"--live: {exc}") from None
-        assert live_report is not None
-        write_live(out, live_report)
+    # One open relay per tier on loopback: its "no --secret" warning is noise here.
+    logging.getLogger("posecast.server").setLevel(logging.ERROR)
+
+    live_bar = Progress(
+        TextColumn("{task.description:<24}"),
+        BarColumn(),
+        TextColumn("{task.fields[note]}"),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+    )
+    live_tasks: dict[str, Any] = {}
+
+    def live_progress(stage: str, done: float, total: float) -> None:
+        if stage not in live_tasks:
+            live_tasks[stage] = live_bar.add_task(stage, total=total, note="")
+        note = f"{done:.0f}/{total:.0f} s" if stage.startswith("live") else ""
+        live_bar.update(live_tasks[stage], completed=done, total=total, note=note)
+
+    try:
+        with live_bar:
+            live_report: dict[str, Any] = _run_async(
+                run_live(traces, tier_list, live_cfg, live_progress)
+            )
+    except (TraceError, ValueError, RuntimeError, OSError, TimeoutError) as exc:
+        raise _fail(f"--live: {exc}") from None
+    assert live_report is not None
+    write_live(out, live_report)
+    return live_report
+
+
+def _print_table1(report: dict[str, Any], method_list: list[str]) -> None:
+    """Table 1 (equal-QoE rate and saving per tier, beside the paper's) and its notes."""
+    from scenarios.table1 import describe_rates, snapped_range
+
     searched = report["config"]["rates"]
     table = Table(
         title="Table 1: equal-QoE rate (saving vs SoA), ideal network", title_justify="left"
@@ -242,39 +307,34 @@ def table1(
             f"and {paper.get('running_time_saving_pct')} % less running time claimed; "
             f"source: {paper.get('source', '')}"
         )
-    if live_report is not None:
-        lt = Table(
-            title="Live vs offline (equal D): hands p95 tip error (mm), D (ms)",
-            title_justify="left",
-        )
-        for col in ("tier", "verdict", "method", "live", "offline", "D live", "D rule", "failed"):
-            lt.add_column(col, justify="left" if col in ("tier", "verdict", "failed") else "right")
-        for row in live_report["tiers"]:
-            lv, of = row["live"], row["offline"]
-            failed = [c["what"] for c in row["agreement"]["checks"] if not c["ok"]]
-            for i, m in enumerate(lv["methods"]):
-                lt.add_row(
-                    row["tier"] if i == 0 else "",
-                    ("[green]pass[/]" if row["agreement"]["pass"] else "[red]FAIL[/]")
-                    if i == 0
-                    else "",
-                    m,
-                    _fmt(lv["methods"][m].get("hands", {}).get("tip_p95_mm", float("nan"))),
-                    _fmt(of["methods"].get(m, {}).get("hands", {}).get("tip_p95_mm", float("nan"))),
-                    _fmt(lv["delay_ms"]) if i == 0 else "",
-                    _fmt(of["delay_ms"]) if i == 0 else "",
-                    ", ".join(failed) if i == 0 else "",
-                )
-            lt.add_section()
-        console.print(lt)
-    console.print(f"wrote {out}/table1.md, table1.json" + (" and plots" if plots else ""))
-    if live_report is not None and not live_report["pass"]:
-        bad = [r["tier"] for r in live_report["tiers"] if not r["agreement"]["pass"]]
-        err_console.print(
-            f"[bold red]live and offline disagree beyond the tolerance[/] in {', '.join(bad)}; "
-            f"see {out}/table1.md"
-        )
-        raise typer.Exit(1)
+
+
+def _print_live(live_report: dict[str, Any]) -> None:
+    """The "Live vs offline" table: per tier its verdict, per method both p95 tip errors."""
+    lt = Table(
+        title="Live vs offline (equal D): hands p95 tip error (mm), D (ms)",
+        title_justify="left",
+    )
+    for col in ("tier", "verdict", "method", "live", "offline", "D live", "D rule", "failed"):
+        lt.add_column(col, justify="left" if col in ("tier", "verdict", "failed") else "right")
+    for row in live_report["tiers"]:
+        lv, of = row["live"], row["offline"]
+        failed = [c["what"] for c in row["agreement"]["checks"] if not c["ok"]]
+        for i, m in enumerate(lv["methods"]):
+            lt.add_row(
+                row["tier"] if i == 0 else "",
+                ("[green]pass[/]" if row["agreement"]["pass"] else "[red]FAIL[/]")
+                if i == 0
+                else "",
+                m,
+                _fmt(lv["methods"][m].get("hands", {}).get("tip_p95_mm", float("nan"))),
+                _fmt(of["methods"].get(m, {}).get("hands", {}).get("tip_p95_mm", float("nan"))),
+                _fmt(lv["delay_ms"]) if i == 0 else "",
+                _fmt(of["delay_ms"]) if i == 0 else "",
+                ", ".join(failed) if i == 0 else "",
+            )
+        lt.add_section()
+    console.print(lt)
 
 
 def list_interpolators() -> None:

@@ -56,6 +56,58 @@ def print_swarm(report: dict[str, Any], title: str) -> None:
 _SECRET_HELP = "Require tokens signed with this secret (see `posecast token`); visible in ps."
 _SECRET_FILE_HELP = "Read the secret from the first line of this file (kept out of ps)."
 _LOG_LEVELS = ("debug", "info", "warning", "error")
+_MOTION_HELP = (
+    "traces:sample (bundled), traces:dev, traces:eval (full sets), a CSV or folder, or "
+    "synthetic[:orbit]."
+)
+
+# The options of `serve`, each with its POSECAST_* environment variable.
+HostOption = Annotated[str, typer.Option(help="Address to listen on.", envvar="POSECAST_HOST")]
+PortOption = Annotated[
+    int, typer.Option(help="Port, 0..65535 (0: pick a free one).", envvar="POSECAST_PORT")
+]
+RateOption = Annotated[
+    float, typer.Option(help="Default snapshot rate (Hz).", envvar="POSECAST_RATE")
+]
+MinRateOption = Annotated[
+    float, typer.Option(help="Lowest rate a subscriber may ask.", envvar="POSECAST_MIN_RATE")
+]
+MaxRateOption = Annotated[
+    float, typer.Option(help="Highest rate a subscriber may ask.", envvar="POSECAST_MAX_RATE")
+]
+ServeSecretOption = Annotated[str | None, typer.Option(help=_SECRET_HELP, envvar="POSECAST_SECRET")]
+SecretFileOption = Annotated[
+    Path | None, typer.Option(help=_SECRET_FILE_HELP, envvar="POSECAST_SECRET_FILE")
+]
+RecordOption = Annotated[
+    Path | None,
+    typer.Option(
+        help="Record every room session as MCAP into this folder.", envvar="POSECAST_RECORD"
+    ),
+]
+RecordWriterOption = Annotated[
+    str,
+    typer.Option(
+        help="Where the recorder writes: process (a child process, off the relay's CPU "
+        "time) or thread (inside the server process).",
+        envvar="POSECAST_RECORD_WRITER",
+    ),
+]
+LinkOption = Annotated[
+    str | None,
+    typer.Option(
+        help="Emulate a network tier (excellent, good, mediocre, poor, or one of --tiers) "
+        "on every subscriber's downlink: bandwidth cap, delay, jitter, loss.",
+        envvar="POSECAST_LINK",
+    ),
+]
+TiersOption = Annotated[
+    Path | None,
+    typer.Option(help="TOML tiers merged over the built-in ones.", envvar="POSECAST_TIERS"),
+]
+LogLevelOption = Annotated[
+    str, typer.Option(help="debug, info, warning or error.", envvar="POSECAST_LOG_LEVEL")
+]
 
 
 def _secret(ctx: typer.Context, secret: str | None, secret_file: Path | None) -> str | None:
@@ -94,56 +146,18 @@ def _secret(ctx: typer.Context, secret: str | None, secret_file: Path | None) ->
 
 def serve(
     ctx: typer.Context,
-    host: Annotated[
-        str, typer.Option(help="Address to listen on.", envvar="POSECAST_HOST")
-    ] = "127.0.0.1",
-    port: Annotated[
-        int, typer.Option(help="Port, 0..65535 (0: pick a free one).", envvar="POSECAST_PORT")
-    ] = 8765,
-    rate: Annotated[
-        float, typer.Option(help="Default snapshot rate (Hz).", envvar="POSECAST_RATE")
-    ] = 20.0,
-    min_rate: Annotated[
-        float,
-        typer.Option(help="Lowest rate a subscriber may ask.", envvar="POSECAST_MIN_RATE"),
-    ] = 5.0,
-    max_rate: Annotated[
-        float,
-        typer.Option(help="Highest rate a subscriber may ask.", envvar="POSECAST_MAX_RATE"),
-    ] = 30.0,
-    secret: Annotated[str | None, typer.Option(help=_SECRET_HELP, envvar="POSECAST_SECRET")] = None,
-    secret_file: Annotated[
-        Path | None, typer.Option(help=_SECRET_FILE_HELP, envvar="POSECAST_SECRET_FILE")
-    ] = None,
-    record: Annotated[
-        Path | None,
-        typer.Option(
-            help="Record every room session as MCAP into this folder.", envvar="POSECAST_RECORD"
-        ),
-    ] = None,
-    record_writer: Annotated[
-        str,
-        typer.Option(
-            help="Where the recorder writes: process (a child process, off the relay's CPU "
-            "time) or thread (inside the server process).",
-            envvar="POSECAST_RECORD_WRITER",
-        ),
-    ] = "process",
-    link: Annotated[
-        str | None,
-        typer.Option(
-            help="Emulate a network tier (excellent, good, mediocre, poor, or one of --tiers) "
-            "on every subscriber's downlink: bandwidth cap, delay, jitter, loss.",
-            envvar="POSECAST_LINK",
-        ),
-    ] = None,
-    tiers: Annotated[
-        Path | None,
-        typer.Option(help="TOML tiers merged over the built-in ones.", envvar="POSECAST_TIERS"),
-    ] = None,
-    log_level: Annotated[
-        str, typer.Option(help="debug, info, warning or error.", envvar="POSECAST_LOG_LEVEL")
-    ] = "info",
+    host: HostOption = "127.0.0.1",
+    port: PortOption = 8765,
+    rate: RateOption = 20.0,
+    min_rate: MinRateOption = 5.0,
+    max_rate: MaxRateOption = 30.0,
+    secret: ServeSecretOption = None,
+    secret_file: SecretFileOption = None,
+    record: RecordOption = None,
+    record_writer: RecordWriterOption = "process",
+    link: LinkOption = None,
+    tiers: TiersOption = None,
+    log_level: LogLevelOption = "info",
 ) -> None:
     """Run the relay server until SIGINT/SIGTERM (then close all with 1001, exit 0).
 
@@ -152,25 +166,11 @@ def serve(
     recording of pose updates and SIGUSR2 resumes it (each pause is written
     into the files as a drops record).
     """
-    import asyncio
     import logging
-    import signal
 
-    from server.app import RelayServer, ServerConfig
+    from server.app import ServerConfig
 
-    if not 0 <= port <= 65535:
-        raise _fail(f"--port must be in 0..65535 (0 picks a free port), not {port}")
-    if not 0 < min_rate <= rate <= max_rate:
-        raise _fail("need 0 < --min-rate <= --rate <= --max-rate")
-    if record_writer not in ("process", "thread"):
-        raise _fail(f"--record-writer must be process or thread, not {record_writer!r}")
-    if log_level.lower() not in _LOG_LEVELS:
-        raise _fail(f"--log-level must be one of {', '.join(_LOG_LEVELS)}, not {log_level!r}")
-    if record is not None and record.exists() and not record.is_dir():
-        raise _fail(
-            f"--record {record} is a file; give a folder for the recordings "
-            "(it is created if missing)"
-        )
+    _check_serve_args(port, rate, min_rate, max_rate, record, record_writer, log_level)
     secret = _secret(ctx, secret, secret_file)
     tier = _tier(link, tiers)
     logging.basicConfig(
@@ -187,38 +187,74 @@ def serve(
         record_writer="thread" if record_writer == "thread" else "process",
         link=tier,
     )
+    _serve_until_stopped(cfg)
 
-    async def main() -> None:
-        server = RelayServer(cfg)
-        loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, server.stop)
-        # kill -USR1 PID pauses the recording of pose updates, kill -USR2 PID resumes it.
-        loop.add_signal_handler(signal.SIGUSR1, server.pause_recording)
-        loop.add_signal_handler(signal.SIGUSR2, server.resume_recording)
 
-        async def announce() -> None:
-            await server.ready.wait()
-            access = "token required" if secret else "open (no --secret)"
-            print(f"posecast listening on ws://{host}:{server.port} ({access})", flush=True)
+def _check_serve_args(
+    port: int,
+    rate: float,
+    min_rate: float,
+    max_rate: float,
+    record: Path | None,
+    record_writer: str,
+    log_level: str,
+) -> None:
+    """Refuse, in one line, a serve option that cannot be used (exit 2)."""
+    if not 0 <= port <= 65535:
+        raise _fail(f"--port must be in 0..65535 (0 picks a free port), not {port}")
+    if not 0 < min_rate <= rate <= max_rate:
+        raise _fail("need 0 < --min-rate <= --rate <= --max-rate")
+    if record_writer not in ("process", "thread"):
+        raise _fail(f"--record-writer must be process or thread, not {record_writer!r}")
+    if log_level.lower() not in _LOG_LEVELS:
+        raise _fail(f"--log-level must be one of {', '.join(_LOG_LEVELS)}, not {log_level!r}")
+    if record is not None and record.exists() and not record.is_dir():
+        raise _fail(
+            f"--record {record} is a file; give a folder for the recordings "
+            "(it is created if missing)"
+        )
 
-        async with asyncio.TaskGroup() as tg:
-            tg.create_task(announce())
-            await server.run()
-        print("posecast stopped", flush=True)
 
+def _serve_until_stopped(cfg: Any) -> None:
+    """Run a relay with ``cfg`` until a signal stops it; a taken port is one line (exit 1)."""
     try:
-        _run_async(main())
+        _run_async(_serve_main(cfg))
     except* OSError as eg:
         exc = _first_leaf(eg)
         if not isinstance(exc, OSError) or exc.filename is not None:
             raise  # a file of the recorder: the one line comes from _user_error
         why = os.strerror(exc.errno).lower() if exc.errno else str(exc)
         raise _fail(
-            f"cannot listen on {host}:{port}: {why}; is another server running there? "
+            f"cannot listen on {cfg.host}:{cfg.port}: {why}; is another server running there? "
             "Pick another --port (0 picks a free one)",
             1,
         ) from None
+
+
+async def _serve_main(cfg: Any) -> None:
+    """The relay, its signal handlers and the "listening" line, until it stops."""
+    import asyncio
+    import signal
+
+    from server.app import RelayServer
+
+    server = RelayServer(cfg)
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, server.stop)
+    # kill -USR1 PID pauses the recording of pose updates, kill -USR2 PID resumes it.
+    loop.add_signal_handler(signal.SIGUSR1, server.pause_recording)
+    loop.add_signal_handler(signal.SIGUSR2, server.resume_recording)
+
+    async def announce() -> None:
+        await server.ready.wait()
+        access = "token required" if cfg.secret else "open (no --secret)"
+        print(f"posecast listening on ws://{cfg.host}:{server.port} ({access})", flush=True)
+
+    async with asyncio.TaskGroup() as tg:
+        tg.create_task(announce())
+        await server.run()
+    print("posecast stopped", flush=True)
 
 
 def token(
@@ -228,9 +264,7 @@ def token(
     secret: Annotated[
         str | None, typer.Option(help="The server's secret.", envvar="POSECAST_SECRET")
     ] = None,
-    secret_file: Annotated[
-        Path | None, typer.Option(help=_SECRET_FILE_HELP, envvar="POSECAST_SECRET_FILE")
-    ] = None,
+    secret_file: SecretFileOption = None,
     ttl: Annotated[float, typer.Option(help="Validity in seconds.")] = 3600.0,
 ) -> None:
     """Print an access token for `posecast serve --secret/--secret-file`."""
@@ -266,40 +300,50 @@ def _check_bot_args(
     return methods
 
 
+# The options of `bots` (and of `demo` where they share one).
+UrlOption = Annotated[str, typer.Option(help="Server URL, e.g. ws://127.0.0.1:8765.")]
+BotCountOption = Annotated[int, typer.Option(help="Number of bots.")]
+RoomOption = Annotated[str, typer.Option(help="Room to join.")]
+AskRateOption = Annotated[float, typer.Option(help="Snapshot rate each bot asks for (Hz).")]
+SendRateOption = Annotated[float, typer.Option(help="Rate each bot publishes at (Hz).")]
+InterpOption = Annotated[str, typer.Option("--interp", help="Interpolators rendered side by side.")]
+MotionOption = Annotated[str, typer.Option(help=_MOTION_HELP)]
+DurationOption = Annotated[float, typer.Option(help="Seconds to run.")]
+TokenOption = Annotated[str | None, typer.Option("--token", help="Access token.")]
+BotSecretOption = Annotated[
+    str | None,
+    typer.Option(
+        help="Mint a token per bot with this secret instead; visible in ps.",
+        envvar="POSECAST_SECRET",
+    ),
+]
+JsonOutOption = Annotated[Path | None, typer.Option("--json", help="Write the report as JSON.")]
+
+
 def bots(
-    url: Annotated[str, typer.Option(help="Server URL, e.g. ws://127.0.0.1:8765.")],
-    n: Annotated[int, typer.Option(help="Number of bots.")] = 8,
-    room: Annotated[str, typer.Option(help="Room to join.")] = "lobby",
-    rate: Annotated[float, typer.Option(help="Snapshot rate each bot asks for (Hz).")] = 10.0,
-    send_rate: Annotated[float, typer.Option(help="Rate each bot publishes at (Hz).")] = 30.0,
-    interp_: Annotated[
-        str, typer.Option("--interp", help="Interpolators rendered side by side.")
-    ] = DEFAULT_METHODS,
-    motion: Annotated[
-        str,
-        typer.Option(
-            help="traces:sample (bundled), traces:dev, traces:eval (full sets), a CSV or "
-            "folder, or synthetic[:orbit]."
-        ),
-    ] = "traces:sample",
-    duration: Annotated[float, typer.Option(help="Seconds to run.")] = 30.0,
-    token_: Annotated[str | None, typer.Option("--token", help="Access token.")] = None,
-    secret: Annotated[
-        str | None, typer.Option(help="Mint a token per bot with this secret instead.")
-    ] = None,
-    json_out: Annotated[
-        Path | None, typer.Option("--json", help="Write the report as JSON.")
-    ] = None,
+    ctx: typer.Context,
+    url: UrlOption,
+    n: BotCountOption = 8,
+    room: RoomOption = "lobby",
+    rate: AskRateOption = 10.0,
+    send_rate: SendRateOption = 30.0,
+    interp_: InterpOption = DEFAULT_METHODS,
+    motion: MotionOption = "traces:sample",
+    duration: DurationOption = 30.0,
+    token_: TokenOption = None,
+    secret: BotSecretOption = None,
+    secret_file: SecretFileOption = None,
+    json_out: JsonOutOption = None,
 ) -> None:
-    """Run N headless bots against a server and report QoE per interpolator."""
-    import time
+    """Run N headless bots against a server and report QoE per interpolator.
 
-    from websockets.exceptions import InvalidURI, WebSocketException
-
+    The secret can also come from POSECAST_SECRET or POSECAST_SECRET_FILE (kept
+    out of ps); an explicit --token wins over a secret from the environment.
+    """
     from client.bot import BotConfig
-    from client.swarm import run_bots, swarm_report
 
     methods = _check_bot_args(rate, n, duration, interp_, motion)
+    key = _bot_secret(ctx, token_, secret, secret_file)
     base = BotConfig(
         url=url,
         room=room,
@@ -311,52 +355,89 @@ def bots(
         token=token_,
         name="bot",
     )
-    token_for = None
-    if secret is not None:
-        from server.auth import make_token
-
-        def token_for(i: int) -> str:
-            return make_token(secret, room, f"bot{i}", duration + 600, time.time())
-
-    try:
-        with console.status(f"{n} bots in room {room!r} for {duration:g} s ..."):
-            reports = _run_async(run_bots(base, n, token_for=token_for))
-    except* (OSError, InvalidURI, WebSocketException) as eg:
-        raise _fail(f"cannot connect to {url}: {eg.exceptions[0]}") from None
-    report = swarm_report(reports)
+    report = _run_swarm(base, n, _token_minter(key, room, duration))
     print_swarm(report, f"{n} bots at {rate:g} Hz for {duration:g} s ({motion})")
-    # A starved machine, and a session the server ended early, are said in one line each.
-    for line in [report["starvation"]["warning"], *report["ending"]["lines"]]:
-        if line:
-            console.print(line, markup=False, highlight=False, soft_wrap=True)
-    if json_out is not None:
-        json_out.write_text(json.dumps(report, indent=2))
-        console.print(f"wrote {json_out}")
+    _print_ending(report)
+    _write_json(report, json_out)
     if report["ending"]["exit_code"]:  # the connection was lost (or closed for an error)
         raise typer.Exit(report["ending"]["exit_code"])
 
 
+def _bot_secret(
+    ctx: typer.Context, token: str | None, secret: str | None, secret_file: Path | None
+) -> str | None:
+    """The secret the bots mint their tokens with, or None to use ``token`` (or none).
+
+    A --token on the command line wins over a secret from POSECAST_SECRET or
+    POSECAST_SECRET_FILE; a secret given as an option wins over --token.
+    """
+    if token is not None:
+        given = [
+            name
+            for name, value in (("secret", secret), ("secret_file", secret_file))
+            if value is not None
+            and getattr(ctx.get_parameter_source(name), "name", "") != "ENVIRONMENT"
+        ]
+        if not given:
+            return None
+    return _secret(ctx, secret, secret_file)
+
+
+def _token_minter(secret: str | None, room: str, duration: float) -> Any:
+    """``token_for(i)``: a token for bot ``i`` signed with ``secret``; None without one."""
+    if secret is None:
+        return None
+    import time
+
+    from server.auth import make_token
+
+    def token_for(i: int) -> str:
+        return make_token(secret, room, f"bot{i}", duration + 600, time.time())
+
+    return token_for
+
+
+def _run_swarm(base: Any, n: int, token_for: Any) -> dict[str, Any]:
+    """Run ``n`` bots like ``base`` to their end; their swarm report."""
+    from websockets.exceptions import InvalidURI, WebSocketException
+
+    from client.swarm import run_bots, swarm_report
+
+    try:
+        with console.status(f"{n} bots in room {base.room!r} for {base.duration:g} s ..."):
+            reports = _run_async(run_bots(base, n, token_for=token_for))
+    except* (OSError, InvalidURI, WebSocketException) as eg:
+        raise _fail(f"cannot connect to {base.url}: {eg.exceptions[0]}") from None
+    report: dict[str, Any] = swarm_report(reports)
+    return report
+
+
+def _print_ending(report: dict[str, Any]) -> None:
+    """A starved machine, and a session the server ended early, in one line each."""
+    for line in [report["starvation"]["warning"], *report["ending"]["lines"]]:
+        if line:
+            console.print(line, markup=False, highlight=False, soft_wrap=True)
+
+
+def _write_json(report: dict[str, Any], json_out: Path | None) -> None:
+    if json_out is not None:
+        json_out.write_text(json.dumps(report, indent=2))
+        console.print(f"wrote {json_out}")
+
+
+RecordFolderOption = Annotated[Path, typer.Option(help="Folder for the session recording (MCAP).")]
+NoRecordOption = Annotated[bool, typer.Option("--no-record", help="Do not record.")]
+
+
 def demo(
-    bots: Annotated[int, typer.Option("--bots", help="Number of bots.")] = 6,
-    rate: Annotated[float, typer.Option(help="Snapshot rate each bot asks for (Hz).")] = 15.0,
-    duration: Annotated[float, typer.Option(help="Seconds to run.")] = 20.0,
-    motion: Annotated[
-        str,
-        typer.Option(
-            help="traces:sample (bundled), traces:dev, traces:eval (full sets), a CSV or "
-            "folder, or synthetic[:orbit]."
-        ),
-    ] = "traces:sample",
-    interp_: Annotated[
-        str, typer.Option("--interp", help="Interpolators rendered side by side.")
-    ] = DEFAULT_METHODS,
-    json_out: Annotated[
-        Path | None, typer.Option("--json", help="Write the report as JSON.")
-    ] = None,
-    record: Annotated[Path, typer.Option(help="Folder for the session recording (MCAP).")] = Path(
-        "recordings"
-    ),
-    no_record: Annotated[bool, typer.Option("--no-record", help="Do not record.")] = False,
+    bots: BotCountOption = 6,
+    rate: AskRateOption = 15.0,
+    duration: DurationOption = 20.0,
+    motion: MotionOption = "traces:sample",
+    interp_: InterpOption = DEFAULT_METHODS,
+    json_out: JsonOutOption = None,
+    record: RecordFolderOption = Path("recordings"),
+    no_record: NoRecordOption = False,
 ) -> None:
     """The main job: a server and N bots on loopback, then QoE per interpolator."""
     from posecast.demo import run_demo
@@ -385,13 +466,9 @@ def demo(
         f"posecast demo: {bots} bots at {rate:g} Hz for {duration:g} s on loopback ({motion}); "
         "errors vs the senders' own samples",
     )
-    for line in [report["starvation"]["warning"], *report["ending"]["lines"]]:
-        if line:
-            console.print(line, markup=False, highlight=False, soft_wrap=True)
+    _print_ending(report)
     if report.get("recording"):
         console.print(f"recorded to {report['recording']} (see `posecast info`)")
-    if json_out is not None:
-        json_out.write_text(json.dumps(report, indent=2))
-        console.print(f"wrote {json_out}")
+    _write_json(report, json_out)
     if report["ending"]["exit_code"]:
         raise typer.Exit(report["ending"]["exit_code"])

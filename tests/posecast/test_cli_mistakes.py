@@ -7,6 +7,7 @@ last one ``error: ...`` naming the problem), and never a traceback.
 
 from __future__ import annotations
 
+import json
 import os
 import selectors
 import shutil
@@ -248,6 +249,39 @@ def test_bots_say_the_servers_rate_range(relay: str, rate: str) -> None:
         "s3cret",
     )
     assert_one_line(res, 2, "bad-rate", f"{rate} Hz", "5-30 Hz")
+
+
+def _bots(relay: str, *args: str | Path, secret: str | None = None) -> Run:
+    """Two short synthetic bots against ``relay``; ``secret``: their POSECAST_SECRET."""
+    common = ("--url", relay, "--n", "2", "--duration", "2", "--motion", "synthetic")
+    if secret is None:
+        return posecast("bots", *common, *args)
+    return posecast("bots", *common, *args, POSECAST_SECRET=secret)
+
+
+def test_bots_take_the_secret_from_the_environment(relay: str, tmp_path: Path) -> None:
+    """POSECAST_SECRET (kept out of ps) lets the bots mint tokens the secret relay admits."""
+    report = tmp_path / "bots.json"
+    res = _bots(relay, "--json", report, secret="s3cret")
+    assert res.code == 0, res.stderr
+    assert "Traceback" not in res.stderr + res.stdout, res.stderr
+    data = json.loads(report.read_text())
+    assert len(data["bots"]) == 2
+    assert data["ending"]["complete"], data["ending"]
+    assert all(b["frames_rendered"] > 0 for b in data["bots"]), data["bots"]
+    # The same relay refuses the bots a wrong secret from the environment.
+    assert_one_line(_bots(relay, secret="wrong"), 1, "join refused", "unauthorized")
+
+
+def test_bots_take_the_secret_once(relay: str, tmp_path: Path) -> None:
+    """--secret with --secret-file is a usage mistake; an explicit --token beats the env."""
+    secret_file = tmp_path / "secret"
+    secret_file.write_text("s3cret\n")
+    res = _bots(relay, "--secret", "s3cret", "--secret-file", secret_file)
+    assert_one_line(res, 2, "--secret", "--secret-file", "not both")
+    # The bad --token given on the command line is used, not POSECAST_SECRET: refused.
+    res = _bots(relay, "--token", "not-a-token", secret="s3cret")
+    assert_one_line(res, 1, "join refused", "malformed access token")
 
 
 def test_demo_checks_the_rate_before_starting(tmp_path: Path) -> None:
