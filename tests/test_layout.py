@@ -96,3 +96,27 @@ def test_server_holds_only_the_relay() -> None:
     modules = {p.name for p in (ROOT / "server").glob("*.py")}
     relay = {"__init__.py", "core.py", "room.py", "auth.py", "logs.py", "app.py", "http.py"}
     assert modules == relay
+
+
+def _sources() -> list[Path]:
+    return [p for package in PACKAGES for p in sorted((ROOT / package).rglob("*.py"))]
+
+
+def test_no_module_over_800_lines() -> None:
+    """Every module of the packages stays readable in one sitting."""
+    long = {
+        str(p.relative_to(ROOT)): n for p in _sources() if (n := p.read_text().count("\n")) > 800
+    }
+    assert not long, long
+
+
+def test_no_function_over_80_lines() -> None:
+    """A function longer than 80 lines (def to last line) is split into named steps."""
+    long = []
+    for path in _sources():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                size = (node.end_lineno or node.lineno) - node.lineno + 1
+                if size > 80:
+                    long.append((str(path.relative_to(ROOT)), node.name, size))
+    assert not long, long
