@@ -45,13 +45,7 @@ VELOCITY_SIZE = 6
 
 
 def _checked(x: ArrayLike, name: str, tail: tuple[int, ...]) -> F64:
-    try:
-        arr = np.asarray(x, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"expected `{name}` to be a float array: {exc}") from None
-    if arr.ndim < len(tail) or arr.shape[arr.ndim - len(tail) :] != tail:
-        shape = "(..., " + ", ".join(str(d) for d in tail) + ")"
-        raise ValueError(f"expected `{name}` to have shape {shape}, got {arr.shape}")
+    arr = _float_array(x, name, tail)
     # One reduction first: a non-finite sum is rare, then we look closer.
     if not np.isfinite(arr.sum()) and not np.all(np.isfinite(arr)):
         raise ValueError(f"expected `{name}` to hold finite values")
@@ -337,58 +331,21 @@ def _hermite_end(rows: F64, vel: F64, g: F64, c: F64, real: F64, dual: F64, add:
     else:
         real[...] = q
     dw, dx, dy, dz = dual
-    _sum_products(
-        dw,
-        (
-            (tx, qx, True),
-            (ty, qy, True),
-            (tz, qz, True),
-            (ex, x, True),
-            (ey, y, True),
-            (ez, z, True),
-        ),
-        tmp,
-        add,
-    )
-    _sum_products(
-        dx,
-        (
-            (tx, qw, False),
-            (ty, qz, False),
-            (tz, qy, True),
-            (ex, w, False),
-            (ey, z, False),
-            (ez, y, True),
-        ),
-        tmp,
-        add,
-    )
-    _sum_products(
-        dy,
-        (
-            (ty, qw, False),
-            (tz, qx, False),
-            (tx, qz, True),
-            (ey, w, False),
-            (ez, x, False),
-            (ex, z, True),
-        ),
-        tmp,
-        add,
-    )
-    _sum_products(
-        dz,
-        (
-            (tz, qw, False),
-            (tx, qy, False),
-            (ty, qx, True),
-            (ez, w, False),
-            (ex, y, False),
-            (ey, x, True),
-        ),
-        tmp,
-        add,
-    )
+    t, e, r, qv = (tx, ty, tz), (ex, ey, ez), (x, y, z), (qx, qy, qz)
+    # Scalar part: -(t . Q) - (e . q).
+    _sum_products(dw, tuple((a, b, True) for a, b in zip(t + e, qv + r, strict=True)), tmp, add)
+    for i, d in enumerate((dx, dy, dz)):
+        # Vector part of (0, t) Q + (0, e) q, the same terms cycled through (x, y, z).
+        j, m = (i + 1) % 3, (i + 2) % 3
+        terms = (
+            (t[i], qw, False),
+            (t[j], qv[m], False),
+            (t[m], qv[j], True),
+            (e[i], w, False),
+            (e[j], r[m], False),
+            (e[m], r[j], True),
+        )
+        _sum_products(d, terms, tmp, add)
 
 
 def motor_hermite(
