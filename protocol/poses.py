@@ -50,7 +50,7 @@ import math
 import struct
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
-from typing import ClassVar, Literal
+from typing import ClassVar, Literal, Self
 
 import msgpack
 import numpy as np
@@ -249,14 +249,81 @@ def _base_time(base_time: float | None, capture_times: NDArray[np.float64]) -> f
     return 0.0
 
 
+def _check_entries(where: str, entries: object, dtypes: tuple[np.dtype, ...], label: str) -> None:
+    if not isinstance(entries, np.ndarray) or entries.dtype not in dtypes:
+        raise bad(where, f"must be an array of {label} records")
+    if entries.ndim != 1:
+        raise bad(where, "must be 1-d")
+
+
+def _fill_records(
+    entries: NDArray[np.void],
+    times: NDArray[np.float64],
+    base: float,
+    poses: NDArray[np.float64],
+    velocities: NDArray[np.float16] | None,
+) -> None:
+    # Values beyond float32 become inf without a warning; the receiver's
+    # pose check reports them as "bad-pose".
+    with np.errstate(over="ignore", invalid="ignore"):
+        entries["dt"] = times - base
+        entries["pose"] = poses
+    if velocities is not None:
+        entries["velocity"] = velocities
+
+
 class _PoseRecords:
-    """The record views both pose frames offer (``entries``: one record per pose)."""
+    """What both pose frames share: a counter, a server time and one record per pose.
+
+    ``_COUNTER`` names the counter field (also its wire key), ``_TIME`` the
+    field of the server time the records' ``dt`` offsets count from.
+    """
 
     __slots__ = ()
+    TYPE: ClassVar[str]
+    _COUNTER: ClassVar[str]
+    _TIME: ClassVar[str]
     entries: NDArray[np.void]
+
+    @classmethod
+    def _trusted(cls, counter: int, time: float, entries: NDArray[np.void]) -> Self:
+        # The decoder has checked every field already; skipping __post_init__
+        # saves a microsecond or two per frame on the server's hottest path.
+        self = object.__new__(cls)
+        object.__setattr__(self, cls._COUNTER, counter)
+        object.__setattr__(self, cls._TIME, time)
+        object.__setattr__(self, "entries", entries)
+        return self
+
+    def _head(self) -> tuple[int, float]:
+        counter: int = getattr(self, self._COUNTER)
+        time: float = getattr(self, self._TIME)
+        return counter, time
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, type(self)):
+            return NotImplemented
+        return (*self._head(), self.entries.tobytes()) == (*other._head(), other.entries.tobytes())
+
+    __hash__ = None  # type: ignore[assignment]
 
     def __len__(self) -> int:
         return len(self.entries)
+
+    @property
+    def capture_times(self) -> NDArray[np.float64]:
+        """Capture times in server time, (n,) float64."""
+        return self.entries["dt"].astype(np.float64) + self._head()[1]
+
+    def to_wire(self) -> dict[str, object]:
+        """The msgpack map for this frame."""
+        counter, time = self._head()
+        return {
+            "type": self.TYPE,
+            self._COUNTER: counter,
+            "time": time,
+            _key(self.entries): self.entries.tobytes(),
+        }
 
     @property
     def streams(self) -> NDArray[np.uint16]:
@@ -288,6 +355,8 @@ class PoseUpdate(_PoseRecords):
     """
 
     TYPE: ClassVar[str] = "update"
+    _COUNTER: ClassVar[str] = "seq"
+    _TIME: ClassVar[str] = "base_time"
     seq: int
     """Sender's sequence number, increasing by one per update."""
     base_time: float
@@ -298,14 +367,8 @@ class PoseUpdate(_PoseRecords):
     def __post_init__(self) -> None:
         check_int("update.seq", self.seq, 0, U63_MAX)
         object.__setattr__(self, "base_time", check_float("update.time", self.base_time))
-        entries = self.entries
-        if not isinstance(entries, np.ndarray) or entries.dtype not in (
-            UPDATE_DTYPE,
-            UPDATE_VELOCITY_DTYPE,
-        ):
-            raise bad("update.poses", "must be an array of UPDATE_DTYPE records")
-        if entries.ndim != 1:
-            raise bad("update.poses", "must be 1-d")
+        dtypes = (UPDATE_DTYPE, UPDATE_VELOCITY_DTYPE)
+        _check_entries("update.poses", self.entries, dtypes, "UPDATE_DTYPE")
 
     @classmethod
     def from_arrays(
@@ -330,49 +393,8 @@ class PoseUpdate(_PoseRecords):
         vel = None if velocities is None else _velocities(velocities, n)
         entries = np.empty(n, dtype=UPDATE_DTYPE if vel is None else UPDATE_VELOCITY_DTYPE)
         entries["stream"] = stream_array
-        # Values beyond float32 become inf without a warning; the receiver's
-        # pose check reports them as "bad-pose".
-        with np.errstate(over="ignore", invalid="ignore"):
-            entries["dt"] = times - base
-            entries["pose"] = pose_array
-        if vel is not None:
-            entries["velocity"] = vel
+        _fill_records(entries, times, base, pose_array, vel)
         return cls(seq, base, entries)
-
-    @classmethod
-    def _trusted(cls, seq: int, base_time: float, entries: NDArray[np.void]) -> PoseUpdate:
-        # The decoder has checked every field already; skipping __post_init__
-        # saves a microsecond or two per frame on the server's hottest path.
-        self = object.__new__(cls)
-        object.__setattr__(self, "seq", seq)
-        object.__setattr__(self, "base_time", base_time)
-        object.__setattr__(self, "entries", entries)
-        return self
-
-    def __eq__(self, other: object) -> bool:
-        if not isinstance(other, PoseUpdate):
-            return NotImplemented
-        return (self.seq, self.base_time, self.entries.tobytes()) == (
-            other.seq,
-            other.base_time,
-            other.entries.tobytes(),
-        )
-
-    __hash__ = None  # type: ignore[assignment]
-
-    @property
-    def capture_times(self) -> NDArray[np.float64]:
-        """Capture times in server time, (n,) float64."""
-        return self.entries["dt"].astype(np.float64) + self.base_time
-
-    def to_wire(self) -> dict[str, object]:
-        """The msgpack map for this update."""
-        return {
-            "type": self.TYPE,
-            "seq": self.seq,
-            "time": self.base_time,
-            _key(self.entries): self.entries.tobytes(),
-        }
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -384,6 +406,8 @@ class Snapshot(_PoseRecords):
     """
 
     TYPE: ClassVar[str] = "snapshot"
+    _COUNTER: ClassVar[str] = "tick"
+    _TIME: ClassVar[str] = "send_time"
     tick: int
     """The room's tick number."""
     send_time: float
@@ -394,14 +418,8 @@ class Snapshot(_PoseRecords):
     def __post_init__(self) -> None:
         check_int("snapshot.tick", self.tick, 0, U63_MAX)
         object.__setattr__(self, "send_time", check_float("snapshot.time", self.send_time))
-        entries = self.entries
-        if not isinstance(entries, np.ndarray) or entries.dtype not in (
-            SNAPSHOT_DTYPE,
-            SNAPSHOT_VELOCITY_DTYPE,
-        ):
-            raise bad("snapshot.poses", "must be an array of SNAPSHOT_DTYPE records")
-        if entries.ndim != 1:
-            raise bad("snapshot.poses", "must be 1-d")
+        dtypes = (SNAPSHOT_DTYPE, SNAPSHOT_VELOCITY_DTYPE)
+        _check_entries("snapshot.poses", self.entries, dtypes, "SNAPSHOT_DTYPE")
 
     @classmethod
     def from_arrays(
@@ -426,52 +444,13 @@ class Snapshot(_PoseRecords):
         entries["user"] = _u16("users", users, n)
         entries["stream"] = _u16("streams", streams, n)
         times = _times("capture_times", capture_times, n)
-        with np.errstate(over="ignore", invalid="ignore"):
-            entries["dt"] = times - send
-            entries["pose"] = pose_array
-        if vel is not None:
-            entries["velocity"] = vel
+        _fill_records(entries, times, send, pose_array, vel)
         return cls(tick, send, entries)
-
-    @classmethod
-    def _trusted(cls, tick: int, send_time: float, entries: NDArray[np.void]) -> Snapshot:
-        # The decoder has checked every field already; skipping __post_init__
-        # saves a microsecond or two per frame on the server's hottest path.
-        self = object.__new__(cls)
-        object.__setattr__(self, "tick", tick)
-        object.__setattr__(self, "send_time", send_time)
-        object.__setattr__(self, "entries", entries)
-        return self
-
-    def __eq__(self, other: object) -> bool:
-        if not isinstance(other, Snapshot):
-            return NotImplemented
-        return (self.tick, self.send_time, self.entries.tobytes()) == (
-            other.tick,
-            other.send_time,
-            other.entries.tobytes(),
-        )
-
-    __hash__ = None  # type: ignore[assignment]
 
     @property
     def users(self) -> NDArray[np.uint16]:
         """User ids, (n,) view."""
         return self.entries["user"]
-
-    @property
-    def capture_times(self) -> NDArray[np.float64]:
-        """Capture times in server time, (n,) float64."""
-        return self.entries["dt"].astype(np.float64) + self.send_time
-
-    def to_wire(self) -> dict[str, object]:
-        """The msgpack map for this snapshot."""
-        return {
-            "type": self.TYPE,
-            "tick": self.tick,
-            "time": self.send_time,
-            _key(self.entries): self.entries.tobytes(),
-        }
 
 
 def _key(entries: NDArray[np.void]) -> str:

@@ -34,6 +34,8 @@ from dataclasses import dataclass, replace
 from typing import ClassVar
 
 import msgpack
+import numpy as np
+from numpy.typing import NDArray
 
 from protocol._state import ERROR_FATAL, ERROR_JOIN, TRANSITIONS, Role, State, moves
 from protocol.errors import ErrorCode, LocalProtocolError, ProtocolViolation
@@ -237,16 +239,12 @@ class _Session:
             )
         if len(seen) != len(ids):
             raise ProtocolViolation(ErrorCode.DUPLICATE_STREAM, "stream twice in one update")
-        self._check_variant("update", has_velocity(entries), self.sends_velocities)
-        problem = pose_problem(entries)
-        if problem is not None:
-            raise ProtocolViolation(ErrorCode.BAD_POSE, problem)
-        problem = velocity_problem(entries)
-        if problem is not None:
-            raise ProtocolViolation(ErrorCode.BAD_VELOCITY, problem)
+        self._check_records("update", entries, self.sends_velocities)
 
     @staticmethod
-    def _check_variant(type_: str, velocity: bool, agreed: bool) -> None:
+    def _check_records(type_: str, entries: NDArray[np.void], agreed: bool) -> None:
+        """A pose frame's records: the variant agreed at join, usable poses and velocities."""
+        velocity = has_velocity(entries)
         if velocity and not agreed:
             raise ProtocolViolation(
                 ErrorCode.BAD_MESSAGE, f"{type_} with velocities, not agreed at join"
@@ -255,6 +253,12 @@ class _Session:
             raise ProtocolViolation(
                 ErrorCode.BAD_MESSAGE, f"{type_} without velocities, agreed at join"
             )
+        problem = pose_problem(entries)
+        if problem is not None:
+            raise ProtocolViolation(ErrorCode.BAD_POSE, problem)
+        problem = velocity_problem(entries)
+        if problem is not None:
+            raise ProtocolViolation(ErrorCode.BAD_VELOCITY, problem)
 
     def _agree_velocities(self) -> None:
         join = self._pending_join
@@ -378,14 +382,7 @@ class ClientSession(_Session):
 
     def _check_received(self, message: Message) -> Message:
         if isinstance(message, Snapshot):
-            entries = message.entries
-            self._check_variant("snapshot", has_velocity(entries), self.wants_velocities)
-            problem = pose_problem(entries)
-            if problem is not None:
-                raise ProtocolViolation(ErrorCode.BAD_POSE, problem)
-            problem = velocity_problem(entries)
-            if problem is not None:
-                raise ProtocolViolation(ErrorCode.BAD_VELOCITY, problem)
+            self._check_records("snapshot", message.entries, self.wants_velocities)
         elif isinstance(message, Welcome):
             self.welcome = message
             self.user = message.user
