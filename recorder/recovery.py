@@ -37,7 +37,7 @@ from recorder.scan import (
     ScanProblem,
     SchemaRecord,
 )
-from recorder.writer import PART_SUFFIX
+from recorder.writer import PART_SUFFIX, fsync_dir
 
 __all__ = [
     "RecoveryError",
@@ -116,19 +116,6 @@ def _default_output(source: Path) -> Path:
         return source.with_name(name[: -len(PART_SUFFIX)])
     stem = name[:-5] if name.endswith(".mcap") else name
     return source.with_name(f"{stem}.recovered.mcap")
-
-
-def _fsync_dir(directory: Path) -> None:
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 class _Copier:
@@ -245,10 +232,10 @@ def recover(
         tmp.unlink(missing_ok=True)
         raise
     os.replace(tmp, out)
-    _fsync_dir(out.parent)
+    fsync_dir(out.parent)
     if remove_part:
         source.unlink()
-        _fsync_dir(source.parent)
+        fsync_dir(source.parent)
     report = RecoveryReport(
         source=source,
         output=out,

@@ -40,7 +40,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from interp import info as interp_info
-from interp import interpolate_brackets
 from recorder.export import POSE_COLUMNS, csv_bytes, sorted_streams
 from recorder.reader import StreamData
 from recorder.writer import SessionRecorder
@@ -50,6 +49,7 @@ from scenarios.qoe import (
     KeyframeLog,
     evaluate_group,
     ideal_delay,
+    interpolate_playout,
     playout_brackets,
     sample_keyframes,
     summarize,
@@ -240,17 +240,7 @@ def _render_group(
             log.capture, log.arrival, taus, delay, lookbehind=lookbehind, lookahead=lookahead
         )
         for m in group:
-            out = interpolate_brackets(
-                log.poses,
-                play.lo,
-                play.hi,
-                play.s,
-                m,
-                times=log.capture,
-                before=play.before,
-                after=play.after,
-                velocities=log.velocities,
-            )
+            out = interpolate_playout(log, play, m)
             rows = [(s, taus, out[:, j], play.stall) for j, (s, _p, _v) in enumerate(members)]
             outputs.append((m, {m: scored[m]}, rows))
     return delays, outputs

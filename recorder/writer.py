@@ -142,7 +142,8 @@ def _safe_name(room: str) -> str:
     return name[:64] or "room"
 
 
-def _fsync_dir(directory: Path) -> None:
+def fsync_dir(directory: Path) -> None:
+    """Make a rename or a new file in ``directory`` durable, as far as the OS allows."""
     try:
         fd = os.open(directory, os.O_RDONLY)
     except OSError:
@@ -380,7 +381,7 @@ class SessionRecorder(RecordTap):
             start_ns = to_ns(start)
             rec._write((_EVENTS, start_ns, start_ns, encode_json(_start_event(room, start)), 0))
             rec._sync()
-            _fsync_dir(folder)
+            fsync_dir(folder)
         except BaseException:
             stream.close()
             part.unlink(missing_ok=True)
@@ -595,7 +596,7 @@ class SessionRecorder(RecordTap):
         self._fsyncs += 1
         self._file.close()
         os.replace(self.part_path, self.path)
-        _fsync_dir(self.path.parent)
+        fsync_dir(self.path.parent)
         self._bytes = self.path.stat().st_size
 
     # -- control -----------------------------------------------------------------------

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -50,6 +50,7 @@ __all__ = [
     "evaluate_group",
     "extrapolate_stalls",
     "ideal_delay",
+    "interpolate_playout",
     "plan_stalls",
     "playout_brackets",
     "render_playout",
@@ -513,16 +514,7 @@ def render_playout(
             np.empty((0, s_count, 7)), shown, none, none, none, np.empty(0, np.intp), empty, empty
         )
     assert play.prev is not None and play.nxt is not None
-    poses = interpolate_brackets(
-        log.poses,
-        play.lo[shown],
-        play.hi[shown],
-        play.s[shown],
-        method,
-        times=log.capture,
-        velocities=log.velocities,
-        **_window_args(play, shown),
-    )
+    poses = interpolate_playout(log, play, method, shown)
     if extrapolate_horizon is None:
         return Rendered(poses, shown, none, none, none, np.empty(0, np.intp), empty, empty)
     return extrapolate_stalls(
@@ -536,12 +528,21 @@ def render_playout(
     )
 
 
-def _window_args(play: Playout, rows: NDArray[np.bool_]) -> dict[str, NDArray[np.intp] | None]:
-    """The neighbours of ``play`` at ``rows`` for :func:`interp.interpolate_brackets`."""
+def interpolate_playout(
+    log: KeyframeLog, play: Playout, method: str, rows: NDArray[np.bool_] | None = None
+) -> F64:
+    """``method`` at the brackets of ``play`` (only at ``rows``, if given), ``(Q, S, 7)``."""
+
+    def at(x: NDArray[Any]) -> NDArray[Any]:
+        return x if rows is None else x[rows]
+
+    keywords: dict[str, Any] = {"times": log.capture, "velocities": log.velocities}
     if play.before is not None and play.after is not None:
-        return {"before": play.before[rows], "after": play.after[rows]}
-    assert play.prev is not None and play.nxt is not None
-    return {"prev": play.prev[rows], "nxt": play.nxt[rows]}
+        keywords.update(before=at(play.before), after=at(play.after))
+    else:
+        assert play.prev is not None and play.nxt is not None
+        keywords.update(prev=at(play.prev), nxt=at(play.nxt))
+    return interpolate_brackets(log.poses, at(play.lo), at(play.hi), at(play.s), method, **keywords)
 
 
 @dataclass(frozen=True)

@@ -27,6 +27,7 @@ from scenarios.qoe import (
     Rendered,
     StallPlan,
     apply_stalls,
+    interpolate_playout,
     plan_stalls,
     playout_brackets,
     window_depth,
@@ -204,18 +205,7 @@ def _frontier_trace(
     kf_tips = _tips(log.poses)
     for m in methods:
         entry = interp.info(m)
-        assert ref.before is not None and ref.after is not None
-        ref_poses = interp.interpolate_brackets(
-            log.poses,
-            ref.lo,
-            ref.hi,
-            ref.s,
-            m,
-            times=log.capture,
-            before=ref.before,
-            after=ref.after,
-            velocities=log.velocities,
-        )
+        ref_poses = interpolate_playout(log, ref, m)
         ref_err = _tip_mm(ref_poses, true_tips)
         for f in fractions:
             d = lag + (f + entry.lookahead) / rate
@@ -255,17 +245,7 @@ def _render_play(
         d_tip = kf_tips[hold] - true_tips[stall]
         err[stall] = 1000.0 * np.sqrt(np.einsum("...i,...i->...", d_tip, d_tip))
     if redo.any():
-        poses[redo] = interp.interpolate_brackets(
-            log.poses,
-            play.lo[redo],
-            play.hi[redo],
-            play.s[redo],
-            m,
-            times=log.capture,
-            before=play.before[redo],
-            after=play.after[redo],
-            velocities=log.velocities,
-        )
+        poses[redo] = interpolate_playout(log, play, m, redo)
         err[redo] = _tip_mm(poses[redo], true_tips[redo])
     return poses, err
 
