@@ -41,6 +41,7 @@ from numpy.typing import NDArray
 
 from scenarios.network import Delivery, LinkModel, Tier, affordable_rate
 from scenarios.qoe import ErrorSamples, KeyframeLog, evaluate_group
+from scenarios.table1.report import jsonable
 from scenarios.traces import Trace
 
 __all__ = [
@@ -608,18 +609,6 @@ def _pc(x: Any) -> str:
     return "-" if x is None else f"{_n(100.0 * x, 2)} %"
 
 
-def _jsonable(x: Any) -> Any:
-    if isinstance(x, Mapping):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, float | np.floating):
-        return None if not math.isfinite(float(x)) else round(float(x), 6)
-    if isinstance(x, np.integer | np.bool_):
-        return x.item()
-    return x
-
-
 def write_live(out_dir: str | Path, live: Mapping[str, Any]) -> None:
     """Add ``live`` to ``table1.json`` (key ``"live"``) and its section to ``table1.md``.
 
@@ -629,7 +618,7 @@ def write_live(out_dir: str | Path, live: Mapping[str, Any]) -> None:
     out = Path(out_dir)
     js, md = out / "table1.json", out / "table1.md"
     report = json.loads(js.read_text())
-    report["live"] = _jsonable(live)
+    report["live"] = jsonable(live)
     js.write_text(json.dumps(report, indent=1) + "\n")
     text = md.read_text()
     section = "\n".join(live_markdown(report["live"])) + "\n"

@@ -21,6 +21,14 @@ def _pyplot() -> Any:
     return plt
 
 
+def _save(plt: Any, fig: Any, out: Path, name: str) -> str:
+    """Lay ``fig`` out, write it to ``out/name`` and close it; return ``name``."""
+    fig.tight_layout()
+    fig.savefig(out / name)
+    plt.close(fig)
+    return name
+
+
 def write_plots(
     out: Path,
     report: Mapping[str, Any],
@@ -87,10 +95,7 @@ def _qoe_vs_rate(
     fig.suptitle(
         "QoE vs update rate, ideal network (dotted: tier rates; circles: equal-QoE)", fontsize=9
     )
-    fig.tight_layout()
-    fig.savefig(out / "qoe_vs_rate.png")
-    plt.close(fig)
-    return "qoe_vs_rate.png"
+    return _save(plt, fig, out, "qoe_vs_rate.png")
 
 
 def _error_cdf(
@@ -132,10 +137,7 @@ def _error_cdf(
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=6)
     axes[0][0].set_ylabel("CDF")
-    fig.tight_layout()
-    fig.savefig(out / "error_cdf.png")
-    plt.close(fig)
-    return "error_cdf.png"
+    return _save(plt, fig, out, "error_cdf.png")
 
 
 def _qoe_vs_rate_link(
@@ -162,10 +164,7 @@ def _qoe_vs_rate_link(
         ax.grid(True, which="both", alpha=0.3)
     axes[0][0].set_ylabel("p95 tip error, hands (mm)")
     axes[0][0].legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(out / "qoe_vs_rate_link.png")
-    plt.close(fig)
-    return "qoe_vs_rate_link.png"
+    return _save(plt, fig, out, "qoe_vs_rate_link.png")
 
 
 def frontier_plot(
@@ -239,7 +238,4 @@ def frontier_plot(
         "Error vs latency (stars: SoA at the tier rate, one-interval playout; black: frontier)",
         fontsize=9,
     )
-    fig.tight_layout()
-    fig.savefig(out / "frontier.png")
-    plt.close(fig)
-    return "frontier.png"
+    return _save(plt, fig, out, "frontier.png")

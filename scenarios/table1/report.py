@@ -31,15 +31,15 @@ from scenarios.traces import CAUSAL_DEGREE, CAUSAL_SAMPLES, Trace
 
 def jsonable(x: Any) -> Any:
     """``x`` as JSON takes it: string keys, lists, floats rounded to 6 decimals (``None`` if
-    not finite), numpy scalars as Python numbers."""
-    if isinstance(x, dict):
+    not finite), numpy integers and booleans as Python ones."""
+    if isinstance(x, Mapping):
         return {str(k): jsonable(v) for k, v in x.items()}
     if isinstance(x, list | tuple):
         return [jsonable(v) for v in x]
     if isinstance(x, float | np.floating):
         return None if not math.isfinite(float(x)) else round(float(x), 6)
-    if isinstance(x, np.integer):
-        return int(x)
+    if isinstance(x, np.integer | np.bool_):
+        return x.item()
     return x
 
 
