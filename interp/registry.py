@@ -48,6 +48,7 @@ from typing import Any, Literal
 from numpy.typing import ArrayLike
 
 from interp.cubic import motor_cubic, motor_hermite
+from interp.hermite import soa_hermite
 from interp.methods import dq_slerp, motor_lerp, soa
 from interp.pose import F64
 from interp.quintic import QUINTIC_LOOKAHEAD, QUINTIC_LOOKBEHIND, motor_quintic
@@ -226,6 +227,16 @@ register(
     motor_hermite,
     description="Hermite cubic on motors from keyframe poses + tracker velocities",
     frame_invariant=True,
+    kind="velocity",
+)
+register(
+    "soa-hermite",
+    soa_hermite,
+    description=(
+        "cubic Hermite position + quaternion Hermite rotation from keyframe poses "
+        "+ tracker velocities (SoA with velocities)"
+    ),
+    frame_invariant=False,
     kind="velocity",
 )
 register(
