@@ -9,13 +9,15 @@ at ``tau``.
 
 The offline comparison, the Table 1 simulator, the live bots and replays all go
 through :func:`playout_brackets` and :func:`evaluate_group`, so their numbers
-mean the same thing. Nothing here reads a clock: times are arguments.
+mean the same thing. Nothing here reads a clock: times are arguments. The
+per-class statistics (:class:`ErrorSamples`, :data:`STAT_KEYS`, the velocity
+error) live in :mod:`scenarios.qoe_stats` and are re-exported here.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
@@ -33,6 +35,12 @@ from interp import (
     info as interp_info,
 )
 from interp.extrapolate import twist_extrapolate
+from scenarios.qoe_stats import (
+    EXTRAPOLATION_KEYS,
+    STAT_KEYS,
+    ErrorSamples,
+    tip_velocity_error_mps,
+)
 from scenarios.traces import Trace, device_class
 
 __all__ = [
@@ -56,6 +64,7 @@ __all__ = [
     "render_playout",
     "sample_keyframes",
     "summarize",
+    "tip_velocity_error_mps",
     "window_depth",
 ]
 
@@ -64,27 +73,6 @@ __all__ = [
 MAX_REORDER_DEPTH = 32
 
 CLASS_ORDER = ("hands", "head", "objects")
-STAT_KEYS = (
-    "pos_p50_mm",
-    "pos_p95_mm",
-    "rot_p50_deg",
-    "rot_p95_deg",
-    "tip_p50_mm",
-    "tip_p95_mm",
-    "stall_fraction",
-)
-#: Extra statistics of :meth:`ErrorSamples.extrapolation_stats` (stalls rendered by
-#: dead reckoning, and the corrections when the next keyframe arrives).
-EXTRAPOLATION_KEYS = (
-    "extrapolated_fraction",
-    "beyond_horizon_fraction",
-    "correction_events",
-    "correction_tip_p50_mm",
-    "correction_tip_p95_mm",
-    "correction_pos_p50_mm",
-    "correction_pos_p95_mm",
-)
-
 F64 = NDArray[np.float64]
 
 #: How a stalled query is dead-reckoned: ``screw`` continues the screw motion of
@@ -315,86 +303,6 @@ def _window_columns(
         cand, ok = _walk(cols_a[-1] + 1, +1, arrival, deadline, k)
         cols_a.append(np.where(ok & bracketed, cand, cols_a[-1]))
     return cols_b, cols_a
-
-
-@dataclass
-class ErrorSamples:
-    """Per-sample errors pooled over streams of one device class.
-
-    With extrapolation on (:func:`evaluate_group`'s ``extrapolate_horizon``),
-    ``extrapolated`` and ``beyond_horizon`` count samples (per stream, like
-    ``samples``) rendered by dead reckoning, and ``correction_*_mm`` hold the
-    size of each correction: the distance between the stalled pose continued
-    to the first frame after a keyframe arrives and the pose the new keyframes
-    give there (the jump a renderer without smoothing would show).
-    """
-
-    pos_mm: list[F64] = field(default_factory=list)
-    rot_deg: list[F64] = field(default_factory=list)
-    tip_mm: list[F64] = field(default_factory=list)
-    stalls: int = 0
-    samples: int = 0
-    extrapolated: int = 0
-    beyond_horizon: int = 0
-    correction_tip_mm: list[F64] = field(default_factory=list)
-    correction_pos_mm: list[F64] = field(default_factory=list)
-
-    def add(self, pos: F64, rot: F64, tip: F64, stalls: int, samples: int) -> None:
-        self.pos_mm.append(pos)
-        self.rot_deg.append(rot)
-        self.tip_mm.append(tip)
-        self.stalls += stalls
-        self.samples += samples
-
-    def add_extrapolation(
-        self, extrapolated: int, beyond_horizon: int, correction_tip: F64, correction_pos: F64
-    ) -> None:
-        """Count dead-reckoned samples and record correction sizes (mm)."""
-        self.extrapolated += extrapolated
-        self.beyond_horizon += beyond_horizon
-        self.correction_tip_mm.append(correction_tip)
-        self.correction_pos_mm.append(correction_pos)
-
-    def merge(self, other: ErrorSamples) -> None:
-        self.pos_mm += other.pos_mm
-        self.rot_deg += other.rot_deg
-        self.tip_mm += other.tip_mm
-        self.stalls += other.stalls
-        self.samples += other.samples
-        self.extrapolated += other.extrapolated
-        self.beyond_horizon += other.beyond_horizon
-        self.correction_tip_mm += other.correction_tip_mm
-        self.correction_pos_mm += other.correction_pos_mm
-
-    def stats(self) -> dict[str, float]:
-        """p50/p95 of each error and the stall fraction (NaN where no samples)."""
-        return {
-            "pos_p50_mm": _pct(self.pos_mm, 50),
-            "pos_p95_mm": _pct(self.pos_mm, 95),
-            "rot_p50_deg": _pct(self.rot_deg, 50),
-            "rot_p95_deg": _pct(self.rot_deg, 95),
-            "tip_p50_mm": _pct(self.tip_mm, 50),
-            "tip_p95_mm": _pct(self.tip_mm, 95),
-            "stall_fraction": self.stalls / self.samples if self.samples else float("nan"),
-        }
-
-    def extrapolation_stats(self) -> dict[str, float]:
-        """Shares of dead-reckoned samples and correction sizes (:data:`EXTRAPOLATION_KEYS`)."""
-        n = self.samples
-        return {
-            "extrapolated_fraction": self.extrapolated / n if n else float("nan"),
-            "beyond_horizon_fraction": self.beyond_horizon / n if n else float("nan"),
-            "correction_events": float(sum(x.size for x in self.correction_tip_mm)),
-            "correction_tip_p50_mm": _pct(self.correction_tip_mm, 50),
-            "correction_tip_p95_mm": _pct(self.correction_tip_mm, 95),
-            "correction_pos_p50_mm": _pct(self.correction_pos_mm, 50),
-            "correction_pos_p95_mm": _pct(self.correction_pos_mm, 95),
-        }
-
-
-def _pct(parts: list[F64], p: float) -> float:
-    arr = np.concatenate(parts) if parts else np.empty(0)
-    return float(np.percentile(arr, p)) if arr.size else float("nan")
 
 
 @dataclass(frozen=True)
@@ -712,6 +620,7 @@ def evaluate_group(
     stalls and ``correction_time`` smooths the corrections, as in
     :func:`render_playout`; stalls are counted either way, and the
     :class:`ErrorSamples` also count extrapolated samples and correction sizes.
+    Velocity errors are taken between consecutive queries that were both shown.
     Returns ``{method: {device_class: ErrorSamples}}``.
     """
     if truth.poses.shape[1] != log.poses.shape[1]:
@@ -747,13 +656,14 @@ def evaluate_group(
             pos = position_error_mm(rendered, ref)
             rot = rotation_error_deg(rendered, ref)
             tip = tip_error_mm(rendered, ref)
+            vel = tip_velocity_error_mps(rendered, true_poses, taus, shown)
         else:
-            pos = rot = tip = np.empty((0, n_streams))
+            pos = rot = tip = vel = np.empty((0, n_streams))
         stalls = int(play.stall.sum())
         for j, stream in enumerate(truth.streams):
             cls = device_class(stream)
             samples = per_class.setdefault(cls, ErrorSamples())
-            samples.add(pos[:, j], rot[:, j], tip[:, j], stalls, taus.size)
+            samples.add(pos[:, j], rot[:, j], tip[:, j], stalls, taus.size, vel=vel[:, j])
             if ren is not None and extrapolate_horizon is not None:
                 samples.add_extrapolation(
                     int(ren.extrapolated.sum()),
