@@ -112,7 +112,7 @@ class _Connection:
             pass
 
     async def write_loop(self) -> None:
-        core, clock = self.server.core, self.server.clock
+        server, core, clock = self.server, self.server.core, self.server.clock
         next_at: float | None = None
         try:
             while True:
@@ -123,6 +123,9 @@ class _Connection:
                         await self.wake.wait()
                 self.wake.clear()
                 frames, next_at = core.take(self.conn, clock())
+                # The link's rate adaptation may have moved a tick earlier: the tick
+                # loop must hear it now, not at the next action some reader causes.
+                server.apply(core.pending())
                 for data in frames:
                     await self.ws.send(data)
                 if not core.events_pending(self.conn):
@@ -340,8 +343,9 @@ class RelayServer:
         conn = _Connection(self, ws)
         self._conns[conn.conn] = conn
         if self._stop.is_set():
-            # Its handshake finished after stop() had closed the others.
-            conn.close(1001, "going away")
+            # Its handshake finished after stop() had closed the others. Through the
+            # core, which then handles nothing more it sends (no hello, no join).
+            self.apply(self.core.close(conn.conn, 1001, "going away"))
         try:
             async with asyncio.TaskGroup() as tg:
                 writer = tg.create_task(conn.write_loop())

@@ -288,6 +288,12 @@ class RelayCore:
         self.totals = dict.fromkeys(COUNTERS, 0)
         #: Pose updates are not recorded while set (see :meth:`pause_recording`).
         self.recording_paused = False
+        #: (due, seq, room) of every room with members; entries a later change made
+        #: stale are dropped when met, so a wake-up costs O(log rooms), not O(members).
+        self._dues: list[tuple[float, int, Room]] = []
+        self._due_seq = 0
+        #: Set by :meth:`close_rooms`: the server is stopping, no room is added.
+        self.closed = False
 
     # -- plumbing ----------------------------------------------------------------
 
@@ -298,6 +304,10 @@ class RelayCore:
     def _actions(self) -> list[Action]:
         out, self._out = self._out, []
         return out
+
+    def pending(self) -> list[Action]:
+        """Actions decided by :meth:`take` (the link's rate adaptation: ``Reschedule``)."""
+        return self._actions()
 
     def peer(self, conn: int) -> Peer:
         return self.peers[conn]
@@ -418,7 +428,7 @@ class RelayCore:
 
     def add_room(self, name: str, recorder: RoomRecorder | None, now: float) -> bool:
         """Create room ``name`` with its (opened) recorder; False if it exists already."""
-        if name in self.rooms:
+        if name in self.rooms or self.closed:
             return False
         room = self._room_for(name)
         room.recorder = recorder
@@ -435,8 +445,24 @@ class RelayCore:
 
     def next_deadline(self) -> float | None:
         """When the next room tick is due (None: no member anywhere)."""
-        dues = [d for d in (r.next_due() for r in self.rooms.values()) if d is not None]
-        return min(dues) if dues else None
+        dues = self._dues
+        while dues:
+            due, _, room = dues[0]
+            if self.rooms.get(room.name) is room and room.next_due() == due:
+                return due
+            heapq.heappop(dues)  # stale: the room's schedule changed, or it is gone
+        return None
+
+    def _schedule(self, room: Room) -> None:
+        """Room ``room``'s earliest due time may have moved: queue the new one."""
+        due = room.next_due()
+        if due is not None:
+            self._due_seq += 1
+            heapq.heappush(self._dues, (due, self._due_seq, room))
+
+    def _rescheduled(self, room: Room) -> None:
+        self._schedule(room)
+        self.emit(Reschedule())
 
     def tick(self, now: float) -> list[Action]:
         """Send a snapshot to every due member of every room; flush drop counts.
@@ -444,16 +470,16 @@ class RelayCore:
         A room whose tick fails (a bug) is removed and its members closed with
         1011; the other rooms go on.
         """
-        for room in list(self.rooms.values()):
-            due = room.next_due()
-            if due is None or due > now + 1e-9:
-                continue
+        while (due := self.next_deadline()) is not None and due <= now + 1e-9:
+            room = heapq.heappop(self._dues)[2]
             try:
                 room.tick(now)
                 room.flush_drops(now)
             except Exception:
                 log.exception("room %r failed", room.name)
                 self._fail_room(room)
+            else:
+                self._schedule(room)
         return self._actions()
 
     def _fail_room(self, room: Room) -> None:
@@ -465,8 +491,10 @@ class RelayCore:
                 self._close(peer, 1011, "internal-error: room failed")
 
     def _forget_room_if_empty(self, room: Room, now: float) -> None:
-        if not room.members and self.rooms.get(room.name) is room:
-            del self.rooms[room.name]
+        # A failed room is no longer in ``rooms``: its recording ends with its last member.
+        if not room.members and not room.retired:
+            if self.rooms.get(room.name) is room:
+                del self.rooms[room.name]
             log.info("room %r removed", room.name)
             self._retire(room, now)
 
@@ -486,6 +514,8 @@ class RelayCore:
             room.members.clear()
             self._retire(room, now)
         self.rooms.clear()
+        self._dues.clear()
+        self.closed = True
         return self._actions()
 
     def pause_recording(self, now: float) -> None:
@@ -638,7 +668,7 @@ class RelayCore:
                 ),
             )
         room.add(member, now)
-        self.emit(Reschedule())
+        self._rescheduled(room)
         peer.room, peer.member = room, member
         if room.recorder is not None:
             room.recorder.record_presence(
@@ -661,7 +691,7 @@ class RelayCore:
             peer.member.asked_rate = event.rate
         rate = event.rate if peer.link is None else peer.link.rate_for(event.rate)
         room.set_rate(user, max(self.config.min_rate, rate), now)
-        self.emit(Reschedule())
+        self._rescheduled(room)
         if room.recorder is not None:
             room.recorder.record_presence({"kind": "rate", "user": user, "rate": event.rate}, now)
 
@@ -732,13 +762,13 @@ class RelayCore:
             rate = max(self.config.min_rate, link.rate_for(member.asked_rate))
             if abs(rate - member.rate) > 0.25:
                 room.set_rate(member.user, rate, now)
-                self.emit(Reschedule())
+                self._rescheduled(room)
 
     def _leave(self, peer: Peer, now: float) -> None:
         room, user = peer.room, peer.user
         if room is not None and user is not None:
             room.remove(user)
-            self.emit(Reschedule())
+            self._rescheduled(room)
             if room.recorder is not None:
                 room.recorder.record_presence(
                     {"kind": "leave", "user": user, "reason": "left"}, now

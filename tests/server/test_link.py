@@ -75,3 +75,25 @@ async def test_link_holds_its_cap_applies_delay_and_reports_the_rate() -> None:
     assert delay.min() >= 0.060 - np.sqrt(2) * 0.005 - 1e-3
     assert np.median(delay) < 0.060 + 0.050
     assert chosen is not None and 5.0 <= chosen < 30.0
+
+
+async def test_the_rate_the_link_chooses_reaches_the_tick_loop_at_once() -> None:
+    """The rate adaptation happens as the writer takes a snapshot; its Reschedule is
+    carried out then, not left in the core until some later call drains it."""
+    tier = Tier(
+        "slow", max_rate_hz=30.0, bandwidth_kbps=8.0, latency_ms=20.0, jitter_ms=0.0, loss_pct=0.0
+    )
+    config = ServerConfig(host="127.0.0.1", port=0, link=tier)
+    async with running_server(config) as srv:
+        url = f"ws://127.0.0.1:{srv.port}"
+        pub = await ClientConnection.open(url, room="l", streams=("head", "left", "right"), rate=30)
+        sub = await ClientConnection.open(url, room="l", streams=("head",), rate=30)
+        member = srv.rooms["l"].members[sub.user]
+        ids = np.array(list(pub.joined.streams.values()))  # type: ignore[union-attr]
+        async with asyncio.timeout(10):
+            while member.rate >= 30.0:
+                await pub.send_bytes(encode_update(1, ids, np.full(3, srv.clock()), POSE))
+                await asyncio.sleep(0.01)
+        assert srv.core.pending() == []
+        for c in (pub, sub):
+            await c.close()

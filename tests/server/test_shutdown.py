@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import re
 import signal
@@ -16,7 +17,7 @@ from typing import Any
 
 import msgpack
 import pytest
-from relaykit import HELLO, Bot, never_reader, raw_connect, settle
+from relaykit import HELLO, Bot, join_frame, never_reader, raw_connect, settle
 from websockets.asyncio.client import ClientConnection as WsConnection
 from websockets.exceptions import ConnectionClosed
 
@@ -130,6 +131,43 @@ async def test_stop_is_idempotent() -> None:
         assert await close_of(conn.ws) == (1001, "going away")
         async with asyncio.timeout(10):
             await task
+
+
+class _Stopped:
+    """Stands in for the server's stop event once stop() has begun (run() awaits the real one)."""
+
+    def is_set(self) -> bool:
+        return True
+
+
+async def test_a_handshake_finishing_after_stop_is_closed_in_the_core() -> None:
+    """A connection accepted after stop() gets 1001, and the core knows it is closing:
+    nothing it sends is handled (no hello, no join) and nothing is queued to it."""
+    async with started(config()) as (srv, _task):
+        peers: list[Any] = []
+        handled: list[object] = []
+        connect, handle = srv.core.connect, srv.core.handle
+
+        def connect_spy(now: float, buffered: Any = lambda: 0) -> int:
+            conn = connect(now, buffered)
+            peers.append(srv.core.peer(conn))
+            return conn
+
+        def handle_spy(conn: int, event: object, now: float, wall: float = 0.0) -> list[Any]:
+            handled.append(event)
+            return handle(conn, event, now, wall)  # type: ignore[arg-type]
+
+        srv.core.connect = connect_spy  # type: ignore[method-assign]
+        srv.core.handle = handle_spy  # type: ignore[method-assign]
+        srv._stop = _Stopped()  # type: ignore[assignment]
+        ws = await raw_connect(f"ws://127.0.0.1:{srv.port}")
+        with contextlib.suppress(ConnectionClosed):
+            await ws.send(HELLO)
+            await ws.send(join_frame("r"))
+        assert await close_of(ws) == (1001, "going away")
+        await settle(lambda: srv.core.closed_connections == 1)
+        assert [p.close_request for p in peers] == [(1001, "going away")]
+        assert handled == [] and srv.rooms == {}
 
 
 # -- the command line -------------------------------------------------------------------
