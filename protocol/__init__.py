@@ -5,10 +5,23 @@ websocket message to ``receive_data`` and act on the events it returns; call
 ``send`` and write the bytes it returns. Snapshots are encoded once per tick
 with ``encode_snapshot``, outside any session. Errors are listed in
 ``protocol.errors``, the session rules in ``protocol._state``, the pose frame
-layout in ``protocol.poses``.
+layout in ``protocol.poses``. ``protocol.codec`` is the compact pose codec
+(quantised key and delta frames; not used by the sessions yet).
 """
 
 from protocol._state import Role, State
+from protocol.codec import (
+    DEFAULT_VOLUME,
+    BaselineMismatch,
+    PoseFrame,
+    Volume,
+    decode_snapshot,
+    decode_update,
+    encode_delta_snapshot,
+    encode_key_snapshot,
+    encode_snapshot_codes,
+    encode_update_codes,
+)
 from protocol.errors import (
     MAX_CLOSE_REASON_BYTES,
     ErrorCode,
@@ -83,6 +96,7 @@ from protocol.wire import MESSAGE_TYPES, decode_message, encode_message
 
 __all__ = [
     "DEFAULT_LIMITS",
+    "DEFAULT_VOLUME",
     "DEVICE_NAMES",
     "EVENT_KINDS",
     "MAX_CLOSE_REASON_BYTES",
@@ -110,6 +124,7 @@ __all__ = [
     "VELOCITY_BYTES",
     "VELOCITY_MAX",
     "ZERO_VELOCITY",
+    "BaselineMismatch",
     "Bye",
     "ClientSession",
     "ControlMessage",
@@ -126,6 +141,7 @@ __all__ = [
     "PeerLeft",
     "Ping",
     "Pong",
+    "PoseFrame",
     "PoseUpdate",
     "PosecastError",
     "ProtocolError",
@@ -138,13 +154,20 @@ __all__ = [
     "Snapshot",
     "State",
     "UserEvent",
+    "Volume",
     "Welcome",
     "bytes_per_pose",
     "close_reason",
     "decode_message",
+    "decode_snapshot",
+    "decode_update",
+    "encode_delta_snapshot",
+    "encode_key_snapshot",
     "encode_message",
     "encode_snapshot",
+    "encode_snapshot_codes",
     "encode_update",
+    "encode_update_codes",
     "frame_size",
     "has_velocity",
     "is_valid_stream_name",
