@@ -49,9 +49,9 @@ from scenarios.qoe import (
     KeyframeLog,
     evaluate_group,
     ideal_delay,
+    ideal_log,
     interpolate_playout,
     playout_brackets,
-    sample_keyframes,
     summarize,
     window_depth,
 )
@@ -197,17 +197,13 @@ def _group_inputs(times: F64, members: list[_Member], rate: float) -> tuple[Trac
         poses,
         tuple(s.name or f"stream{s.stream}" for s, _p, _v in members),
     )
-    send, idx = sample_keyframes(times, rate)
-    # Ideal network: each keyframe arrives the instant it is sent.
-    log = KeyframeLog(
-        capture=times[idx],
-        arrival=send,
-        poses=poses[idx],
-        velocities=None
+    velocities = (
+        None
         if any(v is None for v in vels)
-        else np.stack([v for v in vels if v is not None], axis=1)[idx],
+        else np.stack([v for v in vels if v is not None], axis=1)
     )
-    return truth, log
+    # Ideal network: each keyframe arrives the instant it is sent.
+    return truth, ideal_log(times, poses, rate, velocities)
 
 
 def _render_group(

@@ -12,7 +12,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from interp import info
-from scenarios.qoe import KeyframeLog, evaluate_group, ideal_delay, sample_keyframes, summarize
+from scenarios.qoe import evaluate_group, ideal_delay, ideal_log, summarize
 from scenarios.traces import Trace, load_trace
 
 __all__ = ["Comparison", "compare_trace", "run_compare"]
@@ -30,14 +30,8 @@ def compare_trace(trace: Trace, rates: Sequence[float], methods: Sequence[str]) 
     out: Comparison = {}
     vel = trace.velocities() if any(info(m).needs_velocity for m in methods) else None
     for rate in rates:
-        send, idx = sample_keyframes(trace.times, rate)
         # Ideal link: a keyframe arrives the instant it is sent.
-        log = KeyframeLog(
-            capture=trace.times[idx],
-            arrival=send,
-            poses=trace.poses[idx],
-            velocities=None if vel is None else vel[idx],
-        )
+        log = ideal_log(trace.times, trace.poses, rate, vel)
         groups = []
         for m in methods:
             delay = ideal_delay(rate, trace.native_rate, info(m).lookahead)

@@ -58,6 +58,7 @@ __all__ = [
     "evaluate_group",
     "extrapolate_stalls",
     "ideal_delay",
+    "ideal_log",
     "interpolate_playout",
     "plan_stalls",
     "playout_brackets",
@@ -164,6 +165,22 @@ def sample_keyframes(
     first = np.ones(idx.shape, dtype=bool)
     first[1:] = idx[1:] != idx[:-1]
     return send[first], idx[first]
+
+
+def ideal_log(times: F64, poses: F64, rate: float, velocities: F64 | None = None) -> KeyframeLog:
+    """The keyframes a ``rate`` sender sends of a trace, each arriving as it is sent.
+
+    ``times`` (N,) and ``poses`` (N, S, 7) are the native samples (``velocities``
+    (N, S, 6) optional); the keyframes are :func:`sample_keyframes`' (an ideal
+    network: arrival = send time).
+    """
+    send, idx = sample_keyframes(times, rate)
+    return KeyframeLog(
+        capture=times[idx],
+        arrival=send,
+        poses=poses[idx],
+        velocities=None if velocities is None else velocities[idx],
+    )
 
 
 def ideal_delay(rate: float, native_rate: float, lookahead: int = 0) -> float:

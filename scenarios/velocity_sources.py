@@ -18,7 +18,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from scenarios.network import VELOCITY_WIRE_DTYPE
-from scenarios.qoe import KeyframeLog, evaluate_group, ideal_delay, sample_keyframes, summarize
+from scenarios.qoe import evaluate_group, ideal_delay, ideal_log, summarize
 from scenarios.traces import Trace
 
 __all__ = ["compare_velocity_sources", "source_velocities"]
@@ -55,8 +55,7 @@ def compare_velocity_sources(
         for rate in rates:
             groups = []
             for tr, v in zip(traces, vels, strict=True):
-                send, idx = sample_keyframes(tr.times, rate)
-                log = KeyframeLog(tr.times[idx], send, tr.poses[idx], v[idx])
+                log = ideal_log(tr.times, tr.poses, rate, v)
                 delay = ideal_delay(rate, tr.native_rate)
                 groups.append(evaluate_group(tr, log, delay, [method]))
             hands = summarize(groups)[method]["hands"]

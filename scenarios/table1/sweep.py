@@ -22,6 +22,7 @@ from scenarios.qoe import (
     KeyframeLog,
     evaluate_group,
     ideal_delay,
+    ideal_log,
     sample_keyframes,
     summarize,
 )
@@ -81,17 +82,12 @@ _LogMaker = Callable[
 def _ideal_log(
     i: int, trace: Trace, rate: int, frame_bytes: int = 0, velocities: F64 | None = None
 ) -> tuple[KeyframeLog, float, tuple[float, float], _Net]:
-    send, idx = sample_keyframes(trace.times, rate)
-    log = KeyframeLog(
-        capture=trace.times[idx],
-        arrival=send,
-        poses=trace.poses[idx],
-        velocities=None if velocities is None else velocities[idx],
-    )
+    log = ideal_log(trace.times, trace.poses, rate, velocities)
+    n_sent = log.capture.shape[0]
     window = (float(log.capture[0]), float(log.capture[-1]))
     d = ideal_delay(rate, trace.native_rate)
     n_q = int(np.count_nonzero((trace.times >= window[0]) & (trace.times <= window[1])))
-    return log, d, window, _Net(len(send), len(send), 0, 0, 0.0, d * n_q, n_q)
+    return log, d, window, _Net(n_sent, n_sent, 0, 0, 0.0, d * n_q, n_q)
 
 
 def _link_log_maker(tier: Tier, tier_index: int, seed: int, transport: Transport) -> _LogMaker:
