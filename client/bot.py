@@ -29,6 +29,12 @@ past native samples only), receives velocity snapshots, keeps the velocities in
 its buffers and arrival log, and renders and scores velocity methods from them
 (streams of peers that send no velocities arrive with zeros, and velocity
 methods render and score those streams with ``motor-lerp`` instead).
+
+Upstream codec: with ``BotConfig.codec == "compact"`` the bot joins with
+``codec="compact"`` and publishes through its session, which codes each update
+with the compact codec (``protocol.codec``: quantised, delta-coded per stream);
+``raw`` publishes float records as before. The report counts the bytes of the
+update frames it sent and the poses in them (``update_bytes``, ``poses_sent``).
 """
 
 from __future__ import annotations
@@ -48,7 +54,7 @@ from websockets.exceptions import ConnectionClosed
 
 from client.connection import ClientConnection
 from interp import info as interp_info
-from protocol import PeerJoined, PeerLeft, Ping, Pong, Snapshot, encode_update
+from protocol import PeerJoined, PeerLeft, Ping, Pong, PoseUpdate, Snapshot, encode_update
 from scenarios.motion import MotionSpec, sample_at
 from scenarios.qoe import ErrorSamples, KeyframeLog
 from scenarios.receiver import (
@@ -102,6 +108,8 @@ class BotConfig:
     #: Send velocity keyframes and receive velocity snapshots. None: exactly when a
     #: rendered method needs keyframe velocities.
     velocities: bool | None = None
+    #: How the bot's updates are coded (``Join.codec``): ``raw`` or ``compact``.
+    codec: str = "raw"
 
 
 @dataclass
@@ -190,6 +198,11 @@ class BotReport:
     clock_rtt_ms: float
     #: Whether it sent and received velocity keyframes (snapshot bytes include them).
     velocities: bool = False
+    #: Upstream codec (``raw`` or ``compact``), bytes of the update frames it sent
+    #: (websocket framing excluded) and the poses in them.
+    codec: str = "raw"
+    update_bytes: int = 0
+    poses_sent: int = 0
     #: Render frames that started over one render period after their scheduled time.
     frames_late: int = 0
     #: Snapshot rate asked and granted (Hz), and the rate it published at (Hz).
@@ -270,6 +283,8 @@ class _Bot:
         self.render_cpu = 0.0
         self.snapshot_bytes = 0
         self.poses_in = 0
+        self.update_bytes = 0
+        self.poses_sent = 0
         self.ping_seq = 0
         self.conn: ClientConnection | None = None
         self.render_log: list[
@@ -389,15 +404,17 @@ class _Bot:
                 last = tm
                 cap = t0 + tm
                 seq += 1
-                data = encode_update(
-                    seq,
-                    ids,
-                    np.full(ids.size, cap),
-                    trace.poses[idx].astype(np.float32),
-                    base_time=cap,
-                    velocities=None if vel is None else vel[idx],
-                )
-                await conn.send_bytes(data)
+                before = conn.bytes_out
+                args = (seq, ids, np.full(ids.size, cap), trace.poses[idx].astype(np.float32))
+                velocities = None if vel is None else vel[idx]
+                if self.cfg.codec == "raw":
+                    data = encode_update(*args, base_time=cap, velocities=velocities)
+                    await conn.send_bytes(data)
+                else:  # the session codes it, against what it sent before
+                    update = PoseUpdate.from_arrays(*args, base_time=cap, velocities=velocities)
+                    await conn.send(update)
+                self.update_bytes += conn.bytes_out - before
+                self.poses_sent += ids.size
             k += 1
             nxt = t0 + k * period
             if nxt <= now:  # fell behind: resume on the grid, never burst
@@ -499,6 +516,7 @@ class _Bot:
             label=self.spec.label(),
             sends_velocities=self.velocities,
             wants_velocities=self.velocities,
+            codec=cfg.codec,
         )
         for ev in conn.early_peers:
             self._add_peer(ev)
@@ -542,6 +560,9 @@ class _Bot:
             duration=span,
             clock_rtt_ms=1000.0 * self.est.rtt,
             velocities=self.velocities,
+            codec=cfg.codec,
+            update_bytes=self.update_bytes,
+            poses_sent=self.poses_sent,
             frames_late=self.frames_late,
             asked_hz=cfg.rate,
             granted_hz=self.conn.joined.rate if self.conn.joined is not None else cfg.rate,

@@ -104,11 +104,14 @@ class ClientConnection:
         label: str | None = None,
         sends_velocities: bool = False,
         wants_velocities: bool = False,
+        codec: str = "raw",
     ) -> Joined:
         """Join ``room``; :class:`JoinRefused` if the server refuses.
 
         ``sends_velocities``: this client's updates will be of the velocity
-        variant; ``wants_velocities``: send it velocity snapshots.
+        variant; ``wants_velocities``: send it velocity snapshots; ``codec``:
+        ``compact`` codes the updates sent through :meth:`send` with the
+        compact codec (``protocol.codec``), ``raw`` as float records.
         """
         welcome = self.welcome
         if welcome is not None and not welcome.min_rate <= rate <= welcome.max_rate:
@@ -124,6 +127,7 @@ class ClientConnection:
                 label=label,
                 sends_velocities=sends_velocities,
                 wants_velocities=wants_velocities,
+                codec=codec,
             )
         )
         joined = await self._expect(Joined)
@@ -146,6 +150,7 @@ class ClientConnection:
         open_timeout: float = 10.0,
         sends_velocities: bool = False,
         wants_velocities: bool = False,
+        codec: str = "raw",
     ) -> ClientConnection:
         """Connect, say hello and join ``room``; :class:`JoinRefused` if refused."""
         conn = await cls.connect(url, agent=agent, clock=clock, open_timeout=open_timeout)
@@ -158,6 +163,7 @@ class ClientConnection:
                 label=label,
                 sends_velocities=sends_velocities,
                 wants_velocities=wants_velocities,
+                codec=codec,
             )
         except BaseException:
             await conn.ws.close()

@@ -177,6 +177,9 @@ def swarm_report(reports: Sequence[BotReport]) -> dict[str, Any]:
     snap_bytes = sum(r.snapshot_bytes for r in reports)
     poses = sum(r.poses_received for r in reports)
     seconds = sum(r.duration for r in reports)
+    up_bytes = sum(r.update_bytes for r in reports)
+    sent = sum(r.poses_sent for r in reports)
+    codecs = "+".join(sorted({r.codec for r in reports}))
     lines, exit_code = session_ending(reports)
     return {
         "methods": methods,
@@ -189,6 +192,10 @@ def swarm_report(reports: Sequence[BotReport]) -> dict[str, Any]:
             "bytes_out_total": sum(r.bytes_out for r in reports),
             # Velocity keyframes (12 B more a pose, 6 x float16) are in the figures above.
             "velocity_keyframes": any(r.velocities for r in reports),
+            # Upstream: how the bots coded their updates ("raw", "compact", or
+            # "compact+raw" for a mix), and bytes of update frames sent per pose sent.
+            "codec": codecs,
+            "up_bytes_per_pose": up_bytes / sent if sent else float("nan"),
         },
         "bots": [
             {
@@ -201,6 +208,8 @@ def swarm_report(reports: Sequence[BotReport]) -> dict[str, Any]:
                 "render_cpu_ms_per_frame": 1000.0 * r.render_cpu_s / max(1, r.frames_rendered),
                 "clock_rtt_ms": r.clock_rtt_ms,
                 "render_late_fraction": r.frames_late / max(1, r.frames_rendered),
+                "codec": r.codec,
+                "up_bytes_per_pose": r.update_bytes / r.poses_sent if r.poses_sent else None,
                 "ended": r.ending.describe(),
             }
             for r in reports

@@ -31,6 +31,7 @@ async def run_demo(
     send_rate: float = 30.0,
     console: Console | None = None,
     record_dir: Path | None = None,
+    codec: str = "compact",
 ) -> dict[str, Any]:
     server = RelayServer(ServerConfig(host="127.0.0.1", port=0, record_dir=record_dir))
     async with asyncio.TaskGroup() as tg:
@@ -46,6 +47,7 @@ async def run_demo(
             motion=motion,
             duration=duration,
             name="bot",
+            codec=codec,
         )
         progress = Progress(
             TextColumn("[bold]session[/]"),
@@ -89,6 +91,7 @@ async def run_demo(
             "send_rate_hz": send_rate,
             "duration_s": duration,
             "motion": motion,
+            "codec": codec,
         }
         server.stop()
     report["recording"] = str(server.recordings[-1]) if server.recordings else None

@@ -6,7 +6,8 @@ websocket message to ``receive_data`` and act on the events it returns; call
 with ``encode_snapshot``, outside any session. Errors are listed in
 ``protocol.errors``, the session rules in ``protocol._state``, the pose frame
 layout in ``protocol.poses``. ``protocol.codec`` is the compact pose codec
-(quantised key and delta frames; not used by the sessions yet).
+(quantised key and delta frames); sessions that agree ``Join(codec="compact")``
+code the client's updates with it (``protocol._compact``).
 """
 
 from protocol._state import Role, State
@@ -47,6 +48,7 @@ from protocol.limits import (
     Limits,
 )
 from protocol.messages import (
+    CODECS,
     DEVICE_NAMES,
     EVENT_KINDS,
     OBJECT_PREFIX,
@@ -95,6 +97,7 @@ from protocol.session import ClientSession, ServerSession, SessionStatistics
 from protocol.wire import MESSAGE_TYPES, decode_message, encode_message
 
 __all__ = [
+    "CODECS",
     "DEFAULT_LIMITS",
     "DEFAULT_VOLUME",
     "DEVICE_NAMES",

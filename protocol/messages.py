@@ -4,9 +4,9 @@ Each class is one msgpack map on the wire, ``{"type": TYPE, field: value, ...}``
 with the dataclass fields as keys in declaration order. Decoding accepts a
 missing key only for fields with a default, and rejects unknown keys (the
 schema is pinned by ``PROTOCOL_VERSION``). Optional capabilities added later
-(the velocity flags of join and peer_joined) are left out of the map while they
-hold their default, so a peer that does not use them sends and receives the
-same bytes as before they existed.
+(the velocity flags of join and peer_joined, ``Join.codec``, ``Welcome.volume``)
+are left out of the map while they hold their default, so a peer that does not
+use them sends and receives the same bytes as before they existed.
 
 Constructors check types and fixed ranges (u16 ids, finite numbers, string
 lengths) and raise ``LocalProtocolError("bad-message")``. Checks that depend on
@@ -35,6 +35,7 @@ from protocol._validate import (
     check_stream_map,
     check_text,
 )
+from protocol.codec import DEFAULT_VOLUME, Volume
 from protocol.errors import ErrorCode
 from protocol.limits import (
     MAX_RATE,
@@ -45,6 +46,7 @@ from protocol.limits import (
 )
 
 __all__ = [
+    "CODECS",
     "DEVICE_NAMES",
     "EVENT_KINDS",
     "OBJECT_PREFIX",
@@ -75,6 +77,16 @@ _STREAM_NAME = re.compile(r"[a-z][a-z0-9_]*|object:[A-Za-z0-9_.\-]+")
 
 EVENT_KINDS = frozenset({"grab", "release", "button", "scene_step"})
 """Values of ``UserEvent.kind``."""
+
+CODECS = ("raw", "compact")
+"""Values of ``Join.codec``: how the client's updates are coded (``protocol.poses``
+records, or ``protocol.codec`` update frames)."""
+
+_DEFAULT_VOLUME_WIRE: tuple[float, float, float, float, float, float] = (
+    *DEFAULT_VOLUME.lo,
+    *DEFAULT_VOLUME.hi,
+)
+"""``Welcome.volume`` of the default room volume (then not sent): lo x, y, z, hi x, y, z."""
 
 # Longest error code accepted from a peer: codes are short kebab-case words.
 _MAX_CODE_LENGTH = 64
@@ -134,6 +146,11 @@ def _capability() -> Any:
     return field(default=False, metadata={_OMIT_DEFAULT: True})
 
 
+def _omitted(default: object) -> Any:
+    """An optional field added later: ``default`` unless given, and then not sent."""
+    return field(default=default, metadata={_OMIT_DEFAULT: True})
+
+
 def _register(cls: _M) -> _M:
     # Runs after @dataclass, so the field tables see the final fields.
     names = tuple(f.name for f in fields(cls))  # type: ignore[arg-type]
@@ -187,9 +204,16 @@ class Welcome(ControlMessage):
     min_rate: float = MIN_RATE
     max_rate: float = MAX_RATE
     max_streams: int = MAX_STREAMS_PER_USER
+    volume: tuple[float, float, float, float, float, float] = _omitted(_DEFAULT_VOLUME_WIRE)
+    """The room volume compact updates are quantised in (``protocol.codec.Volume``),
+    metres: min x, y, z then max x, y, z. Not sent while it is the default volume."""
 
     def __post_init__(self) -> None:
         check_int("welcome.user", self.user, 0, U16_MAX)
+        if not isinstance(self.volume, list | tuple) or len(self.volume) != 6:
+            raise bad("welcome.volume", "must be 6 numbers (min x, y, z, max x, y, z)")
+        _set(self, "volume", tuple(check_float("welcome.volume", x) for x in self.volume))
+        self.room_volume  # noqa: B018 (lo < hi on each axis, else bad-message)
         _set(self, "server_time", check_float("welcome.server_time", self.server_time))
         check_int("welcome.version", self.version, 0, U16_MAX)
         _set(self, "min_rate", check_float("welcome.min_rate", self.min_rate))
@@ -197,6 +221,12 @@ class Welcome(ControlMessage):
         check_int("welcome.max_streams", self.max_streams, 1, U16_MAX + 1)
         if not 0 < self.min_rate <= self.max_rate:
             raise bad("welcome", "needs 0 < min_rate <= max_rate")
+
+    @property
+    def room_volume(self) -> Volume:
+        """``volume`` as a codec :class:`~protocol.codec.Volume`."""
+        lo, hi = self.volume[:3], self.volume[3:]
+        return Volume((lo[0], lo[1], lo[2]), (hi[0], hi[1], hi[2]))
 
 
 @_register
@@ -219,9 +249,15 @@ class Join(ControlMessage):
     wants_velocities: bool = _capability()
     """Send this client velocity-variant snapshots (streams whose sender reports
     no velocities carry zeros; ``PeerJoined.velocities`` tells which do)."""
+    codec: str = _omitted("raw")
+    """How this client's updates are coded, one of CODECS: ``raw`` float records
+    (``protocol.poses``) or ``compact`` codec update frames (``protocol.codec``,
+    quantised in the welcome's volume, delta-coded per stream). Not sent while raw."""
 
     def __post_init__(self) -> None:
         check_text("join.room", self.room, empty=False)
+        if type(self.codec) is not str or self.codec not in CODECS:
+            raise bad("join.codec", f"must be one of {', '.join(CODECS)}")
         check_bool("join.sends_velocities", self.sends_velocities)
         check_bool("join.wants_velocities", self.wants_velocities)
         if not isinstance(self.streams, list | tuple):

@@ -25,6 +25,17 @@ depends on limits and on what was agreed earlier:
 - snapshot (client): of the variant the join asked for (``wants_velocities``;
   else a fatal "bad-message"), poses finite and unit, else dropped with
   "bad-pose", velocities finite, else dropped with "bad-velocity".
+
+Compact updates (``Join.codec == "compact"``, see ``protocol._compact``): the
+client session codes each update it sends as a codec update frame in the
+welcome's volume (a position outside it: ``LocalProtocolError("bad-pose")``);
+the server session takes a frame whose first byte is 0xC1 for one only when
+compact was agreed (else it is no msgpack: a fatal "bad-frame"), refuses raw
+update records then (a fatal "bad-message", as for the other velocity variant),
+and returns the decoded ``PoseUpdate``, checked by the rules above. A position
+decoded outside the volume is a non-fatal "bad-pose"; a frame coded against
+baselines the server does not hold is a fatal "bad-message" (the codec's
+``BaselineMismatch``: there is no code of its own yet).
 """
 
 from __future__ import annotations
@@ -37,8 +48,10 @@ import msgpack
 import numpy as np
 from numpy.typing import NDArray
 
+from protocol._compact import CODEC_FRAME_BYTE, UpstreamDecoder, UpstreamEncoder
 from protocol._state import ERROR_FATAL, ERROR_JOIN, TRANSITIONS, Role, State, moves
-from protocol.errors import ErrorCode, LocalProtocolError, ProtocolViolation
+from protocol.codec import DEFAULT_VOLUME, Volume
+from protocol.errors import ErrorCode, LocalProtocolError, ProtocolViolation, RemoteProtocolError
 from protocol.events import Event, Message, ProtocolError
 from protocol.limits import DEFAULT_LIMITS, PROTOCOL_VERSION, Limits
 from protocol.messages import (
@@ -124,6 +137,10 @@ class _Session:
         """Agreed at join: the client's updates are of the velocity variant."""
         self.wants_velocities = False
         """Agreed at join: the client's snapshots are of the velocity variant."""
+        self.codec = "raw"
+        """Agreed at join: how the client's updates are coded (``Join.codec``)."""
+        self.volume: Volume = DEFAULT_VOLUME
+        """The room volume of compact updates: the server's, announced in welcome."""
         self._frames_in = self._bytes_in = self._frames_out = self._bytes_out = 0
         self._errors = 0
 
@@ -159,7 +176,7 @@ class _Session:
         self._bytes_in += len(data)
         type_: str | None = None
         try:
-            message = decode_message(data, max_frame_size=self.limits.max_frame_size)
+            message = self._decode(data)
             type_ = message.TYPE
             new_state = self._peer_moves.get(_kind(message))
             if new_state is None:
@@ -187,7 +204,7 @@ class _Session:
             raise
         except ProtocolViolation as exc:
             raise LocalProtocolError(exc.code, exc.message) from None
-        data = encode_message(message)
+        data = self._encode(message)
         if len(data) > self.limits.max_frame_size:
             raise LocalProtocolError(
                 ErrorCode.FRAME_TOO_LARGE,
@@ -209,6 +226,14 @@ class _Session:
         else:
             text = f"{type_} {_TOO_EARLY[self.state]}"
         return ProtocolViolation(ErrorCode.UNEXPECTED_MESSAGE, text)
+
+    def _decode(self, data: bytes | bytearray | memoryview | str) -> Message:
+        """The message of one received frame; raises RemoteProtocolError."""
+        return decode_message(data, max_frame_size=self.limits.max_frame_size)
+
+    def _encode(self, message: Message) -> bytes:
+        """The frame bytes of a message that may be sent now; raises LocalProtocolError."""
+        return encode_message(message)
 
     def _check_received(self, message: Message) -> Message:
         """Role rules for an incoming message; may return it amended. Raises ProtocolViolation."""
@@ -260,11 +285,13 @@ class _Session:
         if problem is not None:
             raise ProtocolViolation(ErrorCode.BAD_VELOCITY, problem)
 
-    def _agree_velocities(self) -> None:
+    def _agree_join(self) -> None:
+        """Settle what the join asked for (variants, codec): joined accepted it."""
         join = self._pending_join
         assert join is not None  # joined is checked against the pending join first
         self.sends_velocities = join.sends_velocities
         self.wants_velocities = join.wants_velocities
+        self.codec = join.codec
 
     def _check_event(self, event: UserEvent) -> None:
         if event.user is not None and event.user != self.user:
@@ -316,15 +343,37 @@ class ServerSession(_Session):
     ROLE = Role.SERVER
     PEER = Role.CLIENT
 
+    def __init__(self, limits: Limits = DEFAULT_LIMITS, volume: Volume = DEFAULT_VOLUME) -> None:
+        super().__init__(limits)
+        self.volume = volume
+        self._upstream: UpstreamDecoder | None = None
+        # The update the last compact frame decoded to (raw records are refused then).
+        self._compact_update: PoseUpdate | None = None
+
     def make_welcome(self, user: int, server_time: float) -> Welcome:
-        """A welcome that announces this session's limits."""
+        """A welcome that announces this session's limits and room volume."""
+        volume = self.volume
         return Welcome(
             user=user,
             server_time=server_time,
             min_rate=self.limits.min_rate,
             max_rate=self.limits.max_rate,
             max_streams=self.limits.max_streams,
+            volume=(*volume.lo, *volume.hi),
         )
+
+    def _decode(self, data: bytes | bytearray | memoryview | str) -> Message:
+        upstream = self._upstream
+        if upstream is None or isinstance(data, str) or data[:1] != bytes([CODEC_FRAME_BYTE]):
+            return decode_message(data, max_frame_size=self.limits.max_frame_size)
+        if len(data) > self.limits.max_frame_size:
+            raise RemoteProtocolError(
+                ErrorCode.FRAME_TOO_LARGE,
+                f"frame of {len(data)} bytes over {self.limits.max_frame_size}",
+            )
+        update = upstream.decode(data)
+        self._compact_update = update
+        return update
 
     def assign_streams(self, streams: Mapping[str, int]) -> None:
         """Make these stream ids the user's own without sending joined (tests, replays)."""
@@ -333,6 +382,11 @@ class ServerSession(_Session):
 
     def _check_received(self, message: Message) -> Message:
         if isinstance(message, PoseUpdate):
+            if self._upstream is not None and message is not self._compact_update:
+                raise ProtocolViolation(
+                    ErrorCode.BAD_MESSAGE, "update of raw records, compact agreed at join"
+                )
+            self._compact_update = None
             self._check_update(message)
         elif isinstance(message, Join):
             self._check_names(message.streams, self.limits.max_streams)
@@ -362,7 +416,9 @@ class ServerSession(_Session):
             self.room = message.room
             self.rate = message.rate
             self.assign_streams(message.streams)
-            self._agree_velocities()
+            self._agree_join()
+            if self.codec == "compact":
+                self._upstream = UpstreamDecoder(self.volume)
 
 
 class ClientSession(_Session):
@@ -379,6 +435,12 @@ class ClientSession(_Session):
         super().__init__(limits)
         self.welcome: Welcome | None = None
         self.peers: dict[int, dict[str, int]] = {}
+        self._upstream: UpstreamEncoder | None = None
+
+    def _encode(self, message: Message) -> bytes:
+        if self._upstream is not None and isinstance(message, PoseUpdate):
+            return self._upstream.encode(message)
+        return encode_message(message)
 
     def _check_received(self, message: Message) -> Message:
         if isinstance(message, Snapshot):
@@ -386,13 +448,16 @@ class ClientSession(_Session):
         elif isinstance(message, Welcome):
             self.welcome = message
             self.user = message.user
+            self.volume = message.room_volume
         elif isinstance(message, Joined):
             self._accept_joined(message)
             self.room = message.room
             self.rate = message.rate
             self.streams = dict(message.streams)
             self._owned = frozenset(self.streams.values())
-            self._agree_velocities()
+            self._agree_join()
+            if self.codec == "compact":
+                self._upstream = UpstreamEncoder(self.volume)
         elif isinstance(message, PeerJoined):
             self.peers[message.user] = dict(message.streams)
         elif isinstance(message, PeerLeft):
@@ -420,3 +485,5 @@ class ClientSession(_Session):
     def _sent(self, message: Message) -> None:
         if isinstance(message, Join):
             self._pending_join = message
+        elif self._upstream is not None and isinstance(message, PoseUpdate):
+            self._upstream.commit()

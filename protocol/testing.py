@@ -52,6 +52,7 @@ class SessionPair:
         server_time: float = 0.0,
         sends_velocities: bool = False,
         wants_velocities: bool = False,
+        codec: str = "raw",
     ) -> Joined:
         """hello, welcome, join, joined; stream ids default to 0, 1, 2, ... in order."""
         self.client_send(Hello(agent="session-pair"))
@@ -62,6 +63,7 @@ class SessionPair:
             rate=rate,
             sends_velocities=sends_velocities,
             wants_velocities=wants_velocities,
+            codec=codec,
         )
         self.client_send(join)
         assigned = dict(ids) if ids is not None else {name: i for i, name in enumerate(streams)}
