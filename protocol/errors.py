@@ -31,7 +31,10 @@ bad-message         yes    1002   a known type with missing, unknown or ill-type
                                   control field, user id over u16, ...); a pose
                                   frame of the other variant than agreed at join
                                   (velocity records without sends/wants_velocities,
-                                  or plain records with it)
+                                  or plain records with it; raw update records
+                                  after join agreed codec "compact"); a compact
+                                  update frame coded against other baselines than
+                                  the receiver holds (``BaselineMismatch``)
 version-mismatch    yes    1002   hello/welcome carry another ``PROTOCOL_VERSION``
 unexpected-message  yes    1002   a message the state table forbids: anything before
                                   hello, join twice, poses before joined, a
@@ -43,7 +46,8 @@ too-many-streams    no     --     a join lists more than ``max_streams`` names, 
 duplicate-stream    no     --     one update carries the same stream id twice
 bad-stream-name     no     --     a join has an invalid, duplicate or too long name
 bad-pose            no     --     a pose with NaN/inf, or a quaternion norm off 1 by
-                                  more than ``QUAT_NORM_TOLERANCE``
+                                  more than ``QUAT_NORM_TOLERANCE``, or (compact
+                                  updates) a position outside the room volume
 bad-velocity        no     --     a velocity-variant pose whose velocity holds NaN/inf
                                   (float16 on the wire)
 bad-rate            no     --     join/set_rate asks for a rate outside
@@ -53,11 +57,14 @@ payload-too-large   no     --     an event payload encodes to more than
                                   ``max_event_payload`` bytes
 unauthorized        yes    1008   (server decision) bad access token
 room-full           no     --     (server decision) join refused, try later
+bad-room            no     --     (server decision) a room name that is empty once
+                                  stripped, over 64 bytes, or holds control or bidi
+                                  override characters
 too-slow            yes    1008   (server decision) a peer's event queue overflowed
 internal-error      yes    1011   (server decision) a bug on the server
 ==================  =====  =====  =====================================================
 
-The last four are never produced by ``protocol`` itself; they are listed so that
+The last five are never produced by ``protocol`` itself; they are listed so that
 the server's own refusals use the same codes, fatality and close codes.
 """
 
@@ -98,6 +105,7 @@ class ErrorCode(StrEnum):
     PAYLOAD_TOO_LARGE = "payload-too-large"
     UNAUTHORIZED = "unauthorized"
     ROOM_FULL = "room-full"
+    BAD_ROOM = "bad-room"
     TOO_SLOW = "too-slow"
     INTERNAL_ERROR = "internal-error"
 
@@ -130,6 +138,7 @@ _CLOSE_CODES: dict[ErrorCode, int | None] = {
     ErrorCode.PAYLOAD_TOO_LARGE: None,
     ErrorCode.UNAUTHORIZED: 1008,
     ErrorCode.ROOM_FULL: None,
+    ErrorCode.BAD_ROOM: None,
     ErrorCode.TOO_SLOW: 1008,
     ErrorCode.INTERNAL_ERROR: 1011,
 }

@@ -8,8 +8,10 @@ that feeds received frames to the core, a writer that writes what
 closer that closes the socket when the core says so (``Close``), after the
 queued messages are written. One tick loop, under the server's own
 ``TaskGroup``, sleeps until :meth:`RelayCore.next_deadline` and ticks the
-rooms. Recordings open and close off the event loop. ``GET /healthz`` and
-``GET /metrics`` are answered on the websocket port (``server/http.py``).
+rooms; another sleeps until :meth:`RelayCore.next_expiry` and closes the
+connections that have not joined in time. Recordings open and close off the
+event loop. ``GET /healthz`` and ``GET /metrics`` are answered on the websocket
+port (``server/http.py``).
 
 Logging is sized for a server that runs for weeks: plain HTTP requests (health
 probes, metrics scrapes, rejected handshakes) are logged at DEBUG, not at
@@ -64,7 +66,8 @@ class _Connection:
     def __init__(self, server: RelayServer, ws: ServerConnection) -> None:
         self.server = server
         self.ws = ws
-        self.conn = server.core.connect(server.clock(), self._buffered)
+        address = ws.remote_address[0] if ws.remote_address else None
+        self.conn = server.core.connect(server.clock(), self._buffered, address)
         self.peer = server.core.peer(self.conn)
         self.wake = asyncio.Event()
         #: Set while no reliable message waits to be written.
@@ -186,6 +189,8 @@ class RelayServer:
         self._tg: asyncio.TaskGroup | None = None
         self._opening: dict[str, asyncio.Task[None]] = {}
         self._reschedule = asyncio.Event()
+        #: Set when a connection opens: its join deadline may be the next expiry.
+        self._new_connection = asyncio.Event()
         # The one writer process every recorded room shares (started with the
         # server, again for the next room after a crash of the previous one).
         self._recorder_host: RecorderHost | None = None
@@ -259,6 +264,20 @@ class RelayServer:
                 continue
             self.apply(core.tick(now))
             await asyncio.sleep(0)
+
+    async def _expiry_loop(self) -> None:
+        """Close connections that have not joined in time (``join_timeout``)."""
+        core = self.core
+        while True:
+            due = core.next_expiry()
+            now = self.clock()
+            if due is None or due > now:
+                self._new_connection.clear()
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(None if due is None else due - now):
+                        await self._new_connection.wait()
+                continue
+            self.apply(core.expire(now))
 
     # -- rooms and recordings --------------------------------------------------------------
 
@@ -342,6 +361,9 @@ class RelayServer:
     async def _handler(self, ws: ServerConnection) -> None:
         conn = _Connection(self, ws)
         self._conns[conn.conn] = conn
+        # Refused over a connection limit (a Close), or a join deadline to watch.
+        self.apply(self.core.pending())
+        self._new_connection.set()
         if self._stop.is_set():
             # Its handshake finished after stop() had closed the others. Through the
             # core, which then handles nothing more it sends (no hello, no join).
@@ -412,6 +434,7 @@ class RelayServer:
             async with asyncio.TaskGroup() as tg:
                 self._tg = tg
                 ticker = tg.create_task(self._tick_loop(), name="ticks")
+                expiry = tg.create_task(self._expiry_loop(), name="join-deadlines")
                 async with serve(
                     self._handler,
                     cfg.host,
@@ -436,6 +459,7 @@ class RelayServer:
                         self.apply(self.core.close(conn.conn, 1001, "going away"))
                     await ws_server.wait_closed()
                 ticker.cancel()
+                expiry.cancel()
                 self.apply(self.core.close_rooms(self.clock()))
         finally:
             # Every room's recording is finished (the task group waited for them);

@@ -26,9 +26,16 @@ The wire protocol (hello, join, the message state table, codes) is
 ==================  ==========================================================
 a connection ...    the relay ...
 ==================  ==========================================================
+opens               over ``max_connections`` (or per source address): close
+                    1013; not joined within ``join_timeout``: close 1008
+                    (:meth:`~RelayCore.expire`, at :meth:`~RelayCore.next_expiry`)
 says hello          takes a user id (u16, reused oldest-freed first), welcomes
-joins a room        checks the token (``secret`` set: HMAC, room, expiry;
-                    refused -> ``unauthorized``, close 1008), creates the room
+joins a room        normalises the name (NFC, stripped; empty, over 64 bytes,
+                    control or bidi characters -> ``bad-room``), checks the
+                    token (``secret`` set: HMAC, room, expiry; refused ->
+                    ``unauthorized``, close 1008), refuses over ``max_rooms``,
+                    ``max_members`` or ``max_recorded_rooms`` (``room-full``),
+                    creates the room
                     on first join, allocates one stream id per stream name,
                     answers ``joined``, tells it every member (``peer_joined``)
                     and every member about it, schedules it on its rate grid
@@ -36,13 +43,19 @@ publishes poses     admits at most ``max_update_rate`` updates and events a
                     second (a one-second token bucket; excess dropped and
                     counted, over ten seconds' worth closes 1008), keeps the
                     newest keyframe per stream by capture time (older: stale,
-                    counted), taps the room's recorder
+                    counted), taps the room's recorder; refuses (``bad-pose``,
+                    counted, a drops record) an update captured over
+                    ``max_capture_age`` ago, over ``max_capture_ahead`` ahead,
+                    or with a position beyond +-``room_extent``
 sends an event      the same bucket; relays it, in order, to every other
                     member; records it
 asks a new rate     reschedules it (an emulated link's cap applies)
 pings               answers with a pong stamped with the server time
 sends bad data      answers ``error`` with the code; fatal ones close with
-                    the code's close code (1002, 1008, 1009)
+                    the code's close code (1002, 1008, 1009); each error or
+                    refusal costs a token of its misbehaviour budget
+                    (``misbehaviour_burst``, refilled ``misbehaviour_refill``
+                    a second): none left closes 1008 "misbehaving"
 says bye / leaves   closes 1000; the room hears ``peer_left``; an empty room is
                     removed and its recording finished
 is too slow         latest-wins snapshots are skipped (counted) while one is
@@ -78,16 +91,17 @@ from protocol import (
     Pong,
     PoseUpdate,
     ProtocolError,
-    ServerSession,
     SetRate,
     UserEvent,
     close_reason,
 )
 from protocol.events import Event, Message
 from scenarios.network import EgressLink, Tier
+from server.actions import Action, Close, FinishRecording, Reschedule, Wake
 from server.auth import TokenError, verify_token
-from server.logs import LogLimiter
-from server.room import DEFAULT_EVENT_QUEUE, IdAllocator, Member, Outbox, Room, room_phase
+from server.limits import Admission, JoinDeadlines, normalise_room, update_refusal
+from server.peer import COUNTERS, ConnectionStatistics, Peer
+from server.room import DEFAULT_EVENT_QUEUE, IdAllocator, Member, Room, room_phase
 
 if TYPE_CHECKING:
     from recorder import RoomRecorder
@@ -142,133 +156,25 @@ class ServerConfig:
     #: at most once per this many seconds per connection, with a count of the
     #: records held back, so that a misbehaving peer cannot fill the disk.
     peer_log_interval: float = 1.0
-
-
-# -- actions -----------------------------------------------------------------------
-
-
-@dataclass(frozen=True, slots=True)
-class Wake:
-    """Connection ``conn`` has frames to write: ``take(conn, now)``."""
-
-    conn: int
-
-
-@dataclass(frozen=True, slots=True)
-class Close:
-    """Close connection ``conn`` (after its queued messages) with ``code`` and ``reason``."""
-
-    conn: int
-    code: int
-    reason: str
-
-
-@dataclass(frozen=True, slots=True)
-class Reschedule:
-    """The earliest tick may have changed: consult ``next_deadline()`` again."""
-
-
-@dataclass(frozen=True, slots=True)
-class FinishRecording:
-    """Room ``room`` is gone: close ``recorder`` (blocking work: off the event loop)."""
-
-    room: str
-    recorder: RoomRecorder
-
-
-Action = Wake | Close | Reschedule | FinishRecording
-
-
-# -- connections -----------------------------------------------------------------------
-
-#: ConnectionStatistics fields that only ever grow, summed over ended connections.
-COUNTERS = (
-    "frames_in",
-    "bytes_in",
-    "frames_out",
-    "bytes_out",
-    "snapshots_offered",
-    "skips",
-    "congestion_skips",
-    "event_drops",
-    "flood_drops",
-    "protocol_errors",
-)
-
-
-@dataclass(frozen=True, slots=True)
-class ConnectionStatistics:
-    user: int | None
-    room: str | None
-    frames_in: int
-    bytes_in: int
-    frames_out: int
-    bytes_out: int
-    snapshots_offered: int
-    skips: int
-    congestion_skips: int
-    event_drops: int
-    flood_drops: int
-    protocol_errors: int
-    #: With an emulated link: the rate the server chose for this subscriber (Hz),
-    #: snapshots delivered / skipped at the cap / lost, and bytes on the link.
-    link_rate_hz: float | None = None
-    link_frames: int = 0
-    link_cap_skips: int = 0
-    link_lost: int = 0
-    link_bytes: int = 0
-
-
-class Peer:
-    """One connection as the relay sees it: session state, outbox, bucket, counters."""
-
-    def __init__(self, conn: int, core: RelayCore, buffered: Callable[[], int], now: float) -> None:
-        cfg = core.config
-        self.conn = conn
-        self.session = ServerSession(core.limits)
-        self.outbox = Outbox(cfg.max_event_queue, buffered, cfg.congested_bytes)
-        self.outbox.on_ready = self._ready
-        self._core = core
-        self.user: int | None = None
-        self.name = ""
-        self.room: Room | None = None
-        self.member: Member | None = None
-        self.close_request: tuple[int, str] | None = None
-        self.frames_in = self.bytes_in = self.frames_out = self.bytes_out = 0
-        self.event_drops = self.flood_drops = self.protocol_errors = 0
-        #: The emulated downlink (``ServerConfig.link``), set at join.
-        self.link: EgressLink | None = None
-        self.delayed: list[tuple[float, int, bytes]] = []
-        self._link_seq = 0
-        self.link_overflow = 0
-        self._bucket = cfg.max_update_rate
-        self._bucket_time = now
-        self.log_limit = LogLimiter(cfg.peer_log_interval)
-
-    def _ready(self) -> None:
-        self._core.emit(Wake(self.conn))
-
-    def statistics(self) -> ConnectionStatistics:
-        m, link = self.member, self.link
-        return ConnectionStatistics(
-            user=self.user,
-            room=self.room.name if self.room else None,
-            frames_in=self.frames_in,
-            bytes_in=self.bytes_in,
-            frames_out=self.frames_out,
-            bytes_out=self.bytes_out,
-            snapshots_offered=self.outbox.snapshots_offered,
-            skips=self.outbox.skips,
-            congestion_skips=m.congestion_skips if m else 0,
-            event_drops=self.event_drops,
-            flood_drops=self.flood_drops,
-            protocol_errors=self.protocol_errors,
-            link_rate_hz=m.rate if (m is not None and link is not None) else None,
-            link_frames=link.frames if link else 0,
-            link_cap_skips=link.cap_skips if link else 0,
-            link_lost=link.lost if link else 0,
-            link_bytes=link.bytes if link else 0,
-        )
+    # -- limits (docs/security.md); 0 turns a count limit off --------------------------
+    #: An update captured longer ago than this (s, server clock) is refused.
+    max_capture_age: float = 1.0
+    #: ... and one captured later than now plus this (the clock-sync error allowance).
+    max_capture_ahead: float = 0.25
+    #: Positions must lie within +-this (m) on each axis.
+    room_extent: float = 100.0
+    #: Misbehaviour budget: tokens a connection holds, and refills a second; each
+    #: protocol error or refused update or join costs one; none left: close 1008.
+    misbehaviour_burst: int = 20
+    misbehaviour_refill: float = 5.0
+    #: A connection that has not joined a room this long after it opened is closed.
+    join_timeout: float = 5.0
+    max_connections: int = 1024
+    max_connections_per_address: int = 64
+    max_rooms: int = 256
+    max_members: int = 64
+    #: Rooms recorded at once (``--record``); a join opening one more is refused.
+    max_recorded_rooms: int = 32
 
 
 class RelayCore:
@@ -294,6 +200,12 @@ class RelayCore:
         self._due_seq = 0
         #: Set by :meth:`close_rooms`: the server is stopping, no room is added.
         self.closed = False
+        cfg = self.config
+        self.admission = Admission(cfg.max_connections, cfg.max_connections_per_address)
+        self._join_deadlines = JoinDeadlines()
+        #: Connections refused (over a limit), closed for not joining in time, and
+        #: closed for misbehaving (over their budget).
+        self.refused_connections = self.join_timeouts = self.misbehaviour_closes = 0
 
     # -- plumbing ----------------------------------------------------------------
 
@@ -317,12 +229,44 @@ class RelayCore:
 
     # -- connections ---------------------------------------------------------------
 
-    def connect(self, now: float, buffered: Callable[[], int] = lambda: 0) -> int:
-        """A new connection; returns its id. ``buffered`` reports its unsent bytes."""
+    def connect(
+        self, now: float, buffered: Callable[[], int] = lambda: 0, address: str | None = None
+    ) -> int:
+        """A new connection from ``address``; returns its id. ``buffered``: its unsent bytes.
+
+        Over ``max_connections`` (or ``max_connections_per_address``) it is closed
+        at once with 1013 "try again later" (the ``Close`` is in :meth:`pending`).
+        """
         self._next_conn += 1
         conn = self._next_conn
-        self.peers[conn] = Peer(conn, self, buffered, now)
+        peer = self.peers[conn] = Peer(conn, self, buffered, now, address)
+        refused = self.admission.admit(address)
+        if refused is not None:
+            self.refused_connections += 1
+            log.info("connection from %s refused: %s", address, refused)
+            self._close(peer, 1013, f"try again later: {refused}")
+        else:
+            peer.admitted = True
+            self._join_deadlines.add(conn, now + self.config.join_timeout)
         return conn
+
+    def next_expiry(self) -> float | None:
+        """When the next connection that has not joined is due to be closed (None: none)."""
+        deadlines = self._join_deadlines
+        while (head := deadlines.peek()) is not None:
+            peer = self.peers.get(head[1])
+            if peer is not None and peer.room is None and peer.close_request is None:
+                return head[0]
+            deadlines.pop()  # gone, joined or closing: nothing to expire
+        return None
+
+    def expire(self, now: float) -> list[Action]:
+        """Close (1008 "no join") every connection not joined ``join_timeout`` after it opened."""
+        while (due := self.next_expiry()) is not None and due <= now:
+            peer = self.peers[self._join_deadlines.pop()[1]]
+            self.join_timeouts += 1
+            self._close(peer, 1008, f"no join within {self.config.join_timeout:g} s")
+        return self._actions()
 
     def frame(self, conn: int, data: bytes | str) -> list[Event]:
         """The events one received frame decodes to (none while the connection closes)."""
@@ -340,14 +284,19 @@ class RelayCore:
 
     def room_to_open(self, conn: int, event: Event, wall: float) -> str | None:
         """The room a recording server must open (off the loop) before ``event``."""
+        if self.config.record_dir is None or not isinstance(event, Join):
+            return None
+        try:
+            name = normalise_room(event.room)
+        except ValueError:
+            return None
         if (
-            self.config.record_dir is None
-            or not isinstance(event, Join)
-            or event.room in self.rooms
-            or not self._join_permitted(event, wall)
+            name in self.rooms
+            or not self._join_permitted(event.token, name, wall)
+            or self._room_refusal(name) is not None
         ):
             return None
-        return event.room
+        return name
 
     def handle(self, conn: int, event: Event, now: float, wall: float = 0.0) -> list[Action]:
         """Apply one decoded event of connection ``conn``."""
@@ -416,6 +365,8 @@ class RelayCore:
                 peer.log_limit.span,
             )
         self._leave(peer, now)
+        if peer.admitted:
+            self.admission.release(peer.address)
         if peer.user is not None:
             self._by_user.pop(peer.user, None)
             self.users.give_back(peer.user)
@@ -428,7 +379,7 @@ class RelayCore:
 
     def add_room(self, name: str, recorder: RoomRecorder | None, now: float) -> bool:
         """Create room ``name`` with its (opened) recorder; False if it exists already."""
-        if name in self.rooms or self.closed:
+        if name in self.rooms or self.closed or self._room_refusal(name) is not None:
             return False
         room = self._room_for(name)
         room.recorder = recorder
@@ -578,6 +529,20 @@ class RelayCore:
         self._send(peer, err.to_message())
         if err.fatal:
             self._close(peer, err.close_code or 1002, err.close_reason)
+        self._misbehaved(peer, now)
+
+    def _misbehaved(self, peer: Peer, now: float) -> None:
+        """Charge the misbehaviour budget one token; over it, close 1008."""
+        if not peer.budget.spend(now) and peer.close_request is None:
+            self.misbehaviour_closes += 1
+            log.info("user %s: over its misbehaviour budget, closing", peer.user)
+            self._close(peer, 1008, "misbehaving: too many invalid frames")
+
+    def _refuse(self, peer: Peer, code: ErrorCode, message: str, what: str, now: float) -> None:
+        """Answer a refused ``what`` (join, update) with a non-fatal error; charge the budget."""
+        self._log_peer(peer, now, "user %s: %s refused: %s (%s)", peer.user, what, message, code)
+        self._send(peer, ErrorMessage.from_code(code, message, in_reply_to=what))
+        self._misbehaved(peer, now)
 
     def _handle(self, peer: Peer, event: Event, now: float, wall: float) -> None:
         if isinstance(event, PoseUpdate):
@@ -594,7 +559,12 @@ class RelayCore:
             peer.name = event.agent or f"user{peer.user}"
             self._send(peer, peer.session.make_welcome(peer.user, now))
         elif isinstance(event, Join):
-            self._on_join(peer, event, now, wall)
+            try:
+                name = normalise_room(event.room)
+            except ValueError as exc:
+                self._refuse(peer, ErrorCode.BAD_ROOM, str(exc), "join", now)
+                return
+            self._on_join(peer, event, name, now, wall)
         elif isinstance(event, SetRate):
             self._on_set_rate(peer, event, now)
         elif isinstance(event, UserEvent):
@@ -609,20 +579,36 @@ class RelayCore:
                 # Its session is over (CLOSED): nothing more may be sent to it.
                 self._close(peer, 1000, f"client ended the session: {event.code}")
 
-    def _join_permitted(self, join: Join, wall: float) -> bool:
+    def _join_permitted(self, token: str | None, room: str, wall: float) -> bool:
         secret = self.config.secret
         if secret is None:
             return True
         try:
-            verify_token(secret, join.token, join.room, wall)
+            verify_token(secret, token, room, wall)
         except TokenError:
             return False
         return True
 
-    def _on_join(self, peer: Peer, join: Join, now: float, wall: float) -> None:
+    def _room_refusal(self, name: str) -> str | None:
+        """Why a join of room ``name`` is refused (``room-full``) now; None: it is not."""
+        cfg, room = self.config, self.rooms.get(name)
+        if room is not None:
+            if cfg.max_members and len(room.members) >= cfg.max_members:
+                return f"room is full ({cfg.max_members} members)"
+            return None
+        if cfg.max_rooms and len(self.rooms) >= cfg.max_rooms:
+            return f"too many rooms ({cfg.max_rooms}), try later"
+        if cfg.record_dir is not None and cfg.max_recorded_rooms:
+            recorded = sum(r.recorder is not None for r in self.rooms.values())
+            if recorded >= cfg.max_recorded_rooms:
+                return f"too many recorded rooms ({cfg.max_recorded_rooms}), try later"
+        return None
+
+    def _on_join(self, peer: Peer, join: Join, name: str, now: float, wall: float) -> None:
+        """Join room ``name`` (``join.room`` normalised; ``joined`` echoes ``join.room``)."""
         if self.config.secret is not None:
             try:
-                claims = verify_token(self.config.secret, join.token, join.room, wall)
+                claims = verify_token(self.config.secret, join.token, name, wall)
             except TokenError as exc:
                 self._send(
                     peer,
@@ -632,7 +618,13 @@ class RelayCore:
                 return
             peer.name = claims.user
         assert peer.user is not None  # the state table puts hello before join
-        room = self._room_for(join.room)
+        refused = self._room_refusal(name)
+        if refused is not None:
+            self._send(
+                peer, ErrorMessage.from_code(ErrorCode.ROOM_FULL, refused, in_reply_to="join")
+            )
+            return
+        room = self._room_for(name)
         streams = room.allocate_streams(join.streams)
         self._send(peer, Joined(room=join.room, streams=streams, rate=join.rate))
         member = Member(
@@ -648,25 +640,7 @@ class RelayCore:
         member.asked_rate = join.rate
         if self.config.link is not None:
             peer.link = EgressLink(self.config.link, seed=peer.user)
-        for other in room.members.values():
-            self._send(
-                peer,
-                PeerJoined(
-                    user=other.user,
-                    streams=other.streams,
-                    label=other.label,
-                    velocities=other.sends_velocities,
-                ),
-            )
-            self._send(
-                self._by_user[other.user],
-                PeerJoined(
-                    user=peer.user,
-                    streams=streams,
-                    label=join.label,
-                    velocities=join.sends_velocities,
-                ),
-            )
+        self._introduce(peer, member, room)
         room.add(member, now)
         self._rescheduled(room)
         peer.room, peer.member = room, member
@@ -681,6 +655,28 @@ class RelayCore:
                     "rate": join.rate,
                 },
                 now,
+            )
+
+    def _introduce(self, peer: Peer, member: Member, room: Room) -> None:
+        """Tell a joining member about every member of ``room``, and every member about it."""
+        for other in room.members.values():
+            self._send(
+                peer,
+                PeerJoined(
+                    user=other.user,
+                    streams=other.streams,
+                    label=other.label,
+                    velocities=other.sends_velocities,
+                ),
+            )
+            self._send(
+                self._by_user[other.user],
+                PeerJoined(
+                    user=member.user,
+                    streams=member.streams,
+                    label=member.label,
+                    velocities=member.sends_velocities,
+                ),
             )
 
     def _on_set_rate(self, peer: Peer, event: SetRate, now: float) -> None:
@@ -736,6 +732,15 @@ class RelayCore:
     def _on_update(self, peer: Peer, update: PoseUpdate, now: float) -> None:
         room, user = peer.room, peer.user
         if self._admit(peer, now) and room is not None and user is not None:
+            cfg = self.config
+            refused = update_refusal(
+                update, now, cfg.max_capture_age, cfg.max_capture_ahead, cfg.room_extent
+            )
+            if refused is not None:
+                peer.count_refused(refused.kind)
+                room.note_drop(refused.kind, user)
+                self._refuse(peer, ErrorCode.BAD_POSE, refused.message, "update", now)
+                return
             stale = room.ingest(user, update)
             rec = room.recorder
             if rec is not None:

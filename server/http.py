@@ -135,6 +135,7 @@ def metrics_text(core: RelayCore) -> str:
         "Protocol errors detected in what clients sent.",
         total("protocol_errors"),
     )
+    _limit_metrics(core, metric, total)
     rooms = [r.statistics() for r in core.rooms.values()]
     metric(
         "posecast_room_members",
@@ -155,6 +156,44 @@ def metrics_text(core: RelayCore) -> str:
         [(f'{{room="{_label(r.name)}"}}', r.tick_lag_max_ms) for r in rooms],
     )
     return "\n".join(lines) + "\n"
+
+
+Metric = Callable[[str, str, str, list[tuple[str, float]]], None]
+
+
+def _limit_metrics(
+    core: RelayCore, metric: Metric, total: Callable[..., list[tuple[str, float]]]
+) -> None:
+    """What the limits refused or closed (docs/security.md)."""
+    metric(
+        "posecast_updates_refused_total",
+        "counter",
+        "Pose updates refused: capture time too old or ahead of the server, position out of"
+        " the room volume.",
+        [
+            ('{reason="stale-capture"}', total("stale_captures")[0][1]),
+            ('{reason="future-capture"}', total("future_captures")[0][1]),
+            ('{reason="out-of-bounds"}', total("out_of_bounds")[0][1]),
+        ],
+    )
+    metric(
+        "posecast_connections_refused_total",
+        "counter",
+        "Connections closed at once (1013) for exceeding a connection limit.",
+        [("", core.refused_connections)],
+    )
+    metric(
+        "posecast_join_timeouts_total",
+        "counter",
+        "Connections closed (1008) for not joining a room in time.",
+        [("", core.join_timeouts)],
+    )
+    metric(
+        "posecast_misbehaviour_closes_total",
+        "counter",
+        "Connections closed (1008) for exceeding their misbehaviour budget.",
+        [("", core.misbehaviour_closes)],
+    )
 
 
 def _number(value: float) -> str:

@@ -92,9 +92,20 @@ def test_the_checker_sees_a_forbidden_edge(tmp_path: Path) -> None:
 
 
 def test_server_holds_only_the_relay() -> None:
-    """server/ is the relay: its core, rooms, auth, the asyncio adapter and its HTTP part."""
+    """server/ is the relay: its core (actions, peers, limits), rooms, auth, adapter, HTTP."""
     modules = {p.name for p in (ROOT / "server").glob("*.py")}
-    relay = {"__init__.py", "core.py", "room.py", "auth.py", "logs.py", "app.py", "http.py"}
+    relay = {
+        "__init__.py",
+        "core.py",
+        "actions.py",
+        "peer.py",
+        "limits.py",
+        "room.py",
+        "auth.py",
+        "logs.py",
+        "app.py",
+        "http.py",
+    }
     assert modules == relay
 
 

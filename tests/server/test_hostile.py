@@ -344,3 +344,37 @@ async def test_rates_unaffected_by_attackers(server_factory: ServerFactory) -> N
                 assert base[key] == pytest.approx(bot.rate, rel=0.1)
                 assert hit.get(key, 0.0) == pytest.approx(base[key], rel=0.1), (key, base, hit)
             await bot.conn.close()
+
+
+async def test_a_connection_that_never_joins_is_closed_1008(
+    server_factory: ServerFactory,
+) -> None:
+    """Hello and then nothing: closed 1008 "no join" at the join deadline; members go on."""
+    cfg = ServerConfig(host="127.0.0.1", port=0, join_timeout=0.2)
+    async with server_factory(cfg) as srv:
+        member, _, _ = await joined_raw(url_of(srv), "r")
+        idle = await raw_connect(url_of(srv))
+        await idle.send(HELLO)
+        got, code = await until_closed(idle)
+        assert code == 1008 and close_reason(idle) == "no join within 0.2 s"
+        assert errors(got) == [] and srv.core.join_timeouts == 1
+        assert member.protocol.close_rcvd is None and len(srv.rooms["r"].members) == 1
+        await member.close()
+
+
+async def test_connections_per_address_are_limited(server_factory: ServerFactory) -> None:
+    """Over max_connections_per_address: closed at once with 1013; a freed place is reused."""
+    cfg = ServerConfig(host="127.0.0.1", port=0, max_connections_per_address=2)
+    async with server_factory(cfg) as srv:
+        first, _, _ = await joined_raw(url_of(srv), "r")
+        second, _, _ = await joined_raw(url_of(srv), "r")
+        third = await raw_connect(url_of(srv))
+        _, code = await until_closed(third)
+        assert code == 1013
+        assert close_reason(third) == ("try again later: too many connections from one address (2)")
+        await first.close()
+        await settle(lambda: srv.closed_connections == 2)
+        again, _, _ = await joined_raw(url_of(srv), "r")
+        assert srv.core.refused_connections == 1 and len(srv.rooms["r"].members) == 2
+        await again.close()
+        await second.close()

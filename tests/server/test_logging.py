@@ -123,7 +123,8 @@ async def test_thousands_of_bad_frames_make_a_handful_of_log_lines(
     """3000 bad poses from one peer: one line for the first, one with the count at close."""
     caplog.set_level(logging.INFO)
     # An interval longer than the test: the count of lines does not depend on its speed.
-    cfg = ServerConfig(host="127.0.0.1", port=0, peer_log_interval=3600.0)
+    # No misbehaviour budget: this is about logging, not closing.
+    cfg = ServerConfig(host="127.0.0.1", port=0, peer_log_interval=3600.0, misbehaviour_burst=0)
     n = 3000
     async with server_factory(cfg) as srv:
         ws, user, ids = await joined_raw(url_of(srv), "r")
@@ -158,7 +159,8 @@ async def test_bad_frames_are_logged_once_per_interval_with_the_count(
     """On the server's (fake) clock: one line per interval, naming how many were held back."""
     caplog.set_level(logging.INFO)
     clock = FakeClock()
-    cfg = ServerConfig(host="127.0.0.1", port=0, peer_log_interval=1.0)
+    # No misbehaviour budget: this is about logging, not closing.
+    cfg = ServerConfig(host="127.0.0.1", port=0, peer_log_interval=1.0, misbehaviour_burst=0)
     srv = RelayServer(cfg, clock=clock)
     async with asyncio.TaskGroup() as tg:
         tg.create_task(srv.run())

@@ -1,0 +1,43 @@
+"""What :class:`server.core.RelayCore` tells its adapter to do (see its module docstring)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from recorder import RoomRecorder
+
+__all__ = ["Action", "Close", "FinishRecording", "Reschedule", "Wake"]
+
+
+@dataclass(frozen=True, slots=True)
+class Wake:
+    """Connection ``conn`` has frames to write: ``take(conn, now)``."""
+
+    conn: int
+
+
+@dataclass(frozen=True, slots=True)
+class Close:
+    """Close connection ``conn`` (after its queued messages) with ``code`` and ``reason``."""
+
+    conn: int
+    code: int
+    reason: str
+
+
+@dataclass(frozen=True, slots=True)
+class Reschedule:
+    """The earliest tick may have changed: consult ``next_deadline()`` again."""
+
+
+@dataclass(frozen=True, slots=True)
+class FinishRecording:
+    """Room ``room`` is gone: close ``recorder`` (blocking work: off the event loop)."""
+
+    room: str
+    recorder: RoomRecorder
+
+
+Action = Wake | Close | Reschedule | FinishRecording

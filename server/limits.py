@@ -1,0 +1,161 @@
+"""What one peer may cost the others: the relay's limits, sans I/O.
+
+:class:`server.core.RelayCore` applies these; each limit is a
+:class:`server.core.ServerConfig` field and a ``posecast serve`` flag, and
+``docs/security.md`` gives the threat model behind them.
+
+- :func:`normalise_room`: one room per name as people read it (NFC, stripped),
+  refusing names that display as something else (control characters, bidi
+  overrides and isolates), empty names and names over ``MAX_ROOM_NAME_BYTES``.
+- :func:`update_refusal`: an update whose capture times are too old or ahead of
+  the server clock, or whose positions leave the room volume, is refused whole.
+- :class:`Budget`: the misbehaviour budget of one connection (a token bucket
+  each refused frame or update costs a token of).
+- :class:`Admission`: connections in total and per source address.
+"""
+
+from __future__ import annotations
+
+import heapq
+import unicodedata
+from dataclasses import dataclass, field
+
+from protocol import PoseUpdate
+
+__all__ = [
+    "MAX_ROOM_NAME_BYTES",
+    "Admission",
+    "Budget",
+    "JoinDeadlines",
+    "Refusal",
+    "normalise_room",
+    "update_refusal",
+]
+
+#: Longest room name, in UTF-8 bytes, once normalised.
+MAX_ROOM_NAME_BYTES = 64
+
+# Bidi embeddings and overrides (U+202A-U+202E) and isolates (U+2066-U+2069):
+# they make a name display as another one.
+_BIDI = frozenset(range(0x202A, 0x202F)) | frozenset(range(0x2066, 0x206A))
+
+
+def normalise_room(name: str) -> str:
+    """The room ``name`` stands for (NFC, stripped); ValueError says why there is none."""
+    norm = unicodedata.normalize("NFC", name).strip()
+    if not norm:
+        raise ValueError("room name is empty")
+    for ch in norm:
+        if ord(ch) in _BIDI or unicodedata.category(ch) == "Cc":
+            raise ValueError(f"room name holds the control character U+{ord(ch):04X}")
+    size = len(norm.encode("utf-8"))
+    if size > MAX_ROOM_NAME_BYTES:
+        raise ValueError(f"room name is {size} bytes, over {MAX_ROOM_NAME_BYTES}")
+    return norm
+
+
+@dataclass(frozen=True, slots=True)
+class Refusal:
+    """Why an update was refused: the drops record ``kind`` and the error message."""
+
+    kind: str
+    message: str
+
+
+def update_refusal(
+    update: PoseUpdate, now: float, max_age: float, max_ahead: float, extent: float
+) -> Refusal | None:
+    """Whether ``update`` is refused at server time ``now`` (None: it is fine).
+
+    Every capture time must lie in ``[now - max_age, now + max_ahead]`` (the
+    allowance ahead is the clock-sync error a client may have), and every
+    position within ``extent`` metres of the origin on each axis.
+    """
+    entries = update.entries
+    if len(entries) == 0:
+        return None
+    dt = entries["dt"]
+    oldest = update.base_time + float(dt.min())
+    newest = update.base_time + float(dt.max())
+    if oldest < now - max_age:
+        return Refusal(
+            "stale-capture", f"capture time {now - oldest:.3f} s old, over {max_age:g} s"
+        )
+    if newest > now + max_ahead:
+        return Refusal(
+            "future-capture",
+            f"capture time {newest - now:.3f} s ahead of the server, over {max_ahead:g} s",
+        )
+    far = float(abs(entries["pose"][:, :3]).max())
+    if far > extent:
+        return Refusal("out-of-bounds", f"position {far:.1f} m from the origin, over {extent:g} m")
+    return None
+
+
+class Budget:
+    """A token bucket of ``burst`` tokens refilled ``refill`` a second; 0 tokens: no limit."""
+
+    __slots__ = ("_last", "_tokens", "burst", "refill")
+
+    def __init__(self, burst: int, refill: float, now: float) -> None:
+        self.burst = burst
+        self.refill = refill
+        self._tokens = float(burst)
+        self._last = now
+
+    def spend(self, now: float) -> bool:
+        """Take one token; False when there was none left (over budget)."""
+        if self.burst <= 0:
+            return True
+        self._tokens = min(self.burst, self._tokens + (now - self._last) * self.refill)
+        self._last = max(self._last, now)
+        if self._tokens < 1.0:
+            return False
+        self._tokens -= 1.0
+        return True
+
+
+@dataclass
+class Admission:
+    """Open connections, in total and per source address (0: no limit)."""
+
+    max_total: int
+    max_per_address: int
+    total: int = 0
+    by_address: dict[str, int] = field(default_factory=dict)
+
+    def admit(self, address: str | None) -> str | None:
+        """Count one more connection, or say why it is refused (nothing counted)."""
+        if self.max_total and self.total >= self.max_total:
+            return f"too many connections ({self.max_total})"
+        if address is not None:
+            held = self.by_address.get(address, 0)
+            if self.max_per_address and held >= self.max_per_address:
+                return f"too many connections from one address ({self.max_per_address})"
+            self.by_address[address] = held + 1
+        self.total += 1
+        return None
+
+    def release(self, address: str | None) -> None:
+        """A connection :meth:`admit` counted has ended."""
+        self.total -= 1
+        if address is not None:
+            left = self.by_address.pop(address, 1) - 1
+            if left > 0:
+                self.by_address[address] = left
+
+
+class JoinDeadlines:
+    """When each connection must have joined by (a heap; entries no longer due are skipped)."""
+
+    def __init__(self) -> None:
+        self._heap: list[tuple[float, int]] = []
+
+    def add(self, conn: int, deadline: float) -> None:
+        heapq.heappush(self._heap, (deadline, conn))
+
+    def peek(self) -> tuple[float, int] | None:
+        return self._heap[0] if self._heap else None
+
+    def pop(self) -> tuple[float, int]:
+        return heapq.heappop(self._heap)

@@ -1,0 +1,147 @@
+"""One connection as the relay sees it: its session, outbox, buckets and counters.
+
+:class:`Peer` is :class:`server.core.RelayCore`'s record of a connection;
+:class:`ConnectionStatistics` is what the server reports of it (statistics,
+``/metrics``), and ``COUNTERS`` are the statistics that only ever grow.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from protocol import ServerSession
+from scenarios.network import EgressLink
+from server.actions import Wake
+from server.limits import Budget
+from server.logs import LogLimiter
+from server.room import Member, Outbox, Room
+
+if TYPE_CHECKING:
+    from server.core import RelayCore
+
+__all__ = ["COUNTERS", "ConnectionStatistics", "Peer"]
+
+#: ConnectionStatistics fields that only ever grow, summed over ended connections.
+COUNTERS = (
+    "frames_in",
+    "bytes_in",
+    "frames_out",
+    "bytes_out",
+    "snapshots_offered",
+    "skips",
+    "congestion_skips",
+    "event_drops",
+    "flood_drops",
+    "protocol_errors",
+    "stale_captures",
+    "future_captures",
+    "out_of_bounds",
+)
+
+
+@dataclass(frozen=True, slots=True)
+class ConnectionStatistics:
+    user: int | None
+    room: str | None
+    frames_in: int
+    bytes_in: int
+    frames_out: int
+    bytes_out: int
+    snapshots_offered: int
+    skips: int
+    congestion_skips: int
+    event_drops: int
+    flood_drops: int
+    protocol_errors: int
+    #: Updates refused: capture time too old / ahead of the server clock (see
+    #: ``max_capture_age``, ``max_capture_ahead``), a position out of the room volume.
+    stale_captures: int = 0
+    future_captures: int = 0
+    out_of_bounds: int = 0
+    #: With an emulated link: the rate the server chose for this subscriber (Hz),
+    #: snapshots delivered / skipped at the cap / lost, and bytes on the link.
+    link_rate_hz: float | None = None
+    link_frames: int = 0
+    link_cap_skips: int = 0
+    link_lost: int = 0
+    link_bytes: int = 0
+
+
+class Peer:
+    """One connection as the relay sees it: session state, outbox, bucket, counters."""
+
+    def __init__(
+        self,
+        conn: int,
+        core: RelayCore,
+        buffered: Callable[[], int],
+        now: float,
+        address: str | None = None,
+    ) -> None:
+        cfg = core.config
+        self.conn = conn
+        #: The source address (host) the adapter reported; None in tests.
+        self.address = address
+        #: Whether :class:`server.limits.Admission` counted it (it was not refused).
+        self.admitted = False
+        self.session = ServerSession(core.limits)
+        self.outbox = Outbox(cfg.max_event_queue, buffered, cfg.congested_bytes)
+        self.outbox.on_ready = self._ready
+        self._core = core
+        self.user: int | None = None
+        self.name = ""
+        self.room: Room | None = None
+        self.member: Member | None = None
+        self.close_request: tuple[int, str] | None = None
+        self.frames_in = self.bytes_in = self.frames_out = self.bytes_out = 0
+        self.event_drops = self.flood_drops = self.protocol_errors = 0
+        self.stale_captures = self.future_captures = self.out_of_bounds = 0
+        #: Each refused frame or update costs a token; none left: closed 1008.
+        self.budget = Budget(cfg.misbehaviour_burst, cfg.misbehaviour_refill, now)
+        #: The emulated downlink (``ServerConfig.link``), set at join.
+        self.link: EgressLink | None = None
+        self.delayed: list[tuple[float, int, bytes]] = []
+        self._link_seq = 0
+        self.link_overflow = 0
+        self._bucket = cfg.max_update_rate
+        self._bucket_time = now
+        self.log_limit = LogLimiter(cfg.peer_log_interval)
+
+    def count_refused(self, kind: str) -> None:
+        """Count an update refused for ``kind`` (a :class:`server.limits.Refusal` kind)."""
+        if kind == "stale-capture":
+            self.stale_captures += 1
+        elif kind == "future-capture":
+            self.future_captures += 1
+        else:
+            self.out_of_bounds += 1
+
+    def _ready(self) -> None:
+        self._core.emit(Wake(self.conn))
+
+    def statistics(self) -> ConnectionStatistics:
+        m, link = self.member, self.link
+        return ConnectionStatistics(
+            user=self.user,
+            room=self.room.name if self.room else None,
+            frames_in=self.frames_in,
+            bytes_in=self.bytes_in,
+            frames_out=self.frames_out,
+            bytes_out=self.bytes_out,
+            snapshots_offered=self.outbox.snapshots_offered,
+            skips=self.outbox.skips,
+            congestion_skips=m.congestion_skips if m else 0,
+            event_drops=self.event_drops,
+            flood_drops=self.flood_drops,
+            protocol_errors=self.protocol_errors,
+            stale_captures=self.stale_captures,
+            future_captures=self.future_captures,
+            out_of_bounds=self.out_of_bounds,
+            link_rate_hz=m.rate if (m is not None and link is not None) else None,
+            link_frames=link.frames if link else 0,
+            link_cap_skips=link.cap_skips if link else 0,
+            link_lost=link.lost if link else 0,
+            link_bytes=link.bytes if link else 0,
+        )
