@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -108,6 +109,65 @@ TiersOption = Annotated[
 LogLevelOption = Annotated[
     str, typer.Option(help="debug, info, warning or error.", envvar="POSECAST_LOG_LEVEL")
 ]
+# Limits of serve (docs/security.md); 0 turns a count limit off.
+MaxCaptureAgeOption = Annotated[
+    float,
+    typer.Option(
+        help="Refuse updates captured longer ago than this (s).",
+        envvar="POSECAST_MAX_CAPTURE_AGE",
+    ),
+]
+MaxCaptureAheadOption = Annotated[
+    float,
+    typer.Option(
+        help="Refuse updates captured later than now plus this (s; clock-sync error).",
+        envvar="POSECAST_MAX_CAPTURE_AHEAD",
+    ),
+]
+RoomExtentOption = Annotated[
+    float,
+    typer.Option(
+        help="Refuse positions beyond +-this (m) on an axis.", envvar="POSECAST_ROOM_EXTENT"
+    ),
+]
+MisbehaviourBurstOption = Annotated[
+    int,
+    typer.Option(
+        help="Invalid frames or refused updates a connection may send at once (0: no limit).",
+        envvar="POSECAST_MISBEHAVIOUR_BURST",
+    ),
+]
+MisbehaviourRefillOption = Annotated[
+    float,
+    typer.Option(
+        help="... and a second, after that; beyond: close 1008.",
+        envvar="POSECAST_MISBEHAVIOUR_REFILL",
+    ),
+]
+JoinTimeoutOption = Annotated[
+    float,
+    typer.Option(
+        help="Close connections not joined within this (s).", envvar="POSECAST_JOIN_TIMEOUT"
+    ),
+]
+MaxConnectionsOption = Annotated[
+    int, typer.Option(help="Open connections at most.", envvar="POSECAST_MAX_CONNECTIONS")
+]
+MaxConnectionsPerAddressOption = Annotated[
+    int,
+    typer.Option(
+        help="Open connections from one address at most.",
+        envvar="POSECAST_MAX_CONNECTIONS_PER_ADDRESS",
+    ),
+]
+MaxRoomsOption = Annotated[int, typer.Option(help="Rooms at most.", envvar="POSECAST_MAX_ROOMS")]
+MaxMembersOption = Annotated[
+    int, typer.Option(help="Members of one room at most.", envvar="POSECAST_MAX_MEMBERS")
+]
+MaxRecordedRoomsOption = Annotated[
+    int,
+    typer.Option(help="Rooms recorded at once at most.", envvar="POSECAST_MAX_RECORDED_ROOMS"),
+]
 
 
 def _secret(ctx: typer.Context, secret: str | None, secret_file: Path | None) -> str | None:
@@ -158,6 +218,17 @@ def serve(
     link: LinkOption = None,
     tiers: TiersOption = None,
     log_level: LogLevelOption = "info",
+    max_capture_age: MaxCaptureAgeOption = 1.0,
+    max_capture_ahead: MaxCaptureAheadOption = 0.25,
+    room_extent: RoomExtentOption = 100.0,
+    misbehaviour_burst: MisbehaviourBurstOption = 20,
+    misbehaviour_refill: MisbehaviourRefillOption = 5.0,
+    join_timeout: JoinTimeoutOption = 5.0,
+    max_connections: MaxConnectionsOption = 1024,
+    max_connections_per_address: MaxConnectionsPerAddressOption = 64,
+    max_rooms: MaxRoomsOption = 256,
+    max_members: MaxMembersOption = 64,
+    max_recorded_rooms: MaxRecordedRoomsOption = 32,
 ) -> None:
     """Run the relay server until SIGINT/SIGTERM (then close all with 1001, exit 0).
 
@@ -171,6 +242,21 @@ def serve(
     from server.app import ServerConfig
 
     _check_serve_args(port, rate, min_rate, max_rate, record, record_writer, log_level)
+    limits = {
+        "max_capture_age": max_capture_age,
+        "max_capture_ahead": max_capture_ahead,
+        "room_extent": room_extent,
+        "misbehaviour_burst": misbehaviour_burst,
+        "misbehaviour_refill": misbehaviour_refill,
+        "join_timeout": join_timeout,
+        "max_connections": max_connections,
+        "max_connections_per_address": max_connections_per_address,
+        "max_rooms": max_rooms,
+        "max_members": max_members,
+        "max_recorded_rooms": max_recorded_rooms,
+    }
+    if bad := [k for k, v in limits.items() if not v >= 0]:
+        raise _fail(f"--{bad[0].replace('_', '-')} must not be negative")
     secret = _secret(ctx, secret, secret_file)
     tier = _tier(link, tiers)
     logging.basicConfig(
@@ -186,6 +272,7 @@ def serve(
         record_dir=record,
         record_writer="thread" if record_writer == "thread" else "process",
         link=tier,
+        **limits,  # type: ignore[arg-type]
     )
     _serve_until_stopped(cfg)
 
@@ -320,6 +407,22 @@ BotSecretOption = Annotated[
 JsonOutOption = Annotated[Path | None, typer.Option("--json", help="Write the report as JSON.")]
 
 
+class Codec(StrEnum):
+    """How the bots code their pose updates (client -> server)."""
+
+    compact = "compact"
+    raw = "raw"
+
+
+CodecOption = Annotated[
+    Codec,
+    typer.Option(
+        help="Upstream pose coding: compact (quantised, delta-coded, ~12 B a pose) "
+        "or raw (float records, ~47 B a pose); snapshots stay raw.",
+    ),
+]
+
+
 def bots(
     ctx: typer.Context,
     url: UrlOption,
@@ -334,6 +437,7 @@ def bots(
     secret: BotSecretOption = None,
     secret_file: SecretFileOption = None,
     json_out: JsonOutOption = None,
+    codec: CodecOption = Codec.compact,
 ) -> None:
     """Run N headless bots against a server and report QoE per interpolator.
 
@@ -354,6 +458,7 @@ def bots(
         duration=duration,
         token=token_,
         name="bot",
+        codec=codec.value,
     )
     report = _run_swarm(base, n, _token_minter(key, room, duration))
     print_swarm(report, f"{n} bots at {rate:g} Hz for {duration:g} s ({motion})")
@@ -438,6 +543,7 @@ def demo(
     json_out: JsonOutOption = None,
     record: RecordFolderOption = Path("recordings"),
     no_record: NoRecordOption = False,
+    codec: CodecOption = Codec.compact,
 ) -> None:
     """The main job: a server and N bots on loopback, then QoE per interpolator."""
     from posecast.demo import run_demo
@@ -459,6 +565,7 @@ def demo(
             motion=motion,
             console=console,
             record_dir=None if no_record else record,
+            codec=codec.value,
         )
     )
     print_swarm(
