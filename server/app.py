@@ -251,33 +251,31 @@ class RelayServer:
 
     async def _tick_loop(self) -> None:
         """Tick the rooms at every due time; sleep until the next one or a change."""
-        core = self.core
-        while True:
-            due = core.next_deadline()
-            now = self.clock()
-            if due is None or due > now:
-                self._reschedule.clear()
-                # (asyncio.timeout: wait_for can swallow a cancellation on 3.11)
-                with contextlib.suppress(TimeoutError):
-                    async with asyncio.timeout(None if due is None else due - now):
-                        await self._reschedule.wait()
-                continue
-            self.apply(core.tick(now))
-            await asyncio.sleep(0)
+        await self._deadline_loop(self.core.next_deadline, self.core.tick, self._reschedule)
 
     async def _expiry_loop(self) -> None:
         """Close connections that have not joined in time (``join_timeout``)."""
-        core = self.core
+        await self._deadline_loop(self.core.next_expiry, self.core.expire, self._new_connection)
+
+    async def _deadline_loop(
+        self,
+        next_due: Callable[[], float | None],
+        run: Callable[[float], list[Action]],
+        changed: asyncio.Event,
+    ) -> None:
+        """Call ``run(now)`` at every time ``next_due()`` names; ``changed`` wakes early."""
         while True:
-            due = core.next_expiry()
+            due = next_due()
             now = self.clock()
             if due is None or due > now:
-                self._new_connection.clear()
+                changed.clear()
+                # (asyncio.timeout: wait_for can swallow a cancellation on 3.11)
                 with contextlib.suppress(TimeoutError):
                     async with asyncio.timeout(None if due is None else due - now):
-                        await self._new_connection.wait()
+                        await changed.wait()
                 continue
-            self.apply(core.expire(now))
+            self.apply(run(now))
+            await asyncio.sleep(0)
 
     # -- rooms and recordings --------------------------------------------------------------
 
