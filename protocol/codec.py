@@ -74,6 +74,7 @@ from collections.abc import Mapping
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from protocol.codec_fast import decode_small, encode_small
 from protocol.codec_frame import (
     CODEC_MAGIC,
     CODEC_VERSION,
@@ -165,7 +166,7 @@ def encode_snapshot_codes(
     code_array = _check_codes(codes, volume)
     n = code_array.shape[0]
     flags = F_VELOCITY if code_array.shape[1] == 13 else 0
-    return encode_frame(
+    args = (
         flags,
         tick,
         float(base_time),
@@ -177,6 +178,7 @@ def encode_snapshot_codes(
         baselines,
         split,
     )
+    return encode_small(*args) or encode_frame(*args)
 
 
 def encode_key_snapshot(
@@ -225,7 +227,7 @@ def encode_update_codes(
     code_array = _check_codes(codes, volume)
     n = code_array.shape[0]
     flags = F_UPDATE | (F_VELOCITY if code_array.shape[1] == 13 else 0)
-    return encode_frame(
+    args = (
         flags,
         seq,
         float(base_time),
@@ -237,6 +239,7 @@ def encode_update_codes(
         baselines,
         True,
     )
+    return encode_small(*args) or encode_frame(*args)
 
 
 def encode_update(
@@ -258,11 +261,15 @@ def decode_snapshot(
     data: bytes, volume: Volume, baselines: Mapping[tuple[int, int], I64] | None = None
 ) -> PoseFrame:
     """Decode a snapshot frame; raises only ``RemoteProtocolError`` (with a code)."""
-    return decode_frame(data, volume, baselines, False)
+    return decode_small(data, volume, baselines, False) or decode_frame(
+        data, volume, baselines, False
+    )
 
 
 def decode_update(
     data: bytes, volume: Volume, baselines: Mapping[int, I64] | None = None
 ) -> PoseFrame:
     """Decode an update frame; baselines keyed by stream id."""
-    return decode_frame(data, volume, baselines, True)
+    return decode_small(data, volume, baselines, True) or decode_frame(
+        data, volume, baselines, True
+    )

@@ -61,6 +61,11 @@ _NORM_LO = (1.0 - QUAT_NORM_TOLERANCE) ** 2
 _NORM_HI = (1.0 + QUAT_NORM_TOLERANCE) ** 2
 
 
+#: Up to this many rows, quantise / dequantise / codes_problem loop in Python.
+_SMALL = 30
+_OTHERS_T = ((1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2))
+
+
 def local_error(code: ErrorCode, message: str) -> LocalProtocolError:
     """This side built something invalid."""
     return LocalProtocolError(code, message)
@@ -166,13 +171,17 @@ def quantise(poses: ArrayLike, volume: Volume, velocities: ArrayLike | None = No
     norm2 = np.einsum("ij,ij->i", q, q)
     if n and not (float(norm2.min()) >= _NORM_LO and float(norm2.max()) <= _NORM_HI):
         raise local_error(ErrorCode.BAD_POSE, "quaternion not unit")
+    if 0 < n <= _SMALL:
+        small = _quantise_small(raw, norm2, volume)
+        if small is not None:
+            if velocities is None:
+                return np.array(small, np.int64)
+            return _with_velocities(small, velocities)
     idx, rot = _quantise_rotation(q / np.sqrt(norm2)[:, None])
     pos = _quantise_position(raw[:, :3], volume)
     columns = [idx[:, None], rot, pos]
     if velocities is not None:
-        vel = float_array("velocities", velocities, (n, 6))
-        if not np.isfinite(vel).all():
-            raise local_error(ErrorCode.BAD_VELOCITY, "non-finite velocity")
+        vel = _velocity_array(velocities, n)
         vel = np.clip(vel, -VEL_LIMIT, VEL_LIMIT)
         columns.append(np.rint(vel[:, :3] / LIN_STEP).astype(np.int64))
         columns.append(np.rint(vel[:, 3:] / ANG_STEP).astype(np.int64))
@@ -184,6 +193,8 @@ def dequantise(
 ) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
     """Poses (n, 7) float32 and velocities (n, 6) float32 (or None) of valid codes."""
     n = codes.shape[0]
+    if 0 < n <= _SMALL:
+        return _dequantise_small(codes, volume)
     small = codes[:, 1:4].astype(np.float64) / _ROT_SCALE
     w = np.sqrt(np.maximum(0.0, 1.0 - np.einsum("ij,ij->i", small, small)))
     q = np.empty((n, 4))
@@ -204,6 +215,8 @@ def codes_problem(codes: I64, volume: Volume) -> str | None:
     """What is out of range in code rows (n, 7 or 13), or None if they are valid."""
     if not codes.shape[0]:
         return None
+    if codes.shape[0] <= _SMALL:
+        return codes_problem_rows(codes.tolist(), volume)
     if int(codes[:, 0].min()) < 0 or int(codes[:, 0].max()) > 3:
         return "rotation index out of range"
     abc = codes[:, 1:4]
@@ -238,3 +251,94 @@ def predict_rotation(base: I64, idx: I64) -> I64:
     sign = np.where(full[np.arange(n), idx] < 0, -1, 1)
     pred = np.take_along_axis(full * sign[:, None], _OTHERS[idx], axis=1)
     return np.clip(pred, -M, M)
+
+
+def codes_problem_rows(rows: list[list[int]], volume: Volume) -> str | None:
+    """:func:`codes_problem` of code rows as Python ints (the small frames' path)."""
+    top = [(1 << b) - 1 for b in volume.bits]
+    for check in range(4):
+        for r in rows:
+            if check == 0 and not 0 <= r[0] <= 3:
+                return "rotation index out of range"
+            if check == 1 and (
+                max(abs(r[1]), abs(r[2]), abs(r[3])) > M
+                or r[1] * r[1] + r[2] * r[2] + r[3] * r[3] > 2 * M * M
+            ):
+                return "rotation out of range"
+            if check == 2 and not (
+                0 <= r[4] <= top[0] and 0 <= r[5] <= top[1] and 0 <= r[6] <= top[2]
+            ):
+                return "position outside the room volume"
+            if (
+                check == 3
+                and len(r) == 13
+                and (
+                    max(abs(v) for v in r[7:10]) > _LIN_CODE_MAX
+                    or max(abs(v) for v in r[10:13]) > _ANG_CODE_MAX
+                )
+            ):
+                return "velocity out of range"
+    return None
+
+
+def _velocity_array(velocities: ArrayLike, n: int) -> NDArray[np.float64]:
+    vel = float_array("velocities", velocities, (n, 6))
+    if not np.isfinite(vel).all():
+        raise local_error(ErrorCode.BAD_VELOCITY, "non-finite velocity")
+    return vel
+
+
+def _with_velocities(codes: list[list[int]], velocities: ArrayLike) -> I64:
+    for row, v in zip(codes, _velocity_array(velocities, len(codes)).tolist(), strict=True):
+        c = [min(VEL_LIMIT, max(-VEL_LIMIT, x)) for x in v]
+        row += [round(x / LIN_STEP) for x in c[:3]] + [round(x / ANG_STEP) for x in c[3:]]
+    return np.array(codes, np.int64)
+
+
+def _quantise_small(
+    raw: NDArray[np.float64], norm2: NDArray[np.float64], volume: Volume
+) -> list[list[int]] | None:
+    """:func:`quantise` of a few checked rows with Python floats (the same operations,
+    so the same codes); None for a position outside the volume (numpy path raises)."""
+    lo, step = volume.lo, volume.step
+    top = [(1 << b) - 1 for b in volume.bits]
+    rows = []
+    for r, n2 in zip(raw.tolist(), norm2.tolist(), strict=True):
+        s = math.sqrt(n2)
+        q = [r[3] / s, r[4] / s, r[5] / s, r[6] / s]
+        idx = 0
+        for i in (1, 2, 3):
+            if abs(q[i]) > abs(q[idx]):
+                idx = i
+        sign = -1.0 if q[idx] < 0.0 else 1.0
+        row = [idx] + [min(M, max(-M, round(q[o] * sign * _ROT_SCALE))) for o in _OTHERS_T[idx]]
+        for a in range(3):
+            p = round((r[a] - lo[a]) / step[a])
+            if not 0 <= p <= top[a]:
+                return None
+            row.append(p)
+        rows.append(row)
+    return rows
+
+
+def _dequantise_small(
+    codes: I64, volume: Volume
+) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
+    """:func:`dequantise` of a few rows with Python floats (numpy's einsum of a
+    contiguous (n, 3) array sums (x x + z z) + y y: the same order here)."""
+    lo, step = volume.lo, volume.step
+    poses = []
+    vels = []
+    for r in codes.tolist():
+        x, y, z = r[1] / _ROT_SCALE, r[2] / _ROT_SCALE, r[3] / _ROT_SCALE
+        q = [0.0, 0.0, 0.0, 0.0]
+        q[r[0]] = math.sqrt(max(0.0, 1.0 - ((x * x + z * z) + y * y)))
+        for o, v in zip(_OTHERS_T[r[0]], (x, y, z), strict=True):
+            q[o] = v
+        poses.append([lo[0] + r[4] * step[0], lo[1] + r[5] * step[1], lo[2] + r[6] * step[2], *q])
+        if len(r) == 13:
+            vels.append([v * LIN_STEP for v in r[7:10]] + [v * ANG_STEP for v in r[10:13]])
+    out = np.array(poses, np.float64).astype(np.float32)
+    if codes.shape[1] == 7:
+        return out, None
+    return out, np.array(vels, np.float64).astype(np.float32)
