@@ -368,6 +368,29 @@ def motor_hermite(
     derivative in ``M_a``'s hemisphere) is formed directly as one real and one
     dual quaternion per query, then normalised by its Study number.
     """
+    batch, span, ss, rows_a, rows_b, A, B, vel_a, vel_b = _hermite_inputs(a, b, va, vb, dt, s)
+    qa, qb = A[3:], B[3:]
+    dot = qa[0] * qb[0] + qa[1] * qb[1] + qa[2] * qb[2] + qa[3] * qb[3]
+    # The derivative of -M is -M': b's sign is a factor of both its weights.
+    sign = hemisphere_sign(qa, qb, dot)
+    h00, h10, h01, h11 = _hermite_basis(ss)
+    real = np.empty((4, ss.shape[0]))
+    dual = np.empty((4, ss.shape[0]))
+    _hermite_end(A, vel_a, h00, h10 * span, real, dual, False)
+    _hermite_end(B, vel_b, h01 * sign, h11 * (span * sign), real, dual, True)
+    out = _pose_rows(real, dual)
+    return _exact_ends(out, ss, rows_a, rows_b, batch)
+
+
+def _hermite_inputs(
+    a: ArrayLike, b: ArrayLike, va: ArrayLike, vb: ArrayLike, dt: ArrayLike, s: ArrayLike
+) -> tuple[tuple[int, ...], F64, F64, F64, F64, F64, F64, F64, F64]:
+    """The checked, broadcast inputs of a velocity method (motor- and soa-hermite).
+
+    Returns the batch shape, ``dt`` and ``s`` flattened, the keyframes as rows
+    ``(7, M)``, their unit-quaternion checked copies ``A``, ``B`` and the finite
+    velocities as rows ``(6, M)``.
+    """
     pa = _float_array(a, "a", (7,))
     pb = _float_array(b, "b", (7,))
     if pa.shape != pb.shape:
@@ -382,17 +405,12 @@ def motor_hermite(
     rows_a, rows_b = _rows(pa), _rows(pb)
     A = _unit_quats(rows_a, "a")
     B = _unit_quats(rows_b, "b")
-    qa, qb = A[3:], B[3:]
-    dot = qa[0] * qb[0] + qa[1] * qb[1] + qa[2] * qb[2] + qa[3] * qb[3]
-    # The derivative of -M is -M': b's sign is a factor of both its weights.
-    sign = hemisphere_sign(qa, qb, dot)
-    h00, h10, h01, h11 = _hermite_basis(ss)
     vel_a, vel_b = _finite_rows(vva, "va"), _finite_rows(vvb, "vb")
-    real = np.empty((4, ss.shape[0]))
-    dual = np.empty((4, ss.shape[0]))
-    _hermite_end(A, vel_a, h00, h10 * span, real, dual, False)
-    _hermite_end(B, vel_b, h01 * sign, h11 * (span * sign), real, dual, True)
-    out = _pose_rows(real, dual)
+    return batch, span, ss, rows_a, rows_b, A, B, vel_a, vel_b
+
+
+def _exact_ends(out: F64, ss: F64, rows_a: F64, rows_b: F64, batch: tuple[int, ...]) -> F64:
+    """Rows ``(7, M)`` as poses ``(*batch, 7)``, the keyframes themselves at s = 0 and 1."""
     for mask, src in ((ss == 0.0, rows_a), (ss == 1.0, rows_b)):
         if mask.any():
             out[:, mask] = src[:, mask]

@@ -52,15 +52,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from interp.cubic import (
-    VELOCITY_SIZE,
-    _checked,
-    _finite_rows,
-    _float_array,
-    _hermite_basis,
-    _unit_quats,
-)
-from interp.methods import _cross, _qmul, _rotate, _rows, hemisphere_sign
+from interp.cubic import _exact_ends, _hermite_basis, _hermite_inputs
+from interp.methods import _cross, _qmul, _rotate, hemisphere_sign
 from interp.pose import F64
 
 __all__ = ["soa_hermite"]
@@ -128,21 +121,7 @@ def soa_hermite(
     keyframes, ``dt`` the time between them (s) and ``s`` the fraction in
     ``[0, 1]``. See the module docstring for the curve and its properties.
     """
-    pa = _float_array(a, "a", (7,))
-    pb = _float_array(b, "b", (7,))
-    if pa.shape != pb.shape:
-        pa, pb = np.broadcast_arrays(pa, pb)
-    batch = pa.shape[:-1]
-    vva = np.broadcast_to(_float_array(va, "va", (VELOCITY_SIZE,)), (*batch, VELOCITY_SIZE))
-    vvb = np.broadcast_to(_float_array(vb, "vb", (VELOCITY_SIZE,)), (*batch, VELOCITY_SIZE))
-    span = np.broadcast_to(_checked(dt, "dt", ()), batch).reshape(-1)
-    if not np.all(span > 0):
-        raise ValueError("expected `dt` to be positive")
-    ss = np.broadcast_to(_checked(s, "s", ()), batch).reshape(-1).astype(np.float64)
-    rows_a, rows_b = _rows(pa), _rows(pb)
-    A = _unit_quats(rows_a, "a")
-    B = _unit_quats(rows_b, "b")
-    vel_a, vel_b = _finite_rows(vva, "va"), _finite_rows(vvb, "vb")
+    batch, span, ss, rows_a, rows_b, A, B, vel_a, vel_b = _hermite_inputs(a, b, va, vb, dt, s)
     qa, qb = A[3:], B[3:]
     dot = np.einsum("cm,cm->m", qa, qb)
     rel = _qmul(qa * np.array([[1.0], [-1.0], [-1.0], [-1.0]]), qb * hemisphere_sign(qa, qb, dot))
@@ -156,7 +135,4 @@ def soa_hermite(
     out[:3] = h00 * A[:3] + c10 * vel_a[:3] + h01 * B[:3] + c11 * vel_b[:3]
     q = _qmul(qa, _exp_rows(c10 * wa + h01 * r1 + c11 * wb))
     out[3:] = q / np.sqrt(np.einsum("cm,cm->m", q, q))
-    for mask, src in ((ss == 0.0, rows_a), (ss == 1.0, rows_b)):
-        if mask.any():
-            out[:, mask] = src[:, mask]
-    return np.ascontiguousarray(out.T).reshape((*batch, 7))
+    return _exact_ends(out, ss, rows_a, rows_b, batch)
