@@ -60,12 +60,12 @@ _ID_MAX = 0xFFFF
 class BaselineMismatch(RemoteProtocolError):
     """A delta frame names a stream the decoder has no baseline for, or other baselines.
 
-    Code ``bad-message`` (fatal): the receiver cannot show that frame; the sender
+    Code ``bad-baseline`` (fatal): the receiver cannot show that frame; the sender
     must start again from a key frame.
     """
 
     def __init__(self, message: str) -> None:
-        super().__init__(ErrorCode.BAD_MESSAGE, message)
+        super().__init__(ErrorCode.BAD_BASELINE, message)
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -32,9 +32,12 @@ bad-message         yes    1002   a known type with missing, unknown or ill-type
                                   frame of the other variant than agreed at join
                                   (velocity records without sends/wants_velocities,
                                   or plain records with it; raw update records
-                                  after join agreed codec "compact"); a compact
-                                  update frame coded against other baselines than
-                                  the receiver holds (``BaselineMismatch``)
+                                  after join agreed codec "compact")
+bad-baseline        yes    1002   a compact delta frame (update or snapshot) coded
+                                  against other baselines than the receiver holds,
+                                  or naming a stream it holds none for
+                                  (``BaselineMismatch``): the chain is broken and
+                                  nothing of the frame is shown
 version-mismatch    yes    1002   hello/welcome carry another ``PROTOCOL_VERSION``
 unexpected-message  yes    1002   a message the state table forbids: anything before
                                   hello, join twice, poses before joined, a
@@ -93,6 +96,7 @@ class ErrorCode(StrEnum):
     FRAME_TOO_LARGE = "frame-too-large"
     UNKNOWN_TYPE = "unknown-type"
     BAD_MESSAGE = "bad-message"
+    BAD_BASELINE = "bad-baseline"
     VERSION_MISMATCH = "version-mismatch"
     UNEXPECTED_MESSAGE = "unexpected-message"
     STREAM_NOT_OWNED = "stream-not-owned"
@@ -126,6 +130,7 @@ _CLOSE_CODES: dict[ErrorCode, int | None] = {
     ErrorCode.FRAME_TOO_LARGE: 1009,
     ErrorCode.UNKNOWN_TYPE: 1002,
     ErrorCode.BAD_MESSAGE: 1002,
+    ErrorCode.BAD_BASELINE: 1002,
     ErrorCode.VERSION_MISMATCH: 1002,
     ErrorCode.UNEXPECTED_MESSAGE: 1002,
     ErrorCode.STREAM_NOT_OWNED: 1008,

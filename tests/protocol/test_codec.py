@@ -251,7 +251,7 @@ def test_delta_without_baseline_refused() -> None:
     data, baselines = _delta_frame()
     with pytest.raises(BaselineMismatch) as info:
         decode_snapshot(data, V, {})
-    assert info.value.code == ErrorCode.BAD_MESSAGE
+    assert info.value.code == ErrorCode.BAD_BASELINE
     del baselines[(1, 1)]
     with pytest.raises(RemoteProtocolError):
         decode_snapshot(data, V, baselines)

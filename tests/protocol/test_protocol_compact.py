@@ -233,7 +233,7 @@ def test_delta_outside_the_volume_is_bad_pose_server_side() -> None:
 
 
 def test_corrupted_delta_chain_is_fatal() -> None:
-    """A delta against a baseline the server does not hold: fatal bad-message."""
+    """A delta against a baseline the server does not hold: fatal bad-baseline."""
     pair = SessionPair()
     _handshake(pair)
     poses, times = _motion(3)
@@ -245,14 +245,14 @@ def test_corrupted_delta_chain_is_fatal() -> None:
     # frame 1 lost (or altered): frame 2 is coded against baselines the server lacks.
     [error] = pair.server.receive_data(frames[2])
     assert isinstance(error, ProtocolError)
-    assert error.code is ErrorCode.BAD_MESSAGE and error.fatal
+    assert error.code is ErrorCode.BAD_BASELINE and error.fatal
     assert error.in_reply_to == "update"
     assert pair.server.state is State.CLOSED
     # A delta for a stream the server has no baseline for at all.
     fresh = SessionPair()
     _handshake(fresh)
     [error] = fresh.server.receive_data(frames[1])
-    assert isinstance(error, ProtocolError) and error.code is ErrorCode.BAD_MESSAGE
+    assert isinstance(error, ProtocolError) and error.code is ErrorCode.BAD_BASELINE
     assert fresh.server.state is State.CLOSED
 
 

@@ -1,0 +1,606 @@
+"""Relay snapshots of the compact codec: encoded once per group, spliced per subscriber.
+
+A relay sends every due subscriber of a room the poses that changed since the
+snapshot it last wrote to that subscriber, each coded against the codes that
+subscriber holds for the stream (its baseline). Subscribers that hold the same
+baselines form a group, and the group's entries are encoded once per tick: this
+module's layout (codec version 2) puts each user's entries in one contiguous
+run of bits, so the frame of one subscriber, who does not receive its own
+streams back, is the group's runs minus its own, joined with a few bits of
+user-id gap between them. Splicing costs a few big-int shifts per user, not an
+encode per subscriber.
+
+Layout (shares the quantisers and field codings of ``protocol.codec``, version 1;
+only the order of the bits differs and the class of an entry)::
+
+    0xC1  flags            bit 1: velocities, bit 2: set (class split), bits 4-7: 2
+    uvarint  tick
+    svarint  base time, integer microseconds
+    uvarint  n_key, uvarint n_delta
+    u32 LE   check, iff n_delta > 0: XOR over the delta entries of the CRC-32 of
+             (user u16, stream u16, baseline codes int32...) little-endian
+    nibbles  Exp-Golomb orders k, 4 bits each, high nibble first, padded to a byte:
+             key section (iff n_key):     t_first [vlin vang]
+             delta section (iff n_delta): t_first rot0 rot1 pos0 pos1
+                                          [vlin0 vlin1 vang0 vang1]
+    bits     the key entries, then the delta entries, in (user, stream) order,
+             entry by entry; MSB first, zero-padded to a byte
+
+Each entry::
+
+    ug      EG 0       user - previous user (first entry of a section: user;
+                       0 continues the previous entry's user)
+    sg      EG 0       stream (first entry of a user) or stream - previous - 1
+    time    EG k, zz   first entry of a user: ms before the base time (k t_first);
+            EG 0, zz   else: offset - previous entry's offset
+    key     idx 2 bits; a, b, c 13 bits (+4095); px, py, pz Volume.bits;
+            velocities EG zz (k vlin, vang)
+    delta   idx EG 0 of (idx - baseline idx) mod 4; a, b, c EG zz of the difference
+            to the baseline rotation re-expressed with the new idx (k rot<class>);
+            px, py, pz EG zz of the difference (k pos<class>); velocities the same
+
+The class of an entry is 0 for the first entry of its user in the section (the
+head, whose stream id a relay allocates first) and 1 for the others. Exp-Golomb
+of order k codes v < 2**k as a one and k bits, else as v itself written in
+2 w - k + 2 bits, w = bit length of v minus one (the ``protocol.bits`` code).
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from itertools import pairwise
+
+import numpy as np
+from numpy.typing import NDArray
+
+from protocol.bits import MAX_EG_BITS, _best_k_small
+from protocol.codec_frame import (
+    CODEC_MAGIC,
+    F_UPDATE,
+    F_VELOCITY,
+    BaselineMismatch,
+    _min_entry_bits,
+    _read_nibbles,
+    _read_uvarint,
+    _svarint,
+    _uvarint,
+)
+from protocol.codec_quant import (
+    ROTATION_BITS,
+    M,
+    Volume,
+    codes_problem_rows,
+    dequantise,
+    local_error,
+    remote_error,
+)
+from protocol.codec_small import predict_row
+from protocol.errors import ErrorCode
+
+__all__ = [
+    "RELAY_CODEC_VERSION",
+    "GroupSnapshot",
+    "RelayEntry",
+    "RelaySnapshot",
+    "baseline_check",
+    "decode_relay_snapshot",
+    "encode_group",
+]
+
+RELAY_CODEC_VERSION = 2
+_F_SPLIT = 4
+_TIME_MS_LIMIT = 1 << 30
+_US_LIMIT = 1 << 62
+_ID_MAX = 0xFFFF
+
+Row = list[int]
+#: (user, stream, capture time, codes, baseline codes or None for a key entry)
+RelayEntry = tuple[int, int, float, Row, Row | None]
+
+
+def _zz(v: int) -> int:
+    return v * 2 if v >= 0 else -2 * v - 1
+
+
+def _unzz(z: int) -> int:
+    return (z >> 1) ^ -(z & 1)
+
+
+def _eg_bits(v: int, k: int) -> tuple[int, int]:
+    """(codeword, length) of ``v`` in Exp-Golomb of order k."""
+    if v >> k == 0:
+        return (1 << k) | v, k + 1
+    w = v.bit_length() - 1
+    return v, 2 * w - k + 2
+
+
+def baseline_check(user: int, stream: int, baseline: Row) -> int:
+    """One delta entry's share of the frame check (XORed over the entries)."""
+    packed = struct.pack(f"<HH{len(baseline)}I", user, stream, *[v & 0xFFFFFFFF for v in baseline])
+    return zlib.crc32(packed)
+
+
+@dataclass(frozen=True, slots=True)
+class _Block:
+    """One user's entries in one section, without the leading user gap."""
+
+    user: int
+    n: int
+    bits: int
+    nbits: int
+    check: int
+
+
+class _Bits:
+    __slots__ = ("acc", "n")
+
+    def __init__(self) -> None:
+        self.acc = 0
+        self.n = 0
+
+    def put(self, value: int, width: int) -> None:
+        self.acc = (self.acc << width) | value
+        self.n += width
+
+    def eg(self, v: int, k: int) -> None:
+        if v >> k == 0:
+            self.acc = (self.acc << (k + 1)) | (1 << k) | v
+            self.n += k + 1
+        else:
+            width = 2 * (v.bit_length() - 1) - k + 2
+            self.acc = (self.acc << width) | v
+            self.n += width
+
+
+class GroupSnapshot:
+    """A group's snapshot, encoded once; :meth:`frame` splices one subscriber's bytes."""
+
+    __slots__ = ("_delta", "_head", "_key", "_nibbles", "base_time", "tick")
+
+    def __init__(
+        self,
+        tick: int,
+        base_us: int,
+        velocity: bool,
+        key: list[_Block],
+        delta: list[_Block],
+        nibbles: tuple[list[int], list[int]],
+    ) -> None:
+        self.tick = tick
+        self.base_time = base_us / 1e6
+        flags = (F_VELOCITY if velocity else 0) | _F_SPLIT | (RELAY_CODEC_VERSION << 4)
+        self._head = bytes([CODEC_MAGIC, flags]) + _uvarint(tick) + _svarint(base_us)
+        self._key = key
+        self._delta = delta
+        self._nibbles = nibbles
+
+    @property
+    def users(self) -> list[int]:
+        """Every user with an entry in this snapshot."""
+        return sorted({b.user for b in self._key} | {b.user for b in self._delta})
+
+    def frame(self, exclude: int | None = None) -> tuple[bytes, int]:
+        """The bytes for a subscriber that does not receive ``exclude``'s streams,
+        and how many entries they hold (0: nothing to send, and ``b""``)."""
+        acc = nbits = check = 0
+        counts = [0, 0]
+        for section, blocks in enumerate((self._key, self._delta)):
+            prev = 0
+            for b in blocks:
+                if b.user == exclude:
+                    continue
+                code, width = _eg_bits(b.user - prev, 0)
+                acc = (((acc << width) | code) << b.nbits) | b.bits
+                nbits += width + b.nbits
+                counts[section] += b.n
+                check ^= b.check
+                prev = b.user
+        nk, nd = counts
+        if not nk + nd:
+            return b"", 0
+        nib = (self._nibbles[0] if nk else []) + (self._nibbles[1] if nd else [])
+        if len(nib) % 2:
+            nib.append(0)
+        pad = -nbits % 8
+        return (
+            self._head
+            + _uvarint(nk)
+            + _uvarint(nd)
+            + (check.to_bytes(4, "little") if nd else b"")
+            + bytes((a << 4) | c for a, c in zip(nib[::2], nib[1::2], strict=True))
+            + (acc << pad).to_bytes((nbits + pad) // 8, "big"),
+            nk + nd,
+        )
+
+
+def _offsets(entries: list[RelayEntry], base: float) -> list[int]:
+    out = []
+    for e in entries:
+        t = e[2]
+        o = round((base - t) * 1000.0) if t == t and abs(t) < 1e12 else _TIME_MS_LIMIT
+        if abs(o) >= _TIME_MS_LIMIT:
+            raise local_error(ErrorCode.BAD_MESSAGE, "capture time too far from the base time")
+        out.append(o)
+    return out
+
+
+def _by_user(entries: list[RelayEntry]) -> list[list[int]]:
+    """Indices of ``entries`` (sorted) grouped by user."""
+    groups: list[list[int]] = []
+    prev = -1
+    for i, e in enumerate(entries):
+        if e[0] != prev:
+            groups.append([])
+            prev = e[0]
+        groups[-1].append(i)
+    return groups
+
+
+def _time_fields(
+    entries: list[RelayEntry], off: list[int], groups: list[list[int]]
+) -> tuple[int, list[tuple[int, int]]]:
+    """k of t_first, and per entry (sg, time code) before Exp-Golomb."""
+    fields: list[tuple[int, int]] = [(0, 0)] * len(entries)
+    firsts = []
+    for g in groups:
+        i0 = g[0]
+        fields[i0] = (entries[i0][1], _zz(off[i0]))
+        firsts.append(fields[i0][1])
+        for a, b in pairwise(g):
+            fields[b] = (entries[b][1] - entries[a][1] - 1, _zz(off[b] - off[a]))
+    return _best_k_small(firsts)[0], fields
+
+
+def _key_blocks(
+    entries: list[RelayEntry], base: float, volume: Volume, velocity: bool
+) -> tuple[list[_Block], list[int]]:
+    if not entries:
+        return [], []
+    off = _offsets(entries, base)
+    groups = _by_user(entries)
+    kt, fields = _time_fields(entries, off, groups)
+    nib = [kt]
+    kv = (0, 0)
+    if velocity:
+        lin = [_zz(v) for e in entries for v in e[3][7:10]]
+        ang = [_zz(v) for e in entries for v in e[3][10:13]]
+        kv = (_best_k_small(lin)[0], _best_k_small(ang)[0])
+        nib += list(kv)
+    bx, by, bz = volume.bits
+    blocks = []
+    for g in groups:
+        w = _Bits()
+        for j, i in enumerate(g):
+            sg, tz = fields[i]
+            if j:
+                w.put(1, 1)
+            w.eg(sg, 0)
+            w.eg(tz, kt if j == 0 else 0)
+            r = entries[i][3]
+            w.put(
+                (
+                    (
+                        (
+                            (
+                                (((r[0] << 13 | (r[1] + M)) << 13 | (r[2] + M)) << 13 | (r[3] + M))
+                                << bx
+                            )
+                            | r[4]
+                        )
+                        << by
+                        | r[5]
+                    )
+                    << bz
+                )
+                | r[6],
+                2 + 3 * ROTATION_BITS + bx + by + bz,
+            )
+            if velocity:
+                for c in range(7, 13):
+                    w.eg(_zz(r[c]), kv[0] if c < 10 else kv[1])
+        blocks.append(_Block(entries[g[0]][0], len(g), w.acc, w.n, 0))
+    return blocks, nib
+
+
+def _delta_blocks(
+    entries: list[RelayEntry], base: float, velocity: bool
+) -> tuple[list[_Block], list[int]]:
+    if not entries:
+        return [], []
+    off = _offsets(entries, base)
+    groups = _by_user(entries)
+    kt, fields = _time_fields(entries, off, groups)
+    width = 13 if velocity else 7
+    # Per entry: idx step, then the zigzagged differences, 3 per column group.
+    diffs: list[list[int]] = []
+    for e in entries:
+        r, b = e[3], e[4]
+        assert b is not None
+        p = predict_row(b, r[0])
+        row = [(r[0] - b[0]) & 3, _zz(r[1] - p[0]), _zz(r[2] - p[1]), _zz(r[3] - p[2])]
+        row += [_zz(r[c] - b[c]) for c in range(4, width)]
+        diffs.append(row)
+    cls = [0] * len(entries)
+    for g in groups:
+        for i in g[1:]:
+            cls[i] = 1
+    ncol = (width - 1) // 3
+    ks = [[0, 0] for _ in range(ncol)]
+    for col in range(ncol):
+        lo = 1 + 3 * col
+        for want in (0, 1):
+            vals = [v for d, c in zip(diffs, cls, strict=True) if c == want for v in d[lo : lo + 3]]
+            ks[col][want] = _best_k_small(vals)[0] if vals else 0
+    nib = [kt] + [k for pair in ks for k in pair]
+    blocks = []
+    for g in groups:
+        acc = nbits = check = 0
+        user = entries[g[0]][0]
+        for j, i in enumerate(g):
+            sg, tz = fields[i]
+            c = cls[i]
+            d = diffs[i]
+            codes = [(sg, 0), (tz, kt if j == 0 else 0), (d[0], 0)]
+            codes += [(d[1 + f], ks[f // 3][c]) for f in range(len(d) - 1)]
+            if j:
+                acc = (acc << 1) | 1
+                nbits += 1
+            for v, k in codes:
+                if v >> k:
+                    width = 2 * v.bit_length() - k
+                    acc = (acc << width) | v
+                else:
+                    width = k + 1
+                    acc = (acc << width) | (1 << k) | v
+                nbits += width
+            b = entries[i][4]
+            assert b is not None
+            check ^= baseline_check(user, entries[i][1], b)
+        blocks.append(_Block(user, len(g), acc, nbits, check))
+    return blocks, nib
+
+
+def encode_group(
+    tick: int,
+    base_time: float,
+    entries: Sequence[RelayEntry],
+    volume: Volume,
+    velocity: bool = False,
+    *,
+    trusted: bool = False,
+) -> GroupSnapshot:
+    """Encode a group's entries once (any order; one per (user, stream)).
+
+    An entry with a baseline is delta-coded against it, one without goes absolute.
+    Codes are rows of Python ints. Raises ``LocalProtocolError`` for ids, times or
+    codes out of range; ``trusted`` skips the range checks of the codes (a relay's
+    codes come from its own quantiser or decoder, which checked them).
+    """
+    if not 0 <= tick < 1 << 63:
+        raise local_error(ErrorCode.BAD_MESSAGE, "tick out of range")
+    base_us = round(base_time * 1e6) if base_time == base_time else _US_LIMIT
+    if abs(base_us) >= _US_LIMIT:
+        raise local_error(ErrorCode.BAD_MESSAGE, "base time out of range")
+    base = base_us / 1e6
+    width = 13 if velocity else 7
+    ordered = sorted(entries, key=lambda e: (e[0], e[1]))
+    seen = set()
+    for e in ordered:
+        if not (0 <= e[0] <= _ID_MAX and 0 <= e[1] <= _ID_MAX):
+            raise local_error(ErrorCode.BAD_MESSAGE, "user or stream id out of range")
+        if (e[0], e[1]) in seen:
+            raise local_error(ErrorCode.BAD_MESSAGE, f"stream {e[1]} of user {e[0]} twice")
+        seen.add((e[0], e[1]))
+        rows = [e[3]] if e[4] is None else [e[3], e[4]]
+        if any(len(r) != width for r in rows):
+            raise local_error(ErrorCode.BAD_MESSAGE, f"codes must be rows of {width}")
+        problem = None if trusted else codes_problem_rows(rows, volume)
+        if problem:
+            raise local_error(ErrorCode.BAD_POSE, problem)
+    key, knib = _key_blocks([e for e in ordered if e[4] is None], base, volume, velocity)
+    delta, dnib = _delta_blocks([e for e in ordered if e[4] is not None], base, velocity)
+    return GroupSnapshot(tick, base_us, velocity, key, delta, (knib, dnib))
+
+
+# --------------------------------------------------------------------------- decoding
+
+
+@dataclass(frozen=True, slots=True)
+class RelaySnapshot:
+    """A decoded relay snapshot, entries in (user, stream) order (key and delta mixed)."""
+
+    tick: int
+    base_time: float
+    users: list[int]
+    streams: list[int]
+    capture_times: list[float]
+    codes: list[Row]
+    volume: Volume
+
+    def __len__(self) -> int:
+        return len(self.codes)
+
+    def arrays(self) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
+        """Poses (n, 7) float32 and velocities (n, 6) or None: ``dequantise(codes)``."""
+        width = len(self.codes[0]) if self.codes else 7
+        codes = np.array(self.codes, np.int64).reshape(len(self.codes), width)
+        return dequantise(codes, self.volume)
+
+    def remember(self, baselines: dict[tuple[int, int], Row]) -> None:
+        """Store each entry's codes as its stream's baseline."""
+        for u, s, row in zip(self.users, self.streams, self.codes, strict=True):
+            baselines[(u, s)] = row
+
+
+class _Reader:
+    __slots__ = ("bits", "pos")
+
+    def __init__(self, data: bytes) -> None:
+        self.bits = format(int.from_bytes(data, "big"), f"0{8 * len(data)}b") if data else ""
+        self.pos = 0
+
+    def fixed(self, width: int) -> int:
+        pos = self.pos
+        if pos + width > len(self.bits):
+            raise remote_error(ErrorCode.BAD_FRAME, "pose frame truncated")
+        self.pos = pos + width
+        return int(self.bits[pos : pos + width], 2)
+
+    def eg(self, k: int) -> int:
+        pos = self.pos
+        bits = self.bits
+        j = bits.find("1", pos, pos + MAX_EG_BITS + 2)
+        if j < 0:
+            raise remote_error(ErrorCode.BAD_FRAME, "pose frame truncated or code too long")
+        if j == pos:
+            end = j + 1 + k
+            if end > len(bits):
+                raise remote_error(ErrorCode.BAD_FRAME, "pose frame truncated")
+            self.pos = end
+            return int(bits[j + 1 : end], 2) if k else 0
+        end = j + (j - pos) + k
+        if end > len(bits):
+            raise remote_error(ErrorCode.BAD_FRAME, "pose frame truncated")
+        self.pos = end
+        return int(bits[j:end], 2)
+
+    def finish(self) -> None:
+        rest = self.bits[self.pos :]
+        if len(rest) >= 8 or "1" in rest:
+            raise remote_error(ErrorCode.BAD_FRAME, "trailing bits in pose frame")
+
+
+def _read_section(
+    r: _Reader,
+    n: int,
+    nib: list[int],
+    delta: bool,
+    width: int,
+    volume: Volume,
+    baselines: Mapping[tuple[int, int], Row],
+    out: tuple[list[int], list[int], list[int], list[Row]],
+) -> int:
+    """Read one section's entries into ``out``; the XOR of the delta checks."""
+    users, streams, offs, rows = out
+    kt = nib[0]
+    bx, by, bz = volume.bits
+    user = stream = off = 0
+    check = 0
+    for i in range(n):
+        gap = r.eg(0)
+        new = i == 0 or gap > 0
+        user += gap
+        sg = r.eg(0)
+        stream = sg if new else stream + sg + 1
+        off = _unzz(r.eg(kt)) if new else off + _unzz(r.eg(0))
+        if user > _ID_MAX or stream > _ID_MAX or abs(off) >= _TIME_MS_LIMIT:
+            raise remote_error(ErrorCode.BAD_MESSAGE, "id or time out of range in pose frame")
+        if not delta:
+            v = r.fixed(2 + 3 * ROTATION_BITS + bx + by + bz)
+            pz, v = v & ((1 << bz) - 1), v >> bz
+            py, v = v & ((1 << by) - 1), v >> by
+            px, v = v & ((1 << bx) - 1), v >> bx
+            c, v = (v & 0x1FFF) - M, v >> 13
+            b, v = (v & 0x1FFF) - M, v >> 13
+            a, idx = (v & 0x1FFF) - M, v >> 13
+            row = [idx, a, b, c, px, py, pz]
+            if width == 13:
+                row += [_unzz(r.eg(nib[1] if j < 3 else nib[2])) for j in range(6)]
+        else:
+            base = baselines.get((user, stream))
+            if base is None or len(base) != width:
+                raise BaselineMismatch(
+                    f"delta for stream {stream} of user {user} without a baseline"
+                )
+            base = base.tolist() if isinstance(base, np.ndarray) else list(base)
+            check ^= baseline_check(user, stream, base)
+            idx = (base[0] + r.eg(0)) & 3
+            cls = 0 if new else 1
+            p = predict_row(base, idx)
+            k = nib[1 + cls]
+            row = [idx] + [p[j] + _unzz(r.eg(k)) for j in range(3)]
+            k = nib[3 + cls]
+            row += [base[c] + _unzz(r.eg(k)) for c in range(4, 7)]
+            if width == 13:
+                for lo, at in ((7, 5), (10, 7)):
+                    k = nib[at + cls]
+                    row += [base[c] + _unzz(r.eg(k)) for c in range(lo, lo + 3)]
+        users.append(user)
+        streams.append(stream)
+        offs.append(off)
+        rows.append(row)
+    return check
+
+
+def decode_relay_snapshot(
+    data: bytes, volume: Volume, baselines: Mapping[tuple[int, int], Row] | None = None
+) -> RelaySnapshot:
+    """Decode a relay snapshot; raises only ``RemoteProtocolError`` (with a code).
+
+    Baselines are code rows keyed by (user, stream) (lists or int arrays); a delta
+    entry without one, or a check that differs from the baselines held, raises
+    :class:`BaselineMismatch` and nothing of the frame is shown.
+    """
+    data = bytes(data)
+    if len(data) < 2 or data[0] != CODEC_MAGIC:
+        raise remote_error(ErrorCode.BAD_FRAME, "not a codec pose frame")
+    flags = data[1]
+    if flags >> 4 != RELAY_CODEC_VERSION or flags & 0x0F & ~(F_VELOCITY | _F_SPLIT):
+        raise remote_error(ErrorCode.BAD_FRAME, "unknown codec version or flags")
+    if flags & F_UPDATE:
+        raise remote_error(ErrorCode.BAD_MESSAGE, "an update where a snapshot was expected")
+    velocity = bool(flags & F_VELOCITY)
+    width = 13 if velocity else 7
+    tick, pos = _read_uvarint(data, 2)
+    if tick >= 1 << 63:
+        raise remote_error(ErrorCode.BAD_MESSAGE, "tick over 2**63")
+    z, pos = _read_uvarint(data, pos)
+    base_us = _unzz(z)
+    if abs(base_us) >= _US_LIMIT:
+        raise remote_error(ErrorCode.BAD_MESSAGE, "base time out of range")
+    nk, pos = _read_uvarint(data, pos)
+    nd, pos = _read_uvarint(data, pos)
+    if nk + nd == 0:
+        raise remote_error(ErrorCode.BAD_MESSAGE, "empty pose frame")
+    check = 0
+    if nd:
+        if pos + 4 > len(data):
+            raise remote_error(ErrorCode.BAD_FRAME, "pose frame header truncated")
+        check = int.from_bytes(data[pos : pos + 4], "little")
+        pos += 4
+    knib_n = (1 + (2 if velocity else 0)) if nk else 0
+    dnib_n = (5 + (4 if velocity else 0)) if nd else 0
+    nib, pos = _read_nibbles(data, pos, knib_n + dnib_n)
+    key_bits, delta_bits = _min_entry_bits(False, velocity, volume)
+    if nk * key_bits + nd * delta_bits > 8 * (len(data) - pos):
+        raise remote_error(ErrorCode.BAD_FRAME, "more entries than the frame can hold")
+    r = _Reader(data[pos:])
+    out: tuple[list[int], list[int], list[int], list[Row]] = ([], [], [], [])
+    held = baselines or {}
+    if nk:
+        _read_section(r, nk, nib[:knib_n], False, width, volume, held, out)
+    if nd:
+        got = _read_section(r, nd, nib[knib_n:], True, width, volume, held, out)
+        if got != check:
+            raise BaselineMismatch("delta frame coded against other baselines (check differs)")
+    r.finish()
+    users, streams, offs, rows = out
+    problem = codes_problem_rows(rows, volume)
+    if problem:
+        raise remote_error(ErrorCode.BAD_MESSAGE, f"pose frame decodes out of range: {problem}")
+    order = sorted(range(len(rows)), key=lambda i: (users[i], streams[i]))
+    if len({(users[i], streams[i]) for i in order}) != len(order):
+        raise remote_error(ErrorCode.BAD_MESSAGE, "a stream twice in one pose frame")
+    base = base_us / 1e6
+    return RelaySnapshot(
+        tick,
+        base,
+        [users[i] for i in order],
+        [streams[i] for i in order],
+        [base - offs[i] / 1000.0 for i in order],
+        [rows[i] for i in order],
+        volume,
+    )
