@@ -26,10 +26,11 @@ from protocol.codec import (
     encode_update_codes,
     quantise,
 )
+from protocol.codec_relay import decode_relay_snapshot
 from protocol.errors import ProtocolViolation, RemoteProtocolError
-from protocol.poses import PoseUpdate
+from protocol.poses import PoseUpdate, Snapshot
 
-__all__ = ["CODEC_FRAME_BYTE", "UpstreamDecoder", "UpstreamEncoder"]
+__all__ = ["CODEC_FRAME_BYTE", "SnapshotDecoder", "UpstreamDecoder", "UpstreamEncoder"]
 
 #: First byte of every codec frame (the one byte msgpack never uses).
 CODEC_FRAME_BYTE = 0xC1
@@ -75,6 +76,9 @@ class UpstreamDecoder:
     def __init__(self, volume: Volume) -> None:
         self.volume = volume
         self.baselines: Baselines = {}
+        #: Stream id -> codes of the last decoded frame: a relay forwards these codes
+        #: to compact subscribers rather than quantising the decoded floats again.
+        self.last_codes: dict[int, list[int]] = {}
 
     def decode(self, data: bytes | bytearray | memoryview) -> PoseUpdate:
         """The update in ``data``; raises ``RemoteProtocolError`` (in reply to "update")."""
@@ -85,6 +89,7 @@ class UpstreamDecoder:
         # The sender stored these codes when it sent them, whatever the session
         # rules say of the update next: keep the two copies equal.
         frame.remember(self.baselines)
+        self.last_codes = dict(zip(frame.streams.tolist(), frame.codes.tolist(), strict=True))
         return PoseUpdate.from_arrays(
             frame.number,
             frame.streams,
@@ -93,3 +98,38 @@ class UpstreamDecoder:
             base_time=frame.base_time,
             velocities=frame.velocities,
         )
+
+
+class SnapshotDecoder:
+    """The client's half of compact snapshots: relay frame -> ``Snapshot``.
+
+    Baselines are the codes last received for each (user, stream); a frame coded
+    against others raises ``BaselineMismatch`` (fatal ``bad-baseline``).
+    """
+
+    def __init__(self, volume: Volume) -> None:
+        self.volume = volume
+        self.baselines: dict[tuple[int, int], list[int]] = {}
+
+    def decode(self, data: bytes | bytearray | memoryview) -> Snapshot:
+        """The snapshot in ``data``; raises ``RemoteProtocolError``."""
+        try:
+            frame = decode_relay_snapshot(bytes(data), self.volume, self.baselines)
+        except ProtocolViolation as exc:
+            raise RemoteProtocolError(exc.code, exc.message, in_reply_to="snapshot") from None
+        frame.remember(self.baselines)
+        poses, velocities = frame.arrays()
+        return Snapshot.from_arrays(
+            frame.tick,
+            frame.base_time,
+            frame.users,
+            frame.streams,
+            frame.capture_times,
+            poses,
+            velocities=velocities,
+        )
+
+    def forget(self, user: int) -> None:
+        """Drop the baselines of a user who left (its stream ids may be reused)."""
+        for key in [k for k in self.baselines if k[0] == user]:
+            del self.baselines[key]

@@ -1,6 +1,7 @@
 """Compact pose codec, sans-I/O: quantised key and delta frames for snapshots and updates.
 
-Not wired into sessions yet: this module only turns arrays into bytes and back.
+Sessions use it through ``protocol._compact`` (updates) and ``protocol.codec_relay``
+(the relay's snapshots, a second layout of the same fields).
 See ``docs/codec.md`` for the measured sizes and errors on the real traces. The
 work is split: quantisers and :class:`Volume` in ``protocol.codec_quant``, the
 frame layout below in ``protocol.codec_frame``, bit packing in ``protocol.bits``;

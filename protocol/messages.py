@@ -252,7 +252,13 @@ class Join(ControlMessage):
     codec: str = _omitted("raw")
     """How this client's updates are coded, one of CODECS: ``raw`` float records
     (``protocol.poses``) or ``compact`` codec update frames (``protocol.codec``,
-    quantised in the welcome's volume, delta-coded per stream). Not sent while raw."""
+    quantised in the welcome's volume, delta-coded per stream). Not sent while raw.
+    Compact also codes this client's snapshots (``protocol.codec_relay``: delta
+    frames against what the server last wrote to it, a key frame at least every
+    2 s) and leaves its own streams out of them unless it asks for ``echo``."""
+    echo: bool = _capability()
+    """Compact snapshots carry this client's own streams too (raw ones always do);
+    a benchmark that measures what a full room costs may want it."""
 
     def __post_init__(self) -> None:
         check_text("join.room", self.room, empty=False)
@@ -260,6 +266,7 @@ class Join(ControlMessage):
             raise bad("join.codec", f"must be one of {', '.join(CODECS)}")
         check_bool("join.sends_velocities", self.sends_velocities)
         check_bool("join.wants_velocities", self.wants_velocities)
+        check_bool("join.echo", self.echo)
         if not isinstance(self.streams, list | tuple):
             raise bad("join.streams", "must be a list of names")
         for name in self.streams:

@@ -48,7 +48,12 @@ import msgpack
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol._compact import CODEC_FRAME_BYTE, UpstreamDecoder, UpstreamEncoder
+from protocol._compact import (
+    CODEC_FRAME_BYTE,
+    SnapshotDecoder,
+    UpstreamDecoder,
+    UpstreamEncoder,
+)
 from protocol._state import ERROR_FATAL, ERROR_JOIN, TRANSITIONS, Role, State, moves
 from protocol.codec import DEFAULT_VOLUME, Volume
 from protocol.errors import ErrorCode, LocalProtocolError, ProtocolViolation, RemoteProtocolError
@@ -375,6 +380,12 @@ class ServerSession(_Session):
         self._compact_update = update
         return update
 
+    def compact_codes(self) -> dict[int, list[int]] | None:
+        """Stream id -> codes of the last update received, if compact was agreed
+        (then every update is a compact frame), else None."""
+        upstream = self._upstream
+        return None if upstream is None else upstream.last_codes
+
     def assign_streams(self, streams: Mapping[str, int]) -> None:
         """Make these stream ids the user's own without sending joined (tests, replays)."""
         self.streams = dict(streams)
@@ -436,6 +447,18 @@ class ClientSession(_Session):
         self.welcome: Welcome | None = None
         self.peers: dict[int, dict[str, int]] = {}
         self._upstream: UpstreamEncoder | None = None
+        self._snapshots: SnapshotDecoder | None = None
+
+    def _decode(self, data: bytes | bytearray | memoryview | str) -> Message:
+        snapshots = self._snapshots
+        if snapshots is None or isinstance(data, str) or data[:1] != bytes([CODEC_FRAME_BYTE]):
+            return decode_message(data, max_frame_size=self.limits.max_frame_size)
+        if len(data) > self.limits.max_frame_size:
+            raise RemoteProtocolError(
+                ErrorCode.FRAME_TOO_LARGE,
+                f"frame of {len(data)} bytes over {self.limits.max_frame_size}",
+            )
+        return snapshots.decode(data)
 
     def _encode(self, message: Message) -> bytes:
         if self._upstream is not None and isinstance(message, PoseUpdate):
@@ -458,10 +481,13 @@ class ClientSession(_Session):
             self._agree_join()
             if self.codec == "compact":
                 self._upstream = UpstreamEncoder(self.volume)
+                self._snapshots = SnapshotDecoder(self.volume)
         elif isinstance(message, PeerJoined):
             self.peers[message.user] = dict(message.streams)
         elif isinstance(message, PeerLeft):
             self.peers.pop(message.user, None)
+            if self._snapshots is not None:
+                self._snapshots.forget(message.user)
         return message
 
     def _check_sent(self, message: Message) -> None:

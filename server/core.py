@@ -46,7 +46,8 @@ publishes poses     admits at most ``max_update_rate`` updates and events a
                     counted), taps the room's recorder; refuses (``bad-pose``,
                     counted, a drops record) an update captured over
                     ``max_capture_age`` ago, over ``max_capture_ahead`` ahead,
-                    or with a position beyond +-``room_extent``
+                    or with a position outside the room ``volume`` (stated
+                    at welcome; compact codes quantise positions in it)
 sends an event      the same bucket; relays it, in order, to every other
                     member; records it
 asks a new rate     reschedules it (an emulated link's cap applies)
@@ -95,6 +96,7 @@ from protocol import (
     UserEvent,
     close_reason,
 )
+from protocol.codec import DEFAULT_VOLUME, Volume
 from protocol.events import Event, Message
 from scenarios.network import EgressLink, Tier
 from server.actions import Action, Close, FinishRecording, Reschedule, Wake
@@ -161,8 +163,17 @@ class ServerConfig:
     max_capture_age: float = 1.0
     #: ... and one captured later than now plus this (the clock-sync error allowance).
     max_capture_ahead: float = 0.25
-    #: Positions must lie within +-this (m) on each axis.
-    room_extent: float = 100.0
+    #: Positions must lie within this box (m): the room volume, stated at welcome,
+    #: in which compact codes quantise positions (0.5 mm steps at most).
+    volume: Volume = DEFAULT_VOLUME
+    #: If set, the volume is the cube +-this (m) on each axis instead.
+    room_extent: float | None = None
+
+    @property
+    def room_volume(self) -> Volume:
+        """The volume in force: ``volume``, or the cube of ``room_extent``."""
+        e = self.room_extent
+        return self.volume if e is None else Volume((-e, -e, -e), (e, e, e))
     #: Misbehaviour budget: tokens a connection holds, and refills a second; each
     #: protocol error or refused update or join costs one; none left: close 1008.
     misbehaviour_burst: int = 20
@@ -183,6 +194,7 @@ class RelayCore:
     def __init__(self, config: ServerConfig | None = None) -> None:
         self.config = config or ServerConfig()
         self.limits = Limits(min_rate=self.config.min_rate, max_rate=self.config.max_rate)
+        self.volume = self.config.room_volume
         self.users = IdAllocator()
         self.rooms: dict[str, Room] = {}
         self.peers: dict[int, Peer] = {}
@@ -390,7 +402,7 @@ class RelayCore:
     def _room_for(self, name: str) -> Room:
         room = self.rooms.get(name)
         if room is None:
-            room = self.rooms[name] = Room(name, phase=room_phase(name))
+            room = self.rooms[name] = Room(name, phase=room_phase(name), volume=self.volume)
             log.info("room %r created", name)
         return room
 
@@ -636,6 +648,8 @@ class RelayCore:
             label=join.label,
             velocities=join.wants_velocities,
             sends_velocities=join.sends_velocities,
+            compact=join.codec == "compact",
+            echo=join.echo,
         )
         member.asked_rate = join.rate
         if self.config.link is not None:
@@ -734,14 +748,14 @@ class RelayCore:
         if self._admit(peer, now) and room is not None and user is not None:
             cfg = self.config
             refused = update_refusal(
-                update, now, cfg.max_capture_age, cfg.max_capture_ahead, cfg.room_extent
+                update, now, cfg.max_capture_age, cfg.max_capture_ahead, self.volume
             )
             if refused is not None:
                 peer.count_refused(refused.kind)
                 room.note_drop(refused.kind, user)
                 self._refuse(peer, ErrorCode.BAD_POSE, refused.message, "update", now)
                 return
-            stale = room.ingest(user, update)
+            stale = room.ingest(user, update, peer.session.compact_codes())
             rec = room.recorder
             if rec is not None:
                 if room.recording_paused:

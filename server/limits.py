@@ -21,6 +21,7 @@ import unicodedata
 from dataclasses import dataclass, field
 
 from protocol import PoseUpdate
+from protocol.codec import Volume
 
 __all__ = [
     "MAX_ROOM_NAME_BYTES",
@@ -63,13 +64,13 @@ class Refusal:
 
 
 def update_refusal(
-    update: PoseUpdate, now: float, max_age: float, max_ahead: float, extent: float
+    update: PoseUpdate, now: float, max_age: float, max_ahead: float, volume: Volume
 ) -> Refusal | None:
     """Whether ``update`` is refused at server time ``now`` (None: it is fine).
 
     Every capture time must lie in ``[now - max_age, now + max_ahead]`` (the
     allowance ahead is the clock-sync error a client may have), and every
-    position within ``extent`` metres of the origin on each axis.
+    position within the room ``volume`` (the one compact codes quantise in).
     """
     entries = update.entries
     if len(entries) == 0:
@@ -86,9 +87,16 @@ def update_refusal(
             "future-capture",
             f"capture time {newest - now:.3f} s ahead of the server, over {max_ahead:g} s",
         )
-    far = float(abs(entries["pose"][:, :3]).max())
-    if far > extent:
-        return Refusal("out-of-bounds", f"position {far:.1f} m from the origin, over {extent:g} m")
+    xyz = entries["pose"][:, :3]
+    low, high = xyz.min(axis=0), xyz.max(axis=0)
+    for axis, name in enumerate("xyz"):
+        lo, hi = volume.lo[axis], volume.hi[axis]
+        if not lo <= float(low[axis]) <= float(high[axis]) <= hi:
+            bad = float(low[axis]) if not float(low[axis]) >= lo else float(high[axis])
+            return Refusal(
+                "out-of-bounds",
+                f"position {name}={bad:.2f} m outside the room volume [{lo:g}, {hi:g}]",
+            )
     return None
 
 

@@ -86,7 +86,7 @@ class Peer:
         self.address = address
         #: Whether :class:`server.limits.Admission` counted it (it was not refused).
         self.admitted = False
-        self.session = ServerSession(core.limits)
+        self.session = ServerSession(core.limits, core.volume)
         self.outbox = Outbox(cfg.max_event_queue, buffered, cfg.congested_bytes)
         self.outbox.on_ready = self._ready
         self._core = core

@@ -13,6 +13,18 @@ single pose slot is latest-wins (an unsent snapshot replaced by a newer one is a
 skip) and whose event queue is bounded (overflow is reported to the caller,
 which closes the connection). Time is always an argument; nothing here waits
 (the relay core, ``server/core.py``, decides when a room ticks).
+
+Members that joined with ``codec="compact"`` get compact snapshots
+(``protocol.codec_relay``): each stream that changed since the snapshot the
+member's writer last took is delta-coded against the codes of that stream as of
+that snapshot (the room keeps each stream's last ``CODES_HISTORY`` coded
+versions; older baselines go as key entries), which the member holds because
+the socket is reliable and ordered. Members with the same last snapshot share
+the baselines, so their group's entries are encoded once and each member's
+frame is spliced from them without its own streams (unless it asked for
+``echo``). A member gets a key snapshot (every stream, absolute) at join, after
+a rate change and at least every ``KEY_INTERVAL`` seconds, on a room-wide grid
+so that members of one rate share it too.
 """
 
 from __future__ import annotations
@@ -23,6 +35,8 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from protocol import (
     ZERO_VELOCITY,
     PoseUpdate,
@@ -30,6 +44,8 @@ from protocol import (
     pack_velocity_snapshot,
     update_records,
 )
+from protocol.codec import DEFAULT_VOLUME, Volume, quantise
+from protocol.codec_relay import GroupSnapshot, RelayEntry, encode_group
 from recorder import RoomRecorder
 
 __all__ = [
@@ -44,6 +60,10 @@ __all__ = [
 
 #: Control messages (events, peer notices, pongs) a connection may have queued.
 DEFAULT_EVENT_QUEUE = 256
+#: A compact subscriber gets a key snapshot at least this often (s).
+KEY_INTERVAL = 2.0
+#: Coded versions kept per stream as baselines of compact subscribers' deltas.
+CODES_HISTORY = 16
 
 
 def room_phase(name: str) -> float:
@@ -161,6 +181,12 @@ class Member:
     velocities: bool = False
     #: Its updates carry velocities (``Join.sends_velocities``).
     sends_velocities: bool = False
+    #: Receives compact snapshots (``Join.codec == "compact"``), without its own
+    #: streams unless ``echo``.
+    compact: bool = False
+    echo: bool = False
+    #: The KEY_INTERVAL grid slot of its last key snapshot (-1: due one now).
+    key_slot: int = -1
 
 
 @dataclass(frozen=True, slots=True)
@@ -189,6 +215,31 @@ class _Stream:
     version: int
     #: The 12 velocity bytes that came with the pose (zeros if its update had none).
     velocity: bytes = ZERO_VELOCITY
+    #: Codec codes (13: pose and velocity) of this version: from a compact update,
+    #: else quantised when a compact subscriber first needs them.
+    codes: list[int] | None = None
+    #: (version, codes) of the versions coded so far, oldest first (baselines).
+    history: deque[tuple[int, list[int]]] = field(
+        default_factory=lambda: deque(maxlen=CODES_HISTORY)
+    )
+
+    def coded(self, volume: Volume) -> list[int]:
+        """This version's codes (computed once, remembered as a baseline)."""
+        codes = self.codes
+        if codes is None:
+            pose = np.frombuffer(self.pose, "<f4").reshape(1, 7)
+            vel = np.frombuffer(self.velocity, "<f2").reshape(1, 6)
+            codes = self.codes = quantise(pose, volume, vel)[0].tolist()
+        if not self.history or self.history[-1][0] != self.version:
+            self.history.append((self.version, codes))
+        return codes
+
+    def baseline(self, since: int) -> list[int] | None:
+        """The codes a subscriber whose last snapshot covered version ``since`` holds."""
+        for version, codes in reversed(self.history):
+            if version <= since:
+                return codes
+        return None
 
 
 @dataclass
@@ -224,6 +275,8 @@ class Room:
     #: Pose updates not recorded since the pause began, and when it began.
     paused_updates: int = 0
     _paused_since: float = 0.0
+    #: The volume compact codes quantise positions in (the server's, stated at welcome).
+    volume: Volume = DEFAULT_VOLUME
 
     def pause_recording(self, now: float) -> None:
         """Stop recording pose updates (counted, written as one drops record on resume)."""
@@ -281,6 +334,7 @@ class Room:
     def add(self, member: Member, now: float) -> None:
         member.next_due = self._grid_after(now, member.rate)
         member.last_version = member.delivered_version = 0
+        member.key_slot = -1
         self.members[member.user] = member
 
     def remove(self, user: int) -> Member | None:
@@ -295,11 +349,18 @@ class Room:
         member = self.members[user]
         member.rate = rate
         member.next_due = self._grid_after(now, rate)
+        member.key_slot = -1
 
     # -- ingest -------------------------------------------------------------------
 
-    def ingest(self, user: int, update: PoseUpdate) -> int:
-        """Store the newest keyframe of each stream (by capture time); returns stale count."""
+    def ingest(
+        self, user: int, update: PoseUpdate, codes: dict[int, list[int]] | None = None
+    ) -> int:
+        """Store the newest keyframe of each stream (by capture time); returns stale count.
+
+        ``codes``: stream id -> codec codes of a compact update (kept for compact
+        subscribers, so that their poses are the sender's codes exactly).
+        """
         self._updates_in += 1
         member = self.members.get(user)
         if member is not None:
@@ -312,11 +373,14 @@ class Room:
                 continue
             self._version += 1
             velocity = ZERO_VELOCITY if vel is None else vel
+            row = None if codes is None else codes.get(sid)
+            if row is not None and len(row) == 7:
+                row = row + [0] * 6
             if cur is None:
-                self._streams[sid] = _Stream(user, t, pose, self._version, velocity)
+                self._streams[sid] = _Stream(user, t, pose, self._version, velocity, row)
             else:
                 cur.capture, cur.pose, cur.version = t, pose, self._version
-                cur.velocity = velocity
+                cur.velocity, cur.codes = velocity, row
         self._stale += stale
         return stale
 
@@ -335,6 +399,8 @@ class Room:
     def tick(self, now: float) -> int:
         """Send a snapshot to every due member; returns how many were offered."""
         cache: dict[tuple[int, bool], tuple[bytes, int]] = {}
+        groups: dict[tuple[int, bool], GroupSnapshot | None] = {}
+        slot = math.floor(now / KEY_INTERVAL)
         offered = 0
         for member in self.members.values():
             if member.next_due > now + 1e-9:
@@ -353,10 +419,13 @@ class Room:
                 member.delivered_version = member.last_version
             # A snapshot still waiting in the slot is about to be replaced (a skip),
             # so the new one must also carry what only the replaced one had.
-            key = (member.delivered_version, member.velocities)
-            if key not in cache:
-                cache[key] = self._encode(now, *key)
-            data, n = cache[key]
+            if member.compact:
+                data, n = self._compact_frame(member, now, slot, groups)
+            else:
+                key = (member.delivered_version, member.velocities)
+                if key not in cache:
+                    cache[key] = self._encode(now, *key)
+                data, n = cache[key]
             member.last_version = self._version
             if n == 0:
                 continue
@@ -387,6 +456,45 @@ class Room:
                 self._tick, now, ((s.user, sid, s.capture, s.pose) for sid, s in fresh)
             )
         return data, len(fresh)
+
+    def _compact_frame(
+        self,
+        member: Member,
+        now: float,
+        slot: int,
+        groups: dict[tuple[int, bool], GroupSnapshot | None],
+    ) -> tuple[bytes, int]:
+        """A compact member's frame, spliced from its group's (encoded once a tick)."""
+        # -1: the key group (every stream absolute) of this tick.
+        since = -1 if member.key_slot != slot else member.delivered_version
+        if since < 0:
+            member.key_slot = slot
+        key = (since, member.velocities)
+        if key not in groups:
+            groups[key] = self._encode_group(now, since, member.velocities)
+        group = groups[key]
+        if group is None:
+            return b"", 0
+        return group.frame(None if member.echo else member.user)
+
+    def _encode_group(self, now: float, since: int, velocities: bool) -> GroupSnapshot | None:
+        """Entries newer than ``since`` against the baselines as of ``since``
+        (``since < 0``: every stream, absolute)."""
+        width = 13 if velocities else 7
+        entries: list[RelayEntry] = []
+        for sid, s in self._streams.items():
+            if s.version <= since:
+                continue
+            row = s.coded(self.volume)
+            base = s.baseline(since) if since >= 0 else None
+            entries.append(
+                (s.user, sid, s.capture, row[:width], None if base is None else base[:width])
+            )
+        if not entries:
+            return None
+        self._tick += 1
+        self._snapshots += 1
+        return encode_group(self._tick, now, entries, self.volume, velocities, trusted=True)
 
     def retire(self) -> None:
         """Mark the room as removed (its members are gone or the server stops)."""

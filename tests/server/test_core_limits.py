@@ -87,7 +87,8 @@ def test_capture_window_is_configurable() -> None:
 
 
 def test_a_position_out_of_the_room_volume_is_refused() -> None:
-    """|x|, |y|, |z| within room_extent: beyond it, bad-pose and counted."""
+    """Positions within the room volume (here the cube of room_extent): beyond it,
+    bad-pose and counted."""
     core = RelayCore(ServerConfig(room_extent=10.0))
     a = connect(core, 1.0)
     far = POSE.copy()
@@ -96,7 +97,7 @@ def test_a_position_out_of_the_room_volume_is_refused() -> None:
     a.send(PoseUpdate.from_arrays(1, ids, np.full(3, 1.0), far), 1.0)
     assert stored_capture(core) == []
     (err,) = errors_of(a, 1.0)
-    assert err.code == "bad-pose" and "10.5 m" in err.message
+    assert err.code == "bad-pose" and "z=-10.50 m outside" in err.message
     assert core.peer(a.conn).statistics().out_of_bounds == 1
     a.send(PoseUpdate.from_arrays(2, ids, np.full(3, 1.0), POSE), 1.0)
     assert stored_capture(core) == [1.0] * 3
