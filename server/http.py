@@ -36,6 +36,13 @@ def process_request(
             del response.headers["Content-Type"]
             response.headers["Content-Type"] = "text/plain; version=0.0.4; charset=utf-8"
             return response
+        if "upgrade" not in request.headers.get("Connection", "").lower():
+            # A browser or a probe, not a websocket client: answer plainly here
+            # (websockets < 17 would log the failed handshake as an error).
+            return connection.respond(
+                HTTPStatus.UPGRADE_REQUIRED,
+                "posecast relay: connect with a websocket client; GET /healthz, /metrics\n",
+            )
         return None
 
     return respond
