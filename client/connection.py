@@ -8,6 +8,7 @@ kept. Arrival times come from the ``clock`` passed in.
 
 from __future__ import annotations
 
+import ssl
 import time
 from collections import deque
 from collections.abc import Callable
@@ -29,7 +30,32 @@ from protocol import (
 )
 from protocol.events import Event, Message
 
-__all__ = ["ClientConnection", "JoinRefused", "Received"]
+__all__ = ["ClientConnection", "JoinRefused", "Received", "Tls"]
+
+
+@dataclass(frozen=True, slots=True)
+class Tls:
+    """How a ``wss://`` URL's server certificate is checked.
+
+    By default against the system's trusted roots; ``cafile`` trusts the
+    certificates in that PEM file instead (a private CA, a self-signed server);
+    ``insecure`` checks nothing (the traffic is encrypted but anyone could be at
+    the other end: for tests only). Ignored for ``ws://``.
+    """
+
+    cafile: str | None = None
+    insecure: bool = False
+
+    def context(self, url: str) -> ssl.SSLContext | None:
+        """The client TLS context for ``url`` (None for a plain ``ws://`` URL)."""
+        if not url.startswith("wss://"):
+            return None
+        if self.insecure:
+            ctx = ssl.create_default_context()
+            ctx.check_hostname = False
+            ctx.verify_mode = ssl.CERT_NONE
+            return ctx
+        return ssl.create_default_context(cafile=self.cafile)
 
 
 class JoinRefused(PosecastError, RuntimeError):
@@ -80,9 +106,19 @@ class ClientConnection:
         agent: str = "posecast-bot",
         clock: Callable[[], float] = time.monotonic,
         open_timeout: float = 10.0,
+        tls: Tls | None = None,
     ) -> ClientConnection:
-        """Connect and say hello; returns once the server's welcome arrived."""
-        ws = await connect(url, open_timeout=open_timeout, max_size=2**20, compression=None)
+        """Connect and say hello; returns once the server's welcome arrived.
+
+        A ``wss://`` URL is checked as ``tls`` says (default: the system's roots).
+        """
+        ws = await connect(
+            url,
+            open_timeout=open_timeout,
+            max_size=2**20,
+            compression=None,
+            ssl=(tls or Tls()).context(url),
+        )
         conn = cls(ws, clock)
         try:
             await conn.send(Hello(agent=agent))
@@ -151,9 +187,12 @@ class ClientConnection:
         sends_velocities: bool = False,
         wants_velocities: bool = False,
         codec: str = "raw",
+        tls: Tls | None = None,
     ) -> ClientConnection:
         """Connect, say hello and join ``room``; :class:`JoinRefused` if refused."""
-        conn = await cls.connect(url, agent=agent, clock=clock, open_timeout=open_timeout)
+        conn = await cls.connect(
+            url, agent=agent, clock=clock, open_timeout=open_timeout, tls=tls
+        )
         try:
             await conn.join(
                 room=room,

@@ -10,7 +10,8 @@ Both sides of a connection walk the same states; a message moves both of them
 3. Then the client sends ``join``. The server answers ``joined``, or refuses with
    a non-fatal ``error`` whose ``in_reply_to`` is "join"; after a refusal the
    client may join again. A second join while joining or joined is an error.
-4. Pose traffic only once joined: ``update`` and ``set_rate`` from the client;
+4. Pose traffic only once joined: ``update``, ``set_rate`` and ``renew`` (a fresh
+   access token) from the client;
    ``snapshot``, ``peer_joined`` and ``peer_left`` from the server; ``event``
    either way.
 5. Non-fatal ``error`` messages may flow either way after hello and change
@@ -96,6 +97,7 @@ TRANSITIONS: dict[State, dict[tuple[Role, str], State]] = {
         *_CLOCK,
         ((_C,), "update"),
         ((_C,), "set_rate"),
+        ((_C,), "renew"),
         ((_S,), "snapshot"),
         ((_S,), "peer_joined"),
         ((_S,), "peer_left"),

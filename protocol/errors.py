@@ -60,6 +60,9 @@ payload-too-large   no     --     an event payload encodes to more than
                                   ``max_event_payload`` bytes
 unauthorized        yes    1008   (server decision) bad access token
 room-full           no     --     (server decision) join refused, try later
+user-taken          no     --     (server decision) the token's user is already live
+                                  in that room on another connection (one connection
+                                  per room and user)
 bad-room            no     --     (server decision) a room name that is empty once
                                   stripped, over 64 bytes, or holds control or bidi
                                   override characters
@@ -67,7 +70,7 @@ too-slow            yes    1008   (server decision) a peer's event queue overflo
 internal-error      yes    1011   (server decision) a bug on the server
 ==================  =====  =====  =====================================================
 
-The last five are never produced by ``protocol`` itself; they are listed so that
+The last six are never produced by ``protocol`` itself; they are listed so that
 the server's own refusals use the same codes, fatality and close codes.
 """
 
@@ -109,6 +112,7 @@ class ErrorCode(StrEnum):
     PAYLOAD_TOO_LARGE = "payload-too-large"
     UNAUTHORIZED = "unauthorized"
     ROOM_FULL = "room-full"
+    USER_TAKEN = "user-taken"
     BAD_ROOM = "bad-room"
     TOO_SLOW = "too-slow"
     INTERNAL_ERROR = "internal-error"
@@ -143,6 +147,7 @@ _CLOSE_CODES: dict[ErrorCode, int | None] = {
     ErrorCode.PAYLOAD_TOO_LARGE: None,
     ErrorCode.UNAUTHORIZED: 1008,
     ErrorCode.ROOM_FULL: None,
+    ErrorCode.USER_TAKEN: None,
     ErrorCode.BAD_ROOM: None,
     ErrorCode.TOO_SLOW: 1008,
     ErrorCode.INTERNAL_ERROR: 1011,

@@ -60,6 +60,7 @@ __all__ = [
     "PeerLeft",
     "Ping",
     "Pong",
+    "Renew",
     "SetRate",
     "UserEvent",
     "Welcome",
@@ -381,6 +382,23 @@ class SetRate(ControlMessage):
 
     def __post_init__(self) -> None:
         _set(self, "rate", check_float("set_rate.rate", self.rate))
+
+
+@_register
+@dataclass(frozen=True, slots=True)
+class Renew(ControlMessage):
+    """Client -> server, once joined: a fresh access token for the same room and user.
+
+    On a server with a secret a connection is closed when its token expires; a
+    valid renew moves that deadline to the new token's expiry. A refused renew
+    is an ``unauthorized`` error (fatal, 1008), as a bad token at join.
+    """
+
+    TYPE: ClassVar[str] = "renew"
+    token: str
+
+    def __post_init__(self) -> None:
+        check_text("renew.token", self.token, empty=False)
 
 
 @_register

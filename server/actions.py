@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from recorder import RoomRecorder
 
-__all__ = ["Action", "Close", "FinishRecording", "Reschedule", "Wake"]
+__all__ = ["Action", "Close", "FinishRecording", "Rearm", "Reschedule", "Wake"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -33,6 +33,11 @@ class Reschedule:
 
 
 @dataclass(frozen=True, slots=True)
+class Rearm:
+    """A connection deadline was added or moved: consult ``next_expiry()`` again."""
+
+
+@dataclass(frozen=True, slots=True)
 class FinishRecording:
     """Room ``room`` is gone: close ``recorder`` (blocking work: off the event loop)."""
 
@@ -40,4 +45,4 @@ class FinishRecording:
     recorder: RoomRecorder
 
 
-Action = Wake | Close | Reschedule | FinishRecording
+Action = Wake | Close | Reschedule | Rearm | FinishRecording

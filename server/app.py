@@ -25,6 +25,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import ssl
 import threading
 import time
 from collections.abc import Callable
@@ -41,6 +42,7 @@ from server.core import (
     Close,
     ConnectionStatistics,
     FinishRecording,
+    Rearm,
     RelayCore,
     Reschedule,
     ServerConfig,
@@ -242,6 +244,8 @@ class RelayServer:
                     conn.close(action.code, action.reason)
             elif isinstance(action, Reschedule):
                 self._reschedule.set()
+            elif isinstance(action, Rearm):
+                self._new_connection.set()
             elif isinstance(action, FinishRecording):
                 assert self._tg is not None
                 self._tg.create_task(
@@ -254,7 +258,8 @@ class RelayServer:
         await self._deadline_loop(self.core.next_deadline, self.core.tick, self._reschedule)
 
     async def _expiry_loop(self) -> None:
-        """Close connections that have not joined in time (``join_timeout``)."""
+        """Close connections that have not joined in time (``join_timeout``), or whose
+        access token expired."""
         await self._deadline_loop(self.core.next_expiry, self.core.expire, self._new_connection)
 
     async def _deadline_loop(
@@ -412,6 +417,16 @@ class RelayServer:
         """
         self._stop.set()
 
+    def _tls_context(self) -> ssl.SSLContext | None:
+        """The server TLS context of ``certfile`` / ``keyfile`` (None: plain ws://)."""
+        cfg = self.config
+        if cfg.certfile is None:
+            return None
+        ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+        ctx.minimum_version = ssl.TLSVersion.TLSv1_2
+        ctx.load_cert_chain(cfg.certfile, cfg.keyfile)
+        return ctx
+
     async def run(self) -> None:
         cfg = self.config
         if cfg.secret is None:
@@ -442,6 +457,9 @@ class RelayServer:
                     max_size=self.limits.max_frame_size,
                     close_timeout=cfg.close_timeout,
                     compression=None,
+                    ssl=self._tls_context(),
+                    ping_interval=cfg.ping_interval or None,
+                    ping_timeout=cfg.ping_timeout or None,
                 ) as ws_server:
                     self._ws_server = ws_server
                     sock = next(iter(ws_server.sockets))

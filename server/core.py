@@ -92,6 +92,7 @@ from protocol import (
     Pong,
     PoseUpdate,
     ProtocolError,
+    Renew,
     SetRate,
     UserEvent,
     close_reason,
@@ -99,7 +100,7 @@ from protocol import (
 from protocol.codec import DEFAULT_VOLUME, Volume
 from protocol.events import Event, Message
 from scenarios.network import EgressLink, Tier
-from server.actions import Action, Close, FinishRecording, Reschedule, Wake
+from server.actions import Action, Close, FinishRecording, Rearm, Reschedule, Wake
 from server.auth import TokenError, verify_token
 from server.limits import Admission, JoinDeadlines, normalise_room, update_refusal
 from server.peer import COUNTERS, ConnectionStatistics, Peer
@@ -115,6 +116,7 @@ __all__ = [
     "ConnectionStatistics",
     "FinishRecording",
     "Peer",
+    "Rearm",
     "RelayCore",
     "Reschedule",
     "ServerConfig",
@@ -134,6 +136,13 @@ class ServerConfig:
 
     host: str = "127.0.0.1"
     port: int = 8765
+    #: Serve ``wss://`` with this certificate chain and private key (PEM files).
+    certfile: Path | None = None
+    keyfile: Path | None = None
+    #: Keepalive: a ping every ``ping_interval`` s; a peer that has not answered
+    #: within ``ping_timeout`` s is dead and closed (1011): gone within 5 s.
+    ping_interval: float = 2.5
+    ping_timeout: float = 2.5
     rate: float = 20.0
     min_rate: float = 5.0
     max_rate: float = 30.0
@@ -215,6 +224,9 @@ class RelayCore:
         cfg = self.config
         self.admission = Admission(cfg.max_connections, cfg.max_connections_per_address)
         self._join_deadlines = JoinDeadlines()
+        #: Access-token expiries (server clock) of joined connections; see Renew.
+        self._token_deadlines = JoinDeadlines()
+        self.token_expiries = 0
         #: Connections refused (over a limit), closed for not joining in time, and
         #: closed for misbehaving (over their budget).
         self.refused_connections = self.join_timeouts = self.misbehaviour_closes = 0
@@ -262,8 +274,7 @@ class RelayCore:
             self._join_deadlines.add(conn, now + self.config.join_timeout)
         return conn
 
-    def next_expiry(self) -> float | None:
-        """When the next connection that has not joined is due to be closed (None: none)."""
+    def _next_join_expiry(self) -> float | None:
         deadlines = self._join_deadlines
         while (head := deadlines.peek()) is not None:
             peer = self.peers.get(head[1])
@@ -272,13 +283,71 @@ class RelayCore:
             deadlines.pop()  # gone, joined or closing: nothing to expire
         return None
 
+    def _next_token_expiry(self) -> float | None:
+        deadlines = self._token_deadlines
+        while (head := deadlines.peek()) is not None:
+            peer = self.peers.get(head[1])
+            if peer is not None and peer.token_deadline == head[0] and peer.close_request is None:
+                return head[0]
+            deadlines.pop()  # gone, renewed or closing
+        return None
+
+    def next_expiry(self) -> float | None:
+        """When the next connection is due to be closed: one that has not joined in
+        time, or whose access token expires (None: none)."""
+        due = [t for t in (self._next_join_expiry(), self._next_token_expiry()) if t is not None]
+        return min(due) if due else None
+
     def expire(self, now: float) -> list[Action]:
-        """Close (1008 "no join") every connection not joined ``join_timeout`` after it opened."""
-        while (due := self.next_expiry()) is not None and due <= now:
+        """Close (1008) every connection not joined ``join_timeout`` after it opened,
+        and every connection whose access token expired without a renew."""
+        while (due := self._next_join_expiry()) is not None and due <= now:
             peer = self.peers[self._join_deadlines.pop()[1]]
             self.join_timeouts += 1
             self._close(peer, 1008, f"no join within {self.config.join_timeout:g} s")
+        while (due := self._next_token_expiry()) is not None and due <= now:
+            peer = self.peers[self._token_deadlines.pop()[1]]
+            self.token_expiries += 1
+            self._send(
+                peer,
+                ErrorMessage.from_code(ErrorCode.UNAUTHORIZED, "access token expired; renew it"),
+            )
+            self._close(peer, 1008, "access token expired")
         return self._actions()
+
+    def _token_expires(self, peer: Peer, deadline: float) -> None:
+        """Close ``peer`` at ``deadline`` (server clock) unless it renews its token."""
+        peer.token_deadline = deadline
+        self._token_deadlines.add(peer.conn, deadline)
+        self.emit(Rearm())
+
+    def _live_user(self, room: str, name: str) -> bool:
+        """Whether token user ``name`` is live in ``room`` on some connection."""
+        r = self.rooms.get(room)
+        if r is None:
+            return False
+        return any(
+            p.name == name and p.close_request is None
+            for m in r.members.values()
+            if (p := self._by_user.get(m.user)) is not None
+        )
+
+    def _on_renew(self, peer: Peer, renew: Renew, now: float, wall: float) -> None:
+        """A fresh token for the same room and user moves the connection's deadline."""
+        secret = self.config.secret
+        if secret is None or peer.room is None:
+            return  # nothing expires on an open server
+        try:
+            claims = verify_token(secret, renew.token, peer.room.name, wall)
+            if claims.user != peer.name:
+                raise TokenError(f"access token is for user {claims.user!r}, not {peer.name!r}")
+        except TokenError as exc:
+            self._send(
+                peer, ErrorMessage.from_code(ErrorCode.UNAUTHORIZED, str(exc), in_reply_to="renew")
+            )
+            self._close(peer, 1008, str(exc))
+            return
+        self._token_expires(peer, now + (claims.exp - wall))
 
     def frame(self, conn: int, data: bytes | str) -> list[Event]:
         """The events one received frame decodes to (none while the connection closes)."""
@@ -579,6 +648,8 @@ class RelayCore:
             self._on_join(peer, event, name, now, wall)
         elif isinstance(event, SetRate):
             self._on_set_rate(peer, event, now)
+        elif isinstance(event, Renew):
+            self._on_renew(peer, event, now, wall)
         elif isinstance(event, UserEvent):
             self._on_user_event(peer, event, now)
         elif isinstance(event, Bye):
@@ -628,7 +699,18 @@ class RelayCore:
                 )
                 self._close(peer, 1008, str(exc))
                 return
+            taken = self._live_user(name, claims.user)
+            if taken:
+                self._refuse(
+                    peer,
+                    ErrorCode.USER_TAKEN,
+                    f"user {claims.user!r} is already in room {name!r} on another connection",
+                    "join",
+                    now,
+                )
+                return
             peer.name = claims.user
+            self._token_expires(peer, now + (claims.exp - wall))
         assert peer.user is not None  # the state table puts hello before join
         refused = self._room_refusal(name)
         if refused is not None:

@@ -95,6 +95,8 @@ class Peer:
         self.room: Room | None = None
         self.member: Member | None = None
         self.close_request: tuple[int, str] | None = None
+        #: When its access token expires, server clock (None: no secret, no expiry).
+        self.token_deadline: float | None = None
         self.frames_in = self.bytes_in = self.frames_out = self.bytes_out = 0
         self.event_drops = self.flood_drops = self.protocol_errors = 0
         self.stale_captures = self.future_captures = self.out_of_bounds = 0

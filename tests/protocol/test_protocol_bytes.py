@@ -20,6 +20,7 @@ from protocol import (
     Pong,
     PoseUpdate,
     RemoteProtocolError,
+    Renew,
     SetRate,
     Snapshot,
     UserEvent,
@@ -92,6 +93,10 @@ PINNED: list[tuple[Message, bytes]] = [
         b"\x82\xa4type\xa8set_rate\xa4rate" + f64(10.0),
     ),
     (
+        Renew(token="t"),
+        b"\x82\xa4type\xa5renew\xa5token\xa1t",
+    ),
+    (
         UserEvent(kind="grab", stream=4, time=1.0, payload={"object": "object:drill"}),
         b"\x86"
         b"\xa4type\xa5event"
@@ -134,7 +139,7 @@ IDS = [message.TYPE for message, _ in PINNED]
 
 
 def test_every_type_is_pinned() -> None:
-    """The pinned table covers all fourteen message types."""
+    """The pinned table covers all fifteen message types."""
     from protocol import MESSAGE_TYPES
 
     assert set(IDS) == MESSAGE_TYPES
