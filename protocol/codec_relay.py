@@ -56,7 +56,7 @@ from itertools import pairwise
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.bits import MAX_EG_BITS, _best_k_small
+from protocol.bits import MAX_EG_BITS, MAX_K, _best_k_small
 from protocol.codec_frame import (
     CODEC_MAGIC,
     F_UPDATE,
@@ -117,10 +117,13 @@ def _eg_bits(v: int, k: int) -> tuple[int, int]:
     return v, 2 * w - k + 2
 
 
+_CHECKS = {7: struct.Struct("<HH7i"), 13: struct.Struct("<HH13i")}
+
+
 def baseline_check(user: int, stream: int, baseline: Row) -> int:
-    """One delta entry's share of the frame check (XORed over the entries)."""
-    packed = struct.pack(f"<HH{len(baseline)}I", user, stream, *[v & 0xFFFFFFFF for v in baseline])
-    return zlib.crc32(packed)
+    """One delta entry's share of the frame check (XORed over the entries): the CRC-32
+    of (user u16, stream u16, baseline codes int32...) little-endian."""
+    return zlib.crc32(_CHECKS[len(baseline)].pack(user, stream, *baseline))
 
 
 @dataclass(frozen=True, slots=True)
@@ -254,6 +257,31 @@ def _time_fields(
     return _best_k_small(firsts)[0], fields
 
 
+_TABLE_SIZE = 1024
+
+
+def _eg_table(k: int) -> list[tuple[int, int]]:
+    """(codeword, length) of Exp-Golomb order ``k`` for every value below _TABLE_SIZE."""
+    return [_eg_bits(v, k) for v in range(_TABLE_SIZE)]
+
+
+_EG_TABLES = [_eg_table(k) for k in range(MAX_K + 1)]
+
+
+def _k_of_histogram(hist: list[int]) -> int:
+    """The Exp-Golomb order that codes values with these bit-length counts in the
+    fewest bits (the first minimum, as ``bits._best_k_small``)."""
+    n = sum(hist)
+    below = 0
+    k = 0
+    while k < MAX_K:
+        below += hist[k]
+        if below - (n - below - hist[k + 1]) >= 0:
+            break
+        k += 1
+    return k if n else 0
+
+
 def _key_blocks(
     entries: list[RelayEntry], base: float, volume: Volume, velocity: bool
 ) -> tuple[list[_Block], list[int]]:
@@ -314,51 +342,67 @@ def _delta_blocks(
     groups = _by_user(entries)
     kt, fields = _time_fields(entries, off, groups)
     width = 13 if velocity else 7
-    # Per entry: idx step, then the zigzagged differences, 3 per column group.
-    diffs: list[list[int]] = []
-    for e in entries:
-        r, b = e[3], e[4]
-        assert b is not None
-        p = predict_row(b, r[0])
-        row = [(r[0] - b[0]) & 3, _zz(r[1] - p[0]), _zz(r[2] - p[1]), _zz(r[3] - p[2])]
-        row += [_zz(r[c] - b[c]) for c in range(4, width)]
-        diffs.append(row)
-    cls = [0] * len(entries)
-    for g in groups:
-        for i in g[1:]:
-            cls[i] = 1
+    # Per entry: idx step, then the zigzagged differences, 3 per column group; and
+    # per (column group, class) a histogram of the differences' bit lengths, from
+    # which the Exp-Golomb order of each is chosen (see ``bits._best_k_small``).
     ncol = (width - 1) // 3
-    ks = [[0, 0] for _ in range(ncol)]
-    for col in range(ncol):
-        lo = 1 + 3 * col
-        for want in (0, 1):
-            vals = [v for d, c in zip(diffs, cls, strict=True) if c == want for v in d[lo : lo + 3]]
-            ks[col][want] = _best_k_small(vals)[0] if vals else 0
+    hists = [[[0] * (MAX_EG_BITS + 2) for _ in range(2)] for _ in range(ncol)]
+    diffs: list[list[int]] = []
+    for g in groups:
+        cls = 0
+        for i in g:
+            e = entries[i]
+            r, b = e[3], e[4]
+            assert b is not None
+            if r[0] == b[0]:
+                p0, p1, p2 = b[1], b[2], b[3]
+            else:
+                p0, p1, p2 = predict_row(b, r[0])
+            row = [(r[0] - b[0]) & 3]
+            hist = hists[0][cls]
+            for v in (r[1] - p0, r[2] - p1, r[3] - p2):
+                z = v << 1 if v >= 0 else -(v << 1) - 1
+                row.append(z)
+                hist[z.bit_length()] += 1
+            for c in range(4, width):
+                v = r[c] - b[c]
+                z = v << 1 if v >= 0 else -(v << 1) - 1
+                row.append(z)
+                hists[(c - 1) // 3][cls][z.bit_length()] += 1
+            diffs.append(row)
+            cls = 1
+    ks = [[_k_of_histogram(h) for h in pair] for pair in hists]
     nib = [kt] + [k for pair in ks for k in pair]
+    # Per class: the order of each field after the idx step.
+    korders = [[ks[f // 3][c] for f in range(width - 1)] for c in (0, 1)]
+    pack = _CHECKS[width].pack
+    tables = _EG_TABLES
     blocks = []
     for g in groups:
         acc = nbits = check = 0
         user = entries[g[0]][0]
-        for j, i in enumerate(g):
+        order = korders[0]
+        tk = kt
+        first = True
+        for i in g:
             sg, tz = fields[i]
-            c = cls[i]
             d = diffs[i]
-            codes = [(sg, 0), (tz, kt if j == 0 else 0), (d[0], 0)]
-            codes += [(d[1 + f], ks[f // 3][c]) for f in range(len(d) - 1)]
-            if j:
+            if not first:  # not the user's first entry: ug = 0 (1 bit) first
                 acc = (acc << 1) | 1
                 nbits += 1
-            for v, k in codes:
-                if v >> k:
-                    width = 2 * v.bit_length() - k
-                    acc = (acc << width) | v
+            for v, k in zip((sg, tz, *d), (0, tk, 0, *order), strict=True):
+                if v < _TABLE_SIZE:
+                    c, w = tables[k][v]
                 else:
-                    width = k + 1
-                    acc = (acc << width) | (1 << k) | v
-                nbits += width
+                    c, w = _eg_bits(v, k)
+                acc = (acc << w) | c
+                nbits += w
             b = entries[i][4]
             assert b is not None
-            check ^= baseline_check(user, entries[i][1], b)
+            check ^= zlib.crc32(pack(user, entries[i][1], *b))
+            order = korders[1]
+            tk = 0
+            first = False
         blocks.append(_Block(user, len(g), acc, nbits, check))
     return blocks, nib
 
