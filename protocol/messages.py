@@ -4,7 +4,8 @@ Each class is one msgpack map on the wire, ``{"type": TYPE, field: value, ...}``
 with the dataclass fields as keys in declaration order. Decoding accepts a
 missing key only for fields with a default, and rejects unknown keys (the
 schema is pinned by ``PROTOCOL_VERSION``). Optional capabilities added later
-(the velocity flags of join and peer_joined, ``Join.codec``, ``Welcome.volume``)
+(the velocity flags of join and peer_joined, ``Join.codec``, ``Join.spectator``,
+``Welcome.volume``)
 are left out of the map while they hold their default, so a peer that does not
 use them sends and receives the same bytes as before they existed.
 
@@ -260,6 +261,10 @@ class Join(ControlMessage):
     echo: bool = _capability()
     """Compact snapshots carry this client's own streams too (raw ones always do);
     a benchmark that measures what a full room costs may want it."""
+    spectator: bool = _capability()
+    """Watch only: the server refuses this client's updates (``stream-not-owned``),
+    announces it to nobody (no ``peer_joined`` / ``peer_left`` about it) and sends
+    it snapshots and events like any member. Its ``streams`` are nominal."""
 
     def __post_init__(self) -> None:
         check_text("join.room", self.room, empty=False)
@@ -267,6 +272,7 @@ class Join(ControlMessage):
             raise bad("join.codec", f"must be one of {', '.join(CODECS)}")
         check_bool("join.sends_velocities", self.sends_velocities)
         check_bool("join.wants_velocities", self.wants_velocities)
+        check_bool("join.spectator", self.spectator)
         check_bool("join.echo", self.echo)
         if not isinstance(self.streams, list | tuple):
             raise bad("join.streams", "must be a list of names")

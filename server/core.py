@@ -230,6 +230,7 @@ class RelayCore:
         #: Connections refused (over a limit), closed for not joining in time, and
         #: closed for misbehaving (over their budget).
         self.refused_connections = self.join_timeouts = self.misbehaviour_closes = 0
+        self._spectators: set[int] = set()  # Join.spectator: publish nothing, unannounced
 
     # -- plumbing ----------------------------------------------------------------
 
@@ -626,6 +627,9 @@ class RelayCore:
         self._misbehaved(peer, now)
 
     def _handle(self, peer: Peer, event: Event, now: float, wall: float) -> None:
+        if isinstance(event, PoseUpdate | UserEvent) and peer.user in self._spectators:
+            what = "event" if isinstance(event, UserEvent) else "update"
+            event = ProtocolError(ErrorCode.STREAM_NOT_OWNED, "spectators publish nothing", what)
         if isinstance(event, PoseUpdate):
             self._on_update(peer, event, now)
         elif isinstance(event, Ping):
@@ -736,11 +740,13 @@ class RelayCore:
         member.asked_rate = join.rate
         if self.config.link is not None:
             peer.link = EgressLink(self.config.link, seed=peer.user)
+        if join.spectator:
+            self._spectators.add(peer.user)
         self._introduce(peer, member, room)
         room.add(member, now)
         self._rescheduled(room)
         peer.room, peer.member = room, member
-        if room.recorder is not None:
+        if room.recorder is not None and not join.spectator:
             room.recorder.record_presence(
                 {
                     "kind": "join",
@@ -754,17 +760,22 @@ class RelayCore:
             )
 
     def _introduce(self, peer: Peer, member: Member, room: Room) -> None:
-        """Tell a joining member about every member of ``room``, and every member about it."""
+        """Tell a joining member about every member of ``room``, and every member about it
+        (spectators excepted: nobody hears of them)."""
+        spectators = self._spectators
         for other in room.members.values():
-            self._send(
-                peer,
-                PeerJoined(
-                    user=other.user,
-                    streams=other.streams,
-                    label=other.label,
-                    velocities=other.sends_velocities,
-                ),
-            )
+            if other.user not in spectators:
+                self._send(
+                    peer,
+                    PeerJoined(
+                        user=other.user,
+                        streams=other.streams,
+                        label=other.label,
+                        velocities=other.sends_velocities,
+                    ),
+                )
+            if member.user in spectators:
+                continue
             self._send(
                 self._by_user[other.user],
                 PeerJoined(
@@ -870,11 +881,14 @@ class RelayCore:
         if room is not None and user is not None:
             room.remove(user)
             self._rescheduled(room)
-            if room.recorder is not None:
+            spectator = user in self._spectators
+            self._spectators.discard(user)
+            if room.recorder is not None and not spectator:
                 room.recorder.record_presence(
                     {"kind": "leave", "user": user, "reason": "left"}, now
                 )
             for other in list(room.members.values()):
-                self._send(self._by_user[other.user], PeerLeft(user=user, reason="left"))
+                if not spectator:
+                    self._send(self._by_user[other.user], PeerLeft(user=user, reason="left"))
             self._forget_room_if_empty(room, now)
         peer.room = peer.member = None
