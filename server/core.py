@@ -73,9 +73,7 @@ from __future__ import annotations
 import heapq
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass
-from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING
 
 from protocol import (
     Bye,
@@ -97,14 +95,14 @@ from protocol import (
     UserEvent,
     close_reason,
 )
-from protocol.codec import DEFAULT_VOLUME, Volume
 from protocol.events import Event, Message
-from scenarios.network import EgressLink, Tier
+from scenarios.network import EgressLink
 from server.actions import Action, Close, FinishRecording, Rearm, Reschedule, Wake
 from server.auth import TokenError, verify_token
-from server.limits import Admission, JoinDeadlines, normalise_room, update_refusal
+from server.config import ServerConfig
+from server.limits import Admission, Deadlines, normalise_room, update_refusal
 from server.peer import COUNTERS, ConnectionStatistics, Peer
-from server.room import DEFAULT_EVENT_QUEUE, IdAllocator, Member, Room, room_phase
+from server.room import IdAllocator, Member, Room, room_phase
 
 if TYPE_CHECKING:
     from recorder import RoomRecorder
@@ -125,76 +123,8 @@ __all__ = [
 
 log = logging.getLogger("posecast.server")
 
-# Websocket framing of a server frame of 126-65535 bytes (no mask): what the
-# emulated link charges on top of the frame itself.
+# Websocket framing of a server frame of 126-65535 bytes (no mask): the link's extra.
 _WS_HEADER = 4
-
-
-@dataclass(frozen=True)
-class ServerConfig:
-    """Everything ``posecast serve`` can set."""
-
-    host: str = "127.0.0.1"
-    port: int = 8765
-    #: Serve ``wss://`` with this certificate chain and private key (PEM files).
-    certfile: Path | None = None
-    keyfile: Path | None = None
-    #: Keepalive: a ping every ``ping_interval`` s; a peer that has not answered
-    #: within ``ping_timeout`` s is dead and closed (1011): gone within 5 s.
-    ping_interval: float = 2.5
-    ping_timeout: float = 2.5
-    rate: float = 20.0
-    min_rate: float = 5.0
-    max_rate: float = 30.0
-    secret: str | None = None
-    max_event_queue: int = DEFAULT_EVENT_QUEUE
-    #: A subscriber with more than this many bytes unsent gets no new snapshot.
-    congested_bytes: int = 64 * 1024
-    #: Pose updates per second one connection may publish (bucket of one second).
-    max_update_rate: float = 120.0
-    close_timeout: float = 2.0
-    #: Record every room session into this folder (``posecast serve --record``).
-    record_dir: Path | None = None
-    #: Where the recorder's MCAP writer runs: ``process`` (a child process fed the
-    #: raw update frames through a pipe; the relay's own cost per update is two
-    #: list appends) or ``thread`` (a thread of the server's process).
-    record_writer: Literal["process", "thread"] = "process"
-    #: Emulate this network tier on every subscriber's downlink (``--link``).
-    link: Tier | None = None
-    #: Snapshots held in one subscriber's emulated link at most (older ones drop).
-    link_max_in_flight: int = 64
-    #: What a peer causes (its protocol errors, the errors it reports) is logged
-    #: at most once per this many seconds per connection, with a count of the
-    #: records held back, so that a misbehaving peer cannot fill the disk.
-    peer_log_interval: float = 1.0
-    # -- limits (docs/security.md); 0 turns a count limit off --------------------------
-    #: An update captured longer ago than this (s, server clock) is refused.
-    max_capture_age: float = 1.0
-    #: ... and one captured later than now plus this (the clock-sync error allowance).
-    max_capture_ahead: float = 0.25
-    #: Positions must lie within this box (m): the room volume, stated at welcome,
-    #: in which compact codes quantise positions (0.5 mm steps at most).
-    volume: Volume = DEFAULT_VOLUME
-    #: If set, the volume is the cube +-this (m) on each axis instead.
-    room_extent: float | None = None
-
-    @property
-    def room_volume(self) -> Volume:
-        """The volume in force: ``volume``, or the cube of ``room_extent``."""
-        e = self.room_extent
-        return self.volume if e is None else Volume((-e, -e, -e), (e, e, e))
-    #: Misbehaviour budget: tokens a connection holds, and refills a second; each
-    #: protocol error or refused update or join costs one; none left: close 1008.
-    misbehaviour_burst: int = 20
-    misbehaviour_refill: float = 5.0
-    #: A connection that has not joined a room this long after it opened is closed.
-    join_timeout: float = 5.0
-    max_connections: int = 1024
-    max_connections_per_address: int = 64
-    max_rooms: int = 256
-    max_members: int = 64
-    #: Rooms recorded at once (``--record``); a join opening one more is refused.
-    max_recorded_rooms: int = 32
 
 
 class RelayCore:
@@ -223,9 +153,9 @@ class RelayCore:
         self.closed = False
         cfg = self.config
         self.admission = Admission(cfg.max_connections, cfg.max_connections_per_address)
-        self._join_deadlines = JoinDeadlines()
+        self._join_deadlines = Deadlines(self._unjoined)
         #: Access-token expiries (server clock) of joined connections; see Renew.
-        self._token_deadlines = JoinDeadlines()
+        self._token_deadlines = Deadlines(self._token_due)
         self.token_expiries = 0
         #: Connections refused (over a limit), closed for not joining in time, and
         #: closed for misbehaving (over their budget).
@@ -275,63 +205,40 @@ class RelayCore:
             self._join_deadlines.add(conn, now + self.config.join_timeout)
         return conn
 
-    def _next_join_expiry(self) -> float | None:
-        deadlines = self._join_deadlines
-        while (head := deadlines.peek()) is not None:
-            peer = self.peers.get(head[1])
-            if peer is not None and peer.room is None and peer.close_request is None:
-                return head[0]
-            deadlines.pop()  # gone, joined or closing: nothing to expire
-        return None
-
-    def _next_token_expiry(self) -> float | None:
-        deadlines = self._token_deadlines
-        while (head := deadlines.peek()) is not None:
-            peer = self.peers.get(head[1])
-            if peer is not None and peer.token_deadline == head[0] and peer.close_request is None:
-                return head[0]
-            deadlines.pop()  # gone, renewed or closing
-        return None
-
     def next_expiry(self) -> float | None:
         """When the next connection is due to be closed: one that has not joined in
         time, or whose access token expires (None: none)."""
-        due = [t for t in (self._next_join_expiry(), self._next_token_expiry()) if t is not None]
-        return min(due) if due else None
+        due = [self._join_deadlines.next(), self._token_deadlines.next()]
+        return min((t for t in due if t is not None), default=None)
 
     def expire(self, now: float) -> list[Action]:
         """Close (1008) every connection not joined ``join_timeout`` after it opened,
         and every connection whose access token expired without a renew."""
-        while (due := self._next_join_expiry()) is not None and due <= now:
-            peer = self.peers[self._join_deadlines.pop()[1]]
+        for conn in self._join_deadlines.pop_due(now):
             self.join_timeouts += 1
-            self._close(peer, 1008, f"no join within {self.config.join_timeout:g} s")
-        while (due := self._next_token_expiry()) is not None and due <= now:
-            peer = self.peers[self._token_deadlines.pop()[1]]
+            self._close(self.peers[conn], 1008, f"no join within {self.config.join_timeout:g} s")
+        for conn in self._token_deadlines.pop_due(now):
             self.token_expiries += 1
-            self._send(
-                peer,
-                ErrorMessage.from_code(ErrorCode.UNAUTHORIZED, "access token expired; renew it"),
+            expired = ErrorMessage.from_code(
+                ErrorCode.UNAUTHORIZED, "access token expired; renew it"
             )
-            self._close(peer, 1008, "access token expired")
+            self._send(self.peers[conn], expired)
+            self._close(self.peers[conn], 1008, "access token expired")
         return self._actions()
+
+    def _unjoined(self, conn: int, deadline: float) -> bool:
+        peer = self.peers.get(conn)
+        return peer is not None and peer.room is None and peer.close_request is None
+
+    def _token_due(self, conn: int, deadline: float) -> bool:
+        peer = self.peers.get(conn)
+        return peer is not None and peer.token_deadline == deadline and not peer.close_request
 
     def _token_expires(self, peer: Peer, deadline: float) -> None:
         """Close ``peer`` at ``deadline`` (server clock) unless it renews its token."""
         peer.token_deadline = deadline
         self._token_deadlines.add(peer.conn, deadline)
         self.emit(Rearm())
-
-    def _live_user(self, room: str, name: str) -> bool:
-        """Whether token user ``name`` is live in ``room`` on some connection."""
-        r = self.rooms.get(room)
-        if r is None:
-            return False
-        return any(
-            p.name == name and p.close_request is None
-            for m in r.members.values()
-            if (p := self._by_user.get(m.user)) is not None
-        )
 
     def _on_renew(self, peer: Peer, renew: Renew, now: float, wall: float) -> None:
         """A fresh token for the same room and user moves the connection's deadline."""
@@ -703,8 +610,7 @@ class RelayCore:
                 )
                 self._close(peer, 1008, str(exc))
                 return
-            taken = self._live_user(name, claims.user)
-            if taken:
+            if name in self.rooms and self.rooms[name].has_member_named(claims.user):
                 self._refuse(
                     peer,
                     ErrorCode.USER_TAKEN,

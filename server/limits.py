@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import heapq
 import unicodedata
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from protocol import PoseUpdate
@@ -27,7 +28,7 @@ __all__ = [
     "MAX_ROOM_NAME_BYTES",
     "Admission",
     "Budget",
-    "JoinDeadlines",
+    "Deadlines",
     "Refusal",
     "normalise_room",
     "update_refusal",
@@ -153,17 +154,31 @@ class Admission:
                 self.by_address[address] = left
 
 
-class JoinDeadlines:
-    """When each connection must have joined by (a heap; entries no longer due are skipped)."""
+class Deadlines:
+    """When connections are due to be closed (a heap); an entry a later change made
+    moot (``still_due(conn, deadline)`` false: joined, renewed, gone) is dropped
+    when met, so each check costs O(log n)."""
 
-    def __init__(self) -> None:
+    def __init__(self, still_due: Callable[[int, float], bool]) -> None:
         self._heap: list[tuple[float, int]] = []
+        self._still_due = still_due
 
     def add(self, conn: int, deadline: float) -> None:
         heapq.heappush(self._heap, (deadline, conn))
 
-    def peek(self) -> tuple[float, int] | None:
-        return self._heap[0] if self._heap else None
+    def next(self) -> float | None:
+        """The earliest deadline still due (None: none)."""
+        heap = self._heap
+        while heap:
+            deadline, conn = heap[0]
+            if self._still_due(conn, deadline):
+                return deadline
+            heapq.heappop(heap)
+        return None
 
-    def pop(self) -> tuple[float, int]:
-        return heapq.heappop(self._heap)
+    def pop_due(self, now: float) -> list[int]:
+        """The connections whose deadline is ``now`` or earlier, removed."""
+        out = []
+        while (deadline := self.next()) is not None and deadline <= now:
+            out.append(heapq.heappop(self._heap)[1])
+        return out

@@ -345,6 +345,10 @@ class Room:
                 self.stream_ids.give_back(sid)
         return member
 
+    def has_member_named(self, name: str) -> bool:
+        """Whether a member joined as ``name`` (a token's user) is in the room."""
+        return any(m.name == name for m in self.members.values())
+
     def set_rate(self, user: int, rate: float, now: float) -> None:
         member = self.members[user]
         member.rate = rate

@@ -1,0 +1,85 @@
+"""Everything ``posecast serve`` can set: :class:`ServerConfig` (one frozen dataclass).
+
+Each field is a ``posecast serve`` flag and a ``POSECAST_*`` variable; the
+limits are explained in ``docs/security.md``. ``server.core`` re-exports it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from protocol.codec import DEFAULT_VOLUME, Volume
+from scenarios.network import Tier
+from server.room import DEFAULT_EVENT_QUEUE
+
+__all__ = ["ServerConfig"]
+
+
+@dataclass(frozen=True)
+class ServerConfig:
+    """Everything ``posecast serve`` can set."""
+
+    host: str = "127.0.0.1"
+    port: int = 8765
+    #: Serve ``wss://`` with this certificate chain and private key (PEM files).
+    certfile: Path | None = None
+    keyfile: Path | None = None
+    #: Keepalive: a ping every ``ping_interval`` s; a peer that has not answered
+    #: within ``ping_timeout`` s is dead and closed (1011): gone within 5 s.
+    ping_interval: float = 2.5
+    ping_timeout: float = 2.5
+    rate: float = 20.0
+    min_rate: float = 5.0
+    max_rate: float = 30.0
+    secret: str | None = None
+    max_event_queue: int = DEFAULT_EVENT_QUEUE
+    #: A subscriber with more than this many bytes unsent gets no new snapshot.
+    congested_bytes: int = 64 * 1024
+    #: Pose updates per second one connection may publish (bucket of one second).
+    max_update_rate: float = 120.0
+    close_timeout: float = 2.0
+    #: Record every room session into this folder (``posecast serve --record``).
+    record_dir: Path | None = None
+    #: Where the recorder's MCAP writer runs: ``process`` (a child process fed the
+    #: raw update frames through a pipe; the relay's own cost per update is two
+    #: list appends) or ``thread`` (a thread of the server's process).
+    record_writer: Literal["process", "thread"] = "process"
+    #: Emulate this network tier on every subscriber's downlink (``--link``).
+    link: Tier | None = None
+    #: Snapshots held in one subscriber's emulated link at most (older ones drop).
+    link_max_in_flight: int = 64
+    #: What a peer causes (its protocol errors, the errors it reports) is logged
+    #: at most once per this many seconds per connection, with a count of the
+    #: records held back, so that a misbehaving peer cannot fill the disk.
+    peer_log_interval: float = 1.0
+    # -- limits (docs/security.md); 0 turns a count limit off --------------------------
+    #: An update captured longer ago than this (s, server clock) is refused.
+    max_capture_age: float = 1.0
+    #: ... and one captured later than now plus this (the clock-sync error allowance).
+    max_capture_ahead: float = 0.25
+    #: Positions must lie within this box (m): the room volume, stated at welcome,
+    #: in which compact codes quantise positions (0.5 mm steps at most).
+    volume: Volume = DEFAULT_VOLUME
+    #: If set, the volume is the cube +-this (m) on each axis instead.
+    room_extent: float | None = None
+
+    #: Misbehaviour budget: tokens a connection holds, and refills a second; each
+    #: protocol error or refused update or join costs one; none left: close 1008.
+    misbehaviour_burst: int = 20
+    misbehaviour_refill: float = 5.0
+    #: A connection that has not joined a room this long after it opened is closed.
+    join_timeout: float = 5.0
+    max_connections: int = 1024
+    max_connections_per_address: int = 64
+    max_rooms: int = 256
+    max_members: int = 64
+    #: Rooms recorded at once (``--record``); a join opening one more is refused.
+    max_recorded_rooms: int = 32
+
+    @property
+    def room_volume(self) -> Volume:
+        """The volume in force: ``volume``, or the cube of ``room_extent``."""
+        e = self.room_extent
+        return self.volume if e is None else Volume((-e, -e, -e), (e, e, e))
