@@ -8,6 +8,7 @@ from __future__ import annotations
 import sys
 
 from posecast.cli import benchmarks, experiments, recordings, session
+from posecast.cli import view as view_cli
 from posecast.cli.common import app, bench_app
 
 __all__ = ["app", "main"]
@@ -24,6 +25,7 @@ app.command()(experiments.table1)
 app.command()(recordings.info)
 app.command()(recordings.recover)
 app.command()(recordings.replay)
+app.command()(view_cli.view)
 app.command()(recordings.export)
 app.command()(recordings.analyze)
 app.command("interpolators")(experiments.list_interpolators)

@@ -1,0 +1,107 @@
+"""Write docs/viewer-live.png and docs/viewer-replay.png from real sessions.
+
+    .venv/bin/python tests/posecast/view/make_screenshots.py [--out docs]
+
+Live: a relay and 4 bots playing the bundled traces (``traces:sample``) on
+loopback, watched by ``LiveView`` (users 1 m apart), soa solid with dq-slerp and
+motor-hermite ghosts. Replay: a recording of 4 users synthesised from the same
+traces through the recorder, ``ReplayView`` with ghosts from 5 Hz keyframes,
+paused at a fast moment (the largest tip error of soa). Needs chromium.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from playwright.async_api import Browser, Page, async_playwright
+
+_HERE = Path(__file__).resolve().parent
+sys.path[:0] = [str(_HERE.parents[2]), str(_HERE.parents[1]), str(_HERE)]
+
+from pagekit import CHROMIUM_ARGS, find_chromium, until  # noqa: E402
+from support import running_server  # noqa: E402
+
+from client.bot import BotConfig, motion_for_bot, run_bot  # noqa: E402
+from posecast.view.live import LiveConfig, LiveView  # noqa: E402
+from posecast.view.replay import ReplayView  # noqa: E402
+from recorder.replay import synthesize_recording  # noqa: E402
+
+METHODS = ("soa", "dq-slerp", "motor-hermite")
+HIDE_TOASTS = (
+    ".mantine-Notifications-root, .mantine-Notification-root { display: none !important; }"
+)
+
+
+async def _open(browser: Browser, url: str) -> Page:
+    page = await browser.new_page(viewport={"width": 1280, "height": 760})
+    await page.goto(url)
+    await page.add_style_tag(content=HIDE_TOASTS)
+    return page
+
+
+async def live_shot(browser: Browser, out: Path) -> None:
+    async with running_server() as srv:
+        url = f"ws://127.0.0.1:{srv.port}"
+        view = LiveView(
+            LiveConfig(url=url, room="demo", methods=METHODS, port=0, rate=10.0, spread=1.0)
+        )
+        view.scene.aim(4)
+        try:
+            async with asyncio.TaskGroup() as tg:
+                tasks = [tg.create_task(view.run())]
+                page = await _open(browser, view.url)
+                for i in range(4):
+                    motion, seed = motion_for_bot("traces:sample", i)
+                    cfg = BotConfig(
+                        url=url, room="demo", rate=10.0, motion=motion, seed=seed,
+                        duration=120.0, methods=METHODS, name=f"bot{i}",
+                    )  # fmt: skip
+                    tasks.append(tg.create_task(run_bot(cfg)))
+                await until(lambda: len(view.scene.avatars) == 4 and view.frames > 60, 60)
+                await page.wait_for_selector("text=keyframes/s", timeout=60_000)
+                await asyncio.sleep(4.0)
+                await page.screenshot(path=str(out))
+                await page.close()
+                for t in tasks:
+                    t.cancel()
+        finally:
+            view.close()
+
+
+async def replay_shot(browser: Browser, out: Path) -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        rec = synthesize_recording(tmp, users=4, rate=30.0, duration=20.0, velocities=True)
+        view = ReplayView(rec, METHODS, port=0, rate=5.0, spread=1.0)
+        try:
+            # A fast moment: where soa's tip error at 5 Hz peaks.
+            x, err = view.model.error_strip("soa")
+            view.seek(view.model.start + float(x[int(np.nanargmax(err))]))
+            page = await _open(browser, view.url)
+            await asyncio.sleep(4.0)
+            await page.screenshot(path=str(out))
+            await page.close()
+        finally:
+            view.close()
+
+
+async def main(out_dir: Path) -> None:
+    chromium = find_chromium()
+    if chromium is None:
+        raise SystemExit("chromium not found; apt-get install chromium")
+    async with async_playwright() as p:
+        browser = await p.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS)
+        await live_shot(browser, out_dir / "viewer-live.png")
+        await replay_shot(browser, out_dir / "viewer-replay.png")
+        await browser.close()
+    print(f"wrote {out_dir / 'viewer-live.png'} and {out_dir / 'viewer-replay.png'}")
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=Path("docs"), help="Folder for the two PNGs.")
+    asyncio.run(main(ap.parse_args().out))

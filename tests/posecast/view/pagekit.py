@@ -1,0 +1,93 @@
+"""Reading a viser page back: where a world point lands on the canvas, and what is there."""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import os
+import shutil
+import time
+from collections.abc import Callable
+
+import numpy as np
+from matplotlib import image as mpimg
+from numpy.typing import NDArray
+from playwright.async_api import Page
+
+#: Software WebGL: what a machine without a GPU (CI, this one) renders with.
+CHROMIUM_ARGS = ["--use-gl=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"]
+
+
+def find_chromium() -> str | None:
+    """``POSECAST_CHROMIUM``, else ``chromium`` or ``chromium-browser`` on PATH."""
+    env = os.environ.get("POSECAST_CHROMIUM")
+    if env:
+        return env if os.path.exists(env) else None
+    for name in ("chromium", "chromium-browser"):
+        found = shutil.which(name)
+        if found:
+            return found
+    return None
+
+
+FPS_JS = """() => new Promise(done => {
+  let n = 0; const t0 = performance.now();
+  function tick() {
+    n++;
+    if (performance.now() - t0 < 2000) requestAnimationFrame(tick);
+    else done(n / ((performance.now() - t0) / 1000));
+  }
+  requestAnimationFrame(tick);
+})"""
+
+
+async def until(condition: Callable[[], bool], limit: float = 30.0) -> None:
+    """Wait (polling, no fixed sleep) until ``condition()`` holds; fail after ``limit`` s."""
+    deadline = time.monotonic() + limit
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not met in time")
+        await asyncio.sleep(0.05)
+
+
+def project(
+    points: NDArray[np.float64],
+    position: NDArray[np.float64],
+    look_at: NDArray[np.float64],
+    fov: float,
+    width: int,
+    height: int,
+) -> NDArray[np.float64]:
+    """Pixel (x, y) of world points seen by a +y-up perspective camera (vertical ``fov``)."""
+    fwd = look_at - position
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(fwd, [0.0, 1.0, 0.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, fwd)
+    d = np.atleast_2d(points) - position
+    depth = d @ fwd
+    f = 1.0 / np.tan(fov / 2)
+    x_ndc = (d @ right) / depth * f / (width / height)
+    y_ndc = (d @ up) / depth * f
+    return np.stack([(x_ndc + 1) / 2 * width, (1 - y_ndc) / 2 * height], axis=-1)
+
+
+async def canvas_rgb(page: Page) -> NDArray[np.float64]:
+    """The 3D canvas as an (H, W, 3) array of 0..1 floats."""
+    png = await page.locator("canvas").first.screenshot()
+    img = mpimg.imread(io.BytesIO(png), format="png")
+    return np.asarray(img[..., :3], dtype=np.float64)
+
+
+def saturated_near(img: NDArray[np.float64], xy: NDArray[np.float64], radius: int = 8) -> float:
+    """Share of coloured pixels (an avatar, not the white floor, the grey grid or the
+    shadows) in the square of ``radius`` around pixel ``xy``."""
+    x, y = round(xy[0]), round(xy[1])
+    h, w = img.shape[:2]
+    patch = img[
+        max(0, y - radius) : min(h, y + radius + 1), max(0, x - radius) : min(w, x + radius + 1)
+    ]
+    if patch.size == 0:
+        return 0.0
+    sat = patch.max(axis=-1) - patch.min(axis=-1)
+    return float((sat > 0.1).mean())
