@@ -42,8 +42,8 @@ import itertools
 import math
 import os
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -66,7 +66,14 @@ from scenarios.motion import MotionSpec
 from scenarios.receiver import ClockEstimator
 from scenarios.traces import TraceError
 
-__all__ = ["DEFAULT_MAX_SEND_RATE", "ReplayPlan", "UserPlan", "plan_replay", "replay_live"]
+__all__ = [
+    "DEFAULT_MAX_SEND_RATE",
+    "ReplayPlan",
+    "UserPlan",
+    "plan_replay",
+    "replay_live",
+    "select_plan",
+]
 
 F64 = NDArray[np.float64]
 Clock = Callable[[], float]
@@ -199,6 +206,63 @@ def plan_replay(path: str | os.PathLike[str], room: str | None = None) -> Replay
     origin = float(min(a[0] for a in arrivals)) if arrivals else 0.0
     end = float(max(a[-1] for a in arrivals)) if arrivals else 0.0
     return ReplayPlan(room or data.session.get("room") or "replay", origin, end, users)
+
+
+def _user_matches(up: UserPlan, wanted: str) -> bool:
+    """``wanted`` names the user by id (``3`` or ``u3``) or by its recorded name."""
+    w = wanted.strip()
+    return w in (str(up.user), f"u{up.user}", up.name)
+
+
+def select_plan(
+    plan: ReplayPlan,
+    start: float = 0.0,
+    duration: float | None = None,
+    users: Sequence[str] | None = None,
+) -> ReplayPlan:
+    """The part of ``plan`` a player was asked for (``replay --start --duration --users``).
+
+    ``start`` and ``duration`` are seconds of the recording from its first
+    arrival; the window keeps the updates arriving in ``[origin + start, origin +
+    start + duration]`` and becomes the replay's time origin, so the replay begins
+    at once. ``users`` keeps the users it names (id, ``u``-id or recorded name;
+    ValueError for a name that matches nobody). Users left with no update go.
+    """
+    if start < 0 or (duration is not None and not duration > 0):
+        raise ValueError("--start must be 0 or more and --duration positive")
+    if users is not None:
+        missing = [w for w in users if not any(_user_matches(up, w) for up in plan.users)]
+        if missing:
+            known = ", ".join(f"u{up.user} ({up.name})" for up in plan.users)
+            raise ValueError(f"no recorded user {missing[0]!r}; the recording has {known}")
+    lo = plan.origin + start
+    hi = math.inf if duration is None else lo + duration
+    if lo > plan.end:
+        raise ValueError(
+            f"--start {start:g} s is past the recording's end ({plan.end - plan.origin:.1f} s)"
+        )
+    kept: list[UserPlan] = []
+    for up in plan.users:
+        if users is not None and not any(_user_matches(up, w) for w in users):
+            continue
+        keep = np.flatnonzero((up.arrival >= lo) & (up.arrival <= hi))
+        if keep.size == 0:
+            continue
+        vels = up.velocities
+        kept.append(
+            replace(
+                up,
+                arrival=up.arrival[keep],
+                updates=[up.updates[i] for i in keep.tolist()],
+                velocities=None if vels is None else [vels[i] for i in keep.tolist()],
+                joined=up.joined if up.joined is not None and up.joined > lo else None,
+                left=up.left if up.left is not None and up.left < hi else None,
+            )
+        )
+    if not kept:
+        raise ValueError("no pose updates in the chosen window and users")
+    end = max(float(u.arrival[-1]) for u in kept)
+    return ReplayPlan(plan.room, lo, end, kept)
 
 
 def _replay_label(label: str | None, speed: float, shift: float) -> str | None:
@@ -531,6 +595,9 @@ async def replay_live(
     linger: float = 0.5,
     agent: str = "posecast-replay",
     clock: Clock = time.monotonic,
+    start_s: float = 0.0,
+    duration_s: float | None = None,
+    users: Sequence[str] | None = None,
 ) -> dict[str, Any]:
     """Replay the recording at ``path`` into the server at ``url``; returns a report.
 
@@ -550,11 +617,16 @@ async def replay_live(
     A recorded update arriving at ``a`` (capture ``c``) is sent at server time
     ``server_start + (a - origin) / speed`` with capture ``server_start + (c -
     origin) / speed``.
+
+    ``start_s``, ``duration_s`` and ``users`` replay only that window and those
+    users (:func:`select_plan`); ``origin`` is then the window's start.
     """
     if not max_send_rate > 0:
         raise ValueError("max_send_rate must be positive")
     # Reading the recording is file I/O: not on the event loop.
     plan = await asyncio.to_thread(plan_replay, path, room)
+    if start_s or duration_s is not None or users is not None:
+        plan = select_plan(plan, start_s, duration_s, users)
     if not plan.users:
         raise ValueError(f"{path}: no pose updates to replay")
     factor = _replay_factor(plan, speed, max_send_rate)

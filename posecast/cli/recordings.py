@@ -85,11 +85,30 @@ def replay(
         Path | None, typer.Option(help="Offline: write rendered poses (CSV, NPZ) here.")
     ] = None,
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the report.")] = None,
+    start: Annotated[
+        float, typer.Option(help="Live: start this many seconds into the recording.")
+    ] = 0.0,
+    duration: Annotated[
+        float | None, typer.Option(help="Live: replay this many seconds (default: to the end).")
+    ] = None,
+    users: Annotated[
+        str | None,
+        typer.Option(help="Live: replay only these users (ids, u-ids or names: u1,u2)."),
+    ] = None,
+    loop: Annotated[
+        bool, typer.Option("--loop", help="Live: replay again and again until Ctrl-C.")
+    ] = False,
 ) -> None:
     """Replay a recording into a live server, or reconstruct it offline with QoE."""
     _recording(file)
     if offline == (url is not None):
         raise _fail("give either --url ws://HOST:PORT (live) or --offline")
+    window = start != 0.0 or duration is not None or users is not None or loop
+    if offline and window:
+        raise _fail("--start, --duration, --users and --loop apply to a live replay (--url)")
+    if start < 0 or (duration is not None and duration <= 0):
+        raise _fail("--start must be 0 or more and --duration positive")
+    chosen = None if users is None else [u for u in users.split(",") if u.strip()]
     if offline:
         from recorder.replay import replay_offline
 
@@ -108,10 +127,6 @@ def replay(
         if out is not None:
             console.print(f"rendered poses written to {out}")
     else:
-        from websockets.exceptions import InvalidURI, WebSocketException
-
-        from client.replay import replay_live
-
         factor: float | str
         try:
             factor = "max" if speed == "max" else float(speed)
@@ -120,13 +135,7 @@ def replay(
         if factor != "max" and float(factor) <= 0:
             raise _fail("--speed must be positive")
         assert url is not None
-        try:
-            with console.status(f"replaying {file.name} into {url} ..."):
-                report = _run_async(
-                    replay_live(file, url, factor, room, token=token_)  # type: ignore[arg-type]
-                )
-        except* (OSError, InvalidURI, WebSocketException) as eg:
-            raise _fail(f"cannot connect to {url}: {eg.exceptions[0]}") from None
+        report = _replay_passes(file, url, factor, room, token_, (start, duration, chosen), loop)
         lat = report["lateness_ms"]
         console.print(
             f"replayed {report['users']} users, {report['updates_sent']} updates "
@@ -136,6 +145,47 @@ def replay(
     if json_out is not None:
         json_out.write_text(json.dumps(report, indent=2, default=str))
         console.print(f"wrote {json_out}")
+
+
+def _replay_passes(
+    file: Path,
+    url: str,
+    factor: float | str,
+    room: str | None,
+    token: str | None,
+    window: tuple[float, float | None, list[str] | None],
+    loop: bool,
+) -> dict[str, Any]:
+    """Replay live once, or (``--loop``) again and again until Ctrl-C; the last report."""
+    from websockets.exceptions import InvalidURI, WebSocketException
+
+    from client.replay import replay_live
+
+    start, duration, users = window
+    passes = 0
+    try:
+        while True:
+            with console.status(f"replaying {file.name} into {url} ..."):
+                report: dict[str, Any] = _run_async(
+                    replay_live(
+                        file,
+                        url,
+                        factor,  # type: ignore[arg-type]
+                        room,
+                        token=token,
+                        start_s=start,
+                        duration_s=duration,
+                        users=users,
+                    )
+                )
+            passes += 1
+            if not loop:
+                return report
+            console.print(f"pass {passes} done; again (Ctrl-C stops)")
+    except* ValueError as eg:
+        raise _fail(f"{file}: {eg.exceptions[0]}") from None
+    except* (OSError, InvalidURI, WebSocketException) as eg:
+        raise _fail(f"cannot connect to {url}: {eg.exceptions[0]}") from None
 
 
 def export(

@@ -1,0 +1,127 @@
+"""``posecast replay --start --duration --users --loop``: the recording-player controls."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import signal
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from support import running_server
+from typer.testing import CliRunner
+from websockets.exceptions import ConnectionClosed
+
+from client.connection import ClientConnection
+from client.replay import plan_replay, select_plan
+from posecast.cli import app
+from protocol import Join, Snapshot
+from recorder.replay import synthesize_recording
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """3 users playing the bundled real traces for 5 s at 30 Hz, through the recorder."""
+    return synthesize_recording(tmp_path_factory.mktemp("rec"), users=3, rate=30.0, duration=5.0)
+
+
+def test_select_plan_keeps_the_window_and_the_users(recording: Path) -> None:
+    """Only updates arriving in [origin + start, + duration] of the named users remain."""
+    plan = plan_replay(recording)
+    first, second = plan.users[0], plan.users[1]
+    part = select_plan(plan, start=1.0, duration=2.0, users=[f"u{first.user}", second.name])
+    assert [u.user for u in part.users] == [first.user, second.user]
+    assert part.origin == pytest.approx(plan.origin + 1.0)
+    for up in part.users:
+        assert up.arrival.min() >= plan.origin + 1.0
+        assert up.arrival.max() <= plan.origin + 3.0
+        full = next(u for u in plan.users if u.user == up.user)
+        inside = (full.arrival >= plan.origin + 1.0) & (full.arrival <= plan.origin + 3.0)
+        assert len(up.updates) == int(inside.sum()) > 0
+    assert select_plan(plan, users=[str(first.user)]).users[0].user == first.user
+
+
+def test_select_plan_refuses_clearly(recording: Path) -> None:
+    """An unknown user or a start past the end is one clear ValueError."""
+    plan = plan_replay(recording)
+    with pytest.raises(ValueError, match=r"no recorded user 'zed'; the recording has u"):
+        select_plan(plan, users=["zed"])
+    with pytest.raises(ValueError, match=r"past the recording's end"):
+        select_plan(plan, start=60.0)
+    with pytest.raises(ValueError, match=r"--duration positive"):
+        select_plan(plan, duration=0.0)
+
+
+def test_offline_replay_refuses_the_live_flags(recording: Path) -> None:
+    """The player flags need --url; offline says so in one line (exit 2)."""
+    res = runner.invoke(app, ["replay", str(recording), "--offline", "--start", "1"])
+    assert res.exit_code == 2 and "apply to a live replay" in res.output
+
+
+async def _watch(url: str, room: str, seen: dict[int, list[float]]) -> None:
+    """A spectator that notes, per publishing user, the capture times it receives."""
+    conn = await ClientConnection.connect(url, agent="watcher")
+    await conn.send(Join(room=room, streams=("head",), rate=30.0, spectator=True))
+    with contextlib.suppress(ConnectionClosed):
+        while True:
+            ev = (await conn.recv()).event
+            if isinstance(ev, Snapshot):
+                for i in range(len(ev)):
+                    seen.setdefault(int(ev.users[i]), []).append(float(ev.capture_times[i]))
+
+
+async def _posecast(*args: str) -> asyncio.subprocess.Process:
+    return await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "posecast.cli",
+        *args,
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.STDOUT,
+    )
+
+
+async def test_cli_replays_a_window_of_one_user(recording: Path, tmp_path: Path) -> None:
+    """The command replays 2 s of one user into a live room, as a spectator sees."""
+    out = tmp_path / "report.json"
+    seen: dict[int, list[float]] = {}
+    async with running_server() as srv:
+        url = f"ws://127.0.0.1:{srv.port}"
+        async with asyncio.TaskGroup() as tg:
+            watcher = tg.create_task(_watch(url, "win", seen))
+            proc = await _posecast(
+                "replay", str(recording), "--url", url, "--room", "win", "--start", "1",
+                "--duration", "2", "--users", "u1", "--json", str(out),
+            )  # fmt: skip
+            output, _ = await asyncio.wait_for(proc.communicate(), 60)
+            watcher.cancel()
+    assert proc.returncode == 0, output.decode()
+    report = json.loads(out.read_text())
+    assert report["users"] == 1 and report["bots"][0]["recorded_user"] == 1
+    assert 1.8 < report["duration_s"] <= 2.0
+    assert len(seen) == 1
+    (captures,) = seen.values()
+    assert np.ptp(captures) <= 2.0 + 1e-3
+
+
+async def test_cli_loop_replays_until_interrupted(recording: Path) -> None:
+    """With --loop the replay starts again after each pass, until Ctrl-C (SIGINT)."""
+    async with running_server() as srv:
+        url = f"ws://127.0.0.1:{srv.port}"
+        proc = await _posecast(
+            "replay", str(recording), "--url", url, "--duration", "0.5", "--loop",
+        )  # fmt: skip
+        assert proc.stdout is not None
+        lines: list[str] = []
+        while not any("pass 2 done" in line for line in lines):
+            line = await asyncio.wait_for(proc.stdout.readline(), 60)
+            assert line, "".join(lines)
+            lines.append(line.decode())
+        proc.send_signal(signal.SIGINT)
+        await asyncio.wait_for(proc.wait(), 30)
+    assert proc.returncode == 130
