@@ -56,6 +56,7 @@ from protocol import (
     MAX_TEXT_LENGTH,
     Ping,
     Pong,
+    PoseUpdate,
     Welcome,
     encode_update,
     is_valid_stream_name,
@@ -294,6 +295,8 @@ class _ReplayBot:
         self.velocity_scale = 1.0
         #: Set once every update has been sent.
         self.done = asyncio.Event()
+        #: ``Join.codec``: compact (quantised in the server's volume) or raw records.
+        self.codec = "compact"
 
     async def drain(self) -> None:
         with contextlib.suppress(ConnectionClosed):
@@ -326,6 +329,7 @@ class _ReplayBot:
             token=token,
             label=label,
             sends_velocities=plan.velocities is not None,
+            codec=self.codec,
         )
         self.joined_at = to_server(clock())
         self.ids = {sid: joined.streams[plan.streams[sid]] for sid in plan.streams}
@@ -389,15 +393,21 @@ class _ReplayBot:
             seq += 1
             if vel is not None and self.velocity_scale != 1.0:
                 vel = vel * np.float32(self.velocity_scale)
-            data = encode_update(
-                seq,
-                new_ids,
-                new_caps,
-                poses,
-                base_time=float(new_caps.max()),
-                velocities=vel,
-            )
-            await self.conn.send_bytes(data)
+            if self.codec == "raw":
+                data = encode_update(
+                    seq,
+                    new_ids,
+                    new_caps,
+                    poses,
+                    base_time=float(new_caps.max()),
+                    velocities=vel,
+                )
+                await self.conn.send_bytes(data)
+            else:  # the session codes it (compact frames keep per-stream baselines)
+                update = PoseUpdate.from_arrays(
+                    seq, new_ids, new_caps, poses, base_time=float(new_caps.max()), velocities=vel
+                )
+                await self.conn.send(update)
             self.lateness.append(now - due[j - 1])
             self.sent += 1
             self.poses += int(ids.size)
@@ -598,6 +608,7 @@ async def replay_live(
     start_s: float = 0.0,
     duration_s: float | None = None,
     users: Sequence[str] | None = None,
+    codec: str = "compact",
 ) -> dict[str, Any]:
     """Replay the recording at ``path`` into the server at ``url``; returns a report.
 
@@ -619,7 +630,9 @@ async def replay_live(
     origin) / speed``.
 
     ``start_s``, ``duration_s`` and ``users`` replay only that window and those
-    users (:func:`select_plan`); ``origin`` is then the window's start.
+    users (:func:`select_plan`); ``origin`` is then the window's start. ``codec``
+    is each bot's ``Join.codec``: ``compact`` (poses quantised in the server's
+    volume, to 0.25 mm and 0.034 deg) or ``raw`` (the recorded floats exactly).
     """
     if not max_send_rate > 0:
         raise ValueError("max_send_rate must be positive")
@@ -635,6 +648,8 @@ async def replay_live(
     start = math.nan
     try:
         await _connect_bots(plan, url, agent, factor, est, bots, clock)
+        for b in bots:
+            b.codec = codec
         welcome = bots[0].conn.welcome
         assert welcome is not None
         offset = est.offset

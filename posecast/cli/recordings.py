@@ -98,6 +98,13 @@ def replay(
     loop: Annotated[
         bool, typer.Option("--loop", help="Live: replay again and again until Ctrl-C.")
     ] = False,
+    codec: Annotated[
+        str,
+        typer.Option(
+            help="Live: compact (quantised to 0.25 mm / 0.034 deg, ~12 B a pose) or raw "
+            "(the recorded floats exactly, ~47 B a pose)."
+        ),
+    ] = "compact",
 ) -> None:
     """Replay a recording into a live server, or reconstruct it offline with QoE."""
     _recording(file)
@@ -108,6 +115,8 @@ def replay(
         raise _fail("--start, --duration, --users and --loop apply to a live replay (--url)")
     if start < 0 or (duration is not None and duration <= 0):
         raise _fail("--start must be 0 or more and --duration positive")
+    if codec not in ("compact", "raw"):
+        raise _fail(f"--codec must be compact or raw, not {codec!r}")
     chosen = None if users is None else [u for u in users.split(",") if u.strip()]
     if offline:
         from recorder.replay import replay_offline
@@ -135,7 +144,8 @@ def replay(
         if factor != "max" and float(factor) <= 0:
             raise _fail("--speed must be positive")
         assert url is not None
-        report = _replay_passes(file, url, factor, room, token_, (start, duration, chosen), loop)
+        span = (start, duration, chosen)
+        report = _replay_passes(file, url, factor, room, token_, span, loop, codec)
         lat = report["lateness_ms"]
         console.print(
             f"replayed {report['users']} users, {report['updates_sent']} updates "
@@ -155,6 +165,7 @@ def _replay_passes(
     token: str | None,
     window: tuple[float, float | None, list[str] | None],
     loop: bool,
+    codec: str = "compact",
 ) -> dict[str, Any]:
     """Replay live once, or (``--loop``) again and again until Ctrl-C; the last report."""
     from websockets.exceptions import InvalidURI, WebSocketException
@@ -176,6 +187,7 @@ def _replay_passes(
                         start_s=start,
                         duration_s=duration,
                         users=users,
+                        codec=codec,
                     )
                 )
             passes += 1

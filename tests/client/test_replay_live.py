@@ -16,6 +16,7 @@ from websockets.exceptions import ConnectionClosed
 from client.connection import ClientConnection
 from client.replay import DEFAULT_MAX_SEND_RATE, plan_replay, replay_live
 from protocol import PeerJoined, Snapshot
+from protocol.codec import DEFAULT_VOLUME, dequantise, quantise
 from recorder.export import read_session
 from recorder.replay import synthesize_recording
 from scenarios.motion import MotionSpec
@@ -71,6 +72,7 @@ async def _replay_and_watch(
     room: str | None,
     viewer_room: str,
     wants_velocities: bool = False,
+    codec: str = "raw",
 ) -> tuple[dict[str, Any], Viewer]:
     async with running_server() as server:
         url = f"ws://127.0.0.1:{server.port}"
@@ -84,7 +86,9 @@ async def _replay_and_watch(
         viewer = Viewer(conn)
         task = asyncio.create_task(viewer.run())
         try:
-            report = await replay_live(path, url, speed=speed, room=room, linger=2 * TICK)
+            report = await replay_live(
+                path, url, speed=speed, room=room, linger=2 * TICK, codec=codec
+            )
             await asyncio.sleep(3 * TICK)  # the last snapshot's way to the viewer
         finally:
             await conn.close()
@@ -92,8 +96,11 @@ async def _replay_and_watch(
     return report, viewer
 
 
-def _check(path: Path, report: dict[str, Any], viewer: Viewer) -> int:
-    """Every keyframe the viewer got is a recorded one, re-timed; returns how many."""
+def _check(path: Path, report: dict[str, Any], viewer: Viewer, compact: bool = False) -> int:
+    """Every keyframe the viewer got is a recorded one, re-timed; returns how many.
+
+    ``compact``: the replay coded its updates compact, so the poses are the codec's
+    of the recorded ones (exactly) and capture times are to 1 ms."""
     speed = float(report["speed"])
     start = float(report["server_start"])
     origin = float(report["origin"])
@@ -110,13 +117,17 @@ def _check(path: Path, report: dict[str, Any], viewer: Viewer) -> int:
         lower = np.clip(idx - 1, 0, expected.size - 1)
         idx = np.where(np.abs(expected[lower] - caps) < np.abs(expected[idx] - caps), lower, idx)
         # Capture times: the recorded ones, re-based and scaled (float32 offsets on the wire).
-        np.testing.assert_allclose(caps, expected[idx], rtol=0, atol=1e-6)
+        tol = 1e-3 + 1e-6 if compact else 1e-6
+        np.testing.assert_allclose(caps, expected[idx], rtol=0, atol=tol)
         np.testing.assert_allclose(
-            np.diff(caps), np.diff(rec.times[idx]) / speed, rtol=0, atol=2e-6
+            np.diff(caps), np.diff(rec.times[idx]) / speed, rtol=0, atol=2 * tol
         )
-        # Poses: bit for bit.
+        # Poses: bit for bit (compact: the codes of the recorded poses, bit for bit).
         poses = np.stack([g[2] for g in got]).astype(np.float32)
-        assert np.array_equal(poses.view(np.uint32), rec.poses[idx].view(np.uint32))
+        want = rec.poses[idx]
+        if compact:
+            want = dequantise(quantise(want, DEFAULT_VOLUME), DEFAULT_VOLUME)[0]
+        assert np.array_equal(poses.view(np.uint32), want.view(np.uint32))
         # Timing: never relayed before the recording had it (clock sync error
         # aside). How late depends on the CPU the test gets: not asserted.
         sent = np.array([g[1] for g in got])
@@ -145,6 +156,12 @@ async def test_replay_at_speed_1_reproduces_timing_and_poses(recording: Path) ->
             i = int(np.argmin(np.abs(truth.times - cap)))
             assert abs(truth.times[i] - cap) < 1e-6
             assert np.array_equal(truth.poses[i, j].astype(np.float32), pose)
+
+
+async def test_compact_replay_sends_the_codes_of_the_recorded_poses(recording: Path) -> None:
+    """--codec compact (the default of the CLI): quantised poses, times to 1 ms."""
+    report, viewer = await _replay_and_watch(recording, 1.0, None, "recorded", codec="compact")
+    assert _check(recording, report, viewer, compact=True) >= 2 * 6
 
 
 async def test_replay_at_speed_10_scales_intervals(recording: Path) -> None:
