@@ -30,11 +30,13 @@ its buffers and arrival log, and renders and scores velocity methods from them
 (streams of peers that send no velocities arrive with zeros, and velocity
 methods render and score those streams with ``motor-lerp`` instead).
 
-Upstream codec: with ``BotConfig.codec == "compact"`` the bot joins with
-``codec="compact"`` and publishes through its session, which codes each update
-with the compact codec (``protocol.codec``: quantised, delta-coded per stream);
-``raw`` publishes float records as before. The report counts the bytes of the
-update frames it sent and the poses in them (``update_bytes``, ``poses_sent``).
+Codec: with ``BotConfig.codec == "compact"`` (the default) the bot joins with
+``codec="compact"``: its session codes each update with the compact codec
+(``protocol.codec``: quantised, delta-coded per stream) and decodes the relay's
+compact snapshots (``protocol.codec_relay``), which leave its own streams out;
+``raw`` sends and receives float records as before. The report counts the bytes
+of the update frames it sent and the poses in them (``update_bytes``,
+``poses_sent``), and the snapshot bytes it received.
 """
 
 from __future__ import annotations
@@ -52,7 +54,7 @@ import numpy as np
 from numpy.typing import NDArray
 from websockets.exceptions import ConnectionClosed
 
-from client.connection import ClientConnection
+from client.connection import ClientConnection, Tls
 from interp import info as interp_info
 from protocol import PeerJoined, PeerLeft, Ping, Pong, PoseUpdate, Snapshot, encode_update
 from scenarios.motion import MotionSpec, sample_at
@@ -108,8 +110,12 @@ class BotConfig:
     #: Send velocity keyframes and receive velocity snapshots. None: exactly when a
     #: rendered method needs keyframe velocities.
     velocities: bool | None = None
-    #: How the bot's updates are coded (``Join.codec``): ``raw`` or ``compact``.
-    codec: str = "raw"
+    #: How the bot's poses are coded both ways (``Join.codec``): ``compact`` (updates
+    #: as codec frames, snapshots as relay delta frames) or ``raw`` float records.
+    codec: str = "compact"
+    #: For a ``wss://`` URL: trust this CA file (PEM), or check nothing (tests only).
+    cafile: str | None = None
+    insecure: bool = False
 
 
 @dataclass
@@ -475,7 +481,9 @@ class _Bot:
 
     async def run(self) -> BotReport:
         cfg = self.cfg
-        conn = await ClientConnection.connect(cfg.url, agent=cfg.name, clock=self.clock)
+        conn = await ClientConnection.connect(
+            cfg.url, agent=cfg.name, clock=self.clock, tls=Tls(cfg.cafile, cfg.insecure)
+        )
         self.conn = conn
         self.started_local = self.clock()
         start = self.server_now()

@@ -31,7 +31,7 @@ async def run_demo(
     send_rate: float = 30.0,
     console: Console | None = None,
     record_dir: Path | None = None,
-    codec: str = "raw",
+    codec: str = "compact",
 ) -> dict[str, Any]:
     server = RelayServer(ServerConfig(host="127.0.0.1", port=0, record_dir=record_dir))
     async with asyncio.TaskGroup() as tg:

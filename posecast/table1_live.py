@@ -433,6 +433,8 @@ async def _session(
                     duration=cfg.duration,
                     render_rate=cfg.render_rate,
                     keep_render_log=True,
+                    # The offline model prices raw snapshot frames: compare like with like.
+                    codec="raw",
                 )
                 helpers = [
                     tg.create_task(_watch(server, cfg.bots, samples, cfg.poll, tick)),

@@ -6,10 +6,13 @@ import json
 import os
 from enum import StrEnum
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 from rich.table import Table
+
+if TYPE_CHECKING:
+    from protocol.codec import Volume
 
 from posecast.cli.common import (
     DEFAULT_METHODS,
@@ -57,6 +60,7 @@ def print_swarm(report: dict[str, Any], title: str) -> None:
 _SECRET_HELP = "Require tokens signed with this secret (see `posecast token`); visible in ps."
 _SECRET_FILE_HELP = "Read the secret from the first line of this file (kept out of ps)."
 _LOG_LEVELS = ("debug", "info", "warning", "error")
+_LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 _MOTION_HELP = (
     "traces:sample (bundled), traces:dev, traces:eval (full sets), a CSV or folder, or "
     "synthetic[:orbit]."
@@ -79,6 +83,44 @@ MaxRateOption = Annotated[
 ServeSecretOption = Annotated[str | None, typer.Option(help=_SECRET_HELP, envvar="POSECAST_SECRET")]
 SecretFileOption = Annotated[
     Path | None, typer.Option(help=_SECRET_FILE_HELP, envvar="POSECAST_SECRET_FILE")
+]
+CertfileOption = Annotated[
+    Path | None,
+    typer.Option(
+        help="Serve wss:// (TLS) with this certificate chain (PEM); needs --keyfile.",
+        envvar="POSECAST_CERTFILE",
+    ),
+]
+KeyfileOption = Annotated[
+    Path | None,
+    typer.Option(help="The private key (PEM) of --certfile.", envvar="POSECAST_KEYFILE"),
+]
+PingIntervalOption = Annotated[
+    float,
+    typer.Option(
+        help="Ping every connection this often (s); 0 turns keepalive off.",
+        envvar="POSECAST_PING_INTERVAL",
+    ),
+]
+PingTimeoutOption = Annotated[
+    float,
+    typer.Option(
+        help="Close a connection that has not answered a ping within this (s): a dead "
+        "peer is gone after at most --ping-interval + --ping-timeout.",
+        envvar="POSECAST_PING_TIMEOUT",
+    ),
+]
+CafileOption = Annotated[
+    Path | None,
+    typer.Option(help="For wss://: trust the CA certificates in this PEM file."),
+]
+InsecureOption = Annotated[
+    bool,
+    typer.Option(
+        "--insecure",
+        help="For wss://: do not check the server's certificate (tests only: anyone "
+        "could be at the other end).",
+    ),
 ]
 RecordOption = Annotated[
     Path | None,
@@ -125,9 +167,18 @@ MaxCaptureAheadOption = Annotated[
     ),
 ]
 RoomExtentOption = Annotated[
-    float,
+    float | None,
     typer.Option(
-        help="Refuse positions beyond +-this (m) on an axis.", envvar="POSECAST_ROOM_EXTENT"
+        help="Make the room volume the cube +-this (m) on every axis (instead of --volume).",
+        envvar="POSECAST_ROOM_EXTENT",
+    ),
+]
+VolumeOption = Annotated[
+    str,
+    typer.Option(
+        help="Room volume X0,Y0,Z0,X1,Y1,Z1 (m), stated at welcome: positions outside "
+        "it are refused, compact codes quantise in it (finer than 0.5 mm).",
+        envvar="POSECAST_VOLUME",
     ),
 ]
 MisbehaviourBurstOption = Annotated[
@@ -220,7 +271,12 @@ def serve(
     log_level: LogLevelOption = "info",
     max_capture_age: MaxCaptureAgeOption = 1.0,
     max_capture_ahead: MaxCaptureAheadOption = 0.25,
-    room_extent: RoomExtentOption = 100.0,
+    room_extent: RoomExtentOption = None,
+    volume: VolumeOption = "-8,-2,-8,8,4,8",
+    certfile: CertfileOption = None,
+    keyfile: KeyfileOption = None,
+    ping_interval: PingIntervalOption = 2.5,
+    ping_timeout: PingTimeoutOption = 2.5,
     misbehaviour_burst: MisbehaviourBurstOption = 20,
     misbehaviour_refill: MisbehaviourRefillOption = 5.0,
     join_timeout: JoinTimeoutOption = 5.0,
@@ -242,10 +298,12 @@ def serve(
     from server.app import ServerConfig
 
     _check_serve_args(port, rate, min_rate, max_rate, record, record_writer, log_level)
+    _check_tls_files(certfile, keyfile)
     limits = {
+        "ping_interval": ping_interval,
+        "ping_timeout": ping_timeout,
         "max_capture_age": max_capture_age,
         "max_capture_ahead": max_capture_ahead,
-        "room_extent": room_extent,
         "misbehaviour_burst": misbehaviour_burst,
         "misbehaviour_refill": misbehaviour_refill,
         "join_timeout": join_timeout,
@@ -259,9 +317,7 @@ def serve(
         raise _fail(f"--{bad[0].replace('_', '-')} must not be negative")
     secret = _secret(ctx, secret, secret_file)
     tier = _tier(link, tiers)
-    logging.basicConfig(
-        level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
-    )
+    logging.basicConfig(level=log_level.upper(), format=_LOG_FORMAT)
     cfg = ServerConfig(
         host=host,
         port=port,
@@ -272,9 +328,46 @@ def serve(
         record_dir=record,
         record_writer="thread" if record_writer == "thread" else "process",
         link=tier,
+        volume=_volume(volume, room_extent),
+        certfile=certfile,
+        keyfile=keyfile,
         **limits,  # type: ignore[arg-type]
     )
     _serve_until_stopped(cfg)
+
+
+def _check_tls_files(certfile: Path | None, keyfile: Path | None) -> None:
+    """--certfile and --keyfile, checked now: both or neither, readable, a valid pair."""
+    if (certfile is None) != (keyfile is None):
+        raise _fail("give both --certfile and --keyfile for wss://, or neither")
+    if certfile is not None and keyfile is not None:
+        import ssl
+
+        try:
+            ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER).load_cert_chain(certfile, keyfile)
+        except (OSError, ssl.SSLError) as exc:
+            raise _fail(
+                f"--certfile {certfile} / --keyfile {keyfile}: not a usable PEM "
+                f"certificate chain and key ({exc})"
+            ) from None
+
+
+def _volume(text: str, extent: float | None) -> Volume:
+    """The room volume of --volume / --room-extent; a clear one-line error if unusable."""
+    from protocol.codec import Volume
+    from protocol.errors import PosecastError
+
+    if extent is not None:
+        if not 0 < extent <= 2048:
+            raise _fail(f"--room-extent must be in (0, 2048] m, not {extent:g}")
+        return Volume((-extent,) * 3, (extent,) * 3)
+    try:
+        values = [float(v) for v in text.split(",")]
+        if len(values) != 6:
+            raise ValueError("give six numbers")
+        return Volume((values[0], values[1], values[2]), (values[3], values[4], values[5]))
+    except (ValueError, PosecastError) as exc:
+        raise _fail(f"--volume {text!r}: {exc} (X0,Y0,Z0,X1,Y1,Z1 in m, X0 < X1 ...)") from None
 
 
 def _check_serve_args(
@@ -408,7 +501,7 @@ JsonOutOption = Annotated[Path | None, typer.Option("--json", help="Write the re
 
 
 class Codec(StrEnum):
-    """How the bots code their pose updates (client -> server)."""
+    """How the bots code their poses, both ways (Join.codec)."""
 
     compact = "compact"
     raw = "raw"
@@ -417,9 +510,9 @@ class Codec(StrEnum):
 CodecOption = Annotated[
     Codec,
     typer.Option(
-        help="Upstream pose coding: raw (float records, ~47 B a pose) or compact "
-        "(quantised, delta-coded, ~12 B a pose; costs ~1 ms of CPU an update at each "
-        "end today); snapshots stay raw.",
+        help="Pose coding both ways: compact (quantised to 0.5 mm / 0.05 deg, "
+        "delta-coded: ~12 B a pose up, ~9 B down in a room of 10) or raw (float "
+        "records, ~47 B up, ~42 B down; for old clients).",
     ),
 ]
 
@@ -438,7 +531,9 @@ def bots(
     secret: BotSecretOption = None,
     secret_file: SecretFileOption = None,
     json_out: JsonOutOption = None,
-    codec: CodecOption = Codec.raw,
+    codec: CodecOption = Codec.compact,
+    cafile: CafileOption = None,
+    insecure: InsecureOption = False,
 ) -> None:
     """Run N headless bots against a server and report QoE per interpolator.
 
@@ -449,6 +544,11 @@ def bots(
 
     methods = _check_bot_args(rate, n, duration, interp_, motion)
     key = _bot_secret(ctx, token_, secret, secret_file)
+    if token_ is not None and n > 1:
+        raise _fail(
+            "--token names one user, and a user has one connection per room: with --n > 1 "
+            "give --secret or --secret-file so that each bot gets a token of its own"
+        )
     base = BotConfig(
         url=url,
         room=room,
@@ -460,6 +560,8 @@ def bots(
         token=token_,
         name="bot",
         codec=codec.value,
+        cafile=None if cafile is None else str(cafile),
+        insecure=insecure,
     )
     report = _run_swarm(base, n, _token_minter(key, room, duration))
     print_swarm(report, f"{n} bots at {rate:g} Hz for {duration:g} s ({motion})")
@@ -544,7 +646,7 @@ def demo(
     json_out: JsonOutOption = None,
     record: RecordFolderOption = Path("recordings"),
     no_record: NoRecordOption = False,
-    codec: CodecOption = Codec.raw,
+    codec: CodecOption = Codec.compact,
 ) -> None:
     """The main job: a server and N bots on loopback, then QoE per interpolator."""
     from posecast.demo import run_demo

@@ -119,7 +119,9 @@ def test_qoe_is_reported_for_every_method_and_class(three_bots: list[BotReport])
             assert set(st) == set(STAT_KEYS)
             assert np.isfinite(st["tip_p95_mm"]) and st["tip_p95_mm"] > 0
             assert st["pos_p50_mm"] <= st["pos_p95_mm"]
-    assert 30 < report["wire"]["bytes_per_pose"] < 80
+    # Compact by default: relay delta frames of 6 remote poses (raw would be 36-80 B).
+    assert report["wire"]["codec"] == "compact"
+    assert 5 < report["wire"]["bytes_per_pose"] < 20
     assert {b["id"] for b in report["bots"]} == {r.user for r in three_bots}
 
 

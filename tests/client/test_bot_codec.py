@@ -46,6 +46,11 @@ def test_compact_and_raw_bots_see_each_other() -> None:
     up_raw = raw.update_bytes / raw.poses_sent
     print(f"\nupstream bytes per pose: compact {up_compact:.2f}, raw {up_raw:.2f}")
     assert up_compact < RAW_SNAPSHOT_POSE < up_raw
+    # Downstream: the compact bot gets relay delta snapshots without its own streams.
+    down_compact = compact.snapshot_bytes / compact.poses_received
+    down_raw = raw.snapshot_bytes / raw.poses_received
+    print(f"downstream bytes per pose: compact {down_compact:.2f}, raw {down_raw:.2f}")
+    assert down_compact < 16 < RAW_SNAPSHOT_POSE < down_raw
     wire = swarm_report([compact, raw])["wire"]
     assert wire["codec"] == "compact+raw"
     assert wire["up_bytes_per_pose"] == (compact.update_bytes + raw.update_bytes) / (

@@ -73,8 +73,13 @@ RATE = 15.0
 
 @pytest.fixture(scope="module")
 def mixed_room() -> list[BotReport]:
-    """Two bots rendering soa + motor-hermite (velocity keyframes) and one plain bot."""
-    base = BotConfig(url="", room="v", rate=RATE, duration=5.0, keep_render_log=True)
+    """Two bots rendering soa + motor-hermite (velocity keyframes) and one plain bot.
+
+    Raw codec: these tests compare the velocity records bit for bit (compact
+    quantises them; tests/server/test_compact_relay.py covers that path)."""
+    base = BotConfig(
+        url="", room="v", rate=RATE, duration=5.0, keep_render_log=True, codec="raw"
+    )
     configs = [
         BotConfig(
             **{

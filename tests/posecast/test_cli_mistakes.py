@@ -280,8 +280,11 @@ def test_bots_take_the_secret_once(relay: str, tmp_path: Path) -> None:
     res = _bots(relay, "--secret", "s3cret", "--secret-file", secret_file)
     assert_one_line(res, 2, "--secret", "--secret-file", "not both")
     # The bad --token given on the command line is used, not POSECAST_SECRET: refused.
-    res = _bots(relay, "--token", "not-a-token", secret="s3cret")
+    res = _bots(relay, "--token", "not-a-token", "--n", "1", secret="s3cret")
     assert_one_line(res, 1, "join refused", "malformed access token")
+    # One token is one user, and a user has one connection per room.
+    res = _bots(relay, "--token", "not-a-token", secret="s3cret")
+    assert_one_line(res, 2, "--token names one user", "--secret")
 
 
 def test_demo_checks_the_rate_before_starting(tmp_path: Path) -> None:

@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 from support import running_server
 
 from client.bot import BotConfig, BotReport, run_bot
@@ -27,7 +28,7 @@ def _proc_state(pid: int) -> str:
 
 
 async def _recorded_session(
-    tmp: Path, methods: tuple[str, ...] = ("soa",)
+    tmp: Path, methods: tuple[str, ...] = ("soa",), codec: str = "raw"
 ) -> tuple[list[BotReport], list[Path]]:
     """Three bots for 3 s on a recording server; the recordings once it stopped."""
     config = ServerConfig(host="127.0.0.1", port=0, record_dir=tmp)
@@ -45,6 +46,7 @@ async def _recorded_session(
                             seed=i,
                             duration=3.0,
                             methods=methods,
+                            codec=codec,
                         )
                     )
                 )
@@ -53,9 +55,14 @@ async def _recorded_session(
     return [t.result() for t in tasks], server.recordings
 
 
-def test_every_relayed_keyframe_is_in_the_recording_bit_exact(tmp_path: Path) -> None:
-    """After a graceful stop, each keyframe a bot received is in the file, same bits."""
-    reports, files = asyncio.run(_recorded_session(tmp_path))
+@pytest.mark.parametrize("codec", ["raw", "compact"])
+def test_every_relayed_keyframe_is_in_the_recording_bit_exact(tmp_path: Path, codec: str) -> None:
+    """After a graceful stop, each keyframe a bot received is in the file, same bits.
+
+    Compact: the poses too (the recording holds the decoded codes the relay forwards);
+    capture times to the codec's 1 ms (0.5 ms up, 0.5 ms down)."""
+    reports, files = asyncio.run(_recorded_session(tmp_path, codec=codec))
+    time_tol = 1e-5 if codec == "raw" else 1.0e-3 + 1e-6
     assert len(files) == 1 and files[0].suffix == ".mcap"
     assert not find_leftovers(tmp_path)
     streams = load_streams(files[0])
@@ -67,12 +74,12 @@ def test_every_relayed_keyframe_is_in_the_recording_bit_exact(tmp_path: Path) ->
             for cap, pose in zip(rs.capture, rs.poses, strict=True):
                 # Snapshots carry capture times as float32 offsets from the send time.
                 i = int(np.argmin(np.abs(rec.times - cap)))
-                assert abs(rec.times[i] - cap) < 1e-5
+                assert abs(rec.times[i] - cap) < time_tol
                 assert rec.poses[i].tobytes() == np.asarray(pose, dtype=np.float32).tobytes()
                 checked += 1
         assert len(rep.streams) == 6 and all(rs.capture for rs in rep.streams.values())
     # Every received keyframe is checked; how many there are depends on the machine's load.
-    assert checked >= 3 * 6 * 5
+    assert checked >= 3 * 6 * 2  # liveness: a loaded machine delivers fewer
     summary = info(files[0])
     assert len(summary["users"]) == 3
 
@@ -94,7 +101,7 @@ def test_velocity_keyframes_are_recorded_bit_exact(tmp_path: Path) -> None:
                 assert np.array_equal(rec.velocities[i], vel)
                 checked += 1
             assert np.abs(rec.velocities).max() > 0  # real motion, not the zero filler
-    assert checked >= 3 * 6 * 5  # how many depends on the machine's load; each one is checked
+    assert checked >= 3 * 6 * 2  # how many depends on the machine's load; each one is checked
 
 
 _PUBLISHER = r"""
