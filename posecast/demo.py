@@ -32,12 +32,15 @@ async def run_demo(
     console: Console | None = None,
     record_dir: Path | None = None,
     codec: str = "compact",
+    view_port: int | None = None,
 ) -> dict[str, Any]:
+    """Run the demo; with ``view_port``, a live viewer of its room is served there too."""
     server = RelayServer(ServerConfig(host="127.0.0.1", port=0, record_dir=record_dir))
     async with asyncio.TaskGroup() as tg:
         tg.create_task(server.run())
         await asyncio.wait_for(server.ready.wait(), 10)
         url = f"ws://127.0.0.1:{server.port}"
+        viewer = None if view_port is None else _start_view(tg, url, methods, view_port, console)
         base = BotConfig(
             url=url,
             room="demo",
@@ -84,6 +87,8 @@ async def run_demo(
                 reports = await run_bots(base, bots)
             finally:
                 watcher.cancel()
+                if viewer is not None:
+                    viewer.cancel()
         report = swarm_report(reports)
         report["server"] = {
             "url": url,
@@ -96,3 +101,18 @@ async def run_demo(
         server.stop()
     report["recording"] = str(server.recordings[-1]) if server.recordings else None
     return report
+
+
+def _start_view(
+    tg: asyncio.TaskGroup, url: str, methods: tuple[str, ...], port: int, console: Console | None
+) -> asyncio.Task[None]:
+    """``demo --view``: a spectator of the demo's room, served on ``port`` (users 1 m apart)."""
+    from posecast.view.live import LiveConfig, run_live_view
+
+    cfg = LiveConfig(url=url, room="demo", methods=methods, port=port, spread=1.0)
+
+    def ready(view: Any) -> None:
+        if console is not None:
+            console.print(f"viewer at [bold]{view.url}[/] (open it in a browser)")
+
+    return tg.create_task(run_live_view(cfg, ready))

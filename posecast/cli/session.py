@@ -647,12 +647,20 @@ def demo(
     record: RecordFolderOption = Path("recordings"),
     no_record: NoRecordOption = False,
     codec: CodecOption = Codec.compact,
+    view: Annotated[
+        bool, typer.Option("--view", help="Serve a live 3D viewer of the demo's room too.")
+    ] = False,
+    view_port: Annotated[
+        int, typer.Option(help="With --view: serve the page on this port (0: any free one).")
+    ] = 8080,
 ) -> None:
     """The main job: a server and N bots on loopback, then QoE per interpolator."""
     from posecast.demo import run_demo
     from server.app import ServerConfig
 
     methods = _check_bot_args(rate, bots, duration, interp_, motion)
+    if view and not 0 <= view_port <= 65535:
+        raise _fail(f"--view-port {view_port} is not a TCP port (0-65535)")
     server_cfg = ServerConfig()  # what run_demo's own server allows
     if not server_cfg.min_rate <= rate <= server_cfg.max_rate:
         raise _fail(
@@ -669,6 +677,7 @@ def demo(
             console=console,
             record_dir=None if no_record else record,
             codec=codec.value,
+            view_port=view_port if view else None,
         )
     )
     print_swarm(
