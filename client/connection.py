@@ -190,9 +190,7 @@ class ClientConnection:
         tls: Tls | None = None,
     ) -> ClientConnection:
         """Connect, say hello and join ``room``; :class:`JoinRefused` if refused."""
-        conn = await cls.connect(
-            url, agent=agent, clock=clock, open_timeout=open_timeout, tls=tls
-        )
+        conn = await cls.connect(url, agent=agent, clock=clock, open_timeout=open_timeout, tls=tls)
         try:
             await conn.join(
                 room=room,

@@ -33,6 +33,7 @@ __all__ = [
     "best_k",
     "bit_length",
     "eg_cost",
+    "k_of_histogram",
     "unzigzag",
     "zigzag",
 ]
@@ -74,6 +75,20 @@ _KS = np.arange(MAX_K + 1, dtype=np.int64)
 SMALL = 256
 
 
+def k_of_histogram(hist: list[int]) -> int:
+    """The order coding values with these bit-length counts (``hist[b]``: how many
+    have bit length b) in the fewest bits: see :func:`_best_k_small`."""
+    n = sum(hist)
+    below = 0  # #(b <= k)
+    k = 0
+    while k < MAX_K:
+        below += hist[k]
+        if below - (n - below - hist[k + 1]) >= 0:
+            break
+        k += 1
+    return k
+
+
 def _best_k_small(values: list[int]) -> tuple[int, int]:
     """:func:`best_k` of a short column, from a histogram of the bit lengths.
 
@@ -86,13 +101,7 @@ def _best_k_small(values: list[int]) -> tuple[int, int]:
     hist = [0] * (MAX_EG_BITS + 2)
     for value in values:
         hist[value.bit_length()] += 1
-    below = 0  # #(b <= k)
-    k = 0
-    while k < MAX_K:
-        below += hist[k]
-        if below - (n - below - hist[k + 1]) >= 0:
-            break
-        k += 1
+    k = k_of_histogram(hist)
     cost = k * n
     for b, count in enumerate(hist):
         if count:

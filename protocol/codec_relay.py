@@ -56,7 +56,7 @@ from itertools import pairwise
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.bits import MAX_EG_BITS, MAX_K, _best_k_small
+from protocol.bits import MAX_EG_BITS, MAX_K, _best_k_small, k_of_histogram
 from protocol.codec_frame import (
     CODEC_MAGIC,
     F_UPDATE,
@@ -268,20 +268,6 @@ def _eg_table(k: int) -> list[tuple[int, int]]:
 _EG_TABLES = [_eg_table(k) for k in range(MAX_K + 1)]
 
 
-def _k_of_histogram(hist: list[int]) -> int:
-    """The Exp-Golomb order that codes values with these bit-length counts in the
-    fewest bits (the first minimum, as ``bits._best_k_small``)."""
-    n = sum(hist)
-    below = 0
-    k = 0
-    while k < MAX_K:
-        below += hist[k]
-        if below - (n - below - hist[k + 1]) >= 0:
-            break
-        k += 1
-    return k if n else 0
-
-
 def _key_blocks(
     entries: list[RelayEntry], base: float, volume: Volume, velocity: bool
 ) -> tuple[list[_Block], list[int]]:
@@ -371,7 +357,7 @@ def _delta_blocks(
                 hists[(c - 1) // 3][cls][z.bit_length()] += 1
             diffs.append(row)
             cls = 1
-    ks = [[_k_of_histogram(h) for h in pair] for pair in hists]
+    ks = [[k_of_histogram(h) for h in pair] for pair in hists]
     nib = [kt] + [k for pair in ks for k in pair]
     # Per class: the order of each field after the idx step.
     korders = [[ks[f // 3][c] for f in range(width - 1)] for c in (0, 1)]
