@@ -77,9 +77,7 @@ def mixed_room() -> list[BotReport]:
 
     Raw codec: these tests compare the velocity records bit for bit (compact
     quantises them; tests/server/test_compact_relay.py covers that path)."""
-    base = BotConfig(
-        url="", room="v", rate=RATE, duration=5.0, keep_render_log=True, codec="raw"
-    )
+    base = BotConfig(url="", room="v", rate=RATE, duration=5.0, keep_render_log=True, codec="raw")
     configs = [
         BotConfig(
             **{

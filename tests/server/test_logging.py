@@ -197,9 +197,11 @@ async def test_metrics_and_health_scrapes_log_nothing_at_info(
             await http_get(srv.port, path)
         # "connection closed" (websockets 17) or "= connection is CLOSED" (16).
         await settle(
-            lambda: len(_records(caplog, "connection closed"))
-            + len(_records(caplog, "connection is CLOSED"))
-            >= 4
+            lambda: (
+                len(_records(caplog, "connection closed"))
+                + len(_records(caplog, "connection is CLOSED"))
+                >= 4
+            )
         )
         http = list(caplog.records)
         caplog.clear()
