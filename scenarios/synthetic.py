@@ -11,6 +11,13 @@ joint space, so hand paths are arcs about the shoulder and elbow pivots):
   in the throwing hand, leaves it at the swing's fastest point with the hand's
   velocity, flies ballistically while spinning, and is caught by the other hand,
   which reaches the catch point as the ball falls through it.
+- ``drill-toss``: throw-catch with a drill (``object:drill``) instead of the
+  ball, held by its grip, tumbling slowly end over end in flight.
+- ``hand-over``: a tool (``object:tool``) passes slowly from hand to hand: the
+  giver offers it at the midline, the taker grasps it (both hands still while
+  it changes hands), carries it to a work spot and turns it slowly; the giver
+  returns to rest; the head watches the tool. With ``drill-toss``, the motion
+  closest to the paper's medical-training scene.
 - ``drill``: the right hand holds ``object:drill`` (spinning about its own bit
   axis, local z, through its origin), moves it between drilling spots and
   pushes it in and out along the bit; the left hand steadies; the head watches
@@ -58,12 +65,15 @@ import numpy as np
 from scenarios.synthetic_body import F64, NATIVE_RATE, min_jerk
 from scenarios.synthetic_scenes import (
     DrillParams,
+    DrillTossParams,
+    HandOverParams,
     LookAroundParams,
     ReachGraspParams,
     ScrewParams,
     SpinDriftParams,
     ThrowCatchParams,
     _build_drill,
+    _build_hand_over,
     _build_look_around,
     _build_reach_grasp,
     _build_screw,
@@ -76,6 +86,8 @@ __all__ = [
     "MOTIONS",
     "NATIVE_RATE",
     "DrillParams",
+    "DrillTossParams",
+    "HandOverParams",
     "LookAroundParams",
     "MotionDef",
     "ReachGraspParams",
@@ -109,6 +121,8 @@ def _coerce(value: Any, default: Any, where: str) -> Any:
         if not isinstance(value, list | tuple) or len(value) != len(default):
             raise TraceError(f"{where}: expected a list of {len(default)} numbers")
         return tuple(_coerce(v, d, where) for v, d in zip(value, default, strict=True))
+    if isinstance(default, str) and not isinstance(value, str):
+        raise TraceError(f"{where}: expected a string, got {value!r}")
     if isinstance(default, float):
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise TraceError(f"{where}: expected a number, got {value!r}")
@@ -166,6 +180,20 @@ MOTIONS: dict[str, MotionDef] = {
             ThrowCatchParams,
             _build_throw_catch,
             "hands toss object:ball (ballistic, spinning) to each other",
+            60.0,
+        ),
+        MotionDef(
+            "drill-toss",
+            DrillTossParams,
+            _build_throw_catch,
+            "hands toss object:drill (tumbling slowly) to each other",
+            60.0,
+        ),
+        MotionDef(
+            "hand-over",
+            HandOverParams,
+            _build_hand_over,
+            "object:tool passes slowly from hand to hand and is used in between",
             60.0,
         ),
         MotionDef(

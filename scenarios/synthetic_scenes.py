@@ -1,8 +1,8 @@
 """The scripted scenes of :mod:`scenarios.synthetic`: parameters and builders.
 
 One frozen parameter dataclass and one builder per motion (reach-grasp,
-throw-catch, drill, look-around, and the exactness fixtures screw and
-spin-drift; see :mod:`scenarios.synthetic` for what each one shows). A builder
+throw-catch, drill-toss, hand-over, drill, look-around, and the exactness
+fixtures screw and spin-drift; see :mod:`scenarios.synthetic` for what each one shows). A builder
 takes its parameters, a seeded generator and the sample times and returns
 poses ``(N, S, 7)`` and the stream names; it draws from the generator in a
 fixed order, so a motion is a pure function of its parameters and the seed.
@@ -42,6 +42,8 @@ from scenarios.synthetic_body import (
 
 __all__ = [
     "DrillParams",
+    "DrillTossParams",
+    "HandOverParams",
     "LookAroundParams",
     "ReachGraspParams",
     "ScrewParams",
@@ -93,6 +95,52 @@ class ThrowCatchParams:
     """Ball centre in the hand frame at the first grasp (m)."""
     head_gain: float = 0.8
     head_smooth_s: float = 0.2
+    thing: str = "ball"
+    """What is tossed: the object stream is ``object:<thing>``."""
+
+
+@dataclass(frozen=True)
+class DrillTossParams(ThrowCatchParams):
+    """The throw-catch scene with a drill: tumbles slowly end over end, held by its grip.
+
+    Close to the paper's medical-training scene (a tool thrown and caught).
+    """
+
+    thing: str = "drill"
+    spin_rps: Range = (0.4, 1.0)
+    """Tumble in flight, about the throwing hand's angular velocity (rev/s)."""
+    grip: tuple[float, float, float] = (0.0, -0.02, -0.10)
+    """Drill origin in the hand frame at the first grasp (m)."""
+    flight_s: Range = (0.50, 0.70)
+
+
+@dataclass(frozen=True)
+class HandOverParams:
+    """A tool passes slowly from hand to hand; the taker works with it in between.
+
+    Close to the paper's medical-training scene (a slow tool hand-over).
+    """
+
+    reach_s: Range = (0.9, 1.5)
+    """Minimum-jerk reach to the hand-over point, and back (s): slow."""
+    hold_s: Range = (0.3, 0.6)
+    """Both hands still on the tool before it changes hands (s)."""
+    use_s: Range = (1.0, 2.0)
+    """Each of the taker's slow wrist turns while it works with the tool (s)."""
+    use_turn_deg: Range = (20.0, 60.0)
+    meet_x: Range = (-0.05, 0.05)
+    meet_y: Range = (1.05, 1.30)
+    meet_z: Range = (-0.50, -0.35)
+    offer_yaw_deg: float = 35.0
+    """How far each hand turns towards the other at the hand-over (deg)."""
+    grip: tuple[float, float, float] = (0.0, -0.02, -0.10)
+    """Tool origin in the first holder's hand frame (m)."""
+    target_x: Range = (0.10, 0.35)
+    target_y: Range = (0.95, 1.30)
+    target_z: Range = (-0.50, -0.30)
+    pitch_deg: Range = (-40.0, 0.0)
+    head_gain: float = 0.7
+    head_smooth_s: float = 0.3
 
 
 @dataclass(frozen=True)
@@ -278,7 +326,8 @@ def _build_throw_catch(
     left, right = tracks[-1.0].poses(t), tracks[1.0].poses(t)
     ball = _ball_poses(scene.segments, {-1.0: left, 1.0: right}, t)
     head = _head_looking_at(t, ball[:, :3], p.head_smooth_s, p.head_gain)
-    return np.stack([head, left, right, ball], axis=1), ("head", "left", "right", "object:ball")
+    streams = ("head", "left", "right", f"object:{p.thing}")
+    return np.stack([head, left, right, ball], axis=1), streams
 
 
 def _toss(
@@ -408,6 +457,73 @@ def _ball_flight(seg: _BallSegment, t: F64) -> F64:
     axis = seg.omega / speed if speed > 0 else _X
     q = quat_mul(_axis_angle(axis, speed * dt), seg.q0)
     return np.concatenate([pos, q], axis=-1)
+
+
+def _build_hand_over(
+    p: HandOverParams, rng: np.random.Generator, t: F64
+) -> tuple[F64, tuple[str, ...]]:
+    end = float(t[-1])
+    arms = {side: _Arm(side) for side in (-1.0, 1.0)}
+    tracks = {side: _ArmTrack(arm, 0.0, arm.rest) for side, arm in arms.items()}
+    grip = np.concatenate([np.asarray(p.grip), _IDENTITY])
+    segments = [_BallSegment(0.0, "held", 1.0, grip)]
+    holder = 1.0
+    now = _uniform(rng, (0.3, 0.8))
+    while now <= end:
+        now = _hand_over(p, rng, tracks, segments, holder, now)
+        holder = -holder
+    left, right = tracks[-1.0].poses(t), tracks[1.0].poses(t)
+    tool = _ball_poses(segments, {-1.0: left, 1.0: right}, t)
+    head = _head_looking_at(t, tool[:, :3], p.head_smooth_s, p.head_gain)
+    return np.stack([head, left, right, tool], axis=1), ("head", "left", "right", "object:tool")
+
+
+def _hand_over(
+    p: HandOverParams,
+    rng: np.random.Generator,
+    tracks: dict[float, _ArmTrack],
+    segments: list[_BallSegment],
+    giver: float,
+    now: float,
+) -> float:
+    """The giver offers the tool, the taker grasps it, uses it; returns when all is still.
+
+    Both hands are still while the tool changes hands, so its path is continuous.
+    """
+    taker = -giver
+    g_track, t_track = tracks[giver], tracks[taker]
+    meet = np.array([_uniform(rng, p.meet_x), _uniform(rng, p.meet_y), _uniform(rng, p.meet_z)])
+    give = np.concatenate(
+        [meet + np.array([giver * 0.05, 0, 0]), _ypr(giver * p.offer_yaw_deg, -10.0)]
+    )
+    take = np.concatenate(
+        [meet + np.array([taker * 0.06, 0, 0]), _ypr(taker * p.offer_yaw_deg, -20.0)]
+    )
+    g_track.hold(now)
+    t_g = now + _uniform(rng, p.reach_s)
+    g_track.move(t_g, give)
+    t_track.hold(max(now + 0.2, t_track.end))
+    t_t = max(t_g, t_track.end) + 0.15
+    t_track.move(t_t, take)
+    t_x = t_t + _uniform(rng, p.hold_s)
+    g_track.hold(t_x)
+    t_track.hold(t_x)
+    # The tool changes hands at t_x: its pose in the taker's hand from both hands' poses then.
+    at = np.array([t_x])
+    tool = _pose_mul(g_track.poses(at)[0], segments[-1].rel)
+    segments.append(
+        _BallSegment(t_x, "held", taker, _pose_mul(_pose_inv(t_track.poses(at)[0]), tool))
+    )
+    g_track.move(t_x + _uniform(rng, p.reach_s), g_track.arm.rest)
+    work = _target_pose(rng, taker, p.target_x, p.target_y, p.target_z, 25.0, p.pitch_deg, 0.0)
+    now = t_x + _uniform(rng, p.reach_s)
+    t_track.move(now, work)
+    turn = _uniform(rng, p.use_turn_deg) * rng.choice([-1.0, 1.0])
+    now += _uniform(rng, p.use_s)
+    t_track.move(now, _twist(work, turn))
+    now += _uniform(rng, p.use_s)
+    t_track.move(now, work)
+    return max(now, g_track.end) + 0.2
 
 
 def _build_drill(p: DrillParams, rng: np.random.Generator, t: F64) -> tuple[F64, tuple[str, ...]]:

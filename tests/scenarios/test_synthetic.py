@@ -142,6 +142,60 @@ def test_drill_spins_about_its_own_axis_in_the_hand() -> None:
     np.testing.assert_allclose(offset, np.tile([0.0, -0.02, -0.08], (len(offset), 1)), atol=1e-12)
 
 
+def _in_hand_frame(hand: np.ndarray, obj: np.ndarray) -> np.ndarray:
+    """The object's pose ``(N, 7)`` in the hand's frame."""
+    q = quat_conj(hand[:, 3:])
+    return np.concatenate([quat_rotate(q, obj[:, :3] - hand[:, :3]), quat_mul(q, obj[:, 3:])], 1)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_tool_is_handed_over_slowly_and_always_held(seed: int) -> None:
+    """hand-over: the tool never jumps, is rigidly held by one hand at every sample (its
+    pose in that hand's frame constant while held) and changes hands several times."""
+    tr = synthetic_motion("hand-over", seed, duration_s=40.0)
+    assert tr.streams == ("head", "left", "right", "object:tool")
+    tool = tr.poses[:, 3]
+    step = np.linalg.norm(np.diff(tool[:, :3], axis=0), axis=-1)
+    assert step.max() < 1.5 / NATIVE_RATE  # slow: under 1.5 m/s
+    rel = {side: _in_hand_frame(tr.poses[:, j], tool) for side, j in (("left", 1), ("right", 2))}
+    # Rigidly held: the pose in the holding hand's frame does not change from one sample
+    # to the next (sign-insensitive for the quaternion).
+    still = {}
+    for side, r in rel.items():
+        dq = np.abs(np.einsum("ni,ni->n", r[1:, 3:], r[:-1, 3:]))
+        still[side] = (np.linalg.norm(np.diff(r[:, :3], axis=0), axis=-1) < 1e-9) & (dq > 1 - 1e-12)
+    held_by = np.where(still["right"], 1, np.where(still["left"], -1, 0))
+    assert np.all(still["left"] | still["right"])
+    changes = np.count_nonzero(np.diff(held_by[held_by != 0]) != 0)
+    assert changes >= 4
+
+
+def test_drill_toss_throws_a_drill_ballistically() -> None:
+    """drill-toss is throw-catch with object:drill: continuous, and in flight it falls at g."""
+    tr = synthetic_motion("drill-toss", 0, duration_s=30.0)
+    assert tr.streams[-1] == "object:drill"
+    drill = tr.poses[:, 3, :3]
+    assert np.linalg.norm(np.diff(drill, axis=0), axis=-1).max() < 6.0 / NATIVE_RATE
+    to_hand = np.minimum(
+        np.linalg.norm(drill - tr.poses[:, 1, :3], axis=-1),
+        np.linalg.norm(drill - tr.poses[:, 2, :3], axis=-1),
+    )
+    far = to_hand > 0.3
+    inner = far[:-2] & far[1:-1] & far[2:]
+    acc = (drill[2:] - 2 * drill[1:-1] + drill[:-2]) * NATIVE_RATE**2
+    assert inner.sum() > 20
+    np.testing.assert_allclose(acc[inner], np.tile([0.0, -9.81, 0.0], (inner.sum(), 1)), atol=1e-6)
+
+
+def test_a_string_parameter_must_be_a_string() -> None:
+    """thing names the tossed object; a number there is refused with a clear error."""
+    assert synthetic_motion("throw-catch", 0, duration_s=2, params={"thing": "cup"}).streams[
+        -1
+    ] == ("object:cup")
+    with pytest.raises(TraceError, match="expected a string"):
+        synthetic_motion("throw-catch", 0, duration_s=2, params={"thing": 3})
+
+
 def test_reaching_hands_stay_within_arm_length() -> None:
     """Hands are two-link arms: never further than 0.6 m from their shoulder."""
     tr = synthetic_motion("reach-grasp", 2, duration_s=30.0)
