@@ -3,7 +3,10 @@
 For each send rate, keyframes are the latest native sample at each send time
 ``t0 + k/rate``; every stream is reconstructed at the trace's native sample
 times with each interpolator under one-interval playout, and scored with the
-QoE definitions of :mod:`scenarios.qoe`.
+QoE definitions of :mod:`scenarios.qoe`. Velocity methods get the keyframe
+velocities Table 1 gives them (:data:`scenarios.velocity_sources.DEFAULT_VELOCITY_SOURCE`:
+causal, what a live sender has; float16 as the wire carries them), so
+``compare`` and ``table1`` give the same figures for the same trace and rate.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ from pathlib import Path
 from interp import info
 from scenarios.qoe import evaluate_group, ideal_delay, ideal_log, summarize
 from scenarios.traces import Trace, load_trace
+from scenarios.velocity_sources import DEFAULT_VELOCITY_SOURCE, source_velocities
 
 __all__ = ["Comparison", "compare_trace", "run_compare"]
 
@@ -21,14 +25,22 @@ __all__ = ["Comparison", "compare_trace", "run_compare"]
 Comparison = dict[float, dict[str, dict[str, dict[str, float]]]]
 
 
-def compare_trace(trace: Trace, rates: Sequence[float], methods: Sequence[str]) -> Comparison:
+def compare_trace(
+    trace: Trace,
+    rates: Sequence[float],
+    methods: Sequence[str],
+    velocity_source: str = DEFAULT_VELOCITY_SOURCE,
+) -> Comparison:
     """QoE of each method at each rate on one trace, ideal network.
 
     Each method gets one-interval playout plus its own look-ahead (a window
     method waits one interval more for the keyframe after the bracket).
+    Velocity methods get keyframe velocities from ``velocity_source``
+    (:func:`~scenarios.velocity_sources.source_velocities`).
     """
     out: Comparison = {}
-    vel = trace.velocities() if any(info(m).needs_velocity for m in methods) else None
+    needs = any(info(m).needs_velocity for m in methods)
+    vel = source_velocities(trace, velocity_source) if needs else None
     for rate in rates:
         # Ideal link: a keyframe arrives the instant it is sent.
         log = ideal_log(trace.times, trace.poses, rate, vel)

@@ -21,13 +21,21 @@ from scenarios.network import VELOCITY_WIRE_DTYPE
 from scenarios.qoe import evaluate_group, ideal_delay, ideal_log, summarize
 from scenarios.traces import Trace
 
-__all__ = ["compare_velocity_sources", "source_velocities"]
+__all__ = ["DEFAULT_VELOCITY_SOURCE", "compare_velocity_sources", "source_velocities"]
 
 F64 = np.ndarray
 
+#: The keyframe velocities every offline experiment gives a velocity method
+#: (``compare``, ``table1``): ``causal`` (past native samples only), what a live
+#: sender (a tracker runtime, the bots) has at capture time.
+DEFAULT_VELOCITY_SOURCE = "causal"
 
-def source_velocities(trace: Trace, source: str) -> F64:
-    """Velocities ``(N, S, 6)`` of ``trace`` from ``source``, rounded to float16."""
+
+def source_velocities(trace: Trace, source: str = DEFAULT_VELOCITY_SOURCE) -> F64:
+    """Velocities ``(N, S, 6)`` of ``trace`` from ``source``, rounded to float16 as on the wire.
+
+    ``source``: ``central``, ``causal`` or ``causal:SAMPLES,DEGREE``.
+    """
     if source.startswith("causal:"):
         try:
             samples, degree = (int(x) for x in source.split(":", 1)[1].split(","))
