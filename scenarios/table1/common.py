@@ -13,13 +13,13 @@ from numpy.typing import NDArray
 import interp
 from scenarios.network import (
     VELOCITY_BYTES_PER_POSE,
-    VELOCITY_WIRE_DTYPE,
     Tier,
     affordable_rate,
     wire_bytes,
 )
 from scenarios.synthetic import suite_traces, synthetic_motion
 from scenarios.traces import Trace, TraceError, find_traces, load_trace
+from scenarios.velocity_sources import DEFAULT_VELOCITY_SOURCE, source_velocities
 
 F64 = NDArray[np.float64]
 #: ``progress(stage, done, total)``.
@@ -30,7 +30,18 @@ Stats = dict[str, dict[str, dict[str, float]]]
 DEFAULT_METHODS = ("soa", "dq-slerp", "motor-lerp")
 #: The headline QoE number: p95 tip error of the hands (mm).
 HEADLINE = ("hands", "tip_p95_mm")
-CURVE_KEYS = ("pos_p50_mm", "pos_p95_mm", "rot_p50_deg", "rot_p95_deg", "tip_p50_mm", "tip_p95_mm")
+#: The smoothness number beside it: p95 velocity error of the hands' tip (m/s).
+SMOOTHNESS = ("hands", "vel_p95_mps")
+CURVE_KEYS = (
+    "pos_p50_mm",
+    "pos_p95_mm",
+    "rot_p50_deg",
+    "rot_p95_deg",
+    "tip_p50_mm",
+    "tip_p95_mm",
+    "vel_p50_mps",
+    "vel_p95_mps",
+)
 
 #: The paper's Table 1 (rates in updates/s; the GA methods share one row).
 PAPER: dict[str, Any] = {
@@ -54,7 +65,7 @@ DEFAULT_ROOM_POSES = 48
 #: Where velocity methods' keyframe velocities come from (one of
 #: ``scenarios.traces.VELOCITY_SOURCES``): ``causal`` (past native samples only,
 #: what the live bots send) or ``central`` (needs the next native sample).
-VELOCITY_SOURCE = "causal"
+VELOCITY_SOURCE = DEFAULT_VELOCITY_SOURCE
 
 #: Error-versus-latency view: playout delay D = (f + look-ahead) / rate + lag for
 #: these f (lag: one native frame on the ideal network, p95 keyframe age on a link).
@@ -163,9 +174,7 @@ def keyframe_velocities(trace: Trace, source: str | None = None) -> F64:
 
     ``source``: ``causal`` or ``central`` (default :data:`VELOCITY_SOURCE`).
     """
-    v = trace.velocities_from(VELOCITY_SOURCE if source is None else source)
-    lim = float(np.finfo(VELOCITY_WIRE_DTYPE).max)
-    out: F64 = np.clip(v, -lim, lim).astype(VELOCITY_WIRE_DTYPE).astype(np.float64)
+    out: F64 = source_velocities(trace, VELOCITY_SOURCE if source is None else source)
     return out
 
 

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from scenarios.network import VELOCITY_BYTES_PER_POSE
+from scenarios.table1.codec_bytes import codec_markdown
 from scenarios.table1.common import (
     PAPER,
     VARIANTS,
@@ -24,6 +25,7 @@ from scenarios.table1.common import (
     describe_rates,
     snapped_range,
 )
+from scenarios.table1.smoothness import gain_split_markdown, smoothness_markdown
 from scenarios.traces import CAUSAL_DEGREE, CAUSAL_SAMPLES, Trace
 
 # ---------------------------------------------------------------- JSON
@@ -200,6 +202,9 @@ def markdown(report: Mapping[str, Any], trs: Sequence[Trace], plots: Sequence[st
         *running_time_markdown(report),
         *link_markdown(report),
         *curves_markdown(report),
+        *smoothness_markdown(report),
+        *gain_split_markdown(report),
+        *codec_markdown(report),
         *by_class_markdown(report),
         *per_trace_markdown(report),
     ]
@@ -221,6 +226,13 @@ def intro_markdown(report: Mapping[str, Any], trs: Sequence[Trace]) -> list[str]
     lines: list[str] = ["# Table 1: equal-QoE update rates per network tier", ""]
     if cfg.get("command"):
         lines += ["Command:", "", f"    {cfg['command']}", ""]
+    if cfg.get("provenance"):
+        lines += [
+            "Provenance: "
+            + "; ".join(f"{k.replace('_', ' ')} `{v}`" for k, v in cfg["provenance"].items())
+            + ".",
+            "",
+        ]
     total_s = sum(tr.duration for tr in trs)
     lines += [
         f"Traces ({len(trs)}, {total_s:.0f} s in all): "

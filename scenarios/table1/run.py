@@ -16,6 +16,7 @@ from typing import Any
 
 import interp
 from scenarios.network import Tier, Transport, load_tiers, wire_bytes
+from scenarios.table1.codec_bytes import CODECS, SizeCache, codec_report
 from scenarios.table1.common import (
     CORRECTION_TIME_S,
     DEFAULT_METHODS,
@@ -29,7 +30,13 @@ from scenarios.table1.common import (
 )
 from scenarios.table1.frontier import _Network, frontier_networks, frontier_report
 from scenarios.table1.plots import frontier_plot, write_plots
-from scenarios.table1.report import assemble_report, run_config, write_json, write_markdown
+from scenarios.table1.report import (
+    assemble_report,
+    jsonable,
+    run_config,
+    write_json,
+    write_markdown,
+)
 from scenarios.table1.runtime import bench_tier_rows
 from scenarios.table1.sweep import (
     _curves_json,
@@ -62,11 +69,13 @@ def run_table1(
     bench_repeats: int = 11,
     plots: bool = True,
     command: str | None = None,
+    provenance: Mapping[str, Any] | None = None,
     frontier: bool = True,
     frontier_rates: Iterable[int] | None = None,
     frontier_fractions: Sequence[float] = FRONTIER_FRACTIONS,
     extrapolate_horizon: float = EXTRAPOLATE_HORIZON_S,
     correction_time: float = CORRECTION_TIME_S,
+    codecs: Sequence[str] = CODECS,
 ) -> dict[str, Any]:
     """Measure Table 1 on ``traces``; return the report (and write it if ``out_dir``).
 
@@ -78,12 +87,11 @@ def run_table1(
     ``room_poses``: poses per snapshot for wire sizes (the bandwidth cap and the
     receiver running time). ``transport``: the link model's loss behaviour.
     ``link``/``bench``/``plots`` switch off parts (c), the running time, and
-    the PNGs. Writes ``table1.md``, ``table1.json`` and PNGs to ``out_dir``
-    when given. The returned dict is what ``table1.json`` holds.
-
-    Every method gets its own playout delay (one interval plus its look-ahead),
-    velocity methods get float16 keyframe velocities and the bigger wire frame
-    (:func:`method_wire_bytes`), and savings are given in updates/s and bytes/s.
+    the PNGs; ``provenance`` (revision, traces split) goes into ``config``.
+    Writes ``table1.md``, ``table1.json`` (the returned dict) and PNGs to
+    ``out_dir`` when given. Every method gets its own playout delay (one
+    interval plus its look-ahead), velocity methods float16 keyframe velocities
+    and the bigger wire frame; savings in updates/s and bytes/s.
 
     ``frontier`` adds the error-versus-latency view (key ``"frontier"``): hands
     only, every method at ``frontier_rates`` (default: :data:`FRONTIER_RATES`
@@ -91,7 +99,9 @@ def run_table1(
     ``(f + look-ahead)/rate + lag`` for ``f`` in ``frontier_fractions``, each
     with the :data:`VARIANTS` (hold; dead reckoning up to
     ``extrapolate_horizon`` s, jump or blended over ``correction_time`` s), on
-    the ideal network and (with ``link``) through every tier's link.
+    the ideal network and (with ``link``) through every tier's link. With
+    ``"compact"`` in ``codecs``, key ``"codecs"`` prices each equal-QoE rate with
+    both codecs (:mod:`scenarios.table1.codec_bytes`).
     """
     clock = _Clock()
     opts = _Options(
@@ -104,12 +114,17 @@ def run_table1(
         bench_repeats=bench_repeats,
         plots=plots,
         command=command,
+        provenance=provenance,
         frontier=frontier,
         frontier_rates=frontier_rates,
         frontier_fractions=frontier_fractions,
         extrapolate_horizon=extrapolate_horizon,
         correction_time=correction_time,
+        codecs=tuple(codecs),
     )
+    unknown = sorted(set(codecs) - set(CODECS))
+    if unknown:
+        raise ValueError(f"unknown codec(s) {unknown}; known: {', '.join(CODECS)}")
     p = _plan(traces, rates, methods, tiers, room_poses)
     report, ideal, link_sweeps = _measure(p, opts, clock, progress)
     if out_dir is not None:
@@ -130,11 +145,13 @@ class _Options:
     bench_repeats: int
     plots: bool
     command: str | None
+    provenance: Mapping[str, Any] | None
     frontier: bool
     frontier_rates: Iterable[int] | None
     frontier_fractions: Sequence[float]
     extrapolate_horizon: float
     correction_time: float
+    codecs: tuple[str, ...]
 
 
 def _measure(
@@ -178,9 +195,28 @@ def _measure(
         p.trs, ideal, p.meths, p.all_rates, p.rate_list, p.tiers, p.soa_rates
     )
     curves = _curves_json(ideal.pooled, p.meths)
+    codec_part = None
+    if "compact" in o.codecs:
+        codec_part = _codec_part(p, o, tier_rows, frontier_part)
+        clock.lap("codecs")
     config = _config(p, o, clock)
     report = assemble_report(curves, tier_rows, link_part, per_trace, frontier_part, config)
+    if codec_part is not None:
+        report["codecs"] = jsonable(codec_part)
     return report, ideal, link_sweeps
+
+
+def _codec_part(
+    p: _Plan, o: _Options, tier_rows: Sequence[dict[str, Any]], frontier: dict[str, Any] | None
+) -> dict[str, Any]:
+    """Bytes/s at equal QoE with each codec (:func:`codec_report`)."""
+    velocities = p.wire.velocities if any(v is not None for v in p.wire.velocities) else None
+    cache = SizeCache(
+        p.trs, None if velocities is None else [v for v in velocities if v is not None],
+        o.room_poses,
+    )  # fmt: skip
+    needs = {m: interp.info(m).needs_velocity for m in p.meths}
+    return codec_report(cache, tier_rows, frontier, dict(p.wire.frame_bytes), needs)
 
 
 def _frontier_nets(p: _Plan, o: _Options) -> list[_Network]:
@@ -236,7 +272,7 @@ def _frontier(
 
 def _config(p: _Plan, o: _Options, clock: _Clock) -> dict[str, Any]:
     """The report's ``config`` key (``elapsed_s`` measured now)."""
-    return run_config(
+    cfg = run_config(
         p.trs,
         p.rate_list,
         p.all_rates,
@@ -252,6 +288,9 @@ def _config(p: _Plan, o: _Options, clock: _Clock) -> dict[str, Any]:
         elapsed=clock.elapsed(),
         timings=clock.timings,
     )
+    if o.provenance is not None:
+        cfg["provenance"] = dict(o.provenance)
+    return cfg
 
 
 @dataclass(frozen=True)
