@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo test lint bench clean
+.PHONY: demo test lint bench results clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -30,6 +30,12 @@ lint: $(VENV)/.installed-test
 
 bench: $(VENV)/.installed-test
 	$(BIN)/posecast bench interp
+
+# Regenerate every published result (docs/results/, the tables of docs/results.md and
+# docs/results-recording.md) with the current code; prints which outputs changed.
+# Needs the full trace sets (POSECAST_TRACES); 12-20 minutes. Not part of `test`.
+results: $(VENV)/.installed-run
+	nice -n 5 $(BIN)/python -m posecast.results
 
 clean:
 	rm -rf $(VENV) build *.egg-info
