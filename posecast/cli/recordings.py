@@ -108,15 +108,7 @@ def replay(
 ) -> None:
     """Replay a recording into a live server, or reconstruct it offline with QoE."""
     _recording(file)
-    if offline == (url is not None):
-        raise _fail("give either --url ws://HOST:PORT (live) or --offline")
-    window = start != 0.0 or duration is not None or users is not None or loop
-    if offline and window:
-        raise _fail("--start, --duration, --users and --loop apply to a live replay (--url)")
-    if start < 0 or (duration is not None and duration <= 0):
-        raise _fail("--start must be 0 or more and --duration positive")
-    if codec not in ("compact", "raw"):
-        raise _fail(f"--codec must be compact or raw, not {codec!r}")
+    _check_replay_args(offline, url, (start, duration, users, loop), codec)
     chosen = None if users is None else [u for u in users.split(",") if u.strip()]
     if offline:
         from recorder.replay import replay_offline
@@ -136,16 +128,9 @@ def replay(
         if out is not None:
             console.print(f"rendered poses written to {out}")
     else:
-        factor: float | str
-        try:
-            factor = "max" if speed == "max" else float(speed)
-        except ValueError:
-            raise _fail("--speed takes a number or max") from None
-        if factor != "max" and float(factor) <= 0:
-            raise _fail("--speed must be positive")
         assert url is not None
         span = (start, duration, chosen)
-        report = _replay_passes(file, url, factor, room, token_, span, loop, codec)
+        report = _replay_passes(file, url, _speed(speed), room, token_, span, loop, codec)
         lat = report["lateness_ms"]
         console.print(
             f"replayed {report['users']} users, {report['updates_sent']} updates "
@@ -155,6 +140,35 @@ def replay(
     if json_out is not None:
         json_out.write_text(json.dumps(report, indent=2, default=str))
         console.print(f"wrote {json_out}")
+
+
+def _speed(text: str) -> float | str:
+    """--speed: a positive factor or ``max``."""
+    try:
+        factor = "max" if text == "max" else float(text)
+    except ValueError:
+        raise _fail("--speed takes a number or max") from None
+    if factor != "max" and float(factor) <= 0:
+        raise _fail("--speed must be positive")
+    return factor
+
+
+def _check_replay_args(
+    offline: bool,
+    url: str | None,
+    window: tuple[float, float | None, str | None, bool],
+    codec: str,
+) -> None:
+    """Refuse, in one line, replay options that cannot go together (exit 2)."""
+    start, duration, users, loop = window
+    if offline == (url is not None):
+        raise _fail("give either --url ws://HOST:PORT (live) or --offline")
+    if offline and (start != 0.0 or duration is not None or users is not None or loop):
+        raise _fail("--start, --duration, --users and --loop apply to a live replay (--url)")
+    if start < 0 or (duration is not None and duration <= 0):
+        raise _fail("--start must be 0 or more and --duration positive")
+    if codec not in ("compact", "raw"):
+        raise _fail(f"--codec must be compact or raw, not {codec!r}")
 
 
 def _replay_passes(
