@@ -63,6 +63,7 @@ from protocol import (
 )
 from recorder.export import read_session
 from recorder.reader import StreamData, UserInfo
+from recorder.replay import user_matches
 from scenarios.motion import MotionSpec
 from scenarios.receiver import ClockEstimator
 from scenarios.traces import TraceError
@@ -211,8 +212,7 @@ def plan_replay(path: str | os.PathLike[str], room: str | None = None) -> Replay
 
 def _user_matches(up: UserPlan, wanted: str) -> bool:
     """``wanted`` names the user by id (``3`` or ``u3``) or by its recorded name."""
-    w = wanted.strip()
-    return w in (str(up.user), f"u{up.user}", up.name)
+    return user_matches(up.user, up.name, wanted)
 
 
 def select_plan(

@@ -32,7 +32,7 @@ import os
 import tempfile
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -302,6 +302,56 @@ def _write_outputs(
     return files
 
 
+def user_matches(user: int, name: str | None, wanted: str) -> bool:
+    """``wanted`` names the user by id (``3`` or ``u3``) or by its recorded name."""
+    w = wanted.strip()
+    return w in (str(user), f"u{user}", name)
+
+
+def select_streams(
+    streams: Sequence[StreamData],
+    start: float = 0.0,
+    duration: float | None = None,
+    users: Sequence[str] | None = None,
+) -> list[StreamData]:
+    """The part of a recording a player was asked for (``replay --start --duration
+    --users``): keyframes arriving in ``[first + start, first + start + duration]``
+    (seconds from the recording's first arrival) of the users named (id, ``u``-id
+    or recorded name). ValueError for a name that matches nobody or an empty window.
+    """
+    if start < 0 or (duration is not None and not duration > 0):
+        raise ValueError("--start must be 0 or more and --duration positive")
+    if users is not None:
+        for w in users:
+            if not any(user_matches(s.user, s.user_name, w) for s in streams):
+                known = ", ".join(sorted({f"u{s.user} ({s.user_name})" for s in streams}))
+                raise ValueError(f"no recorded user {w!r}; the recording has {known}")
+    arrivals = [float(s.arrival.min()) for s in streams if len(s)]
+    if not arrivals:
+        raise ValueError("no pose updates in the recording")
+    lo = min(arrivals) + start
+    hi = math.inf if duration is None else lo + duration
+    kept = []
+    for s in streams:
+        if users is not None and not any(user_matches(s.user, s.user_name, w) for w in users):
+            continue
+        keep = (s.arrival >= lo) & (s.arrival <= hi)
+        if keep.any():
+            vel = None if s.velocities is None else s.velocities[keep]
+            kept.append(
+                replace(
+                    s,
+                    times=s.times[keep],
+                    arrival=s.arrival[keep],
+                    poses=s.poses[keep],
+                    velocities=vel,
+                )
+            )
+    if not kept:
+        raise ValueError("no pose updates in the chosen window and users")
+    return kept
+
+
 def replay_offline(
     path: str | os.PathLike[str],
     interp_names: Sequence[str],
@@ -310,6 +360,9 @@ def replay_offline(
     render_rate: float = DEFAULT_RENDER_RATE,
     *,
     formats: Sequence[str] = ("csv", "npz"),
+    start: float = 0.0,
+    duration: float | None = None,
+    users: Sequence[str] | None = None,
 ) -> dict[str, Any]:
     """Reconstruct every recorded stream at ``render_rate`` from keyframes sampled at ``rate``.
 
@@ -324,12 +377,16 @@ def replay_offline(
     ``speedup`` is the session duration over the total time taken. Velocity
     methods use the velocities the recorded updates carried (the protocol's
     velocity variant); a recording without them refuses velocity methods.
+    ``start``, ``duration`` and ``users`` reconstruct only that window and those
+    users (:func:`select_streams`).
     """
     methods, velocity_methods, fmts = _check_replay_args(
         interp_names, rate, render_rate, out_dir, formats
     )
     t0 = time.perf_counter()
     streams = sorted_streams(path)
+    if start or duration is not None or users is not None:
+        streams = select_streams(streams, start, duration, users)
     t1 = time.perf_counter()
     groups = _groups(streams)
     _require_velocities(groups, velocity_methods)

@@ -85,15 +85,13 @@ def replay(
         Path | None, typer.Option(help="Offline: write rendered poses (CSV, NPZ) here.")
     ] = None,
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the report.")] = None,
-    start: Annotated[
-        float, typer.Option(help="Live: start this many seconds into the recording.")
-    ] = 0.0,
+    start: Annotated[float, typer.Option(help="Start this many seconds into the recording.")] = 0.0,
     duration: Annotated[
-        float | None, typer.Option(help="Live: replay this many seconds (default: to the end).")
+        float | None, typer.Option(help="Replay this many seconds (default: to the end).")
     ] = None,
     users: Annotated[
         str | None,
-        typer.Option(help="Live: replay only these users (ids, u-ids or names: u1,u2)."),
+        typer.Option(help="Replay only these users (ids, u-ids or names: u1,u2)."),
     ] = None,
     loop: Annotated[
         bool, typer.Option("--loop", help="Live: replay again and again until Ctrl-C.")
@@ -118,7 +116,9 @@ def replay(
             raise _fail("--rate must be positive")
         try:
             with console.status(f"reconstructing {file.name} at {rate:g} Hz ..."):
-                report = replay_offline(file, methods, rate, out)
+                report = replay_offline(
+                    file, methods, rate, out, start=start, duration=duration, users=chosen
+                )
         except (OSError, ValueError) as exc:
             raise _fail(f"{file}: {exc}") from None
         print_comparison(
@@ -163,8 +163,8 @@ def _check_replay_args(
     start, duration, users, loop = window
     if offline == (url is not None):
         raise _fail("give either --url ws://HOST:PORT (live) or --offline")
-    if offline and (start != 0.0 or duration is not None or users is not None or loop):
-        raise _fail("--start, --duration, --users and --loop apply to a live replay (--url)")
+    if offline and loop:
+        raise _fail("--loop applies to a live replay (--url)")
     if start < 0 or (duration is not None and duration <= 0):
         raise _fail("--start must be 0 or more and --duration positive")
     if codec not in ("compact", "raw"):

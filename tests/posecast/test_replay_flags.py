@@ -19,6 +19,7 @@ from client.connection import ClientConnection
 from client.replay import plan_replay, select_plan
 from posecast.cli import app
 from protocol import Join, Snapshot
+from recorder.export import sorted_streams
 from recorder.replay import synthesize_recording
 
 runner = CliRunner()
@@ -57,10 +58,25 @@ def test_select_plan_refuses_clearly(recording: Path) -> None:
         select_plan(plan, duration=0.0)
 
 
-def test_offline_replay_refuses_the_live_flags(recording: Path) -> None:
-    """The player flags need --url; offline says so in one line (exit 2)."""
-    res = runner.invoke(app, ["replay", str(recording), "--offline", "--start", "1"])
-    assert res.exit_code == 2 and "apply to a live replay" in res.output
+def test_offline_replay_takes_the_window_and_refuses_loop(recording: Path, tmp_path: Path) -> None:
+    """Offline, --start/--duration/--users reconstruct that window of those users only;
+    --loop needs --url (one line, exit 2)."""
+    res = runner.invoke(app, ["replay", str(recording), "--offline", "--loop"])
+    assert res.exit_code == 2 and "--loop applies to a live replay" in res.output
+    full, part = tmp_path / "full.json", tmp_path / "part.json"
+    args = ["replay", str(recording), "--offline", "--rate", "10", "--json"]
+    assert runner.invoke(app, [*args, str(full)]).exit_code == 0
+    first = sorted_streams(recording)[0]
+    res = runner.invoke(
+        app, [*args, str(part), "--start", "1", "--duration", "1", "--users", f"u{first.user}"]
+    )
+    assert res.exit_code == 0, res.output
+    whole, window = json.loads(full.read_text()), json.loads(part.read_text())
+    assert window["streams"] == len([s for s in sorted_streams(recording) if s.user == first.user])
+    assert window["streams"] < whole["streams"]
+    assert 0.5 < window["session_s"] <= 1.1 < whole["session_s"]
+    res = runner.invoke(app, [*args, str(part), "--users", "nobody"])
+    assert res.exit_code != 0 and "no recorded user 'nobody'" in res.output
 
 
 async def _watch(url: str, room: str, seen: dict[int, list[float]]) -> None:
