@@ -6,6 +6,7 @@ error measures.
 """
 
 from interp.cubic import VELOCITY_SIZE, motor_cubic, motor_hermite, screw_extrapolate
+from interp.kernels import RowKernel
 from interp.methods import dq_slerp, motor_lerp, soa
 from interp.metrics import TIP_OFFSET_M, position_error_mm, rotation_error_deg, tip_error_mm
 from interp.pose import (
@@ -50,6 +51,7 @@ __all__ = [
     "Interpolator",
     "InterpolatorInfo",
     "Kind",
+    "RowKernel",
     "TrackResult",
     "as_pose",
     "bracket",

@@ -21,11 +21,20 @@ rotations are as exact as large ones, without branches.
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
+from interp.kernels import (
+    CHUNK,
+    RowKernel,
+    dq_slerp_rows,
+    hemisphere_sign,
+    motor_lerp_rows,
+    scratch,
+    soa_rows,
+)
 from interp.pose import F64, UNIT_TOLERANCE
 
-__all__ = ["dq_slerp", "motor_lerp", "prepare", "soa"]
+__all__ = ["dq_slerp", "hemisphere_sign", "motor_lerp", "prepare", "soa"]
 
 
 def _check_pose_array(x: ArrayLike, name: str) -> F64:
@@ -98,56 +107,6 @@ def prepare(a: ArrayLike, b: ArrayLike, s: ArrayLike) -> tuple[F64, F64, F64, tu
     return A, B, s_b.reshape(-1), batch
 
 
-def _finish(out: F64, A: F64, B: F64, S: F64, batch: tuple[int, ...]) -> F64:
-    """Rows back to ``(..., 7)``; s = 0 and s = 1 give the keyframes bit for bit."""
-    at0 = S == 0.0
-    if at0.any():
-        out[:, at0] = A[:, at0]
-    at1 = S == 1.0
-    if at1.any():
-        out[:, at1] = B[:, at1]
-    return np.ascontiguousarray(out.T).reshape((*batch, 7))
-
-
-def _safe_div(num: F64, den: F64, limit: F64) -> F64:
-    """``num / den``, or ``limit`` where ``den == 0`` (a zero angle's limit)."""
-    out = np.array(limit, dtype=np.float64, copy=True)
-    np.divide(num, den, out=out, where=den != 0.0)
-    return out
-
-
-def hemisphere_sign(q0: F64, q1: F64, dot: F64) -> F64:
-    """+1 or -1 per row: the sign that puts ``q1`` in ``q0``'s hemisphere.
-
-    At an exact half turn (``q0.q1 == 0``) both ways round are equally short;
-    the sign of the zero would decide, so negating an input would flip the
-    path. There the relative rotation ``q0* q1`` (a pure vector) is chosen with
-    its largest component positive: a rule about rotations, not about signs.
-    """
-    sign: F64 = np.copysign(1.0, dot)
-    ties = dot == 0.0
-    if ties.any():
-        a, b = q0[:, ties], q1[:, ties]
-        # Vector part of q0* q1.
-        rel = np.stack(
-            [
-                a[0] * b[1] - a[1] * b[0] - a[2] * b[3] + a[3] * b[2],
-                a[0] * b[2] + a[1] * b[3] - a[2] * b[0] - a[3] * b[1],
-                a[0] * b[3] - a[1] * b[2] + a[2] * b[1] - a[3] * b[0],
-            ]
-        )
-        pick = np.take_along_axis(rel, np.argmax(np.abs(rel), axis=0)[None], axis=0)[0]
-        sign[ties] = np.where(pick < 0.0, -1.0, 1.0)
-    return sign
-
-
-def _align(q0: F64, q1: F64) -> tuple[F64, F64]:
-    """``q1`` rows moved into ``q0``'s hemisphere, and ``q0.q1 >= 0`` after it."""
-    dot = q0[0] * q1[0] + q0[1] * q1[1] + q0[2] * q1[2] + q0[3] * q1[3]
-    sign = hemisphere_sign(q0, q1, dot)
-    return q1 * sign, dot * sign
-
-
 # The helpers write rows into one preallocated array: np.stack of freshly
 # computed rows costs more than the arithmetic itself at these sizes.
 
@@ -191,43 +150,96 @@ def _rotate(q: F64, v: F64, inverse: bool = False) -> F64:
     return out
 
 
-def _sincos(x: F64) -> tuple[F64, F64]:
-    """sin and cos of angles in ``[0, pi/2]`` through ``t = tan(x/2)``.
+def _check_args(a: ArrayLike, b: ArrayLike, s: ArrayLike) -> tuple[F64, F64, F64, tuple[int, ...]]:
+    """``a``, ``b`` as ``(N, 7)``, ``s`` as ``(N,)`` (views where possible), and the
+    batch shape, checked.
 
-    This numpy's float64 sin and cos are scalar loops while tan is vectorised;
-    with ``t <= 1`` the half-angle forms are accurate to an ulp. Outside that
-    range (extrapolation) the plain functions are used.
+    Raises the errors :func:`prepare` raises; quaternion norms are checked per
+    chunk by :func:`_chunk_rows`.
     """
-    if x.size and (x.min() < 0.0 or x.max() > 0.5 * np.pi):
-        return np.sin(x), np.cos(x)
-    t = np.tan(0.5 * x)
-    t2 = t * t
-    inv = 1.0 / (1.0 + t2)
-    return 2.0 * t * inv, (1.0 - t2) * inv
+    a_arr = _check_pose_array(a, "a")
+    b_arr = _check_pose_array(b, "b")
+    if a_arr.shape != b_arr.shape:
+        try:
+            a_arr, b_arr = np.broadcast_arrays(a_arr, b_arr)
+        except ValueError:
+            raise ValueError(
+                f"expected `a` and `b` to have matching shapes (..., 7), "
+                f"got {a_arr.shape} and {b_arr.shape}"
+            ) from None
+    batch = a_arr.shape[:-1]
+    s_arr = np.asarray(s, dtype=np.float64)
+    if not np.all(np.isfinite(s_arr)):
+        raise ValueError("expected `s` to hold finite values")
+    try:
+        s_b = np.broadcast_to(s_arr, batch)
+    except ValueError:
+        raise ValueError(
+            f"expected `s` to be broadcastable to {batch}, got {s_arr.shape}"
+        ) from None
+    return a_arr.reshape(-1, 7), b_arr.reshape(-1, 7), s_b.reshape(-1), batch
+
+
+def _chunk_rows(rows: F64, poses: F64, name: str, n2: F64, t4: F64, off: NDArray[np.bool_]) -> None:
+    """Copy ``poses (M, 7)`` into ``rows (7, M)`` and check them; quaternions off
+    unit length by more than the tolerance are normalised, each on its own (so a
+    pose's result does not depend on the others in its batch or chunk).
+
+    ``n2``, ``t4``, ``off``: scratch rows.
+    """
+    np.copyto(rows, poses.T)
+    if not np.isfinite(rows.sum()) and not np.all(np.isfinite(rows)):
+        raise ValueError(f"expected `{name}` to hold finite values")
+    q = rows[3:]
+    np.multiply(q, q, out=t4)
+    np.add.reduce(t4, axis=0, out=n2)
+    lo, hi = float(n2.min()), float(n2.max())
+    # |q|^2 - 1 ~ 2 (|q| - 1): compare squared norms to twice the tolerance.
+    if abs(lo - 1.0) > 2.0 * UNIT_TOLERANCE or abs(hi - 1.0) > 2.0 * UNIT_TOLERANCE:
+        if not lo > 1e-24:
+            raise ValueError(f"expected `{name}` to hold non-zero quaternions")
+        np.greater(np.abs(n2 - 1.0), 2.0 * UNIT_TOLERANCE, out=off)
+        np.sqrt(n2, out=n2)
+        np.divide(q, n2, out=q, where=off)
+
+
+def _pair(kernel: RowKernel, a: ArrayLike, b: ArrayLike, s: ArrayLike) -> F64:
+    """Run a row kernel over ``a``, ``b``, ``s`` chunk by chunk into one ``(..., 7)`` result.
+
+    Each chunk of poses is copied component-major into this thread's scratch,
+    validated there and interpolated straight into the result's rows: besides
+    the result, a call allocates nothing that grows with the batch.
+    """
+    a2, b2, s1, batch = _check_args(a, b, s)
+    n = a2.shape[0]
+    res = np.empty((n, 7))
+    unit_s = n > 0 and float(np.min(s1)) >= 0.0 and float(np.max(s1)) <= 1.0
+    for i in range(0, n, CHUNK):
+        j = min(n, i + CHUNK)
+        work = scratch(j - i)
+        A, B = work[0][0:7], work[0][7:14]
+        # Rows 14.. of the scratch are the kernel's; borrow two before it runs.
+        scratch_rows = (work[0][14], work[0][15:19], work[1][0])
+        _chunk_rows(A, a2[i:j], "a", *scratch_rows)
+        _chunk_rows(B, b2[i:j], "b", *scratch_rows)
+        kernel(A, B, s1[i:j], res[i:j].T, work, unit_s)
+    return res.reshape((*batch, 7))
 
 
 def soa(a: ArrayLike, b: ArrayLike, s: ArrayLike) -> F64:
-    """Position LERP + shortest-path quaternion SLERP."""
-    A, B, S, batch = prepare(a, b, s)
-    q0 = A[3:]
-    q1, dot = _align(q0, B[3:])
-    # Angle between q0 and q1 from the half chords |q1 -+ q0| = 2 sin, 2 cos(w/2):
-    # accurate near 0, unlike acos(dot); and sin(w) = |d| |m| / 2 without trig.
-    d = q1 - q0
-    m = q1 + q0
-    nd = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2] + d[3] * d[3])
-    nm = np.sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2] + m[3] * m[3])
-    sin_w = 0.5 * nd * nm
-    sw = S * (2.0 * np.arctan2(nd, nm))
-    sin_sw, cos_sw = _sincos(sw)
-    # sin((1-s) w) = sin w cos sw - cos w sin sw; the limits at w = 0 are 1-s and s.
-    r = 1.0 - S
-    c0 = _safe_div(sin_w * cos_sw - dot * sin_sw, sin_w, r)
-    c1 = _safe_div(sin_sw, sin_w, S)
-    out = np.empty_like(A)
-    out[:3] = A[:3] + S * (B[:3] - A[:3])
-    out[3:] = c0 * q0 + c1 * q1
-    return _finish(out, A, B, S, batch)
+    """Position LERP + shortest-path quaternion SLERP.
+
+    With ``q1`` in ``q0``'s hemisphere and the angle ``w`` between them taken from
+    the half chords ``|q1 - q0| = 2 sin(w/2)`` and ``|q1 + q0| = 2 cos(w/2)``
+    (accurate near 0, unlike ``acos(q0.q1)``; ``sin w = |d| |m| / 2`` without
+    trig)::
+
+        t = t0 + s (t1 - t0)
+        q = [sin((1-s) w) q0 + sin(s w) q1] / sin w,   sin((1-s) w) = sin w cos sw - cos w sin sw
+
+    with the limits ``1 - s`` and ``s`` of the two weights at ``w = 0``.
+    """
+    return _pair(soa_rows, a, b, s)
 
 
 def dq_slerp(a: ArrayLike, b: ArrayLike, s: ArrayLike) -> F64:
@@ -237,33 +249,13 @@ def dq_slerp(a: ArrayLike, b: ArrayLike, s: ArrayLike) -> F64:
     ``t_d = R0^T (t1 - t0)``, the screw at fraction s rotates by ``2 s phi``
     about ``u`` and advances ``s (t_d.u) u`` along it, while the perpendicular
     part ``t_perp`` moves on the circle about the screw axis:
-    ``sin(s phi)/sin(phi) Rot(u, -(1-s) phi) t_perp``.
+    ``sin(s phi)/sin(phi) Rot(u, -(1-s) phi) t_perp``. In full::
+
+        k = sin(s phi) / sin(phi),  kr = sin((1-s) phi) / sin(phi),  kc = k cos((1-s) phi)
+        t_rel = kc t_d + (s - kc) (t_d.u) u - k kr (v x t_d),   v = sin(phi) u
+        t = t0 + R0 t_rel,   q = q0 (cos(s phi), k v)
     """
-    A, B, S, batch = prepare(a, b, s)
-    t0, q0 = A[:3], A[3:]
-    q1, cos_phi = _align(q0, B[3:])
-    qd = _qmul(q0 * np.array([[1.0], [-1.0], [-1.0], [-1.0]]), q1)
-    v = qd[1:]
-    sin_phi = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
-    sphi = S * np.arctan2(sin_phi, cos_phi)  # phi in [0, pi/2]: cos_phi >= 0
-    sin_s, cos_s = _sincos(sphi)
-    # (1-s) phi by angle addition: no further trig calls.
-    sin_r = sin_phi * cos_s - cos_phi * sin_s
-    cos_r = cos_phi * cos_s + sin_phi * sin_s
-    r = 1.0 - S
-    k = _safe_div(sin_s, sin_phi, S)  # sin(s phi) / sin(phi)
-    kr = _safe_div(sin_r, sin_phi, r)  # sin((1-s) phi) / sin(phi)
-    kc = k * cos_r
-    td = _rotate(q0, B[:3] - t0, inverse=True)
-    # Unit axis, or 0 without rotation (the along-axis term then has weight 0).
-    u = v / np.where(sin_phi > 0.0, sin_phi, 1.0)
-    along = (S - kc) * (td[0] * u[0] + td[1] * u[1] + td[2] * u[2])
-    t_rel = kc * td + along * u - (k * kr) * _cross(v, td)
-    q_rel = np.concatenate([cos_s[None], k * v])
-    out = np.empty_like(A)
-    out[:3] = t0 + _rotate(q0, t_rel)
-    out[3:] = _qmul(q0, q_rel)
-    return _finish(out, A, B, S, batch)
+    return _pair(dq_slerp_rows, a, b, s)
 
 
 def motor_lerp(a: ArrayLike, b: ArrayLike, s: ArrayLike) -> F64:
@@ -279,24 +271,4 @@ def motor_lerp(a: ArrayLike, b: ArrayLike, s: ArrayLike) -> F64:
     which this form never computes, so the result is the properly normalised
     motor's pose (dividing by ``sqrt(S)`` alone would leave a non-rigid motor).
     """
-    A, B, S, batch = prepare(a, b, s)
-    t0, q0, t1 = A[:3], A[3:], B[:3]
-    q1, dot = _align(q0, B[3:])
-    r = 1.0 - S
-    w0, x0, y0, z0 = q0
-    w1, x1, y1, z1 = q1
-    # Vector part of c = q0 q1*.
-    cv = np.stack(
-        [
-            -w0 * x1 + x0 * w1 - y0 * z1 + z0 * y1,
-            -w0 * y1 + x0 * z1 + y0 * w1 - z0 * x1,
-            -w0 * z1 - x0 * y1 + y0 * x1 + z0 * w1,
-        ]
-    )
-    rr, ss, rs = r * r, S * S, r * S
-    num = rr * t0 + ss * t1 + rs * (dot * (t0 + t1) + _cross(t0 - t1, cv))
-    out = np.empty_like(A)
-    out[:3] = num / (rr + ss + 2.0 * rs * dot)
-    qb = r * q0 + S * q1
-    out[3:] = qb / np.sqrt(qb[0] * qb[0] + qb[1] * qb[1] + qb[2] * qb[2] + qb[3] * qb[3])
-    return _finish(out, A, B, S, batch)
+    return _pair(motor_lerp_rows, a, b, s)

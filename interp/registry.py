@@ -49,6 +49,7 @@ from numpy.typing import ArrayLike
 
 from interp.cubic import motor_cubic, motor_hermite
 from interp.hermite import soa_hermite
+from interp.kernels import RowKernel, dq_slerp_rows, motor_lerp_rows, soa_rows
 from interp.methods import dq_slerp, motor_lerp, soa
 from interp.pose import F64
 from interp.quintic import QUINTIC_LOOKAHEAD, QUINTIC_LOOKBEHIND, motor_quintic
@@ -99,6 +100,9 @@ class InterpolatorInfo:
     needs_velocity: bool = False
     #: Keyframes used before the bracket (window methods; no delay cost).
     lookbehind: int = 0
+    #: A pair method's row kernel, if it has one (:mod:`interp.kernels`): the same
+    #: poses from validated component-major rows, with no allocation per call.
+    rows: RowKernel | None = None
 
     @property
     def window_size(self) -> int:
@@ -120,12 +124,13 @@ def register(
     replace: bool = False,
     lookbehind: int | None = None,
     lookahead: int | None = None,
+    rows: RowKernel | None = None,
 ) -> None:
     """Register ``func`` under ``name``; refuse to shadow a name unless ``replace``.
 
     ``lookbehind`` / ``lookahead``: neighbours a window method sees before / after
     the bracket (default 1 each for window methods; pair and velocity methods
-    take none).
+    take none). ``rows``: a pair method's row kernel (:class:`interp.kernels.RowKernel`).
     """
     if not name or not name.replace("-", "").replace("_", "").isalnum():
         raise ValueError(f"invalid interpolator name {name!r}")
@@ -143,6 +148,8 @@ def register(
             raise ValueError(f"{label} must be at most {MAX_NEIGHBOURS}, got {v}")
     if kind != "window" and (lb or la):
         raise ValueError(f"only window interpolators take neighbours, not {kind!r} ones")
+    if rows is not None and kind != "pair":
+        raise ValueError(f"only pair interpolators take a row kernel, not {kind!r} ones")
     _REGISTRY[name] = InterpolatorInfo(
         name,
         func,
@@ -152,6 +159,7 @@ def register(
         lookahead=la,
         needs_velocity=kind == "velocity",
         lookbehind=lb,
+        rows=rows,
     )
 
 
@@ -202,18 +210,21 @@ register(
     soa,
     description="position LERP + quaternion SLERP (what engines do today)",
     frame_invariant=False,
+    rows=soa_rows,
 )
 register(
     "dq-slerp",
     dq_slerp,
     description="unit dual quaternion screw interpolation (ScLERP)",
     frame_invariant=True,
+    rows=dq_slerp_rows,
 )
 register(
     "motor-lerp",
     motor_lerp,
     description="linear blend of 3D PGA motors, then Study-number normalisation",
     frame_invariant=True,
+    rows=motor_lerp_rows,
 )
 register(
     "motor-cubic",
