@@ -30,6 +30,7 @@ import itertools
 import numpy as np
 from numpy.typing import ArrayLike
 
+from interp.kernels import SCRATCH_ROWS, scratch
 from interp.methods import _rows, dq_slerp, hemisphere_sign
 from interp.pose import F64, UNIT_TOLERANCE
 
@@ -65,14 +66,20 @@ def _float_array(x: ArrayLike, name: str, tail: tuple[int, ...]) -> F64:
 
 
 def _window_rows(p: F64) -> F64:
-    """Windows ``(M, K, 7)`` as a new contiguous ``(7, K, M)`` array of component rows.
+    """Windows ``(M, K, 7)`` as a contiguous ``(7, K, M)`` array of component rows, in
+    this thread's scratch (:func:`interp.kernels.scratch`: valid until its next use).
 
     Each component of all keyframes is one contiguous ``(K, M)`` block, so the
     element-wise work runs over contiguous memory (about twice as fast as over
     strided rows here). Finite values and non-zero quaternions are checked, and
     the quaternions normalised in place when any is off unit length.
     """
-    rows = np.ascontiguousarray(p.transpose(2, 1, 0))  # fast on a chunk of queries
+    m, k = p.shape[0], p.shape[1]
+    if 7 * k <= SCRATCH_ROWS:  # no fresh (7, K, M) block per chunk: glibc would mmap it
+        rows = scratch(m)[0][: 7 * k].reshape(7, k, m)
+        np.copyto(rows, p.transpose(2, 1, 0))  # fast on a chunk of queries
+    else:
+        rows = np.ascontiguousarray(p.transpose(2, 1, 0))
     q = rows[3:]
     n2 = np.einsum("ckm,ckm->km", q, q)
     lo, hi = n2.min(), n2.max()
@@ -221,6 +228,27 @@ def motor_cubic(keys: ArrayLike, times: ArrayLike, t: ArrayLike) -> F64:
     if tt.shape[:-1] != batch:
         tt = np.broadcast_to(tt, (*batch, 4))
     q = np.broadcast_to(_checked(t, "t", ()), batch).reshape(-1).astype(np.float64)
+    flat, times2 = p.reshape(-1, 4, 7), tt.reshape(-1, 4)
+    m = q.shape[0]
+    if m <= _CUBIC_CHUNK:
+        return _cubic_rows(flat, times2, q).reshape((*batch, 7))
+    # Chunks of queries keep the temporaries to a few hundred kB that glibc keeps
+    # in its heap, so the throughput does not depend on how the process tuned its
+    # allocator (batch 10k: 6.9 M/s either way; unchunked 3.1 plain, 7.1 tuned).
+    out = np.empty((m, 7))
+    for c0 in range(0, m, _CUBIC_CHUNK):
+        c1 = min(m, c0 + _CUBIC_CHUNK)
+        out[c0:c1] = _cubic_rows(flat[c0:c1], times2[c0:c1], q[c0:c1])
+    return out.reshape((*batch, 7))
+
+
+#: Queries per chunk of :func:`motor_cubic` (measured: 1024 and 2048 pay more
+#: per-call overhead, an unchunked 10k batch depends on the allocator).
+_CUBIC_CHUNK = 4096
+
+
+def _cubic_rows(flat: F64, tt: F64, q: F64) -> F64:
+    """:func:`motor_cubic` on windows ``(M, 4, 7)``, times ``(M, 4)``, queries ``(M,)``."""
     T = _rows(tt)
     t0, t1, t2, t3 = T
     span = t2 - t1
@@ -247,12 +275,11 @@ def motor_cubic(keys: ArrayLike, times: ArrayLike, t: ArrayLike) -> F64:
     # M1: h00 - (chord of m1) - h11 (b or 1); M2: h01 + h10 (a or 1) + (chord of m2)
     coef[1] = h00 - g10 - coef[3] - g11
     coef[2] = h01 - coef[0] + g10 + g11
-    out = _window_curve(p.reshape(-1, 4, 7), coef, 1)
-    flat = p.reshape(-1, 4, 7)
+    out = _window_curve(flat, coef, 1)
     for mask, j in ((s == 0.0, 1), (s == 1.0, 2)):
         if mask.any():
             out[mask] = flat[mask, j]
-    return out.reshape((*batch, 7))
+    return out
 
 
 def _hermite_basis(s: F64) -> tuple[F64, F64, F64, F64]:

@@ -9,6 +9,8 @@ the origin's linear velocity becomes that of the new body point).
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -393,3 +395,18 @@ def test_sign_blindness_at_an_exact_half_turn(method: str) -> None:
         got = interp.motor_hermite(a, b_neg, zero, zero, 1.0, 0.5)
         want = interp.motor_hermite(a, b, zero, zero, 1.0, 0.5)
     assert_same_poses(got, want)
+
+
+def test_motor_cubic_chunks_do_not_change_results() -> None:
+    """A batch over several of motor_cubic's chunks equals its pieces, bit for bit."""
+    rng = np.random.default_rng(4)
+    n = 9001
+    q = _unit(rng.normal(size=(n, 4, 4)))
+    keys = np.concatenate([rng.uniform(-2.0, 2.0, (n, 4, 3)), q], axis=-1)
+    times = np.cumsum(rng.uniform(0.02, 0.2, (n, 4)), axis=-1)
+    times[::7, 0] = times[::7, 1]  # missing neighbours on some windows
+    t = times[:, 1] + rng.uniform(0.0, 1.0, n) * (times[:, 2] - times[:, 1])
+    whole = interp.motor_cubic(keys, times, t)
+    cuts = [0, 1, 2, 4095, 4096, 4097, 8200, n]
+    parts = [interp.motor_cubic(keys[i:j], times[i:j], t[i:j]) for i, j in itertools.pairwise(cuts)]
+    np.testing.assert_array_equal(whole, np.concatenate(parts))
