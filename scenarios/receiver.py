@@ -5,28 +5,36 @@ Shared by the live bots and the offline simulator; nothing here reads a clock
 
 - :class:`ClockEstimator`: NTP-style offset to the server clock from ping/pong
   samples, keeping the lowest round trip of a sliding window.
-- :class:`StreamBuffer`: one remote stream's keyframes ordered by capture time,
-  each with the velocity it came with (zeros without one); duplicates and
-  stale frames dropped; bounded (oldest evicted).
+- :class:`RoomBuffers`: every remote stream's keyframes in one preallocated
+  array per room (a row per stream), validated once on arrival.
+- :class:`StreamBuffer`: one remote stream's keyframes ordered by capture time
+  (a row of a room), each with the velocity it came with (zeros without one);
+  duplicates and stale frames dropped; bounded (oldest evicted).
 - :class:`PlayoutDelay`: delay D that starts at one interval plus the measured
   arrival jitter and follows the observed keyframe age (Mirror-style dynamic
   buffer: ``D = interval + p95(age)``), slewing smoothly, never jumping.
-- :func:`render_buffers`: every buffer at its playout time in one batched
-  interpolator call per method, pair, window and velocity methods alike.
+- :func:`render_buffers`: every buffer at its playout time: one vectorised
+  bracket of all streams, one gather, one batched interpolator call per
+  method (a pair method's allocation-free row kernel), window and velocity
+  methods alike.
 """
 
 from __future__ import annotations
 
 import bisect
+import math
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
+from interp import InterpolatorInfo, interpolate_brackets
 from interp import info as interp_info
-from interp import interpolate_brackets
+from interp.kernels import SHARES_PRODUCTS, share_rows
+from interp.pose import UNIT_TOLERANCE
 from scenarios.motion import MotionSpec
 from scenarios.qoe import ErrorSamples, KeyframeLog, evaluate_group, window_depth
 from scenarios.traces import Trace, TraceError
@@ -38,6 +46,7 @@ __all__ = [
     "PlayoutDelay",
     "ReceivedStream",
     "RenderFrame",
+    "RoomBuffers",
     "StreamBuffer",
     "render_buffers",
     "rendered_method",
@@ -78,6 +87,113 @@ class ClockEstimator:
         return min(self._samples)[0] if self._samples else float("nan")
 
 
+class RoomBuffers:
+    """The keyframes of every remote stream of a room, in preallocated arrays.
+
+    One row per stream (:meth:`stream` adds one and returns its
+    :class:`StreamBuffer`), ``capacity + 1`` slots per row, in capture-time order
+    and padded with ``+inf`` times: ``times (R, W)``, ``poses (7, R, W)``
+    (component major, float64, validated on arrival: finite, unit quaternions),
+    ``velocities (R, W, 6)``, ``counts (R,)`` and ``has_velocities (R,)``. The
+    arrays grow (doubling the rows) when streams are added; a render frame
+    (:func:`render_buffers`) brackets every row with one vectorised comparison
+    and gathers the bracketing keyframes with one ``take`` per side.
+    """
+
+    def __init__(self, capacity: int = DEFAULT_BUFFER_CAPACITY, streams: int = 16) -> None:
+        if capacity < 1:
+            raise ValueError(f"capacity must be at least 1, got {capacity}")
+        self.capacity = capacity
+        self.width = capacity + 1  # a spare slot: insert first, then evict
+        self.n = 0  # rows in use
+        self.times: F64
+        self.poses: F64
+        self.velocities: F64
+        self.counts: NDArray[np.intp]
+        self.has_velocities: NDArray[np.bool_]
+        #: Per row: its index, the flat index of its slot 0 and of its newest keyframe.
+        self.row_index: NDArray[np.intp]
+        self.base: NDArray[np.intp]
+        self.newest: NDArray[np.intp]
+        self._allocate(max(1, streams))
+
+    def _allocate(self, rows: int) -> None:
+        w, n = self.width, self.n
+        times = np.full((rows, w), np.inf)
+        poses = np.zeros((7, rows, w))
+        vels = np.zeros((rows, w, 6))
+        counts = np.zeros(rows, dtype=np.intp)
+        has_v = np.ones(rows, dtype=bool)
+        if n:
+            times[:n] = self.times[:n]
+            poses[:, :n] = self.poses[:, :n]
+            vels[:n] = self.velocities[:n]
+            counts[:n] = self.counts[:n]
+            has_v[:n] = self.has_velocities[:n]
+        self.times, self.poses, self.velocities = times, poses, vels
+        self.counts, self.has_velocities = counts, has_v
+        self.row_index = np.arange(rows, dtype=np.intp)
+        self.base = self.row_index * w
+        self.newest = self.base + counts - 1
+
+    def stream(self, capacity: int | None = None, *, has_velocities: bool = True) -> StreamBuffer:
+        """A new stream's buffer, backed by the next row."""
+        return StreamBuffer(capacity, has_velocities=has_velocities, room=self)
+
+    def _add_row(self, has_velocities: bool) -> int:
+        if self.n == self.counts.shape[0]:
+            self._allocate(2 * self.n)
+        row = self.n
+        self.n += 1
+        self.has_velocities[row] = has_velocities
+        return row
+
+    def __len__(self) -> int:
+        """Streams (rows) in use, empty ones included."""
+        return self.n
+
+    def _insert(
+        self, row: int, i: int, capture: float, pose: F64, velocity: NDArray[np.float64] | None
+    ) -> None:
+        """Put a keyframe at slot ``i`` of ``row``, shifting later ones right."""
+        c = int(self.counts[row])
+        times, poses, vels = self.times, self.poses, self.velocities
+        if i < c:
+            times[row, i + 1 : c + 1] = times[row, i:c]
+            poses[:, row, i + 1 : c + 1] = poses[:, row, i:c]
+            vels[row, i + 1 : c + 1] = vels[row, i:c]
+        times[row, i] = capture
+        poses[:, row, i] = pose
+        vels[row, i] = 0.0 if velocity is None else velocity
+        self.counts[row] = c + 1
+        self.newest[row] += 1
+
+    def _evict_oldest(self, row: int) -> None:
+        c = int(self.counts[row])
+        times, poses, vels = self.times, self.poses, self.velocities
+        times[row, : c - 1] = times[row, 1:c]
+        poses[:, row, : c - 1] = poses[:, row, 1:c]
+        vels[row, : c - 1] = vels[row, 1:c]
+        times[row, c - 1] = np.inf
+        self.counts[row] = c - 1
+        self.newest[row] -= 1
+
+
+def _checked_pose(pose: NDArray[np.float32]) -> F64 | None:
+    """A keyframe pose as float64, its quaternion renormalised when it is off unit
+    length by more than ``interp``'s tolerance; None when it is not finite or the
+    quaternion is zero (such a keyframe could only break every render)."""
+    p = np.asarray(pose, dtype=np.float64).reshape(7)
+    x = p.tolist()
+    n2 = x[3] * x[3] + x[4] * x[4] + x[5] * x[5] + x[6] * x[6]
+    if not (math.isfinite(sum(x)) and all(map(math.isfinite, x))) or not n2 > 1e-24:
+        return None
+    if abs(n2 - 1.0) > 2.0 * UNIT_TOLERANCE:
+        p = p.copy()
+        p[3:] /= math.sqrt(n2)
+    return p
+
+
 class StreamBuffer:
     """Keyframes of one remote stream, by capture time, for rendering.
 
@@ -86,26 +202,49 @@ class StreamBuffer:
     or before ``floor`` (the playout time already passed), or that are older than
     everything kept in a full buffer. A late keyframe just before the playout
     time is kept: it is the lower bracket. Beyond ``capacity`` the oldest is
-    evicted.
+    evicted. A pose that is not finite or has a zero quaternion is refused
+    (``invalid``).
 
     ``velocities[i]`` is the velocity ``(6,)`` (linear m/s, angular rad/s, world
     frame) that came with ``times[i]``/``poses[i]``, for velocity interpolators;
     a keyframe pushed without one gets zeros. ``has_velocities`` says whether the
     sender reports velocities at all: if not, the zeros are fillers, not data,
     and velocity methods render the stream with :data:`VELOCITY_FALLBACK`.
+
+    The keyframes live in one row of a :class:`RoomBuffers` (``room``; a buffer
+    made on its own gets a room of its own); the lists here mirror that row.
     """
 
     def __init__(
-        self, capacity: int = DEFAULT_BUFFER_CAPACITY, *, has_velocities: bool = True
+        self,
+        capacity: int | None = DEFAULT_BUFFER_CAPACITY,
+        *,
+        has_velocities: bool = True,
+        room: RoomBuffers | None = None,
     ) -> None:
+        if room is None:
+            room = RoomBuffers(DEFAULT_BUFFER_CAPACITY if capacity is None else capacity, 1)
+        capacity = room.capacity if capacity is None else capacity
+        if not 1 <= capacity <= room.capacity:
+            raise ValueError(f"capacity must be in 1..{room.capacity}, got {capacity}")
         self.capacity = capacity
-        self.has_velocities = has_velocities
+        self.room = room
+        self.row = room._add_row(has_velocities)
         self.times: list[float] = []
         self.poses: list[NDArray[np.float32]] = []
         self.velocities: list[NDArray[np.float64]] = []
         self.duplicates = 0
         self.stale = 0
         self.evicted = 0
+        self.invalid = 0
+
+    @property
+    def has_velocities(self) -> bool:
+        return bool(self.room.has_velocities[self.row])
+
+    @has_velocities.setter
+    def has_velocities(self, value: bool) -> None:
+        self.room.has_velocities[self.row] = value
 
     def push(
         self,
@@ -123,13 +262,19 @@ class StreamBuffer:
         if superseded or (len(times) >= self.capacity and i == 0):
             self.stale += 1
             return False
+        checked = _checked_pose(pose)
+        if checked is None or not math.isfinite(capture):
+            self.invalid += 1
+            return False
         times.insert(i, capture)
         self.poses.insert(i, pose)
         self.velocities.insert(i, _NO_VELOCITY if velocity is None else velocity)
+        self.room._insert(self.row, i, capture, checked, velocity)
         if len(times) > self.capacity:
             del times[0]
             del self.poses[0]
             del self.velocities[0]
+            self.room._evict_oldest(self.row)
             self.evicted += 1
         return True
 
@@ -219,81 +364,218 @@ class RenderFrame:
     stalled: NDArray[np.bool_]
 
 
+class _Brackets(NamedTuple):
+    """Every live row's bracket at one playout time, as flat slot indices."""
+
+    lo: NDArray[np.intp]
+    hi: NDArray[np.intp]
+    #: Flat index of each row's slot 0, and its newest keyframe's.
+    base: NDArray[np.intp]
+    newest: NDArray[np.intp]
+    s: F64
+    stalled: NDArray[np.bool_]
+    #: Whether any ``s`` is exactly 0 or 1 (held brackets are ``s == 0``).
+    ends: bool
+
+
+def _bracket_rows(
+    room: RoomBuffers, rows: NDArray[np.intp], t: float, whole: bool = False
+) -> _Brackets:
+    """Bracket ``rows`` (all non-empty) at ``t`` at once, as :meth:`StreamBuffer.bracket`.
+
+    A row's times are sorted and padded with ``+inf`` (its last slot is always
+    free), so its first time after ``t`` is the first ``False`` of ``times <= t``:
+    ``bisect_right`` for every row from one comparison and one ``argmin``.
+    ``whole``: ``rows`` is every row of the room, in order (views instead of copies).
+    """
+    n = rows.shape[0]
+    if whole:
+        times, base, newest = room.times[:n], room.base[:n], room.newest[:n]
+    else:
+        times, base, newest = room.times[rows], room.base[rows], room.newest[rows]
+    tt = np.float64(t)
+    after = (times <= tt).argmin(axis=1)  # slot of the first keyframe after t
+    lo = base + after
+    lo -= 1
+    if np.count_nonzero(after) < n:  # nothing at or before t: hold the newest
+        np.copyto(lo, newest, where=after == 0)
+    flat = room.times.reshape(-1)
+    t_lo = flat.take(lo)
+    on = t_lo == tt  # exactly on a keyframe: show it, not a stall
+    # Past the newest and not on it is a stall (before the first too: lo is the newest).
+    at_end = lo == newest
+    held = at_end | on
+    stalled = np.greater(at_end, on)
+    hi = lo + 1
+    any_held = np.count_nonzero(held)
+    if any_held:
+        np.copyto(hi, lo, where=held)
+    span = flat.take(hi)
+    span -= t_lo
+    if any_held:
+        np.copyto(span, 1.0, where=held)
+    s = tt - t_lo
+    s /= span
+    if any_held:
+        np.copyto(s, 0.0, where=held)
+    # Otherwise t_lo < t < t_hi, so 0 < s; s == 1 only by rounding (t a hair below t_hi).
+    ends = bool(any_held) or bool(np.count_nonzero(s == 1.0))
+    return _Brackets(lo, hi, base, newest, s, stalled, ends)
+
+
+def _window(br: _Brackets, lb: int, la: int) -> NDArray[np.intp]:
+    """Flat slots ``(lb + 2 + la, n)`` of each bracket's window (the rule of
+    :mod:`interp.registry`: a missing neighbour, or any after a held bracket,
+    repeats its inward neighbour)."""
+    out = np.empty((lb + 2 + la, br.lo.shape[0]), dtype=np.intp)
+    for j, i in enumerate(range(lb, 0, -1)):
+        np.maximum(br.lo - i, br.base, out=out[j])
+    out[lb], out[lb + 1] = br.lo, br.hi
+    moving = br.hi > br.lo
+    for i in range(1, la + 1):
+        np.minimum(br.hi + i, br.newest, out=out[lb + 1 + i])
+        np.copyto(out[lb + 1 + i], br.hi, where=~moving)
+    return out
+
+
+def _rows_of(
+    buffers: Sequence[StreamBuffer] | RoomBuffers,
+) -> tuple[RoomBuffers, NDArray[np.intp], bool]:
+    """The room, the rows of the non-empty buffers in order, and whether they are
+    all of the room's rows in order.
+
+    Buffers of different rooms are copied into one temporary room first.
+    """
+    if isinstance(buffers, RoomBuffers):
+        n = buffers.n
+        counts = buffers.counts[:n]
+        if np.count_nonzero(counts) == n:
+            return buffers, buffers.row_index[:n], True
+        return buffers, np.flatnonzero(counts), False
+    live = [b for b in buffers if len(b)]
+    if not live:
+        return RoomBuffers(1, 1), np.zeros(0, dtype=np.intp), False
+    room = live[0].room
+    if all(b.room is room for b in live):
+        rows = np.fromiter((b.row for b in live), dtype=np.intp, count=len(live))
+        return room, rows, False
+    n = len(live)
+    joined = RoomBuffers(max(b.room.capacity for b in live), n)
+    for j, b in enumerate(live):
+        src, w = b.room, b.room.width
+        joined.times[j, :w] = src.times[b.row]
+        joined.poses[:, j, :w] = src.poses[:, b.row]
+        joined.velocities[j, :w] = src.velocities[b.row]
+    joined.counts[:n] = [len(b) for b in live]
+    joined.has_velocities[:n] = [b.has_velocities for b in live]
+    joined.newest[:] = joined.base + joined.counts - 1
+    joined.n = n
+    return joined, np.arange(len(live), dtype=np.intp), True
+
+
 def render_buffers(
-    buffers: Sequence[StreamBuffer], t: float, methods: Sequence[str]
+    buffers: Sequence[StreamBuffer] | RoomBuffers, t: float, methods: Sequence[str]
 ) -> RenderFrame:
     """All non-empty buffers at playout time ``t``: one batched call per method.
 
-    Pair methods see the bracket; window methods also their ``lookbehind`` /
-    ``lookahead`` keyframes either side of it (``interp.info(m)``), gathered once
-    for the widest window among ``methods``. A neighbour the buffer does not
-    have, and every neighbour after a held (stalled) bracket, repeats its inward
-    neighbour (the rule of :mod:`interp.registry`). Velocity methods
-    (``needs_velocity``) see the bracket with its keyframes' buffered
-    velocities; on buffers without velocities (``has_velocities`` false) they
-    render :data:`VELOCITY_FALLBACK` instead (:func:`rendered_method`). A stall
-    holds the bracket's keyframe for every kind of method.
+    ``buffers``: a room's :class:`RoomBuffers` (every non-empty stream, in the
+    order they were added: what a bot renders) or any sequence of buffers.
+    Every stream is bracketed at once (:func:`_bracket_rows`) and the bracketing
+    keyframes are gathered with one ``take`` per side; a pair method with a row
+    kernel (:attr:`interp.InterpolatorInfo.rows`) runs it once on those rows.
+    Window methods also see their ``lookbehind`` / ``lookahead`` keyframes either
+    side of the bracket (``interp.info(m)``), gathered once for the widest
+    window among ``methods``. A neighbour the buffer does not have, and every
+    neighbour after a held (stalled) bracket, repeats its inward neighbour (the
+    rule of :mod:`interp.registry`). Velocity methods (``needs_velocity``) see
+    the bracket with its keyframes' buffered velocities; on buffers without
+    velocities (``has_velocities`` false) they render :data:`VELOCITY_FALLBACK`
+    instead (:func:`rendered_method`). A stall holds the bracket's keyframe for
+    every kind of method.
     """
-    live = [b for b in buffers if len(b)]
-    n = len(live)
+    room, rows, whole = _rows_of(buffers)
+    n = rows.shape[0]
     if not n:
         return RenderFrame({m: np.empty((0, 7)) for m in methods}, np.zeros(0, dtype=bool))
+    br = _bracket_rows(room, rows, t, whole)
+    has_v = room.has_velocities[:n] if whole else room.has_velocities[rows]
+    all_v = np.count_nonzero(has_v) == n
+    shown = {m: rendered_method(m, all_v) for m in methods}
+    entries = {name: interp_info(name) for name in dict.fromkeys([*methods, *shown.values()])}
+    pair = [name for name, entry in entries.items() if entry.kind == "pair"]
+    out: dict[str, NDArray[np.float64]] = {}
+    if pair:
+        out.update(_render_pairs(room, br, [entries[name] for name in pair]))
+    rest = [name for name in entries if name not in out]
+    if rest:
+        out.update(_render_windows(room, br, rest, methods))
+    frame = {
+        m: out[m] if shown[m] == m else np.where(has_v[:, None], out[m], out[shown[m]])
+        for m in methods
+    }
+    return RenderFrame(frame, br.stalled)
+
+
+def _render_pairs(
+    room: RoomBuffers, br: _Brackets, entries: list[InterpolatorInfo]
+) -> dict[str, NDArray[np.float64]]:
+    """Pair methods on the gathered brackets: each row kernel once (sharing what
+    they have in common when there are several), plug-ins through ``f(a, b, s)``."""
+    poses = room.poses.reshape(7, -1)
+    a, b = poses.take(br.lo, axis=1), poses.take(br.hi, axis=1)
+    n = br.lo.shape[0]
+    kernels = [e.rows for e in entries if e.rows is not None]
+    shared = None
+    if len(kernels) > 1:
+        shared = share_rows(a, b, br.s, len(SHARES_PRODUCTS.intersection(kernels)) > 1)
+    out: dict[str, NDArray[np.float64]] = {}
+    for entry in entries:
+        if entry.rows is not None:
+            # Contiguous rows to write into (faster than strided); the poses are
+            # their (n, 7) transpose, a view.
+            rows = np.empty((7, n))
+            entry.rows(a, b, br.s, rows, None, True, shared, br.ends)
+            out[entry.name] = rows.T
+        else:
+            out[entry.name] = entry.func(a.T, b.T, br.s)
+    return out
+
+
+def _render_windows(
+    room: RoomBuffers, br: _Brackets, names: list[str], methods: Sequence[str]
+) -> dict[str, NDArray[np.float64]]:
+    """Window and velocity methods: each stream's window (before..., lo, hi, after...)
+    as a ``(K, n, 7)`` track, through :func:`interp.interpolate_brackets`."""
     lb, la = window_depth(methods)
-    with_velocity = any(interp_info(m).needs_velocity for m in methods)
-    # Each stream's window (before..., lo, hi, after...) as a (K, n, 7) track,
-    # converted from the buffers' float32 poses in one call.
     k = lb + 2 + la
-    flat_poses: list[NDArray[np.float32]] = []
-    flat_times: list[float] = []
-    flat_vels: list[NDArray[np.float64]] = []
-    s = np.empty((1, n))
-    stalled = np.zeros(n, dtype=bool)
-    for j, buf in enumerate(live):
-        lo, hi, frac, stall = buf.bracket(t)
-        last = len(buf) - 1
-        rows = [max(lo - i, 0) for i in range(lb, 0, -1)]
-        rows += [lo, hi]
-        rows += [min(hi + i, last) if hi > lo else hi for i in range(1, la + 1)]
-        poses, times_j = buf.poses, buf.times
-        flat_poses += [poses[i] for i in rows]
-        flat_times += [times_j[i] for i in rows]
-        if with_velocity:
-            vels = buf.velocities
-            flat_vels += [vels[i] for i in rows]
-        s[0, j] = frac
-        stalled[j] = stall
-    keys = np.array(flat_poses, dtype=np.float64).reshape(n, k, 7).transpose(1, 0, 2)
-    times = np.array(flat_times, dtype=np.float64).reshape(n, k).T
+    n = br.lo.shape[0]
+    slots = _window(br, lb, la)
+    flat = slots.reshape(-1)
+    keys = room.poses.reshape(7, -1).take(flat, axis=1).reshape(7, k, n).transpose(1, 2, 0)
+    times = room.times.reshape(-1).take(flat).reshape(k, n)
+    with_velocity = any(interp_info(m).needs_velocity for m in names)
     vel = (
-        np.array(flat_vels, dtype=np.float64).reshape(n, k, 6).transpose(1, 0, 2)
+        room.velocities.reshape(-1, 6).take(flat, axis=0).reshape(k, n, 6)
         if with_velocity
         else None
     )
     lo_idx = np.full((1, n), lb, dtype=np.intp)
     before = np.broadcast_to(np.arange(lb, dtype=np.intp)[:, None], (lb, n)).T[None]
     after = np.broadcast_to(np.arange(lb + 2, k, dtype=np.intp)[:, None], (la, n)).T[None]
-    # A velocity method shows its fallback on the rows whose sender reports no velocities.
-    no_velocity = np.array([not b.has_velocities for b in live])
-    shown = {m: rendered_method(m, not no_velocity.any()) for m in methods}
-    out = {
+    return {
         name: interpolate_brackets(
             keys,
             lo_idx,
             lo_idx + 1,
-            s,
+            br.s[None],
             name,
             times=times,
             velocities=vel,
             before=before,
             after=after,
         )[0]
-        for name in dict.fromkeys([*methods, *shown.values()])
+        for name in names
     }
-    frame = {
-        m: out[m] if shown[m] == m else np.where(no_velocity[:, None], out[shown[m]], out[m])
-        for m in methods
-    }
-    return RenderFrame(frame, stalled)
 
 
 @dataclass(frozen=True)
