@@ -63,6 +63,7 @@ from scenarios.receiver import (
     ClockEstimator,
     PlayoutDelay,
     ReceivedStream,
+    RoomBuffers,
     StreamBuffer,
     render_buffers,
     score_received,
@@ -277,6 +278,8 @@ class _Bot:
         lookahead = max(interp_info(m).lookahead for m in cfg.methods)
         self.delay = PlayoutDelay(interval=(1.0 + lookahead) / cfg.rate)
         self.remote: dict[tuple[int, int], RemoteStream] = {}
+        #: Every remote stream's render buffer, one row each, in ``remote``'s order.
+        self.room_buffers = RoomBuffers()
         self.peers: dict[int, tuple[dict[int, str], str | None]] = {}
         #: Peers whose updates carry velocities (peer_joined.velocities).
         self.velocity_peers: set[int] = set()
@@ -370,6 +373,7 @@ class _Bot:
                     names.get(key[1], f"stream{key[1]}"),
                     label,
                     sends_velocities=user in self.velocity_peers,
+                    buffer=self.room_buffers.stream(),
                 )
             cap = float(caps[i])
             pose = np.array(poses[i])
@@ -448,8 +452,7 @@ class _Bot:
             d = self.delay.update(now_srv)
             t_play = now_srv - d
             c0 = time.process_time()
-            buffers = [rs.buffer for rs in self.remote.values()]
-            frame = render_buffers(buffers, t_play, methods)
+            frame = render_buffers(self.room_buffers, t_play, methods)
             self.render_cpu += time.process_time() - c0
             if self.cfg.keep_render_log:
                 keys = [k for k, rs in self.remote.items() if len(rs.buffer)]
