@@ -24,21 +24,38 @@ missing one is reported as "not installed".
 
 Timing: ``time.perf_counter``, each figure the best of several repeats of a loop
 long enough to measure. Everything timed is single-threaded numpy/scipy code
-(no BLAS calls). Last, one keyframe-track render (``interp.evaluate_track``,
-K = 30 keyframes, 100 streams, one query time) is timed as the median of many
-runs, in microseconds. The bench prints figures and ratios against the targets;
-it never decides pass or fail.
+(no BLAS calls). Then:
+
+- the receiver's render frame: 100 remote streams of real motion (slices of the
+  bundled sample traces, keyframes at 15 Hz) in one
+  :class:`~scenarios.receiver.RoomBuffers`, rendered at successive 90 Hz playout
+  times through :func:`scenarios.receiver.render_buffers` (the bot's path:
+  bracket every stream, gather, one kernel call per method), per frame in
+  microseconds, for each pair method and the bot's default three; beside it
+  each row kernel alone on 100 poses;
+- one keyframe-track render (``interp.evaluate_track``, K = 30 keyframes, 100
+  streams, one query time), median of many runs, microseconds;
+- the entry paths: throughput at batch 10,000 in this process and in a fresh
+  ``python -m scenarios.bench_interp`` (a plain interpreter, glibc's allocator
+  as it comes; the ``posecast`` CLI tunes it), side by side.
+
+The bench prints figures and ratios against the targets; it never decides pass
+or fail. ``python -m scenarios.bench_interp [--batch N]`` prints this
+process's poses/s of every method at batch N as JSON.
 """
 
 from __future__ import annotations
 
+import argparse
 import importlib
+import json
 import math
 import os
 import platform
+import subprocess
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import partial
 from types import ModuleType
@@ -50,8 +67,10 @@ from rich.console import Console
 from rich.table import Table
 
 import interp
+from scenarios.receiver import RoomBuffers, render_buffers
+from scenarios.traces import find_traces, load_trace
 
-__all__ = ["TARGETS", "run_interp_bench"]
+__all__ = ["TARGETS", "frame_room", "run_interp_bench", "throughput_at"]
 
 F64 = NDArray[np.float64]
 
@@ -64,6 +83,9 @@ TARGETS: dict[str, float] = {
     "motor-hermite": 2e6,
     "motor-quintic": 2e6,
     "track_us": 50.0,
+    #: One render frame of 100 streams: one method, and the bot's default three.
+    "frame_one_us": 50.0,
+    "frame_three_us": 100.0,
 }
 TARGET_BATCH = 10_000
 #: Pair methods (with reference libraries).
@@ -77,6 +99,17 @@ LOOP_PAIRS = 300
 TRACK_KEYFRAMES = 30
 TRACK_STREAMS = 100
 TRACK_RUNS = 3000
+#: The render frame: remote streams, their keyframe rate, the render rate, and
+#: the method sets timed (each pair method alone, then the bot's default three).
+FRAME_STREAMS = 100
+FRAME_KEY_RATE = 15.0
+FRAME_RATE = 90.0
+FRAME_SETS: tuple[tuple[str, ...], ...] = (
+    ("soa",),
+    ("dq-slerp",),
+    ("motor-lerp",),
+    ("soa", "dq-slerp", "motor-lerp"),
+)
 
 # Many short repeats, keep the best: on a shared machine the best repeat is the
 # one no other process interrupted.
@@ -357,15 +390,108 @@ def _track_medians(rng: np.random.Generator) -> dict[str, dict[str, float]]:
     return out
 
 
+def frame_room(
+    streams: int = FRAME_STREAMS, seconds: float = 4.0, seed: int = 0
+) -> tuple[RoomBuffers, F64]:
+    """A room of ``streams`` remote streams of real motion, and 90 Hz playout times.
+
+    Stream ``j`` is device ``j % 3`` of a bundled sample trace from its own start
+    time, keyframes at ``FRAME_KEY_RATE`` with a few ms of capture jitter, so the
+    streams' brackets change at different frames. The playout times cover the
+    keyframes (after the first half second) at ``FRAME_RATE``.
+    """
+    rng = np.random.default_rng(seed)
+    traces = [load_trace(p) for p in find_traces("traces:sample")]
+    room = RoomBuffers()
+    n_keys = int(seconds * FRAME_KEY_RATE)
+    for j in range(streams):
+        tr = traces[j % len(traces)]
+        dev = j % len(tr.streams)
+        start = rng.uniform(0.0, tr.duration - seconds - 1.0)
+        send = start + np.arange(n_keys) / FRAME_KEY_RATE + rng.uniform(-0.003, 0.003, n_keys)
+        idx = np.searchsorted(tr.times, send).clip(0, len(tr.times) - 1)
+        buf = room.stream()
+        for i in idx:
+            buf.push(float(tr.times[i] - start), tr.poses[i, dev].astype(np.float32))
+    return room, np.arange(0.5, seconds - 0.2, 1.0 / FRAME_RATE)
+
+
+def _render_next(room: RoomBuffers, frames: Iterator[float], methods: Sequence[str]) -> object:
+    return render_buffers(room, next(frames), methods)
+
+
+def _frame_figures(rng: np.random.Generator) -> dict[str, dict[str, float]]:
+    """Microseconds per render frame (median, best, p90) for each method set, and
+    each pair method's row kernel alone on ``FRAME_STREAMS`` poses (median)."""
+    room, playout = frame_room()
+    out: dict[str, dict[str, float]] = {}
+    for methods in FRAME_SETS:
+        frames = iter(np.resize(playout, TRACK_RUNS + 1).tolist())
+        runs = _run_times_us(partial(_render_next, room, frames, methods))
+        out[" + ".join(methods)] = {
+            "median_us": float(np.median(runs)),
+            "best_us": float(np.min(runs)),
+            "p90_us": float(np.percentile(runs, 90)),
+        }
+    a, b = _random_poses(rng, FRAME_STREAMS).T.copy(), _random_poses(rng, FRAME_STREAMS).T.copy()
+    s, res = rng.uniform(0.0, 1.0, FRAME_STREAMS), np.empty((FRAME_STREAMS, 7))
+    # What a bare numpy call costs here and now: a frame is mostly numpy calls, so
+    # frame / call compares across machines and loads better than microseconds.
+    call = float(np.median(_run_times_us(partial(np.multiply, s, s, res[:, 0]))))
+    for t in out.values():
+        t["numpy_calls"] = t["median_us"] / call
+        t["numpy_call_us"] = call
+    for name in METHODS:
+        kernel = interp.info(name).rows
+        if kernel is not None:
+            runs = _run_times_us(partial(kernel, a, b, s, res.T, None, True))
+            out[name]["kernel_us"] = float(np.median(runs))
+    return out
+
+
+def throughput_at(batch: int, seed: int = 12345) -> dict[str, float]:
+    """Poses/s of every posecast method at ``batch`` in this process (as the main table)."""
+    rng = np.random.default_rng(seed)
+    a, b, s = _random_poses(rng, batch), _random_poses(rng, batch), rng.uniform(0.0, 1.0, batch)
+    rates = {name: batch / _best_seconds(partial(interp.get(name), a, b, s)) for name in METHODS}
+    for name in EXTRA_METHODS:
+        rates[name] = batch / _best_seconds(_extra_call(name, rng, batch))
+    return rates
+
+
+def _plain_python_rates(batch: int) -> dict[str, float] | str:
+    """:func:`throughput_at` in a fresh ``python -m scenarios.bench_interp``: a plain
+    interpreter, glibc's allocator as it comes. The reason as a string on failure."""
+    env = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"}
+    cmd = [sys.executable, "-m", "scenarios.bench_interp", "--batch", str(batch)]
+    try:
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return f"not run: {exc}"
+    if proc.returncode != 0:
+        tail = proc.stderr.strip().splitlines()[-1:] or ["no output"]
+        return f"failed: {tail[0]}"
+    rates: dict[str, float] = json.loads(proc.stdout)
+    return rates
+
+
 def run_interp_bench(
     batch_sizes: Sequence[int] = (1, 100, 10_000, 1_000_000),
     console: Console | None = None,
+    *,
+    entry: str = "this process",
+    entry_paths: bool = True,
 ) -> dict[str, Any]:
     """Time every interpolator beside the references; print tables and return the figures.
 
+    ``entry`` names how this process was started (the CLI says it tuned the
+    allocator); with ``entry_paths`` the batch-10k throughput is also measured in
+    a plain ``python -m`` child and reported beside this process's.
+
     Returns ``{"machine", "batch_sizes", "posecast": {method: {batch: poses/s}},
     "references": [{"label", "method", "rates" | "loop_rate" | "missing"}],
-    "track": {method: {..._us}}, "targets": {...}}``.
+    "frame": {method set: {..._us}}, "track": {method: {..._us}},
+    "entry_paths": {entry: {method: poses/s}} (if timed), "targets": {...}}``.
     """
     console = console or Console()
     sizes = tuple(int(n) for n in batch_sizes)
@@ -410,23 +536,42 @@ def run_interp_bench(
                 row["loop_rate"] = m / _best_seconds(case.build(a, b, s))
             except _Unavailable as exc:
                 row["missing"] = str(exc)
+        status.update(f"bench interp: render frame, {FRAME_STREAMS} streams")
+        frame = _frame_figures(rng)
         status.update("bench interp: keyframe track, 100 streams")
         track = _track_medians(rng)
+
     # CPU time over wall time: well below 1 means other processes took the core.
     report["machine"]["cpu_share"] = round(
         (time.process_time() - cpu0) / (time.perf_counter() - wall0), 2
     )
-
+    paths = _entry_paths(console, entry, posecast, sizes) if entry_paths else {}
     report["posecast"] = posecast
     report["references"] = refs
+    report["frame"] = frame
     report["track"] = track
-    report["targets"] = _target_summary(posecast, track)
+    report["entry_paths"] = paths
+    report["targets"] = _target_summary(posecast, frame)
     _print_report(console, report)
     return report
 
 
+def _entry_paths(
+    console: Console, entry: str, posecast: dict[str, dict[int, float]], sizes: tuple[int, ...]
+) -> dict[str, dict[str, float] | str]:
+    """Batch-10k poses/s of this process (``entry``) and of a plain ``python -m`` child."""
+    with console.status("bench interp: batch 10,000 in a plain `python -m` process"):
+        here = (
+            {m: posecast[m][TARGET_BATCH] for m in ALL_METHODS}
+            if TARGET_BATCH in sizes
+            else throughput_at(TARGET_BATCH)
+        )
+        plain = _plain_python_rates(TARGET_BATCH)
+    return {entry: here, "python -m scenarios.bench_interp (allocator as it comes)": plain}
+
+
 def _target_summary(
-    posecast: dict[str, dict[int, float]], track: dict[str, dict[str, float]]
+    posecast: dict[str, dict[int, float]], frame: dict[str, dict[str, float]]
 ) -> dict[str, dict[str, Any]]:
     out: dict[str, dict[str, Any]] = {}
     for name in ALL_METHODS:
@@ -438,13 +583,14 @@ def _target_summary(
             "ratio": None if rate is None else rate / goal,
             "met": None if rate is None else rate >= goal,
         }
-    for name in ALL_METHODS:
-        us = track[name]["evaluate_track_us"]
-        out[f"track-{name}"] = {
+    for key, t in frame.items():
+        goal = TARGETS["frame_three_us" if "+" in key else "frame_one_us"]
+        us = t["median_us"]
+        out[f"frame {key}"] = {
             "measured": us,
-            "target": TARGETS["track_us"],
-            "ratio": TARGETS["track_us"] / us,
-            "met": us <= TARGETS["track_us"],
+            "target": goal,
+            "ratio": goal / us,
+            "met": us <= goal,
         }
     return out
 
@@ -472,7 +618,10 @@ def _print_report(console: Console, report: dict[str, Any]) -> None:
     )
     console.print(_throughput_table(report))
     console.print(_speedup_table(report))
+    console.print(_frame_table(report))
     console.print(_track_table(report))
+    if report["entry_paths"]:
+        console.print(_entry_table(report))
     console.print(_targets_table(report))
 
 
@@ -553,6 +702,56 @@ def _track_table(report: dict[str, Any]) -> Table:
     return track
 
 
+def _frame_table(report: dict[str, Any]) -> Table:
+    """Microseconds per render frame through ``render_buffers``, and the kernels alone."""
+    table = Table(
+        title=f"Render frame: {FRAME_STREAMS} streams of real motion, bracket + gather + "
+        f"interpolate (render_buffers, {TRACK_RUNS} frames at {FRAME_RATE:.0f} Hz playout, us)"
+    )
+    call = next(iter(report["frame"].values()))["numpy_call_us"]
+    for col in (
+        "methods",
+        "median",
+        "best",
+        "p90",
+        "of which the kernel alone (median)",
+        f"median / one bare multiply of 100 floats ({call:.2f} us here)",
+    ):
+        table.add_column(col, justify="right")
+    for key, t in report["frame"].items():
+        kernel = t.get("kernel_us")
+        table.add_row(
+            key,
+            f"{t['median_us']:.1f}",
+            f"{t['best_us']:.1f}",
+            f"{t['p90_us']:.1f}",
+            "" if kernel is None else f"{kernel:.1f}",
+            f"{t['numpy_calls']:.0f}",
+        )
+    return table
+
+
+def _entry_table(report: dict[str, Any]) -> Table:
+    """Poses/s at batch 10k by how the process was started, side by side."""
+    paths: dict[str, dict[str, float] | str] = report["entry_paths"]
+    table = Table(title=f"Entry paths: poses/s at batch {TARGET_BATCH:,} (best of repeats)")
+    table.add_column("method")
+    for label in paths:
+        table.add_column(label, justify="right")
+    labels = list(paths)
+    if len(labels) == 2:
+        table.add_column("second / first", justify="right")
+    for name in ALL_METHODS:
+        cells = [v if isinstance(v, str) else _rate(v.get(name)) for v in paths.values()]
+        first, second = (paths[x] for x in labels) if len(labels) == 2 else ("", "")
+        if isinstance(first, dict) and isinstance(second, dict):
+            cells.append(f"{second[name] / first[name]:.2f}")
+        elif len(labels) == 2:
+            cells.append("")
+        table.add_row(name, *cells)
+    return table
+
+
 def _targets_table(report: dict[str, Any]) -> Table:
     """Each target beside its measured figure (no verdict)."""
     goals = Table(title="Targets (figures, not a verdict)")
@@ -562,7 +761,7 @@ def _targets_table(report: dict[str, Any]) -> Table:
         if t["measured"] is None:
             goals.add_row(key, "not timed", "", "")
             continue
-        if key.startswith("track"):
+        if key.startswith("frame"):
             measured, goal = f"{t['measured']:.1f} us", f"<= {t['target']:.0f} us"
             share = f"{t['measured'] / t['target']:.2f} ({'met' if t['met'] else 'missed'})"
         else:
@@ -570,3 +769,17 @@ def _targets_table(report: dict[str, Any]) -> Table:
             share = f"{t['ratio']:.2f} ({'met' if t['met'] else 'missed'})"
         goals.add_row(key, measured, goal, share)
     return goals
+
+
+def _main() -> None:
+    """``python -m scenarios.bench_interp --batch N``: this process's poses/s as JSON."""
+    parser = argparse.ArgumentParser(description=_main.__doc__)
+    parser.add_argument("--batch", type=int, default=TARGET_BATCH, help="Batch size to time.")
+    args = parser.parse_args()
+    if args.batch < 1:
+        parser.error("--batch must be a positive integer")
+    print(json.dumps(throughput_at(args.batch)))
+
+
+if __name__ == "__main__":
+    _main()
