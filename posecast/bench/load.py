@@ -1,57 +1,119 @@
-"""The load process of ``posecast bench relay``: every client in one asyncio loop.
+"""A load process of ``posecast bench relay``: its share of the clients in one asyncio loop.
 
-Run as a subprocess by the controller (:data:`posecast.bench.common._LOAD_BOOT`).
+Run as a subprocess by the controller (:data:`posecast.bench.common._LOAD_BOOT`),
+one per ``--procs``. Each client is a :class:`~posecast.bench.wsclient.FrameConnection`
+(no task of its own): one publisher task sends every client's pre-encoded
+update at its phase of the period, and received frames are counted in the
+connection's ``data_received``:
+
+- a raw snapshot's header is parsed in place (its send time and the size of its
+  records), its own-echo records are found by their 4-byte (user, stream)
+  prefix, and the records themselves are left undecoded, except in one
+  snapshot of every :data:`SAMPLE_EVERY` of a client, whose poses' capture
+  times give the capture -> receipt latency;
+- anything else (a codec snapshot, a velocity snapshot, a control message) is
+  decoded by the protocol (a codec snapshot must be: its deltas need the
+  client's baselines).
+
+Relay latency (due tick -> receipt) and tick lag (send time - due tick) are kept
+for every snapshot, as float64 arrays; the window's samples go to an ``.npz``
+file the controller merges across processes.
 """
 
 from __future__ import annotations
 
+import array
 import asyncio
 import contextlib
 import json
 import math
 import os
 import random
+import struct
 import sys
 import threading
 import time
 from collections.abc import Callable
 from typing import Any
 
-import msgpack
 import numpy as np
 
 from posecast.bench.common import (
     _FLUSH_EVERY,
+    STATIC,
     STREAMS,
-    _pct,
+    Motion,
     _raise_nofile,
     _run_loop,
     _ws_header,
-    update_template,
 )
-from protocol import SNAPSHOT_DTYPE, SNAPSHOT_ENTRY_SIZE
+from posecast.bench.wsclient import (
+    CompactUpdateFrames,
+    FrameConnection,
+    RawUpdateFrames,
+    client_frame,
+    open_connection,
+)
+from protocol import (
+    SNAPSHOT_DTYPE,
+    SNAPSHOT_ENTRY_SIZE,
+    ClientSession,
+    ErrorMessage,
+    Hello,
+    Join,
+    Joined,
+    PoseUpdate,
+    ProtocolError,
+    Snapshot,
+    Welcome,
+)
 from server.room import room_phase
+
+#: One snapshot in this many of each client has its poses decoded (capture -> receipt).
+SAMPLE_EVERY = 16
+#: A client whose socket holds this many unsent bytes skips its next update.
+SEND_BUFFER_LIMIT = 64 * 1024
+#: Publish phases per period: clients due in one bucket are sent together.
+BUCKETS = 64
+
+#: Flags byte of a relay codec snapshot without velocities (protocol.codec_relay, v2).
+_RELAY_SNAPSHOT_FLAGS = 0x24
+_SNAP_PREFIX = b"\x84\xa4type\xa8snapshot\xa4tick"
+_TIME_KEY = b"\xa4time\xcb"
+_INT_SIZE = {0xCC: 2, 0xCD: 3, 0xCE: 5, 0xCF: 9, 0xD0: 2, 0xD1: 3, 0xD2: 5, 0xD3: 9}
+_POSES_KEY = b"\xa5poses"
+_F64 = struct.Struct(">d")
+_OWN = struct.Struct("<HH")
 
 
 class _LoadStats:
     """What the load measures; only arrivals inside the window count."""
 
-    def __init__(self, clients: int, rate: float) -> None:
-        self.rate = rate
+    def __init__(self, clients: int) -> None:
         self.t0 = math.inf
         self.t1 = math.inf
-        self.snapshots_total = np.zeros(clients, dtype=np.int64)
-        self.snapshots = np.zeros(clients, dtype=np.int64)
+        # Plain lists: a numpy scalar increment costs more than the rest of a count.
+        self.snapshots_total = [0] * clients
+        self.snapshots = [0] * clients
         self.updates = 0
         self.updates_total = 0
         self.sends_late = 0
+        self.send_skips = 0
         self.payload_bytes = 0
         self.wire_bytes = 0
         self.other_frames = 0
         self.bad_frames = 0
+        self.decoded_frames = 0
+        self.codec_snapshots = 0
+        self.codec_own_echo = 0
+        self.errors: dict[str, int] = {}
+        self.error_examples: dict[str, str] = {}
         self.poses_all = 0
         self.poses_remote = 0
-        # Per-snapshot scalars waiting to be flushed into arrays.
+        self.relay = array.array("d")
+        self.tick_lag = array.array("d")
+        self.send_lag = array.array("d")
+        # Sampled snapshots, flushed into per-pose arrays in batches.
         self._bodies: list[bytes] = []
         self._owner: list[int] = []
         self._send: list[float] = []
@@ -59,22 +121,32 @@ class _LoadStats:
         self._arrival: list[float] = []
         self._lat: list[np.ndarray] = []
         self._hold: list[np.ndarray] = []
-        self._relay: list[np.ndarray] = []
-        self._tick_lag: list[np.ndarray] = []
-        self._gap: list[float] = []
-
-    def in_window(self, t: float) -> bool:
-        return self.t0 <= t < self.t1
 
     def snapshot(
-        self, index: int, user: int, arrival: float, send: float, due: float, body: bytes, size: int
-    ) -> None:
+        self,
+        index: int,
+        arrival: float,
+        send: float,
+        due: float,
+        size: int,
+        poses: int,
+        own: int,
+    ) -> bool:
+        """Count one snapshot; True if it arrived inside the window."""
         self.snapshots_total[index] += 1
         if not self.t0 <= arrival < self.t1:
-            return
+            return False
         self.snapshots[index] += 1
         self.payload_bytes += size
         self.wire_bytes += size + _ws_header(size)
+        self.poses_all += poses
+        self.poses_remote += poses - own
+        self.relay.append(arrival - due)
+        self.tick_lag.append(send - due)
+        return True
+
+    def sample(self, user: int, arrival: float, send: float, due: float, body: bytes) -> None:
+        """Records (``SNAPSHOT_DTYPE`` bytes) of one sampled snapshot, for per-pose latency."""
         self._bodies.append(body)
         self._owner.append(user)
         self._send.append(send)
@@ -83,11 +155,11 @@ class _LoadStats:
         if len(self._bodies) >= _FLUSH_EVERY:
             self.flush()
 
-    def sent(self, scheduled: float, now: float) -> None:
-        self.updates_total += 1
+    def sent_bucket(self, scheduled: float, now: float, n: int) -> None:
+        self.updates_total += n
         if self.t0 <= now < self.t1:
-            self.updates += 1
-            self._gap.append(now - scheduled)
+            self.updates += n
+            self.send_lag.append(now - scheduled)
 
     def flush(self) -> None:
         if not self._bodies:
@@ -95,47 +167,43 @@ class _LoadStats:
         counts = np.fromiter((len(b) // SNAPSHOT_ENTRY_SIZE for b in self._bodies), np.int64)
         entries = np.frombuffer(b"".join(self._bodies), dtype=SNAPSHOT_DTYPE)
         send = np.asarray(self._send, dtype=np.float64)
-        arrival = np.asarray(self._arrival, dtype=np.float64)
         owner = np.repeat(np.asarray(self._owner, dtype=np.int64), counts)
-        due = np.asarray(self._due, dtype=np.float64)
         remote = entries["user"].astype(np.int64) != owner
-        dt = entries["dt"].astype(np.float64)[remote]
-        capture = np.repeat(send, counts)[remote] + dt
-        self._lat.append(((np.repeat(arrival, counts)[remote] - capture) * 1e3).astype(np.float32))
-        self._hold.append(((np.repeat(due, counts)[remote] - capture) * 1e3).astype(np.float32))
-        self._relay.append(((arrival - due) * 1e3).astype(np.float32))
-        self._tick_lag.append(((send - due) * 1e3).astype(np.float32))
-        self.poses_all += len(entries)
-        self.poses_remote += int(remote.sum())
-        self._bodies.clear()
-        self._owner.clear()
-        self._send.clear()
-        self._due.clear()
-        self._arrival.clear()
+        capture = np.repeat(send, counts)[remote] + entries["dt"].astype(np.float64)[remote]
+        arrival = np.repeat(np.asarray(self._arrival, dtype=np.float64), counts)[remote]
+        due = np.repeat(np.asarray(self._due, dtype=np.float64), counts)[remote]
+        self._lat.append(arrival - capture)
+        self._hold.append(due - capture)
+        for part in (self._bodies, self._owner, self._send, self._due, self._arrival):
+            part.clear()
 
-    def summary(self) -> dict[str, Any]:
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The window's samples in milliseconds (what the controller merges)."""
         self.flush()
 
         def cat(parts: list[np.ndarray]) -> np.ndarray:
-            return np.concatenate(parts) if parts else np.zeros(0, np.float32)
+            return np.concatenate(parts) * 1e3 if parts else np.zeros(0)
 
-        lat, hold, relay, lag = (
-            cat(self._lat),
-            cat(self._hold),
-            cat(self._relay),
-            cat(self._tick_lag),
-        )
-        gap = np.asarray(self._gap, dtype=np.float64) * 1e3
+        return {
+            "latency": cat(self._lat),
+            "hold": cat(self._hold),
+            "relay": np.frombuffer(self.relay, dtype=np.float64) * 1e3,
+            "tick_lag": np.frombuffer(self.tick_lag, dtype=np.float64) * 1e3,
+            "send_lag": np.frombuffer(self.send_lag, dtype=np.float64) * 1e3,
+        }
+
+    def counts(self) -> dict[str, Any]:
         window = self.t1 - self.t0
-        per_client = self.snapshots / window if window > 0 else self.snapshots * 0.0
+        got = np.asarray(self.snapshots, dtype=np.float64)
+        per_client = got / window if window > 0 else got * 0.0
         return {
             "window_s": window,
-            "snapshots": int(self.snapshots.sum()),
-            "snapshots_per_client_s": float(per_client.mean()) if len(per_client) else 0.0,
+            "snapshots": int(got.sum()),
+            "snapshots_per_client_s_sum": float(per_client.sum()),
             "snapshots_per_client_s_min": float(per_client.min()) if len(per_client) else 0.0,
             "snapshots_per_client_s_max": float(per_client.max()) if len(per_client) else 0.0,
-            "clients_without_snapshots": int((self.snapshots_total == 0).sum()),
-            "clients_without_snapshots_in_window": int((self.snapshots == 0).sum()),
+            "clients_without_snapshots": self.snapshots_total.count(0),
+            "clients_without_snapshots_in_window": self.snapshots.count(0),
             "poses_delivered": self.poses_remote,
             "poses_delivered_incl_own": self.poses_all,
             "payload_bytes": self.payload_bytes,
@@ -143,187 +211,389 @@ class _LoadStats:
             "updates_sent": self.updates,
             "updates_sent_total": self.updates_total,
             "sends_late": self.sends_late,
-            "send_lag_p99_ms": _pct(gap, 99),
-            "latency_p50_ms": _pct(lat, 50),
-            "latency_p99_ms": _pct(lat, 99),
-            "latency_max_ms": float(lat.max()) if len(lat) else math.nan,
-            "hold_p50_ms": _pct(hold, 50),
-            "hold_p99_ms": _pct(hold, 99),
-            "relay_p50_ms": _pct(relay, 50),
-            "relay_p99_ms": _pct(relay, 99),
-            "relay_max_ms": float(relay.max()) if len(relay) else math.nan,
-            "tick_lag_p50_ms": _pct(lag, 50),
-            "tick_lag_p99_ms": _pct(lag, 99),
+            "send_skips": self.send_skips,
             "other_frames": self.other_frames,
             "bad_frames": self.bad_frames,
+            "decoded_frames": self.decoded_frames,
+            "codec_snapshots": self.codec_snapshots,
+            "codec_own_echo": self.codec_own_echo,
+            "server_errors": dict(self.errors),
+            "server_error_examples": dict(self.error_examples),
         }
 
 
-class _BenchClient:
-    """One load client: handshake, then publish and receive until cancelled."""
+class _Refused(RuntimeError):
+    pass
 
-    def __init__(self, index: int, room: str, rate: float, stats: _LoadStats) -> None:
+
+class _BenchClient:
+    """One load client: handshake through the protocol's session, then counting only."""
+
+    def __init__(
+        self,
+        index: int,
+        room: str,
+        rate: float,
+        stats: _LoadStats,
+        codec: str,
+        poses: np.ndarray | None = None,
+    ) -> None:
         self.index = index
+        #: What it publishes: one frame (n, 7) or a cycle (K, n, 7) (default: a fixed pose).
+        self.poses = Motion(STATIC, rate).cycle(index) if poses is None else poses
         self.room = room
         self.rate = rate
         self.stats = stats
-        self.settled = asyncio.Event()
+        self.codec = codec
         self.error: str | None = None
-        self.ws: Any = None
+        self.conn: FrameConnection | None = None
+        self.session = ClientSession()
+        self.user = -1
+        self.frames: RawUpdateFrames | CompactUpdateFrames | None = None
+        self._waiting: asyncio.Future[Any] | None = None
+        self._own: tuple[bytes, ...] = ()
+        self._seq = 0
+        self._count = index % SAMPLE_EVERY  # spread the sampled snapshots over clients
+        self._prev: float | None = None
+        self._phase = room_phase(room)
+        # Codec snapshots are delta-coded against what the client holds: a client
+        # either decodes all of them (one in SAMPLE_EVERY clients, for per-pose
+        # latency) or none (it counts them from their headers).
+        self._count_codec = index % SAMPLE_EVERY != 0
 
-    async def run(self, url: str, rng: random.Random) -> None:
-        from client.connection import ClientConnection
-
+    async def open(self, url: str, within: float) -> None:
+        """Connect, hello, join, each step ``within`` s; on failure ``error`` says why."""
         try:
-            conn = await ClientConnection.open(
-                url,
-                room=self.room,
-                streams=STREAMS,
-                rate=self.rate,
-                agent="posecast-bench",
-                open_timeout=15.0,
-            )
-        except Exception as exc:
+            conn, _ = await open_connection(url, time.monotonic, within)
+            self.conn = conn
+            conn.on_message = self._handshake_message
+            welcome = await self._ask(Hello(agent="posecast-bench"), within)
+            join = Join(room=self.room, streams=STREAMS, rate=self.rate, codec=self.codec)
+            joined = await self._ask(join, within)
+        except Exception as exc:  # whatever it was, this client did not join: say why
             self.error = f"{type(exc).__name__}: {exc}"
-            self.settled.set()
+            if self.conn is not None:
+                self.conn.abort()
+            self.conn = None
             return
-        self.ws = conn.ws
-        assert conn.joined is not None
-        ids = [conn.joined.streams[name] for name in STREAMS]
-        wire = update_template(ids, (0.01 * self.index, 1.6, 0.0))
-        self.settled.set()
-        async with asyncio.TaskGroup() as tg:
-            tg.create_task(self._publish(wire, rng.random()))
-            tg.create_task(self._receive(conn.user))
+        assert isinstance(welcome, Welcome) and isinstance(joined, Joined)
+        self.user = welcome.user
+        ids = [joined.streams[name] for name in STREAMS]
+        self._own = tuple(_OWN.pack(self.user, sid) for sid in ids)
+        if self.codec == "compact":
+            self.frames = CompactUpdateFrames(ids, self.poses, self._send_through_session)
+        else:
+            self.frames = RawUpdateFrames(ids, self.poses)
+        conn.on_message = self._on_message
 
-    async def _publish(self, wire: dict[str, Any], phase: float) -> None:
-        from websockets.exceptions import ConnectionClosed
+    def _send_through_session(self, update: PoseUpdate) -> bytes:
+        return self.session.send(update)
 
-        ws, stats, pack = self.ws, self.stats, msgpack.packb
-        period = 1.0 / self.rate
-        due = time.monotonic() + phase * period
-        seq = 0
-        with contextlib.suppress(ConnectionClosed):
+    async def _ask(self, message: Hello | Join, within: float) -> Any:
+        conn = self.conn
+        assert conn is not None
+        waiting = self._waiting = asyncio.get_running_loop().create_future()
+
+        def closed(done: asyncio.Future[str]) -> None:
+            if not waiting.done():
+                waiting.set_exception(_Refused(f"closed during the handshake: {done.result()}"))
+
+        conn.closed.add_done_callback(closed)
+        conn.write(client_frame(self.session.send(message)))
+        try:
+            return await asyncio.wait_for(waiting, within)
+        finally:
+            conn.closed.remove_done_callback(closed)
+
+    def _handshake_message(self, data: bytes, arrival: float) -> None:
+        for ev in self.session.receive_data(data):
+            waiting = self._waiting
+            if waiting is None or waiting.done():
+                continue
+            if isinstance(ev, Welcome | Joined):
+                waiting.set_result(ev)
+            elif isinstance(ev, ErrorMessage | ProtocolError):
+                waiting.set_exception(_Refused(f"{ev.code}: {ev.message}"))
+
+    def publish(self, now: float) -> bool:
+        """Send the next update; False if the socket is backed up (skipped)."""
+        conn, frames = self.conn, self.frames
+        if conn is None or frames is None:
+            return True
+        if conn.buffered() > SEND_BUFFER_LIMIT:
+            return False
+        self._seq += 1
+        conn.write(frames.frame(self._seq, now))
+        return True
+
+    def _due(self, send: float) -> float:
+        # The server ticks a subscriber on the grid (k + phase) / rate of its clock
+        # (phase: the room's, server.room.room_phase); after a tick at ``now`` the
+        # next is due at the first grid point after ``now`` (missed points are
+        # skipped). A snapshot's send time is the ``now`` of its tick, so each
+        # snapshot's due time follows from the previous one's send time.
+        rate, ph, prev = self.rate, self._phase, self._prev
+        latest = (math.floor(send * rate - ph + 1e-9) + ph) / rate
+        due = latest if prev is None else (math.floor(prev * rate - ph + 1e-9) + 1 + ph) / rate
+        self._prev = send
+        return latest if due > send else due
+
+    def _on_message(self, data: bytes, arrival: float) -> None:
+        if data[:1] == b"\xc1" and self._count_codec and data[1] == _RELAY_SNAPSHOT_FLAGS:
+            self._codec_snapshot(data, arrival)
+            return
+        if data.startswith(_SNAP_PREFIX):
+            # The tick's msgpack int is 1, 2, 3, 5 or 9 bytes: its first byte says which.
+            i = 20 + _INT_SIZE.get(data[20], 1) if len(data) > 20 else 0
+            if data.startswith(_TIME_KEY, i) and data.startswith(_POSES_KEY, i + 14):
+                p = i + 20
+                tag = data[p] if p < len(data) else 0
+                if tag == 0xC4:
+                    size, at = data[p + 1], p + 2
+                elif tag == 0xC5:
+                    size, at = int.from_bytes(data[p + 1 : p + 3], "big"), p + 3
+                elif tag == 0xC6:
+                    size, at = int.from_bytes(data[p + 1 : p + 5], "big"), p + 5
+                else:
+                    size, at = -1, 0
+                if at + size == len(data) and size % SNAPSHOT_ENTRY_SIZE == 0:
+                    send = _F64.unpack_from(data, i + 6)[0]
+                    self._raw_snapshot(data, at, size // SNAPSHOT_ENTRY_SIZE, send, arrival)
+                    return
+        self._decode(data, arrival)
+
+    def _raw_snapshot(self, data: bytes, at: int, n: int, send: float, arrival: float) -> None:
+        own = self._own_run(data, at)
+        if own < 0:
+            own = self._own_count(data, at)
+        due = self._due(send)
+        stats = self.stats
+        if stats.snapshot(self.index, arrival, send, due, len(data), n, own):
+            self._count += 1
+            if self._count % SAMPLE_EVERY == 0:
+                stats.sample(self.user, arrival, send, due, data[at:])
+
+    def _own_run(self, data: bytes, at: int) -> int:
+        """Own records (3) if they sit in a row, as the relay writes them; else -1."""
+        own = self._own
+        j = data.find(own[0], at) if own else -1
+        if j < 0 or (j - at) % SNAPSHOT_ENTRY_SIZE:
+            return -1
+        for k in range(1, len(own)):
+            if not data.startswith(own[k], j + k * SNAPSHOT_ENTRY_SIZE):
+                return -1
+        return len(own)  # a stream is in a snapshot once: no other aligned copy
+
+    def _own_count(self, data: bytes, at: int) -> int:
+        """Own records wherever they are: every aligned (user, stream) prefix of ours."""
+        own = 0
+        for pattern in self._own:
+            j = data.find(pattern, at)
+            while j >= 0:
+                if (j - at) % SNAPSHOT_ENTRY_SIZE == 0:
+                    own += 1
+                j = data.find(pattern, j + 1)
+        return own
+
+    def _codec_snapshot(self, data: bytes, arrival: float) -> None:
+        """A relay codec snapshot, counted from its header (it never holds our own streams)."""
+        pos, values = 2, []
+        for _ in range(4):  # tick, zigzag base time (us), n_key, n_delta
+            value = shift = 0
             while True:
-                delay = due - time.monotonic()
+                byte = data[pos]
+                pos += 1
+                value |= (byte & 0x7F) << shift
+                shift += 7
+                if byte < 0x80:
+                    break
+            values.append(value)
+        base_us = values[1] >> 1 if not values[1] & 1 else -((values[1] + 1) >> 1)
+        send = base_us / 1e6
+        self.stats.codec_snapshots += 1
+        self.stats.snapshot(
+            self.index, arrival, send, self._due(send), len(data), values[2] + values[3], 0
+        )
+
+    def _decode(self, data: bytes, arrival: float) -> None:
+        """The slow path: a frame the cheap parse does not know, through the client session.
+
+        The session decodes codec snapshots against its baselines (and forgets a
+        peer's when it leaves), velocity snapshots and control messages.
+        """
+        stats = self.stats
+        stats.decoded_frames += 1
+        for event in self.session.receive_data(data):
+            if isinstance(event, ProtocolError):
+                stats.bad_frames += 1
+                continue
+            if isinstance(event, ErrorMessage):
+                # The server refused something (an update, say): by code, reported.
+                stats.errors[event.code] = stats.errors.get(event.code, 0) + 1
+                stats.error_examples.setdefault(event.code, event.message[:120])
+                continue
+            if not isinstance(event, Snapshot):
+                stats.other_frames += 1
+                continue
+            records = np.zeros(len(event.entries), dtype=SNAPSHOT_DTYPE)
+            for name in ("user", "stream", "dt", "pose"):
+                records[name] = event.entries[name]
+            own = int((records["user"] == self.user).sum())
+            if data[:1] == b"\xc1":
+                stats.codec_snapshots += 1
+                stats.codec_own_echo += own
+            send = event.send_time
+            due = self._due(send)
+            if stats.snapshot(self.index, arrival, send, due, len(data), len(records), own):
+                self._count += 1
+                if self._count % SAMPLE_EVERY == 0:
+                    stats.sample(self.user, arrival, send, due, records.tobytes())
+
+
+class _Publisher:
+    """One task sends every joined client's update at its phase of the period."""
+
+    def __init__(self, rate: float, stats: _LoadStats, rng: random.Random) -> None:
+        self.period = 1.0 / rate
+        self.stats = stats
+        self.rng = rng
+        self.buckets: list[list[_BenchClient]] = [[] for _ in range(BUCKETS)]
+
+    def add(self, client: _BenchClient) -> None:
+        self.buckets[self.rng.randrange(BUCKETS)].append(client)
+
+    async def run(self) -> None:
+        stats, period, clock = self.stats, self.period, time.monotonic
+        step = period / BUCKETS
+        start = clock()
+        while True:
+            for b, bucket in enumerate(self.buckets):
+                due = start + b * step
+                delay = due - clock()
                 if delay > 0:
                     await asyncio.sleep(delay)
-                now = time.monotonic()
-                seq += 1
-                wire["seq"] = seq
-                wire["time"] = now
-                await ws.send(pack(wire))
-                stats.sent(due, now)
-                due += period
-                if due < now:
-                    # Behind by more than a period: skip, never burst.
-                    missed = math.ceil((now - due) / period)
-                    if stats.in_window(now):
-                        stats.sends_late += missed
-                    due += missed * period
+                now = clock()
+                skipped = sum(1 for c in bucket if not c.publish(clock()))
+                stats.send_skips += skipped
+                stats.sent_bucket(due, now, len(bucket) - skipped)
+            start += period
+            now = clock()
+            if start + period < now:
+                # Behind by more than a period: skip whole periods, never burst.
+                missed = math.floor((now - start) / period)
+                if stats.t0 <= now < stats.t1:
+                    stats.sends_late += missed * sum(map(len, self.buckets))
+                start += missed * period
 
-    async def _receive(self, user: int) -> None:
-        from websockets.exceptions import ConnectionClosed
 
-        stats, unpack, index, rate = self.stats, msgpack.unpackb, self.index, self.rate
-        floor = math.floor
-        ph = room_phase(self.room)
-        # The server ticks a subscriber on the grid (k + phase) / rate of its clock
-        # (phase: the room's, see server.room.room_phase), and after
-        # a tick at ``now`` its next one is due at the first grid point after
-        # ``now`` (missed points are skipped). A snapshot's send time is the
-        # ``now`` of its tick, so the due time of each snapshot follows from the
-        # previous one's send time, even when ticks run more than a period late.
-        prev: float | None = None
-        with contextlib.suppress(ConnectionClosed):
-            async for data in self.ws:
-                arrival = time.monotonic()
-                if not isinstance(data, bytes):
-                    stats.bad_frames += 1
-                    continue
-                try:
-                    wire = unpack(data)
-                    if wire["type"] != "snapshot":
-                        stats.other_frames += 1
-                        continue
-                    body, send = wire["poses"], float(wire["time"])
-                    if type(body) is not bytes or len(body) % SNAPSHOT_ENTRY_SIZE:
-                        raise ValueError("not whole snapshot records")
-                except Exception:
-                    stats.bad_frames += 1
-                    continue
-                latest = (floor(send * rate - ph + 1e-9) + ph) / rate
-                due = latest if prev is None else (floor(prev * rate - ph + 1e-9) + 1 + ph) / rate
-                if due > send:
-                    due = latest
-                prev = send
-                stats.snapshot(index, user, arrival, send, due, body, len(data))
+async def _ramp(
+    clients: list[_BenchClient], cfg: dict[str, Any], publisher: _Publisher
+) -> dict[str, Any]:
+    """Open every client at the ramp rate; the ``ramped`` message."""
+    start = time.monotonic()
+    ramp_rate = float(cfg["ramp_rate"])
+
+    async def open_one(client: _BenchClient) -> None:
+        await client.open(cfg["url"], float(cfg.get("open_timeout", 15.0)))
+        if client.conn is not None:
+            publisher.add(client)
+
+    async with asyncio.TaskGroup() as tg:
+        for i, client in enumerate(clients):
+            delay = start + i / ramp_rate - time.monotonic()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            tg.create_task(open_one(client))
+    errors = [c.error for c in clients if c.error]
+    return {
+        "event": "ramped",
+        "joined": sum(1 for c in clients if c.conn is not None),
+        "failed": len(errors),
+        "errors": errors[:5],
+        "ramp_s": time.monotonic() - start,
+    }
+
+
+async def _close_all(clients: list[_BenchClient], within: float) -> None:
+    conns = [c.conn for c in clients if c.conn is not None]
+    for conn in conns:
+        conn.close(1000, "bench over")
+    pending = [conn.closed for conn in conns if not conn.closed.done()]
+    if pending:
+        await asyncio.wait(pending, timeout=within)
+    for conn in conns:
+        conn.abort()
 
 
 async def _load_main(cfg: dict[str, Any], emit: Callable[[dict[str, Any]], None]) -> None:
     loop = asyncio.get_running_loop()
-    lines: asyncio.Queue[str | None] = asyncio.Queue()
+    lines: asyncio.Queue[str | None] = asyncio.Queue(maxsize=16)
 
     def read_stdin() -> None:
         for line in sys.stdin:
-            loop.call_soon_threadsafe(lines.put_nowait, line)
-        loop.call_soon_threadsafe(lines.put_nowait, None)
+            asyncio.run_coroutine_threadsafe(lines.put(line), loop).result()
+        asyncio.run_coroutine_threadsafe(lines.put(None), loop).result()
 
     threading.Thread(target=read_stdin, daemon=True).start()
-
-    n, size, rate = int(cfg["clients"]), int(cfg["room_size"]), float(cfg["rate"])
-    stats = _LoadStats(n, rate)
-    rng = random.Random(int(cfg.get("seed", 0)))
-    clients = [_BenchClient(i, f"bench-{i // size}", rate, stats) for i in range(n)]
-    tasks: list[asyncio.Task[None]] = []
+    first, last = int(cfg.get("first", 0)), int(cfg.get("last", cfg["clients"]))
+    size, rate = int(cfg["room_size"]), float(cfg["rate"])
+    stats = _LoadStats(last - first)
+    codec = str(cfg.get("codec", "raw"))
+    motion = Motion(str(cfg.get("motion", STATIC)), rate)
+    clients = [
+        _BenchClient(i - first, f"bench-{i // size}", rate, stats, codec, motion.cycle(i))
+        for i in range(first, last)
+    ]
+    publisher = _Publisher(rate, stats, random.Random(int(cfg.get("seed", 0)) * 1009 + first))
     try:
-        start = time.monotonic()
-        for i, client in enumerate(clients):
-            delay = start + i / float(cfg["ramp_rate"]) - time.monotonic()
-            if delay > 0:
-                await asyncio.sleep(delay)
-            tasks.append(asyncio.create_task(client.run(cfg["url"], rng)))
-        pending = [asyncio.create_task(c.settled.wait()) for c in clients]
-        _, still = await asyncio.wait(pending, timeout=30.0)
-        for waiter in still:
-            waiter.cancel()
-        errors = [c.error for c in clients if c.error]
-        emit(
-            {
-                "event": "ramped",
-                "joined": sum(1 for c in clients if c.ws is not None),
-                "failed": len(errors) + len(still),
-                "errors": errors[:5],
-                "ramp_s": time.monotonic() - start,
-            }
-        )
-        line = await asyncio.wait_for(lines.get(), timeout=float(cfg["window_timeout"]))
-        if line is None:
-            return
-        order = json.loads(line)
-        if "window" not in order:
-            return
-        stats.t0, stats.t1 = (float(x) for x in order["window"])
-        await asyncio.sleep(max(0.0, stats.t1 - time.monotonic()) + 0.05)
-        summary = stats.summary()
-        summary["crashed_clients"] = sum(
-            1 for t in tasks if t.done() and not t.cancelled() and t.exception() is not None
-        )
-        summary["event"] = "result"
-        emit(summary)
+        async with asyncio.TaskGroup() as tg:
+            pub = tg.create_task(publisher.run())
+            emit(await _ramp(clients, cfg, publisher))
+            await _measure(cfg, stats, clients, lines, emit)
+            pub.cancel()
     finally:
-        for task in tasks:
-            task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
-        open_ws = [c.ws for c in clients if c.ws is not None]
-        if open_ws:
-            await asyncio.wait(
-                [asyncio.create_task(ws.close(1000, "bench over")) for ws in open_ws], timeout=10.0
-            )
+        await _close_all(clients, within=10.0)
+
+
+async def _measure(
+    cfg: dict[str, Any],
+    stats: _LoadStats,
+    clients: list[_BenchClient],
+    lines: asyncio.Queue[str | None],
+    emit: Callable[[dict[str, Any]], None],
+) -> None:
+    """Wait for the window, count through it, write the samples and emit ``result``."""
+    line = await asyncio.wait_for(lines.get(), timeout=float(cfg["window_timeout"]))
+    if line is None:
+        return
+    order = json.loads(line)
+    if "window" not in order:
+        return
+    stats.t0, stats.t1 = (float(x) for x in order["window"])
+    await asyncio.sleep(max(0.0, stats.t1 - time.monotonic()) + 0.05)
+    summary = stats.counts()
+    closed = [c.conn.closed.result() for c in clients if c.conn and c.conn.closed.done()]
+    summary["clients_closed"] = len(closed)
+    summary["close_reasons"] = sorted(set(closed))[:5]
+    summary["load_clients"] = len(clients)
+    samples = cfg.get("samples")
+    if samples:
+        arrays = stats.arrays()
+        await asyncio.to_thread(
+            np.savez,
+            samples,
+            latency=arrays["latency"],
+            hold=arrays["hold"],
+            relay=arrays["relay"],
+            tick_lag=arrays["tick_lag"],
+            send_lag=arrays["send_lag"],
+        )
+    summary["event"] = "result"
+    emit(summary)
 
 
 def _load_entry() -> None:
-    """Entry of the load subprocess: config as JSON in argv[1], JSON lines on stdout."""
+    """Entry of a load subprocess: config as JSON in argv[1], JSON lines on stdout."""
     cfg = json.loads(sys.argv[1])
     out = os.fdopen(os.dup(1), "w", buffering=1)
     sys.stdout = sys.stderr  # nothing else may write to the channel
@@ -338,5 +608,6 @@ def _load_entry() -> None:
         os._exit(3)
 
     threading.Thread(target=watchdog, daemon=True).start()
-    _raise_nofile(int(cfg["clients"]) + 256)
-    _run_loop(_load_main(cfg, emit))
+    _raise_nofile(int(cfg.get("last", cfg["clients"])) - int(cfg.get("first", 0)) + 256)
+    with contextlib.suppress(KeyboardInterrupt):
+        _run_loop(_load_main(cfg, emit))

@@ -96,6 +96,12 @@ class _Child:
                 self.proc.stdin.write(json.dumps(message) + "\n")
                 self.proc.stdin.flush()
 
+    def close_stdin(self) -> None:
+        """Tell a polite child to finish (it exits at the end of its stdin)."""
+        if self.proc.stdin is not None:
+            with contextlib.suppress(OSError, ValueError):
+                self.proc.stdin.close()
+
     def stop(self, grace: float) -> int | None:
         """Close stdin (a polite child exits), SIGTERM, SIGKILL; ``grace`` s each step."""
         if self.proc.stdin is not None:
@@ -174,7 +180,9 @@ def _machine_cpu() -> tuple[float, float, float]:
 def _scrape(port: int, timeout: float = 20.0) -> dict[str, float] | None:
     """The server's /metrics, summed per name (``*_max_ms`` gauges: the max).
 
-    None if it does not answer in time: an overloaded server can be that slow.
+    Histogram buckets keep their bound: ``NAME_bucket|LE`` (summed over the other
+    labels). None if it does not answer in time: an overloaded server can be
+    that slow.
     """
     url = f"http://127.0.0.1:{port}/metrics"
     try:
@@ -187,7 +195,9 @@ def _scrape(port: int, timeout: float = 20.0) -> dict[str, float] | None:
         if not line or line.startswith("#"):
             continue
         name_labels, _, value = line.rpartition(" ")
-        name = name_labels.split("{", 1)[0]
+        name, _, labels = name_labels.partition("{")
+        if name.endswith("_bucket") and 'le="' in labels:
+            name += "|" + labels.split('le="', 1)[1].split('"', 1)[0]
         v = float(value)
         if name.endswith("_max_ms"):
             out[name] = max(out.get(name, 0.0), v)
@@ -196,8 +206,52 @@ def _scrape(port: int, timeout: float = 20.0) -> dict[str, float] | None:
     return out
 
 
+def _histogram_quantile(
+    m0: dict[str, float] | None, m1: dict[str, float] | None, name: str, q: float
+) -> float:
+    """Quantile ``q`` (0..1) of histogram ``name`` over the window between two scrapes.
+
+    Prometheus' rule: the upper bound of the first bucket whose cumulative count
+    reaches ``q`` of the total, interpolated linearly inside it. NaN if the
+    server exports no such histogram or it counted nothing in the window.
+    """
+    if m0 is None or m1 is None:
+        return math.nan
+    prefix = f"{name}_bucket|"
+    bounds = sorted(
+        (float(key[len(prefix) :]), m1[key] - m0.get(key, 0.0))
+        for key in m1
+        if key.startswith(prefix)
+    )
+    if not bounds or bounds[-1][1] <= 0:
+        return math.nan
+    total = bounds[-1][1]
+    rank = q * total
+    lo_bound, lo_count = 0.0, 0.0
+    for bound, count in bounds:
+        if count >= rank:
+            if math.isinf(bound):
+                return lo_bound
+            inside = count - lo_count
+            frac = (rank - lo_count) / inside if inside > 0 else 1.0
+            return lo_bound + (bound - lo_bound) * frac
+        lo_bound, lo_count = bound, count
+    return math.nan
+
+
 def _value(metrics: dict[str, float] | None, name: str) -> float:
     return math.nan if metrics is None else metrics.get(name, 0.0)
+
+
+def _gauge(metrics: dict[str, float] | None, name: str) -> float:
+    """A gauge's value; NaN if the server did not answer or exports no such series.
+
+    (A room's gauges vanish with the room: 0 would read as "no lag" when every
+    client was closed, which is the opposite of the truth.)
+    """
+    if metrics is None or name not in metrics:
+        return math.nan
+    return metrics[name]
 
 
 def _delta(m0: dict[str, float] | None, m1: dict[str, float] | None, name: str) -> float:

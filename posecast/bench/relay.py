@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import sys
@@ -14,11 +13,22 @@ from typing import Any
 
 from rich.console import Console
 
-from posecast.bench.common import _LISTENING, _LOAD_BOOT, _SERVER_BOOT, STREAMS, _raise_nofile
+from posecast.bench.common import (
+    _BASELINE_BOOT,
+    _LISTENING,
+    _SERVER_BOOT,
+    DEFAULT_MOTION,
+    STREAMS,
+    Motion,
+    _raise_nofile,
+)
+from posecast.bench.fleet import LoadFleet
 from posecast.bench.procs import (
     _Child,
     _children_run_time,
     _delta,
+    _gauge,
+    _histogram_quantile,
     _machine_cpu,
     _proc_cpu,
     _scrape,
@@ -35,7 +45,11 @@ from posecast.bench.recorder import (
     _print_recorder_table,
     _recorder_summary,
 )
-from posecast.bench.report import print_relay_report
+from posecast.bench.report import print_relay_report, saturation
+
+#: The servers ``posecast bench relay`` can run under the load.
+SERVERS = ("relay", "baseline")
+CODECS = ("raw", "compact")
 
 
 def run_relay_bench(
@@ -52,8 +66,18 @@ def run_relay_bench(
     ramp_rate: float = 50.0,
     seed: int = 0,
     interleave: float = 0.0,
+    procs: int = 1,
+    codec: str = "raw",
+    server: str = "relay",
+    motion: str = DEFAULT_MOTION,
 ) -> dict[str, Any]:
     """Run the relay benchmark; print and return its report (figures, never pass/fail).
+
+    The load runs in ``procs`` processes, its clients' updates coded as
+    ``codec`` (``raw`` or ``compact``) and carrying ``motion`` (``static`` or a
+    trace set such as ``traces:sample``, see :class:`~posecast.bench.common.Motion`);
+    ``server`` is ``relay`` (``posecast serve``) or ``baseline`` (the bare
+    broadcast server of :mod:`posecast.bench.baseline`).
 
     ``clients`` load clients join rooms of ``room_size``, each publishes 3 streams
     at ``rate`` Hz and subscribes at ``rate``; connections ramp up at
@@ -71,7 +95,24 @@ def run_relay_bench(
     """
     console = console or Console()
     args = (clients, room_size, rate, duration)
-    opts: dict[str, Any] = {"warmup": warmup, "ramp_rate": ramp_rate, "seed": seed}
+    opts: dict[str, Any] = {
+        "warmup": warmup,
+        "ramp_rate": ramp_rate,
+        "seed": seed,
+        "procs": procs,
+        "codec": codec,
+        "server": server,
+        "motion": motion,
+    }
+    Motion(motion, rate if rate > 0 else 1.0)  # a bad trace set: one ValueError, here
+    if procs < 1:
+        raise ValueError("procs must be at least 1")
+    if codec not in CODECS:
+        raise ValueError(f"codec must be raw or compact, not {codec!r}")
+    if server not in SERVERS:
+        raise ValueError(f"server must be relay or baseline, not {server!r}")
+    if record and server != "relay":
+        raise ValueError("only the relay records")
     if not record:
         return _run_once(*args, record_dir=None, console=console, **opts)
     writers = ["process", "thread"] if record_writer == "both" else [record_writer]
@@ -174,16 +215,16 @@ class _Sample:
 
     recorder: float
     server: tuple[float, float]
-    load: tuple[float, float]
+    load: list[float]
     machine: tuple[float, float, float]
     wall: float
     metrics: dict[str, float] | None
 
 
-def _sample(server: _Child, load: _Child, port: int) -> _Sample:
+def _sample(server: _Child, load: LoadFleet, port: int | None) -> _Sample:
     recorder = _children_run_time(server.pid)
-    cpu = _proc_cpu(server.pid), _proc_cpu(load.pid), _machine_cpu(), time.monotonic()
-    return _Sample(recorder, *cpu, metrics=_scrape(port))
+    cpu = _proc_cpu(server.pid), load.cpu(), _machine_cpu(), time.monotonic()
+    return _Sample(recorder, *cpu, metrics=None if port is None else _scrape(port))
 
 
 def _run_once(
@@ -199,6 +240,10 @@ def _run_once(
     ramp_rate: float,
     seed: int,
     interleave: float = 0.0,
+    procs: int = 1,
+    codec: str = "raw",
+    server: str = "relay",
+    motion: str = DEFAULT_MOTION,
 ) -> dict[str, Any]:
     """One measured run; ``record_dir`` turns the server's recorder on.
 
@@ -224,8 +269,15 @@ def _run_once(
         "record": record_dir is not None,
         "record_writer": record_writer if record_dir is not None else None,
         "nproc": os.cpu_count() or 0,
+        "server": server,
+        "procs": procs,
+        "codec": codec,
+        "motion": motion,
     }
-    server_argv = _server_argv(rate, record_dir, record_writer)
+    if server == "baseline":
+        server_argv = [sys.executable, "-c", _BASELINE_BOOT, "--rate", f"{rate:g}"]
+    else:
+        server_argv = _server_argv(rate, record_dir, record_writer)
     result, start, end = _run_children(
         report,
         server_argv,
@@ -257,6 +309,16 @@ def _server_argv(rate: float, record_dir: Path | None, record_writer: str) -> li
         f"{max(30.0, rate):g}",
         "--log-level",
         "warning",
+        # Every client comes from 127.0.0.1: the bench lifts the count limits
+        # (0: no limit) so that they do not cap the load it asks for.
+        "--max-connections",
+        "0",
+        "--max-connections-per-address",
+        "0",
+        "--max-rooms",
+        "0",
+        "--max-recorded-rooms",
+        "0",
         *(
             ["--record", str(record_dir), "--record-writer", record_writer]
             if record_dir is not None
@@ -283,9 +345,10 @@ def _run_children(
     ramp_s = clients / ramp_rate
     window_timeout = warmup + 60.0
     server: _Child | None = None
-    load: _Child | None = None
+    load: LoadFleet | None = None
+    what = "baseline" if report["server"] == "baseline" else "relay"
     try:
-        with console.status("relay bench: starting the server ...") as status:
+        with console.status(f"{what} bench: starting the server ...") as status:
             server = _Child("server", server_argv, hash_seed=seed)
             found = _LISTENING.search(
                 server.wait_line(lambda line: _LISTENING.search(line) is not None, timeout=30.0)
@@ -299,31 +362,33 @@ def _run_children(
                 "rate": rate,
                 "ramp_rate": ramp_rate,
                 "seed": seed,
+                "codec": report["codec"],
+                "motion": report["motion"],
                 "window_timeout": window_timeout,
                 "hard_timeout": ramp_s + 30.0 + window_timeout + duration + 60.0,
             }
-            status.update(f"relay bench: ramping up {clients} clients at {ramp_rate:g}/s ...")
-            load = _Child(
-                "load",
-                [sys.executable, "-c", _LOAD_BOOT, json.dumps(cfg)],
-                stdin=True,
-                hash_seed=seed,
+            status.update(
+                f"{what} bench: ramping up {clients} clients at {ramp_rate:g}/s "
+                f"from {report['procs']} load process(es) ..."
             )
+            load = LoadFleet(cfg, report["procs"], seed)
+            report["procs"] = len(load.children)
             _ramp(load, report, timeout=ramp_s + 60.0)
             t0 = time.monotonic() + warmup
             t1 = t0 + duration
             load.tell({"window": [t0, t1]})
-            status.update(f"relay bench: warm-up {warmup:g} s ...")
+            status.update(f"{what} bench: warm-up {warmup:g} s ...")
             _sleep_until(t0)
-            status.update(f"relay bench: measuring for {duration:g} s ...")
-            start = _sample(server, load, port)
+            status.update(f"{what} bench: measuring for {duration:g} s ...")
+            metrics_port = port if report["server"] == "relay" else None
+            start = _sample(server, load, metrics_port)
             if interleave > 0:
                 status.update(f"relay bench: measuring for {duration:g} s, recording on/off ...")
                 report["phases"] = _interleaved_phases(server.pid, port, t1, interleave)
             _sleep_until(t1)
-            end = _sample(server, load, port)
-            status.update("relay bench: collecting ...")
-            result = load.wait_json("result", timeout=60.0)
+            end = _sample(server, load, metrics_port)
+            status.update(f"{what} bench: collecting ...")
+            result = load.results(timeout=60.0)
     finally:
         if load is not None:
             load.stop(grace=15.0)
@@ -333,15 +398,13 @@ def _run_children(
     return result, start, end
 
 
-def _ramp(load: _Child, report: dict[str, Any], timeout: float) -> None:
+def _ramp(load: LoadFleet, report: dict[str, Any], timeout: float) -> None:
     """Wait for the load to have joined every client it could; into ``report``."""
-    ramped = load.wait_json("ramped", timeout=timeout)
+    ramped = load.ramped(timeout=timeout)
     report["clients_joined"] = int(ramped["joined"])
     report["clients_failed"] = int(ramped["failed"])
     report["join_errors"] = ramped["errors"]
     report["ramp_s"] = float(ramped["ramp_s"])
-    if ramped["joined"] == 0:
-        raise load.fail(f"no client could join: {ramped['errors']}")
 
 
 def _add_figures(
@@ -353,7 +416,8 @@ def _add_figures(
     server_user = end.server[0] - start.server[0]
     server_sys = end.server[1] - start.server[1]
     server_cpu = server_user + server_sys
-    load_cpu = sum(end.load) - sum(start.load)
+    load_cpus = [b - a for a, b in zip(start.load, end.load, strict=True)]
+    load_cpu = sum(load_cpus)
     recorder_cpu = end.recorder - start.recorder
     delivered = int(result["poses_delivered"])
     snapshots = int(result["snapshots"])
@@ -363,7 +427,6 @@ def _add_figures(
     full, last = divmod(clients, room_size)
     offered = rate * len(STREAMS) * (full * room_size * (room_size - 1) + last * (last - 1))
     m0, m1 = start.metrics, end.metrics
-    del result["event"]
     report.update(result)
     report.update(
         {
@@ -375,10 +438,13 @@ def _add_figures(
             "server_cpu_us_per_snapshot": 1e6 * server_cpu / snapshots if snapshots else math.nan,
             "server_sys_pct": 100.0 * server_sys / wall,
             "load_cpu_pct": 100.0 * load_cpu / wall,
+            "load_cpu_pct_per_proc": [100.0 * c / wall for c in load_cpus],
+            "load_cpu_pct_max": 100.0 * max(load_cpus) / wall,
+            "load_cpu_us_per_pose": 1e6 * load_cpu / delivered if delivered else math.nan,
             "machine_cpu_pct": 100.0 * busy / total if total > 0 else math.nan,
             # CPU used by neither the server nor the load (other jobs on this machine).
             "other_cpu_pct": 100.0 * (busy / total * ncpu)
-            - 100.0 * (server_cpu + load_cpu + end.recorder - start.recorder) / wall
+            - 100.0 * (server_cpu + load_cpu + recorder_cpu) / wall
             if total > 0
             else math.nan,
             # Of one core: time the hypervisor ran other guests on our cores. A
@@ -398,10 +464,17 @@ def _add_figures(
             "metrics_ok": m0 is not None and m1 is not None,
             "skips": _delta(m0, m1, "posecast_snapshot_skips_total"),
             "flood_drops": _delta(m0, m1, "posecast_flood_drops_total"),
+            # Stale, future or out-of-bounds captures: an overloaded relay refuses the
+            # updates it reads more than --max-capture-age after their capture.
+            "updates_refused": _delta(m0, m1, "posecast_updates_refused_total"),
             "server_poses_out": _delta(m0, m1, "posecast_room_poses_out_total"),
-            "tick_lag_max_ms_start": _value(m0, "posecast_room_tick_lag_max_ms"),
-            "tick_lag_max_ms_end": _value(m1, "posecast_room_tick_lag_max_ms"),
+            "tick_lag_max_ms_start": _gauge(m0, "posecast_room_tick_lag_max_ms"),
+            "tick_lag_max_ms_end": _gauge(m1, "posecast_room_tick_lag_max_ms"),
+            # Only if the server exports the histogram (see docs/relay-benchmark.md).
+            "metrics_tick_lag_p99_ms": 1e3
+            * _histogram_quantile(m0, m1, "posecast_tick_lag_seconds", 0.99),
             "connections_end": _value(m1, "posecast_connections"),
         }
     )
     report["skips_per_s"] = report["skips"] / wall
+    report.update(saturation(report))

@@ -10,6 +10,60 @@ from rich.table import Table
 #: One line of the table: figure, value, note.
 _Row = tuple[str, str, str]
 
+#: A process above this share of one core is saturated.
+SATURATED_CPU_PCT = 90.0
+#: The load's publisher woke this late (p99): its event loop is behind.
+LOOP_BEHIND_MS = 10.0
+#: All cores this busy: every process waits for a core, whoever is "the limit".
+MACHINE_FULL_PCT = 95.0
+
+
+def saturation(r: dict[str, Any]) -> dict[str, Any]:
+    """Who limited this run: the server, the load generator, the machine, or none.
+
+    The load is saturated when one of its processes used more than
+    :data:`SATURATED_CPU_PCT` of a core or its loop woke its publisher more than
+    :data:`LOOP_BEHIND_MS` late (p99) while a core was free (on a full machine
+    that lateness is noted, not blamed on the load); the server when it used more than
+    :data:`SATURATED_CPU_PCT` of a core, skipped snapshots, refused updates,
+    closed connections, or its ticks ran more than half a period late (p99, as
+    the clients saw them).
+    """
+    machine = r["machine_cpu_pct"] > MACHINE_FULL_PCT
+    load: list[str] = []
+    notes: list[str] = []
+    if r["load_cpu_pct_max"] > SATURATED_CPU_PCT:
+        load.append(f"a load process used {r['load_cpu_pct_max']:.0f} % of a core")
+    if r["send_lag_p99_ms"] > LOOP_BEHIND_MS:
+        late = f"the load's loop ran {r['send_lag_p99_ms']:.1f} ms late (p99)"
+        # On a machine with no idle core every loop wakes late: not the load's doing.
+        (notes if machine else load).append(late)
+    server: list[str] = []
+    if r["server_cpu_pct"] > SATURATED_CPU_PCT:
+        server.append(f"the server used {r['server_cpu_pct']:.0f} % of a core")
+    if r["skips"] > 0:
+        server.append(f"{r['skips']:.0f} snapshots skipped")
+    if r.get("updates_refused", 0) > 0:
+        server.append(f"{r['updates_refused']:.0f} updates refused (read too late?)")
+    if r.get("clients_closed", 0) > 0:
+        server.append(f"{r['clients_closed']} connections closed by the server")
+    half_period_ms = 500.0 / r["rate_hz"]
+    if r["tick_lag_p99_ms"] > half_period_ms:
+        server.append(f"ticks ran {r['tick_lag_p99_ms']:.1f} ms late (p99)")
+    by = [name for name, hit in (("server", server), ("generator", load)) if hit]
+    if machine:
+        by.append("machine")
+    notes = server + load + notes
+    if machine:
+        notes.append(f"all cores {r['machine_cpu_pct']:.0f} % busy")
+    return {
+        "saturated_by": "+".join(by) or "none",
+        "server_saturated": bool(server),
+        "generator_saturated": bool(load),
+        "machine_saturated": machine,
+        "saturation_notes": notes,
+    }
+
 
 def _f(x: Any, digits: int = 1) -> str:
     if isinstance(x, float) and x != x:
@@ -20,10 +74,13 @@ def _f(x: Any, digits: int = 1) -> str:
 def print_relay_report(report: dict[str, Any], console: Console) -> None:
     """The report as a two-column rich table."""
     r = report
+    what = "baseline (bare broadcast server)" if r.get("server") == "baseline" else "relay"
     table = Table(
         title=(
-            f"relay bench: {r['clients']} clients, rooms of {r['room_size']}, "
-            f"{r['rate_hz']:g} Hz, {r['window_s']:.1f} s measured on {r['nproc']} cores"
+            f"{what} bench: {r['clients']} clients, rooms of {r['room_size']}, "
+            f"{r['rate_hz']:g} Hz, {r.get('codec', 'raw')} updates of "
+            f"{r.get('motion', 'static')} motion, "
+            f"{r['window_s']:.1f} s measured on {r['nproc']} cores"
         ),
         title_justify="left",
     )
@@ -33,6 +90,14 @@ def print_relay_report(report: dict[str, Any], console: Console) -> None:
     for row in [*_cpu_rows(r), *_timing_rows(r), *_traffic_rows(r)]:
         table.add_row(*row)
     console.print(table)
+    notes = "; ".join(r["saturation_notes"])
+    if r["generator_saturated"]:
+        console.print(
+            f"[bold red]the load generator, not (only) the server, was saturated: {notes}. "
+            "Figures measure the load as much as the server: add --procs.[/bold red]"
+        )
+    else:
+        console.print(f"saturated by: {r['saturated_by']}" + (f" ({notes})" if notes else ""))
 
 
 def _cpu_rows(r: dict[str, Any]) -> list[_Row]:
@@ -46,7 +111,14 @@ def _cpu_rows(r: dict[str, Any]) -> list[_Row]:
         ),
         ("server CPU per pose", f"{_f(r['server_cpu_us_per_pose'], 2)} us", "per remote pose"),
         ("server CPU per snapshot", f"{_f(r['server_cpu_us_per_snapshot'], 1)} us", ""),
-        ("load CPU", f"{_f(r['load_cpu_pct'])} %", "load generator; ~100 % = it limits"),
+        (
+            "load CPU, total / busiest process",
+            f"{_f(r['load_cpu_pct'])} % / {_f(r['load_cpu_pct_max'])} %",
+            f"{r['procs']} load process(es): "
+            + ", ".join(f"{x:.0f}" for x in r["load_cpu_pct_per_proc"])
+            + f" %; > {SATURATED_CPU_PCT:g} % = it limits",
+        ),
+        ("load CPU per pose", f"{_f(r['load_cpu_us_per_pose'], 2)} us", "all load processes"),
         (
             "machine CPU / other jobs",
             f"{_f(r['machine_cpu_pct'])} % / {_f(r['other_cpu_pct'])} %",
@@ -88,6 +160,16 @@ def _timing_rows(r: dict[str, Any]) -> list[_Row]:
             f"{_f(r['tick_lag_max_ms_start'])} -> {_f(r['tick_lag_max_ms_end'])} ms",
             "/metrics, max over rooms",
         ),
+        (
+            "server tick lag p99",
+            f"{_f(r['metrics_tick_lag_p99_ms'], 2)} ms",
+            "/metrics histogram over the window; - if the server has none",
+        ),
+        (
+            "load send lag p99 / max",
+            f"{_f(r['send_lag_p99_ms'], 2)} / {_f(r['send_lag_max_ms'], 2)} ms",
+            f"the load's publisher waking late; > {LOOP_BEHIND_MS:g} ms = its loop is behind",
+        ),
     ]
 
 
@@ -100,6 +182,11 @@ def _traffic_rows(r: dict[str, Any]) -> list[_Row]:
             f"asked {r['rate_hz']:g}; ratio {_f(r['snapshot_rate_ratio'], 3)}",
         ),
         ("skips", f"{_f(r['skips'], 0)} ({_f(r['skips_per_s'], 1)}/s)", "/metrics"),
+        (
+            "updates refused",
+            _f(r["updates_refused"], 0),
+            "/metrics: stale, future or out-of-bounds captures",
+        ),
         (
             "poses delivered / s",
             _f(r["poses_per_s"], 0),
@@ -117,8 +204,19 @@ def _traffic_rows(r: dict[str, Any]) -> list[_Row]:
             "payload",
         ),
         (
-            "updates sent late",
-            _f(r["sends_late"]),
-            f"send lag p99 {_f(r['send_lag_p99_ms'], 2)} ms",
+            "updates sent late / skipped",
+            f"{_f(r['sends_late'])} / {_f(r['send_skips'])}",
+            "late: the load fell a period behind; skipped: the socket held > 64 KiB",
+        ),
+        (
+            "frames decoded in full",
+            f"{_f(r['decoded_frames'])} ({_f(r['codec_snapshots'])} codec snapshots)",
+            f"other frames {_f(r['other_frames'])}, bad {_f(r['bad_frames'])}, "
+            f"connections closed {_f(r['clients_closed'])}",
+        ),
+        (
+            "errors from the server / closes",
+            ", ".join(f"{k} {v}" for k, v in sorted(r["server_errors"].items())) or "none",
+            "; ".join(r["close_reasons"]) or "no connection closed by the server",
         ),
     ]

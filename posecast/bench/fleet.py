@@ -1,0 +1,163 @@
+"""The load generator as several processes (``--procs``), seen by the controller as one.
+
+Clients are split into contiguous ranges, one per process; each process ramps
+its share at its share of the ramp rate, so the whole joins at the rate asked.
+Counts add up; percentiles come from the processes' samples (``.npz`` files in
+a temporary folder) concatenated, never from averaging percentiles.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from posecast.bench.common import _LOAD_BOOT, _pct
+from posecast.bench.procs import _Child, _proc_cpu
+
+#: Keys of the processes' results that add up.
+_SUMMED = (
+    "snapshots",
+    "snapshots_per_client_s_sum",
+    "clients_without_snapshots",
+    "clients_without_snapshots_in_window",
+    "poses_delivered",
+    "poses_delivered_incl_own",
+    "payload_bytes",
+    "wire_bytes",
+    "updates_sent",
+    "updates_sent_total",
+    "sends_late",
+    "send_skips",
+    "other_frames",
+    "bad_frames",
+    "decoded_frames",
+    "codec_snapshots",
+    "codec_own_echo",
+    "clients_closed",
+    "load_clients",
+)
+
+
+class LoadFleet:
+    """``procs`` load subprocesses sharing ``clients`` clients."""
+
+    def __init__(self, cfg: dict[str, Any], procs: int, seed: int) -> None:
+        clients = int(cfg["clients"])
+        procs = max(1, min(procs, clients))
+        self._tmp = tempfile.TemporaryDirectory(prefix="posecast-load-")
+        self.children: list[_Child] = []
+        self.samples: list[Path] = []
+        for k in range(procs):
+            first, last = k * clients // procs, (k + 1) * clients // procs
+            path = Path(self._tmp.name) / f"load-{k}.npz"
+            self.samples.append(path)
+            part = {
+                **cfg,
+                "first": first,
+                "last": last,
+                "ramp_rate": float(cfg["ramp_rate"]) / procs,
+                "samples": str(path),
+            }
+            name = "load" if procs == 1 else f"load {k + 1}/{procs}"
+            self.children.append(
+                _Child(
+                    name,
+                    [sys.executable, "-c", _LOAD_BOOT, json.dumps(part)],
+                    stdin=True,
+                    hash_seed=seed,
+                )
+            )
+
+    @property
+    def pids(self) -> list[int]:
+        return [child.pid for child in self.children]
+
+    def ramped(self, timeout: float) -> dict[str, Any]:
+        """Wait for every process to have joined its clients; their figures, added up."""
+        parts = [child.wait_json("ramped", timeout=timeout) for child in self.children]
+        joined = sum(int(p["joined"]) for p in parts)
+        if joined == 0:
+            errors = [e for p in parts for e in p["errors"]]
+            raise self.children[0].fail(f"no client could join: {errors[:5]}")
+        return {
+            "joined": joined,
+            "failed": sum(int(p["failed"]) for p in parts),
+            "errors": [e for p in parts for e in p["errors"]][:5],
+            "ramp_s": max(float(p["ramp_s"]) for p in parts),
+        }
+
+    def tell(self, message: dict[str, Any]) -> None:
+        for child in self.children:
+            child.tell(message)
+
+    def cpu(self) -> list[float]:
+        """CPU seconds (user + system) of each process so far."""
+        return [sum(_proc_cpu(pid)) for pid in self.pids]
+
+    def results(self, timeout: float) -> dict[str, Any]:
+        """Every process's result, merged: sums, extremes, percentiles of the samples."""
+        parts = [child.wait_json("result", timeout=timeout) for child in self.children]
+        merged: dict[str, Any] = {key: sum(p.get(key, 0) for p in parts) for key in _SUMMED}
+        merged["window_s"] = max(float(p["window_s"]) for p in parts)
+        merged["snapshots_per_client_s"] = merged.pop("snapshots_per_client_s_sum") / max(
+            1, merged["load_clients"]
+        )
+        merged["snapshots_per_client_s_min"] = min(p["snapshots_per_client_s_min"] for p in parts)
+        merged["snapshots_per_client_s_max"] = max(p["snapshots_per_client_s_max"] for p in parts)
+        merged["close_reasons"] = sorted({r for p in parts for r in p["close_reasons"]})[:5]
+        errors: dict[str, int] = {}
+        for p in parts:
+            for code, n in p["server_errors"].items():
+                errors[code] = errors.get(code, 0) + int(n)
+        merged["server_errors"] = errors
+        merged["server_error_examples"] = {
+            code: text for p in parts for code, text in p["server_error_examples"].items()
+        }
+        merged["load_procs"] = len(parts)
+        merged.update(self._percentiles())
+        return merged
+
+    def _percentiles(self) -> dict[str, float]:
+        arrays: dict[str, list[np.ndarray]] = {}
+        for path in self.samples:
+            if not path.exists():
+                continue
+            with np.load(path) as data:
+                for key in data.files:
+                    arrays.setdefault(key, []).append(data[key])
+        cat = {k: np.concatenate(v) for k, v in arrays.items()}
+        empty = np.zeros(0)
+        lat, hold = cat.get("latency", empty), cat.get("hold", empty)
+        relay, lag = cat.get("relay", empty), cat.get("tick_lag", empty)
+        send = cat.get("send_lag", empty)
+        return {
+            "latency_p50_ms": _pct(lat, 50),
+            "latency_p99_ms": _pct(lat, 99),
+            "latency_max_ms": float(lat.max()) if len(lat) else math.nan,
+            "latency_samples": len(lat),
+            "hold_p50_ms": _pct(hold, 50),
+            "hold_p99_ms": _pct(hold, 99),
+            "relay_p50_ms": _pct(relay, 50),
+            "relay_p99_ms": _pct(relay, 99),
+            "relay_max_ms": float(relay.max()) if len(relay) else math.nan,
+            "tick_lag_p50_ms": _pct(lag, 50),
+            "tick_lag_p99_ms": _pct(lag, 99),
+            "send_lag_p99_ms": _pct(send, 99),
+            "send_lag_max_ms": float(send.max()) if len(send) else math.nan,
+        }
+
+    def stop(self, grace: float) -> None:
+        for child in self.children:  # all at once: each closes its clients in parallel
+            child.close_stdin()
+        for child in self.children:
+            child.stop(grace=grace)
+        self._tmp.cleanup()
+
+    def fail(self, what: str) -> RuntimeError:
+        return self.children[0].fail(what)
