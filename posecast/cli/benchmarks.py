@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -12,16 +12,71 @@ from posecast.cli.common import _fail, console
 
 def bench_interp(
     max_batch: Annotated[int, typer.Option(help="Largest batch size to time.")] = 1_000_000,
+    entry_paths: Annotated[
+        bool,
+        typer.Option(
+            help=(
+                "Also time batch 10,000 in a plain `python -m` process (glibc's allocator "
+                "untuned, as in a notebook) and show it beside this CLI's figures."
+            )
+        ),
+    ] = True,
 ) -> None:
-    """Poses/s of each interpolator beside scipy, pytransform3d and kingdon."""
+    """Poses/s of each interpolator beside scipy, pytransform3d and kingdon; the
+    100-stream render frame; throughput by entry path."""
     from scenarios.bench_interp import run_interp_bench
 
+    if max_batch < 1:
+        raise _fail("--max-batch must be at least 1")
     sizes = tuple(b for b in (1, 100, 10_000, 1_000_000) if b <= max_batch)
-    run_interp_bench(batch_sizes=sizes, console=console)
+    run_interp_bench(
+        batch_sizes=sizes,
+        console=console,
+        entry="posecast CLI (allocator tuned)",
+        entry_paths=entry_paths,
+    )
+
+
+ClientsOption = Annotated[
+    str,
+    typer.Option(
+        help=(
+            "Load clients (in separate processes); a comma-separated list "
+            "(100,200,500) runs one measured run per count and prints the curve."
+        )
+    ),
+]
+ProcsOption = Annotated[
+    int,
+    typer.Option(
+        help="Load generator processes sharing the clients (so the load is not the limit)."
+    ),
+]
+CodecOption = Annotated[
+    str, typer.Option(help="How the load codes its updates: raw (float records) or compact.")
+]
+MotionOption = Annotated[
+    str,
+    typer.Option(
+        help=(
+            "What the load's clients publish: a trace set (traces:sample, traces:dev, a "
+            "folder or a file; each client loops 2 s of a real head-and-hands trace) or static."
+        )
+    ),
+]
+BaselineOption = Annotated[
+    bool,
+    typer.Option(
+        help=(
+            "Also run a bare websockets + uvloop broadcast server under the same load "
+            "(after the relay, per client count) and print server CPU per pose side by side."
+        )
+    ),
+]
 
 
 def bench_relay(
-    clients: Annotated[int, typer.Option(help="Load clients (in a separate process).")] = 500,
+    clients: ClientsOption = "500",
     room_size: Annotated[int, typer.Option(help="Clients per room.")] = 10,
     rate: Annotated[float, typer.Option(help="Publish and snapshot rate (Hz).")] = 20.0,
     duration: Annotated[float, typer.Option(help="Measured seconds (after warm-up).")] = 30.0,
@@ -51,33 +106,100 @@ def bench_relay(
             )
         ),
     ] = 0.0,
+    procs: ProcsOption = 1,
+    codec: CodecOption = "raw",
+    motion: MotionOption = "traces:sample",
+    baseline: BaselineOption = False,
     json_out: Annotated[
         Path | None, typer.Option("--json", help="Also write the report as JSON here.")
     ] = None,
 ) -> None:
     """Relay throughput: server CPU per pose, latency p50/p99, skips, tick lag."""
-    from posecast.bench import run_relay_bench
+    from posecast.bench import parse_counts
 
-    if clients < 1 or room_size < 1 or rate <= 0 or duration <= 0:
-        raise _fail("--clients, --room-size, --rate and --duration must be positive")
+    try:
+        counts = parse_counts(clients)
+    except ValueError as exc:
+        raise _fail(str(exc)) from None
+    if room_size < 1 or rate <= 0 or duration <= 0:
+        raise _fail("--room-size, --rate and --duration must be positive")
+    if procs < 1:
+        raise _fail("--procs must be at least 1")
+    if codec not in ("raw", "compact"):
+        raise _fail(f"--codec must be raw or compact, not {codec!r}")
+    if record and (baseline or len(counts) > 1):
+        raise _fail("--record takes one --clients count and no --baseline")
     if repeat < 1:
         raise _fail("--repeat must be at least 1")
     if interleave and not record:
         raise _fail("--interleave needs --record")
     if record_writer not in ("process", "thread", "both"):
         raise _fail(f"--record-writer must be process, thread or both, not {record_writer!r}")
+    _bench_relay_run(
+        counts,
+        room_size,
+        rate,
+        duration,
+        json_out,
+        record=record,
+        record_writer=record_writer,
+        repeat=repeat,
+        interleave=interleave,
+        procs=procs,
+        codec=codec,
+        motion=motion,
+        baseline=baseline,
+    )
+
+
+def _bench_relay_run(
+    counts: list[int],
+    room_size: int,
+    rate: float,
+    duration: float,
+    json_out: Path | None,
+    *,
+    record: bool,
+    record_writer: str,
+    repeat: int,
+    interleave: float,
+    procs: int,
+    codec: str,
+    motion: str,
+    baseline: bool,
+) -> None:
+    """One run, or the curve (several counts, or --baseline); the JSON if asked."""
+    from posecast.bench import run_relay_bench, run_relay_curve
+
+    report: dict[str, Any]
     try:
-        report = run_relay_bench(
-            clients,
-            room_size,
-            rate,
-            duration,
-            record=record,
-            record_writer=record_writer,
-            repeat=repeat,
-            console=console,
-            interleave=interleave,
-        )
+        if baseline or len(counts) > 1:
+            report = run_relay_curve(
+                counts,
+                room_size,
+                rate,
+                duration,
+                baseline=baseline,
+                procs=procs,
+                codec=codec,
+                motion=motion,
+                console=console,
+            )
+        else:
+            report = run_relay_bench(
+                counts[0],
+                room_size,
+                rate,
+                duration,
+                record=record,
+                record_writer=record_writer,
+                repeat=repeat,
+                console=console,
+                interleave=interleave,
+                procs=procs,
+                codec=codec,
+                motion=motion,
+            )
     except (ValueError, RuntimeError) as exc:
         raise _fail(str(exc)) from None
     if json_out is not None:
