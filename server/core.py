@@ -527,11 +527,14 @@ class RelayCore:
             log.info("user %s: over its misbehaviour budget, closing", peer.user)
             self._close(peer, 1008, "misbehaving: too many invalid frames")
 
-    def _refuse(self, peer: Peer, code: ErrorCode, message: str, what: str, now: float) -> None:
+    def _refuse(
+        self, peer: Peer, code: ErrorCode, message: str, what: str, now: float, charge: bool = True
+    ) -> None:
         """Answer a refused ``what`` (join, update) with a non-fatal error; charge the budget."""
         self._log_peer(peer, now, "user %s: %s refused: %s (%s)", peer.user, what, message, code)
         self._send(peer, ErrorMessage.from_code(code, message, in_reply_to=what))
-        self._misbehaved(peer, now)
+        if charge:
+            self._misbehaved(peer, now)
 
     def _handle(self, peer: Peer, event: Event, now: float, wall: float) -> None:
         if isinstance(event, PoseUpdate | UserEvent) and peer.user in self._spectators:
@@ -724,23 +727,13 @@ class RelayCore:
             )
 
     def _admit(self, peer: Peer, now: float) -> bool:
-        """Token bucket over pose updates and events: ``max_update_rate`` a second.
-
-        Holds one second's worth, so bursts are fine; what exceeds it is dropped
-        and counted, and a connection that keeps flooding is closed.
-        """
+        """The update bucket (:meth:`Peer.admit`); a connection that keeps flooding is closed."""
         rate = self.config.max_update_rate
-        peer._bucket = min(rate, peer._bucket + (now - peer._bucket_time) * rate)
-        peer._bucket_time = now
-        if peer._bucket < 1.0:
-            peer.flood_drops += 1
-            if peer.room is not None and peer.user is not None:
-                peer.room.note_drop("flood", peer.user)
-            if peer.flood_drops > 10 * rate:
-                self._close(peer, 1008, f"update flood: over {rate:g} updates/s")
-            return False
-        peer._bucket -= 1.0
-        return True
+        if peer.admit(rate, now):
+            return True
+        if peer.flood_drops > 10 * rate:
+            self._close(peer, 1008, f"update flood: over {rate:g} updates/s")
+        return False
 
     def _on_update(self, peer: Peer, update: PoseUpdate, now: float) -> None:
         room, user = peer.room, peer.user
@@ -752,7 +745,10 @@ class RelayCore:
             if refused is not None:
                 peer.count_refused(refused.kind)
                 room.note_drop(refused.kind, user)
-                self._refuse(peer, ErrorCode.BAD_POSE, refused.message, "update", now)
+                # A stale capture may be the relay's own lag (its loop behind), not the
+                # client's doing: refused and counted, never charged to its budget.
+                charge = refused.kind != "stale-capture"
+                self._refuse(peer, ErrorCode.BAD_POSE, refused.message, "update", now, charge)
                 return
             stale = room.ingest(user, update, peer.session.compact_codes())
             rec = room.recorder

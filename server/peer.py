@@ -111,6 +111,19 @@ class Peer:
         self._bucket_time = now
         self.log_limit = LogLimiter(cfg.peer_log_interval)
 
+    def admit(self, rate: float, now: float) -> bool:
+        """Token bucket over pose updates and events: ``rate`` a second, holding one
+        second's worth (bursts are fine); what exceeds it is dropped and counted."""
+        self._bucket = min(rate, self._bucket + (now - self._bucket_time) * rate)
+        self._bucket_time = now
+        if self._bucket < 1.0:
+            self.flood_drops += 1
+            if self.room is not None and self.user is not None:
+                self.room.note_drop("flood", self.user)
+            return False
+        self._bucket -= 1.0
+        return True
+
     def count_refused(self, kind: str) -> None:
         """Count an update refused for ``kind`` (a :class:`server.limits.Refusal` kind)."""
         if kind == "stale-capture":

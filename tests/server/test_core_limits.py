@@ -130,11 +130,11 @@ def test_the_budget_refills_and_counts_refused_updates_and_joins() -> None:
     a = connect(core, 1.0)
     for _ in range(4):
         assert closes(nan_update(a, 2.0)) == []
-    assert closes(a.publish(3.0, capture=0.0)) == []  # 1 s later: 4 tokens again (cap)
+    assert closes(a.publish(3.0, capture=9.0)) == []  # 1 s later: 4 tokens again (cap)
     assert closes(nan_update(a, 3.0)) == []
     assert closes(nan_update(a, 3.0)) == []
     assert closes(nan_update(a, 3.0)) == []
-    assert closes(a.publish(3.0, capture=0.0)) != []
+    assert closes(a.publish(3.0, capture=9.0)) != []  # a future capture costs one
     c = Client(core, core.connect(1.0))
     c.send(Hello(agent="t"), 1.0)
     c.read(1.0)
@@ -142,6 +142,17 @@ def test_the_budget_refills_and_counts_refused_updates_and_joins() -> None:
         assert closes(c.send(Join(room="\u202elobby", streams=("head",), rate=10.0), 1.0)) == []
         assert [e.code for e in errors_of(c, 1.0)] == ["bad-room"]  # back to READY
     assert closes(c.send(Join(room=" ", streams=("head",), rate=10.0), 1.0)) != []
+
+
+def test_stale_captures_are_refused_but_never_charged() -> None:
+    """An overloaded relay makes honest updates stale: refused and counted, but a
+    client is never closed for the relay's own lag."""
+    core = RelayCore(ServerConfig(misbehaviour_burst=2, misbehaviour_refill=0.0))
+    a = connect(core, 1.0)
+    for i in range(50):
+        assert closes(a.publish(10.0 + 0.01 * i, capture=5.0)) == []
+    assert core.peer(a.conn).statistics().stale_captures == 50
+    assert core.peer(a.conn).close_request is None
 
 
 def test_no_budget_when_burst_is_zero() -> None:
