@@ -53,7 +53,11 @@ ProcsOption = Annotated[
     ),
 ]
 CodecOption = Annotated[
-    str, typer.Option(help="How the load codes its updates: raw (float records) or compact.")
+    str,
+    typer.Option(
+        help="How the load's clients code their poses both ways (Join.codec): compact "
+        "(the default of bots and demo) or raw (float records)."
+    ),
 ]
 MotionOption = Annotated[
     str,
@@ -107,7 +111,7 @@ def bench_relay(
         ),
     ] = 0.0,
     procs: ProcsOption = 1,
-    codec: CodecOption = "raw",
+    codec: CodecOption = "compact",
     motion: MotionOption = "traces:sample",
     baseline: BaselineOption = False,
     json_out: Annotated[
