@@ -452,7 +452,7 @@ class RelayServer:
                     self._handler,
                     cfg.host,
                     cfg.port,
-                    process_request=process_request(self.core),
+                    process_request=process_request(self.core, self.clock),
                     logger=QuietHttpLog(logging.getLogger("websockets.server"), {}),
                     max_size=self.limits.max_frame_size,
                     close_timeout=cfg.close_timeout,
@@ -494,4 +494,4 @@ class RelayServer:
 
     def metrics_text(self) -> str:
         """Prometheus text exposition of the server's counters."""
-        return metrics_text(self.core)
+        return metrics_text(self.core, self.clock())

@@ -22,16 +22,18 @@ __all__ = ["QuietHttpLog", "metrics_text", "process_request"]
 
 
 def process_request(
-    core: RelayCore,
+    core: RelayCore, clock: Callable[[], float] | None = None
 ) -> Callable[[ServerConnection, Request], Response | None]:
-    """websockets' ``process_request`` hook answering /healthz and /metrics from ``core``."""
+    """websockets' ``process_request`` hook answering /healthz and /metrics from ``core``
+    (``clock``: the core's, for the tick overdue gauge)."""
 
     def respond(connection: ServerConnection, request: Request) -> Response | None:
         path = request.path.split("?", 1)[0]
         if path == "/healthz":
             return connection.respond(HTTPStatus.OK, "ok\n")
         if path == "/metrics":
-            response = connection.respond(HTTPStatus.OK, metrics_text(core))
+            now = None if clock is None else clock()
+            response = connection.respond(HTTPStatus.OK, metrics_text(core, now))
             # Same headers as /healthz (Date, Connection: close), Prometheus' type.
             del response.headers["Content-Type"]
             response.headers["Content-Type"] = "text/plain; version=0.0.4; charset=utf-8"
@@ -85,8 +87,9 @@ def _http_only(msg: Any, extra: Any) -> bool:
     return response is None or response.status_code != HTTPStatus.SWITCHING_PROTOCOLS
 
 
-def metrics_text(core: RelayCore) -> str:
-    """Prometheus text exposition of the relay's counters."""
+def metrics_text(core: RelayCore, now: float | None = None) -> str:
+    """Prometheus text exposition of the relay's counters (``now``: the core's clock,
+    for the gauges measured at scrape time)."""
     conns = core.connection_statistics()
     lines: list[str] = []
 
@@ -159,9 +162,18 @@ def metrics_text(core: RelayCore) -> str:
     metric(
         "posecast_room_tick_lag_max_ms",
         "gauge",
-        "Largest delay of a room tick behind its due time.",
+        "Largest delay of a room tick behind its due time, since the room was created.",
         [(f'{{room="{_label(r.name)}"}}', r.tick_lag_max_ms) for r in rooms],
     )
+    if now is not None:
+        due = core.next_deadline()
+        metric(
+            "posecast_tick_overdue_seconds",
+            "gauge",
+            "How far the earliest due room tick is behind the server clock right now "
+            "(0: on time); grows while the relay is overloaded, before any tick runs late.",
+            [("", 0.0 if due is None else max(0.0, now - due))],
+        )
     return "\n".join(lines) + "\n"
 
 

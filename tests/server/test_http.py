@@ -8,10 +8,14 @@ import urllib.request
 from collections.abc import Callable
 from typing import Any
 
+import pytest
 from relaykit import Bot, settle
+from test_core import connect
 
 from protocol import PoseUpdate
 from server.app import RelayServer, ServerConfig
+from server.core import RelayCore
+from server.http import metrics_text
 
 ServerFactory = Callable[..., Any]
 
@@ -167,3 +171,18 @@ async def test_other_paths_are_not_http_endpoints(server_factory: ServerFactory)
     async with server_factory() as srv:
         status, _, _ = await http_get(srv.port, "/nope")
         assert status != 200
+
+
+def test_tick_overdue_is_measured_from_the_due_time() -> None:
+    """/metrics reports how late the earliest due tick is at scrape time: 0 when on
+    time, the true delay when the relay has not got round to it (never NaN)."""
+    core = RelayCore()
+    assert "posecast_tick_overdue_seconds 0" in metrics_text(core, 5.0)  # no room at all
+    connect(core, 1.0)
+    due = core.next_deadline()
+    assert due is not None
+    assert "posecast_tick_overdue_seconds 0" in metrics_text(core, due - 0.01)
+    text = metrics_text(core, due + 0.75)
+    (line,) = [ln for ln in text.splitlines() if ln.startswith("posecast_tick_overdue_seconds")]
+    assert float(line.split()[1]) == pytest.approx(0.75)
+    assert "posecast_tick_overdue_seconds" not in metrics_text(core)  # no clock, no gauge
