@@ -11,7 +11,13 @@ float32, capture times to the codec's millisecond.
 Both ends store a frame's codes as baselines (``PoseFrame.remember``) once it
 is surely sent, or decoded: the websocket is reliable and ordered, so the two
 copies stay equal; a frame coded against other baselines (a CRC mismatch) or
-naming a stream without one raises ``BaselineMismatch`` (fatal, ``bad-message``).
+naming a stream without one raises ``BaselineMismatch`` (fatal, ``bad-baseline``).
+
+Relative header: every update after the first sets flag bit 3 (``F_RELATIVE``)
+and carries its sequence number and base time as differences from the previous
+update's (zigzag varints: usually 1 and ~33,000 us, 1 + 3 bytes instead of 2-3 +
+5-8); the decoder puts the absolute values back before decoding. The frame
+layout is otherwise that of ``protocol.codec`` exactly.
 """
 
 from __future__ import annotations
@@ -20,12 +26,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from protocol.codec import (
+    BaselineMismatch,
     PoseFrame,
     Volume,
     decode_update,
     encode_update_codes,
     quantise,
 )
+from protocol.codec_frame import _read_uvarint, _svarint, _uvarint
 from protocol.codec_relay import decode_relay_snapshot
 from protocol.errors import ProtocolViolation, RemoteProtocolError
 from protocol.poses import PoseUpdate, Snapshot
@@ -34,6 +42,51 @@ __all__ = ["CODEC_FRAME_BYTE", "SnapshotDecoder", "UpstreamDecoder", "UpstreamEn
 
 #: First byte of every codec frame (the one byte msgpack never uses).
 CODEC_FRAME_BYTE = 0xC1
+#: Flag bit of an update whose number and base time are differences (see above).
+F_RELATIVE = 8
+
+
+def _header_fields(data: bytes) -> tuple[int, int, int]:
+    """(number, zigzagged base time, offset of what follows) of a codec frame."""
+    number, pos = _read_uvarint(data, 2)
+    zz, pos = _read_uvarint(data, pos)
+    return number, zz, pos
+
+
+def _unzz(z: int) -> int:
+    return (z >> 1) ^ -(z & 1)
+
+
+def _zz(v: int) -> int:
+    return v * 2 if v >= 0 else -v * 2 - 1
+
+
+def relative(data: bytes, previous: tuple[int, int] | None) -> tuple[bytes, tuple[int, int]]:
+    """``data`` (an absolute frame) with a relative header against ``previous``
+    (number, base us), and its own (number, base us)."""
+    number, zz, pos = _header_fields(data)
+    here = (number, _unzz(zz))
+    if previous is None:
+        return data, here
+    head = bytes([data[0], data[1] | F_RELATIVE])
+    fields = _uvarint(_zz(number - previous[0])) + _svarint(here[1] - previous[1])
+    return head + fields + data[pos:], here
+
+
+def absolute(data: bytes, previous: tuple[int, int] | None) -> tuple[bytes, tuple[int, int]]:
+    """The absolute frame of ``data`` (relative or not), and its (number, base us);
+    raises ``RemoteProtocolError``."""
+    d, zz, pos = _header_fields(data)
+    if not data[1] & F_RELATIVE:
+        return data, (d, _unzz(zz))
+    if previous is None:
+        raise BaselineMismatch("a relative update header with no update before it")
+    number = previous[0] + _unzz(d)
+    base = previous[1] + _unzz(zz)
+    if not (0 <= number < 1 << 63 and abs(base) < 1 << 62):
+        raise BaselineMismatch("relative update header out of range")
+    head = bytes([data[0], data[1] & ~F_RELATIVE])
+    return head + _uvarint(number) + _svarint(base) + data[pos:], (number, base)
 
 Baselines = dict[int, NDArray[np.int64]]
 
@@ -45,6 +98,9 @@ class UpstreamEncoder:
         self.volume = volume
         self.baselines: Baselines = {}
         self._pending: PoseFrame | None = None
+        #: (number, base us) of the last frame sent, and of the one pending.
+        self._previous: tuple[int, int] | None = None
+        self._pending_header: tuple[int, int] | None = None
 
     def encode(self, update: PoseUpdate) -> bytes:
         """The frame of ``update``; raises ``LocalProtocolError`` (``bad-pose`` outside the
@@ -61,13 +117,15 @@ class UpstreamEncoder:
             self.baselines,
         )
         self._pending = encoded.frame
-        return encoded.data
+        data, self._pending_header = relative(encoded.data, self._previous)
+        return data
 
     def commit(self) -> None:
         """The last encoded frame was sent: its codes are the streams' new baselines."""
         if self._pending is not None:
             self._pending.remember(self.baselines)
             self._pending = None
+            self._previous = self._pending_header
 
 
 class UpstreamDecoder:
@@ -76,6 +134,7 @@ class UpstreamDecoder:
     def __init__(self, volume: Volume) -> None:
         self.volume = volume
         self.baselines: Baselines = {}
+        self._previous: tuple[int, int] | None = None
         #: Stream id -> codes of the last decoded frame: a relay forwards these codes
         #: to compact subscribers rather than quantising the decoded floats again.
         self.last_codes: dict[int, list[int]] = {}
@@ -83,9 +142,11 @@ class UpstreamDecoder:
     def decode(self, data: bytes | bytearray | memoryview) -> PoseUpdate:
         """The update in ``data``; raises ``RemoteProtocolError`` (in reply to "update")."""
         try:
-            frame = decode_update(bytes(data), self.volume, self.baselines)
+            whole, header = absolute(bytes(data), self._previous)
+            frame = decode_update(whole, self.volume, self.baselines)
         except ProtocolViolation as exc:
             raise RemoteProtocolError(exc.code, exc.message, in_reply_to="update") from None
+        self._previous = header
         # The sender stored these codes when it sent them, whatever the session
         # rules say of the update next: keep the two copies equal.
         frame.remember(self.baselines)

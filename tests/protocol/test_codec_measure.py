@@ -30,7 +30,7 @@ from protocol.codec import (
     quantise,
 )
 from protocol.codec_quant import predict_rotation
-from scenarios.traces import Trace, find_traces, load_trace
+from scenarios.traces import Trace, TraceError, find_traces, load_trace
 
 ROOM = 10
 DURATION = 36.0
@@ -270,3 +270,42 @@ def test_codec_figures(traces: list[Trace], capsys: pytest.CaptureFixture[str]) 
     assert worst_pos <= max(VOLUME.step) / 2 + 1e-6
     assert worst_rot <= ROTATION_ERROR_MAX_DEG + 1e-3
     assert worst_t <= 0.0005 + 1e-6
+
+
+def test_upstream_bytes_through_the_session(capsys: pytest.CaptureFixture[str]) -> None:
+    """Update frames as a bot sends them (``UpstreamEncoder``: delta per stream, relative
+    header after the first); prints B/pose per rate on traces:sample and, when the full
+    sets are there, traces:eval. Asserts that the relative header only ever saves."""
+    from protocol._compact import UpstreamEncoder, absolute
+    from protocol.poses import PoseUpdate
+
+    lines = []
+    for split in ("traces:sample", "traces:eval"):
+        try:
+            paths = find_traces(split)
+        except TraceError:  # the full sets are optional
+            continue
+        traces = [load_trace(p) for p in paths]
+        for rate in (30.0, 20.0, 10.0):
+            sent = whole = n = 0
+            for tr in traces:
+                enc = UpstreamEncoder(VOLUME)
+                previous = None
+                ts = np.arange(tr.times[0], tr.times[0] + 20.0, 1 / rate)
+                idx = np.searchsorted(tr.times, ts, side="right") - 1
+                for k, i in enumerate(idx.tolist()):
+                    t = 20000.0 + ts[k] - tr.times[0] - 0.004
+                    data = enc.encode(
+                        PoseUpdate.from_arrays(k + 1, [0, 1, 2], np.full(3, t), tr.poses[i])
+                    )
+                    enc.commit()
+                    full, previous = absolute(data, previous)
+                    assert len(data) <= len(full)
+                    if k:
+                        sent, whole, n = sent + len(data), whole + len(full), n + 3
+            lines.append(
+                f"{split} {rate:g} Hz upstream B/pose: {sent / n:.2f} relative header,"
+                f" {whole / n:.2f} absolute"
+            )
+    with capsys.disabled():
+        print("\n" + "\n".join(lines))
