@@ -166,18 +166,22 @@ def metrics_text(core: RelayCore, now: float | None = None) -> str:
         [(f'{{room="{_label(r.name)}"}}', r.tick_lag_max_ms) for r in rooms],
     )
     if now is not None:
-        due = core.next_deadline()
-        metric(
-            "posecast_tick_overdue_seconds",
-            "gauge",
-            "How far the earliest due room tick is behind the server clock right now "
-            "(0: on time); grows while the relay is overloaded, before any tick runs late.",
-            [("", 0.0 if due is None else max(0.0, now - due))],
-        )
+        _overdue_metric(core, metric, now)
     return "\n".join(lines) + "\n"
 
 
 Metric = Callable[[str, str, str, list[tuple[str, float]]], None]
+
+
+def _overdue_metric(core: RelayCore, metric: Metric, now: float) -> None:
+    due = core.next_deadline()
+    metric(
+        "posecast_tick_overdue_seconds",
+        "gauge",
+        "How far the earliest due room tick is behind the server clock right now "
+        "(0: on time); grows while the relay is overloaded, before any tick runs late.",
+        [("", 0.0 if due is None else max(0.0, now - due))],
+    )
 
 
 def _limit_metrics(
