@@ -107,10 +107,14 @@ class ClientConnection:
         clock: Callable[[], float] = time.monotonic,
         open_timeout: float = 10.0,
         tls: Tls | None = None,
+        resumable: bool = False,
+        resume: str | None = None,
     ) -> ClientConnection:
         """Connect and say hello; returns once the server's welcome arrived.
 
         A ``wss://`` URL is checked as ``tls`` says (default: the system's roots).
+        ``resumable``: ask for a resume token (``welcome.resume``); ``resume``: the
+        token of a dropped connection (``welcome.resumed`` says if it was honoured).
         """
         ws = await connect(
             url,
@@ -121,7 +125,7 @@ class ClientConnection:
         )
         conn = cls(ws, clock)
         try:
-            await conn.send(Hello(agent=agent))
+            await conn.send(Hello(agent=agent, resumable=resumable, resume=resume))
             welcome = await conn._expect(Welcome)
             assert isinstance(welcome, Welcome)
             conn.welcome = welcome

@@ -12,7 +12,8 @@ Both sides of a connection walk the same states; a message moves both of them
    client may join again. A second join while joining or joined is an error.
 4. Pose traffic only once joined: ``update``, ``set_rate`` and ``renew`` (a fresh
    access token) from the client;
-   ``snapshot``, ``peer_joined`` and ``peer_left`` from the server; ``event``
+   ``snapshot``, ``peer_joined``, ``peer_left``, ``peer_stalled`` and
+   ``peer_resumed`` from the server; ``event``
    either way.
 5. Non-fatal ``error`` messages may flow either way after hello and change
    nothing (except rule 3's refusal).
@@ -101,6 +102,8 @@ TRANSITIONS: dict[State, dict[tuple[Role, str], State]] = {
         ((_S,), "snapshot"),
         ((_S,), "peer_joined"),
         ((_S,), "peer_left"),
+        ((_S,), "peer_stalled"),
+        ((_S,), "peer_resumed"),
         (_EITHER, "event"),
     ),
     State.CLOSED: _stay(State.CLOSED, (_EITHER, "error"), (_EITHER, ERROR_FATAL), (_EITHER, "bye")),

@@ -20,8 +20,11 @@ from protocol.messages import (
     Joined,
     PeerJoined,
     PeerLeft,
+    PeerResumed,
+    PeerStalled,
     Ping,
     Pong,
+    Renew,
     SetRate,
     UserEvent,
     Welcome,
@@ -37,9 +40,12 @@ Message = (
     | Joined
     | PeerJoined
     | PeerLeft
+    | PeerStalled
+    | PeerResumed
     | Ping
     | Pong
     | SetRate
+    | Renew
     | UserEvent
     | ErrorMessage
     | Bye

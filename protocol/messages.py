@@ -59,6 +59,8 @@ __all__ = [
     "Joined",
     "PeerJoined",
     "PeerLeft",
+    "PeerResumed",
+    "PeerStalled",
     "Ping",
     "Pong",
     "Renew",
@@ -187,10 +189,19 @@ class Hello(ControlMessage):
     version: int = PROTOCOL_VERSION
     agent: str = ""
     """Free text naming the client software, for logs."""
+    resumable: bool = _capability()
+    """This client reconnects by itself: if its connection drops, the server keeps
+    its place in the room for a while (peers get ``peer_stalled``), and welcome
+    gives it a ``resume`` token."""
+    resume: str | None = _omitted(None)
+    """The ``welcome.resume`` token of a dropped connection: same user id, and the
+    next join of the same room and streams gets the same stream ids back."""
 
     def __post_init__(self) -> None:
         check_int("hello.version", self.version, 0, U16_MAX)
         check_text("hello.agent", self.agent)
+        check_bool("hello.resumable", self.resumable)
+        check_optional_text("hello.resume", self.resume)
 
 
 @_register
@@ -209,6 +220,11 @@ class Welcome(ControlMessage):
     volume: tuple[float, float, float, float, float, float] = _omitted(_DEFAULT_VOLUME_WIRE)
     """The room volume compact updates are quantised in (``protocol.codec.Volume``),
     metres: min x, y, z then max x, y, z. Not sent while it is the default volume."""
+    resume: str | None = _omitted(None)
+    """For a ``hello.resumable`` client: the token to give in ``hello.resume`` after a
+    dropped connection."""
+    resumed: bool = _capability()
+    """The hello's resume token was honoured: ``user`` is the dropped connection's."""
 
     def __post_init__(self) -> None:
         check_int("welcome.user", self.user, 0, U16_MAX)
@@ -221,6 +237,8 @@ class Welcome(ControlMessage):
         _set(self, "min_rate", check_float("welcome.min_rate", self.min_rate))
         _set(self, "max_rate", check_float("welcome.max_rate", self.max_rate))
         check_int("welcome.max_streams", self.max_streams, 1, U16_MAX + 1)
+        check_optional_text("welcome.resume", self.resume)
+        check_bool("welcome.resumed", self.resumed)
         if not 0 < self.min_rate <= self.max_rate:
             raise bad("welcome", "needs 0 < min_rate <= max_rate")
 
@@ -333,6 +351,31 @@ class PeerLeft(ControlMessage):
     def __post_init__(self) -> None:
         check_int("peer_left.user", self.user, 0, U16_MAX)
         check_text("peer_left.reason", self.reason)
+
+
+@_register
+@dataclass(frozen=True, slots=True)
+class PeerStalled(ControlMessage):
+    """Server -> client: a user's connection dropped; it may resume (its streams stay,
+    frozen at their last pose) or leave (``peer_left``) when its window closes."""
+
+    TYPE: ClassVar[str] = "peer_stalled"
+    user: int
+
+    def __post_init__(self) -> None:
+        check_int("peer_stalled.user", self.user, 0, U16_MAX)
+
+
+@_register
+@dataclass(frozen=True, slots=True)
+class PeerResumed(ControlMessage):
+    """Server -> client: a stalled user is back, with the same user and stream ids."""
+
+    TYPE: ClassVar[str] = "peer_resumed"
+    user: int
+
+    def __post_init__(self) -> None:
+        check_int("peer_resumed.user", self.user, 0, U16_MAX)
 
 
 @_register

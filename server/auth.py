@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 from protocol.errors import PosecastError
 
-__all__ = ["TokenClaims", "TokenError", "make_token", "verify_token"]
+__all__ = ["TokenClaims", "TokenError", "make_token", "token_permits", "verify_token"]
 
 _PREFIX = "v1"
 
@@ -79,3 +79,14 @@ def verify_token(secret: str, token: str | None, room: str, now: float) -> Token
     if now >= tc.exp:
         raise TokenError("access token expired")
     return tc
+
+
+def token_permits(secret: str | None, token: str | None, room: str, now: float) -> bool:
+    """Whether ``token`` admits its holder to ``room`` (always, without a secret)."""
+    if secret is None:
+        return True
+    try:
+        verify_token(secret, token, room, now)
+    except TokenError:
+        return False
+    return True

@@ -71,6 +71,8 @@ class ServerConfig:
     misbehaviour_refill: float = 5.0
     #: A connection that has not joined a room this long after it opened is closed.
     join_timeout: float = 5.0
+    #: A resumable client's dropped connection keeps its place this long (s); 0: off.
+    resume_window: float = 10.0
     max_connections: int = 1024
     max_connections_per_address: int = 64
     max_rooms: int = 256

@@ -94,13 +94,15 @@ from protocol import (
     SetRate,
     UserEvent,
     close_reason,
+    encode_message,
 )
 from protocol.events import Event, Message
 from scenarios.network import EgressLink
+from server import resume
 from server.actions import Action, Close, FinishRecording, Rearm, Reschedule, Wake
-from server.auth import TokenError, verify_token
+from server.auth import TokenError, token_permits, verify_token
 from server.config import ServerConfig
-from server.limits import Admission, Deadlines, normalise_room, update_refusal
+from server.limits import Admission, Deadlines, normalise_room, room_refusal, update_refusal
 from server.peer import COUNTERS, ConnectionStatistics, Peer
 from server.room import IdAllocator, Member, Room, room_phase
 
@@ -156,6 +158,8 @@ class RelayCore:
         self._join_deadlines = Deadlines(self._unjoined)
         #: Access-token expiries (server clock) of joined connections; see Renew.
         self._token_deadlines = Deadlines(self._token_due)
+        #: Members of dropped resumable connections, kept for ``resume_window``.
+        self.parking = resume.Parking(cfg.resume_window)
         self.token_expiries = 0
         #: Connections refused (over a limit), closed for not joining in time, and
         #: closed for misbehaving (over their budget).
@@ -208,7 +212,7 @@ class RelayCore:
     def next_expiry(self) -> float | None:
         """When the next connection is due to be closed: one that has not joined in
         time, or whose access token expires (None: none)."""
-        due = [self._join_deadlines.next(), self._token_deadlines.next()]
+        due = [self._join_deadlines.next(), self._token_deadlines.next(), self.parking.next()]
         return min((t for t in due if t is not None), default=None)
 
     def expire(self, now: float) -> list[Action]:
@@ -224,7 +228,13 @@ class RelayCore:
             )
             self._send(self.peers[conn], expired)
             self._close(self.peers[conn], 1008, "access token expired")
+        for parked in self.parking.expire(now):
+            resume.gone(self, parked, now)
         return self._actions()
+
+    def emit_rearm(self) -> None:
+        """A deadline of :meth:`next_expiry` was added or moved."""
+        self.emit(Rearm())
 
     def _unjoined(self, conn: int, deadline: float) -> bool:
         peer = self.peers.get(conn)
@@ -281,7 +291,7 @@ class RelayCore:
             return None
         if (
             name in self.rooms
-            or not self._join_permitted(event.token, name, wall)
+            or not token_permits(self.config.secret, event.token, name, wall)
             or self._room_refusal(name) is not None
         ):
             return None
@@ -353,12 +363,18 @@ class RelayCore:
                 held,
                 peer.log_limit.span,
             )
-        self._leave(peer, now)
+        if resume.parkable(self, peer):
+            resume.park(self, peer, now)
+        else:
+            self._leave(peer, now)
+        if peer.parked is not None:  # resumed, never joined again: it is gone now
+            resume.gone(self, peer.parked, now)
         if peer.admitted:
             self.admission.release(peer.address)
         if peer.user is not None:
             self._by_user.pop(peer.user, None)
-            self.users.give_back(peer.user)
+            if not self.parking.holds(peer.user):
+                self.users.give_back(peer.user)
         self.closed_connections += 1
         for key in COUNTERS:
             self.totals[key] += getattr(stats, key)
@@ -479,6 +495,15 @@ class RelayCore:
 
     # -- the rules -------------------------------------------------------------------------
 
+    def to_member(self, member: Member, message: Message) -> None:
+        """Send to a member's connection; a parked member (``server.resume``) keeps
+        events for its resume and misses presence notices (it gets the room anew)."""
+        peer = self._by_user.get(member.user)
+        if peer is not None and not member.parked:
+            self._send(peer, message)
+        elif isinstance(message, UserEvent):
+            member.outbox.offer_event(encode_message(message))
+
     def _send(self, peer: Peer, message: Message) -> None:
         """Queue a reliable message; overflow closes that connection, not others.
 
@@ -549,10 +574,7 @@ class RelayCore:
         elif isinstance(event, ProtocolError):
             self._protocol_error(peer, event, now)
         elif isinstance(event, Hello):
-            peer.user = self.users.take()
-            self._by_user[peer.user] = peer
-            peer.name = event.agent or f"user{peer.user}"
-            self._send(peer, peer.session.make_welcome(peer.user, now))
+            resume.hello(self, peer, event, now)
         elif isinstance(event, Join):
             try:
                 name = normalise_room(event.room)
@@ -576,30 +598,9 @@ class RelayCore:
                 # Its session is over (CLOSED): nothing more may be sent to it.
                 self._close(peer, 1000, f"client ended the session: {event.code}")
 
-    def _join_permitted(self, token: str | None, room: str, wall: float) -> bool:
-        secret = self.config.secret
-        if secret is None:
-            return True
-        try:
-            verify_token(secret, token, room, wall)
-        except TokenError:
-            return False
-        return True
-
     def _room_refusal(self, name: str) -> str | None:
         """Why a join of room ``name`` is refused (``room-full``) now; None: it is not."""
-        cfg, room = self.config, self.rooms.get(name)
-        if room is not None:
-            if cfg.max_members and len(room.members) >= cfg.max_members:
-                return f"room is full ({cfg.max_members} members)"
-            return None
-        if cfg.max_rooms and len(self.rooms) >= cfg.max_rooms:
-            return f"too many rooms ({cfg.max_rooms}), try later"
-        if cfg.record_dir is not None and cfg.max_recorded_rooms:
-            recorded = sum(r.recorder is not None for r in self.rooms.values())
-            if recorded >= cfg.max_recorded_rooms:
-                return f"too many recorded rooms ({cfg.max_recorded_rooms}), try later"
-        return None
+        return room_refusal(self.config, self.rooms, name)
 
     def _on_join(self, peer: Peer, join: Join, name: str, now: float, wall: float) -> None:
         """Join room ``name`` (``join.room`` normalised; ``joined`` echoes ``join.room``)."""
@@ -613,7 +614,8 @@ class RelayCore:
                 )
                 self._close(peer, 1008, str(exc))
                 return
-            if name in self.rooms and self.rooms[name].has_member_named(claims.user):
+            back = peer.parked is not None and peer.parked.name == claims.user
+            if not back and name in self.rooms and self.rooms[name].has_member_named(claims.user):
                 self._refuse(
                     peer,
                     ErrorCode.USER_TAKEN,
@@ -625,6 +627,8 @@ class RelayCore:
             peer.name = claims.user
             self._token_expires(peer, now + (claims.exp - wall))
         assert peer.user is not None  # the state table puts hello before join
+        if resume.resume_join(self, peer, join, name, now):
+            return
         refused = self._room_refusal(name)
         if refused is not None:
             self._send(
@@ -685,8 +689,8 @@ class RelayCore:
                 )
             if member.user in spectators:
                 continue
-            self._send(
-                self._by_user[other.user],
+            self.to_member(
+                other,
                 PeerJoined(
                     user=member.user,
                     streams=member.streams,
@@ -713,7 +717,7 @@ class RelayCore:
             return
         for m in list(room.members.values()):
             if m.user != peer.user:
-                self._send(self._by_user[m.user], event)
+                self.to_member(m, event)
         if room.recorder is not None:
             room.recorder.record_event(
                 {
@@ -791,6 +795,6 @@ class RelayCore:
                 )
             for other in list(room.members.values()):
                 if not spectator:
-                    self._send(self._by_user[other.user], PeerLeft(user=user, reason="left"))
+                    self.to_member(other, PeerLeft(user=user, reason="left"))
             self._forget_room_if_empty(room, now)
         peer.room = peer.member = None

@@ -88,8 +88,7 @@ def _http_only(msg: Any, extra: Any) -> bool:
 
 
 def metrics_text(core: RelayCore, now: float | None = None) -> str:
-    """Prometheus text exposition of the relay's counters (``now``: the core's clock,
-    for the gauges measured at scrape time)."""
+    """Prometheus text of the relay's counters (``now``: the core's clock, for gauges)."""
     conns = core.connection_statistics()
     lines: list[str] = []
 

@@ -18,11 +18,16 @@ from __future__ import annotations
 
 import heapq
 import unicodedata
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from protocol import PoseUpdate
 from protocol.codec import Volume
+
+if TYPE_CHECKING:
+    from server.config import ServerConfig
+    from server.room import Room
 
 __all__ = [
     "MAX_ROOM_NAME_BYTES",
@@ -31,6 +36,7 @@ __all__ = [
     "Deadlines",
     "Refusal",
     "normalise_room",
+    "room_refusal",
     "update_refusal",
 ]
 
@@ -152,6 +158,22 @@ class Admission:
             left = self.by_address.pop(address, 1) - 1
             if left > 0:
                 self.by_address[address] = left
+
+
+def room_refusal(cfg: ServerConfig, rooms: Mapping[str, Room], name: str) -> str | None:
+    """Why a join of room ``name`` is refused (``room-full``) now; None: it is not."""
+    room = rooms.get(name)
+    if room is not None:
+        if cfg.max_members and len(room.members) >= cfg.max_members:
+            return f"room is full ({cfg.max_members} members)"
+        return None
+    if cfg.max_rooms and len(rooms) >= cfg.max_rooms:
+        return f"too many rooms ({cfg.max_rooms}), try later"
+    if cfg.record_dir is not None and cfg.max_recorded_rooms:
+        recorded = sum(r.recorder is not None for r in rooms.values())
+        if recorded >= cfg.max_recorded_rooms:
+            return f"too many recorded rooms ({cfg.max_recorded_rooms}), try later"
+    return None
 
 
 class Deadlines:

@@ -20,6 +20,7 @@ from server.room import Member, Outbox, Room
 
 if TYPE_CHECKING:
     from server.core import RelayCore
+    from server.resume import Parked
 
 __all__ = ["COUNTERS", "ConnectionStatistics", "Peer"]
 
@@ -97,6 +98,10 @@ class Peer:
         self.close_request: tuple[int, str] | None = None
         #: When its access token expires, server clock (None: no secret, no expiry).
         self.token_deadline: float | None = None
+        #: Its resume token (``hello.resumable``), and the parked member its hello
+        #: claimed, until its join re-binds it (see ``server.resume``).
+        self.resume_token: str | None = None
+        self.parked: Parked | None = None
         self.frames_in = self.bytes_in = self.frames_out = self.bytes_out = 0
         self.event_drops = self.flood_drops = self.protocol_errors = 0
         self.stale_captures = self.future_captures = self.out_of_bounds = 0

@@ -187,6 +187,9 @@ class Member:
     echo: bool = False
     #: The KEY_INTERVAL grid slot of its last key snapshot (-1: due one now).
     key_slot: int = -1
+    #: Its connection dropped and it waits to be resumed (``server.resume``): no
+    #: snapshots meanwhile, its streams stay at their last pose.
+    parked: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -407,7 +410,7 @@ class Room:
         slot = math.floor(now / KEY_INTERVAL)
         offered = 0
         for member in self.members.values():
-            if member.next_due > now + 1e-9:
+            if member.next_due > now + 1e-9 or member.parked:
                 continue
             lag = now - member.next_due
             self._lag_max = max(self._lag_max, lag)

@@ -99,6 +99,7 @@ def test_server_holds_only_the_relay() -> None:
         "__init__.py",
         "core.py",
         "config.py",
+        "resume.py",
         "actions.py",
         "peer.py",
         "limits.py",

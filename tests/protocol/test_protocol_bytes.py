@@ -16,6 +16,8 @@ from protocol import (
     Message,
     PeerJoined,
     PeerLeft,
+    PeerResumed,
+    PeerStalled,
     Ping,
     Pong,
     PoseUpdate,
@@ -97,6 +99,14 @@ PINNED: list[tuple[Message, bytes]] = [
         b"\x82\xa4type\xa5renew\xa5token\xa1t",
     ),
     (
+        PeerStalled(user=3),
+        b"\x82\xa4type\xacpeer_stalled\xa4user\x03",
+    ),
+    (
+        PeerResumed(user=3),
+        b"\x82\xa4type\xacpeer_resumed\xa4user\x03",
+    ),
+    (
         UserEvent(kind="grab", stream=4, time=1.0, payload={"object": "object:drill"}),
         b"\x86"
         b"\xa4type\xa5event"
@@ -139,7 +149,7 @@ IDS = [message.TYPE for message, _ in PINNED]
 
 
 def test_every_type_is_pinned() -> None:
-    """The pinned table covers all fifteen message types."""
+    """The pinned table covers all seventeen message types."""
     from protocol import MESSAGE_TYPES
 
     assert set(IDS) == MESSAGE_TYPES

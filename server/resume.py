@@ -1,0 +1,227 @@
+"""Resume after a dropped connection: parked members, their tokens and deadlines.
+
+A client that says ``hello.resumable`` gets a resume token in ``welcome``. When
+its connection ends without a ``bye`` (the socket dropped, keepalive gave up),
+its member is *parked* instead of leaving: it stays in its room with its user
+id, streams and last poses, peers get ``peer_stalled``, and events for it wait
+in its queue (bounded as always). Within ``window`` seconds a new connection
+that says ``hello.resume=TOKEN`` gets the same user id back, and its next join
+of the same room and streams re-binds the parked member: the same stream ids,
+the queued events first, a key snapshot, ``peer_resumed`` to the peers and a
+``disconnected`` drops record (the gap) in the recording. A token is good for
+one resume; the resumed connection gets a new one. When the window closes
+first, the member leaves as any other (``peer_left``, reason "gone").
+
+Sans-I/O like the core: the time is an argument.
+"""
+
+from __future__ import annotations
+
+import secrets
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
+
+from protocol import (
+    Hello,
+    Join,
+    Joined,
+    PeerJoined,
+    PeerLeft,
+    PeerResumed,
+    PeerStalled,
+    UserEvent,
+    decode_message,
+)
+from server.limits import Deadlines
+from server.room import Member, Room
+
+if TYPE_CHECKING:
+    from server.core import RelayCore
+    from server.peer import Peer
+
+__all__ = ["Parked", "Parking", "gone", "hello", "park", "parkable", "resume_join"]
+
+
+@dataclass
+class Parked:
+    """A member whose connection dropped, waiting for its client to come back."""
+
+    user: int
+    name: str
+    room: Room
+    member: Member
+    since: float
+    deadline: float
+    token: str
+    conn: int
+
+
+class Parking:
+    """Resume tokens of live connections and the members parked under them."""
+
+    def __init__(self, window: float) -> None:
+        self.window = window
+        #: token -> parked member (a token names one user; it is spent by a resume).
+        self._parked: dict[str, Parked] = {}
+        self._deadlines = Deadlines(self._still_parked)
+        self._by_conn: dict[int, str] = {}
+        self.resumes = self.expired = 0
+
+    @staticmethod
+    def new_token() -> str:
+        return secrets.token_urlsafe(18)
+
+    def _still_parked(self, conn: int, deadline: float) -> bool:
+        token = self._by_conn.get(conn)
+        parked = None if token is None else self._parked.get(token)
+        return parked is not None and parked.deadline == deadline
+
+    def park(self, conn: int, parked: Parked) -> None:
+        self._parked[parked.token] = parked
+        self._by_conn[conn] = parked.token
+        self._deadlines.add(conn, parked.deadline)
+
+    def claim(self, token: str | None, now: float) -> Parked | None:
+        """The member parked under ``token`` if its window is still open (spent)."""
+        parked = None if token is None else self._parked.get(token)
+        if parked is None or parked.deadline <= now:
+            return None
+        del self._parked[parked.token]
+        self._by_conn.pop(parked.conn, None)
+        self.resumes += 1
+        return parked
+
+    def holds(self, user: int) -> bool:
+        """Whether ``user`` is parked (its id must not be given to anyone else)."""
+        return any(p.user == user for p in self._parked.values())
+
+    def next(self) -> float | None:
+        return self._deadlines.next()
+
+    def expire(self, now: float) -> list[Parked]:
+        """The parked members whose window closed by ``now``, removed."""
+        out = []
+        for conn in self._deadlines.pop_due(now):
+            token = self._by_conn.pop(conn)
+            parked = self._parked.pop(token, None)
+            if parked is not None:
+                self.expired += 1
+                out.append(parked)
+        return out
+
+
+# -- the core's side (functions of RelayCore, kept here so that core.py stays small) ------
+
+
+def hello(core: RelayCore, peer: Peer, event: Hello, now: float) -> None:
+    """Welcome ``peer``: a resumed user's id back, or a new one; a token if resumable."""
+    parking = core.parking
+    parked = parking.claim(event.resume, now) if event.resume else None
+    if parked is not None:
+        peer.user, peer.name, peer.parked = parked.user, parked.name, parked
+    else:
+        peer.user = core.users.take()
+        peer.name = event.agent or f"user{peer.user}"
+    core._by_user[peer.user] = peer
+    welcome = peer.session.make_welcome(peer.user, now)
+    if parking.window > 0 and (event.resumable or parked is not None):
+        peer.resume_token = parking.new_token()
+        welcome = replace(welcome, resume=peer.resume_token, resumed=parked is not None)
+    core._send(peer, welcome)
+
+
+def parkable(core: RelayCore, peer: Peer) -> bool:
+    """Whether a connection that just ended is parked rather than leaving: it asked
+    to be resumable, is a (non-spectator) member, and neither side said goodbye."""
+    return (
+        peer.resume_token is not None
+        and peer.member is not None
+        and peer.room is not None
+        and not peer.room.retired
+        and peer.close_request is None
+        and peer.user not in core._spectators
+    )
+
+
+def park(core: RelayCore, peer: Peer, now: float) -> None:
+    """Keep ``peer``'s member in its room for the resume window; peers hear it stalled."""
+    room, member = peer.room, peer.member
+    assert room is not None and member is not None and peer.user is not None
+    assert peer.resume_token is not None
+    member.parked = True
+    parking = core.parking
+    parking.park(
+        peer.conn,
+        Parked(peer.user, peer.name, room, member, now, now + parking.window,
+               peer.resume_token, peer.conn),
+    )  # fmt: skip
+    for other in list(room.members.values()):
+        if other.user != peer.user and other.user not in core._spectators:
+            core.to_member(other, PeerStalled(user=peer.user))
+    peer.room = peer.member = None
+    core.emit_rearm()
+
+
+def gone(core: RelayCore, parked: Parked, now: float) -> None:
+    """A parked member whose window closed: it leaves (``peer_left``, reason "gone")."""
+    room, user = parked.room, parked.user
+    if room.members.get(user) is parked.member:
+        room.remove(user)
+        core._rescheduled(room)
+        if room.recorder is not None:
+            room.recorder.record_drop(
+                {"kind": "disconnected", "user": user, "first_time": parked.since,
+                 "last_time": now, "count": 1},
+                now,
+            )  # fmt: skip
+            room.recorder.record_presence({"kind": "leave", "user": user, "reason": "gone"}, now)
+        for other in list(room.members.values()):
+            if other.user not in core._spectators:
+                core.to_member(other, PeerLeft(user=user, reason="gone"))
+        core._forget_room_if_empty(room, now)
+    if user not in core._by_user:
+        core.users.give_back(user)
+
+
+def resume_join(core: RelayCore, peer: Peer, join: Join, name: str, now: float) -> bool:
+    """Re-bind a resumed peer's parked member if ``join`` asks for its room and streams;
+    True if it did. Otherwise the parked member leaves and the join goes on as new."""
+    parked, peer.parked = peer.parked, None
+    if parked is None:
+        return False
+    room, member = parked.room, parked.member
+    if room.retired or room.name != name or set(join.streams) != set(member.streams):
+        gone(core, parked, now)
+        return False
+    old = member.outbox
+    member.outbox, member.parked = peer.outbox, False
+    member.compact, member.echo = join.codec == "compact", join.echo
+    member.velocities, member.sends_velocities = join.wants_velocities, join.sends_velocities
+    member.asked_rate = join.rate
+    member.last_version = member.delivered_version = 0
+    room.set_rate(member.user, join.rate, now)  # a key snapshot on its next tick
+    peer.room, peer.member = room, member
+    core._send(peer, Joined(room=join.room, streams=member.streams, rate=join.rate))
+    for other in list(room.members.values()):
+        if other.user == member.user or other.user in core._spectators:
+            continue
+        core._send(
+            peer,
+            PeerJoined(user=other.user, streams=other.streams, label=other.label,
+                       velocities=other.sends_velocities),
+        )  # fmt: skip
+        core.to_member(other, PeerResumed(user=member.user))
+    # The events it missed, in order, once it knows the room; presence notices and
+    # pongs still queued from before the drop are stale (it just got the room anew).
+    for data in old.events:
+        if decode_message(data).TYPE == UserEvent.TYPE and not peer.outbox.offer_event(data):
+            break
+    old.events.clear()
+    if room.recorder is not None:
+        room.recorder.record_drop(
+            {"kind": "disconnected", "user": member.user, "first_time": parked.since,
+             "last_time": now, "count": 1},
+            now,
+        )  # fmt: skip
+    core._rescheduled(room)
+    return True
