@@ -32,6 +32,8 @@ import msgpack
 import numpy as np
 
 from protocol import PoseUpdate
+from protocol._compact import F_RELATIVE
+from protocol.codec_frame import _svarint, _uvarint
 
 __all__ = [
     "CompactUpdateFrames",
@@ -104,19 +106,6 @@ class RawUpdateFrames:
         return client_frame(self.payload(seq, now))
 
 
-def _uvarint(value: int) -> bytes:
-    out = bytearray()
-    while value >= 0x80:
-        out.append((value & 0x7F) | 0x80)
-        value >>= 7
-    out.append(value)
-    return bytes(out)
-
-
-def _svarint(value: int) -> bytes:
-    return _uvarint(value * 2 if value >= 0 else -value * 2 - 1)
-
-
 def _skip_varint(data: bytes, pos: int) -> int:
     while data[pos] & 0x80:
         pos += 1
@@ -141,7 +130,9 @@ class CompactUpdateFrames:
     frame's delta is from cycle frame ``(i - 1) % K`` to ``i % K`` against the
     same baselines as K frames before, so its bytes after the seq and the base
     time (counts, baseline check, Exp-Golomb orders, deltas, dt 0) are those of
-    the frame K before: they are reused as they are, with a new seq and base time.
+    the frame K before: they are reused as they are, with a new seq and base time
+    (relative to the previous frame's, as the session's encoder writes them after
+    the first frame: ``protocol._compact``).
     """
 
     def __init__(
@@ -156,6 +147,8 @@ class CompactUpdateFrames:
         self._sent = 0
         #: (magic + flags, tail) by ``i % K``, from the frames the encoder made.
         self._parts: dict[int, tuple[bytes, bytes]] = {}
+        #: (seq, base time us) of the frame sent last.
+        self._previous = (0, 0)
 
     def payload(self, seq: int, now: float) -> bytes:
         k = len(self._cycle)
@@ -168,9 +161,19 @@ class CompactUpdateFrames:
             data = self._encode(update)
             if i >= 1:
                 self._parts[i % k] = split_codec_update(data)
+            self._previous = (seq, round(now * 1e6))
             return data
         head, tail = self._parts[i % k]
-        return b"".join((head, _uvarint(seq), _svarint(round(now * 1e6)), tail))
+        base_us = round(now * 1e6)
+        if head[1] & F_RELATIVE:
+            d = seq - self._previous[0]
+            fields = _uvarint(d * 2 if d >= 0 else -d * 2 - 1) + _svarint(
+                base_us - self._previous[1]
+            )
+        else:
+            fields = _uvarint(seq) + _svarint(base_us)
+        self._previous = (seq, base_us)
+        return b"".join((head, fields, tail))
 
     def frame(self, seq: int, now: float) -> bytes:
         return client_frame(self.payload(seq, now))
