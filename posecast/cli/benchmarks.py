@@ -1,4 +1,4 @@
-"""``posecast bench interp`` and ``posecast bench relay``."""
+"""``posecast bench interp``, ``posecast bench relay`` and ``posecast bench hostile``."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from typing import Annotated, Any
 
 import typer
 
-from posecast.cli.common import _fail, console
+from posecast.cli.common import _fail, bench_app, console
 
 
 def bench_interp(
@@ -210,3 +210,86 @@ def _bench_relay_run(
         import json
 
         json_out.write_text(json.dumps(report, indent=2, default=float) + "\n")
+
+
+def bench_hostile(
+    bots: Annotated[int, typer.Option(help="Honest bots in the room (at least 2).")] = 4,
+    rate: Annotated[float, typer.Option(help="Snapshot rate the honest bots ask (Hz).")] = 20.0,
+    duration: Annotated[
+        float,
+        typer.Option(help="Seconds each run's honest bots play (one clean run + one per attack)."),
+    ] = 10.0,
+    attacks: Annotated[
+        str,
+        typer.Option(
+            help="Comma-separated attacks to run: timestamp, fuzz, flood, never-reader, rooms."
+        ),
+    ] = "timestamp,fuzz,flood,never-reader,rooms",
+    motion: Annotated[
+        str, typer.Option(help="What the honest bots publish (a trace set, as for `bots`).")
+    ] = "traces:sample",
+    interp_: Annotated[
+        str, typer.Option("--interp", help="The interpolator the honest bots are scored with.")
+    ] = "soa",
+    stamp_age: Annotated[
+        float, typer.Option(help="Timestamp attack: how far in the past its poses are stamped (s).")
+    ] = 2.0,
+    fuzz_frames: Annotated[
+        int, typer.Option(help="Fuzz attack: invalid frames to send in all (bounded by the time).")
+    ] = 200_000,
+    fuzz_connections: Annotated[
+        int, typer.Option(help="Fuzz attack: connections fuzzing at once (each reconnects).")
+    ] = 8,
+    flood_connections: Annotated[
+        int, typer.Option(help="Flood attack: connections to open that never say hello.")
+    ] = 2000,
+    flood_rate: Annotated[
+        float, typer.Option(help="Flood attack: connections opened per second.")
+    ] = 250.0,
+    rooms: Annotated[int, typer.Option(help="Room spam: distinct rooms to try to open.")] = 300,
+    attacker_addresses: Annotated[
+        int,
+        typer.Option(
+            help="Loopback source addresses the flood and room spam use in turn "
+            "(127.0.0.2 and up; the honest bots use 127.0.0.1)."
+        ),
+    ] = 1,
+    attacker_nice: Annotated[
+        int, typer.Option(help="Niceness of the attacker process (0: same priority as the relay).")
+    ] = 10,
+    json_out: Annotated[
+        Path | None, typer.Option("--json", help="Also write the report as JSON here.")
+    ] = None,
+) -> None:
+    """Honest bots' QoE, server RSS and tick lag under each attack, beside a clean run."""
+    from posecast.bench.hostile import HostileConfig, run_hostile_bench
+
+    cfg = HostileConfig(
+        bots=bots,
+        rate=rate,
+        duration=duration,
+        motion=motion,
+        method=interp_,
+        attacks=tuple(a.strip() for a in attacks.split(",") if a.strip()),
+        stamp_age=stamp_age,
+        fuzz_frames=fuzz_frames,
+        fuzz_connections=fuzz_connections,
+        flood_connections=flood_connections,
+        flood_rate=flood_rate,
+        rooms=rooms,
+        addresses=attacker_addresses,
+        attacker_nice=attacker_nice,
+    )
+    try:
+        cfg.check()
+        report = run_hostile_bench(cfg, console=console)
+    except (ValueError, RuntimeError) as exc:
+        raise _fail(str(exc)) from None
+    if json_out is not None:
+        import json
+
+        json_out.write_text(json.dumps(report, indent=2, default=float) + "\n")
+
+
+# Registered here (the other bench commands are in posecast/cli/__init__.py).
+bench_app.command("hostile")(bench_hostile)

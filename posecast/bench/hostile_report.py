@@ -1,0 +1,106 @@
+"""The tables of ``posecast bench hostile``: honest QoE and server figures, then the attacker."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from rich.console import Console
+from rich.table import Table
+
+__all__ = ["print_hostile_report"]
+
+
+def _num(value: Any, fmt: str = ".0f") -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "-"
+    return format(value, fmt)
+
+
+def _with_ratio(value: float, ratio: float, fmt: str) -> str:
+    if not math.isfinite(ratio):
+        return _num(value, fmt)
+    return f"{_num(value, fmt)} ({ratio:.2f}x)"
+
+
+def _counts(counter: dict[str, Any]) -> str:
+    return ", ".join(f"{k} {v}" for k, v in sorted(counter.items(), key=lambda kv: -kv[1])) or "-"
+
+
+def _honest_table(runs: list[dict[str, Any]], method: str) -> Table:
+    table = Table(title=f"honest bots ({method}) and the server, beside the clean run")
+    for col in (
+        "run",
+        "hands p95 tip mm",
+        "D ms",
+        "rate Hz",
+        "RSS MB peak",
+        "tick lag max ms",
+        "overdue p99 ms",
+        "unanswered scrapes",
+        "load 1m",
+    ):
+        table.add_column(col, justify="left" if col == "run" else "right")
+    for run in runs:
+        h, s, vs = run["honest"], run["server"], run["vs_clean"]
+        clean = run["attack"] == "clean"
+        table.add_row(
+            run["attack"],
+            _num(h["hands_tip_p95_mm"])
+            if clean
+            else _with_ratio(h["hands_tip_p95_mm"], vs["hands_tip_p95"], ".0f"),
+            _num(h["delay_ms"]) if clean else _with_ratio(h["delay_ms"], vs["delay"], ".0f"),
+            _num(h["rate_hz"], ".1f") if clean else _with_ratio(h["rate_hz"], vs["rate"], ".1f"),
+            _num(s["rss_mb_peak"], ".1f"),
+            _num(s["tick_lag_max_ms"], ".1f"),
+            _num(s["tick_overdue_p99_ms"], ".1f"),
+            f"{s['scrapes_unanswered']}/{s['scrapes']}",
+            " ".join(f"{x:.1f}" for x in run.get("load_1m", [])) or "-",
+        )
+    return table
+
+
+def _attacker_table(runs: list[dict[str, Any]]) -> Table:
+    table = Table(title="what the attacker sent and got")
+    for col in ("attack", "sent", "close codes", "error codes", "server counted"):
+        table.add_column(col)
+    for run in runs:
+        got = run.get("attacker")
+        if got is None:
+            continue
+        s = run["server"]
+        counted = {
+            "frames in": s.get("frames_in"),
+            "protocol errors": s.get("protocol_errors"),
+            "misbehaviour closes": s.get("misbehaviour_closes"),
+            "refused conns": s.get("connections_refused"),
+            "join timeouts": s.get("join_timeouts"),
+            "updates refused": s.get("updates_refused"),
+            "skips": s.get("snapshot_skips"),
+            "rooms peak": s.get("rooms_peak"),
+        }
+        table.add_row(
+            run["attack"],
+            f"{sum(got.get('sent', {}).values())} in {got.get('seconds', 0):.1f} s\n"
+            + _counts(got.get("sent", {})),
+            _counts(got.get("closes", {})),
+            _counts(got.get("errors", {})),
+            ", ".join(f"{k} {_num(v)}" for k, v in counted.items() if v),
+        )
+    return table
+
+
+def print_hostile_report(report: dict[str, Any], console: Console) -> None:
+    """Both tables, every target met or missed (plainly), and the machine's load."""
+    runs = report["runs"]
+    console.print(_honest_table(runs, report["config"]["method"]))
+    console.print(_attacker_table(runs))
+    for run in runs:
+        for t in run["targets"]:
+            mark = "met" if t["met"] else "[bold red]MISSED[/bold red]"
+            console.print(f"{run['attack']}: {t['target']}: {_num(t['value'], '.2f')} -> {mark}")
+    if report["missed"]:
+        console.print(f"[bold red]{len(report['missed'])} target(s) missed[/bold red]")
+    load = report.get("load") or []
+    if load:
+        console.print(f"load average at the end: {' '.join(f'{x:.2f}' for x in load)}")
