@@ -38,6 +38,8 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 from numpy.typing import NDArray
 
+from recorder.check import EXPORT_LIBRARY_PREFIX
+from recorder.compact import expand_group, is_group
 from recorder.format import (
     POSES_TOPIC,
     PRESENCE_TOPIC,
@@ -47,7 +49,6 @@ from recorder.format import (
     to_ns,
 )
 from recorder.reader import (
-    EXPORT_LIBRARY_PREFIX,
     SessionReader,
     StreamData,
     UserInfo,
@@ -349,8 +350,14 @@ def _fast_read(path: Path) -> SessionArrays | None:
                 channel, _seq, log_time, _pub = _MSG_HEAD.unpack_from(raw, p + 9)
                 topic = topics.get(channel)
                 if topic == POSES_TOPIC:
-                    pose_times.append(log_time)
-                    pose_data.append(raw[p + 31 : p + 9 + length])
+                    data = raw[p + 31 : p + 9 + length]
+                    if is_group(data):
+                        for t, _pub, one in expand_group(data):
+                            pose_times.append(t)
+                            pose_data.append(one)
+                    else:
+                        pose_times.append(log_time)
+                        pose_data.append(data)
                 elif topic == PRESENCE_TOPIC:
                     presence.append((log_time, raw[p + 31 : p + 9 + length]))
             p += 9 + length

@@ -42,6 +42,18 @@ values, in row-major order), which groups the slowly varying sign and exponent
 bytes together. Decoding gives back the float64 capture times and the float32
 poses bit for bit (NaN payloads included).
 
+Layout 2 (:mod:`recorder.compact`): the updates of a compact session (the
+client sent codec codes; the relay relays their dequantised float32) are
+recorded as those codes, a group of updates in one message (first byte 2),
+delta-coded stream by stream inside the message, with the room volume, so that
+every message decodes on its own. Its log time is its first update's arrival,
+its publish time its last update's; readers expand it into the layout 1
+messages of its updates (the same bytes :func:`encode_pose` makes of them), so
+everything that reads layout 1 reads layout 2 files, bit for bit. Raw sessions
+are recorded in layout 1, unchanged. The first byte of a ``poses`` message
+tells its layout. The writer writes a group just before its chunk closes (every
+0.5 s), so a group never spans two chunks; it takes one ``sequence`` number.
+
 Session metadata lives in MCAP metadata records: ``posecast.session`` (written at
 open: room, posecast version, start time on both clocks, the users present at
 the start as JSON, recorder settings) and ``posecast.session.end`` (written on a
@@ -389,6 +401,8 @@ def decode_pose(data: bytes | bytearray | memoryview) -> PoseRecord:
     if len(data) < POSE_HEADER_SIZE:
         raise FormatError(f"pose message of {len(data)} bytes is shorter than its header")
     ver, flags, user, n, seq, arrival = _HEAD.unpack_from(data, 0)
+    if ver == 2:
+        raise FormatError("a layout 2 (compact) pose message: decode it with recorder.compact")
     if ver != FORMAT_VERSION:
         raise FormatError(f"unknown pose layout version {ver}")
     if flags & ~VELOCITY_FLAG:

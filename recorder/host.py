@@ -10,9 +10,9 @@ writer process a server shares between all its recorded rooms (a room opens in
 milliseconds, and a server recording 100 rooms runs one writer, not 100):
 
 - the relay hands over each pose update as it decoded it
-  (:meth:`ProcessRecorder.record_pose_update`: the update's sequence number,
-  base time and entries' bytes, packed behind a small header; two list
-  appends), and the few JSON records (presence, events, drops) already encoded;
+  (:meth:`ProcessRecorder.record_pose_update`: sequence number, base time and
+  entries' bytes behind a small header, plus the codes of a compact session;
+  two list appends), and the few JSON records already encoded;
 - every ``batch_delay`` s (the room ticks call :meth:`ProcessRecorder.poll`)
   each room's batch is joined into one blob (sooner, once it holds
   ``batch_size`` records), and all rooms' blobs are written into the host's
@@ -48,21 +48,27 @@ import logging
 import os
 import queue
 import select
+import struct
 import subprocess
 import sys
 import threading
 import time as _time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
 
+from protocol.codec import Volume
 from protocol.poses import PoseUpdate
 from recorder.format import DROPS_TOPIC, POSES_TOPIC, QUEUE_OVERFLOW_KIND, encode_json, to_ns
 from recorder.options import Clock, RecordOptions
 from recorder.pipe import (
     _CHANNEL_INDEX,
+    _COMPACT_EXTRA,
+    _COMPACT_PACK,
     _FRAME_BATCH,
     _FRAME_OPEN,
+    _KIND_COMPACT,
     _KIND_RECORD,
     _KIND_STOP,
     _KIND_UPDATE,
@@ -71,7 +77,10 @@ from recorder.pipe import (
     _STOP,
     _UPDATE_EXTRA,
     _UPDATE_PACK,
+    _VOLUME,
+    _codes_struct,
     _frame,
+    _room_config,
 )
 from recorder.writer import RecorderError, RecorderStatistics, RecordTap, SessionRecorder
 
@@ -491,6 +500,9 @@ class ProcessRecorder(RecordTap):
         self._rejected = 0
         self._high_water = 0
         self._checked = _time.monotonic()
+        # the room volume of compact updates, and its bytes in the pipe
+        self._volume: Volume | None = None
+        self._box = b""
 
     @classmethod
     def open(
@@ -528,8 +540,19 @@ class ProcessRecorder(RecordTap):
 
     # -- the relay's side: never blocks ----------------------------------------------
 
-    def record_pose_update(self, user: int, arrival: float, update: PoseUpdate) -> bool:
-        """Take one pose update of ``user`` as the relay decoded it, arrived at ``arrival``."""
+    def record_pose_update(
+        self,
+        user: int,
+        arrival: float,
+        update: PoseUpdate,
+        codes: Mapping[int, list[int]] | None = None,
+        volume: Volume | None = None,
+    ) -> bool:
+        """Take one pose update of ``user`` as the relay decoded it, arrived at ``arrival``.
+
+        ``codes`` (stream id -> codec codes) and ``volume`` of a compact session:
+        the writer records the update as its codes (layout 2).
+        """
         if self._closing or self._error is not None:
             return self._refuse(1)
         entries = update.entries
@@ -541,17 +564,23 @@ class ProcessRecorder(RecordTap):
         # Two appends, not ``+= (head, body)``: a tuple per update is a GC-tracked
         # allocation, and the relay's cyclic collections run per 700 of those.
         parts = b.parts
-        parts.append(
-            _UPDATE_PACK(
-                _KIND_UPDATE,
-                _UPDATE_EXTRA + len(body),
-                user,
-                n,
-                arrival,
-                update.seq,
-                update.base_time,
-            )
-        )
+        seq, base = update.seq, update.base_time
+        flat = b""
+        if codes is not None and volume is not None and len(codes) == n:
+            width = len(next(iter(codes.values()))) if n else 7
+            with contextlib.suppress(struct.error):  # rows of unequal widths: not compact
+                flat = _codes_struct(width * n).pack(*itertools.chain.from_iterable(codes.values()))
+        if flat or (codes is not None and volume is not None and n == 0):
+            assert volume is not None
+            body += flat
+            size = _COMPACT_EXTRA + len(body)
+            if volume is not self._volume:
+                self._volume, self._box = volume, _VOLUME.pack(*volume.lo, *volume.hi)
+            head = _COMPACT_PACK(_KIND_COMPACT, size, user, n, arrival, seq, base, width)
+            parts.append(head + self._box)
+        else:
+            size = _UPDATE_EXTRA + len(body)
+            parts.append(_UPDATE_PACK(_KIND_UPDATE, size, user, n, arrival, seq, base))
         parts.append(body)
         b.records += 1
         b.updates += 1
@@ -761,24 +790,6 @@ class ProcessRecorder(RecordTap):
                 error=self._error,
                 closed=self._closed,
             )
-
-
-def _room_config(
-    directory: str | os.PathLike[str], room: str, opts: RecordOptions
-) -> dict[str, Any]:
-    """The configuration an ``OPEN`` frame carries (its JSON is the frame's payload)."""
-    return {
-        "directory": str(Path(directory).resolve()),
-        "room": room,
-        "name": opts.name,
-        "users": [dict(u) for u in opts.users],
-        "start": opts.clock(),
-        "start_wall": opts.wall_clock(),
-        "queue_size": opts.queue_size,
-        "flush_interval": opts.flush_interval,
-        "chunk_bytes": opts.chunk_bytes,
-        "metadata": dict(opts.metadata or {}),
-    }
 
 
 #: What a server room records through: either recorder has the relay-facing methods.

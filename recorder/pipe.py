@@ -9,6 +9,9 @@ each ``u8 kind, u32 length, payload``: ``UPDATE``: ``u16 user, u32 poses, f64
 arrival, u64 seq, f64 base time`` + the update's entries
 (:data:`protocol.UPDATE_DTYPE` or, for the velocity variant,
 :data:`protocol.UPDATE_VELOCITY_DTYPE` records: their size tells which);
+``COMPACT``: as ``UPDATE`` plus ``u8 codes per entry (7 or 13), f64[6] room
+volume (lo, hi)`` + the entries + their codes (i64 each, entry by entry; the
+update of a compact session, recorded as layout 2);
 ``RECORD``: ``u8 channel index, i64 log ns, i64 publish ns, u32 poses`` + data;
 ``STOP``: ``f64 end time`` (the room's last message). The child's standard
 output carries JSON lines, each with the room id: ``{"event": "ready", "room":
@@ -19,11 +22,14 @@ id, "part": ..., "path": ...}`` once the room's file is open, ``{"event":
 
 from __future__ import annotations
 
+import os
 import struct
-from typing import Final
+from pathlib import Path
+from typing import Any, Final
 
 from protocol.poses import UPDATE_DTYPE, UPDATE_VELOCITY_DTYPE
 from recorder.format import CHANNELS
+from recorder.options import RecordOptions
 
 __all__ = ["EXIT_ERROR", "EXIT_OK", "EXIT_RELAY_GONE"]
 
@@ -35,11 +41,29 @@ _FRAME: Final = struct.Struct("<BII")
 _KIND_UPDATE: Final = 1
 _KIND_RECORD: Final = 2
 _KIND_STOP: Final = 3
+_KIND_COMPACT: Final = 4
 _HEAD: Final = struct.Struct("<BI")
 # head + user, poses, arrival, seq, base time (the entries' size tells their layout)
 _UPDATE: Final = struct.Struct("<BIHIdQd")
 _UPDATE_EXTRA: Final = _UPDATE.size - _HEAD.size
 _UPDATE_PACK: Final = _UPDATE.pack
+# head + user, poses, arrival, seq, base time, codes per entry, volume (lo, hi)
+_COMPACT: Final = struct.Struct("<BIHIdQdB6d")
+_COMPACT_EXTRA: Final = _COMPACT.size - _HEAD.size
+_VOLUME: Final = struct.Struct("<6d")
+#: Packs the header without the volume (whose bytes the relay keeps packed).
+_COMPACT_PACK: Final = struct.Struct("<BIHIdQdB").pack
+_CODE_STRUCTS: dict[int, struct.Struct] = {}
+
+
+def _codes_struct(count: int) -> struct.Struct:
+    """The struct of ``count`` codes (i64 each), made once per count."""
+    packer = _CODE_STRUCTS.get(count)
+    if packer is None:
+        packer = _CODE_STRUCTS[count] = struct.Struct(f"<{count}q")
+    return packer
+
+
 _PLAIN_ITEM: Final = UPDATE_DTYPE.itemsize
 _VELOCITY_ITEM: Final = UPDATE_VELOCITY_DTYPE.itemsize
 _RECORD: Final = struct.Struct("<BIBqqI")  # head + channel, log ns, publish ns, poses
@@ -57,3 +81,21 @@ EXIT_RELAY_GONE: Final = 2
 
 def _frame(kind: int, room: int, payload_size: int) -> bytes:
     return _FRAME.pack(kind, _FRAME_EXTRA + payload_size, room)
+
+
+def _room_config(
+    directory: str | os.PathLike[str], room: str, opts: RecordOptions
+) -> dict[str, Any]:
+    """The configuration an ``OPEN`` frame carries (its JSON is the frame's payload)."""
+    return {
+        "directory": str(Path(directory).resolve()),
+        "room": room,
+        "name": opts.name,
+        "users": [dict(u) for u in opts.users],
+        "start": opts.clock(),
+        "start_wall": opts.wall_clock(),
+        "queue_size": opts.queue_size,
+        "flush_interval": opts.flush_interval,
+        "chunk_bytes": opts.chunk_bytes,
+        "metadata": dict(opts.metadata or {}),
+    }

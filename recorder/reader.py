@@ -19,11 +19,12 @@ running or crashed recording can be inspected without recovering it first.
 
 from __future__ import annotations
 
+import heapq
+import itertools
 import json
 import math
 import mmap
 import os
-import struct
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +35,8 @@ import numpy as np
 from mcap.reader import McapReader, make_reader
 from numpy.typing import NDArray
 
+from recorder.check import check_recording
+from recorder.compact import GROUP_SPAN_MAX, expand_group, is_group
 from recorder.format import (
     DROPS_TOPIC,
     EVENTS_TOPIC,
@@ -42,7 +45,6 @@ from recorder.format import (
     POSE_STREAM_SIZE,
     POSES_TOPIC,
     PRESENCE_TOPIC,
-    PROFILE,
     QUEUE_OVERFLOW_KIND,
     SESSION_END_METADATA,
     SESSION_METADATA,
@@ -55,7 +57,6 @@ from recorder.format import (
     to_ns,
 )
 from recorder.scan import (
-    MAGIC,
     ChannelRecord,
     HeaderRecord,
     McapScanner,
@@ -233,22 +234,8 @@ class SessionReader:
         hi = None if end is None else to_ns(end)
         wanted = None if topics is None else set(topics)
         if self._reader is not None:
-            messages = self._reader.iter_messages(
-                topics=None if wanted is None else sorted(wanted),
-                log_time_order=time_order,
-                starting_at=lo,
-                ending_before=hi,
-            )
-            while True:
-                try:
-                    _schema, channel, msg = next(messages)
-                except StopIteration:
-                    return
-                except Exception as exc:  # mcap and zstd raise many types on bad data
-                    raise FormatError(
-                        f"{self.path} is damaged ({exc!r}); read it with linear=True or recover it"
-                    ) from exc
-                yield channel.topic, msg.log_time, msg.publish_time, msg.sequence, msg.data
+            yield from self._indexed(wanted, lo, hi, time_order)
+            return
         out: list[_Raw] = []
         channels: dict[int, str] = {}
         buf = self._mmap if self._mmap is not None else b""
@@ -259,6 +246,9 @@ class SessionReader:
                 topic = channels.get(rec.channel_id)
                 if topic is None or (wanted is not None and topic not in wanted):
                     continue
+                if topic == POSES_TOPIC and is_group(rec.data):
+                    out.extend(_expand(rec.sequence, rec.data, lo, hi))
+                    continue
                 t = rec.log_time
                 if (lo is not None and t < lo) or (hi is not None and t >= hi):
                     continue
@@ -266,6 +256,50 @@ class SessionReader:
         if time_order:
             out.sort(key=lambda r: r[1])
         yield from out
+
+    def _indexed(
+        self, wanted: set[str] | None, lo: int | None, hi: int | None, time_order: bool
+    ) -> Iterator[_Raw]:
+        """Messages through mcap's indexed reader; layout 2 pose messages expanded.
+
+        A layout 2 message's log time is its first update's arrival and its updates
+        span at most ``GROUP_SPAN_MAX`` s, so the query starts that much earlier and
+        expanded updates wait in a heap until no earlier message can follow.
+        """
+        assert self._reader is not None
+        early = lo
+        if lo is not None and (wanted is None or POSES_TOPIC in wanted):
+            early = max(0, lo - to_ns(GROUP_SPAN_MAX))
+        messages = self._reader.iter_messages(
+            topics=None if wanted is None else sorted(wanted),
+            log_time_order=time_order,
+            starting_at=early,
+            ending_before=hi,
+        )
+        waiting: list[tuple[int, int, _Raw]] = []
+        count = itertools.count()
+        while True:
+            try:
+                _schema, channel, msg = next(messages)
+            except StopIteration:
+                break
+            except Exception as exc:  # mcap and zstd raise many types on bad data
+                raise FormatError(
+                    f"{self.path} is damaged ({exc!r}); read it with linear=True or recover it"
+                ) from exc
+            t = msg.log_time
+            while waiting and waiting[0][0] <= t:
+                yield heapq.heappop(waiting)[2]
+            if channel.topic == POSES_TOPIC and is_group(msg.data):
+                for raw in _expand(msg.sequence, msg.data, lo, hi):
+                    if time_order:
+                        heapq.heappush(waiting, (raw[1], next(count), raw))
+                    else:
+                        yield raw
+            elif lo is None or t >= lo:
+                yield channel.topic, t, msg.publish_time, msg.sequence, msg.data
+        while waiting:
+            yield heapq.heappop(waiting)[2]
 
     # -- records ---------------------------------------------------------------------
 
@@ -620,6 +654,15 @@ def _info(reader: SessionReader) -> dict[str, Any]:
     }
 
 
+def _expand(sequence: int, data: bytes, lo: int | None, hi: int | None) -> list[_Raw]:
+    """The layout 1 pose messages of a layout 2 message, those in ``lo <= t < hi``."""
+    return [
+        (POSES_TOPIC, t, pub, sequence, raw)
+        for t, pub, raw in expand_group(data)
+        if (lo is None or t >= lo) and (hi is None or t < hi)
+    ]
+
+
 def _sequence_gaps(seqs: list[int]) -> int:
     """Records missing from the file's record counter (lost chunks)."""
     if not seqs:
@@ -633,74 +676,6 @@ def _float(text: str | None) -> float | None:
         return None if text is None else float(text)
     except ValueError:
         return None
-
-
-#: Bytes read by :func:`check_recording`: the magic and the header record, whose two
-#: strings (profile, writer library) are short.
-_HEAD_BYTES = 64 * 1024
-_HEADER_OPCODE = 0x01
-#: The writer library of ``posecast export --to foxglove`` files (their profile is empty).
-EXPORT_LIBRARY_PREFIX = "posecast-export/"
-
-
-def check_recording(path: str | os.PathLike[str]) -> None:
-    """Raise :class:`FormatError` unless ``path`` starts as a posecast recording does.
-
-    Only the MCAP magic and the header record are read, so a finished, an
-    unfinished (``.part``) or a damaged recording passes (damage shows when it is
-    read, and ``recover`` handles it). An empty file, a file that is not MCAP,
-    one cut short inside its header, a Foxglove export and another program's
-    MCAP file do not; the message says which, naming the file, in one line.
-    ``OSError`` if the file cannot be opened.
-    """
-    p = Path(path)
-    with p.open("rb") as fh:
-        head = fh.read(_HEAD_BYTES)
-    if not head:
-        raise FormatError(f"{p} is empty, not a posecast recording")
-    if head[: len(MAGIC)] != MAGIC:
-        if MAGIC.startswith(head):
-            raise FormatError(
-                f"{p} is cut short inside its MCAP magic: there is no recording in it"
-            )
-        raise FormatError(f"{p} is not a posecast recording (not an MCAP file)")
-    cut_short = FormatError(
-        f"{p} is cut short inside its MCAP header ({len(head)} bytes): there is no recording in it"
-    )
-    pos = len(MAGIC)
-    if len(head) < pos + 9:
-        raise cut_short
-    opcode, length = struct.unpack_from("<BQ", head, pos)
-    if opcode != _HEADER_OPCODE:
-        raise FormatError(f"{p} is damaged: its MCAP header record is missing; try recovering it")
-    body = head[pos + 9 : pos + 9 + length]
-    if len(body) < length:
-        if len(head) < _HEAD_BYTES:
-            raise cut_short
-        raise FormatError(f"{p} is damaged: its MCAP header record is too long to be one")
-    strings: list[str] = []
-    at = 0
-    try:
-        for _ in range(2):
-            (n,) = struct.unpack_from("<I", body, at)
-            strings.append(body[at + 4 : at + 4 + n].decode("utf-8"))
-            at += 4 + n
-    except (struct.error, UnicodeDecodeError):
-        raise FormatError(f"{p} is damaged: its MCAP header record is malformed") from None
-    profile, library = strings
-    if profile == PROFILE:
-        return
-    if library.startswith(EXPORT_LIBRARY_PREFIX):
-        raise FormatError(
-            f"{p} is a Foxglove export, not a posecast recording; replay the original "
-            "recording (open this file in Foxglove)"
-        )
-    if not profile and "recovered by posecast" in library:
-        return  # recovered from a file whose header was lost: judged by its channels
-    raise FormatError(
-        f"{p} is an MCAP file but not a posecast recording "
-        f"(profile {profile!r}, written by {library!r})"
-    )
 
 
 def info(path: str | os.PathLike[str]) -> dict[str, Any]:

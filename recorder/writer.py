@@ -28,7 +28,6 @@ import contextlib
 import logging
 import os
 import queue
-import re
 import threading
 import time as _time
 from collections.abc import Iterable, Mapping
@@ -41,22 +40,35 @@ from typing import IO, Any, Final
 import numpy as np
 from numpy.typing import ArrayLike
 
+from protocol.codec import Volume
 from protocol.errors import PosecastError
 from protocol.poses import PoseUpdate
+from recorder.compact import (
+    GROUP_SPAN_MAX,
+    GROUP_UPDATES_MAX,
+    CompactUpdate,
+    compact_update,
+    encode_group,
+    newest_ns,
+)
+from recorder.files import (
+    PART_SUFFIX,
+    create_part,
+    fsync_dir,
+    safe_name,
+    start_event,
+    start_file,
+)
 from recorder.format import (
     CHANNELS,
     DROPS_TOPIC,
     EVENTS_TOPIC,
-    FORMAT_VERSION,
     POSES_TOPIC,
     PRESENCE_TOPIC,
-    PROFILE,
     QUEUE_OVERFLOW_KIND,
     SESSION_END_METADATA,
-    SESSION_METADATA,
     encode_json,
     encode_pose,
-    posecast_version,
     to_ns,
 )
 from recorder.mcapfile import MESSAGE_OVERHEAD, ChunkWriter
@@ -78,11 +90,11 @@ __all__ = [
     "RecorderError",
     "RecorderStatistics",
     "SessionRecorder",
+    "fsync_dir",
 ]
 
 log = logging.getLogger("posecast.recorder")
 
-PART_SUFFIX = ".part"
 
 _CHANNEL_IDS: Final = {spec.topic: i + 1 for i, spec in enumerate(CHANNELS)}
 _POSES = _CHANNEL_IDS[POSES_TOPIC]
@@ -90,8 +102,9 @@ _EVENTS = _CHANNEL_IDS[EVENTS_TOPIC]
 _PRESENCE = _CHANNEL_IDS[PRESENCE_TOPIC]
 _DROPS = _CHANNEL_IDS[DROPS_TOPIC]
 
-# A queued record: channel id, log time ns, publish time ns, data, poses in it.
-_Item = tuple[int, int, int, bytes, int]
+# A queued record: channel id, log time ns, publish time ns, data, poses in it. A
+# compact update waits in the writer thread and is written in a layout 2 message.
+_Item = tuple[int, int, int, bytes | CompactUpdate, int]
 
 
 class RecorderError(PosecastError, RuntimeError):
@@ -105,7 +118,8 @@ class RecorderStatistics:
     records_offered: int
     """Records the ``record_*`` methods accepted into the queue."""
     records_written: int
-    """Messages written to the file (including the recorder's own drops records)."""
+    """Records written to the file (including the recorder's own drops records; each
+    update of a layout 2 message counts)."""
     poses_written: int
     queue_drops: int
     """Records lost because the queue was full (each is also in a drops record)."""
@@ -135,25 +149,6 @@ _ABANDON: Final = object()
 
 class _Abandoned(Exception):
     pass
-
-
-def _safe_name(room: str) -> str:
-    name = re.sub(r"[^A-Za-z0-9._-]+", "-", room).strip(".-")
-    return name[:64] or "room"
-
-
-def fsync_dir(directory: Path) -> None:
-    """Make a rename or a new file in ``directory`` durable, as far as the OS allows."""
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 class _Loss:
@@ -332,6 +327,10 @@ class SessionRecorder(RecordTap):
         self._bytes = stream.tell()
         self._chunks = 0
         self._fsyncs = 0
+        # compact updates of the open chunk (layout 2), the arrival span they cover
+        self._group: list[CompactUpdate] = []
+        self._group_span = (0.0, 0.0)
+        self._compact_fallbacks = 0
         self._thread = threading.Thread(
             target=self._run, name=f"recorder:{final_path.name}", daemon=True
         )
@@ -359,11 +358,11 @@ class SessionRecorder(RecordTap):
         start_wall = opts.wall_clock()
         start = opts.clock()
         base = opts.name or (
-            f"{_safe_name(room)}-{datetime.fromtimestamp(start_wall, UTC):%Y%m%dT%H%M%SZ}"
+            f"{safe_name(room)}-{datetime.fromtimestamp(start_wall, UTC):%Y%m%dT%H%M%SZ}"
         )
-        part, final, stream = _create_part(folder, base)
+        part, final, stream = create_part(folder, base)
         try:
-            writer = _start_file(stream, room, opts, start, start_wall)
+            writer = start_file(stream, room, opts, start, start_wall)
             rec = cls(
                 part,
                 final,
@@ -379,7 +378,7 @@ class SessionRecorder(RecordTap):
             )
             # Header, schemas, channels and the first chunk: durable from the start.
             start_ns = to_ns(start)
-            rec._write((_EVENTS, start_ns, start_ns, encode_json(_start_event(room, start)), 0))
+            rec._write((_EVENTS, start_ns, start_ns, encode_json(start_event(room, start)), 0))
             rec._sync()
             fsync_dir(folder)
         except BaseException:
@@ -392,8 +391,24 @@ class SessionRecorder(RecordTap):
 
     # -- the relay's side: never blocks ----------------------------------------------
 
-    def record_pose_update(self, user: int, arrival: float, update: PoseUpdate) -> bool:
-        """Queue one pose update of ``user`` as the relay decoded it (see :meth:`record_update`)."""
+    def record_pose_update(
+        self,
+        user: int,
+        arrival: float,
+        update: PoseUpdate,
+        codes: Mapping[int, list[int]] | None = None,
+        volume: Volume | None = None,
+    ) -> bool:
+        """Queue one pose update of ``user`` as the relay decoded it (see :meth:`record_update`).
+
+        ``codes`` (stream id -> codec codes, in the update's order) and ``volume``
+        of a compact session: the update is recorded as its codes (layout 2).
+        """
+        if codes is not None and volume is not None:
+            compact = compact_update(user, arrival, update, codes, volume)
+            if compact is not None:
+                n = len(compact.streams)
+                return self._offer((_POSES, to_ns(arrival), newest_ns(compact), compact, n))
         return self.record_update(
             user,
             update.seq,
@@ -405,12 +420,14 @@ class SessionRecorder(RecordTap):
         )
 
     def offer_encoded(
-        self, channel: str, log_ns: int, publish_ns: int, data: bytes, poses: int
+        self, channel: str, log_ns: int, publish_ns: int, data: bytes | CompactUpdate, poses: int
     ) -> bool:
         """Queue a record already encoded for ``channel`` (a topic of :data:`CHANNELS`)."""
         return self._offer((_CHANNEL_IDS[channel], log_ns, publish_ns, data, poses))
 
-    def offer_encoded_many(self, channel: str, rows: Iterable[tuple[int, int, bytes, int]]) -> bool:
+    def offer_encoded_many(
+        self, channel: str, rows: Iterable[tuple[int, int, bytes | CompactUpdate, int]]
+    ) -> bool:
         """Queue records already encoded for ``channel``: ``(log ns, publish ns, data, poses)``.
 
         As :meth:`offer_encoded` for each, in order, batched the same way.
@@ -507,13 +524,58 @@ class SessionRecorder(RecordTap):
 
     def _write(self, item: _Item) -> None:
         channel, log_ns, pub_ns, data, poses = item
-        self._mcap.add_message(channel, log_ns, data, pub_ns, self._sequence)
-        self._sequence += 1
+        if isinstance(data, CompactUpdate):
+            self._group_add(data)
+        else:
+            self._mcap.add_message(channel, log_ns, data, pub_ns, self._sequence)
+            self._sequence += 1
+            self._pending += 1
         self._written += 1
         self._poses_written += poses
-        self._pending += 1
+
+    def _group_add(self, update: CompactUpdate) -> None:
+        """Add a compact update to the open layout 2 group (written before the chunk closes)."""
+        group = self._group
+        if group:
+            first = group[0]
+            lo, hi = self._group_span
+            lo, hi = min(lo, update.arrival), max(hi, update.arrival)
+            if (
+                update.volume != first.volume
+                or update.velocity != first.velocity
+                or hi - lo > GROUP_SPAN_MAX
+                or len(group) >= GROUP_UPDATES_MAX
+            ):
+                self._group_write()
+            else:
+                self._group_span = (lo, hi)
+        if not self._group:
+            self._group_span = (update.arrival, update.arrival)
+        self._group.append(update)
+
+    def _group_write(self) -> None:
+        """Write the open group as one layout 2 message (updates that do not code: layout 1)."""
+        group, self._group = self._group, []
+        if not group:
+            return
+        data, bad = encode_group(group)
+        if data is not None:
+            lo, hi = self._group_span
+            self._mcap.add_message(_POSES, to_ns(lo), data, to_ns(hi), self._sequence)
+            self._sequence += 1
+            self._pending += 1
+        for u in bad:
+            r = u.record()
+            raw = encode_pose(
+                r.user, r.seq, r.arrival, r.streams, r.capture_times, r.poses, r.velocities
+            )
+            self._mcap.add_message(_POSES, to_ns(r.arrival), raw, newest_ns(u), self._sequence)
+            self._sequence += 1
+            self._pending += 1
+        self._compact_fallbacks += len(bad)
 
     def _close_chunk(self) -> None:
+        self._group_write()
         self._mcap.flush()
         if self._pending:
             self._chunks += 1
@@ -582,6 +644,13 @@ class SessionRecorder(RecordTap):
 
     def _finish(self, end_time: float) -> None:
         self._close_chunk()  # every message before the session's end record
+        if self._compact_fallbacks:
+            log.warning(
+                "recorder: %d compact updates of %s recorded as floats (layout 1): their"
+                " codes did not decode to the relayed poses",
+                self._compact_fallbacks,
+                self.path.name,
+            )
         self._mcap.add_metadata(
             SESSION_END_METADATA,
             {
@@ -708,51 +777,3 @@ class SessionRecorder(RecordTap):
                 error=None if self._error is None else repr(self._error),
                 closed=self._closed,
             )
-
-
-def _create_part(folder: Path, base: str) -> tuple[Path, Path, IO[bytes]]:
-    """Create the first free ``BASE[-k].mcap.part`` in ``folder``: part, final path, stream."""
-    for k in range(1, 10_000):
-        stem = base if k == 1 else f"{base}-{k}"
-        final = folder / f"{stem}.mcap"
-        part = folder / f"{stem}.mcap{PART_SUFFIX}"
-        if final.exists():
-            continue
-        try:
-            return part, final, part.open("xb")
-        except FileExistsError:
-            continue
-    raise FileExistsError(f"no free file name for {base!r} in {folder}")
-
-
-def _start_file(
-    stream: IO[bytes], room: str, opts: RecordOptions, start: float, start_wall: float
-) -> ChunkWriter:
-    """Write the file's header, the session metadata, the schemas and the channels."""
-    # Chunks are closed by the recorder (time and size), never by the
-    # writer. No message indexes: they would cost 16 B per message
-    # outside the chunks, about 5 B per pose; readers find messages
-    # through the chunk indexes, and recovery re-indexes from the chunks.
-    writer = ChunkWriter(stream)
-    writer.start(profile=PROFILE, library=f"posecast-recorder/{posecast_version()}")
-    session = {
-        "room": room,
-        "posecast_version": posecast_version(),
-        "format_version": str(FORMAT_VERSION),
-        "start_time": repr(start),
-        "start_wall_time": repr(start_wall),
-        "start_utc": datetime.fromtimestamp(start_wall, UTC).isoformat(),
-        "users": encode_json({"users": [dict(u) for u in opts.users]}).decode(),
-        "flush_interval": repr(opts.flush_interval),
-        "queue_size": str(opts.queue_size),
-    }
-    session.update(opts.metadata or {})
-    writer.add_metadata(SESSION_METADATA, session)
-    for spec in CHANNELS:
-        schema_id = writer.register_schema(spec.schema_name, spec.schema_encoding, spec.schema_data)
-        writer.register_channel(spec.topic, spec.message_encoding, schema_id)
-    return writer
-
-
-def _start_event(room: str, start: float) -> dict[str, Any]:
-    return {"kind": "recording-start", "room": room, "time": start}

@@ -2,7 +2,8 @@
 
 Started by :meth:`RecorderHost.start` (``python -c "... recorder.writerproc
 import main ..."``), it reads the pipe (layout in :mod:`recorder.pipe`) from its
-standard input, encodes each room's updates in groups of the same shape and
+standard input, encodes each room's updates in groups of the same shape (a
+compact session's updates go to the writer thread as codes, for layout 2) and
 records them with one :class:`SessionRecorder` per room (same file layout,
 chunking, fsync schedule, ``.part`` and rename), and answers on its standard
 output with JSON lines. If the relay dies, it sees the pipe close without the
@@ -27,14 +28,18 @@ from typing import Any, Final
 
 import numpy as np
 
+from protocol.codec import Volume
 from protocol.poses import UPDATE_DTYPE, UPDATE_VELOCITY_DTYPE
-from recorder.format import POSES_TOPIC, encode_pose_batch, to_ns_many
+from recorder.compact import CompactUpdate, newest_ns
+from recorder.format import POSES_TOPIC, encode_pose_batch, to_ns, to_ns_many
 from recorder.options import RecordOptions
 from recorder.pipe import (
+    _COMPACT,
     _FRAME,
     _FRAME_BATCH,
     _FRAME_OPEN,
     _HEAD,
+    _KIND_COMPACT,
     _KIND_RECORD,
     _KIND_STOP,
     _KIND_UPDATE,
@@ -120,6 +125,41 @@ def _record_updates(rec: SessionRecorder, updates: list[_Update]) -> None:
     rec.offer_encoded_many(POSES_TOPIC, encoded)
 
 
+_volumes: dict[tuple[float, ...], Volume] = {}
+
+
+def _compact(body: bytearray, at: int, end: int) -> CompactUpdate | None:
+    """The compact update of the ``COMPACT`` message ``body[at:end]`` (None if malformed)."""
+    if end - at < _COMPACT.size:
+        raise ValueError("a compact update message is shorter than its header")
+    _k, _n, user, n, arrival, seq, base, width, *box = _COMPACT.unpack_from(body, at)
+    data = bytes(body[at + _COMPACT.size : end])
+    entries_size = len(data) - 8 * width * n
+    if width not in (7, 13) or entries_size not in (n * _PLAIN_ITEM, n * _VELOCITY_ITEM):
+        return None
+    dtype = UPDATE_VELOCITY_DTYPE if width == 13 else UPDATE_DTYPE
+    if dtype.itemsize * n != entries_size:
+        return None
+    key = tuple(box)
+    volume = _volumes.get(key)
+    if volume is None:
+        volume = _volumes[key] = Volume((box[0], box[1], box[2]), (box[3], box[4], box[5]))
+    entries = np.frombuffer(data, dtype, n)
+    codes = np.frombuffer(data, "<i8", width * n, entries_size).reshape(n, width)
+    return CompactUpdate(
+        user,
+        seq,
+        arrival,
+        base,
+        entries["stream"],
+        entries["dt"],
+        codes.astype(np.int64),
+        entries["pose"],
+        entries["velocity"] if width == 13 else None,
+        volume,
+    )
+
+
 def _record_batch(rec: SessionRecorder, body: bytearray, at: int, end: int) -> float | None:
     """Record a room's batch, ``body[at:end]``; the stop's end time if it ends the room."""
     head_size = _HEAD.size
@@ -143,7 +183,14 @@ def _record_batch(rec: SessionRecorder, body: bytearray, at: int, end: int) -> f
             if updates:
                 _record_updates(rec, updates)
                 updates = []
-            if kind == _KIND_RECORD:
+            if kind == _KIND_COMPACT:
+                update = _compact(body, at, nxt)
+                if update is None:
+                    rec.refuse(POSES_TOPIC, "compact update: entries do not match its header")
+                else:
+                    log_ns, pub_ns = to_ns(update.arrival), newest_ns(update)
+                    rec.offer_encoded(POSES_TOPIC, log_ns, pub_ns, update, len(update.streams))
+            elif kind == _KIND_RECORD:
                 _k, _n, channel, log_ns, pub_ns, poses = _RECORD.unpack_from(body, at)
                 data = bytes(body[at + record_at : nxt])
                 rec.offer_encoded(_TOPICS[channel], log_ns, pub_ns, data, poses)
