@@ -760,7 +760,7 @@ class RelayCore:
                 if room.recording_paused:
                     room.paused_updates += 1
                     return
-                rec.record_pose_update(user, now, update)
+                rec.record_pose_update(user, now, update, peer.session.compact_codes(), self.volume)
                 if stale:
                     room.note_drop("stale", user, stale)
 

@@ -258,7 +258,7 @@ def test_a_recorded_room_is_finished_when_removed() -> None:
         def record_presence(self, record: dict[str, object], now: float) -> None:
             self.presence.append(record)
 
-        def record_pose_update(self, user: int, now: float, update: PoseUpdate) -> bool:
+        def record_pose_update(self, user: int, now: float, update: PoseUpdate, *_: object) -> bool:
             self.updates += 1
             return True
 

@@ -23,7 +23,7 @@ class Tap:
     def record_presence(self, record: dict[str, object], now: float) -> None:
         self.presence.append(str(record["kind"]))
 
-    def record_pose_update(self, user: int, now: float, update: PoseUpdate) -> bool:
+    def record_pose_update(self, user: int, now: float, update: PoseUpdate, *_: object) -> bool:
         return True
 
     def record_drop(self, record: dict[str, object], now: float) -> None:

@@ -19,6 +19,7 @@ from client.bot import BotConfig, BotReport, run_bot
 from client.connection import ClientConnection
 from protocol import Snapshot, encode_update
 from recorder import ProcessRecorder, find_leftovers, info, load_streams, recover
+from recorder.scan import ChannelRecord, McapScanner, MessageRecord
 from server.app import RelayServer, ServerConfig
 
 
@@ -82,12 +83,25 @@ def test_every_relayed_keyframe_is_in_the_recording_bit_exact(tmp_path: Path, co
     assert checked >= 3 * 6 * 2  # liveness: a loaded machine delivers fewer
     summary = info(files[0])
     assert len(summary["users"]) == 3
+    # a compact session is recorded as its codes (pose layout 2), a raw one as floats (1)
+    layouts = {m.data[0] for m in _pose_messages(files[0])}
+    assert layouts == ({2} if codec == "compact" else {1})
 
 
-def test_velocity_keyframes_are_recorded_bit_exact(tmp_path: Path) -> None:
+def _pose_messages(path: Path) -> list[MessageRecord]:
+    scanned = list(McapScanner(path.read_bytes()).records())
+    channels = {r.id: r.topic for r in scanned if isinstance(r, ChannelRecord)}
+    return [
+        r for r in scanned if isinstance(r, MessageRecord) and channels[r.channel_id] == "poses"
+    ]
+
+
+@pytest.mark.parametrize("codec", ["raw", "compact"])
+def test_velocity_keyframes_are_recorded_bit_exact(tmp_path: Path, codec: str) -> None:
     """Bots rendering a velocity method send the velocity variant; the recording keeps
     each update's velocities (float16, as on the wire) beside its poses."""
-    reports, files = asyncio.run(_recorded_session(tmp_path, ("soa", "motor-hermite")))
+    methods = ("soa", "motor-hermite")
+    reports, files = asyncio.run(_recorded_session(tmp_path, methods, codec))
     streams = load_streams(files[0])
     checked = 0
     for rep in reports:
