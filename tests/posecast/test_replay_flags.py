@@ -141,7 +141,10 @@ async def test_cli_loop_replays_until_interrupted(recording: Path) -> None:
                 assert line, "".join(lines)
                 lines.append(line.decode())
             proc.send_signal(signal.SIGINT)
-            await asyncio.wait_for(proc.wait(), 60)
+            try:  # a hang guard: a pass closes its bots' connections before it ends
+                await asyncio.wait_for(proc.wait(), 180)
+            except TimeoutError:
+                raise AssertionError("no exit after SIGINT; output:\n" + "".join(lines)) from None
         finally:
             if proc.returncode is None:  # never leave it running for later tests
                 proc.kill()
