@@ -91,6 +91,12 @@ async def _watch(url: str, room: str, seen: dict[int, list[float]]) -> None:
                     seen.setdefault(int(ev.users[i]), []).append(float(ev.capture_times[i]))
 
 
+def _default_sigint() -> None:
+    # A shell without job control starts background jobs with SIGINT ignored, and
+    # children inherit that: give the command the Ctrl-C a user's terminal gives it.
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 async def _posecast(*args: str) -> asyncio.subprocess.Process:
     return await asyncio.create_subprocess_exec(
         sys.executable,
@@ -99,6 +105,7 @@ async def _posecast(*args: str) -> asyncio.subprocess.Process:
         *args,
         stdout=asyncio.subprocess.PIPE,
         stderr=asyncio.subprocess.STDOUT,
+        preexec_fn=_default_sigint,
     )
 
 
@@ -141,10 +148,12 @@ async def test_cli_loop_replays_until_interrupted(recording: Path) -> None:
                 assert line, "".join(lines)
                 lines.append(line.decode())
             proc.send_signal(signal.SIGINT)
+            # Read on to the end: a child blocked writing to a full pipe cannot exit.
             try:  # a hang guard: a pass closes its bots' connections before it ends
-                await asyncio.wait_for(proc.wait(), 180)
+                rest, _ = await asyncio.wait_for(proc.communicate(), 180)
             except TimeoutError:
                 raise AssertionError("no exit after SIGINT; output:\n" + "".join(lines)) from None
+            lines.append(rest.decode(errors="replace"))
         finally:
             if proc.returncode is None:  # never leave it running for later tests
                 proc.kill()
