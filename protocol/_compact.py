@@ -88,6 +88,7 @@ def absolute(data: bytes, previous: tuple[int, int] | None) -> tuple[bytes, tupl
     head = bytes([data[0], data[1] & ~F_RELATIVE])
     return head + _uvarint(number) + _svarint(base) + data[pos:], (number, base)
 
+
 Baselines = dict[int, NDArray[np.int64]]
 
 

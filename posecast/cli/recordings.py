@@ -160,7 +160,7 @@ def _check_replay_args(
     codec: str,
 ) -> None:
     """Refuse, in one line, replay options that cannot go together (exit 2)."""
-    start, duration, users, loop = window
+    start, duration, _users, loop = window
     if offline == (url is not None):
         raise _fail("give either --url ws://HOST:PORT (live) or --offline")
     if offline and loop:

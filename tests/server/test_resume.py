@@ -45,6 +45,16 @@ def join(c: Client, now: float, streams: tuple[str, ...] = STREAMS) -> Joined:
     return joined
 
 
+def pair(core: RelayCore) -> tuple[Client, Welcome, Client]:
+    """A resumable member a and a member b in one room; b has read everything."""
+    a, wa = hello(core, 1.0)
+    join(a, 1.0)
+    b, _ = hello(core, 1.0)
+    join(b, 1.0)
+    b.read(1.0)
+    return a, wa, b
+
+
 def kinds(events: list[object]) -> list[type]:
     return [type(e) for e in events if not isinstance(e, Snapshot)]
 
@@ -87,11 +97,7 @@ def test_a_dropped_member_resumes_with_the_same_ids_and_no_leave() -> None:
 
 def test_the_window_closes_and_the_member_leaves_as_gone() -> None:
     core = RelayCore(ServerConfig(resume_window=10.0))
-    a, wa = hello(core, 1.0)
-    join(a, 1.0)
-    b, _ = hello(core, 1.0)
-    join(b, 1.0)
-    b.read(1.0)
+    a, wa, b = pair(core)
     core.disconnect(a.conn, 2.0)
     assert core.next_expiry() == 12.0
     core.expire(11.9)
@@ -107,11 +113,7 @@ def test_the_window_closes_and_the_member_leaves_as_gone() -> None:
 
 def test_bye_and_server_closes_leave_at_once_and_non_resumable_clients_too() -> None:
     core = RelayCore()
-    a, _ = hello(core, 1.0)
-    join(a, 1.0)
-    b, _ = hello(core, 1.0)
-    join(b, 1.0)
-    b.read(1.0)
+    a, _, b = pair(core)
     a.send(Bye(reason="done"), 2.0)
     core.disconnect(a.conn, 2.0)
     assert kinds(b.read(2.0)) == [PeerLeft]
@@ -128,11 +130,7 @@ def test_bye_and_server_closes_leave_at_once_and_non_resumable_clients_too() -> 
 
 def test_a_resume_into_other_streams_is_a_new_join() -> None:
     core = RelayCore()
-    a, wa = hello(core, 1.0)
-    join(a, 1.0)
-    b, _ = hello(core, 1.0)
-    join(b, 1.0)
-    b.read(1.0)
+    a, wa, b = pair(core)
     core.disconnect(a.conn, 2.0)
     back, _ = hello(core, 3.0, resume=wa.resume)
     join(back, 3.0, streams=("head",))
