@@ -166,7 +166,9 @@ class SnapshotDecoder:
     """The client's half of compact snapshots: relay frame -> ``Snapshot``.
 
     Baselines are the codes last received for each (user, stream); a frame coded
-    against others raises ``BaselineMismatch`` (fatal ``bad-baseline``).
+    against others raises ``BaselineMismatch`` (fatal ``bad-baseline``). They are
+    kept when a user leaves: the relay's ids are reused only after key entries,
+    and ids come from bounded pools, so the table stays small.
     """
 
     def __init__(self, volume: Volume) -> None:
@@ -190,8 +192,3 @@ class SnapshotDecoder:
             poses,
             velocities=velocities,
         )
-
-    def forget(self, user: int) -> None:
-        """Drop the baselines of a user who left (its stream ids may be reused)."""
-        for key in [k for k in self.baselines if k[0] == user]:
-            del self.baselines[key]

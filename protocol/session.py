@@ -486,8 +486,9 @@ class ClientSession(_Session):
             self.peers[message.user] = dict(message.streams)
         elif isinstance(message, PeerLeft):
             self.peers.pop(message.user, None)
-            if self._snapshots is not None:
-                self._snapshots.forget(message.user)
+            # Its snapshot baselines stay: a snapshot encoded before it left may
+            # still follow (events overtake the pose slot), and a user or stream id
+            # given out again always starts with key entries, which overwrite them.
         return message
 
     def _check_sent(self, message: Message) -> None:
