@@ -13,6 +13,9 @@ Shared by the live bots and the offline simulator; nothing here reads a clock
 - :class:`PlayoutDelay`: delay D that starts at one interval plus the measured
   arrival jitter and follows the observed keyframe age (Mirror-style dynamic
   buffer: ``D = interval + p95(age)``), slewing smoothly, never jumping.
+- :class:`RoomPlayoutDelay`: a :class:`PlayoutDelay` per remote user, the room's
+  D from the users whose ages are not outliers (median + MAD); a late user is
+  shown late alone, at its own D.
 - :func:`render_buffers`: every buffer at its playout time: one vectorised
   bracket of all streams, one gather, one batched interpolator call per
   method (a pair method's allocation-free row kernel), window and velocity
@@ -26,7 +29,8 @@ import math
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from functools import partial
+from typing import NamedTuple, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -47,6 +51,7 @@ __all__ = [
     "ReceivedStream",
     "RenderFrame",
     "RoomBuffers",
+    "RoomPlayoutDelay",
     "StreamBuffer",
     "render_buffers",
     "rendered_method",
@@ -311,17 +316,16 @@ class PlayoutDelay:
     window: int = 256
     margin: float = 0.002
     value: float = field(init=False)
-    _ages: deque[float] = field(default_factory=deque)
+    _ages: deque[float] = field(init=False)
     _last: float | None = None
 
     def __post_init__(self) -> None:
         self.value = self.interval + self.margin
+        self._ages = deque(maxlen=self.window)
 
     def observe(self, age: float) -> None:
         """One keyframe's age on arrival (arrival minus capture, server clock)."""
         self._ages.append(age)
-        while len(self._ages) > self.window:
-            self._ages.popleft()
 
     @property
     def target(self) -> float:
@@ -329,11 +333,12 @@ class PlayoutDelay:
             return self.interval + self.margin
         return self.interval + float(np.percentile(self._ages, self.percentile)) + self.margin
 
-    def update(self, now: float) -> float:
-        """Slew towards the target; the first observation sets D directly."""
-        target = self.target
+    def update(self, now: float, target: float | None = None) -> float:
+        """Slew towards its target (or ``target``); the first one sets D directly."""
+        given = target is not None
+        target = self.target if target is None else target
         if self._last is None:
-            if self._ages:
+            if self._ages or given:
                 self.value = target
                 self._last = now
             return self.value
@@ -341,6 +346,113 @@ class PlayoutDelay:
         self._last = now
         self.value += (target - self.value) * min(1.0, dt / self.tau)
         return self.value
+
+
+@dataclass
+class RoomPlayoutDelay:
+    """Playout delay per remote user: one late user cannot raise D for the others.
+
+    Ages (arrival minus capture, server clock) are kept per user (its streams share
+    its clock and path), each in a :class:`PlayoutDelay`. A user is *late* when its
+    median age exceeds the reference (the lower median of the users' medians) by
+    over ``tolerance`` s, or ``spread`` robust deviations (1.4826 MAD) of the
+    medians if larger, until its ``percentile`` age is back under that. The room's
+    D covers the ``percentile`` of the pooled ages of users not late; it is set,
+    not slewed, when none of the users it shows was shown with it before. A late
+    user is shown late alone at its own D (``own``), slewing from where it was
+    shown to ``max(room's target, its own)``; no longer late, it slews back and
+    rejoins the room's D within 1 ms. Users with under ``min_samples`` ages are
+    not judged.
+    """
+
+    interval: float
+    percentile: float = 95.0
+    tau: float = 1.0
+    window: int = 256
+    margin: float = 0.002
+    tolerance: float = 0.1
+    spread: float = 3.0
+    min_samples: int = 3
+    room: PlayoutDelay = field(init=False)
+    #: Users shown late alone (or slewing back to the room's D): their own D (s).
+    own: dict[int, float] = field(default_factory=dict)
+    late: set[int] = field(default_factory=set)
+    _users: dict[int, PlayoutDelay] = field(default_factory=dict)
+    _dirty: bool = False
+    _target: float | None = None
+    #: Late users' own targets; users shown at the room's D (now, and before).
+    _own: dict[int, float] = field(default_factory=dict)
+    _seated: set[int] = field(default_factory=set)
+    _was: set[int] = field(default_factory=set)
+
+    def __post_init__(self) -> None:
+        self.room = self._new()
+
+    def _new(self) -> PlayoutDelay:
+        return PlayoutDelay(self.interval, self.percentile, self.tau, self.window, self.margin)
+
+    def observe(self, user: int, age: float) -> None:
+        """One keyframe of ``user``'s, its age on arrival (server clock)."""
+        (self._users.get(user) or self._users.setdefault(user, self._new())).observe(age)
+        self._dirty = True
+
+    def forget(self, user: int) -> None:
+        """A user left: its ages no longer count."""
+        self._users.pop(user, None)
+        self.own.pop(user, None)
+        self.late.discard(user)
+        self._dirty = True
+
+    def delay(self, user: int) -> float:
+        """The D ``user``'s streams are rendered with."""
+        return self.own.get(user, self.room.value)
+
+    def _classify(self) -> float | None:
+        """Judge every user with enough ages; the room's target (None: no ages)."""
+        judged = {u: d for u, d in self._users.items() if len(d._ages) >= self.min_samples}
+        if judged:
+            med = {u: float(np.median(d._ages)) for u, d in judged.items()}
+            ranked = sorted(med.values())
+            ref = ranked[(len(ranked) - 1) // 2]
+            mad = float(np.median(np.abs(np.array(ranked) - ref))) if len(ranked) > 2 else 0.0
+            bound = max(self.tolerance, self.spread * 1.4826 * mad)
+            for u, m in med.items():
+                if m > ref + bound:
+                    self.late.add(u)
+                elif u in self.late and judged[u].target < self.interval + ref + bound:
+                    self.late.discard(u)  # the late ages have left its window
+        self._own = {u: self._users[u].target for u in self.late}
+        seated = {u for u in judged if u not in self.late}
+        if seated and not seated & self._seated:
+            self.room._last = None  # nobody shown at the room's D stays: set it
+        self._was, self._seated = self._seated, seated
+        pool = [d._ages for u, d in judged.items() if u in seated] or [
+            d._ages for d in self._users.values() if d._ages
+        ]
+        if not pool:
+            return None
+        ages = np.concatenate([np.fromiter(a, float, len(a)) for a in pool])
+        return self.interval + float(np.percentile(ages, self.percentile)) + self.margin
+
+    def update(self, now: float) -> float:
+        """Slew the room's D and every late user's own D; returns the room's."""
+        before = self.room.value
+        if self._dirty:
+            self._target, self._dirty = self._classify(), False
+        target = self._target
+        room = self.room.update(now, target)
+        for u in self.late - self.own.keys():  # newly late: from where it was shown
+            d = self._users[u]
+            d.value, d._last = before, (now if u in self._was else None)
+        for u in list(self.own.keys() | self.late):
+            d = self._users[u]
+            if u in self.late:
+                self.own[u] = d.update(now, max(self._own[u], target or room))
+            elif abs(d.update(now, room) - room) < 1e-3:
+                del self.own[u]  # back in step with the room
+            else:
+                self.own[u] = d.value
+        return room
 
 
 #: What a velocity method renders a stream with when its sender reports no
@@ -379,13 +491,14 @@ class _Brackets(NamedTuple):
 
 
 def _bracket_rows(
-    room: RoomBuffers, rows: NDArray[np.intp], t: float, whole: bool = False
+    room: RoomBuffers, rows: NDArray[np.intp], t: float | F64, whole: bool = False
 ) -> _Brackets:
     """Bracket ``rows`` (all non-empty) at ``t`` at once, as :meth:`StreamBuffer.bracket`.
 
     A row's times are sorted and padded with ``+inf`` (its last slot is always
     free), so its first time after ``t`` is the first ``False`` of ``times <= t``:
     ``bisect_right`` for every row from one comparison and one ``argmin``.
+    ``t``: one playout time for every row, or one per row of ``rows`` ``(n,)``.
     ``whole``: ``rows`` is every row of the room, in order (views instead of copies).
     """
     n = rows.shape[0]
@@ -393,8 +506,13 @@ def _bracket_rows(
         times, base, newest = room.times[:n], room.base[:n], room.newest[:n]
     else:
         times, base, newest = room.times[rows], room.base[rows], room.newest[rows]
-    tt = np.float64(t)
-    after = (times <= tt).argmin(axis=1)  # slot of the first keyframe after t
+    tt: F64 | np.float64
+    if isinstance(t, np.ndarray):
+        tt, due = t, times <= t[:, None]
+    else:
+        tt = np.float64(t)
+        due = times <= tt
+    after = due.argmin(axis=1)  # slot of the first keyframe after t
     lo = base + after
     lo -= 1
     if np.count_nonzero(after) < n:  # nothing at or before t: hold the newest
@@ -473,13 +591,28 @@ def _rows_of(
     return joined, np.arange(len(live), dtype=np.intp), True
 
 
+def _live_times(
+    buffers: Sequence[StreamBuffer] | RoomBuffers, t: F64, rows: NDArray[np.intp], whole: bool
+) -> F64:
+    """Per-buffer playout times ``t`` cut down to the non-empty ones :func:`_rows_of` kept."""
+    if t.shape != (len(buffers),):
+        raise ValueError(f"Expected `t` to have shape ({len(buffers)},), got {t.shape}")
+    t = t.astype(np.float64, copy=False)
+    if isinstance(buffers, RoomBuffers):
+        return t if whole else t[rows]
+    return t[[i for i, b in enumerate(buffers) if len(b)]]
+
+
 def render_buffers(
-    buffers: Sequence[StreamBuffer] | RoomBuffers, t: float, methods: Sequence[str]
+    buffers: Sequence[StreamBuffer] | RoomBuffers, t: float | F64, methods: Sequence[str]
 ) -> RenderFrame:
     """All non-empty buffers at playout time ``t``: one batched call per method.
 
     ``buffers``: a room's :class:`RoomBuffers` (every non-empty stream, in the
     order they were added: what a bot renders) or any sequence of buffers.
+    ``t``: one playout time for all, or one per buffer (per row of the room, empty
+    ones included), shape ``(len(buffers),)``: a stream shown late alone
+    (:class:`RoomPlayoutDelay`) is rendered at its own time in the same call.
     Every stream is bracketed at once (:func:`_bracket_rows`) and the bracketing
     keyframes are gathered with one ``take`` per side; a pair method with a row
     kernel (:attr:`interp.InterpolatorInfo.rows`) runs it once on those rows.
@@ -495,6 +628,8 @@ def render_buffers(
     """
     room, rows, whole = _rows_of(buffers)
     n = rows.shape[0]
+    if isinstance(t, np.ndarray):
+        t = _live_times(buffers, t, rows, whole)
     if not n:
         return RenderFrame({m: np.empty((0, 7)) for m in methods}, np.zeros(0, dtype=bool))
     br = _bracket_rows(room, rows, t, whole)
@@ -589,6 +724,8 @@ class ReceivedStream:
     label: str | None
     name: str
     log: Callable[[], KeyframeLog]
+    #: The D it was rendered with at each render, when not the room's (shown late).
+    delays: F64 | None = None
 
 
 def score_received(
@@ -606,9 +743,11 @@ def score_received(
     """QoE of what one receiver got, against each sender's motion, one result per delay.
 
     ``play_t``, ``play_d`` (non-empty): the render loop's playout times and the
-    delay D in effect at each. Each entry of ``delays`` is a fixed D in seconds,
-    or None for the D the render loop used at each tau. A stream is scored over
-    its first keyframe (or the first render) to the last render, or, with
+    delay D in effect at each (a stream's own ``delays`` instead, if it has them:
+    its playout times are then ``play_t + play_d - delays``). Each entry of
+    ``delays`` is a fixed D in seconds, or None for the D the render loop used at
+    each tau. A stream is scored over its first keyframe (or the first render) to
+    its last render, or, with
     ``until_sender_left``, to its last keyframe where that is earlier (streams
     with nothing in that window are skipped). With ``as_rendered`` a velocity
     method is scored as what the render loop showed on a stream without
@@ -618,10 +757,6 @@ def score_received(
     """
     pt = np.asarray(play_t)
     pd = np.asarray(play_d)
-
-    def delay_at(taus: F64) -> F64:
-        d: F64 = np.interp(taus, pt, pd)
-        return d
 
     out: list[dict[str, dict[str, ErrorSamples]]] = [{m: {} for m in methods} for _ in delays]
     truths = {} if truths is None else truths
@@ -637,10 +772,14 @@ def score_received(
         if rs.name not in truth.streams:
             continue
         log = rs.log()
-        end = float(pt[-1])
+        st, sd = pt, pd
+        if rs.delays is not None:  # its own playout times (kept monotonic for interp)
+            sd = np.asarray(rs.delays)
+            st = np.maximum.accumulate(pt + pd - sd)
+        end = float(st[-1])
         if until_sender_left:
             end = min(end, float(log.capture[-1]))
-        window = (max(float(log.capture[0]), float(pt[0])), end)
+        window = (max(float(log.capture[0]), float(st[0])), end)
         if until_sender_left and window[1] <= window[0]:
             continue
         if windows is not None:
@@ -651,7 +790,8 @@ def score_received(
         unique = list(dict.fromkeys(shown.values()))
         one = truth.select([rs.name])
         for into, fixed in zip(out, delays, strict=True):
-            res = evaluate_group(one, log, delay_at if fixed is None else fixed, unique, window)
+            at = cast(Callable[[F64], F64], partial(np.interp, xp=st, fp=sd))
+            res = evaluate_group(one, log, at if fixed is None else fixed, unique, window)
             for m in methods:
                 for cls, samples in res[shown[m]].items():
                     into[m].setdefault(cls, ErrorSamples()).merge(samples)
