@@ -5,8 +5,12 @@ trip kept, refreshed periodically), joins with a motion label, then runs four
 tasks under one ``TaskGroup``: publisher (its motion at the send rate, capture
 times in server time), receiver (snapshots into per-stream jitter buffers and
 an arrival log), renderer (every remote stream at ``server_now - D`` in one
-batched call per interpolator) and pinger. At the end it scores what it received
-with :mod:`scenarios.qoe`, exactly as DESIGN.md defines it.
+batched call per interpolator) and pinger. D is the room's
+(:class:`scenarios.receiver.RoomPlayoutDelay`): a peer whose keyframes arrive
+persistently late (its clock is off, its path is slow) does not raise it, and
+is shown late alone, at its own D, in the same batched call. At the end it
+scores what it received with :mod:`scenarios.qoe`, exactly as DESIGN.md
+defines it, each stream with the D it was rendered with.
 
 A session ends in one of three ways, recorded in :class:`SessionEnd`: it ran its
 duration (``complete``), the server closed the connection with a close frame
@@ -56,14 +60,23 @@ from websockets.exceptions import ConnectionClosed
 
 from client.connection import ClientConnection, Tls
 from interp import info as interp_info
-from protocol import PeerJoined, PeerLeft, Ping, Pong, PoseUpdate, Snapshot, encode_update
+from protocol import (
+    LocalProtocolError,
+    PeerJoined,
+    PeerLeft,
+    Ping,
+    Pong,
+    PoseUpdate,
+    Snapshot,
+    encode_update,
+)
 from scenarios.motion import MotionSpec, sample_at
 from scenarios.qoe import ErrorSamples, KeyframeLog
 from scenarios.receiver import (
     ClockEstimator,
-    PlayoutDelay,
     ReceivedStream,
     RoomBuffers,
+    RoomPlayoutDelay,
     StreamBuffer,
     render_buffers,
     score_received,
@@ -83,6 +96,7 @@ __all__ = [
     "SessionEnd",
     "motion_for_bot",
     "run_bot",
+    "stream_delays",
 ]
 
 F64 = NDArray[np.float64]
@@ -117,6 +131,9 @@ class BotConfig:
     #: For a ``wss://`` URL: trust this CA file (PEM), or check nothing (tests only).
     cafile: str | None = None
     insecure: bool = False
+    #: Seconds added to the bot's estimate of the server clock: it stamps its
+    #: captures that far off (a member whose clock is wrong; tests and benches).
+    clock_error: float = 0.0
 
 
 @dataclass
@@ -142,6 +159,9 @@ class RemoteStream:
     #: Whether the sender reports velocities (else the received ones are zeros,
     #: and velocity methods render and score it with ``VELOCITY_FALLBACK``).
     sends_velocities: bool = False
+    #: (render frame index, D) of every frame that showed it late alone, at its
+    #: sender's own D instead of the room's (see :func:`stream_delays`).
+    own_delays: list[tuple[int, float]] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.buffer.has_velocities = self.sends_velocities
@@ -218,9 +238,14 @@ class BotReport:
     send_hz: float = 0.0
     #: How the session ended (see :class:`SessionEnd`).
     ending: SessionEnd = field(default_factory=SessionEnd)
+    #: Peers shown late alone (``delay_ms`` is the room's D, everyone else's): their
+    #: mean own D over the frames that showed them late, ms.
+    late_delay_ms: dict[int, float] = field(default_factory=dict)
     streams: dict[tuple[int, int], RemoteStream] = field(default_factory=dict, repr=False)
-    #: With ``keep_render_log``: (playout time, D, bot clock at render,
-    #: {stream key: (pose, stalled)}).
+    #: With ``keep_render_log``: (the room's playout time, the room's D, bot clock at
+    #: render, {stream key: (pose, stalled)}); a stream shown late alone at frame
+    #: ``i`` was rendered at its own D (``RemoteStream.own_delays``), i.e. at playout
+    #: time ``t_play + D - own D``.
     render_log: list[tuple[float, float, float, dict[tuple[int, int], tuple[F64, bool]]]] = field(
         default_factory=list, repr=False
     )
@@ -276,8 +301,10 @@ class _Bot:
         self.send_velocities: _CausalVelocities | None = None
         # A window method waits for the keyframe after the bracket: one more interval.
         lookahead = max(interp_info(m).lookahead for m in cfg.methods)
-        self.delay = PlayoutDelay(interval=(1.0 + lookahead) / cfg.rate)
+        self.delay = RoomPlayoutDelay(interval=(1.0 + lookahead) / cfg.rate)
         self.remote: dict[tuple[int, int], RemoteStream] = {}
+        #: Each remote user's streams (their rows share the user's D).
+        self.user_streams: dict[int, list[RemoteStream]] = {}
         #: Every remote stream's render buffer, one row each, in ``remote``'s order.
         self.room_buffers = RoomBuffers()
         self.peers: dict[int, tuple[dict[int, str], str | None]] = {}
@@ -307,7 +334,7 @@ class _Bot:
         self.ending: SessionEnd | None = None
 
     def server_now(self) -> float:
-        return self.clock() + self.est.offset
+        return self.clock() + self.est.offset + self.cfg.clock_error
 
     def _note_closed(self, exc: ConnectionClosed) -> None:
         """Remember how the connection ended (the first report of it wins)."""
@@ -348,6 +375,7 @@ class _Bot:
             self._add_peer(ev)
         elif isinstance(ev, PeerLeft):
             self.peers.pop(ev.user, None)
+            self.delay.forget(ev.user)
 
     def _on_snapshot(self, snap: Snapshot, arrival: float, size: int) -> None:
         me = self.conn.user if self.conn else -1
@@ -375,6 +403,7 @@ class _Bot:
                     sends_velocities=user in self.velocity_peers,
                     buffer=self.room_buffers.stream(),
                 )
+                self.user_streams.setdefault(user, []).append(rs)
             cap = float(caps[i])
             pose = np.array(poses[i])
             self.poses_in += 1
@@ -388,13 +417,17 @@ class _Bot:
                 vel = vel64[i]
                 rs.velocities.append(vel)
             rs.buffer.push(cap, pose, floor, vel)
-            self.delay.observe(arrival_srv - cap)
+            self.delay.observe(user, arrival_srv - cap)
 
     async def _publish(self, conn: ClientConnection, stop: float) -> None:
         try:
             await self._publish_until(conn, stop)
         except ConnectionClosed as exc:
             self._note_closed(exc)
+        except LocalProtocolError:
+            if not conn.session.closed:
+                raise
+            # The server ended the session (bye, fatal error); its close frame follows.
 
     async def _publish_until(self, conn: ClientConnection, stop: float) -> None:
         assert self.trace is not None and self.spec is not None and conn.joined is not None
@@ -452,7 +485,7 @@ class _Bot:
             d = self.delay.update(now_srv)
             t_play = now_srv - d
             c0 = time.process_time()
-            frame = render_buffers(self.room_buffers, t_play, methods)
+            frame = render_buffers(self.room_buffers, self._row_times(now_srv, d), methods)
             self.render_cpu += time.process_time() - c0
             if self.cfg.keep_render_log:
                 keys = [k for k, rs in self.remote.items() if len(rs.buffer)]
@@ -473,6 +506,20 @@ class _Bot:
             nxt += period
             await asyncio.sleep(max(0.0, nxt - self.clock()))
 
+    def _row_times(self, now_srv: float, d: float) -> float | F64:
+        """This frame's playout time: the room's, or one per row when a peer is shown
+        late alone (noted in its streams' ``own_delays``)."""
+        own = self.delay.own
+        if not own:
+            return now_srv - d
+        frame = len(self.play_t)
+        d_rows = np.full(len(self.room_buffers), d)
+        for user, d_own in own.items():
+            for rs in self.user_streams.get(user, ()):
+                d_rows[rs.buffer.row] = d_own
+                rs.own_delays.append((frame, d_own))
+        return now_srv - d_rows
+
     async def _pinger(self, conn: ClientConnection, stop: float) -> None:
         try:
             while self.server_now() < stop:
@@ -481,6 +528,9 @@ class _Bot:
                 await conn.send(Ping(seq=self.ping_seq, time=self.clock()))
         except ConnectionClosed as exc:
             self._note_closed(exc)
+        except LocalProtocolError:
+            if not conn.session.closed:
+                raise
 
     async def run(self) -> BotReport:
         cfg = self.cfg
@@ -579,6 +629,11 @@ class _Bot:
             granted_hz=self.conn.joined.rate if self.conn.joined is not None else cfg.rate,
             send_hz=cfg.send_rate,
             ending=self.ending or SessionEnd("complete", max(0.0, end - start)),
+            late_delay_ms={
+                user: 1000.0 * float(np.mean([d for _, d in streams[0].own_delays]))
+                for user, streams in self.user_streams.items()
+                if streams[0].own_delays
+            },
             streams=self.remote,
             render_log=self.render_log,
         )
@@ -603,6 +658,16 @@ def remote_log(rs: RemoteStream) -> KeyframeLog:
     return KeyframeLog(cap[keep], arr[keep], poses[keep], vel)
 
 
+def stream_delays(rs: RemoteStream, play_d: Sequence[float]) -> F64 | None:
+    """The D ``rs`` was rendered with at each frame, or None: the room's (``play_d``)."""
+    if not rs.own_delays:
+        return None
+    d = np.array(play_d, dtype=np.float64)
+    frames, own = zip(*rs.own_delays, strict=True)
+    d[list(frames)] = own
+    return d
+
+
 def evaluate_remote(
     remote: dict[tuple[int, int], RemoteStream],
     play_t: Sequence[float],
@@ -613,7 +678,7 @@ def evaluate_remote(
     if not play_t:
         return {m: {} for m in methods}
     streams = [
-        ReceivedStream(rs.label, rs.name, partial(remote_log, rs))
+        ReceivedStream(rs.label, rs.name, partial(remote_log, rs), stream_delays(rs, play_d))
         for rs in remote.values()
         if rs.capture
     ]
