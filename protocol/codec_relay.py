@@ -88,6 +88,7 @@ __all__ = [
     "baseline_check",
     "decode_relay_snapshot",
     "encode_group",
+    "snapshot_counts",
 ]
 
 RELAY_CODEC_VERSION = 2
@@ -563,6 +564,16 @@ def _read_section(
         offs.append(off)
         rows.append(row)
     return check
+
+
+def snapshot_counts(data: bytes) -> tuple[int, int, int, int]:
+    """(tick, base time us, n_key, n_delta) from a relay snapshot's header alone, for
+    a meter that counts frames without decoding them; raises ``RemoteProtocolError``."""
+    tick, pos = _read_uvarint(data, 2)
+    z, pos = _read_uvarint(data, pos)
+    nk, pos = _read_uvarint(data, pos)
+    nd, _ = _read_uvarint(data, pos)
+    return tick, _unzz(z), nk, nd
 
 
 def decode_relay_snapshot(

@@ -84,7 +84,6 @@ from protocol import (
     Joined,
     Limits,
     LocalProtocolError,
-    PeerJoined,
     PeerLeft,
     Ping,
     Pong,
@@ -678,26 +677,9 @@ class RelayCore:
         spectators = self._spectators
         for other in room.members.values():
             if other.user not in spectators:
-                self._send(
-                    peer,
-                    PeerJoined(
-                        user=other.user,
-                        streams=other.streams,
-                        label=other.label,
-                        velocities=other.sends_velocities,
-                    ),
-                )
-            if member.user in spectators:
-                continue
-            self.to_member(
-                other,
-                PeerJoined(
-                    user=member.user,
-                    streams=member.streams,
-                    label=member.label,
-                    velocities=member.sends_velocities,
-                ),
-            )
+                self._send(peer, Room.announce(other))
+            if member.user not in spectators:
+                self.to_member(other, Room.announce(member))
 
     def _on_set_rate(self, peer: Peer, event: SetRate, now: float) -> None:
         room, user = peer.room, peer.user

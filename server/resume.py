@@ -25,7 +25,6 @@ from protocol import (
     Hello,
     Join,
     Joined,
-    PeerJoined,
     PeerLeft,
     PeerResumed,
     PeerStalled,
@@ -205,11 +204,7 @@ def resume_join(core: RelayCore, peer: Peer, join: Join, name: str, now: float) 
     for other in list(room.members.values()):
         if other.user == member.user or other.user in core._spectators:
             continue
-        core._send(
-            peer,
-            PeerJoined(user=other.user, streams=other.streams, label=other.label,
-                       velocities=other.sends_velocities),
-        )  # fmt: skip
+        core._send(peer, Room.announce(other))
         core.to_member(other, PeerResumed(user=member.user))
     # The events it missed, in order, once it knows the room; presence notices and
     # pongs still queued from before the drop are stale (it just got the room anew).

@@ -39,6 +39,7 @@ import numpy as np
 
 from protocol import (
     ZERO_VELOCITY,
+    PeerJoined,
     PoseUpdate,
     pack_snapshot,
     pack_velocity_snapshot,
@@ -347,6 +348,16 @@ class Room:
                 self._streams.pop(sid, None)
                 self.stream_ids.give_back(sid)
         return member
+
+    @staticmethod
+    def announce(member: Member) -> PeerJoined:
+        """The ``peer_joined`` that tells others about ``member``."""
+        return PeerJoined(
+            user=member.user,
+            streams=member.streams,
+            label=member.label,
+            velocities=member.sends_velocities,
+        )
 
     def has_member_named(self, name: str) -> bool:
         """Whether a member joined as ``name`` (a token's user) is in the room."""

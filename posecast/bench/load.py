@@ -67,6 +67,7 @@ from protocol import (
     Snapshot,
     Welcome,
 )
+from protocol.codec_relay import snapshot_counts
 from server.room import room_phase
 
 #: One snapshot in this many of each client has its poses decoded (capture -> receipt).
@@ -397,22 +398,11 @@ class _BenchClient:
 
     def _codec_snapshot(self, data: bytes, arrival: float) -> None:
         """A relay codec snapshot, counted from its header (it never holds our own streams)."""
-        pos, values = 2, []
-        for _ in range(4):  # tick, zigzag base time (us), n_key, n_delta
-            value = shift = 0
-            while True:
-                byte = data[pos]
-                pos += 1
-                value |= (byte & 0x7F) << shift
-                shift += 7
-                if byte < 0x80:
-                    break
-            values.append(value)
-        base_us = values[1] >> 1 if not values[1] & 1 else -((values[1] + 1) >> 1)
+        _tick, base_us, n_key, n_delta = snapshot_counts(data)
         send = base_us / 1e6
         self.stats.codec_snapshots += 1
         self.stats.snapshot(
-            self.index, arrival, send, self._due(send), len(data), values[2] + values[3], 0
+            self.index, arrival, send, self._due(send), len(data), n_key + n_delta, 0
         )
 
     def _decode(self, data: bytes, arrival: float) -> None:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from protocol.codec import DEFAULT_VOLUME
-from protocol.codec_relay import decode_relay_snapshot
+from protocol.codec_relay import decode_relay_snapshot, snapshot_counts
 from scenarios.network import frame_size, wire_bytes
 from scenarios.table1 import keyframe_velocities, run_table1
 from scenarios.table1.codec_bytes import KEY_INTERVAL_S, compact_snapshot_bytes, payload_wire_bytes
@@ -58,18 +58,7 @@ def test_observer_decodes_every_frame_and_gets_the_room_within_the_codec_error(
 
 def _counts(data: bytes) -> tuple[int, int]:
     """``(n_key, n_delta)`` from a relay snapshot's header (after tick and base time)."""
-    values, pos = [], 2
-    for _ in range(4):  # uvarint tick, svarint base time, uvarint n_key, uvarint n_delta
-        shift = value = 0
-        while True:
-            byte = data[pos]
-            pos += 1
-            value |= (byte & 0x7F) << shift
-            shift += 7
-            if byte < 0x80:
-                break
-        values.append(value)
-    return values[2], values[3]
+    return snapshot_counts(data)[2:]
 
 
 def test_velocity_variant_costs_more_and_rates_share_the_key_cost(traces: list[Trace]) -> None:

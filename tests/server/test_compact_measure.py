@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from protocol import ClientSession, Hello, Join, Joined, PoseUpdate, Snapshot, Welcome
+from protocol.codec_relay import snapshot_counts
 from scenarios.traces import Trace, find_traces, load_trace
 from server.core import RelayCore
 from server.room import Room
@@ -76,12 +77,7 @@ class Member:
 
 
 def _n_delta(data: bytes) -> int:
-    pos = 2
-    for _ in range(3):
-        while data[pos] & 0x80:
-            pos += 1
-        pos += 1
-    return data[pos]
+    return snapshot_counts(data)[3]
 
 
 @pytest.mark.parametrize("codec", ["compact", "raw"])

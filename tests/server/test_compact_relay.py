@@ -17,6 +17,7 @@ from test_core import Client
 
 from protocol import Hello, Join, Joined, PoseUpdate, ProtocolError, SetRate, Snapshot, Welcome
 from protocol.codec import DEFAULT_VOLUME, dequantise, quantise
+from protocol.codec_relay import snapshot_counts
 from server.core import RelayCore, ServerConfig
 from server.room import KEY_INTERVAL
 
@@ -175,12 +176,7 @@ def test_keys_at_join_and_at_least_every_interval() -> None:
 
 def frame_is_key(data: bytes) -> bool:
     """Whether a relay frame has no delta entry (n_delta == 0)."""
-    pos = 2
-    for _ in range(3):  # tick, base time, n_key
-        while data[pos] & 0x80:
-            pos += 1
-        pos += 1
-    return data[pos] == 0
+    return snapshot_counts(data)[3] == 0
 
 
 def test_skips_never_break_the_chain() -> None:
