@@ -23,8 +23,9 @@ the socket is reliable and ordered. Members with the same last snapshot share
 the baselines, so their group's entries are encoded once and each member's
 frame is spliced from them without its own streams (unless it asked for
 ``echo``). A member gets a key snapshot (every stream, absolute) at join, after
-a rate change and at least every ``KEY_INTERVAL`` seconds, on a room-wide grid
-so that members of one rate share it too.
+a rate change and at least every ``KEY_INTERVAL`` seconds: at its first tick in
+each slot of ``KEY_INTERVAL`` less one tick interval of the server clock, the
+same slots for every member of one rate, so that they share it too.
 """
 
 from __future__ import annotations
@@ -186,7 +187,7 @@ class Member:
     #: streams unless ``echo``.
     compact: bool = False
     echo: bool = False
-    #: The KEY_INTERVAL grid slot of its last key snapshot (-1: due one now).
+    #: The key grid slot of its last key snapshot (-1: due one now).
     key_slot: int = -1
     #: Its connection dropped and it waits to be resumed (``server.resume``): no
     #: snapshots meanwhile, its streams stay at their last pose.
@@ -418,7 +419,6 @@ class Room:
         """Send a snapshot to every due member; returns how many were offered."""
         cache: dict[tuple[int, bool], tuple[bytes, int]] = {}
         groups: dict[tuple[int, bool], GroupSnapshot | None] = {}
-        slot = math.floor(now / KEY_INTERVAL)
         offered = 0
         for member in self.members.values():
             if member.next_due > now + 1e-9 or member.parked:
@@ -438,6 +438,9 @@ class Room:
             # A snapshot still waiting in the slot is about to be replaced (a skip),
             # so the new one must also carry what only the replaced one had.
             if member.compact:
+                # Slots of KEY_INTERVAL less one tick, per rate: keys at most
+                # KEY_INTERVAL apart, and members of one rate share them.
+                slot = math.floor(now / max(KEY_INTERVAL - 1.0 / member.rate, 1e-3))
                 data, n = self._compact_frame(member, now, slot, groups)
             else:
                 key = (member.delivered_version, member.velocities)
