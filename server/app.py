@@ -380,7 +380,9 @@ class RelayServer:
                 closer.cancel()
         finally:
             self._conns.pop(conn.conn, None)
-            self.apply(self.core.disconnect(conn.conn, self.clock()))
+            # A close frame from the client is a goodbye; a dropped socket may resume.
+            said_bye = getattr(ws.protocol, "close_rcvd", None) is not None
+            self.apply(self.core.disconnect(conn.conn, self.clock(), said_bye))
             if ws.state is WsState.OPEN:
                 # Only after a bug (the reader ended without the socket closing):
                 # websockets would close without a bound, so close here.

@@ -348,11 +348,14 @@ class RelayCore:
             self._close(peer, code, reason)
         return self._actions()
 
-    def disconnect(self, conn: int, now: float) -> list[Action]:
-        """Connection ``conn`` has ended: leave its room, forget it."""
+    def disconnect(self, conn: int, now: float, said_bye: bool = False) -> list[Action]:
+        """Connection ``conn`` has ended (``said_bye``: the client closed it, rather than
+        the socket dropping): leave its room, or park it (``server.resume``)."""
         peer = self.peers.pop(conn, None)
         if peer is None:
             return self._actions()
+        if said_bye:
+            peer.resume_token = None
         stats = peer.statistics()  # before leaving: the member's counters go with it
         held = peer.log_limit.flush(now)
         if held:
