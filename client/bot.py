@@ -134,6 +134,11 @@ class BotConfig:
     #: Seconds added to the bot's estimate of the server clock: it stamps its
     #: captures that far off (a member whose clock is wrong; tests and benches).
     clock_error: float = 0.0
+    #: Ask the server to keep its place if the connection drops (``hello.resumable``)
+    #: and, if it does, reconnect with the resume token and go on as the same user.
+    resume: bool = True
+    #: How long it tries to reconnect (s): the server keeps a place this long (10 s).
+    resume_window: float = 10.0
 
 
 @dataclass
@@ -332,6 +337,10 @@ class _Bot:
         self.started_local = 0.0
         #: Set when the connection closed before the session's end.
         self.ending: SessionEnd | None = None
+        #: Set when the connection dropped and the bot may resume (``BotConfig.resume``).
+        self.lost = asyncio.Event()
+        #: Connections resumed after a drop, and when each resumed (bot clock).
+        self.resumed_at: list[float] = []
 
     def server_now(self) -> float:
         return self.clock() + self.est.offset + self.cfg.clock_error
@@ -342,6 +351,10 @@ class _Bot:
             return
         after = max(0.0, self.clock() - self.started_local)
         rcvd = exc.rcvd
+        welcome = None if self.conn is None else self.conn.welcome
+        if rcvd is None and self.cfg.resume and welcome is not None and welcome.resume:
+            self.lost.set()  # dropped, not closed: _connected reconnects and resumes
+            return
         if rcvd is not None:
             self.ending = SessionEnd("closed", after, rcvd.code, rcvd.reason)
         else:
@@ -535,7 +548,11 @@ class _Bot:
     async def run(self) -> BotReport:
         cfg = self.cfg
         conn = await ClientConnection.connect(
-            cfg.url, agent=cfg.name, clock=self.clock, tls=Tls(cfg.cafile, cfg.insecure)
+            cfg.url,
+            agent=cfg.name,
+            clock=self.clock,
+            tls=Tls(cfg.cafile, cfg.insecure),
+            resumable=cfg.resume,
         )
         self.conn = conn
         self.started_local = self.clock()
@@ -545,8 +562,10 @@ class _Bot:
         except ConnectionClosed as exc:  # while syncing or joining
             self._note_closed(exc)
         finally:
+            # The connection it ends on (a resumed one, after a drop): a close frame,
+            # so the server knows it left rather than dropped.
             with contextlib.suppress(ConnectionClosed):
-                await conn.close()
+                await (self.conn or conn).close()
         if self.spec is not None:
             start = self.spec.t0
         # Loading the peers' ground truth and scoring it is heavy: off the loop,
@@ -583,15 +602,76 @@ class _Bot:
             self._add_peer(ev)
         stop = start + cfg.duration
         async with asyncio.TaskGroup() as tg:
-            tasks = [
-                tg.create_task(self._receive(conn)),
-                tg.create_task(self._publish(conn, stop)),
-                tg.create_task(self._pinger(conn, stop)),
-            ]
+            link = tg.create_task(self._connected(conn, stop))
             # The render loop ends at ``stop`` or as soon as the connection ended.
             await self._render(stop)
-            for task in tasks:
-                task.cancel()
+            link.cancel()
+
+    async def _connected(self, conn: ClientConnection, stop: float) -> None:
+        """Receive, publish and ping on ``conn``; after a drop, resume on a new one."""
+        while True:
+            self.lost.clear()
+            async with asyncio.TaskGroup() as tg:
+                tasks = [
+                    tg.create_task(self._receive(conn)),
+                    tg.create_task(self._publish(conn, stop)),
+                    tg.create_task(self._pinger(conn, stop)),
+                ]
+                await self.lost.wait()
+                for task in tasks:
+                    task.cancel()
+            resumed = await self._resume(conn, stop)
+            if resumed is None:
+                return
+            conn = resumed
+
+    async def _resume(self, old: ClientConnection, stop: float) -> ClientConnection | None:
+        """Reconnect with the resume token and join again: the same user and streams.
+        None (the session ends as lost) if the window closed or the server refused."""
+        cfg, welcome, joined = self.cfg, old.welcome, old.joined
+        assert welcome is not None and joined is not None and self.trace is not None
+        with contextlib.suppress(Exception):
+            await old.ws.close()
+        after = max(0.0, self.clock() - self.started_local)
+        give_up = min(stop, self.server_now() + cfg.resume_window)
+        while self.server_now() < give_up:
+            try:
+                conn = await ClientConnection.connect(
+                    cfg.url,
+                    agent=cfg.name,
+                    clock=self.clock,
+                    tls=Tls(cfg.cafile, cfg.insecure),
+                    resumable=True,
+                    resume=welcome.resume,
+                )
+            except Exception:  # refused, reset, a handshake cut short: try again
+                await asyncio.sleep(0.2)
+                continue
+            try:
+                if conn.welcome is None or not conn.welcome.resumed:
+                    raise ConnectionError("the server no longer holds this session")
+                again = await conn.join(
+                    room=cfg.room,
+                    streams=self.trace.streams,
+                    rate=cfg.rate,
+                    token=cfg.token,
+                    sends_velocities=self.velocities,
+                    wants_velocities=self.velocities,
+                    codec=cfg.codec,
+                )
+                if again.streams != joined.streams:
+                    raise ConnectionError("the resumed join got other stream ids")
+            except Exception:
+                with contextlib.suppress(Exception):
+                    await conn.close()
+                break
+            self.conn = conn
+            self.resumed_at.append(self.clock())
+            for ev in conn.early_peers:
+                self._add_peer(ev)
+            return conn
+        self.ending = SessionEnd("lost", after)
+        return None
 
     def _report(self, start: float) -> BotReport:
         cfg = self.cfg

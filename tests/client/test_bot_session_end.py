@@ -48,7 +48,11 @@ async def _session_ended_by(end: str) -> list[BotReport]:
     async with running_server() as server:
         url = f"ws://127.0.0.1:{server.port}"
         cfgs = [
-            BotConfig(url=url, room="gone", motion="synthetic:orbit", seed=i, duration=LONG)
+            # resume=False: a dropped connection ends the session here (bots that
+            # resume are tests/client/test_bot_resume.py's).
+            BotConfig(
+                url=url, room="gone", motion="synthetic:orbit", seed=i, duration=LONG, resume=False
+            )
             for i in range(2)
         ]
         async with asyncio.TaskGroup() as tg:

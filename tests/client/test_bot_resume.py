@@ -1,0 +1,58 @@
+"""A bot whose TCP connection is cut reconnects and resumes by itself, on a real relay.
+
+Its peer never sees it leave: no peer_left, the same user and stream ids, its
+poses again after the resume. How soon they are shown again is printed, not
+asserted (the machine is shared).
+"""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+from support import running_server
+
+from client.bot import BotConfig, _Bot
+from protocol import PeerLeft, PeerResumed, PeerStalled
+
+
+async def _session() -> tuple[_Bot, _Bot, list[type]]:
+    async with running_server() as srv:
+        url = f"ws://127.0.0.1:{srv.port}"
+        cfgs = [
+            BotConfig(url=url, room="r", rate=20, duration=6.0, methods=("soa",), name=n, seed=i)
+            for i, n in enumerate(("cut", "peer"))
+        ]
+        cut, peer = (_Bot(c, srv.clock) for c in cfgs)
+        notices: list[type] = []
+        on_event = peer._on_event
+
+        def spy(ev: object, arrival: float, size: int) -> None:
+            if isinstance(ev, PeerStalled | PeerResumed | PeerLeft):
+                notices.append(type(ev))
+            on_event(ev, arrival, size)
+
+        peer._on_event = spy  # type: ignore[method-assign]
+        async with asyncio.TaskGroup() as tg:
+            tasks = [tg.create_task(cut.run()), tg.create_task(peer.run())]
+            await asyncio.sleep(2.5)
+            assert cut.conn is not None
+            first = cut.conn
+            first.ws.transport.abort()  # the network drops it
+        reports = [t.result() for t in tasks]
+        assert all(r.ending.kind == "complete" for r in reports), [r.ending for r in reports]
+        assert cut.conn is not first
+    return cut, peer, notices
+
+
+def test_a_cut_bot_resumes_as_the_same_user_and_its_peer_sees_it_again() -> None:
+    cut, peer, notices = asyncio.run(_session())
+    assert len(cut.resumed_at) == 1
+    assert notices == [PeerStalled, PeerResumed]  # never peer_left
+    mine = [rs for (user, _sid), rs in peer.remote.items() if user == cut.conn.user]  # type: ignore[union-attr]
+    assert len(mine) == 3
+    back = cut.resumed_at[0]
+    later = [a for rs in mine for a in rs.arrival_local if a > back]
+    assert later, "the peer never received the resumed bot's poses"
+    print(f"\nshown again {1000 * (min(later) - back):.0f} ms after the bot rejoined")
+    assert np.all([np.all(np.diff(rs.capture) > 0) for rs in mine])
