@@ -82,29 +82,8 @@ def prepare(a: ArrayLike, b: ArrayLike, s: ArrayLike) -> tuple[F64, F64, F64, tu
     Returns pose rows ``A``, ``B`` of shape ``(7, M)`` (unit quaternions), ``S``
     of shape ``(M,)``, and the batch shape ``a.shape[:-1]`` after broadcasting.
     """
-    a_arr = _check_pose_array(a, "a")
-    b_arr = _check_pose_array(b, "b")
-    if a_arr.shape != b_arr.shape:
-        try:
-            a_arr, b_arr = np.broadcast_arrays(a_arr, b_arr)
-        except ValueError:
-            raise ValueError(
-                f"expected `a` and `b` to have matching shapes (..., 7), "
-                f"got {a_arr.shape} and {b_arr.shape}"
-            ) from None
-    batch = a_arr.shape[:-1]
-    s_arr = np.asarray(s, dtype=np.float64)
-    if not np.all(np.isfinite(s_arr)):
-        raise ValueError("expected `s` to hold finite values")
-    try:
-        s_b = np.broadcast_to(s_arr, batch)
-    except ValueError:
-        raise ValueError(
-            f"expected `s` to be broadcastable to {batch}, got {s_arr.shape}"
-        ) from None
-    A = _validate_rows(_rows(a_arr), "a")
-    B = _validate_rows(_rows(b_arr), "b")
-    return A, B, s_b.reshape(-1), batch
+    a_n, b_n, s_n, batch = _check_args(a, b, s)
+    return _validate_rows(_rows(a_n), "a"), _validate_rows(_rows(b_n), "b"), s_n, batch
 
 
 # The helpers write rows into one preallocated array: np.stack of freshly
