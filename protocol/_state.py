@@ -14,7 +14,9 @@ Both sides of a connection walk the same states; a message moves both of them
    access token) from the client;
    ``snapshot``, ``peer_joined``, ``peer_left``, ``peer_stalled`` and
    ``peer_resumed`` from the server; ``event``
-   either way.
+   either way; the shared objects' ``object_create``, ``request_ownership`` and
+   ``release`` from the client, ``object``, ``owner`` and ``object_removed`` from
+   the server (``protocol.objects``).
 5. Non-fatal ``error`` messages may flow either way after hello and change
    nothing (except rule 3's refusal).
 6. ``bye`` from either side, or a fatal error (sent, received or detected), ends
@@ -105,6 +107,12 @@ TRANSITIONS: dict[State, dict[tuple[Role, str], State]] = {
         ((_S,), "peer_stalled"),
         ((_S,), "peer_resumed"),
         (_EITHER, "event"),
+        ((_C,), "object_create"),
+        ((_C,), "request_ownership"),
+        ((_C,), "release"),
+        ((_S,), "object"),
+        ((_S,), "owner"),
+        ((_S,), "object_removed"),
     ),
     State.CLOSED: _stay(State.CLOSED, (_EITHER, "error"), (_EITHER, ERROR_FATAL), (_EITHER, "bye")),
 }

@@ -63,6 +63,13 @@ room-full           no     --     (server decision) join refused, try later
 user-taken          no     --     (server decision) the token's user is already live
                                   in that room on another connection (one connection
                                   per room and user)
+ownership-refused   no     --     (server decision) a shared object's request,
+                                  release or creation refused: held by another (not
+                                  stealable, or locked), not held by the sender, no
+                                  such object, a name taken, over ``max_objects``
+object-not-owned    no     --     an update names a shared object's stream that
+                                  the sender does not own (any more): those entries
+                                  are dropped, the rest of the update is taken
 bad-room            no     --     (server decision) a room name that is empty once
                                   stripped, over 64 bytes, or holds control or bidi
                                   override characters
@@ -70,8 +77,9 @@ too-slow            yes    1008   (server decision) a peer's event queue overflo
 internal-error      yes    1011   (server decision) a bug on the server
 ==================  =====  =====  =====================================================
 
-The last six are never produced by ``protocol`` itself; they are listed so that
-the server's own refusals use the same codes, fatality and close codes.
+Codes marked "(server decision)" are never produced by ``protocol`` itself; they
+are listed so that the server's own refusals use the same codes, fatality and
+close codes.
 """
 
 from __future__ import annotations
@@ -113,6 +121,8 @@ class ErrorCode(StrEnum):
     UNAUTHORIZED = "unauthorized"
     ROOM_FULL = "room-full"
     USER_TAKEN = "user-taken"
+    OWNERSHIP_REFUSED = "ownership-refused"
+    OBJECT_NOT_OWNED = "object-not-owned"
     BAD_ROOM = "bad-room"
     TOO_SLOW = "too-slow"
     INTERNAL_ERROR = "internal-error"
@@ -148,6 +158,8 @@ _CLOSE_CODES: dict[ErrorCode, int | None] = {
     ErrorCode.UNAUTHORIZED: 1008,
     ErrorCode.ROOM_FULL: None,
     ErrorCode.USER_TAKEN: None,
+    ErrorCode.OWNERSHIP_REFUSED: None,
+    ErrorCode.OBJECT_NOT_OWNED: None,
     ErrorCode.BAD_ROOM: None,
     ErrorCode.TOO_SLOW: 1008,
     ErrorCode.INTERNAL_ERROR: 1011,

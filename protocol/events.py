@@ -29,6 +29,14 @@ from protocol.messages import (
     UserEvent,
     Welcome,
 )
+from protocol.objects import (
+    ObjectCreate,
+    ObjectInfo,
+    ObjectRemoved,
+    Owner,
+    Release,
+    RequestOwnership,
+)
 from protocol.poses import PoseUpdate, Snapshot
 
 __all__ = ["Event", "Message", "ProtocolError"]
@@ -49,6 +57,12 @@ Message = (
     | UserEvent
     | ErrorMessage
     | Bye
+    | ObjectCreate
+    | RequestOwnership
+    | Release
+    | ObjectInfo
+    | Owner
+    | ObjectRemoved
     | PoseUpdate
     | Snapshot
 )

@@ -166,7 +166,7 @@ def _register(cls: _M) -> _M:
         if f.default is MISSING and f.default_factory is MISSING
     )
     cls._OMIT = {
-        f.name: f.default
+        f.name: f.default if f.default is not MISSING else f.default_factory()  # type: ignore[operator]
         for f in fields(cls)  # type: ignore[arg-type]
         if f.metadata.get(_OMIT_DEFAULT)
     }
@@ -313,11 +313,15 @@ class Joined(ControlMessage):
     """Stream name -> stream id (u16, unique within the room)."""
     rate: float
     """Granted update rate in Hz."""
+    objects: dict[str, int] = field(default_factory=dict, metadata={_OMIT_DEFAULT: True})
+    """The room's shared objects (``protocol.objects``), name -> stream id; an
+    ``object`` message with each one's pose and owner follows. Not sent while empty."""
 
     def __post_init__(self) -> None:
         check_text("joined.room", self.room, empty=False)
         _set(self, "streams", check_stream_map("joined.streams", self.streams))
         _set(self, "rate", check_float("joined.rate", self.rate))
+        _set(self, "objects", check_stream_map("joined.objects", self.objects))
 
 
 @_register

@@ -22,6 +22,13 @@ depends on limits and on what was agreed earlier:
   "bad-message"), every velocity finite (else a non-fatal "bad-velocity");
 - event: its stream owned by the sender, payload small enough; the server
   session stamps the sender's user id on it;
+- shared objects (``protocol.objects``): the streams of the objects a user owns
+  are its own while it owns them (:meth:`_Session.hold` / :meth:`_Session.let_go`;
+  the client session follows ``object`` and ``owner`` messages by itself). An
+  update entry for an object the server session knows (``objects``) but the user
+  does not own is dropped with a non-fatal "object-not-owned" and the rest of
+  the update goes on; ``object_create`` needs a unit quaternion ("bad-pose") and
+  a valid name ("bad-stream-name");
 - snapshot (client): of the variant the join asked for (``wants_velocities``;
   else a fatal "bad-message"), poses finite and unit, else dropped with
   "bad-pose", velocities finite, else dropped with "bad-velocity".
@@ -40,7 +47,7 @@ baselines the server does not hold is a fatal "bad-message" (the codec's
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Container, Mapping
 from dataclasses import dataclass, replace
 from typing import ClassVar
 
@@ -71,6 +78,7 @@ from protocol.messages import (
     Welcome,
     is_valid_stream_name,
 )
+from protocol.objects import ObjectCreate, ObjectInfo, ObjectRemoved, Owner, unit_problem
 from protocol.poses import PoseUpdate, Snapshot, has_velocity, pose_problem, velocity_problem
 from protocol.wire import decode_message, encode_message
 
@@ -148,6 +156,10 @@ class _Session:
         """The room volume of compact updates: the server's, announced in welcome."""
         self._frames_in = self._bytes_in = self._frames_out = self._bytes_out = 0
         self._errors = 0
+        #: Shared objects this user owns now (their streams are in ``_owned`` too).
+        self.held: set[int] = set()
+        #: Errors found beside the message of the frame being received.
+        self._also: list[ProtocolError] = []
 
     @property
     def closed(self) -> bool:
@@ -156,8 +168,19 @@ class _Session:
 
     @property
     def owned_streams(self) -> frozenset[int]:
-        """Ids of the streams assigned to this user."""
+        """Ids of the streams assigned to this user (and the shared objects it owns)."""
         return self._owned
+
+    def hold(self, stream: int) -> None:
+        """Shared object ``stream`` is this user's now: its updates may carry it."""
+        self.held.add(stream)
+        self._owned = self._owned | {stream}
+
+    def let_go(self, stream: int) -> None:
+        """Shared object ``stream`` is no longer this user's."""
+        if stream in self.held:
+            self.held.discard(stream)
+            self._owned = self._owned - {stream}
 
     def statistics(self) -> SessionStatistics:
         """A frozen copy of the counters."""
@@ -186,8 +209,9 @@ class _Session:
             new_state = self._peer_moves.get(_kind(message))
             if new_state is None:
                 raise self._unexpected(message, self.PEER, type_)
-            message = self._check_received(message)
+            checked = self._check_received(message)
         except ProtocolViolation as exc:
+            self._also.clear()
             self._errors += 1
             error = ProtocolError(exc.code, exc.message, exc.in_reply_to or type_)
             if error.fatal:
@@ -195,7 +219,11 @@ class _Session:
             return [error]
         if new_state is not self.state:
             self._move(new_state)
-        return [message]
+        if self._also:
+            also, self._also = self._also, []
+            self._errors += len(also)
+            return [*also] if checked is None else [checked, *also]
+        return [message if checked is None else checked]
 
     def send(self, message: Message) -> bytes:
         """Frame bytes of ``message``; raises LocalProtocolError if it may not be sent now."""
@@ -240,8 +268,9 @@ class _Session:
         """The frame bytes of a message that may be sent now; raises LocalProtocolError."""
         return encode_message(message)
 
-    def _check_received(self, message: Message) -> Message:
-        """Role rules for an incoming message; may return it amended. Raises ProtocolViolation."""
+    def _check_received(self, message: Message) -> Message | None:
+        """Role rules for an incoming message; may return it amended (None: nothing of it
+        is left, the errors in ``_also`` say why). Raises ProtocolViolation."""
         raise NotImplementedError
 
     def _check_sent(self, message: Message) -> None:
@@ -354,6 +383,8 @@ class ServerSession(_Session):
         self._upstream: UpstreamDecoder | None = None
         # The update the last compact frame decoded to (raw records are refused then).
         self._compact_update: PoseUpdate | None = None
+        #: Stream ids of the room's shared objects (the server keeps it up to date).
+        self.objects: Container[int] = ()
 
     def make_welcome(self, user: int, server_time: float) -> Welcome:
         """A welcome that announces this session's limits and room volume."""
@@ -389,16 +420,44 @@ class ServerSession(_Session):
     def assign_streams(self, streams: Mapping[str, int]) -> None:
         """Make these stream ids the user's own without sending joined (tests, replays)."""
         self.streams = dict(streams)
-        self._owned = frozenset(self.streams.values())
+        self._owned = frozenset(self.streams.values()) | self.held
 
-    def _check_received(self, message: Message) -> Message:
+    def _strip_stray_objects(self, update: PoseUpdate) -> PoseUpdate | None:
+        """``update`` without entries for shared objects this user does not own."""
+        objects, owned = self.objects, self._owned
+        if not objects:
+            return update
+        ids = update.entries["stream"]
+        stray = sorted(s for s in set(ids.tolist()) if s not in owned and s in objects)
+        if not stray:
+            return update
+        self._also.append(
+            ProtocolError(
+                ErrorCode.OBJECT_NOT_OWNED, f"object stream {stray[0]} not owned", "update"
+            )
+        )
+        keep = ~np.isin(ids, stray)
+        return replace(update, entries=update.entries[keep]) if keep.any() else None
+
+    def _check_received(self, message: Message) -> Message | None:
         if isinstance(message, PoseUpdate):
             if self._upstream is not None and message is not self._compact_update:
                 raise ProtocolViolation(
                     ErrorCode.BAD_MESSAGE, "update of raw records, compact agreed at join"
                 )
             self._compact_update = None
-            self._check_update(message)
+            update = self._strip_stray_objects(message)
+            if update is not None:
+                self._check_update(update)
+            return update
+        elif isinstance(message, ObjectCreate):
+            if not is_valid_stream_name(message.name, self.limits.max_stream_name_length):
+                raise ProtocolViolation(
+                    ErrorCode.BAD_STREAM_NAME, f"bad object name {message.name[:40]!r}"
+                )
+            problem = unit_problem(message.pose)
+            if problem is not None:
+                raise ProtocolViolation(ErrorCode.BAD_POSE, f"object_create: {problem}")
         elif isinstance(message, Join):
             self._check_names(message.streams, self.limits.max_streams)
             self._check_rate(message.rate, self.limits.min_rate, self.limits.max_rate)
@@ -446,6 +505,8 @@ class ClientSession(_Session):
         super().__init__(limits)
         self.welcome: Welcome | None = None
         self.peers: dict[int, dict[str, int]] = {}
+        #: The room's shared objects, name -> stream id (joined, object, object_removed).
+        self.objects: dict[str, int] = {}
         self._upstream: UpstreamEncoder | None = None
         self._snapshots: SnapshotDecoder | None = None
 
@@ -465,7 +526,7 @@ class ClientSession(_Session):
             return self._upstream.encode(message)
         return encode_message(message)
 
-    def _check_received(self, message: Message) -> Message:
+    def _check_received(self, message: Message) -> Message | None:
         if isinstance(message, Snapshot):
             self._check_records("snapshot", message.entries, self.wants_velocities)
         elif isinstance(message, Welcome):
@@ -477,19 +538,34 @@ class ClientSession(_Session):
             self.room = message.room
             self.rate = message.rate
             self.streams = dict(message.streams)
-            self._owned = frozenset(self.streams.values())
+            self.objects = dict(message.objects)
+            self._owned = frozenset(self.streams.values()) | self.held
             self._agree_join()
             if self.codec == "compact":
                 self._upstream = UpstreamEncoder(self.volume)
                 self._snapshots = SnapshotDecoder(self.volume)
         elif isinstance(message, PeerJoined):
             self.peers[message.user] = dict(message.streams)
+        elif isinstance(message, ObjectInfo):
+            self.objects[message.name] = message.stream
+            self._follow_owner(message.stream, message.owner)
+        elif isinstance(message, Owner):
+            self._follow_owner(message.stream, message.owner)
+        elif isinstance(message, ObjectRemoved):
+            self.let_go(message.stream)
+            self.objects = {n: s for n, s in self.objects.items() if s != message.stream}
         elif isinstance(message, PeerLeft):
             self.peers.pop(message.user, None)
             # Its snapshot baselines stay: a snapshot encoded before it left may
             # still follow (events overtake the pose slot), and a user or stream id
             # given out again always starts with key entries, which overwrite them.
         return message
+
+    def _follow_owner(self, stream: int, owner: int | None) -> None:
+        if owner is not None and owner == self.user:
+            self.hold(stream)
+        else:
+            self.let_go(stream)
 
     def _check_sent(self, message: Message) -> None:
         if isinstance(message, PoseUpdate):

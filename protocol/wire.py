@@ -36,6 +36,7 @@ from protocol.messages import (
     UserEvent,
     Welcome,
 )
+from protocol.objects import OBJECT_MESSAGE_TYPES
 from protocol.poses import (
     POSES_KEY,
     SNAPSHOT_DTYPE,
@@ -69,6 +70,7 @@ _CONTROL: dict[str, type[ControlMessage]] = {
         Bye,
     )
 }
+_CONTROL.update({cls.TYPE: cls for cls in OBJECT_MESSAGE_TYPES})
 
 MESSAGE_TYPES = frozenset([*_CONTROL, PoseUpdate.TYPE, Snapshot.TYPE])
 """Every "type" this protocol version knows."""

@@ -65,7 +65,8 @@ is too slow         latest-wins snapshots are skipped (counted) while one is
 ==================  ==========================================================
 
 A room (:class:`server.room.Room`) ticks each member on its own rate grid and
-encodes one snapshot per tick group, shared by every due member.
+encodes one snapshot per tick group, shared by every due member. Shared objects
+(their ownership rules and flights) are ``server/objects.py``'s.
 """
 
 from __future__ import annotations
@@ -76,6 +77,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from protocol import (
+    ROOM_USER,
     Bye,
     ErrorCode,
     ErrorMessage,
@@ -84,12 +86,15 @@ from protocol import (
     Joined,
     Limits,
     LocalProtocolError,
+    ObjectCreate,
     PeerLeft,
     Ping,
     Pong,
     PoseUpdate,
     ProtocolError,
+    Release,
     Renew,
+    RequestOwnership,
     SetRate,
     UserEvent,
     close_reason,
@@ -97,9 +102,9 @@ from protocol import (
 )
 from protocol.events import Event, Message
 from scenarios.network import EgressLink
-from server import resume
+from server import objects, resume, tokens
 from server.actions import Action, Close, FinishRecording, Rearm, Reschedule, Wake
-from server.auth import TokenError, token_permits, verify_token
+from server.auth import token_permits
 from server.config import ServerConfig
 from server.limits import Admission, Deadlines, normalise_room, room_refusal, update_refusal
 from server.peer import COUNTERS, ConnectionStatistics, Peer
@@ -135,7 +140,7 @@ class RelayCore:
         self.config = config or ServerConfig()
         self.limits = Limits(min_rate=self.config.min_rate, max_rate=self.config.max_rate)
         self.volume = self.config.room_volume
-        self.users = IdAllocator()
+        self.users = IdAllocator(ROOM_USER)  # ROOM_USER is the shared objects' user id
         self.rooms: dict[str, Room] = {}
         self.peers: dict[int, Peer] = {}
         self._by_user: dict[int, Peer] = {}
@@ -248,23 +253,6 @@ class RelayCore:
         peer.token_deadline = deadline
         self._token_deadlines.add(peer.conn, deadline)
         self.emit(Rearm())
-
-    def _on_renew(self, peer: Peer, renew: Renew, now: float, wall: float) -> None:
-        """A fresh token for the same room and user moves the connection's deadline."""
-        secret = self.config.secret
-        if secret is None or peer.room is None:
-            return  # nothing expires on an open server
-        try:
-            claims = verify_token(secret, renew.token, peer.room.name, wall)
-            if claims.user != peer.name:
-                raise TokenError(f"access token is for user {claims.user!r}, not {peer.name!r}")
-        except TokenError as exc:
-            self._send(
-                peer, ErrorMessage.from_code(ErrorCode.UNAUTHORIZED, str(exc), in_reply_to="renew")
-            )
-            self._close(peer, 1008, str(exc))
-            return
-        self._token_expires(peer, now + (claims.exp - wall))
 
     def frame(self, conn: int, data: bytes | str) -> list[Event]:
         """The events one received frame decodes to (none while the connection closes)."""
@@ -587,9 +575,11 @@ class RelayCore:
         elif isinstance(event, SetRate):
             self._on_set_rate(peer, event, now)
         elif isinstance(event, Renew):
-            self._on_renew(peer, event, now, wall)
+            tokens.renew(self, peer, event, now, wall)
         elif isinstance(event, UserEvent):
             self._on_user_event(peer, event, now)
+        elif isinstance(event, ObjectCreate | RequestOwnership | Release):
+            objects.handle(self, peer, event, now)
         elif isinstance(event, Bye):
             self._close(peer, 1000, event.reason or "bye")
         elif isinstance(event, ErrorMessage):
@@ -606,28 +596,8 @@ class RelayCore:
 
     def _on_join(self, peer: Peer, join: Join, name: str, now: float, wall: float) -> None:
         """Join room ``name`` (``join.room`` normalised; ``joined`` echoes ``join.room``)."""
-        if self.config.secret is not None:
-            try:
-                claims = verify_token(self.config.secret, join.token, name, wall)
-            except TokenError as exc:
-                self._send(
-                    peer,
-                    ErrorMessage.from_code(ErrorCode.UNAUTHORIZED, str(exc), in_reply_to="join"),
-                )
-                self._close(peer, 1008, str(exc))
-                return
-            back = peer.parked is not None and peer.parked.name == claims.user
-            if not back and name in self.rooms and self.rooms[name].has_member_named(claims.user):
-                self._refuse(
-                    peer,
-                    ErrorCode.USER_TAKEN,
-                    f"user {claims.user!r} is already in room {name!r} on another connection",
-                    "join",
-                    now,
-                )
-                return
-            peer.name = claims.user
-            self._token_expires(peer, now + (claims.exp - wall))
+        if not tokens.admit_join(self, peer, join, name, now, wall):
+            return
         assert peer.user is not None  # the state table puts hello before join
         if resume.resume_join(self, peer, join, name, now):
             return
@@ -639,7 +609,8 @@ class RelayCore:
             return
         room = self._room_for(name)
         streams = room.allocate_streams(join.streams)
-        self._send(peer, Joined(room=join.room, streams=streams, rate=join.rate))
+        shared = objects.joined_objects(room)
+        self._send(peer, Joined(room=join.room, streams=streams, rate=join.rate, objects=shared))
         member = Member(
             peer.user,
             peer.name,
@@ -658,6 +629,7 @@ class RelayCore:
         if join.spectator:
             self._spectators.add(peer.user)
         self._introduce(peer, member, room)
+        objects.introduce(self, peer, room)
         room.add(member, now)
         self._rescheduled(room)
         peer.room, peer.member = room, member
@@ -770,6 +742,7 @@ class RelayCore:
     def _leave(self, peer: Peer, now: float) -> None:
         room, user = peer.room, peer.user
         if room is not None and user is not None:
+            objects.owner_left(self, room, user, now)
             room.remove(user)
             self._rescheduled(room)
             spectator = user in self._spectators

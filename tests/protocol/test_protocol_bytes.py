@@ -14,6 +14,10 @@ from protocol import (
     Join,
     Joined,
     Message,
+    ObjectCreate,
+    ObjectInfo,
+    ObjectRemoved,
+    Owner,
     PeerJoined,
     PeerLeft,
     PeerResumed,
@@ -21,8 +25,10 @@ from protocol import (
     Ping,
     Pong,
     PoseUpdate,
+    Release,
     RemoteProtocolError,
     Renew,
+    RequestOwnership,
     SetRate,
     Snapshot,
     UserEvent,
@@ -145,11 +151,47 @@ PINNED: list[tuple[Message, bytes]] = [
         b"\x07\x00\x03\x00" + struct.pack("<f", -0.5) + IDENTITY_AT_1_5,
     ),
 ]
+POSE_1_5 = b"\x97" + f64(0.0) + f64(1.5) + f64(0.0) + f64(1.0) + f64(0.0) * 3
+PINNED += [
+    (
+        ObjectCreate(name="object:drill", pose=(0, 1.5, 0, 1, 0, 0, 0), hold=True),
+        b"\x85\xa4type\xadobject_create\xa4name\xacobject:drill\xa4pose"
+        + POSE_1_5
+        + b"\xa4keep\xc3\xa4hold\xc3",
+    ),
+    (
+        RequestOwnership(stream=3, lock=True),
+        b"\x83\xa4type\xb1request_ownership\xa6stream\x03\xa4lock\xc3",
+    ),
+    (
+        Release(stream=3, velocity=(1.0, 2.0, 0.0)),
+        b"\x83\xa4type\xa7release\xa6stream\x03\xa8velocity\x93" + f64(1.0) + f64(2.0) + f64(0.0),
+    ),
+    (
+        ObjectInfo(
+            name="object:drill", stream=3, pose=(0, 1.5, 0, 1, 0, 0, 0), time=2.0, creator=7
+        ),
+        b"\x88\xa4type\xa6object\xa4name\xacobject:drill\xa6stream\x03\xa4pose"
+        + POSE_1_5
+        + b"\xa4time"
+        + f64(2.0)
+        + b"\xa7creator\x07\xa5owner\xc0\xa4keep\xc3",
+    ),
+    (
+        Owner(stream=3, owner=7, previous=None, reason="request", time=2.0),
+        b"\x86\xa4type\xa5owner\xa6stream\x03\xa5owner\x07\xa8previous\xc0"
+        b"\xa6reason\xa7request\xa4time" + f64(2.0),
+    ),
+    (
+        ObjectRemoved(stream=3, reason="creator-left"),
+        b"\x83\xa4type\xaeobject_removed\xa6stream\x03\xa6reason\xaccreator-left",
+    ),
+]
 IDS = [message.TYPE for message, _ in PINNED]
 
 
 def test_every_type_is_pinned() -> None:
-    """The pinned table covers all seventeen message types."""
+    """The pinned table covers every message type."""
     from protocol import MESSAGE_TYPES
 
     assert set(IDS) == MESSAGE_TYPES
@@ -187,7 +229,7 @@ def test_decode_every_truncation(message: Message, frame: bytes) -> None:
 
 def test_encode_snapshot_matches_snapshot_message() -> None:
     """encode_snapshot produces the same bytes as encoding a Snapshot message."""
-    message, frame = PINNED[-1]
+    message, frame = next(pin for pin in PINNED if pin[0].TYPE == "snapshot")
     assert encode_snapshot(3, 2.0, [7], [3], [1.5], [[0, 1.5, 0, 1, 0, 0, 0]]) == frame
     assert isinstance(message, Snapshot)
 
