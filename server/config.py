@@ -77,6 +77,8 @@ class ServerConfig:
     max_connections_per_address: int = 64
     max_rooms: int = 256
     max_members: int = 64
+    #: Shared objects a room may hold (``object_create`` over it is refused).
+    max_objects: int = 64
     #: Rooms recorded at once (``--record``); a join opening one more is refused.
     max_recorded_rooms: int = 32
 

@@ -31,6 +31,7 @@ from protocol import (
     UserEvent,
     decode_message,
 )
+from server import objects
 from server.limits import Deadlines
 from server.room import Member, Room
 
@@ -165,6 +166,7 @@ def gone(core: RelayCore, parked: Parked, now: float) -> None:
     """A parked member whose window closed: it leaves (``peer_left``, reason "gone")."""
     room, user = parked.room, parked.user
     if room.members.get(user) is parked.member:
+        objects.owner_left(core, room, user, now)
         room.remove(user)
         core._rescheduled(room)
         if room.recorder is not None:
@@ -200,12 +202,14 @@ def resume_join(core: RelayCore, peer: Peer, join: Join, name: str, now: float) 
     member.last_version = member.delivered_version = 0
     room.set_rate(member.user, join.rate, now)  # a key snapshot on its next tick
     peer.room, peer.member = room, member
-    core._send(peer, Joined(room=join.room, streams=member.streams, rate=join.rate))
+    shared = objects.joined_objects(room)
+    core._send(peer, Joined(room=join.room, streams=member.streams, rate=join.rate, objects=shared))
     for other in list(room.members.values()):
         if other.user == member.user or other.user in core._spectators:
             continue
         core._send(peer, Room.announce(other))
         core.to_member(other, PeerResumed(user=member.user))
+    objects.restore(core, peer, room)
     # The events it missed, in order, once it knows the room; presence notices and
     # pongs still queued from before the drop are stale (it just got the room anew).
     for data in old.events:

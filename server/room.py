@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from protocol import (
+    ROOM_USER,
     ZERO_VELOCITY,
     PeerJoined,
     PoseUpdate,
@@ -49,6 +50,8 @@ from protocol import (
 from protocol.codec import DEFAULT_VOLUME, Volume, quantise
 from protocol.codec_relay import GroupSnapshot, RelayEntry, encode_group
 from recorder import RoomRecorder
+from server import objects
+from server.objects import RoomObject
 
 __all__ = [
     "DEFAULT_EVENT_QUEUE",
@@ -282,6 +285,10 @@ class Room:
     _paused_since: float = 0.0
     #: The volume compact codes quantise positions in (the server's, stated at welcome).
     volume: Volume = DEFAULT_VOLUME
+    #: Shared objects by stream id (``server.objects``).
+    objects: dict[int, RoomObject] = field(default_factory=dict)
+    #: Sequence numbers of the recorded flight keyframes.
+    flight_seq: int = 0
 
     def pause_recording(self, now: float) -> None:
         """Stop recording pose updates (counted, written as one drops record on resume)."""
@@ -385,23 +392,51 @@ class Room:
         if member is not None:
             member.updates_in += 1
         stale = 0
+        objects = self.objects
         for sid, t, pose, vel in update_records(update):
             cur = self._streams.get(sid)
+            publisher = user
+            if objects and sid in objects:
+                # A shared object: the room's stream, in its owner's shifted time.
+                publisher = ROOM_USER
+                t = objects[sid].rebase(t, None if cur is None else cur.capture)
             if cur is not None and t <= cur.capture:
                 stale += 1
                 continue
-            self._version += 1
-            velocity = ZERO_VELOCITY if vel is None else vel
             row = None if codes is None else codes.get(sid)
             if row is not None and len(row) == 7:
                 row = row + [0] * 6
-            if cur is None:
-                self._streams[sid] = _Stream(user, t, pose, self._version, velocity, row)
-            else:
-                cur.capture, cur.pose, cur.version = t, pose, self._version
-                cur.velocity, cur.codes = velocity, row
+            self.store(sid, publisher, t, pose, ZERO_VELOCITY if vel is None else vel, row)
         self._stale += stale
         return stale
+
+    def store(
+        self,
+        sid: int,
+        user: int,
+        capture: float,
+        pose: bytes,
+        velocity: bytes = ZERO_VELOCITY,
+        codes: list[int] | None = None,
+    ) -> None:
+        """Make ``pose`` (captured at ``capture``) the newest keyframe of stream ``sid``."""
+        self._version += 1
+        cur = self._streams.get(sid)
+        if cur is None:
+            self._streams[sid] = _Stream(user, capture, pose, self._version, velocity, codes)
+        else:
+            cur.capture, cur.pose, cur.version = capture, pose, self._version
+            cur.velocity, cur.codes = velocity, codes
+
+    def stream_pose(self, sid: int) -> tuple[float, bytes]:
+        """(capture time, 28 pose bytes) of stream ``sid``'s newest keyframe."""
+        cur = self._streams[sid]
+        return cur.capture, cur.pose
+
+    def drop_stream(self, sid: int) -> None:
+        """Forget stream ``sid`` (a removed object) and free its id."""
+        self._streams.pop(sid, None)
+        self.stream_ids.give_back(sid)
 
     # -- schedule -----------------------------------------------------------------
 
@@ -420,6 +455,8 @@ class Room:
         cache: dict[tuple[int, bool], tuple[bytes, int]] = {}
         groups: dict[tuple[int, bool], GroupSnapshot | None] = {}
         offered = 0
+        if self.objects:
+            objects.fly(self, now)
         for member in self.members.values():
             if member.next_due > now + 1e-9 or member.parked:
                 continue

@@ -100,6 +100,8 @@ def test_server_holds_only_the_relay() -> None:
         "core.py",
         "config.py",
         "resume.py",
+        "objects.py",
+        "tokens.py",
         "actions.py",
         "peer.py",
         "limits.py",

@@ -1,0 +1,446 @@
+"""Shared objects: the relay's ownership rules, thrown flights and their records.
+
+A room object (``protocol.objects``) is a stream of the room, not of a user: it
+is published under :data:`~protocol.objects.ROOM_USER` by whoever owns it, and
+by the server itself while it flies. The rules, applied in the order requests
+arrive (one event loop: no two grants race):
+
+==================  ==========================================================
+request             the relay ...
+==================  ==========================================================
+object_create       refuses (``ownership-refused``) a name the room has or
+                    over ``max_objects``, a pose outside the volume
+                    (``bad-pose``); else allocates a stream, stores the pose
+                    as its first keyframe (now), tells every member
+                    (``object``), and with ``hold`` makes the creator owner
+request_ownership   grants it (``owner`` to every member, the requester
+                    included) when the object is unowned (reason ``request``;
+                    ``catch`` if it was flying), or held by another while the
+                    request asks to ``steal``, the object allows it and the
+                    owner did not lock it (``steal``); the owner asking again
+                    changes its lock (``lock``); else ``ownership-refused``
+release             by the owner: unowned, at rest at its last pose
+                    (``release``) or, with a velocity, flying (``throw``);
+                    by anyone else: ``ownership-refused``
+owner leaves        when it leaves for good (bye, or its resume window over),
+                    its objects are released (``owner-left``); a parked owner
+                    keeps them; an object of its creation without ``keep`` is
+                    removed (``object_removed``, reason ``creator-left``)
+==================  ==========================================================
+
+Refusals for contention (held, locked, not yours) are not charged to the
+misbehaviour budget: two users reaching for one object is normal. A request
+about no object is.
+
+**Flight.** A thrown object is moved by the server, not by each receiver: one
+authority, so every receiver, the recording and a replay see the same motion,
+and a late joiner sees it mid-air. From its last keyframe (time ``t0``, pose,
+the release velocity ``v`` and angular velocity ``w``) the position follows
+``p0 + v (t - t0) - g (t - t0)^2 / 2`` (gravity 9.81 m/s^2 along -y; ``t0`` is
+the release time instead if that keyframe is over 0.1 s old) and the
+rotation turns at ``w`` until the object reaches the floor (y = 0, or the
+volume's floor if higher), where it rests. The relay stores a keyframe of it
+at each tick of the room (each subscriber's own rate), with its velocity, and
+records it as a pose update of ``ROOM_USER``. The cost is the bytes of those
+keyframes, as if a user held it.
+
+**Clocks at a handover.** Keyframe times are capture times in server time,
+each publisher's own estimate: a new owner's estimate may sit a few ms off the
+previous owner's (or off the server's flight keyframes). The relay keeps an
+object's keyframe times increasing across a change of owner: the new owner's
+keyframes are shifted, for as long as it owns the object, by the smallest
+offset (never negative) that puts its first one at least 1 ms after the
+object's last keyframe. A new owner whose clock runs ahead leaves a longer
+interval between two keyframes, which interpolation bridges; one behind would
+otherwise have its first keyframes dropped as stale.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from protocol import (
+    ROOM_USER,
+    ErrorCode,
+    ObjectCreate,
+    ObjectInfo,
+    ObjectRemoved,
+    Owner,
+    PoseUpdate,
+    Release,
+    RequestOwnership,
+)
+
+if TYPE_CHECKING:
+    from server.core import RelayCore
+    from server.peer import Peer
+    from server.room import Room
+
+__all__ = ["GRAVITY", "Flight", "RoomObject", "handle", "introduce", "owner_left", "restore"]
+
+GRAVITY = 9.81
+#: An object's first keyframe after a change of owner comes at least this much
+#: after its last one (s).
+MIN_STEP = 1e-3
+#: A thrown object's last keyframe older than this (s) at the release: it lay still
+#: until the release, and flies from then.
+RESTED = 0.1
+_POSE = struct.Struct("<7f")
+_VELOCITY = struct.Struct("<6e")
+
+Vec3 = tuple[float, float, float]
+
+
+def _quat_mul(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, float, float, float]:
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    )
+
+
+@dataclass(frozen=True)
+class Flight:
+    """A thrown object's motion from its release keyframe until it rests on the floor."""
+
+    t0: float
+    pose: tuple[float, ...]
+    """[px, py, pz, qw, qx, qy, qz] at ``t0``."""
+    velocity: Vec3
+    angular: Vec3
+    floor: float
+
+    def landing(self) -> float:
+        """Time after ``t0`` at which it reaches the floor (0 if it starts on or below it)."""
+        y, vy = max(self.pose[1] - self.floor, 0.0), self.velocity[1]
+        return (vy + math.sqrt(vy * vy + 2.0 * GRAVITY * y)) / GRAVITY
+
+    def at(self, t: float) -> tuple[tuple[float, ...], tuple[float, ...], bool]:
+        """(pose, velocity [vx, vy, vz, wx, wy, wz], landed) at time ``t``."""
+        land = self.landing()
+        dt = min(max(t - self.t0, 0.0), land)
+        px, py, pz = self.pose[:3]
+        vx, vy, vz = self.velocity
+        position = (px + vx * dt, py + vy * dt - 0.5 * GRAVITY * dt * dt, pz + vz * dt)
+        wx, wy, wz = self.angular
+        rate = math.sqrt(wx * wx + wy * wy + wz * wz)
+        q = self.pose[3:]
+        if rate > 0.0:
+            half = 0.5 * rate * dt
+            s = math.sin(half) / rate
+            q = _quat_mul((math.cos(half), wx * s, wy * s, wz * s), q)
+        landed = t - self.t0 >= land
+        if landed:
+            return (position[0], max(position[1], self.floor), position[2], *q), (0.0,) * 6, True
+        return (*position, *q), (vx, vy - GRAVITY * dt, vz, wx, wy, wz), False
+
+
+@dataclass
+class RoomObject:
+    """One shared object of a room, as the relay keeps it."""
+
+    name: str
+    stream: int
+    creator: int
+    keep: bool = True
+    steal: bool = False
+    owner: int | None = None
+    locked: bool = False
+    flight: Flight | None = None
+    #: Added to the current owner's capture times (see "Clocks at a handover").
+    offset: float = 0.0
+    #: The owner changed and its first keyframe has not come yet.
+    fresh: bool = False
+
+    def rebase(self, capture: float, last: float | None) -> float:
+        """The stored time of the owner's keyframe captured at ``capture``."""
+        if self.fresh:
+            self.fresh = False
+            self.offset = 0.0 if last is None else max(0.0, last + MIN_STEP - capture)
+        return capture + self.offset
+
+    def give(self, owner: int | None) -> None:
+        self.owner, self.flight, self.fresh, self.offset = owner, None, True, 0.0
+        if owner is None:
+            self.locked = False
+
+
+def pose_bytes(pose: tuple[float, ...]) -> bytes:
+    return _POSE.pack(*pose)
+
+
+def _info(room: Room, obj: RoomObject) -> ObjectInfo:
+    capture, raw = room.stream_pose(obj.stream)
+    pose = _POSE.unpack(raw)
+    # float32 on the wire of snapshots; the message carries the same values.
+    return ObjectInfo(
+        name=obj.name,
+        stream=obj.stream,
+        pose=pose,
+        time=capture,
+        creator=obj.creator,
+        owner=obj.owner,
+        keep=obj.keep,
+        steal=obj.steal,
+        locked=obj.locked,
+    )
+
+
+def joined_objects(room: Room) -> dict[str, int]:
+    """``joined.objects``: the room's objects, name -> stream id."""
+    return {obj.name: obj.stream for obj in room.objects.values()}
+
+
+def introduce(core: RelayCore, peer: Peer, room: Room) -> None:
+    """A joiner learns every object of ``room``: its pose, time and owner."""
+    peer.session.objects = room.objects
+    for obj in room.objects.values():
+        core._send(peer, _info(room, obj))
+
+
+def restore(core: RelayCore, peer: Peer, room: Room) -> None:
+    """A resumed member gets back the objects it owned (and learns them all anew)."""
+    for obj in room.objects.values():
+        if obj.owner == peer.user:
+            peer.session.hold(obj.stream)
+    introduce(core, peer, room)
+
+
+def handle(
+    core: RelayCore, peer: Peer, event: ObjectCreate | RequestOwnership | Release, now: float
+) -> None:
+    """Apply one shared-object request of ``peer``."""
+    room, user = peer.room, peer.user
+    if room is None or user is None or not core._admit(peer, now):
+        return
+    if user in core._spectators:
+        _refuse(core, peer, event, "spectators own nothing", now, charge=True)
+    elif isinstance(event, ObjectCreate):
+        _create(core, peer, room, user, event, now)
+    else:
+        obj = room.objects.get(event.stream)
+        if obj is None:
+            _refuse(core, peer, event, f"no object with stream {event.stream}", now, charge=True)
+        elif isinstance(event, RequestOwnership):
+            _request(core, peer, room, user, obj, event, now)
+        else:
+            _release(core, peer, room, user, obj, event, now)
+
+
+def _refuse(
+    core: RelayCore,
+    peer: Peer,
+    event: ObjectCreate | RequestOwnership | Release,
+    message: str,
+    now: float,
+    charge: bool = False,
+) -> None:
+    core._refuse(peer, ErrorCode.OWNERSHIP_REFUSED, message, event.TYPE, now, charge)
+
+
+def _create(
+    core: RelayCore, peer: Peer, room: Room, user: int, event: ObjectCreate, now: float
+) -> None:
+    if any(obj.name == event.name for obj in room.objects.values()):
+        _refuse(core, peer, event, f"{event.name} exists in this room", now)
+        return
+    if len(room.objects) >= core.config.max_objects:
+        _refuse(core, peer, event, f"room holds {core.config.max_objects} objects", now)
+        return
+    box = zip(core.volume.lo, event.pose[:3], core.volume.hi, strict=True)
+    if not all(lo <= x <= hi for lo, x, hi in box):
+        core._refuse(
+            peer, ErrorCode.BAD_POSE, "object position outside the room volume", event.TYPE, now
+        )
+        return
+    obj = RoomObject(event.name, room.stream_ids.take(), user, event.keep, event.steal)
+    room.objects[obj.stream] = obj
+    room.store(obj.stream, ROOM_USER, now, pose_bytes(event.pose))
+    info = _info(room, obj)
+    for member in list(room.members.values()):
+        core.to_member(member, info)
+    _record(room, "object_create", user, obj, now, pose=list(event.pose), keep=obj.keep)
+    if event.hold:
+        _change(core, room, obj, user, "create", now)
+
+
+def _request(
+    core: RelayCore,
+    peer: Peer,
+    room: Room,
+    user: int,
+    obj: RoomObject,
+    event: RequestOwnership,
+    now: float,
+) -> None:
+    if obj.owner == user:
+        if obj.locked != event.lock:
+            obj.locked = event.lock
+            _announce(core, room, obj, user, user, "lock", now)
+        return
+    if obj.owner is None:
+        reason = "catch" if obj.flight is not None else "request"
+    elif event.steal and obj.steal and not obj.locked:
+        reason = "steal"
+    else:
+        if obj.locked:
+            why = "locked"
+        elif obj.steal:
+            why = "held (ask with steal)"
+        else:
+            why = "held (not stealable)"
+        _refuse(core, peer, event, f"{obj.name} is {why} by user {obj.owner}", now)
+        return
+    _change(core, room, obj, user, reason, now, lock=event.lock)
+
+
+def _release(
+    core: RelayCore, peer: Peer, room: Room, user: int, obj: RoomObject, event: Release, now: float
+) -> None:
+    if obj.owner != user:
+        _refuse(core, peer, event, f"{obj.name} is not held by user {user}", now)
+        return
+    thrown = event.velocity is not None and any(event.velocity)
+    _change(core, room, obj, None, "throw" if thrown else "release", now)
+    if thrown:
+        assert event.velocity is not None
+        capture, raw = room.stream_pose(obj.stream)
+        # From its last keyframe; one over RESTED old means it lay still until now.
+        start = capture if now - capture < RESTED else now
+        floor = max(0.0, core.volume.lo[1])
+        obj.flight = Flight(
+            start, _POSE.unpack(raw), event.velocity, event.angular or (0.0, 0.0, 0.0), floor
+        )
+        spin = event.angular
+        _announce(core, room, obj, None, user, "throw", now, velocity=event.velocity, angular=spin)
+    else:
+        _announce(core, room, obj, None, user, "release", now)
+
+
+def _change(
+    core: RelayCore,
+    room: Room,
+    obj: RoomObject,
+    owner: int | None,
+    reason: str,
+    now: float,
+    lock: bool = False,
+) -> None:
+    """Move ``obj`` to ``owner``: the sessions' rights; told (unless a release) and recorded."""
+    previous = obj.owner
+    if previous is not None and previous in core._by_user:
+        core.peer_of(previous).session.let_go(obj.stream)
+    obj.give(owner)
+    obj.locked = lock and owner is not None
+    if owner is not None:
+        if owner in core._by_user:
+            core.peer_of(owner).session.hold(obj.stream)
+        _announce(core, room, obj, owner, previous, reason, now)
+
+
+def _announce(
+    core: RelayCore,
+    room: Room,
+    obj: RoomObject,
+    owner: int | None,
+    previous: int | None,
+    reason: str,
+    now: float,
+    velocity: Vec3 | None = None,
+    angular: Vec3 | None = None,
+) -> None:
+    """Tell every member (the new owner too) and record the change."""
+    message = Owner(
+        stream=obj.stream,
+        owner=owner,
+        previous=previous,
+        reason=reason,
+        time=now,
+        locked=obj.locked,
+        velocity=velocity,
+        angular=angular,
+    )
+    for member in list(room.members.values()):
+        core.to_member(member, message)
+    _record(
+        room,
+        "owner",
+        owner,
+        obj,
+        now,
+        previous=previous,
+        reason=reason,
+        locked=obj.locked,
+        velocity=None if velocity is None else list(velocity),
+        angular=None if angular is None else list(angular),
+    )
+
+
+def owner_left(core: RelayCore, room: Room, user: int, now: float) -> None:
+    """``user`` leaves ``room`` for good: release what it holds, remove what dies with it."""
+    for obj in list(room.objects.values()):
+        if obj.creator == user and not obj.keep:
+            _remove(core, room, obj, "creator-left", now)
+        elif obj.owner == user:
+            obj.give(None)
+            _announce(core, room, obj, None, user, "owner-left", now)
+
+
+def _remove(core: RelayCore, room: Room, obj: RoomObject, reason: str, now: float) -> None:
+    if obj.owner is not None and obj.owner in core._by_user:
+        core.peer_of(obj.owner).session.let_go(obj.stream)
+    del room.objects[obj.stream]
+    room.drop_stream(obj.stream)
+    message = ObjectRemoved(stream=obj.stream, reason=reason)
+    for member in list(room.members.values()):
+        core.to_member(member, message)
+    _record(room, "object_remove", obj.creator, obj, now, reason=reason)
+
+
+def _record(
+    room: Room, kind: str, user: int | None, obj: RoomObject, now: float, **payload: object
+) -> None:
+    """An object's change, on the recording's events topic (``kind`` says which)."""
+    if room.recorder is not None:
+        room.recorder.record_event(
+            {
+                "kind": kind,
+                "user": user,
+                "stream": obj.stream,
+                "time": now,
+                "payload": {"object": obj.name, **payload},
+            },
+            now,
+        )
+
+
+def fly(room: Room, now: float) -> None:
+    """Store a keyframe of every flying object of ``room`` at ``now`` (its tick)."""
+    for obj in room.objects.values():
+        flight = obj.flight
+        if flight is None or now <= room.stream_pose(obj.stream)[0]:
+            continue
+        pose, velocity, landed = flight.at(now)
+        pose_raw, vel_raw = pose_bytes(pose), _VELOCITY.pack(*velocity)
+        room.store(obj.stream, ROOM_USER, now, pose_raw, vel_raw)
+        if landed:
+            obj.flight = None
+        rec = room.recorder
+        if rec is not None and not room.recording_paused:
+            room.flight_seq += 1
+            update = PoseUpdate.from_arrays(
+                room.flight_seq,
+                [obj.stream],
+                [now],
+                np.array([pose], dtype=np.float64),
+                velocities=np.array([velocity], dtype=np.float64),
+            )
+            rec.record_pose_update(ROOM_USER, now, update, None, room.volume)

@@ -1,0 +1,69 @@
+"""Access tokens on a live connection: checked at join, renewed, expired.
+
+The token format and its HMAC are ``server/auth.py``'s; this module applies
+them to a connection of the relay core (``server/core.py``): a join of a server
+with a secret needs a token for that room (refused: ``unauthorized``, close
+1008), one connection per token user and room (``user-taken``), and the
+connection is closed when its token expires unless a ``renew`` moves the
+deadline.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from protocol import ErrorCode, ErrorMessage, Join, Renew
+from server.auth import TokenClaims, TokenError, verify_token
+
+if TYPE_CHECKING:
+    from server.core import RelayCore
+    from server.peer import Peer
+
+__all__ = ["admit_join", "renew"]
+
+
+def _unauthorized(core: RelayCore, peer: Peer, exc: TokenError, what: str) -> None:
+    core._send(peer, ErrorMessage.from_code(ErrorCode.UNAUTHORIZED, str(exc), in_reply_to=what))
+    core._close(peer, 1008, str(exc))
+
+
+def admit_join(core: RelayCore, peer: Peer, join: Join, name: str, now: float, wall: float) -> bool:
+    """Whether ``join`` of room ``name`` may go on (an open server: always); on a server
+    with a secret, the token's user becomes the peer's name and its expiry a deadline."""
+    secret = core.config.secret
+    if secret is None:
+        return True
+    try:
+        claims: TokenClaims = verify_token(secret, join.token, name, wall)
+    except TokenError as exc:
+        _unauthorized(core, peer, exc, "join")
+        return False
+    back = peer.parked is not None and peer.parked.name == claims.user
+    room = core.rooms.get(name)
+    if not back and room is not None and room.has_member_named(claims.user):
+        core._refuse(
+            peer,
+            ErrorCode.USER_TAKEN,
+            f"user {claims.user!r} is already in room {name!r} on another connection",
+            "join",
+            now,
+        )
+        return False
+    peer.name = claims.user
+    core._token_expires(peer, now + (claims.exp - wall))
+    return True
+
+
+def renew(core: RelayCore, peer: Peer, event: Renew, now: float, wall: float) -> None:
+    """A fresh token for the same room and user moves the connection's deadline."""
+    secret = core.config.secret
+    if secret is None or peer.room is None:
+        return  # nothing expires on an open server
+    try:
+        claims = verify_token(secret, event.token, peer.room.name, wall)
+        if claims.user != peer.name:
+            raise TokenError(f"access token is for user {claims.user!r}, not {peer.name!r}")
+    except TokenError as exc:
+        _unauthorized(core, peer, exc, "renew")
+        return
+    core._token_expires(peer, now + (claims.exp - wall))
