@@ -7,9 +7,17 @@ clients and a real recording.
 
 from __future__ import annotations
 
+import asyncio
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
 import numpy as np
+from support import running_server
 from test_core import Client, connect
 
+from client.connection import ClientConnection
 from protocol import (
     ROOM_USER,
     ErrorMessage,
@@ -27,6 +35,7 @@ from protocol import (
     encode_message,
 )
 from protocol.errors import ErrorCode
+from recorder import SessionReader
 from server.config import ServerConfig
 from server.core import Close, RelayCore
 from server.objects import GRAVITY, Flight
@@ -156,8 +165,8 @@ def test_updates_of_an_object_never_held_are_still_fatal_for_user_streams() -> N
     a, b = connect(core, 1.0), connect(core, 1.0)
     update = PoseUpdate.from_arrays(1, [b.streams["head"]], [1.1], [DRILL])
     core.receive(a.conn, encode_message(update), 1.1)
-    assert core.peers[a.conn].close_request is not None
-    assert core.peers[a.conn].close_request[0] == 1008
+    request = core.peers[a.conn].close_request
+    assert request is not None and request[0] == 1008
 
 
 def test_owner_leaving_releases_and_creator_leaving_removes_unkept() -> None:
@@ -266,3 +275,73 @@ def test_spectators_create_nothing_and_limits_hold() -> None:
     a.send(RequestOwnership(stream=999), 1.4)
     a.read(1.4)
     assert "no object" in errors(a, ErrorCode.OWNERSHIP_REFUSED)[-1].message
+
+
+async def test_throw_and_catch_over_a_real_relay_is_seen_and_recorded(tmp_path: Path) -> None:
+    """Real relay, real websocket clients, a real recording: a creates and holds the
+    drill, moves it, throws it; b sees it fly under ROOM_USER and catches it; the
+    file holds the object's life, the ownership changes and the flight."""
+    config = ServerConfig(host="127.0.0.1", port=0, record_dir=tmp_path)
+    async with running_server(config) as srv:
+        url = f"ws://127.0.0.1:{srv.port}"
+        a = await ClientConnection.open(url, room="r", streams=("head",), rate=20.0)
+        await a.send(ObjectCreate(name="object:drill", pose=DRILL, hold=True))
+        sid = await _until(a, lambda e: isinstance(e, Owner) and e.owner == a.user)
+        b = await ClientConnection.open(url, room="r", streams=("head",), rate=20.0)
+        assert b.joined is not None and b.joined.objects == {"object:drill": sid.stream}
+        assert b.session.objects == {"object:drill": sid.stream}
+        head = b.joined.streams["head"]
+        for k in range(5):  # a carries it up to 1.2 m
+            now = time.monotonic()
+            poses = np.array([[0, 1.6, 0, 1, 0, 0, 0], [0, 1.0 + 0.05 * k, 0, 1, 0, 0, 0]])
+            ids = [a.joined.streams["head"], sid.stream]  # type: ignore[union-attr]
+            await a.send(PoseUpdate.from_arrays(k + 1, ids, [now, now], poses))
+            await asyncio.sleep(0.02)
+        await a.send(Release(stream=sid.stream, velocity=(0.5, 3.0, 0.0)))
+        heights: list[tuple[float, float]] = []
+
+        def flying(event: object) -> bool:
+            if isinstance(event, Snapshot):
+                for i in range(len(event)):
+                    if int(event.streams[i]) == sid.stream and int(event.users[i]) == ROOM_USER:
+                        heights.append((float(event.capture_times[i]), float(event.poses[i][1])))
+            return len(heights) >= 8 and heights[-1][1] > heights[-2][1] - 1.0
+
+        await _until(b, flying)
+        ys = [y for _, y in heights]
+        assert max(ys) > 1.25 and len(set(ys)) > 3  # it rose above the release height
+        await b.send(RequestOwnership(stream=sid.stream))
+        catch = await _until(b, lambda e: isinstance(e, Owner) and e.owner == b.user)
+        assert catch.reason in ("catch", "request") and catch.previous is None
+        assert sid.stream in b.session.held
+        now = time.monotonic()
+        await b.send(PoseUpdate.from_arrays(1, [head, sid.stream], [now, now], [DRILL, DRILL]))
+        await a.close()
+        await b.close()
+    (path,) = srv.recordings
+    with SessionReader(path) as reader:
+        kinds = [
+            (e.kind, e.data.get("user"), e.data["payload"].get("reason"))
+            for e in reader.events()
+            if e.kind in ("object_create", "owner", "object_remove")
+        ]
+        flight = [p for p in reader.poses() if p.user == ROOM_USER]
+    # Created, held by a, thrown, caught by b, released when b left.
+    assert kinds == [
+        ("object_create", 0, None),
+        ("owner", 0, "create"),
+        ("owner", None, "throw"),
+        ("owner", 1, catch.reason),
+        ("owner", None, "owner-left"),
+    ]
+    assert flight and all(p.velocities is not None for p in flight)
+    assert {int(s) for p in flight for s in p.streams} == {sid.stream}
+
+
+async def _until(conn: ClientConnection, check: Callable[[object], bool]) -> Any:
+    """The first event of ``conn`` that passes ``check`` (within 10 s)."""
+    async with asyncio.timeout(10):
+        while True:
+            event = (await conn.recv()).event
+            if check(event):
+                return event
