@@ -102,6 +102,7 @@ def test_server_holds_only_the_relay() -> None:
         "resume.py",
         "objects.py",
         "tokens.py",
+        "cluster.py",
         "actions.py",
         "peer.py",
         "limits.py",

