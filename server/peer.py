@@ -92,6 +92,9 @@ class Peer:
         self.outbox.on_ready = self._ready
         self._core = core
         self.user: int | None = None
+        #: The user id given by the cluster node this member came through (its hello
+        #: takes it instead of a new one; ``server.forward``).
+        self.preset_user: int | None = None
         self.name = ""
         self.room: Room | None = None
         self.member: Member | None = None

@@ -120,7 +120,8 @@ def hello(core: RelayCore, peer: Peer, event: Hello, now: float) -> None:
     if parked is not None:
         peer.user, peer.name, peer.parked = parked.user, parked.name, parked
     else:
-        peer.user = core.users.take()
+        # A member forwarded by another cluster node comes with the id it was given there.
+        peer.user = core.users.take() if peer.preset_user is None else peer.preset_user
         peer.name = event.agent or f"user{peer.user}"
     core._by_user[peer.user] = peer
     welcome = peer.session.make_welcome(peer.user, now)

@@ -81,10 +81,12 @@ def room_phase(name: str) -> float:
 
 
 class IdAllocator:
-    """u16 ids, reused oldest-freed first so a just-freed id is not handed out again."""
+    """u16 ids in ``[start, limit)``, reused oldest-freed first so that a just-freed id
+    is not handed out again. Ids outside the range (a cluster node's members that came
+    through another node, see ``server.cluster``) are never taken back."""
 
-    def __init__(self, limit: int = 1 << 16) -> None:
-        self._next = 0
+    def __init__(self, limit: int = 1 << 16, start: int = 0) -> None:
+        self._start = self._next = start
         self._limit = limit
         self._free: deque[int] = deque()
 
@@ -97,10 +99,11 @@ class IdAllocator:
         return self._free.popleft()
 
     def give_back(self, ident: int) -> None:
-        self._free.append(ident)
+        if self._start <= ident < self._next:
+            self._free.append(ident)
 
     def __len__(self) -> int:
-        return self._next - len(self._free)
+        return self._next - self._start - len(self._free)
 
 
 class Outbox:

