@@ -29,7 +29,7 @@ from websockets.exceptions import ConnectionClosed
 from client.bot import BotConfig, _Bot
 from client.connection import ClientConnection
 from posecast.view.scene import AvatarScene
-from protocol import Join, Joined, PeerLeft, Snapshot
+from protocol import ROOM_USER, Join, Joined, PeerLeft, Snapshot
 from protocol.codec import DEFAULT_VOLUME
 from scenarios.receiver import render_buffers
 
@@ -225,7 +225,18 @@ class LiveView:
         self.scene.remove_user(user)
 
     def _names(self, bot: _Bot) -> dict[int, str]:
-        return {u: display_name(u, label) for u, (_, label) in bot.peers.items()}
+        names = {u: display_name(u, label) for u, (_, label) in bot.peers.items()}
+        names[ROOM_USER] = "shared objects"
+        return names
+
+    @staticmethod
+    def _stream_name(bot: _Bot, key: tuple[int, int], name: str) -> str:
+        """A shared object's stream by its object name (``object`` messages), others as is."""
+        if key[0] == ROOM_USER and bot.conn is not None:
+            for obj, sid in bot.conn.session.objects.items():
+                if sid == key[1]:
+                    return obj
+        return name
 
     def show_frame(self, bot: _Bot, now_srv: float) -> None:
         """Render every remote stream at ``now_srv - D`` and pose the avatars."""
@@ -240,7 +251,8 @@ class LiveView:
                 rs = bot.remote[key]
                 poses = {m: frame.poses[m][j] for m in self.cfg.methods}
                 shown[key] = poses
-                self.scene.show(key[0], names.get(key[0], f"user {key[0]}"), rs.name, poses)
+                stream = self._stream_name(bot, key, rs.name)
+                self.scene.show(key[0], names.get(key[0], f"user {key[0]}"), stream, poses)
                 st = self.stats.get(key[0])
                 if st is not None:
                     st.frames += 1
