@@ -13,6 +13,11 @@ first, so ``q`` and ``-q`` interpolate identically.
   written in closed form on (t, q): its rotation is the normalised quaternion
   LERP and its translation the one of the normalised blended motor.
 
+``out=`` (keyword; a writeable C-contiguous float64 array of the result's shape)
+receives the result instead of a new array: a caller that interpolates batch
+after batch then allocates nothing, whatever the allocator does with large
+blocks (glibc maps and unmaps them per call when its dynamic threshold is off).
+
 Every ``sin(x)/sin(y)`` ratio is taken directly (both sines are accurate to an ulp
 at any angle) with its limit substituted only at an exactly zero angle, so tiny
 rotations are as exact as large ones, without branches.
@@ -182,16 +187,42 @@ def _chunk_rows(rows: F64, poses: F64, name: str, n2: F64, t4: F64, off: NDArray
         np.divide(q, n2, out=q, where=off)
 
 
-def _pair(kernel: RowKernel, a: ArrayLike, b: ArrayLike, s: ArrayLike) -> F64:
-    """Run a row kernel over ``a``, ``b``, ``s`` chunk by chunk into one ``(..., 7)`` result.
+def _out_rows(out: F64, a: F64, b: F64, batch: tuple[int, ...]) -> F64 | None:
+    """``out`` as ``(N, 7)`` rows to write into, or None when it overlaps ``a`` or ``b``
+    (then the result is computed apart and copied)."""
+    shape = (*batch, 7)
+    if not (
+        isinstance(out, np.ndarray)
+        and out.dtype == np.float64
+        and out.shape == shape
+        and out.flags.c_contiguous
+        and out.flags.writeable
+    ):
+        got = f"{out.dtype} {out.shape}" if isinstance(out, np.ndarray) else type(out).__name__
+        raise ValueError(
+            f"expected `out` to be a writeable C-contiguous float64 array of shape {shape}, "
+            f"got {got}"
+        )
+    if np.may_share_memory(out, a) or np.may_share_memory(out, b):
+        return None
+    return out.reshape(-1, 7)
+
+
+def _pair(
+    kernel: RowKernel, a: ArrayLike, b: ArrayLike, s: ArrayLike, out: F64 | None = None
+) -> F64:
+    """Run a row kernel over ``a``, ``b``, ``s`` chunk by chunk into one ``(..., 7)`` result
+    (into ``out`` if given).
 
     Each chunk of poses is copied component-major into this thread's scratch,
     validated there and interpolated straight into the result's rows: besides
-    the result, a call allocates nothing that grows with the batch.
+    the result, a call allocates nothing that grows with the batch, and with
+    ``out`` nothing at all.
     """
     a2, b2, s1, batch = _check_args(a, b, s)
     n = a2.shape[0]
-    res = np.empty((n, 7))
+    rows = None if out is None else _out_rows(out, a2, b2, batch)
+    res = np.empty((n, 7)) if rows is None else rows
     unit_s = n > 0 and float(np.min(s1)) >= 0.0 and float(np.max(s1)) <= 1.0
     for i in range(0, n, CHUNK):
         j = min(n, i + CHUNK)
@@ -202,10 +233,14 @@ def _pair(kernel: RowKernel, a: ArrayLike, b: ArrayLike, s: ArrayLike) -> F64:
         _chunk_rows(A, a2[i:j], "a", *scratch_rows)
         _chunk_rows(B, b2[i:j], "b", *scratch_rows)
         kernel(A, B, s1[i:j], res[i:j].T, work, unit_s)
-    return res.reshape((*batch, 7))
+    if out is None:
+        return res.reshape((*batch, 7))
+    if rows is None:  # out overlaps the input: written only now
+        np.copyto(out, res.reshape(out.shape))
+    return out
 
 
-def soa(a: ArrayLike, b: ArrayLike, s: ArrayLike) -> F64:
+def soa(a: ArrayLike, b: ArrayLike, s: ArrayLike, *, out: F64 | None = None) -> F64:
     """Position LERP + shortest-path quaternion SLERP.
 
     With ``q1`` in ``q0``'s hemisphere and the angle ``w`` between them taken from
@@ -218,10 +253,10 @@ def soa(a: ArrayLike, b: ArrayLike, s: ArrayLike) -> F64:
 
     with the limits ``1 - s`` and ``s`` of the two weights at ``w = 0``.
     """
-    return _pair(soa_rows, a, b, s)
+    return _pair(soa_rows, a, b, s, out)
 
 
-def dq_slerp(a: ArrayLike, b: ArrayLike, s: ArrayLike) -> F64:
+def dq_slerp(a: ArrayLike, b: ArrayLike, s: ArrayLike, *, out: F64 | None = None) -> F64:
     """Dual-quaternion ScLERP: constant-speed screw motion from ``a`` to ``b``.
 
     With the relative motion ``q_d = q0* q1 = (cos phi, sin phi u)`` and
@@ -234,10 +269,10 @@ def dq_slerp(a: ArrayLike, b: ArrayLike, s: ArrayLike) -> F64:
         t_rel = kc t_d + (s - kc) (t_d.u) u - k kr (v x t_d),   v = sin(phi) u
         t = t0 + R0 t_rel,   q = q0 (cos(s phi), k v)
     """
-    return _pair(dq_slerp_rows, a, b, s)
+    return _pair(dq_slerp_rows, a, b, s, out)
 
 
-def motor_lerp(a: ArrayLike, b: ArrayLike, s: ArrayLike) -> F64:
+def motor_lerp(a: ArrayLike, b: ArrayLike, s: ArrayLike, *, out: F64 | None = None) -> F64:
     """Motor LERP: blend ``(1-s) M0 + s M1`` and divide by its Study number.
 
     In (t, q) form, with ``c = q0 q1*`` (``c_w = q0.q1 >= 0`` after alignment),
@@ -250,4 +285,4 @@ def motor_lerp(a: ArrayLike, b: ArrayLike, s: ArrayLike) -> F64:
     which this form never computes, so the result is the properly normalised
     motor's pose (dividing by ``sqrt(S)`` alone would leave a non-rigid motor).
     """
-    return _pair(motor_lerp_rows, a, b, s)
+    return _pair(motor_lerp_rows, a, b, s, out)
