@@ -60,6 +60,7 @@ __all__ = [
     "Interpolator",
     "InterpolatorInfo",
     "Kind",
+    "generation",
     "get",
     "info",
     "names",
@@ -112,6 +113,14 @@ class InterpolatorInfo:
 
 _REGISTRY: dict[str, InterpolatorInfo] = {}
 _entry_points_loaded = False
+_generation = 0
+
+
+def generation() -> tuple[int, int]:
+    """A token that changes whenever an entry is registered (or the table is swapped,
+    as tests do): a caller that keeps what it looked up (a render loop's plan of
+    methods) looks again when it changes."""
+    return _generation, id(_REGISTRY)
 
 
 def register(
@@ -150,6 +159,8 @@ def register(
         raise ValueError(f"only window interpolators take neighbours, not {kind!r} ones")
     if rows is not None and kind != "pair":
         raise ValueError(f"only pair interpolators take a row kernel, not {kind!r} ones")
+    global _generation
+    _generation += 1
     _REGISTRY[name] = InterpolatorInfo(
         name,
         func,

@@ -6,10 +6,9 @@ Shared by the live bots and the offline simulator; nothing here reads a clock
 - :class:`ClockEstimator`: NTP-style offset to the server clock from ping/pong
   samples, keeping the lowest round trip of a sliding window.
 - :class:`RoomBuffers`: every remote stream's keyframes in one preallocated
-  array per room (a row per stream), validated once on arrival.
-- :class:`StreamBuffer`: one remote stream's keyframes ordered by capture time
-  (a row of a room), each with the velocity it came with (zeros without one);
-  duplicates and stale frames dropped; bounded (oldest evicted).
+  array per room (a row per stream), validated once on arrival;
+  :class:`StreamBuffer`: one stream's row (both live in :mod:`scenarios.buffers`
+  and are re-exported here).
 - :class:`PlayoutDelay`: delay D that starts at one interval plus the measured
   arrival jitter and follows the observed keyframe age (Mirror-style dynamic
   buffer: ``D = interval + p95(age)``), slewing smoothly, never jumping.
@@ -24,8 +23,7 @@ Shared by the live bots and the offline simulator; nothing here reads a clock
 
 from __future__ import annotations
 
-import bisect
-import math
+import threading
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -38,7 +36,8 @@ from numpy.typing import NDArray
 from interp import InterpolatorInfo, interpolate_brackets
 from interp import info as interp_info
 from interp.kernels import SHARES_PRODUCTS, share_rows
-from interp.pose import UNIT_TOLERANCE
+from interp.registry import generation as registry_generation
+from scenarios.buffers import DEFAULT_BUFFER_CAPACITY, RoomBuffers, StreamBuffer
 from scenarios.motion import MotionSpec
 from scenarios.qoe import ErrorSamples, KeyframeLog, evaluate_group, window_depth
 from scenarios.traces import Trace, TraceError
@@ -60,11 +59,7 @@ __all__ = [
 
 F64 = NDArray[np.float64]
 
-DEFAULT_BUFFER_CAPACITY = 64
-
-#: The velocity of a keyframe that came without one (shared, read-only).
-_NO_VELOCITY = np.zeros(6)
-_NO_VELOCITY.setflags(write=False)
+_count = np.count_nonzero
 
 
 @dataclass
@@ -90,218 +85,6 @@ class ClockEstimator:
     @property
     def rtt(self) -> float:
         return min(self._samples)[0] if self._samples else float("nan")
-
-
-class RoomBuffers:
-    """The keyframes of every remote stream of a room, in preallocated arrays.
-
-    One row per stream (:meth:`stream` adds one and returns its
-    :class:`StreamBuffer`), ``capacity + 1`` slots per row, in capture-time order
-    and padded with ``+inf`` times: ``times (R, W)``, ``poses (7, R, W)``
-    (component major, float64, validated on arrival: finite, unit quaternions),
-    ``velocities (R, W, 6)``, ``counts (R,)`` and ``has_velocities (R,)``. The
-    arrays grow (doubling the rows) when streams are added; a render frame
-    (:func:`render_buffers`) brackets every row with one vectorised comparison
-    and gathers the bracketing keyframes with one ``take`` per side.
-    """
-
-    def __init__(self, capacity: int = DEFAULT_BUFFER_CAPACITY, streams: int = 16) -> None:
-        if capacity < 1:
-            raise ValueError(f"capacity must be at least 1, got {capacity}")
-        self.capacity = capacity
-        self.width = capacity + 1  # a spare slot: insert first, then evict
-        self.n = 0  # rows in use
-        self.times: F64
-        self.poses: F64
-        self.velocities: F64
-        self.counts: NDArray[np.intp]
-        self.has_velocities: NDArray[np.bool_]
-        #: Per row: its index, the flat index of its slot 0 and of its newest keyframe.
-        self.row_index: NDArray[np.intp]
-        self.base: NDArray[np.intp]
-        self.newest: NDArray[np.intp]
-        self._allocate(max(1, streams))
-
-    def _allocate(self, rows: int) -> None:
-        w, n = self.width, self.n
-        times = np.full((rows, w), np.inf)
-        poses = np.zeros((7, rows, w))
-        vels = np.zeros((rows, w, 6))
-        counts = np.zeros(rows, dtype=np.intp)
-        has_v = np.ones(rows, dtype=bool)
-        if n:
-            times[:n] = self.times[:n]
-            poses[:, :n] = self.poses[:, :n]
-            vels[:n] = self.velocities[:n]
-            counts[:n] = self.counts[:n]
-            has_v[:n] = self.has_velocities[:n]
-        self.times, self.poses, self.velocities = times, poses, vels
-        self.counts, self.has_velocities = counts, has_v
-        self.row_index = np.arange(rows, dtype=np.intp)
-        self.base = self.row_index * w
-        self.newest = self.base + counts - 1
-
-    def stream(self, capacity: int | None = None, *, has_velocities: bool = True) -> StreamBuffer:
-        """A new stream's buffer, backed by the next row."""
-        return StreamBuffer(capacity, has_velocities=has_velocities, room=self)
-
-    def _add_row(self, has_velocities: bool) -> int:
-        if self.n == self.counts.shape[0]:
-            self._allocate(2 * self.n)
-        row = self.n
-        self.n += 1
-        self.has_velocities[row] = has_velocities
-        return row
-
-    def __len__(self) -> int:
-        """Streams (rows) in use, empty ones included."""
-        return self.n
-
-    def _insert(
-        self, row: int, i: int, capture: float, pose: F64, velocity: NDArray[np.float64] | None
-    ) -> None:
-        """Put a keyframe at slot ``i`` of ``row``, shifting later ones right."""
-        c = int(self.counts[row])
-        times, poses, vels = self.times, self.poses, self.velocities
-        if i < c:
-            times[row, i + 1 : c + 1] = times[row, i:c]
-            poses[:, row, i + 1 : c + 1] = poses[:, row, i:c]
-            vels[row, i + 1 : c + 1] = vels[row, i:c]
-        times[row, i] = capture
-        poses[:, row, i] = pose
-        vels[row, i] = 0.0 if velocity is None else velocity
-        self.counts[row] = c + 1
-        self.newest[row] += 1
-
-    def _evict_oldest(self, row: int) -> None:
-        c = int(self.counts[row])
-        times, poses, vels = self.times, self.poses, self.velocities
-        times[row, : c - 1] = times[row, 1:c]
-        poses[:, row, : c - 1] = poses[:, row, 1:c]
-        vels[row, : c - 1] = vels[row, 1:c]
-        times[row, c - 1] = np.inf
-        self.counts[row] = c - 1
-        self.newest[row] -= 1
-
-
-def _checked_pose(pose: NDArray[np.float32]) -> F64 | None:
-    """A keyframe pose as float64, its quaternion renormalised when it is off unit
-    length by more than ``interp``'s tolerance; None when it is not finite or the
-    quaternion is zero (such a keyframe could only break every render)."""
-    p = np.asarray(pose, dtype=np.float64).reshape(7)
-    x = p.tolist()
-    n2 = x[3] * x[3] + x[4] * x[4] + x[5] * x[5] + x[6] * x[6]
-    if not (math.isfinite(sum(x)) and all(map(math.isfinite, x))) or not n2 > 1e-24:
-        return None
-    if abs(n2 - 1.0) > 2.0 * UNIT_TOLERANCE:
-        p = p.copy()
-        p[3:] /= math.sqrt(n2)
-    return p
-
-
-class StreamBuffer:
-    """Keyframes of one remote stream, by capture time, for rendering.
-
-    ``push`` refuses duplicates (same capture time) and stale keyframes: ones
-    that can never be a bracket again because a newer keyframe already sits at
-    or before ``floor`` (the playout time already passed), or that are older than
-    everything kept in a full buffer. A late keyframe just before the playout
-    time is kept: it is the lower bracket. Beyond ``capacity`` the oldest is
-    evicted. A pose that is not finite or has a zero quaternion is refused
-    (``invalid``).
-
-    ``velocities[i]`` is the velocity ``(6,)`` (linear m/s, angular rad/s, world
-    frame) that came with ``times[i]``/``poses[i]``, for velocity interpolators;
-    a keyframe pushed without one gets zeros. ``has_velocities`` says whether the
-    sender reports velocities at all: if not, the zeros are fillers, not data,
-    and velocity methods render the stream with :data:`VELOCITY_FALLBACK`.
-
-    The keyframes live in one row of a :class:`RoomBuffers` (``room``; a buffer
-    made on its own gets a room of its own); the lists here mirror that row.
-    """
-
-    def __init__(
-        self,
-        capacity: int | None = DEFAULT_BUFFER_CAPACITY,
-        *,
-        has_velocities: bool = True,
-        room: RoomBuffers | None = None,
-    ) -> None:
-        if room is None:
-            room = RoomBuffers(DEFAULT_BUFFER_CAPACITY if capacity is None else capacity, 1)
-        capacity = room.capacity if capacity is None else capacity
-        if not 1 <= capacity <= room.capacity:
-            raise ValueError(f"capacity must be in 1..{room.capacity}, got {capacity}")
-        self.capacity = capacity
-        self.room = room
-        self.row = room._add_row(has_velocities)
-        self.times: list[float] = []
-        self.poses: list[NDArray[np.float32]] = []
-        self.velocities: list[NDArray[np.float64]] = []
-        self.duplicates = 0
-        self.stale = 0
-        self.evicted = 0
-        self.invalid = 0
-
-    @property
-    def has_velocities(self) -> bool:
-        return bool(self.room.has_velocities[self.row])
-
-    @has_velocities.setter
-    def has_velocities(self, value: bool) -> None:
-        self.room.has_velocities[self.row] = value
-
-    def push(
-        self,
-        capture: float,
-        pose: NDArray[np.float32],
-        floor: float = -np.inf,
-        velocity: NDArray[np.float64] | None = None,
-    ) -> bool:
-        times = self.times
-        i = bisect.bisect_left(times, capture)
-        if i < len(times) and times[i] == capture:
-            self.duplicates += 1
-            return False
-        superseded = capture < floor and i < len(times) and times[i] <= floor
-        if superseded or (len(times) >= self.capacity and i == 0):
-            self.stale += 1
-            return False
-        checked = _checked_pose(pose)
-        if checked is None or not math.isfinite(capture):
-            self.invalid += 1
-            return False
-        times.insert(i, capture)
-        self.poses.insert(i, pose)
-        self.velocities.insert(i, _NO_VELOCITY if velocity is None else velocity)
-        self.room._insert(self.row, i, capture, checked, velocity)
-        if len(times) > self.capacity:
-            del times[0]
-            del self.poses[0]
-            del self.velocities[0]
-            self.room._evict_oldest(self.row)
-            self.evicted += 1
-        return True
-
-    def __len__(self) -> int:
-        return len(self.times)
-
-    def bracket(self, t: float) -> tuple[int, int, float, bool]:
-        """``(lo, hi, s, stall)`` for playout time ``t`` (hold the newest on a stall).
-
-        Before the first keyframe too: DESIGN.md's rule is "hold the newest".
-        """
-        times = self.times
-        hi = bisect.bisect_right(times, t)
-        if hi == 0:
-            newest = len(times) - 1
-            return newest, newest, 0.0, True
-        lo = hi - 1
-        if times[lo] == t:
-            return lo, lo, 0.0, False
-        if hi >= len(times):
-            return lo, lo, 0.0, True
-        return lo, hi, (t - times[lo]) / (times[hi] - times[lo]), False
 
 
 @dataclass
@@ -502,10 +285,12 @@ def _bracket_rows(
     ``whole``: ``rows`` is every row of the room, in order (views instead of copies).
     """
     n = rows.shape[0]
+    v = room.whole()
     if whole:
-        times, base, newest = room.times[:n], room.base[:n], room.newest[:n]
+        times, base, base_m1, newest = v.times, v.base, v.base_m1, v.newest
     else:
         times, base, newest = room.times[rows], room.base[rows], room.newest[rows]
+        base_m1 = base - 1
     tt: F64 | np.float64
     if isinstance(t, np.ndarray):
         tt, due = t, times <= t[:, None]
@@ -513,11 +298,10 @@ def _bracket_rows(
         tt = np.float64(t)
         due = times <= tt
     after = due.argmin(axis=1)  # slot of the first keyframe after t
-    lo = base + after
-    lo -= 1
-    if np.count_nonzero(after) < n:  # nothing at or before t: hold the newest
+    lo = base_m1 + after
+    if _count(after) < n:  # nothing at or before t: hold the newest
         np.copyto(lo, newest, where=after == 0)
-    flat = room.times.reshape(-1)
+    flat = v.flat_times
     t_lo = flat.take(lo)
     on = t_lo == tt  # exactly on a keyframe: show it, not a stall
     # Past the newest and not on it is a stall (before the first too: lo is the newest).
@@ -525,7 +309,7 @@ def _bracket_rows(
     held = at_end | on
     stalled = np.greater(at_end, on)
     hi = lo + 1
-    any_held = np.count_nonzero(held)
+    any_held = _count(held)
     if any_held:
         np.copyto(hi, lo, where=held)
     span = flat.take(hi)
@@ -537,7 +321,7 @@ def _bracket_rows(
     if any_held:
         np.copyto(s, 0.0, where=held)
     # Otherwise t_lo < t < t_hi, so 0 < s; s == 1 only by rounding (t a hair below t_hi).
-    ends = bool(any_held) or bool(np.count_nonzero(s == 1.0))
+    ends = bool(any_held) or bool(_count(s == 1.0))
     return _Brackets(lo, hi, base, newest, s, stalled, ends)
 
 
@@ -565,11 +349,10 @@ def _rows_of(
     Buffers of different rooms are copied into one temporary room first.
     """
     if isinstance(buffers, RoomBuffers):
-        n = buffers.n
-        counts = buffers.counts[:n]
-        if np.count_nonzero(counts) == n:
-            return buffers, buffers.row_index[:n], True
-        return buffers, np.flatnonzero(counts), False
+        v = buffers.whole()
+        if _count(v.counts) == v.n:
+            return buffers, v.rows, True
+        return buffers, np.flatnonzero(v.counts), False
     live = [b for b in buffers if len(b)]
     if not live:
         return RoomBuffers(1, 1), np.zeros(0, dtype=np.intp), False
@@ -633,17 +416,16 @@ def render_buffers(
     if not n:
         return RenderFrame({m: np.empty((0, 7)) for m in methods}, np.zeros(0, dtype=bool))
     br = _bracket_rows(room, rows, t, whole)
-    has_v = room.has_velocities[:n] if whole else room.has_velocities[rows]
-    all_v = np.count_nonzero(has_v) == n
-    shown = {m: rendered_method(m, all_v) for m in methods}
-    entries = {name: interp_info(name) for name in dict.fromkeys([*methods, *shown.values()])}
-    pair = [name for name, entry in entries.items() if entry.kind == "pair"]
+    has_v = room.whole().has_velocities if whole else room.has_velocities[rows]
+    plan = _plan(methods, _count(has_v) == n)
     out: dict[str, NDArray[np.float64]] = {}
-    if pair:
-        out.update(_render_pairs(room, br, [entries[name] for name in pair]))
-    rest = [name for name in entries if name not in out]
-    if rest:
-        out.update(_render_windows(room, br, rest, methods))
+    if plan.pair:
+        out.update(_render_pairs(room, br, plan.pair, plan.share))
+    if plan.rest:
+        out.update(_render_windows(room, br, plan.rest, methods))
+    if plan.direct:
+        return RenderFrame(out, br.stalled)
+    shown = plan.shown
     frame = {
         m: out[m] if shown[m] == m else np.where(has_v[:, None], out[m], out[shown[m]])
         for m in methods
@@ -651,18 +433,63 @@ def render_buffers(
     return RenderFrame(frame, br.stalled)
 
 
+class _Plan(NamedTuple):
+    """What a frame of ``methods`` renders, looked up once (:func:`_plan`)."""
+
+    generation: tuple[int, int]
+    #: Each method and the one that renders it (:func:`rendered_method`).
+    shown: dict[str, str]
+    #: Pair methods' entries, then the other methods' names, to run (each once).
+    pair: list[InterpolatorInfo]
+    rest: list[str]
+    #: What the row kernels share (:func:`interp.kernels.share_rows`): nothing (None,
+    #: fewer than two kernels), the alignment (False) or also the products (True).
+    share: bool | None
+    #: Whether every method renders itself and what runs is ``methods`` in order
+    #: (then the frame is what ran).
+    direct: bool
+
+
+_plans: dict[tuple[tuple[str, ...], bool], _Plan] = {}
+
+
+def _plan(methods: Sequence[str], all_v: bool) -> _Plan:
+    """The plan for ``methods`` when all streams have velocities (``all_v``) or not,
+    kept until the interpolator registry changes."""
+    key = (tuple(methods), all_v)
+    gen = registry_generation()
+    plan = _plans.get(key)
+    if plan is not None and plan.generation == gen:
+        return plan
+    shown = {m: rendered_method(m, all_v) for m in methods}
+    entries = {name: interp_info(name) for name in dict.fromkeys([*methods, *shown.values()])}
+    pair = [e for e in entries.values() if e.kind == "pair"]
+    rest = [name for name, e in entries.items() if e.kind != "pair"]
+    order = [e.name for e in pair] + rest
+    direct = order == list(methods) and all(shown[m] == m for m in methods)
+    kernels = [e.rows for e in pair if e.rows is not None]
+    share = None if len(kernels) < 2 else len(SHARES_PRODUCTS.intersection(kernels)) > 1
+    if len(_plans) >= 64:  # a bounded cache: callers use a handful of method sets
+        _plans.clear()
+    plan = _plans[key] = _Plan(gen, shown, pair, rest, share, direct)
+    return plan
+
+
 def _render_pairs(
-    room: RoomBuffers, br: _Brackets, entries: list[InterpolatorInfo]
+    room: RoomBuffers, br: _Brackets, entries: list[InterpolatorInfo], share: bool | None
 ) -> dict[str, NDArray[np.float64]]:
     """Pair methods on the gathered brackets: each row kernel once (sharing what
-    they have in common when there are several), plug-ins through ``f(a, b, s)``."""
-    poses = room.poses.reshape(7, -1)
-    a, b = poses.take(br.lo, axis=1), poses.take(br.hi, axis=1)
+    they have in common as ``share`` says), plug-ins through ``f(a, b, s)``.
+
+    The bracketing keyframes are gathered into this thread's rows (:func:`_gather_rows`):
+    the same arrays frame after frame, so the kernels keep their views of them.
+    """
     n = br.lo.shape[0]
-    kernels = [e.rows for e in entries if e.rows is not None]
-    shared = None
-    if len(kernels) > 1:
-        shared = share_rows(a, b, br.s, len(SHARES_PRODUCTS.intersection(kernels)) > 1)
+    poses = room.whole().flat_poses
+    a, b = _gather_rows(n)
+    poses.take(br.lo, 1, a, "clip")  # lo and hi are valid slots
+    poses.take(br.hi, 1, b, "clip")
+    shared = None if share is None else share_rows(a, b, br.s, share)
     out: dict[str, NDArray[np.float64]] = {}
     for entry in entries:
         if entry.rows is not None:
@@ -671,9 +498,21 @@ def _render_pairs(
             rows = np.empty((7, n))
             entry.rows(a, b, br.s, rows, None, True, shared, br.ends)
             out[entry.name] = rows.T
-        else:
-            out[entry.name] = entry.func(a.T, b.T, br.s)
+        else:  # a plug-in may keep what it is given: its own copies
+            out[entry.name] = entry.func(a.T.copy(), b.T.copy(), br.s)
     return out
+
+
+_local = threading.local()
+
+
+def _gather_rows(n: int) -> tuple[F64, F64]:
+    """This thread's ``(7, n)`` rows for the keyframes either side of ``n`` brackets,
+    kept for the last width (a bot's frames all have the same)."""
+    rows: tuple[F64, F64] | None = getattr(_local, "gather", None)
+    if rows is None or rows[0].shape[1] != n:
+        rows = _local.gather = (np.empty((7, n)), np.empty((7, n)))
+    return rows
 
 
 def _render_windows(
