@@ -1,26 +1,16 @@
 """``posecast bench interp``: interpolation throughput beside reference libraries.
 
 For each batch size, every posecast interpolator is timed on random pose pairs
-(poses in, poses out, validation included) in the same run as the reference
-implementations of the same maths. The window and velocity methods
-(``motor-cubic``: 4 keyframes and their times per pose; ``motor-quintic``: 6;
-``motor-hermite``: 2 keyframes, their velocities and the interval per pose) are
-timed on the same batch sizes with their own random inputs; they have no
-reference library.
-
-- SoA (position LERP + SLERP): scipy ``Rotation`` vectorised slerp
-  ``r0 * from_rotvec(s * (r0^-1 r1).as_rotvec())`` plus a numpy LERP, and one
-  scipy ``Slerp`` object per pair (a per-pair loop);
-- ScLERP: scipy ``RigidTransform`` exponential coordinates (vectorised),
-  pytransform3d's per-pose ``dual_quaternion_sclerp`` (a loop over a few hundred
-  pairs) and its vectorised ``trajectories.dual_quaternions_sclerp``;
-- motor LERP: a kingdon ``Algebra(3, 0, 1)`` motor blend ``(1-s) M0 + s M1``
-  then ``.normalized()``, vectorised over array-valued coefficients.
-
-References run on their own representation, built before the clock starts
-(rotations, dual quaternions, motors), so their figures leave out the pose
-conversions that posecast's include. Reference libraries are optional: a
-missing one is reported as "not installed".
+(poses in, poses out, validation included) in the same run as reference
+implementations of the same maths (scipy ``Rotation`` slerp and ``Slerp``
+objects for SoA; scipy ``RigidTransform`` exp-coords and pytransform3d's
+ScLERP, per pose and vectorised, for dq-slerp; a kingdon PGA motor blend with
+``.normalized()`` for motor-lerp). References run on their own representation,
+built before the clock starts, so their figures leave out the pose conversions
+that posecast's include; a missing library is reported as "not installed". The
+window and velocity methods (``motor-cubic``, ``motor-quintic``,
+``motor-hermite``) are timed on their own random windows, intervals and
+velocities; they have no reference library.
 
 Timing: ``time.perf_counter``, each figure the best of several repeats of a loop
 long enough to measure. Everything timed is single-threaded numpy/scipy code
@@ -35,9 +25,10 @@ long enough to measure. Everything timed is single-threaded numpy/scipy code
   each row kernel alone on 100 poses;
 - one keyframe-track render (``interp.evaluate_track``, K = 30 keyframes, 100
   streams, one query time), median of many runs, microseconds;
-- the entry paths: throughput at batch 10,000 in this process and in a fresh
+- the entry paths: throughput at batch 10,000 in this process, in a fresh
   ``python -m scenarios.bench_interp`` (a plain interpreter, glibc's allocator
-  as it comes; the ``posecast`` CLI tunes it), side by side.
+  as it comes; the ``posecast`` CLI tunes it) and in a fresh ``python -c`` that
+  imports ``interp`` only (as a notebook does; pair methods), side by side.
 
 The bench prints figures and ratios against the targets; it never decides pass
 or fail. ``python -m scenarios.bench_interp [--batch N]`` prints this
@@ -104,12 +95,7 @@ TRACK_RUNS = 3000
 FRAME_STREAMS = 100
 FRAME_KEY_RATE = 15.0
 FRAME_RATE = 90.0
-FRAME_SETS: tuple[tuple[str, ...], ...] = (
-    ("soa",),
-    ("dq-slerp",),
-    ("motor-lerp",),
-    ("soa", "dq-slerp", "motor-lerp"),
-)
+FRAME_SETS: tuple[tuple[str, ...], ...] = (*((m,) for m in METHODS), METHODS)
 
 # Many short repeats, keep the best: on a shared machine the best repeat is the
 # one no other process interrupted.
@@ -315,10 +301,8 @@ def _machine() -> dict[str, Any]:
     model = platform.processor() or platform.machine()
     try:
         with open("/proc/cpuinfo", encoding="utf-8") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    model = line.split(":", 1)[1].strip()
-                    break
+            names = [x.split(":", 1)[1].strip() for x in f if x.startswith("model name")]
+        model = names[0] if names else model
     except OSError:
         pass
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
@@ -459,11 +443,32 @@ def throughput_at(batch: int, seed: int = 12345) -> dict[str, float]:
     return rates
 
 
-def _plain_python_rates(batch: int) -> dict[str, float] | str:
+#: The notebook path: a fresh interpreter that imports ``interp`` (and numpy) only and
+#: times the pair methods as :func:`_best_seconds` does. Argument: the batch size.
+_IMPORT_INTERP = """import json, math, sys, time; import numpy as np; import interp
+n, rng, rates = int(sys.argv[1]), np.random.default_rng(12345), {}
+q = rng.normal(size=(2 * n, 4)); q /= np.linalg.norm(q, axis=1, keepdims=True)
+p = np.concatenate([rng.uniform(-3.0, 3.0, (2 * n, 3)), q], axis=1)
+a, b, s = p[:n], p[n:], rng.uniform(0.0, 1.0, n)
+for name in ("soa", "dq-slerp", "motor-lerp"):
+    f = interp.get(name); t0 = time.perf_counter(); f(a, b, s); best = math.inf
+    k = max(1, math.ceil(0.002 / max(time.perf_counter() - t0, 1e-7)))
+    for _ in range(50):
+        t0 = time.perf_counter()
+        for _ in range(k): f(a, b, s)
+        best = min(best, (time.perf_counter() - t0) / k)
+    rates[name] = n / best
+print(json.dumps(rates))"""
+
+
+def _plain_python_rates(batch: int, notebook: bool = False) -> dict[str, float] | str:
     """:func:`throughput_at` in a fresh ``python -m scenarios.bench_interp``: a plain
-    interpreter, glibc's allocator as it comes. The reason as a string on failure."""
+    interpreter, glibc's allocator as it comes. With ``notebook``, the pair methods in a
+    fresh ``python -c`` that imports ``interp`` only. The reason as a string on failure."""
     env = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"}
     cmd = [sys.executable, "-m", "scenarios.bench_interp", "--batch", str(batch)]
+    if notebook:
+        cmd = [sys.executable, "-c", _IMPORT_INTERP, str(batch)]
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
     except (OSError, subprocess.TimeoutExpired) as exc:
@@ -559,7 +564,8 @@ def run_interp_bench(
 def _entry_paths(
     console: Console, entry: str, posecast: dict[str, dict[int, float]], sizes: tuple[int, ...]
 ) -> dict[str, dict[str, float] | str]:
-    """Batch-10k poses/s of this process (``entry``) and of a plain ``python -m`` child."""
+    """Batch-10k poses/s of this process (``entry``), of a plain ``python -m`` child and
+    of a ``python -c`` child that imports ``interp`` only (pair methods)."""
     with console.status("bench interp: batch 10,000 in a plain `python -m` process"):
         here = (
             {m: posecast[m][TARGET_BATCH] for m in ALL_METHODS}
@@ -567,7 +573,12 @@ def _entry_paths(
             else throughput_at(TARGET_BATCH)
         )
         plain = _plain_python_rates(TARGET_BATCH)
-    return {entry: here, "python -m scenarios.bench_interp (allocator as it comes)": plain}
+        notebook = _plain_python_rates(TARGET_BATCH, notebook=True)
+    return {
+        entry: here,
+        "python -m scenarios.bench_interp (allocator as it comes)": plain,
+        "python -c 'import interp' (as a notebook)": notebook,
+    }
 
 
 def _target_summary(
@@ -736,18 +747,18 @@ def _entry_table(report: dict[str, Any]) -> Table:
     paths: dict[str, dict[str, float] | str] = report["entry_paths"]
     table = Table(title=f"Entry paths: poses/s at batch {TARGET_BATCH:,} (best of repeats)")
     table.add_column("method")
-    for label in paths:
-        table.add_column(label, justify="right")
-    labels = list(paths)
-    if len(labels) == 2:
-        table.add_column("second / first", justify="right")
+    for i, label in enumerate(paths, 1):
+        table.add_column(f"path {i}: {label}", justify="right")
+    first, *others = paths.values()
+    for i in range(len(others)):
+        table.add_column(f"path {i + 2} / path 1", justify="right")
     for name in ALL_METHODS:
         cells = [v if isinstance(v, str) else _rate(v.get(name)) for v in paths.values()]
-        first, second = (paths[x] for x in labels) if len(labels) == 2 else ("", "")
-        if isinstance(first, dict) and isinstance(second, dict):
-            cells.append(f"{second[name] / first[name]:.2f}")
-        elif len(labels) == 2:
-            cells.append("")
+        for other in others:
+            ratio = ""
+            if isinstance(first, dict) and isinstance(other, dict) and name in other:
+                ratio = f"{other[name] / first[name]:.2f}"
+            cells.append(ratio)
         table.add_row(name, *cells)
     return table
 

@@ -63,3 +63,27 @@ def test_plain_python_child_reports_every_method() -> None:
     assert isinstance(rates, dict), rates
     assert set(rates) == set(bench.ALL_METHODS)
     assert all(np.isfinite(v) and v > 0 for v in rates.values())
+
+
+def test_import_interp_child_reports_the_pair_methods() -> None:
+    """``python -c`` importing ``interp`` only (the notebook path) times the pair methods."""
+    rates = bench._plain_python_rates(64, notebook=True)
+    assert isinstance(rates, dict), rates
+    assert set(rates) == set(bench.METHODS)
+    assert all(np.isfinite(v) and v > 0 for v in rates.values())
+
+
+def test_entry_table_puts_each_path_beside_the_first() -> None:
+    """Three entry paths print side by side with two ratios; a failed child shows why."""
+    report = {
+        "entry_paths": {
+            "cli": {m: 2.0e6 for m in bench.ALL_METHODS},
+            "plain": {m: 1.0e6 for m in bench.ALL_METHODS},
+            "notebook": "failed: boom",
+        }
+    }
+    out = io.StringIO()
+    Console(file=out, width=250).print(bench._entry_table(report))
+    text = out.getvalue()
+    assert "path 2 / path 1" in text and "path 3 / path 1" in text
+    assert "0.50" in text and "failed: boom" in text
