@@ -12,6 +12,8 @@
 - :class:`SessionReader`, :func:`info`, :func:`format_info`, :func:`load_streams`,
   :func:`read_records` (``recorder.reader``): records, time ranges, arrays.
 - ``recorder.format``: channels, the pose message layout, :class:`PoseRecord`.
+- ``recorder.objects``: shared objects read back (records, ownership changes,
+  keyframes as the room stored them); ``recorder.plan``: what a live replay sends.
 - ``recorder.scan``: the forgiving linear MCAP parser behind recovery.
 """
 

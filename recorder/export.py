@@ -15,6 +15,19 @@
   frame ``world``), so the session plays in Foxglove Studio's 3D panel. The
   world frame is the recording's (OpenXR: +y up, +z backward).
 
+Shared objects (``recorder.objects``) are exported as streams named by the
+object, not by a user: ``object_<name>.csv``, NPZ ``object.<name>.*``, Foxglove
+topic ``/objects/<name>`` (child frame ``objects/<name>``), with the keyframes
+as the room relayed them (the owners' and the relay's flight keyframes, times as
+the room stored them). Their CSV has a ``publisher`` column (the owner who sent
+the keyframe, 65535 for the relay's flight keyframes) and the velocity columns
+when the relay flew the object (``nan`` for keyframes that carried none); the
+NPZ has ``.publisher``. The ownership changes go beside them: ``ownership.csv``
+(columns ``time, object, stream, owner, previous, reason, locked, vx, vy, vz,
+wx, wy, wz``: empty for no user, ``nan`` for no throw velocity), NPZ
+``ownership`` (JSON), and a Foxglove ``/objects/ownership`` channel of JSON
+messages with the same fields.
+
 :func:`csv_bytes` is the vectorised CSV writer behind these files and the
 offline replay's rendered poses: numbers are printed in fixed point with numpy
 integer arithmetic instead of one Python format call per value (~50x faster).
@@ -23,12 +36,13 @@ integer arithmetic instead of one Python format call per value (~50x faster).
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import struct
 import zlib
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -41,6 +55,7 @@ from numpy.typing import NDArray
 from recorder.check import EXPORT_LIBRARY_PREFIX
 from recorder.compact import expand_group, is_group
 from recorder.format import (
+    EVENTS_TOPIC,
     POSES_TOPIC,
     PRESENCE_TOPIC,
     SESSION_METADATA,
@@ -48,6 +63,7 @@ from recorder.format import (
     posecast_version,
     to_ns,
 )
+from recorder.objects import ROOM_USER, ObjectTrack, split_objects
 from recorder.reader import (
     SessionReader,
     StreamData,
@@ -120,6 +136,7 @@ FRAME_TRANSFORM_SCHEMA: dict[str, Any] = {
 }
 
 _UNSAFE = re.compile(r"[^A-Za-z0-9_.-]+")
+_CSV_UNSAFE = re.compile(r"[,\x00-\x1f\"]+")
 
 _OP_LEN = struct.Struct("<BQ")
 _MSG_HEAD = struct.Struct("<HIQQ")  # channel, sequence, log time, publish time
@@ -264,9 +281,49 @@ def csv_bytes(
 
 
 def stream_label(stream: StreamData) -> str:
-    """``user<U>.<name>`` (or ``user<U>.stream<S>`` if unnamed), safe as a file name."""
+    """``user<U>.<name>`` (or ``user<U>.stream<S>`` if unnamed), safe as a file name;
+    a shared object's stream: ``object.<name>``."""
     name = stream.name or f"stream{stream.stream}"
+    if stream.user == ROOM_USER and name.startswith("object:"):
+        return _UNSAFE.sub("-", "object." + name.removeprefix("object:"))
     return _UNSAFE.sub("-", f"user{stream.user}.{name}")
+
+
+def _frame_name(stream: StreamData) -> str:
+    """Foxglove topic (after ``/``) and child frame of a stream."""
+    name = stream.name or f"stream{stream.stream}"
+    if stream.user == ROOM_USER and name.startswith("object:"):
+        return "objects/" + name.removeprefix("object:")
+    return f"user{stream.user}/{name}"
+
+
+#: Columns of ``ownership.csv``.
+OWNERSHIP_COLUMNS = ("time", "object", "stream", "owner", "previous", "reason", "locked")
+
+
+def _ownership_csv(tracks: Sequence[ObjectTrack]) -> bytes:
+    changes = sorted((c for t in tracks for c in t.changes), key=lambda c: c.time)
+
+    def user(u: int | None) -> bytes:
+        return b"" if u is None else str(u).encode()
+
+    def vec(v: tuple[float, float, float] | None, j: int) -> float:
+        return math.nan if v is None else v[j]
+
+    cols: list[NDArray[Any]] = [
+        np.array([c.time for c in changes], dtype=np.float64),
+        np.array([_CSV_UNSAFE.sub("-", c.object).encode() for c in changes], dtype=bytes),
+        np.array([c.stream for c in changes], dtype=np.int64),
+        np.array([user(c.owner) for c in changes], dtype=bytes),
+        np.array([user(c.previous) for c in changes], dtype=bytes),
+        np.array([_CSV_UNSAFE.sub("-", c.reason).encode() for c in changes], dtype=bytes),
+        np.array([int(c.locked) for c in changes], dtype=np.int64),
+        *(np.array([vec(c.velocity, j) for c in changes], dtype=np.float64) for j in range(3)),
+        *(np.array([vec(c.angular, j) for c in changes], dtype=np.float64) for j in range(3)),
+    ]
+    header = (*OWNERSHIP_COLUMNS, *VELOCITY_COLUMNS)
+    decimals = (_TIME_DECIMALS, None, None, None, None, None, None, *(7,) * 6)
+    return csv_bytes(header, cols, decimals)
 
 
 @dataclass(frozen=True)
@@ -274,9 +331,14 @@ class SessionArrays:
     """A recording read whole: streams (capture-time order), users, session metadata."""
 
     streams: list[StreamData]
-    """Ordered by (user, stream id); each stream's keyframes sorted by capture time."""
+    """Ordered by (user, stream id); each stream's keyframes sorted by capture time.
+    A shared object is one stream of user ``ROOM_USER`` named by the object, its
+    keyframes as the room stored them (``recorder.objects``); the users' streams
+    hold their own devices only."""
     users: dict[int, UserInfo]
     session: dict[str, str]
+    objects: list[ObjectTrack] = field(default_factory=list)
+    """The shared objects: records, ownership changes and keyframes."""
 
 
 def _by_capture(s: StreamData) -> StreamData:
@@ -336,6 +398,7 @@ def _fast_read(path: Path) -> SessionArrays | None:
     pose_times: list[int] = []
     pose_data: list[bytes] = []
     presence: list[tuple[int, bytes]] = []
+    events: list[bytes] = []
     for index in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
         try:
             raw = _chunk_records(buf, index.chunk_start_offset, dctx)
@@ -360,14 +423,38 @@ def _fast_read(path: Path) -> SessionArrays | None:
                         pose_data.append(data)
                 elif topic == PRESENCE_TOPIC:
                     presence.append((log_time, raw[p + 31 : p + 9 + length]))
+                elif topic == EVENTS_TOPIC:
+                    events.append(raw[p + 31 : p + 9 + length])
             p += 9 + length
     session = metadata.get(SESSION_METADATA, {})
     users = _users(session, sorted(presence, key=lambda r: r[0]))
     # Arrival (log time) order, as SessionReader.load_streams gives it.
     order = np.argsort(np.asarray(pose_times, dtype=np.uint64), kind="stable")
     cols = decode_poses([pose_data[i] for i in order.tolist()])
-    streams = [_by_capture(data) for data in split_streams(cols, users).values()]
-    return SessionArrays(streams, users, session)
+    return _with_objects(split_streams(cols, users), users, session, _json_records(events))
+
+
+def _json_records(datas: list[bytes]) -> list[dict[str, Any]]:
+    out = []
+    for data in datas:
+        try:
+            out.append(decode_json(data))
+        except ValueError:
+            continue
+    return out
+
+
+def _with_objects(
+    pieces: dict[tuple[int, int], StreamData],
+    users: dict[int, UserInfo],
+    session: dict[str, str],
+    events: list[dict[str, Any]],
+) -> SessionArrays:
+    """The users' streams and one stream per shared object, by (user, stream id)."""
+    own, tracks = split_objects(events, pieces, users)
+    streams = [_by_capture(own[k]) for k in sorted(own)]
+    streams += [t.stream_data() for t in tracks]
+    return SessionArrays(streams, users, session, tracks)
 
 
 def _users(session: dict[str, str], presence: list[tuple[int, bytes]]) -> dict[int, UserInfo]:
@@ -395,7 +482,8 @@ def read_session(path: str | os.PathLike[str]) -> SessionArrays:
         found = reader.load_streams()
         users = reader.users()
         session = reader.session
-    return SessionArrays([_by_capture(found[k]) for k in sorted(found)], users, session)
+        events = [e.data for e in reader.events()]
+    return _with_objects(found, users, session, events)
 
 
 def sorted_streams(path: str | os.PathLike[str]) -> list[StreamData]:
@@ -420,33 +508,56 @@ def _index(streams: Sequence[StreamData], files: Sequence[str] | None = None) ->
     ]
 
 
-def _export_csv(streams: Sequence[StreamData], out: Path) -> Path:
+def _export_csv(
+    streams: Sequence[StreamData], out: Path, tracks: Sequence[ObjectTrack] = ()
+) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     files = []
     header = ("time", *POSE_COLUMNS)
     decimals = (_TIME_DECIMALS, *(_POS_DECIMALS,) * 3, *(_QUAT_DECIMALS,) * 4)
+    publishers = _publishers(tracks)
     for s in streams:
         name = stream_label(s).replace(".", "_", 1) + ".csv"
         poses = s.poses.astype(np.float64)
         cols = [s.times, *(poses[:, j] for j in range(7))]
         names: tuple[str, ...] = header
         digits: tuple[int, ...] = decimals
+        publisher = publishers.get((s.user, s.stream, s.name))
+        if publisher is not None:
+            cols.append(publisher.astype(np.int64))
+            names, digits = (*names, "publisher"), (*digits, 0)
         if s.velocities is not None:
             # 7 decimals: float16 velocities to within 5e-8 m/s (rad/s)
             vel = s.velocities.astype(np.float64)
             cols += [vel[:, j] for j in range(6)]
-            names, digits = (*header, *VELOCITY_COLUMNS), (*decimals, *(7,) * 6)
+            names, digits = (*names, *VELOCITY_COLUMNS), (*digits, *(7,) * 6)
         (out / name).write_bytes(csv_bytes(names, cols, digits))
         files.append(name)
     (out / "streams.json").write_text(json.dumps(_index(streams, files), indent=1) + "\n")
+    if tracks:
+        (out / "ownership.csv").write_bytes(_ownership_csv(tracks))
     return out
 
 
-def _export_npz(streams: Sequence[StreamData], out: Path) -> Path:
+def _publishers(
+    tracks: Sequence[ObjectTrack],
+) -> dict[tuple[int, int, str | None], NDArray[np.uint16]]:
+    """(ROOM_USER, stream, name) -> who published each keyframe of that object."""
+    return {(ROOM_USER, t.stream, t.name): t.publisher for t in tracks}
+
+
+def _ownership_json(tracks: Sequence[ObjectTrack]) -> list[dict[str, Any]]:
+    return sorted((c.as_dict() for t in tracks for c in t.changes), key=lambda c: c["time"])
+
+
+def _export_npz(
+    streams: Sequence[StreamData], out: Path, tracks: Sequence[ObjectTrack] = ()
+) -> Path:
     if out.suffix != ".npz":
         out = out.with_name(out.name + ".npz")
     out.parent.mkdir(parents=True, exist_ok=True)
     arrays: dict[str, NDArray[Any]] = {}
+    publishers = _publishers(tracks)
     for s in streams:
         label = stream_label(s)
         arrays[f"{label}.time"] = s.times
@@ -454,7 +565,12 @@ def _export_npz(streams: Sequence[StreamData], out: Path) -> Path:
         arrays[f"{label}.poses"] = s.poses
         if s.velocities is not None:
             arrays[f"{label}.velocities"] = s.velocities
+        publisher = publishers.get((s.user, s.stream, s.name))
+        if publisher is not None:
+            arrays[f"{label}.publisher"] = publisher
     arrays["streams"] = np.array(json.dumps(_index(streams)))
+    if tracks:
+        arrays["ownership"] = np.array(json.dumps(_ownership_json(tracks)))
     with out.open("wb") as fh:
         np.savez(fh, **arrays)  # type: ignore[arg-type]
     return out
@@ -473,7 +589,12 @@ def _transform_message(t: float, child: str, pose: NDArray[np.float32]) -> bytes
     return json.dumps(msg, separators=(",", ":")).encode()
 
 
-def _export_foxglove(streams: Sequence[StreamData], out: Path, session: dict[str, str]) -> Path:
+def _export_foxglove(
+    streams: Sequence[StreamData],
+    out: Path,
+    session: dict[str, str],
+    tracks: Sequence[ObjectTrack] = (),
+) -> Path:
     if out.suffix != ".mcap":
         out = out.with_name(out.name + ".mcap")
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -501,10 +622,10 @@ def _export_foxglove(streams: Sequence[StreamData], out: Path, session: dict[str
         children = []
         for s in streams:
             name = s.name or f"stream{s.stream}"
-            children.append(f"user{s.user}/{name}")
+            children.append(_frame_name(s))
             channel_ids.append(
                 writer.register_channel(
-                    f"/user{s.user}/{name}",
+                    f"/{_frame_name(s)}",
                     "json",
                     schema_id,
                     {"user": str(s.user), "stream": str(s.stream), "name": name},
@@ -518,8 +639,29 @@ def _export_foxglove(streams: Sequence[StreamData], out: Path, session: dict[str
             writer.add_message(
                 channel_ids[i], ns, _transform_message(t, children[i], s.poses[j]), ns, seq
             )
+        if tracks:
+            _ownership_channel(writer, tracks, len(order))
         writer.finish()  # type: ignore[no-untyped-call]
     return out
+
+
+def _ownership_channel(writer: Writer, tracks: Sequence[ObjectTrack], seq: int) -> None:
+    """The ownership changes as JSON messages on ``/objects/ownership``."""
+    schema = {
+        "title": "posecast.OwnerChange",
+        "type": "object",
+        "properties": {
+            k: {"type": ["number", "string", "boolean", "array", "null"]}
+            for k in (*OWNERSHIP_COLUMNS, "velocity", "angular")
+        },
+    }
+    schema_id = writer.register_schema(
+        "posecast.OwnerChange", "jsonschema", json.dumps(schema).encode()
+    )
+    channel = writer.register_channel("/objects/ownership", "json", schema_id)
+    for k, change in enumerate(_ownership_json(tracks)):
+        ns = to_ns(change["time"])
+        writer.add_message(channel, ns, json.dumps(change).encode(), ns, seq + k)
 
 
 def export(path: str | os.PathLike[str], to: ExportFormat, out: str | os.PathLike[str]) -> Path:
@@ -534,7 +676,7 @@ def export(path: str | os.PathLike[str], to: ExportFormat, out: str | os.PathLik
     data = read_session(path)
     target = Path(out)
     if to == "csv":
-        return _export_csv(data.streams, target)
+        return _export_csv(data.streams, target, data.objects)
     if to == "npz":
-        return _export_npz(data.streams, target)
-    return _export_foxglove(data.streams, target, data.session)
+        return _export_npz(data.streams, target, data.objects)
+    return _export_foxglove(data.streams, target, data.session, data.objects)

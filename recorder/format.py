@@ -7,10 +7,16 @@ registered in this order (so their ids are 1-4 in every file the recorder writes
 topic      message encoding    one message per
 =========  ==================  =====================================================
 poses      ``posecast.pose.v1``  client pose update the server accepted (below)
-events     ``json``            reliable event (grab, release, button, scene step, ...)
+events     ``json``            reliable event (grab, release, button, scene step, ...;
+                               shared objects: ``object_create``, ``owner``,
+                               ``object_remove``, see ``recorder.objects``)
 presence   ``json``            join / leave / rate change of a user
 drops      ``json``            drop or skip on the server, or records the recorder lost
 =========  ==================  =====================================================
+
+The relay's keyframes of a thrown shared object in flight are pose messages of
+user 65535 (``ROOM_USER``); an owner's updates carry the object's stream among its
+own (``recorder.objects``, ``docs/recording.md``).
 
 Every message's ``log_time`` is its arrival time on the server clock in
 nanoseconds; ``publish_time`` is the (newest) capture time in nanoseconds, and the

@@ -585,12 +585,13 @@ def _info(reader: SessionReader) -> dict[str, Any]:
         first = log_time if first is None else min(first, log_time)
         last = log_time if last is None else max(last, log_time)
         seqs.append(seq)
-    gaps = _sequence_gaps(seqs)
-    streams = reader.load_streams()
-    users = reader.users()
+    from recorder.objects import objects_info, split_objects  # it builds on this module
+
+    pieces, users = reader.load_streams(), reader.users()
+    streams, tracks = split_objects((e.data for e in reader.events()), pieces, users)
     for user, _sid in streams:
         users.setdefault(user, UserInfo(user))
-    poses = sum(len(s) for s in streams.values())
+    poses = sum(len(s) for s in pieces.values())
     size = reader.path.stat().st_size
     drop_kinds: dict[str, int] = {}
     drop_records = reader.drops()
@@ -639,6 +640,7 @@ def _info(reader: SessionReader) -> dict[str, Any]:
             }
             for s in sorted(streams.values(), key=lambda s: (s.user, s.stream))
         ],
+        "objects": objects_info(tracks),
         "sizes": {
             "file_bytes": size,
             "poses": poses,
@@ -649,7 +651,7 @@ def _info(reader: SessionReader) -> dict[str, Any]:
             "total": sum(drop_kinds.values()),
             "by_kind": dict(sorted(drop_kinds.items())),
             "recorder_queue": queue_lost,
-            "missing_records": gaps,
+            "missing_records": _sequence_gaps(seqs),
         },
     }
 
@@ -747,4 +749,6 @@ def format_info(data: dict[str, Any]) -> str:
                 f" {s['keyframes']:>8} keyframes {_num(s['duration'])} s"
                 f" {_num(s['rate'])} /s" + (" + velocities" if s.get("velocities") else "")
             )
-    return "\n".join(lines)
+    from recorder.objects import format_objects
+
+    return "\n".join(lines + format_objects(data.get("objects", [])))

@@ -40,7 +40,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from interp import info as interp_info
-from recorder.export import POSE_COLUMNS, csv_bytes, sorted_streams
+from recorder.export import POSE_COLUMNS, csv_bytes, read_session
+from recorder.objects import ObjectTrack
 from recorder.reader import StreamData
 from recorder.writer import SessionRecorder
 from scenarios.motion import MotionSpec
@@ -302,6 +303,35 @@ def _write_outputs(
     return files
 
 
+def _window(streams: list[StreamData], start: float, duration: float | None) -> tuple[float, float]:
+    """The arrival times ``[lo, hi]`` :func:`select_streams` keeps."""
+    lo = min(float(s.arrival.min()) for s in streams if len(s)) + start
+    return lo, math.inf if duration is None else lo + duration
+
+
+def _objects_report(
+    tracks: list[ObjectTrack], streams: list[StreamData], window: tuple[float, float]
+) -> list[dict[str, Any]]:
+    """Each reconstructed object: its keyframes and its ownership changes in the window."""
+    out = []
+    lo, hi = window
+    for t in tracks:
+        s = next((s for s in streams if s.stream == t.stream and s.name == t.name), None)
+        if s is None or not len(s):
+            continue
+        flight = t.flight[np.isin(t.arrival, s.arrival)]
+        out.append(
+            {
+                "name": t.name,
+                "stream": t.stream,
+                "keyframes": len(s),
+                "flight_keyframes": int(np.count_nonzero(flight)),
+                "changes": [c.as_dict() for c in t.changes if lo <= c.time <= hi],
+            }
+        )
+    return out
+
+
 def user_matches(user: int, name: str | None, wanted: str) -> bool:
     """``wanted`` names the user by id (``3`` or ``u3``) or by its recorded name."""
     w = wanted.strip()
@@ -372,6 +402,8 @@ def replay_offline(
         {"path", "rate", "render_rate", "methods", "delay_s": {method: D},
          "session_s", "streams", "frames_rendered", "files": {method: {...}},
          "qoe": {method: {class: {pos_p50_mm, ..., stall_fraction}}},
+         "objects": [{"name", "stream", "keyframes", "flight_keyframes",
+                      "changes": [{"time", "owner", "previous", "reason", ...}]}],
          "timing": {"read_s", "reconstruct_s", "write_s", "total_s", "speedup"}}
 
     ``speedup`` is the session duration over the total time taken. Velocity
@@ -379,14 +411,21 @@ def replay_offline(
     velocity variant); a recording without them refuses velocity methods.
     ``start``, ``duration`` and ``users`` reconstruct only that window and those
     users (:func:`select_streams`).
+
+    A shared object is reconstructed as one stream (user ``ROOM_USER``, named by
+    the object, QoE class ``objects``) from its keyframes as the room stored them,
+    whoever published them (owners, the relay in flight); ``objects`` lists its
+    ownership changes in the window (``--users room`` picks the objects alone).
     """
     methods, velocity_methods, fmts = _check_replay_args(
         interp_names, rate, render_rate, out_dir, formats
     )
     t0 = time.perf_counter()
-    streams = sorted_streams(path)
+    data = read_session(path)
+    streams, window = data.streams, (-math.inf, math.inf)
     if start or duration is not None or users is not None:
         streams = select_streams(streams, start, duration, users)
+        window = _window(data.streams, start, duration)
     t1 = time.perf_counter()
     groups = _groups(streams)
     _require_velocities(groups, velocity_methods)
@@ -408,6 +447,7 @@ def replay_offline(
         "frames_rendered": rec.frames * len(methods),
         "files": files,
         "qoe": summarize(g for m in methods for g in rec.qoe[m]),
+        "objects": _objects_report(data.objects, streams, window),
         "timing": {
             "read_s": t1 - t0,
             "reconstruct_s": t2 - t1,
