@@ -20,12 +20,22 @@ import numpy as np
 
 from interp import quat_mul
 from scenarios import synthetic
+from scenarios.throw_catch import ROLES, SCENE, scene_motion, scene_role
 from scenarios.traces import DEVICE_NAMES, Trace, TraceError, default_trace_root, load_trace
 
-__all__ = ["SYNTHETIC_MOTIONS", "MotionSpec", "loop_period", "sample_at", "synthetic_trace"]
+__all__ = [
+    "SCENE_MOTIONS",
+    "SYNTHETIC_MOTIONS",
+    "MotionSpec",
+    "loop_period",
+    "sample_at",
+    "synthetic_trace",
+]
 
 #: ``orbit`` plus every motion of :mod:`scenarios.synthetic` (reach-grasp, throw-catch, ...).
 SYNTHETIC_MOTIONS = ("orbit", *synthetic.motion_names())
+#: The roles of the live throw-catch scene (:mod:`scenarios.throw_catch`), and its drill.
+SCENE_MOTIONS = tuple(f"{SCENE}.{role}" for role in (*ROLES, "drill"))
 _SYNTH_RATE = 90.0
 _SYNTH_DURATION = 120.0
 
@@ -42,12 +52,15 @@ def synthetic_trace(name: str = "orbit", seed: int = 0, duration: float = _SYNTH
     ``orbit``: the head looks around (yaw and pitch oscillations); each hand
     circles in front of the body while its wrist rolls, like a slow stirring.
     Every other name is a motion of :mod:`scenarios.synthetic` with its default
-    parameters (it may add object streams such as ``object:ball``).
+    parameters (it may add object streams such as ``object:ball``), or a role
+    of the live throw-catch scene (``throw-catch.thrower``, ``.catcher``,
+    ``.watcher``, or ``.drill``: the object; one cycle, ``duration`` unused).
     """
+    if scene_role(name) is not None:
+        return scene_motion(name, seed)
     if name not in SYNTHETIC_MOTIONS:
-        raise TraceError(
-            f"unknown synthetic motion {name!r}; known: {', '.join(SYNTHETIC_MOTIONS)}"
-        )
+        known = ", ".join((*SYNTHETIC_MOTIONS, *SCENE_MOTIONS))
+        raise TraceError(f"unknown synthetic motion {name!r}; known: {known}")
     if name != "orbit":
         return synthetic.synthetic_motion(name, seed, duration_s=duration)
     rng = np.random.default_rng(seed)

@@ -73,7 +73,11 @@ __all__ = [
 #: not arrived yet; deeper reordering than this is treated as a stall.
 MAX_REORDER_DEPTH = 32
 
-CLASS_ORDER = ("hands", "head", "objects")
+#: Device classes in report order. ``objects``: object streams a user publishes;
+#: ``object``, ``object-flight``, ``object-catch``: a shared room object of the live
+#: throw-catch scene, all of it, in flight, and around each catch
+#: (:mod:`scenarios.throw_catch`).
+CLASS_ORDER = ("hands", "head", "objects", "object", "object-flight", "object-catch")
 F64 = NDArray[np.float64]
 
 #: How a stalled query is dead-reckoned: ``screw`` continues the screw motion of
