@@ -11,7 +11,7 @@ from __future__ import annotations
 import ssl
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from websockets.asyncio.client import ClientConnection as WsConnection
@@ -23,12 +23,16 @@ from protocol import (
     Hello,
     Join,
     Joined,
+    ObjectCreate,
     PeerJoined,
     PosecastError,
     ProtocolError,
+    Release,
+    RequestOwnership,
     Welcome,
 )
 from protocol.events import Event, Message
+from protocol.objects import pose_tuple
 
 __all__ = ["ClientConnection", "JoinRefused", "Received", "Tls"]
 
@@ -72,6 +76,12 @@ class JoinRefused(PosecastError, RuntimeError):
         self.code = code
         self.message = message
         self.rate_range = rate_range
+
+
+def _vec3(v: Sequence[float]) -> tuple[float, float, float]:
+    if len(v) != 3:
+        raise ValueError(f"expected 3 numbers, got {len(v)}")
+    return (float(v[0]), float(v[1]), float(v[2]))
 
 
 @dataclass(frozen=True, slots=True)
@@ -246,6 +256,39 @@ class ClientConnection:
         await self.ws.send(data)
         self.frames_out += 1
         self.bytes_out += len(data)
+
+    async def create_object(
+        self,
+        name: str,
+        pose: Sequence[float],
+        *,
+        hold: bool = False,
+        keep: bool = True,
+        steal: bool = False,
+    ) -> None:
+        """Create room object ``name`` (``object:NAME``) at ``pose``; ``hold``: own it at once.
+
+        The server answers every member with ``object`` (and ``owner`` if held), or
+        this client alone with a non-fatal ``ownership-refused`` error.
+        """
+        p = pose_tuple("object_create.pose", [float(x) for x in pose])
+        await self.send(ObjectCreate(name=name, pose=p, keep=keep, steal=steal, hold=hold))
+
+    async def request_ownership(self, stream: int, *, steal: bool = False) -> None:
+        """Ask to own object ``stream`` (a grab, or a catch while it flies)."""
+        await self.send(RequestOwnership(stream=stream, steal=steal))
+
+    async def release_object(
+        self,
+        stream: int,
+        velocity: Sequence[float] | None = None,
+        angular: Sequence[float] | None = None,
+    ) -> None:
+        """Let go of object ``stream``: at rest, or thrown with ``velocity`` (m/s) and
+        ``angular`` (rad/s, world frame), which the server then flies."""
+        v = None if velocity is None else _vec3(velocity)
+        w = None if angular is None else _vec3(angular)
+        await self.send(Release(stream=stream, velocity=v, angular=w))
 
     async def send_bytes(self, data: bytes) -> None:
         """Send pre-encoded frame bytes (bypassing the session's checks)."""
