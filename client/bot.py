@@ -48,7 +48,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -59,9 +59,13 @@ from numpy.typing import NDArray
 from websockets.exceptions import ConnectionClosed
 
 from client.connection import ClientConnection, Tls
+from client.remote import RemoteStream, evaluate_remote, remote_log, stream_delays
+from client.scene import OwnerChange, ThrowCatchActor
 from interp import info as interp_info
 from protocol import (
+    ROOM_USER,
     LocalProtocolError,
+    Owner,
     PeerJoined,
     PeerLeft,
     Ping,
@@ -71,20 +75,19 @@ from protocol import (
     encode_update,
 )
 from scenarios.motion import MotionSpec, sample_at
-from scenarios.qoe import ErrorSamples, KeyframeLog
+from scenarios.qoe import ErrorSamples
 from scenarios.receiver import (
     ClockEstimator,
-    ReceivedStream,
     RoomBuffers,
     RoomPlayoutDelay,
-    StreamBuffer,
     render_buffers,
-    score_received,
 )
+from scenarios.throw_catch import SCENE, role_motion, scene_epoch, scene_role
 from scenarios.traces import (
     CAUSAL_SAMPLES,
     DEVICE_NAMES,
     Trace,
+    TraceError,
     causal_velocities,
     find_traces,
 )
@@ -95,6 +98,7 @@ __all__ = [
     "RemoteStream",
     "SessionEnd",
     "motion_for_bot",
+    "remote_log",
     "run_bot",
     "stream_delays",
 ]
@@ -139,37 +143,6 @@ class BotConfig:
     resume: bool = True
     #: How long it tries to reconnect (s): the server keeps a place this long (10 s).
     resume_window: float = 10.0
-
-
-@dataclass
-class RemoteStream:
-    """One remote stream: buffer for rendering, log for the QoE evaluation."""
-
-    user: int
-    stream: int
-    name: str
-    label: str | None
-    buffer: StreamBuffer = field(default_factory=StreamBuffer)
-    capture: list[float] = field(default_factory=list)
-    #: Arrival times in server time (with the clock offset known on arrival).
-    arrival: list[float] = field(default_factory=list)
-    #: The same arrivals on the bot's own clock.
-    arrival_local: list[float] = field(default_factory=list)
-    #: The server's send time (its clock at the tick) of the snapshot that brought each.
-    sent: list[float] = field(default_factory=list)
-    poses: list[NDArray[np.float32]] = field(default_factory=list)
-    #: With velocity snapshots: the velocity received with each pose, (6,) float64
-    #: from float16 (linear m/s, angular rad/s, world frame).
-    velocities: list[NDArray[np.float64]] = field(default_factory=list)
-    #: Whether the sender reports velocities (else the received ones are zeros,
-    #: and velocity methods render and score it with ``VELOCITY_FALLBACK``).
-    sends_velocities: bool = False
-    #: (render frame index, D) of every frame that showed it late alone, at its
-    #: sender's own D instead of the room's (see :func:`stream_delays`).
-    own_delays: list[tuple[int, float]] = field(default_factory=list)
-
-    def __post_init__(self) -> None:
-        self.buffer.has_velocities = self.sends_velocities
 
 
 #: Close codes of a server that ended the session on purpose (normal, going away).
@@ -246,6 +219,10 @@ class BotReport:
     #: Peers shown late alone (``delay_ms`` is the room's D, everyone else's): their
     #: mean own D over the frames that showed them late, ms.
     late_delay_ms: dict[int, float] = field(default_factory=dict)
+    #: Shared objects changing hands (``owner`` messages), in the order received.
+    ownership: list[OwnerChange] = field(default_factory=list)
+    #: Its role in the live throw-catch scene (``thrower``, ``catcher``, ``watcher``).
+    role: str | None = None
     streams: dict[tuple[int, int], RemoteStream] = field(default_factory=dict, repr=False)
     #: With ``keep_render_log``: (the room's playout time, the room's D, bot clock at
     #: render, {stream key: (pose, stalled)}); a stream shown late alone at frame
@@ -257,10 +234,15 @@ class BotReport:
 
 
 def motion_for_bot(spec: str, index: int) -> tuple[str, int]:
-    """Resolve ``--motion`` for bot ``index``: (trace path or synthetic:NAME, seed)."""
+    """Resolve ``--motion`` for bot ``index``: (trace path or synthetic:NAME, seed).
+
+    ``throw-catch``: the live scene, bot 0 throws, bot 1 catches, the others watch
+    (one shared seed: they play one script)."""
+    if spec == SCENE:
+        return f"synthetic:{role_motion(index)}", 0
     if spec.startswith("synthetic"):
         name = spec.partition(":")[2] or "orbit"
-        return f"synthetic:{name}", index
+        return f"synthetic:{name}", 0 if scene_role(name) else index
     files = find_traces(spec)
     return str(files[index % len(files)]), 0
 
@@ -328,6 +310,12 @@ class _Bot:
         self.poses_sent = 0
         self.ping_seq = 0
         self.conn: ClientConnection | None = None
+        #: The bot's part in the live throw-catch scene, if it plays one.
+        self.actor: ThrowCatchActor | None = None
+        #: Every ``owner`` message received (shared objects changing hands), in order.
+        self.ownership: list[OwnerChange] = []
+        self._seq = 0
+        self._last_sample = -1.0
         self.render_log: list[
             tuple[float, float, float, dict[tuple[int, int], tuple[F64, bool]]]
         ] = []
@@ -389,6 +377,27 @@ class _Bot:
         elif isinstance(ev, PeerLeft):
             self.peers.pop(ev.user, None)
             self.delay.forget(ev.user)
+        elif isinstance(ev, Owner):
+            self.ownership.append(OwnerChange(ev.time, ev.stream, ev.owner, ev.previous, ev.reason))
+            if self.actor is not None and self.conn is not None:
+                self.actor.on_owner(ev, self.conn.user)
+
+    def _sends_velocities(self, user: int) -> bool:
+        """Whether ``user``'s keyframes come with velocities: a peer that said so; the
+        scene's drill when the scene's bots send them (the relay's flight keyframes
+        always carry the flight's exact velocity)."""
+        if user == ROOM_USER:
+            return self.actor is not None and self.velocities
+        return user in self.velocity_peers
+
+    def _names(self, user: int) -> tuple[dict[int, str], str | None]:
+        """A remote user's stream names and motion label; for the room's objects
+        (``ROOM_USER``) their names, and the scene's drill label if in the scene."""
+        if user != ROOM_USER:
+            return self.peers.get(user, ({}, None))
+        objects = {} if self.conn is None else self.conn.session.objects
+        names = {sid: name for name, sid in objects.items()}
+        return names, None if self.actor is None else self.actor.label
 
     def _on_snapshot(self, snap: Snapshot, arrival: float, size: int) -> None:
         me = self.conn.user if self.conn else -1
@@ -407,13 +416,13 @@ class _Bot:
             key = (user, int(streams[i]))
             rs = self.remote.get(key)
             if rs is None:
-                names, label = self.peers.get(user, ({}, None))
+                names, label = self._names(user)
                 rs = self.remote[key] = RemoteStream(
                     user,
                     key[1],
                     names.get(key[1], f"stream{key[1]}"),
                     label,
-                    sends_velocities=user in self.velocity_peers,
+                    sends_velocities=self._sends_velocities(user),
                     buffer=self.room_buffers.stream(),
                 )
                 self.user_streams.setdefault(user, []).append(rs)
@@ -443,40 +452,56 @@ class _Bot:
             # The server ended the session (bye, fatal error); its close frame follows.
 
     async def _publish_until(self, conn: ClientConnection, stop: float) -> None:
-        assert self.trace is not None and self.spec is not None and conn.joined is not None
-        trace, t0 = self.trace, self.spec.t0
-        ids = np.array([conn.joined.streams[n] for n in trace.streams])
-        vel = self.send_velocities
+        assert self.spec is not None
+        t0, actor = self.spec.t0, self.actor
         period = 1.0 / self.cfg.send_rate
-        seq = 0
-        last = -1.0
-        k = 0
+        self._seq, self._last_sample = 0, -1.0  # per connection, as the session counts
+        k, nxt = 0, -np.inf
         while True:
             now = self.server_now()
             if now >= stop:
                 return
-            idx, tm = sample_at(trace, max(0.0, now - t0))
-            if tm != last:
-                last = tm
-                cap = t0 + tm
-                seq += 1
-                before = conn.bytes_out
-                args = (seq, ids, np.full(ids.size, cap), trace.poses[idx].astype(np.float32))
-                velocities = None if vel is None else vel[idx]
-                if self.cfg.codec == "raw":
-                    data = encode_update(*args, base_time=cap, velocities=velocities)
-                    await conn.send_bytes(data)
-                else:  # the session codes it, against what it sent before
-                    update = PoseUpdate.from_arrays(*args, base_time=cap, velocities=velocities)
-                    await conn.send(update)
-                self.update_bytes += conn.bytes_out - before
-                self.poses_sent += ids.size
-            k += 1
-            nxt = t0 + k * period
-            if nxt <= now:  # fell behind: resume on the grid, never burst
-                k = int((now - t0) / period) + 1
+            if actor is not None:  # the scene's actions, each at its own time
+                for at, action in actor.due(now):
+                    await actor.perform(conn, action, at, partial(self._send_sample, conn), now)
+            if now >= nxt:
+                await self._send_sample(conn, now)
+                k += 1
                 nxt = t0 + k * period
-            await asyncio.sleep(max(0.0, nxt - self.server_now()))
+                if nxt <= now:  # fell behind: resume on the grid, never burst
+                    k = int((now - t0) / period) + 1
+                    nxt = t0 + k * period
+            wake = nxt if actor is None else min(nxt, actor.next_at())
+            await asyncio.sleep(max(0.0, wake - self.server_now()))
+
+    async def _send_sample(self, conn: ClientConnection, now: float) -> None:
+        """Publish the newest sample at server time ``now``, unless it was sent (with the
+        scene's object while this bot holds it)."""
+        assert self.trace is not None and self.spec is not None and conn.joined is not None
+        trace, t0, vel = self.trace, self.spec.t0, self.send_velocities
+        idx, tm = sample_at(trace, max(0.0, now - t0))
+        if tm == self._last_sample:
+            return
+        self._last_sample = tm
+        cap = t0 + tm
+        self._seq += 1
+        ids = np.array([conn.joined.streams[n] for n in trace.streams])
+        poses = trace.poses[idx]
+        velocities = None if vel is None else vel[idx]
+        drill = None if self.actor is None else self.actor.publishing(conn, cap)
+        if self.actor is not None and drill is not None:
+            ids = np.append(ids, drill)
+            poses = np.concatenate([poses, self.actor.drill.poses[idx]])
+            if velocities is not None:
+                velocities = np.concatenate([velocities, self.actor.velocity(idx)[None]])
+        before = conn.bytes_out
+        args = (self._seq, ids, np.full(ids.size, cap), poses.astype(np.float32))
+        if self.cfg.codec == "raw":
+            await conn.send_bytes(encode_update(*args, base_time=cap, velocities=velocities))
+        else:  # the session codes it, against what it sent before
+            await conn.send(PoseUpdate.from_arrays(*args, base_time=cap, velocities=velocities))
+        self.update_bytes += conn.bytes_out - before
+        self.poses_sent += ids.size
 
     async def _receive(self, conn: ClientConnection) -> None:
         try:
@@ -579,7 +604,13 @@ class _Bot:
         self.started_local = self.clock()
         start = self.server_now()
         source, seed = cfg.motion, cfg.seed
-        if source.startswith("synthetic:"):
+        role = scene_role(source.partition(":")[2])
+        if role is not None:  # one script on server time: every bot's t0 on its grid
+            if role == "drill":
+                raise TraceError("throw-catch.drill is the drill's motion, no bot's")
+            self.spec = MotionSpec(source, seed, scene_epoch(start))
+            self.actor = ThrowCatchActor(role, seed, self.spec.t0, start)
+        elif source.startswith("synthetic:"):
             self.spec = MotionSpec(source, seed, start)
         else:
             self.spec = MotionSpec.for_trace(Path(source), start)
@@ -714,56 +745,11 @@ class _Bot:
                 for user, streams in self.user_streams.items()
                 if streams[0].own_delays
             },
+            ownership=self.ownership,
+            role=None if self.actor is None else self.actor.role,
             streams=self.remote,
             render_log=self.render_log,
         )
-
-
-def remote_log(rs: RemoteStream) -> KeyframeLog:
-    """The stream's arrival log as a KeyframeLog (sorted by capture, deduplicated).
-
-    With the received velocities when the sender reports them and every keyframe
-    came with one (a sender that reports none gets zeros: no velocities here).
-    """
-    cap = np.asarray(rs.capture, dtype=np.float64)
-    arr = np.asarray(rs.arrival, dtype=np.float64)
-    poses = np.asarray(rs.poses, dtype=np.float64).reshape(-1, 1, 7)
-    order = np.lexsort((arr, cap))
-    cap, arr, poses = cap[order], arr[order], poses[order]
-    keep = np.ones(cap.shape, dtype=bool)
-    keep[1:] = cap[1:] != cap[:-1]  # a duplicate: the first arrival counts
-    vel = None
-    if rs.sends_velocities and rs.velocities and len(rs.velocities) == len(rs.capture):
-        vel = np.asarray(rs.velocities, dtype=np.float64).reshape(-1, 1, 6)[order][keep]
-    return KeyframeLog(cap[keep], arr[keep], poses[keep], vel)
-
-
-def stream_delays(rs: RemoteStream, play_d: Sequence[float]) -> F64 | None:
-    """The D ``rs`` was rendered with at each frame, or None: the room's (``play_d``)."""
-    if not rs.own_delays:
-        return None
-    d = np.array(play_d, dtype=np.float64)
-    frames, own = zip(*rs.own_delays, strict=True)
-    d[list(frames)] = own
-    return d
-
-
-def evaluate_remote(
-    remote: dict[tuple[int, int], RemoteStream],
-    play_t: Sequence[float],
-    play_d: Sequence[float],
-    methods: Sequence[str],
-) -> dict[str, dict[str, ErrorSamples]]:
-    """QoE of everything received, with the delay D that was in effect at each tau."""
-    if not play_t:
-        return {m: {} for m in methods}
-    streams = [
-        ReceivedStream(rs.label, rs.name, partial(remote_log, rs), stream_delays(rs, play_d))
-        for rs in remote.values()
-        if rs.capture
-    ]
-    (out,) = score_received(streams, np.asarray(play_t), np.asarray(play_d), methods)
-    return out
 
 
 async def run_bot(cfg: BotConfig, clock: Callable[[], float] = time.monotonic) -> BotReport:

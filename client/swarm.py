@@ -31,6 +31,7 @@ __all__ = [
     "STARVED_KEYFRAME_SHARE",
     "STARVED_RENDER_LATE",
     "Starvation",
+    "handovers",
     "run_bots",
     "session_ending",
     "starvation",
@@ -171,6 +172,25 @@ def session_ending(reports: Sequence[BotReport]) -> tuple[list[str], int]:
     return lines, code
 
 
+def _object_classes(report: BotReport) -> dict[str, dict[str, dict[str, float]]]:
+    """One bot's figures of the shared-object classes: ``{method: {class: stats}}``."""
+    return {
+        method: {cls: st for cls, st in classes.items() if cls.startswith("object")}
+        for method, classes in summarize([report.qoe]).items()
+        if any(cls.startswith("object") for cls in classes)
+    }
+
+
+def handovers(reports: Sequence[BotReport]) -> dict[str, int]:
+    """Shared objects' changes of owner by reason (``throw``, ``catch``, ...), as the bot
+    that saw the most of them received them (every member is told every change)."""
+    seen = max((r.ownership for r in reports), key=len, default=[])
+    out: dict[str, int] = {}
+    for change in seen:
+        out[change.reason] = out.get(change.reason, 0) + 1
+    return out
+
+
 def swarm_report(reports: Sequence[BotReport]) -> dict[str, Any]:
     """``{"methods": ..., "wire": ..., "bots": [...]}`` (the documented JSON shape)."""
     methods = summarize(r.qoe for r in reports)
@@ -211,9 +231,13 @@ def swarm_report(reports: Sequence[BotReport]) -> dict[str, Any]:
                 "codec": r.codec,
                 "up_bytes_per_pose": r.update_bytes / r.poses_sent if r.poses_sent else None,
                 "ended": r.ending.describe(),
+                "role": r.role,
+                # What this bot saw of a shared object (the throw-catch drill), if any.
+                "object": _object_classes(r),
             }
             for r in reports
         ],
+        "objects": {"handovers": handovers(reports)},
         "starvation": starvation(reports).as_dict(),
         "ending": {
             "complete": all(r.ending.kind == "complete" for r in reports),

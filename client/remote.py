@@ -1,0 +1,150 @@
+"""What a bot keeps of each remote stream, and how it scores it (DESIGN.md's QoE).
+
+:class:`RemoteStream` holds a remote stream's render buffer row and its arrival
+log; :func:`evaluate_remote` scores every stream a bot received against its
+sender's motion (:func:`scenarios.receiver.score_received`). A shared room
+object (user :data:`~protocol.ROOM_USER`) whose label is the live throw-catch
+scene's drill is scored in the ``object`` classes instead
+(:func:`scenarios.throw_catch.score_drill`: all of it, in flight, at the catch);
+other room objects are rendered but not scored (nobody knows their truth).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from functools import partial
+from typing import cast
+
+import numpy as np
+from numpy.typing import NDArray
+
+from protocol import ROOM_USER
+from scenarios.motion import MotionSpec
+from scenarios.qoe import ErrorSamples, KeyframeLog
+from scenarios.receiver import ReceivedStream, StreamBuffer, rendered_method, score_received
+from scenarios.throw_catch import DRILL, scene_role, scene_script, score_drill
+from scenarios.traces import TraceError
+
+__all__ = [
+    "RemoteStream",
+    "evaluate_remote",
+    "remote_log",
+    "score_object",
+    "stream_delays",
+]
+
+F64 = NDArray[np.float64]
+
+
+@dataclass
+class RemoteStream:
+    """One remote stream: buffer for rendering, log for the QoE evaluation."""
+
+    user: int
+    stream: int
+    name: str
+    label: str | None
+    buffer: StreamBuffer = field(default_factory=StreamBuffer)
+    capture: list[float] = field(default_factory=list)
+    #: Arrival times in server time (with the clock offset known on arrival).
+    arrival: list[float] = field(default_factory=list)
+    #: The same arrivals on the bot's own clock.
+    arrival_local: list[float] = field(default_factory=list)
+    #: The server's send time (its clock at the tick) of the snapshot that brought each.
+    sent: list[float] = field(default_factory=list)
+    poses: list[NDArray[np.float32]] = field(default_factory=list)
+    #: With velocity snapshots: the velocity received with each pose, (6,) float64
+    #: from float16 (linear m/s, angular rad/s, world frame).
+    velocities: list[NDArray[np.float64]] = field(default_factory=list)
+    #: Whether the sender reports velocities (else the received ones are zeros,
+    #: and velocity methods render and score it with ``VELOCITY_FALLBACK``).
+    sends_velocities: bool = False
+    #: (render frame index, D) of every frame that showed it late alone, at its
+    #: sender's own D instead of the room's (see :func:`stream_delays`).
+    own_delays: list[tuple[int, float]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.buffer.has_velocities = self.sends_velocities
+
+
+def remote_log(rs: RemoteStream) -> KeyframeLog:
+    """The stream's arrival log as a KeyframeLog (sorted by capture, deduplicated).
+
+    With the received velocities when the sender reports them and every keyframe
+    came with one (a sender that reports none gets zeros: no velocities here).
+    """
+    cap = np.asarray(rs.capture, dtype=np.float64)
+    arr = np.asarray(rs.arrival, dtype=np.float64)
+    poses = np.asarray(rs.poses, dtype=np.float64).reshape(-1, 1, 7)
+    order = np.lexsort((arr, cap))
+    cap, arr, poses = cap[order], arr[order], poses[order]
+    keep = np.ones(cap.shape, dtype=bool)
+    keep[1:] = cap[1:] != cap[:-1]  # a duplicate: the first arrival counts
+    vel = None
+    if rs.sends_velocities and rs.velocities and len(rs.velocities) == len(rs.capture):
+        vel = np.asarray(rs.velocities, dtype=np.float64).reshape(-1, 1, 6)[order][keep]
+    return KeyframeLog(cap[keep], arr[keep], poses[keep], vel)
+
+
+def stream_delays(rs: RemoteStream, play_d: Sequence[float]) -> F64 | None:
+    """The D ``rs`` was rendered with at each frame, or None: the room's (``play_d``)."""
+    if not rs.own_delays:
+        return None
+    d = np.array(play_d, dtype=np.float64)
+    frames, own = zip(*rs.own_delays, strict=True)
+    d[list(frames)] = own
+    return d
+
+
+def evaluate_remote(
+    remote: dict[tuple[int, int], RemoteStream],
+    play_t: Sequence[float],
+    play_d: Sequence[float],
+    methods: Sequence[str],
+) -> dict[str, dict[str, ErrorSamples]]:
+    """QoE of everything received, with the delay D that was in effect at each tau."""
+    if not play_t:
+        return {m: {} for m in methods}
+    streams = [
+        ReceivedStream(rs.label, rs.name, partial(remote_log, rs), stream_delays(rs, play_d))
+        for rs in remote.values()
+        if rs.capture and rs.user != ROOM_USER
+    ]
+    (out,) = score_received(streams, np.asarray(play_t), np.asarray(play_d), methods)
+    for rs in remote.values():
+        if rs.user == ROOM_USER and rs.capture:
+            for m, classes in score_object(rs, play_t, play_d, methods).items():
+                for cls, samples in classes.items():
+                    out[m].setdefault(cls, ErrorSamples()).merge(samples)
+    return out
+
+
+def score_object(
+    rs: RemoteStream, play_t: Sequence[float], play_d: Sequence[float], methods: Sequence[str]
+) -> dict[str, dict[str, ErrorSamples]]:
+    """A room object in the ``object`` classes, if it is the throw-catch scene's drill
+    (its label says so); else nothing. Scored as rendered: from its first keyframe
+    to the last render, each tau at the D it was rendered with."""
+    if rs.label is None or rs.name != DRILL:
+        return {}
+    try:
+        spec = MotionSpec.parse(rs.label)
+    except TraceError:
+        return {}
+    if scene_role(spec.source.partition(":")[2]) != "drill":
+        return {}
+    st, sd = np.asarray(play_t, dtype=np.float64), np.asarray(play_d, dtype=np.float64)
+    own = stream_delays(rs, play_d)
+    if own is not None:  # its own playout times (kept monotonic for interp)
+        st, sd = np.maximum.accumulate(st + sd - own), own
+    log = remote_log(rs)
+    span = (max(float(log.capture[0]), float(st[0])), float(st[-1]))
+    if span[1] <= span[0]:
+        return {}
+    truth = spec.truth(until=span[1] + 1.0)
+    at = cast(Callable[[F64], F64], partial(np.interp, xp=st, fp=sd))
+    shown = {m: rendered_method(m, log.velocities is not None) for m in methods}
+    unique = list(dict.fromkeys(shown.values()))
+    res = score_drill(truth, log, at, unique, span, scene_script(spec.seed), spec.t0)
+    return {m: res[shown[m]] for m in methods}
