@@ -32,18 +32,31 @@ Motion labels are re-based too (``t0`` shifted to the replay) when ``speed`` is
 1, so live bots can score the replayed motion against its ground truth; at
 other speeds the label becomes ``replay:<label>`` (not a ground truth).
 Recorded events (grab, button, ...) are not replayed.
+
+Shared objects (``recorder.objects``) are replayed as the handovers that moved
+them: the creator's bot creates each object at its scaled create time, and the
+bots request and release it at the scaled times of the recorded ownership
+changes (steal and lock as recorded; a throw with the recorded velocities times
+``speed``), so the live relay decides the same changes and flies thrown objects
+itself; the relay's recorded flight keyframes are not sent. Before each request
+or release a bot waits, up to ``object_patience`` seconds, until the live object
+has the owner it had before the recorded change (the bots run on their own
+timers: a request must not overtake the release it followed). An owner's bot
+sends the object's recorded keyframes in its updates while the live relay says
+it holds the object (entries it does not hold are left out; after a request it
+waits, as long again at most, for the answer before it sends on). A recorded
+``owner-left`` happens when its bot leaves; objects are found by name, so a
+replay into a room that still has them (``--loop``) uses them as they are.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import itertools
 import math
 import os
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -54,22 +67,29 @@ from websockets.exceptions import ConnectionClosed
 from client.connection import ClientConnection
 from protocol import (
     MAX_TEXT_LENGTH,
+    ErrorMessage,
+    ObjectCreate,
+    ObjectInfo,
+    Owner,
     Ping,
     Pong,
     PoseUpdate,
+    Release,
+    RequestOwnership,
     Welcome,
     encode_update,
-    is_valid_stream_name,
 )
-from recorder.export import read_session
-from recorder.reader import StreamData, UserInfo
-from recorder.replay import user_matches
+from protocol.errors import ErrorCode
+from protocol.objects import pose_tuple
+from recorder.objects import ObjectAction
+from recorder.plan import ReplayPlan, UserPlan, merge_updates, plan_replay, select_plan
 from scenarios.motion import MotionSpec
 from scenarios.receiver import ClockEstimator
 from scenarios.traces import TraceError
 
 __all__ = [
     "DEFAULT_MAX_SEND_RATE",
+    "DEFAULT_OBJECT_PATIENCE",
     "ReplayPlan",
     "UserPlan",
     "plan_replay",
@@ -79,191 +99,13 @@ __all__ = [
 
 F64 = NDArray[np.float64]
 Clock = Callable[[], float]
+Vec3 = tuple[float, float, float]
 
 #: Updates a second one replay bot sends at most (the server's default limit is 120).
 DEFAULT_MAX_SEND_RATE = 100.0
+#: Seconds a bot waits for a live object to be in its recorded state before an action.
+DEFAULT_OBJECT_PATIENCE = 1.0
 _SYNC_PINGS = 8
-
-
-@dataclass
-class UserPlan:
-    """One recorded user's updates, in arrival order.
-
-    ``updates[i]`` is ``(recorded stream ids (n,), capture times (n,), poses (n, 7)
-    float32)``, arriving at ``arrival[i]`` (recorded server clock).
-    """
-
-    user: int
-    name: str
-    label: str | None
-    rate: float | None
-    streams: dict[int, str]
-    """Recorded stream id -> the name the bot joins with."""
-    arrival: F64
-    updates: list[tuple[NDArray[np.uint16], F64, NDArray[np.float32]]]
-    joined: float | None = None
-    left: float | None = None
-    #: ``(n, 6)`` float32 velocities of each update (parallel to ``updates``) when
-    #: every recorded update of the user carried them, else None.
-    velocities: list[NDArray[np.float32]] | None = None
-
-    @property
-    def update_rate(self) -> float:
-        """Mean recorded updates per second."""
-        span = float(self.arrival[-1] - self.arrival[0]) if self.arrival.size > 1 else 0.0
-        return (self.arrival.size - 1) / span if span > 0 else 0.0
-
-
-@dataclass
-class ReplayPlan:
-    """What a replay publishes: the room, the time origin and every user's updates."""
-
-    room: str
-    origin: float
-    end: float
-    users: list[UserPlan] = field(default_factory=list)
-
-    @property
-    def updates(self) -> int:
-        return sum(len(u.updates) for u in self.users)
-
-
-def _stream_name(sid: int, name: str | None) -> str:
-    return name if name is not None and is_valid_stream_name(name) else f"stream{sid}"
-
-
-def _user_updates(
-    streams: list[StreamData],
-) -> tuple[
-    F64,
-    list[tuple[NDArray[np.uint16], F64, NDArray[np.float32]]],
-    list[NDArray[np.float32]] | None,
-]:
-    """Regroup one user's per-stream keyframes into updates by arrival time.
-
-    Keyframes recorded with the same arrival time came in one update (the
-    server stamps each update on arrival); if a stream appears twice at one
-    arrival time, its newest capture is kept. The third item holds each
-    update's velocities if every keyframe of the user carried one.
-    """
-    sid = np.concatenate([np.full(len(s), s.stream, dtype=np.uint16) for s in streams])
-    arr = np.concatenate([s.arrival for s in streams])
-    cap = np.concatenate([s.times for s in streams])
-    poses = np.concatenate([s.poses for s in streams])
-    vel: NDArray[np.float32] | None = None
-    if all(s.velocities is not None for s in streams):
-        vel = np.concatenate([s.velocities for s in streams if s.velocities is not None])
-        if np.isnan(vel).any():
-            vel = None  # some updates carried none: replay the poses only
-    order = np.lexsort((cap, sid, arr))
-    sid, arr, cap, poses = sid[order], arr[order], cap[order], poses[order]
-    if vel is not None:
-        vel = vel[order]
-    cuts = np.flatnonzero(np.diff(arr) != 0) + 1
-    bounds = [0, *cuts.tolist(), arr.size]
-    arrivals = []
-    updates = []
-    velocities: list[NDArray[np.float32]] | None = None if vel is None else []
-    for lo, hi in itertools.pairwise(bounds):
-        ids, caps, ps = sid[lo:hi], cap[lo:hi], poses[lo:hi]
-        last = np.ones(ids.size, dtype=bool)
-        last[:-1] = ids[1:] != ids[:-1]  # sorted by (sid, capture): keep the newest
-        arrivals.append(float(arr[lo]))
-        updates.append((ids[last], caps[last], ps[last]))
-        if velocities is not None and vel is not None:
-            velocities.append(vel[lo:hi][last])
-    return np.asarray(arrivals, dtype=np.float64), updates, velocities
-
-
-def plan_replay(path: str | os.PathLike[str], room: str | None = None) -> ReplayPlan:
-    """Read a recording into per-user update lists (no network)."""
-    data = read_session(path)
-    by_user: dict[int, list[StreamData]] = {}
-    for s in data.streams:
-        by_user.setdefault(s.user, []).append(s)
-    users: list[UserPlan] = []
-    for user in sorted(by_user):
-        info = data.users.get(user, UserInfo(user))
-        arrival, updates, velocities = _user_updates(by_user[user])
-        # Every stream the user joined with (those never published too), then any
-        # published stream the presence records did not name.
-        names = {sid: _stream_name(sid, n) for sid, n in info.streams.items()}
-        for s in by_user[user]:
-            names.setdefault(s.stream, _stream_name(s.stream, None))
-        users.append(
-            UserPlan(
-                user=user,
-                name=info.name or f"user{user}",
-                label=info.label,
-                rate=info.rate,
-                streams=names,
-                arrival=arrival,
-                updates=updates,
-                joined=info.joined,
-                left=info.left,
-                velocities=velocities,
-            )
-        )
-    arrivals = [u.arrival for u in users if u.arrival.size]
-    origin = float(min(a[0] for a in arrivals)) if arrivals else 0.0
-    end = float(max(a[-1] for a in arrivals)) if arrivals else 0.0
-    return ReplayPlan(room or data.session.get("room") or "replay", origin, end, users)
-
-
-def _user_matches(up: UserPlan, wanted: str) -> bool:
-    """``wanted`` names the user by id (``3`` or ``u3``) or by its recorded name."""
-    return user_matches(up.user, up.name, wanted)
-
-
-def select_plan(
-    plan: ReplayPlan,
-    start: float = 0.0,
-    duration: float | None = None,
-    users: Sequence[str] | None = None,
-) -> ReplayPlan:
-    """The part of ``plan`` a player was asked for (``replay --start --duration --users``).
-
-    ``start`` and ``duration`` are seconds of the recording from its first
-    arrival; the window keeps the updates arriving in ``[origin + start, origin +
-    start + duration]`` and becomes the replay's time origin, so the replay begins
-    at once. ``users`` keeps the users it names (id, ``u``-id or recorded name;
-    ValueError for a name that matches nobody). Users left with no update go.
-    """
-    if start < 0 or (duration is not None and not duration > 0):
-        raise ValueError("--start must be 0 or more and --duration positive")
-    if users is not None:
-        missing = [w for w in users if not any(_user_matches(up, w) for up in plan.users)]
-        if missing:
-            known = ", ".join(f"u{up.user} ({up.name})" for up in plan.users)
-            raise ValueError(f"no recorded user {missing[0]!r}; the recording has {known}")
-    lo = plan.origin + start
-    hi = math.inf if duration is None else lo + duration
-    if lo > plan.end:
-        raise ValueError(
-            f"--start {start:g} s is past the recording's end ({plan.end - plan.origin:.1f} s)"
-        )
-    kept: list[UserPlan] = []
-    for up in plan.users:
-        if users is not None and not any(_user_matches(up, w) for w in users):
-            continue
-        keep = np.flatnonzero((up.arrival >= lo) & (up.arrival <= hi))
-        if keep.size == 0:
-            continue
-        vels = up.velocities
-        kept.append(
-            replace(
-                up,
-                arrival=up.arrival[keep],
-                updates=[up.updates[i] for i in keep.tolist()],
-                velocities=None if vels is None else [vels[i] for i in keep.tolist()],
-                joined=up.joined if up.joined is not None and up.joined > lo else None,
-                left=up.left if up.left is not None and up.left < hi else None,
-            )
-        )
-    if not kept:
-        raise ValueError("no pose updates in the chosen window and users")
-    end = max(float(u.arrival[-1]) for u in kept)
-    return ReplayPlan(plan.room, lo, end, kept)
 
 
 def _replay_label(label: str | None, speed: float, shift: float) -> str | None:
@@ -297,11 +139,88 @@ class _ReplayBot:
         self.done = asyncio.Event()
         #: ``Join.codec``: compact (quantised in the server's volume) or raw records.
         self.codec = "compact"
+        #: Recorded user id -> live user id of every bot of the replay (shared).
+        self.users: dict[int, int] = {}
+        #: Live object stream -> its live owner, as this bot was told.
+        self.owners: dict[int, int | None] = {}
+        self.patience = DEFAULT_OBJECT_PATIENCE
+        self.actions_sent = 0
+        #: Actions sent before the live object reached its recorded state.
+        self.impatient = 0
+        self.refused: list[str] = []
+        #: Live object streams this bot asked for and has no answer about yet.
+        self.pending: set[int] = set()
+        self._changed = asyncio.Event()
 
     async def drain(self) -> None:
         with contextlib.suppress(ConnectionClosed):
             while True:
-                await self.conn.recv()
+                ev = (await self.conn.recv()).event
+                if isinstance(ev, ObjectInfo | Owner):
+                    self.owners[ev.stream] = ev.owner
+                    self.pending.discard(ev.stream)
+                elif isinstance(ev, ErrorMessage) and ev.code == ErrorCode.OWNERSHIP_REFUSED:
+                    self.refused.append(ev.message)
+                    self.pending.clear()  # errors do not say which request
+                else:
+                    continue
+                self._changed.set()
+
+    async def _wait_for(self, ready: Callable[[], bool], clock: Clock) -> bool:
+        """Wait until ``ready()`` (the live room caught up), at most ``patience`` s."""
+        deadline = clock() + self.patience
+        while not ready():
+            left = deadline - clock()
+            if left <= 0:
+                return False
+            self._changed.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._changed.wait(), left)
+        return True
+
+    async def _act(self, act: ObjectAction, clock: Clock) -> None:
+        """Send one recorded object action once the live object is in its recorded state."""
+        objects = self.conn.session.objects
+        if act.kind == "create" and act.name not in objects:
+            assert act.pose is not None
+            pose = pose_tuple("object_create.pose", act.pose)
+            create = ObjectCreate(act.name, pose, act.keep, act.steal, act.hold)
+            await self.conn.send(create)
+            self.actions_sent += 1
+            if act.hold:  # held before the keyframes that follow are sent
+                held = self.conn.session.held
+                await self._wait_for(lambda: objects.get(act.name, -1) in held, clock)
+            return
+        # Another bot creates it: wait for it, then for the owner it had before.
+        known = act.previous is None or act.previous in self.users  # replayed users only
+        before = None if act.previous is None else self.users.get(act.previous)
+        ok = await self._wait_for(
+            lambda: (
+                act.name in objects
+                and (not known or self.owners.get(objects[act.name], -1) == before)
+            ),
+            clock,
+        )
+        self.impatient += not ok
+        stream = objects.get(act.name)
+        if stream is None:
+            return  # never created here: nothing to ask for
+        if act.kind == "release":
+            scale = self.velocity_scale
+
+            def scaled(v: Vec3 | None) -> Vec3 | None:
+                return None if v is None else (scale * v[0], scale * v[1], scale * v[2])
+
+            message: Release | RequestOwnership = Release(
+                stream, scaled(act.velocity), scaled(act.angular)
+            )
+        else:
+            message = RequestOwnership(stream, steal=act.steal, lock=act.lock)
+            self.pending.add(stream)
+        await self.conn.send(message)
+        self.actions_sent += 1
+        # The answer before the keyframes it allows (at most ``patience`` again).
+        await self._wait_for(lambda: stream not in self.pending, clock)
 
     async def run(
         self,
@@ -354,15 +273,29 @@ class _ReplayBot:
     ) -> None:
         plan = self.plan
         due = [to_local(scale(a)) for a in plan.arrival.tolist()]
-        n = len(due)
-        i = 0
-        seq = 0
+        n, i, seq = len(due), 0, 0
+        actions, k = plan.actions, 0
         # Token bucket: ``max_send_rate`` a second, bursts of a quarter second's worth
         # (recorded arrivals jitter); the server's own bucket is larger.
         capacity = max(1.0, 0.25 * send_rate)
         tokens = capacity
         refilled = clock()
-        while i < n:
+
+        def action_first(at: int) -> bool:
+            """The next action comes before update ``at`` (see ObjectAction.grant)."""
+            if k >= len(actions):
+                return False
+            a, t = actions[k], float(plan.arrival[at]) if at < n else math.inf
+            return a.time < t or (a.time == t and a.grant)
+
+        while i < n or k < len(actions):
+            if action_first(i):
+                wait = to_local(scale(actions[k].time)) - clock()
+                if wait > 0:
+                    await asyncio.sleep(wait)
+                await self._act(actions[k], clock)
+                k += 1
+                continue
             wait = due[i] - clock()
             if wait > 0:
                 await asyncio.sleep(wait)
@@ -377,65 +310,63 @@ class _ReplayBot:
             tokens -= 1.0
             now = clock()
             j = i + 1
-            while j < n and due[j] <= now:
+            while j < n and due[j] <= now and not action_first(j):
                 j += 1
-            vels = plan.velocities
-            if j - i == 1:
-                ids, caps, poses = plan.updates[i]
-                vel = None if vels is None else vels[i]
-            else:  # merge the due updates: newest keyframe of each stream
-                ids, caps, poses, vel = _merge(
-                    plan.updates[i:j], None if vels is None else vels[i:j]
-                )
-                self.merged += j - i - 1
-            new_caps = np.array([scale(c) for c in caps.tolist()], dtype=np.float64)
-            new_ids = np.array([self.ids[int(s)] for s in ids.tolist()], dtype=np.uint16)
-            seq += 1
-            if vel is not None and self.velocity_scale != 1.0:
-                vel = vel * np.float32(self.velocity_scale)
-            if self.codec == "raw":
-                data = encode_update(
-                    seq,
-                    new_ids,
-                    new_caps,
-                    poses,
-                    base_time=float(new_caps.max()),
-                    velocities=vel,
-                )
-                await self.conn.send_bytes(data)
-            else:  # the session codes it (compact frames keep per-stream baselines)
-                update = PoseUpdate.from_arrays(
-                    seq, new_ids, new_caps, poses, base_time=float(new_caps.max()), velocities=vel
-                )
-                await self.conn.send(update)
+            sent = await self._send_update(seq + 1, i, j, scale)
+            seq += sent
             self.lateness.append(now - due[j - 1])
-            self.sent += 1
-            self.poses += int(ids.size)
             i = j
 
+    async def _send_update(self, seq: int, i: int, j: int, scale: Callable[[float], float]) -> int:
+        """Send recorded updates ``i:j`` as one (merged if more); 1 if one was sent."""
+        plan, vels = self.plan, self.plan.velocities
+        if j - i == 1:
+            ids, caps, poses = plan.updates[i]
+            vel = None if vels is None else vels[i]
+        else:  # merge the due updates: newest keyframe of each stream
+            ids, caps, poses, vel = merge_updates(
+                plan.updates[i:j], None if vels is None else vels[i:j]
+            )
+            self.merged += j - i - 1
+        keep = self._live_ids(ids)
+        if not keep.any():
+            return 0  # only objects this bot does not hold (live) right now
+        live = np.array([self._live_id(int(s)) for s in ids[keep].tolist()], dtype=np.uint16)
+        new_caps = np.array([scale(c) for c in caps[keep].tolist()], dtype=np.float64)
+        poses = poses[keep]
+        if vel is not None:
+            vel = vel[keep]
+            if self.velocity_scale != 1.0:
+                vel = vel * np.float32(self.velocity_scale)
+        base = float(new_caps.max())
+        if self.codec == "raw":
+            data = encode_update(seq, live, new_caps, poses, base_time=base, velocities=vel)
+            await self.conn.send_bytes(data)
+        else:  # the session codes it (compact frames keep per-stream baselines)
+            update = PoseUpdate.from_arrays(
+                seq, live, new_caps, poses, base_time=base, velocities=vel
+            )
+            await self.conn.send(update)
+        self.sent += 1
+        self.poses += int(live.size)
+        return 1
 
-def _merge(
-    updates: list[tuple[NDArray[np.uint16], F64, NDArray[np.float32]]],
-    velocities: list[NDArray[np.float32]] | None = None,
-) -> tuple[NDArray[np.uint16], F64, NDArray[np.float32], NDArray[np.float32] | None]:
-    """The newest keyframe of each stream (and its velocity, if given)."""
-    newest: dict[int, tuple[float, NDArray[np.float32], NDArray[np.float32] | None]] = {}
-    for u, (ids, caps, poses) in enumerate(updates):
-        for k, sid in enumerate(ids.tolist()):
-            c = float(caps[k])
-            if sid not in newest or c > newest[sid][0]:
-                v = None if velocities is None else velocities[u][k]
-                newest[sid] = (c, poses[k], v)
-    keys = sorted(newest)
-    vel = None
-    if velocities is not None:
-        vel = np.stack([v for k in keys if (v := newest[k][2]) is not None]).astype(np.float32)
-    return (
-        np.array(keys, dtype=np.uint16),
-        np.array([newest[k][0] for k in keys], dtype=np.float64),
-        np.stack([newest[k][1] for k in keys]).astype(np.float32),
-        vel,
-    )
+    def _live_id(self, sid: int) -> int:
+        name = self.plan.objects.get(sid)
+        return self.ids[sid] if name is None else self.conn.session.objects[name]
+
+    def _live_ids(self, ids: NDArray[np.uint16]) -> NDArray[np.bool_]:
+        """Which recorded streams of an update this bot may send now (objects: held)."""
+        if not self.plan.objects:
+            return np.ones(ids.size, dtype=bool)
+        objects, held = self.conn.session.objects, self.conn.session.held
+        return np.array(
+            [
+                s not in self.plan.objects or objects.get(self.plan.objects[s], -1) in held
+                for s in ids.tolist()
+            ],
+            dtype=bool,
+        )
 
 
 async def _sync_clock(conn: ClientConnection, est: ClockEstimator, n: int, clock: Clock) -> None:
@@ -474,18 +405,25 @@ async def _connect_bots(
     plan: ReplayPlan,
     url: str,
     agent: str,
-    factor: float,
+    settings: tuple[float, str, float],
     est: ClockEstimator,
     bots: list[_ReplayBot],
     clock: Clock,
 ) -> None:
-    """Connect one bot per user (appended to ``bots`` as they connect); sync ``est``."""
+    """Connect one bot per user (appended to ``bots`` as they connect); sync ``est``.
+
+    ``settings``: the speed factor, the codec and the object patience of every bot."""
+    factor, codec, patience = settings
     for k, up in enumerate(plan.users):
         conn = await ClientConnection.connect(url, agent=f"{agent}:{up.name}", clock=clock)
         bots.append(_ReplayBot(up, conn))
         bots[-1].velocity_scale = factor
+        bots[-1].codec, bots[-1].patience = codec, patience
         if k == 0:  # one process, one clock: one offset serves every bot
             await _sync_clock(conn, est, _SYNC_PINGS, clock)
+    users = {b.plan.user: b.conn.user for b in bots}
+    for b in bots:
+        b.users = users
 
 
 async def _run_bots(
@@ -550,7 +488,9 @@ def _report(
     bots: list[_ReplayBot],
     est: ClockEstimator,
 ) -> dict[str, Any]:
-    """:func:`replay_live`'s report (see there)."""
+    """:func:`replay_live`'s report (see there). ``objects.impatient`` counts object
+    actions sent before the live object reached its recorded owner (after the
+    bot's patience); ``objects.refused`` holds the relay's refusals."""
     lateness = [x for b in bots for x in b.lateness]
     return {
         "path": str(Path(path)),
@@ -587,9 +527,16 @@ def _report(
                 "updates_sent": b.sent,
                 "joined_at": b.joined_at,
                 "velocities": b.plan.velocities is not None,
+                "object_actions": b.actions_sent,
             }
             for b in bots
         ],
+        "objects": {
+            "actions_recorded": sum(len(b.plan.actions) for b in bots),
+            "actions_sent": sum(b.actions_sent for b in bots),
+            "impatient": sum(b.impatient for b in bots),
+            "refused": [m for b in bots for m in b.refused],
+        },
     }
 
 
@@ -609,6 +556,7 @@ async def replay_live(
     duration_s: float | None = None,
     users: Sequence[str] | None = None,
     codec: str = "compact",
+    object_patience: float = DEFAULT_OBJECT_PATIENCE,
 ) -> dict[str, Any]:
     """Replay the recording at ``path`` into the server at ``url``; returns a report.
 
@@ -623,7 +571,8 @@ async def replay_live(
          "lateness_ms": {"p50", "p95", "max"}, "clock_rtt_ms",
          "streams": [{"recorded_user", "recorded_stream", "name", "user", "stream"}],
          "bots": [{"recorded_user", "user", "name", "updates_sent", "joined_at",
-                   "velocities"}]}
+                   "velocities", "object_actions"}],
+         "objects": {"actions_recorded", "actions_sent", "impatient", "refused"}}
 
     A recorded update arriving at ``a`` (capture ``c``) is sent at server time
     ``server_start + (a - origin) / speed`` with capture ``server_start + (c -
@@ -632,8 +581,8 @@ async def replay_live(
     ``start_s``, ``duration_s`` and ``users`` replay only that window and those
     users (:func:`select_plan`); ``origin`` is then the window's start. ``codec``
     is each bot's ``Join.codec``: ``compact`` (poses quantised in the server's
-    volume, to 0.25 mm and 0.034 deg) or ``raw`` (the recorded floats exactly).
-    """
+    volume, to 0.25 mm and 0.034 deg) or ``raw`` (the recorded floats exactly);
+    ``object_patience``: see the module docstring (shared objects)."""
     if not max_send_rate > 0:
         raise ValueError("max_send_rate must be positive")
     # Reading the recording is file I/O: not on the event loop.
@@ -647,9 +596,7 @@ async def replay_live(
     bots: list[_ReplayBot] = []
     start = math.nan
     try:
-        await _connect_bots(plan, url, agent, factor, est, bots, clock)
-        for b in bots:
-            b.codec = codec
+        await _connect_bots(plan, url, agent, (factor, codec, object_patience), est, bots, clock)
         welcome = bots[0].conn.welcome
         assert welcome is not None
         offset = est.offset

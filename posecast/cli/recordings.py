@@ -103,10 +103,17 @@ def replay(
             "(the recorded floats exactly, ~47 B a pose)."
         ),
     ] = "compact",
+    object_patience: Annotated[
+        float,
+        typer.Option(
+            help="Live: seconds a bot waits for a shared object to have its recorded owner "
+            "before it requests or releases it (then it asks anyway)."
+        ),
+    ] = 1.0,
 ) -> None:
     """Replay a recording into a live server, or reconstruct it offline with QoE."""
     _recording(file)
-    _check_replay_args(offline, url, (start, duration, users, loop), codec)
+    _check_replay_args(offline, url, (start, duration, users, loop), codec, object_patience)
     chosen = None if users is None else [u for u in users.split(",") if u.strip()]
     if offline:
         from recorder.replay import replay_offline
@@ -125,21 +132,45 @@ def replay(
             f"{file.name}: keyframes at {rate:g} Hz, rendered at 90 Hz, vs the recorded streams",
             {rate: report["qoe"]},
         )
+        _print_objects(report)
         if out is not None:
             console.print(f"rendered poses written to {out}")
     else:
         assert url is not None
         span = (start, duration, chosen)
-        report = _replay_passes(file, url, _speed(speed), room, token_, span, loop, codec)
-        lat = report["lateness_ms"]
-        console.print(
-            f"replayed {report['users']} users, {report['updates_sent']} updates "
-            f"({report['updates_merged']} merged) into room {report['room']!r} at speed "
-            f"{report['speed']:g}; lateness p50 {lat['p50']:.1f} ms, p95 {lat['p95']:.1f} ms"
+        report = _replay_passes(
+            file, url, _speed(speed), room, token_, span, loop, (codec, object_patience)
         )
+        _print_live(report)
     if json_out is not None:
         json_out.write_text(json.dumps(report, indent=2, default=str))
         console.print(f"wrote {json_out}")
+
+
+def _print_objects(report: dict[str, Any]) -> None:
+    """An offline replay's shared objects, one line each."""
+    for obj in report["objects"]:
+        console.print(
+            f"{obj['name']}: {obj['keyframes']} keyframes ({obj['flight_keyframes']} in"
+            f" flight), {len(obj['changes'])} ownership changes"
+        )
+
+
+def _print_live(report: dict[str, Any]) -> None:
+    """A live replay's summary: updates, lateness, shared objects."""
+    lat = report["lateness_ms"]
+    console.print(
+        f"replayed {report['users']} users, {report['updates_sent']} updates "
+        f"({report['updates_merged']} merged) into room {report['room']!r} at speed "
+        f"{report['speed']:g}; lateness p50 {lat['p50']:.1f} ms, p95 {lat['p95']:.1f} ms"
+    )
+    objects = report["objects"]
+    if objects["actions_recorded"]:
+        console.print(
+            f"shared objects: {objects['actions_sent']} of {objects['actions_recorded']}"
+            f" creates, requests and releases sent ({objects['impatient']} before the"
+            f" recorded owner, {len(objects['refused'])} refused)"
+        )
 
 
 def _speed(text: str) -> float | str:
@@ -158,6 +189,7 @@ def _check_replay_args(
     url: str | None,
     window: tuple[float, float | None, str | None, bool],
     codec: str,
+    object_patience: float = 1.0,
 ) -> None:
     """Refuse, in one line, replay options that cannot go together (exit 2)."""
     start, duration, _users, loop = window
@@ -169,6 +201,8 @@ def _check_replay_args(
         raise _fail("--start must be 0 or more and --duration positive")
     if codec not in ("compact", "raw"):
         raise _fail(f"--codec must be compact or raw, not {codec!r}")
+    if not object_patience >= 0:
+        raise _fail("--object-patience must be 0 or more")
 
 
 def _replay_passes(
@@ -179,7 +213,7 @@ def _replay_passes(
     token: str | None,
     window: tuple[float, float | None, list[str] | None],
     loop: bool,
-    codec: str = "compact",
+    options: tuple[str, float] = ("compact", 1.0),
 ) -> dict[str, Any]:
     """Replay live once, or (``--loop``) again and again until Ctrl-C; the last report."""
     from websockets.exceptions import InvalidURI, WebSocketException
@@ -187,6 +221,7 @@ def _replay_passes(
     from client.replay import replay_live
 
     start, duration, users = window
+    codec, patience = options
     passes = 0
     try:
         while True:
@@ -202,6 +237,7 @@ def _replay_passes(
                         duration_s=duration,
                         users=users,
                         codec=codec,
+                        object_patience=patience,
                     )
                 )
             passes += 1

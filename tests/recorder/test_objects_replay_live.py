@@ -1,0 +1,257 @@
+"""A recorded handover session replayed live into a second real relay reproduces it.
+
+The session (``objkit``) is recorded on one relay; ``replay_live`` plays it into
+a second relay that records too, and the two files are compared: the same
+ownership changes (owner, previous, reason) per object, the owners' keyframes
+bit for bit, and the second relay's own flights along the recorded ones.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from objkit import Session, record_handover_session
+from support import running_server
+from typer.testing import CliRunner
+
+from client.connection import ClientConnection
+from client.replay import plan_replay, replay_live, select_plan
+from interp import get as get_interp
+from posecast.cli import app
+from protocol.codec import DEFAULT_VOLUME, dequantise, quantise
+from recorder.export import read_session
+from recorder.objects import RESTED, ObjectTrack
+from server.app import ServerConfig
+
+GRAVITY = 9.81
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory: pytest.TempPathFactory) -> Session:
+    return record_handover_session(tmp_path_factory.mktemp("recorded"))
+
+
+async def _replay(path: Path, out: Path, codec: str) -> tuple[dict[str, Any], Path]:
+    """Replay ``path`` into a recording relay; its report and the replayed room's file."""
+    async with running_server(ServerConfig(host="127.0.0.1", port=0, record_dir=out)) as server:
+        url = f"ws://127.0.0.1:{server.port}"
+        # Someone elsewhere first: the replay's users get other ids than the recorded ones.
+        other = await ClientConnection.open(url, room="elsewhere", streams=("head",), rate=10)
+        try:
+            report = await replay_live(path, url, codec=codec, linger=0.2)
+        finally:
+            await other.close()
+    (replayed,) = [p for p in server.recordings if p.name.startswith("objects-")]
+    return report, replayed
+
+
+def _live(users: dict[int, int], user: int | None) -> int | None:
+    return None if user is None else users[user]
+
+
+def _nearest(sorted_values: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Index of the value nearest to each of ``x`` in ``sorted_values``."""
+    j = np.clip(np.searchsorted(sorted_values, x), 1, len(sorted_values) - 1)
+    left = np.abs(sorted_values[j - 1] - x) <= np.abs(sorted_values[j] - x)
+    return np.where(left, j - 1, j)
+
+
+def _track(path: Path, name: str) -> ObjectTrack:
+    return next(t for t in read_session(path).objects if t.name == name)
+
+
+def _flight_start(track: ObjectTrack, throw_time: float) -> tuple[float, np.ndarray]:
+    """Where the relay starts a flight: the object's newest keyframe at the throw, from
+    its time (or from the throw, if that keyframe is over RESTED old)."""
+    k = int(np.searchsorted(track.arrival, throw_time, side="right")) - 1
+    t0 = float(track.times[k])
+    return (t0 if throw_time - t0 < RESTED else throw_time), track.poses[k].astype(np.float64)
+
+
+def _flights(track: ObjectTrack) -> list[tuple[float, np.ndarray, np.ndarray, np.ndarray]]:
+    """Per throw: (t0, start pose, flight keyframe times, poses), flying ones only."""
+    out = []
+    changes = list(track.changes)
+    for n, c in enumerate(changes):
+        if c.reason != "throw":
+            continue
+        end = changes[n + 1].time if n + 1 < len(changes) else np.inf
+        t0, start = _flight_start(track, c.time)
+        sel = track.flight & (track.arrival >= c.time) & (track.arrival < end)
+        moving = np.any(track.velocities != 0, axis=1)  # landed: velocity 0
+        sel &= moving
+        out.append((t0, start, track.times[sel], track.poses[sel].astype(np.float64)))
+    return out
+
+
+def _as_sent(poses: np.ndarray, codec: str) -> np.ndarray:
+    """Recorded float32 poses as a replay bot's updates carry them (compact: its codes)."""
+    if codec == "raw":
+        return poses
+    return dequantise(quantise(poses, DEFAULT_VOLUME), DEFAULT_VOLUME)[0]
+
+
+@pytest.mark.parametrize("codec", ["raw", "compact"])
+def test_live_replay_reproduces_handovers_and_object_motion(
+    session: Session, tmp_path: Path, codec: str
+) -> None:
+    """Same ownership changes per object; owners' keyframes as sent (raw: bit for bit,
+    compact: their codes); the new relay's flights along the recorded ones."""
+    report, replayed = asyncio.run(_replay(session.path, tmp_path, codec))
+    users = {b["recorded_user"]: b["user"] for b in report["bots"]}
+    assert users != {u: u for u in users}  # ids differ: the comparison maps them
+
+    def live(u: int | None) -> int | None:
+        return None if u is None else users[u]
+
+    assert report["objects"]["refused"] == [] and report["objects"]["impatient"] == 0
+    rec, rep = _track(session.path, "object:drill"), _track(replayed, "object:drill")
+    assert [(c.owner, c.previous, c.reason, c.locked) for c in rep.changes] == [
+        (live(c.owner), live(c.previous), c.reason, c.locked) for c in rec.changes
+    ]
+    assert [c.velocity for c in rep.changes] == [c.velocity for c in rec.changes]
+    assert (rep.creator, rep.keep) == (live(rec.creator), rec.keep)
+    cup_rec, cup_rep = _track(session.path, "object:cup"), _track(replayed, "object:cup")
+    assert (cup_rep.keep, cup_rep.removed_reason) == (cup_rec.keep, cup_rec.removed_reason)
+    assert np.array_equal(rep.poses[0], rec.poses[0])  # the create pose (a float message)
+
+    # Owners' keyframes: the recorded ones, re-timed (capture c -> start + c - origin).
+    start, origin = float(report["server_start"]), float(report["origin"])
+    mine = ~rep.flight
+    mine[0] = False
+    back = origin + (rep.captures[mine] - start)
+    owned = ~rec.flight
+    owned[0] = False
+    caps = rec.captures[owned]  # not sorted: b's clock runs behind a's
+    order = np.argsort(caps)
+    k = order[_nearest(caps[order], back)]
+    # float32 offsets on the wire; compact: 1 ms steps of capture time
+    assert np.abs(caps[k] - back).max() < (1e-5 if codec == "raw" else 0.5e-3 + 1e-5)
+    sent = _as_sent(rec.poses[owned][k], codec)
+    assert np.array_equal(rep.poses[mine].view(np.uint32), sent.view(np.uint32))
+    assert [live(int(u)) for u in rec.publisher[owned][k]] == rep.publisher[mine].tolist()
+    # None lost but to merged updates (a bot behind its schedule sends the newest only).
+    assert int(owned.sum()) - int(mine.sum()) <= report["updates_merged"]
+
+    # Flights: the new relay flies them again from the same start, at its own ticks.
+    soa = get_interp("soa")
+    rec_flights, rep_flights = _flights(rec), _flights(rep)
+    assert len(rep_flights) == len(rec_flights) == 2
+    for (t0, p0, times, poses), (u0, q0, utimes, uposes) in zip(
+        rec_flights, rep_flights, strict=True
+    ):
+        # It starts from the thrower's last keyframe, as the bot sent it.
+        sent0 = _as_sent(p0.astype(np.float32)[None, :], codec)[0]
+        assert np.array_equal(q0.astype(np.float32), sent0)
+        shift = float(np.linalg.norm(q0[:3] - p0[:3]))  # the codec's rounding moves it all
+        # The recorded curve from its start; its keyframes are under a tick apart.
+        curve_t = np.concatenate([[0.0], times - t0])
+        curve_p = np.vstack([p0, poses])
+        tau = utimes - u0
+        inside = (tau >= 0.0) & (tau <= curve_t[-1])
+        assert inside.sum() >= len(tau) - 2  # at most one tick past either end
+        j = np.clip(np.searchsorted(curve_t, tau[inside]), 1, len(curve_t) - 1)
+        s = (tau[inside] - curve_t[j - 1]) / (curve_t[j] - curve_t[j - 1])
+        expect = soa(curve_p[j - 1], curve_p[j], s)
+        # LERP of a parabola is off by at most g dt^2 / 8 in height over an interval
+        # dt; SLERP of a constant-rate turn is exact; float32 poses.
+        dt = np.diff(curve_t)[j - 1]
+        pos = np.linalg.norm(uposes[inside, :3] - expect[:, :3], axis=1)
+        bound = GRAVITY * dt * dt / 8 + shift + 1e-5
+        assert np.all(pos <= bound)
+        k = int(np.argmax(pos))
+        print(
+            f"{codec} flight of {len(tau)} keyframes: largest error {1000 * pos[k]:.2f} mm"
+            f" (its bound {1000 * bound[k]:.2f} mm, {1000 * dt[k]:.1f} ms between recorded"
+            f" keyframes), at most {np.max(pos / bound):.2f} of the bound"
+        )
+        dots = np.abs(np.sum(uposes[inside, 3:] * expect[:, 3:], axis=1))
+        assert (1.0 - dots).max() < 1e-6
+
+
+async def _posecast(*args: str) -> tuple[int, str]:
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "posecast.cli",
+        *args,
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.STDOUT,
+    )
+    output, _ = await asyncio.wait_for(proc.communicate(), 120)  # a hang guard
+    assert proc.returncode is not None
+    return proc.returncode, output.decode()
+
+
+async def test_cli_replays_the_handovers_twice_into_one_room(
+    session: Session, tmp_path: Path
+) -> None:
+    """`posecast replay --url` reproduces the changes; a second pass finds the kept drill
+    in the room (as --loop does) and takes it instead of creating it."""
+    config = ServerConfig(host="127.0.0.1", port=0, record_dir=tmp_path)
+    outputs = []
+    async with running_server(config) as server:
+        url = f"ws://127.0.0.1:{server.port}"
+        keep = await ClientConnection.open(url, room="objects", streams=("head",), rate=10)
+        try:  # a member that stays: the room and its drill outlive the first pass
+            for _ in range(2):
+                code, output = await _posecast(
+                    "replay", str(session.path), "--url", url, "--object-patience", "2",
+                )  # fmt: skip
+                assert code == 0, output
+                outputs.append(output)
+        finally:
+            await keep.close()
+    assert all("shared objects: 9 of 9 creates, requests and releases sent" in o for o in outputs)
+    (path,) = server.recordings
+    changes = [(c.reason, c.previous is None) for c in _track(path, "object:drill").changes]
+    once = [(c.reason, c.previous is None) for c in _track(session.path, "object:drill").changes]
+    # The second pass: the drill is there, unowned (its last owner left): a request.
+    assert changes == [*once, ("request", True), *once[1:]]
+
+
+def test_cli_refuses_a_negative_object_patience(session: Session) -> None:
+    """A bad --object-patience is one line and exit 2, before any connection."""
+    res = CliRunner().invoke(
+        app, ["replay", str(session.path), "--url", "ws://127.0.0.1:9", "--object-patience", "-1"]
+    )
+    assert res.exit_code == 2 and "--object-patience must be 0 or more" in res.output
+
+
+def test_a_window_creates_its_objects_and_gives_them_to_their_holders(
+    session: Session, tmp_path: Path
+) -> None:
+    """--start after the create: the creator makes the drill at the window's start and
+    the user that held it then asks for it; the changes inside the window follow."""
+    plan = plan_replay(session.path)
+    rec = _track(session.path, "object:drill")
+    catch, release = (next(c for c in rec.changes if c.reason == r) for r in ("catch", "release"))
+    part = select_plan(plan, start=0.5 * (catch.time + release.time) - plan.origin)
+    lo, a, b = part.origin, session.a.user, session.b.user
+    actions = {up.user: up.actions for up in part.users}
+    made = [(x.kind, x.name, x.time, x.hold) for x in actions[a] if x.kind == "create"]
+    assert made == [("create", "object:drill", lo, False)]
+    assert (actions[b][1].kind, actions[b][1].name, actions[b][1].time) == (
+        "request",
+        "object:drill",
+        lo,
+    )
+    report, replayed = asyncio.run(_replay_window(session.path, tmp_path, lo - plan.origin))
+    users = {x["recorded_user"]: x["user"] for x in report["bots"]}
+    after = [c for c in rec.changes if c.time >= lo]
+    got = [(c.owner, c.previous, c.reason) for c in _track(replayed, "object:drill").changes]
+    mapped = [(_live(users, c.owner), _live(users, c.previous), c.reason) for c in after]
+    assert got == [(users[b], None, "request"), *mapped]
+
+
+async def _replay_window(path: Path, out: Path, start: float) -> tuple[dict[str, Any], Path]:
+    async with running_server(ServerConfig(host="127.0.0.1", port=0, record_dir=out)) as server:
+        url = f"ws://127.0.0.1:{server.port}"
+        report = await replay_live(path, url, codec="raw", linger=0.2, start_s=start)
+    (replayed,) = server.recordings
+    return report, replayed
