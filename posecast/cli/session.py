@@ -36,6 +36,7 @@ def print_swarm(report: dict[str, Any], title: str) -> None:
             table.add_row(method, cls, *_qoe_cells(st))
         table.add_section()
     console.print(table)
+    _print_objects(report)
     bots = Table(title="bots", title_justify="left")
     for col in ("id", "name", "keyframes/s", "delay D ms", "render ms/frame", "clock rtt ms"):
         bots.add_column(col, justify="right")
@@ -57,13 +58,57 @@ def print_swarm(report: dict[str, Any], title: str) -> None:
     )
 
 
+def _print_objects(report: dict[str, Any]) -> None:
+    """The shared object's smoothness (velocity error of its tip), its tip error as
+    each receiving bot saw it, and its handovers."""
+    rows = [
+        (method, cls, st)
+        for method, classes in report["methods"].items()
+        for cls, st in classes.items()
+        if cls.startswith("object")
+    ]
+    if not rows:
+        return
+    seen = [b for b in report["bots"] if b.get("object")]
+    table = Table(title="object: tip velocity error, and tip error per bot", title_justify="left")
+    for col in ("method", "class"):
+        table.add_column(col)
+    for col in (
+        "vel p50 m/s",
+        "vel p95 m/s",
+        *(f"tip p95 mm {b['role'] or b['name']}" for b in seen),
+    ):
+        table.add_column(col, justify="right")
+    for method, cls, st in rows:
+        per_bot = [b["object"].get(method, {}).get(cls, {}).get("tip_p95_mm") for b in seen]
+        table.add_row(
+            method,
+            cls,
+            _fmt(st["vel_p50_mps"], 2),
+            _fmt(st["vel_p95_mps"], 2),
+            *(_fmt(x) if x is not None else "-" for x in per_bot),
+        )
+    console.print(table)
+    counts = report.get("objects", {}).get("handovers")
+    if counts:
+        told = ", ".join(f"{n} {reason}" for reason, n in counts.items())
+        console.print(f"object handovers: {told}")
+
+
+class Scene(StrEnum):
+    """A scripted live scene for ``demo --scene``."""
+
+    throw_catch = "throw-catch"
+
+
 _SECRET_HELP = "Require tokens signed with this secret (see `posecast token`); visible in ps."
 _SECRET_FILE_HELP = "Read the secret from the first line of this file (kept out of ps)."
 _LOG_LEVELS = ("debug", "info", "warning", "error")
 _LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 _MOTION_HELP = (
-    "traces:sample (bundled), traces:dev, traces:eval (full sets), a CSV or folder, or "
-    "synthetic[:orbit]."
+    "traces:sample (bundled), traces:dev, traces:eval (full sets), a CSV or folder, "
+    "synthetic[:orbit], or throw-catch (the live scene: bot 0 throws object:drill, "
+    "bot 1 catches it and hands it back, the others watch)."
 )
 
 # The options of `serve`, each with its POSECAST_* environment variable.
@@ -458,6 +503,12 @@ def token(
     print(make_token(key, room, user, ttl, time.time()))
 
 
+def _given(ctx: typer.Context, name: str) -> bool:
+    """Whether option ``name`` was given on the command line (or in the environment)."""
+    source = ctx.get_parameter_source(name)
+    return getattr(source, "name", "DEFAULT") not in ("DEFAULT", "DEFAULT_MAP")
+
+
 def _check_bot_args(
     rate: float, n: int, duration: float, interp_text: str, motion: str
 ) -> tuple[str, ...]:
@@ -472,7 +523,9 @@ def _check_bot_args(
         raise _fail("--rate must be positive")
     # Velocity methods run live: the bots then send and receive velocity keyframes.
     methods = tuple(_parse_methods(interp_text))
-    if not motion.startswith("synthetic"):
+    if motion == "throw-catch" and n < 2:
+        raise _fail("the throw-catch scene needs at least 2 bots (a thrower and a catcher)")
+    if motion != "throw-catch" and not motion.startswith("synthetic"):
         try:
             find_traces(motion)
         except TraceError as exc:
@@ -638,6 +691,7 @@ NoRecordOption = Annotated[bool, typer.Option("--no-record", help="Do not record
 
 
 def demo(
+    ctx: typer.Context,
     bots: BotCountOption = 6,
     rate: AskRateOption = 15.0,
     duration: DurationOption = 20.0,
@@ -653,11 +707,25 @@ def demo(
     view_port: Annotated[
         int, typer.Option(help="With --view: serve the page on this port (0: any free one).")
     ] = 8080,
+    scene: Annotated[
+        Scene | None,
+        typer.Option(
+            help="Play a scripted scene instead of --motion: throw-catch (bot 0 throws "
+            "object:drill, bot 1 catches it and hands it back, the others watch; 3 bots "
+            "unless --bots); the table gains the object classes (all, flight, catch).",
+        ),
+    ] = None,
 ) -> None:
     """The main job: a server and N bots on loopback, then QoE per interpolator."""
     from posecast.demo import run_demo
     from server.app import ServerConfig
 
+    if scene is not None:
+        if _given(ctx, "motion"):
+            raise _fail("give --scene or --motion, not both")
+        motion = scene.value
+        if not _given(ctx, "bots"):
+            bots = 3
     methods = _check_bot_args(rate, bots, duration, interp_, motion)
     if view and not 0 <= view_port <= 65535:
         raise _fail(f"--view-port {view_port} is not a TCP port (0-65535)")
