@@ -265,14 +265,18 @@ class ClientConnection:
         hold: bool = False,
         keep: bool = True,
         steal: bool = False,
+        time: float | None = None,
     ) -> None:
-        """Create room object ``name`` (``object:NAME``) at ``pose``; ``hold``: own it at once.
+        """Create room object ``name`` (``object:NAME``) at ``pose``, captured at ``time``
+        (server clock; None: on arrival); ``hold``: own it at once.
 
         The server answers every member with ``object`` (and ``owner`` if held), or
         this client alone with a non-fatal ``ownership-refused`` error.
         """
         p = pose_tuple("object_create.pose", [float(x) for x in pose])
-        await self.send(ObjectCreate(name=name, pose=p, keep=keep, steal=steal, hold=hold))
+        await self.send(
+            ObjectCreate(name=name, pose=p, keep=keep, steal=steal, hold=hold, time=time)
+        )
 
     async def request_ownership(self, stream: int, *, steal: bool = False) -> None:
         """Ask to own object ``stream`` (a grab, or a catch while it flies)."""

@@ -153,7 +153,7 @@ class ThrowCatchActor:
         if action.kind == "hold":
             if sid is None:
                 idx = self._index(at)
-                await conn.create_object(DRILL, self.drill.poses[idx, 0], hold=True)
+                await conn.create_object(DRILL, self.drill.poses[idx, 0], hold=True, time=at)
             elif not mine:
                 await conn.request_ownership(sid)
         elif action.kind in ("catch", "grab"):

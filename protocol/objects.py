@@ -48,6 +48,7 @@ from protocol._validate import (
     check_bool,
     check_float,
     check_int,
+    check_optional_float,
     check_optional_int,
     check_text,
 )
@@ -126,9 +127,14 @@ class ObjectCreate(ControlMessage):
     """Another member may take it from its owner (unless the owner locked it)."""
     hold: bool = field(default=False, metadata={_OMIT_DEFAULT: True})
     """The creator owns it at once."""
+    time: float | None = field(default=None, metadata={_OMIT_DEFAULT: True})
+    """Capture time (server clock) of ``pose``; absent: when the server receives it.
+    A creator that holds it and goes on publishing should give it, so that its
+    next keyframes come after the first one."""
 
     def __post_init__(self) -> None:
         _check_object_name("object_create.name", self.name)
+        object.__setattr__(self, "time", check_optional_float("object_create.time", self.time))
         object.__setattr__(self, "pose", pose_tuple("object_create.pose", self.pose))
         check_bool("object_create.keep", self.keep)
         check_bool("object_create.steal", self.steal)

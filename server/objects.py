@@ -10,8 +10,10 @@ request             the relay ...
 ==================  ==========================================================
 object_create       refuses (``ownership-refused``) a name the room has or
                     over ``max_objects``, a pose outside the volume
-                    (``bad-pose``); else allocates a stream, stores the pose
-                    as its first keyframe (now), tells every member
+                    (``bad-pose``, also for a ``time`` over the capture age
+                    or ahead limits); else allocates a stream, stores the
+                    pose as its first keyframe (at ``time``, else now), tells
+                    every member
                     (``object``), and with ``hold`` makes the creator owner
 request_ownership   grants it (``owner`` to every member, the requester
                     included) when the object is unowned (reason ``request``;
@@ -261,9 +263,20 @@ def _create(
             peer, ErrorCode.BAD_POSE, "object position outside the room volume", event.TYPE, now
         )
         return
+    capture = now if event.time is None else event.time
+    cfg = core.config
+    if not now - cfg.max_capture_age <= capture <= now + cfg.max_capture_ahead:
+        core._refuse(
+            peer,
+            ErrorCode.BAD_POSE,
+            f"object_create.time {capture - now:+.3f} s from now",
+            event.TYPE,
+            now,
+        )
+        return
     obj = RoomObject(event.name, room.stream_ids.take(), user, event.keep, event.steal)
     room.objects[obj.stream] = obj
-    room.store(obj.stream, ROOM_USER, now, pose_bytes(event.pose))
+    room.store(obj.stream, ROOM_USER, capture, pose_bytes(event.pose))
     info = _info(room, obj)
     for member in list(room.members.values()):
         core.to_member(member, info)

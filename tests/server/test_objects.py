@@ -345,3 +345,19 @@ async def _until(conn: ClientConnection, check: Callable[[object], bool]) -> Any
             event = (await conn.recv()).event
             if check(event):
                 return event
+
+
+def test_a_creation_time_keeps_the_creators_next_keyframes_unshifted() -> None:
+    """object_create.time: the creator's keyframes captured after it go in as they are;
+    a time outside the capture limits is refused."""
+    core = RelayCore()
+    a = connect(core, 1.0)
+    a.send(ObjectCreate(name="object:drill", pose=DRILL, hold=True, time=1.95), 2.0)
+    sid = next(e.stream for e in a.read(2.0) if isinstance(e, ObjectInfo))
+    assert core.rooms["lobby"].stream_pose(sid)[0] == 1.95
+    a.send(hold_update(a, sid, 1.97), 2.01)  # captured before the create arrived
+    assert core.rooms["lobby"].stream_pose(sid)[0] == 1.97
+    assert core.rooms["lobby"].objects[sid].offset == 0.0
+    a.send(ObjectCreate(name="object:late", pose=DRILL, time=0.5), 2.1)
+    a.read(2.1)
+    assert "object_create.time" in errors(a, ErrorCode.BAD_POSE)[-1].message
