@@ -1,12 +1,14 @@
-"""Write docs/viewer-live.png and docs/viewer-replay.png from real sessions.
+"""Write docs/viewer-live.png, docs/viewer-replay.png and docs/viewer-drill.png.
 
-    .venv/bin/python tests/posecast/view/make_screenshots.py [--out docs]
+    .venv/bin/python tests/posecast/view/make_screenshots.py [--out docs] [--only drill]
 
 Live: a relay and 4 bots playing the bundled traces (``traces:sample``) on
 loopback, watched by ``LiveView`` (users 1 m apart), soa solid with dq-slerp and
 motor-hermite ghosts. Replay: a recording of 4 users synthesised from the same
 traces through the recorder, ``ReplayView`` with ghosts from 5 Hz keyframes,
-paused at a fast moment (the largest tip error of soa). Needs chromium.
+paused at a fast moment (the largest tip error of soa). Drill: the live
+throw-catch scene (3 bots, ``--motion throw-catch``) at 10 Hz, paused with the
+drill half-way through its flight. Needs chromium.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from client.bot import BotConfig, motion_for_bot, run_bot  # noqa: E402
 from posecast.view.live import LiveConfig, LiveView  # noqa: E402
 from posecast.view.replay import ReplayView  # noqa: E402
 from recorder.replay import synthesize_recording  # noqa: E402
+from scenarios.throw_catch import PERIOD, scene_script  # noqa: E402
 
 METHODS = ("soa", "dq-slerp", "motor-hermite")
 HIDE_TOASTS = (
@@ -73,6 +76,40 @@ async def live_shot(browser: Browser, out: Path) -> None:
             view.close()
 
 
+async def drill_shot(browser: Browser, out: Path) -> None:
+    script = scene_script(0)
+    middle = (script.release + script.catch) / 2
+    async with running_server() as srv:
+        url = f"ws://127.0.0.1:{srv.port}"
+        view = LiveView(LiveConfig(url=url, room="drill", methods=METHODS, port=0, rate=10.0))
+        cam = view.server.initial_camera  # from the side: thrower left, catcher right
+        cam.look_at, cam.position = (0.3, 1.25, -0.45), (-1.5, 1.55, -0.45)
+        try:
+            async with asyncio.TaskGroup() as tg:
+                tasks = [tg.create_task(view.run())]
+                page = await _open(browser, view.url)
+                for i in range(3):
+                    motion, seed = motion_for_bot("throw-catch", i)
+                    cfg = BotConfig(
+                        url=url, room="drill", rate=10.0, motion=motion, seed=seed,
+                        duration=120.0, methods=METHODS, name=f"bot{i}",
+                    )  # fmt: skip
+                    tasks.append(tg.create_task(run_bot(cfg)))
+                await until(lambda: len(view.scene.avatars) >= 3 and view.frames > 60, 60)
+                await page.wait_for_selector("text=keyframes/s", timeout=60_000)
+                await asyncio.sleep(2.0 * PERIOD)
+                # Pause the page on a frame whose playout time is mid-flight.
+                await until(lambda: abs(view.last_frame[0] % PERIOD - middle) < 0.03, 30)
+                view.paused = True
+                await asyncio.sleep(2.0)
+                await page.screenshot(path=str(out))
+                await page.close()
+                for t in tasks:
+                    t.cancel()
+        finally:
+            view.close()
+
+
 async def replay_shot(browser: Browser, out: Path) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         rec = synthesize_recording(tmp, users=4, rate=30.0, duration=20.0, velocities=True)
@@ -89,19 +126,23 @@ async def replay_shot(browser: Browser, out: Path) -> None:
             view.close()
 
 
-async def main(out_dir: Path) -> None:
+async def main(out_dir: Path, only: str | None = None) -> None:
     chromium = find_chromium()
     if chromium is None:
         raise SystemExit("chromium not found; apt-get install chromium")
     async with async_playwright() as p:
         browser = await p.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS)
-        await live_shot(browser, out_dir / "viewer-live.png")
-        await replay_shot(browser, out_dir / "viewer-replay.png")
+        shots = {"live": live_shot, "replay": replay_shot, "drill": drill_shot}
+        for name, shot in shots.items():
+            if only in (None, name):
+                await shot(browser, out_dir / f"viewer-{name}.png")
+                print(f"wrote {out_dir / f'viewer-{name}.png'}")
         await browser.close()
-    print(f"wrote {out_dir / 'viewer-live.png'} and {out_dir / 'viewer-replay.png'}")
 
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=Path("docs"), help="Folder for the two PNGs.")
-    asyncio.run(main(ap.parse_args().out))
+    ap.add_argument("--out", type=Path, default=Path("docs"), help="Folder for the PNGs.")
+    ap.add_argument("--only", choices=("live", "replay", "drill"), help="Write just this one.")
+    args = ap.parse_args()
+    asyncio.run(main(args.out, args.only))
