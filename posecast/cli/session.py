@@ -260,6 +260,10 @@ MaxRoomsOption = Annotated[int, typer.Option(help="Rooms at most.", envvar="POSE
 MaxMembersOption = Annotated[
     int, typer.Option(help="Members of one room at most.", envvar="POSECAST_MAX_MEMBERS")
 ]
+MaxObjectsOption = Annotated[
+    int,
+    typer.Option(help="Shared objects of one room at most.", envvar="POSECAST_MAX_OBJECTS"),
+]
 MaxRecordedRoomsOption = Annotated[
     int,
     typer.Option(help="Rooms recorded at once at most.", envvar="POSECAST_MAX_RECORDED_ROOMS"),
@@ -330,6 +334,7 @@ def serve(
     max_rooms: MaxRoomsOption = 256,
     max_members: MaxMembersOption = 64,
     max_recorded_rooms: MaxRecordedRoomsOption = 32,
+    max_objects: MaxObjectsOption = 64,
 ) -> None:
     """Run the relay server until SIGINT/SIGTERM (then close all with 1001, exit 0).
 
@@ -357,6 +362,7 @@ def serve(
         "max_rooms": max_rooms,
         "max_members": max_members,
         "max_recorded_rooms": max_recorded_rooms,
+        "max_objects": max_objects,
     }
     if bad := [k for k, v in limits.items() if not v >= 0]:
         raise _fail(f"--{bad[0].replace('_', '-')} must not be negative")
