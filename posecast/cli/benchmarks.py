@@ -16,8 +16,9 @@ def bench_interp(
         bool,
         typer.Option(
             help=(
-                "Also time batch 10,000 in a plain `python -m` process (glibc's allocator "
-                "untuned, as in a notebook) and show it beside this CLI's figures."
+                "Also time batch 10,000 in two fresh processes with glibc's allocator "
+                "untuned (`python -m scenarios.bench_interp`, and `python -c` importing "
+                "interp only, as a notebook does) and show them beside this CLI's figures."
             )
         ),
     ] = True,
