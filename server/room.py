@@ -461,7 +461,12 @@ class Room:
         if self.objects:
             objects.fly(self, now)
         for member in self.members.values():
-            if member.next_due > now + 1e-9 or member.parked:
+            if member.next_due > now + 1e-9:
+                continue
+            if member.parked:
+                # No snapshot while parked, but its grid moves on: a due time left
+                # behind would be due for ever (and the room would tick in a loop).
+                member.next_due = self._grid_after(now, member.rate)
                 continue
             lag = now - member.next_due
             self._lag_max = max(self._lag_max, lag)

@@ -164,3 +164,16 @@ async def test_a_cut_connection_resumes_over_real_sockets() -> None:
         assert notices == [PeerStalled, PeerResumed]
         await watcher.close()
         await b.close()
+
+
+def test_a_parked_member_leaves_no_due_tick_behind() -> None:
+    """While a member is parked its grid moves on: the next tick is in the future, so
+    ticking the room ends (it looped for ever) and other rooms go on."""
+    core = RelayCore()
+    a, _, b = pair(core)
+    core.disconnect(a.conn, 1.2)  # dropped: parked
+    core.tick(1.5)
+    due = core.next_deadline()
+    assert due is not None and due > 1.5
+    room = core.rooms[next(iter(core.rooms))]
+    assert all(m.next_due > 1.5 for m in room.members.values())
