@@ -73,6 +73,7 @@ from __future__ import annotations
 
 import heapq
 import logging
+from bisect import bisect_left
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -132,6 +133,10 @@ log = logging.getLogger("posecast.server")
 # Websocket framing of a server frame of 126-65535 bytes (no mask): the link's extra.
 _WS_HEADER = 4
 
+#: Upper bounds (s) of the tick lag histogram's buckets (``posecast_tick_lag_seconds``;
+#: one more bucket, +Inf, holds the rest).
+TICK_LAG_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0)
+
 
 class RelayCore:
     """The relay's state and rules; see the module docstring for the protocol."""
@@ -169,6 +174,10 @@ class RelayCore:
         #: closed for misbehaving (over their budget).
         self.refused_connections = self.join_timeouts = self.misbehaviour_closes = 0
         self._spectators: set[int] = set()  # Join.spectator: publish nothing, unannounced
+        #: Member ticks per lag bucket (``TICK_LAG_BUCKETS``, then +Inf; not cumulative),
+        #: the lag measured from each member's due time, and the sum of those lags (s).
+        self.tick_lag_counts = [0] * (len(TICK_LAG_BUCKETS) + 1)
+        self.tick_lag_sum = 0.0
 
     # -- plumbing ----------------------------------------------------------------
 
@@ -410,14 +419,23 @@ class RelayCore:
         self._schedule(room)
         self.emit(Reschedule())
 
-    def tick(self, now: float) -> list[Action]:
+    def tick(self, now: float, limit: int | None = None) -> list[Action]:
         """Send a snapshot to every due member of every room; flush drop counts.
 
+        ``limit``: tick at most that many rooms (the adapter ticks one room per
+        reading of its clock, so each room's lag and snapshot time are its own).
+        Each due member's lag behind its due time goes into ``tick_lag_counts``.
         A room whose tick fails (a bug) is removed and its members closed with
         1011; the other rooms go on.
         """
-        while (due := self.next_deadline()) is not None and due <= now + 1e-9:
+        ticked = 0
+        while limit is None or ticked < limit:
+            due = self.next_deadline()
+            if due is None or due > now + 1e-9:
+                break
+            ticked += 1
             room = heapq.heappop(self._dues)[2]
+            self._observe_lags(room, now)
             try:
                 room.tick(now)
                 room.flush_drops(now)
@@ -427,6 +445,15 @@ class RelayCore:
             else:
                 self._schedule(room)
         return self._actions()
+
+    def _observe_lags(self, room: Room, now: float) -> None:
+        """Count the lag of every member of ``room`` due at ``now`` (the histogram)."""
+        counts, bounds = self.tick_lag_counts, TICK_LAG_BUCKETS
+        for member in room.members.values():
+            if member.next_due <= now + 1e-9 and not member.parked:
+                lag = max(0.0, now - member.next_due)
+                counts[bisect_left(bounds, lag)] += 1
+                self.tick_lag_sum += lag
 
     def _fail_room(self, room: Room) -> None:
         if self.rooms.get(room.name) is room:
