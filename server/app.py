@@ -1,17 +1,31 @@
-"""The relay's asyncio adapter: sockets, tasks and time around :class:`server.core.RelayCore`.
+"""The relay's asyncio adapter: sockets, timers and time around :class:`server.core.RelayCore`.
 
 Every rule of the relay lives in the sans-I/O core (``server/core.py``: its
 docstring is the protocol); this module only carries out what the core
-decides. Each websocket runs three tasks under one ``TaskGroup``: a reader
-that feeds received frames to the core, a writer that writes what
-:meth:`RelayCore.take` hands out when the core wakes it (``Wake``), and a
-closer that closes the socket when the core says so (``Close``), after the
-queued messages are written. One tick loop, under the server's own
-``TaskGroup``, sleeps until :meth:`RelayCore.next_deadline` and ticks the
-rooms; another sleeps until :meth:`RelayCore.next_expiry` and closes the
+decides, with no task and no Event per connection. Each websocket is one
+:class:`asyncio.Protocol` on the loop's transport (``server/transport.py``,
+websockets' sans-I/O protocol inside): the messages of one read are fed to the
+core in one go, with one clock reading, each event's actions carried out before
+the next event (pose updates cause none). Writes are driven by
+the core: a ``Wake`` is carried out at once (:meth:`RelayCore.take`, then
+``transport.write``), so after a room tick every due subscriber's snapshot is
+written in that same callback; each payload is framed once and the framed
+bytes written to every subscriber that gets the same payload (members of one
+tick group get the very same ``bytes``). While the transport's buffer is full
+(``pause_writing``) nothing is taken: reliable messages wait in the outbox,
+whose bound the core enforces, and the latest-wins snapshot slot keeps the
+newest. An emulated link's delayed frames are written by one timer per
+connection at most. ``Close`` writes the queued messages (the error that
+explains the close) first, waiting at most 0.5 s for a full buffer to drain,
+then starts the closing handshake, bounded by ``close_timeout``, then aborts.
+
+One timer ticks the rooms: each due room is ticked at its own reading of the
+clock (``RelayCore.tick(now, limit=1)``), so its lag and snapshot time are its
+own. One task sleeps until :meth:`RelayCore.next_expiry` and closes the
 connections that have not joined in time. Recordings open and close off the
-event loop. ``GET /healthz`` and ``GET /metrics`` are answered on the websocket
-port (``server/http.py``).
+event loop (a connection whose join opens a recorded room stops reading until
+the room is open). ``GET /healthz`` and ``GET /metrics`` are answered on the
+websocket port (``server/http.py``).
 
 Logging is sized for a server that runs for weeks: plain HTTP requests (health
 probes, metrics scrapes, rejected handshakes) are logged at DEBUG, not at
@@ -28,15 +42,14 @@ import logging
 import ssl
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Coroutine, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
-from websockets.asyncio.server import Server, ServerConnection, serve
-from websockets.exceptions import ConnectionClosed
+from websockets.http11 import Request, Response
 from websockets.protocol import State as WsState
 
-from protocol import UserEvent
+from protocol.events import Event
 from server.core import (
     Action,
     Close,
@@ -51,6 +64,7 @@ from server.core import (
 from server.http import QuietHttpLog, metrics_text, process_request
 from server.logs import LogLimiter
 from server.room import IdAllocator, Outbox, Room
+from server.transport import WebSocketConnection, frame_binary
 
 if TYPE_CHECKING:
     from recorder import RecorderHost, RecordOptions, RoomRecorder
@@ -61,116 +75,224 @@ log = logging.getLogger("posecast.server")
 
 Clock = Callable[[], float]
 
+#: How long a Close waits for a full write buffer to take the queued messages.
+DRAIN_BEFORE_CLOSE = 0.5
+#: An opening handshake not finished this long after the TCP connection is dropped.
+OPEN_TIMEOUT = 10.0
 
-class _Connection:
-    """One websocket and the events its tasks wait on."""
 
-    def __init__(self, server: RelayServer, ws: ServerConnection) -> None:
+class _Connection(WebSocketConnection):
+    """One websocket as the relay runs it: the core's connection ``conn`` on a transport."""
+
+    def __init__(self, server: RelayServer) -> None:
+        cfg = server.config
+        super().__init__(
+            max_size=server.limits.max_frame_size,
+            ping_interval=cfg.ping_interval or None,
+            ping_timeout=cfg.ping_timeout or None,
+            close_timeout=cfg.close_timeout,
+            open_timeout=OPEN_TIMEOUT,
+            logger=server.ws_log,
+        )
         self.server = server
-        self.ws = ws
-        address = ws.remote_address[0] if ws.remote_address else None
-        self.conn = server.core.connect(server.clock(), self._buffered, address)
-        self.peer = server.core.peer(self.conn)
-        self.wake = asyncio.Event()
-        #: Set while no reliable message waits to be written.
-        self.idle = asyncio.Event()
-        self.idle.set()
-        self.must_close = asyncio.Event()
+        self.conn = 0
         self.close_request: tuple[int, str] | None = None
+        self._drain_timer: asyncio.TimerHandle | None = None
+        self._link_timer: asyncio.TimerHandle | None = None
+        self._link_at = 0.0
+        #: Set while a recorded room opens for a join: the reads after it wait here.
+        self._held = False
+        self._backlog: list[bytes | str] = []
 
     @property
     def outbox(self) -> Outbox:
-        return self.peer.outbox
+        return self.server.core.peer(self.conn).outbox
 
     @property
     def user(self) -> int | None:
-        return self.peer.user
-
-    def _buffered(self) -> int:
-        transport = self.ws.transport
-        return 0 if transport is None else int(transport.get_write_buffer_size())
+        return self.server.core.peer(self.conn).user
 
     def statistics(self) -> ConnectionStatistics:
-        return self.peer.statistics()
+        return self.server.core.peer(self.conn).statistics()
 
-    async def read_loop(self) -> None:
+    def _buffered(self) -> int:
+        return int(self.transport.get_write_buffer_size())
+
+    # -- the websocket's hooks ---------------------------------------------------------------
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        super().connection_made(transport)
+        self.server._sockets.add(self)
+        self.server._all_gone.clear()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        for timer in (self._drain_timer, self._link_timer):
+            if timer is not None:
+                timer.cancel()
+        try:
+            super().connection_lost(exc)
+        finally:
+            self.server._socket_gone(self)
+
+    def on_request(self, request: Request) -> Response | None:
+        server = self.server
+        response = server.http(self.protocol, request)
+        if response is None and server._closing:
+            return self.protocol.reject(503, "Service Unavailable: the relay is stopping\n")
+        return response
+
+    def on_open(self) -> None:
+        server, core = self.server, self.server.core
+        peername = self.transport.get_extra_info("peername")
+        address = peername[0] if isinstance(peername, tuple) and peername else None
+        self.conn = core.connect(server.clock(), self._buffered, address)
+        server._conns[self.conn] = self
+        # Refused over a connection limit (a Close), or a join deadline to watch.
+        server.apply(core.pending())
+        server._new_connection.set()
+        if server._stop.is_set():
+            # Its handshake finished after stop() had closed the others. Through the
+            # core, which then handles nothing more it sends (no hello, no join).
+            server.apply(core.close(self.conn, 1001, "going away"))
+
+    def on_messages(self, messages: list[bytes | str]) -> None:
+        if self._held:  # (reading is paused; what was read already waits its turn)
+            self._backlog.extend(messages)
+            return
+        server = self.server
+        if server.config.record_dir is not None:
+            self._consume([], iter(messages))
+            return
+        # No room to open first: each message straight through the core (one event
+        # each, as a rule), its actions carried out before the next one.
+        receive, apply, conn = server.core.receive, server.apply, self.conn
+        now, wall = server.clock(), server.wall_clock()
+        for data in messages:
+            actions = receive(conn, data, now, wall)
+            if actions:
+                apply(actions)
+
+    def on_writable(self) -> None:
+        self.flush()
+        if self.close_request is not None and not self.server.core.events_pending(self.conn):
+            self._close_now()
+
+    def on_end(self) -> None:
+        server = self.server
+        server._conns.pop(self.conn, None)
+        # A close frame from the client is a goodbye; a dropped socket may resume.
+        said_bye = self.protocol.close_rcvd is not None
+        server.apply(server.core.disconnect(self.conn, server.clock(), said_bye))
+
+    # -- reading -----------------------------------------------------------------------------
+
+    def _consume(self, events: list[Event], messages: Iterator[bytes | str]) -> None:
+        """Feed ``events``, then each of ``messages``, to the core, with one clock reading.
+
+        The actions of each event are carried out before the next event: a burst of
+        relayed events in one read must reach the peers' sockets one by one, so that
+        their bounded queues measure how slow *they* are, not how many events this
+        read held (pose updates cause no action: the batch costs nothing for them).
+        A join that opens a recorded room stops here: the room opens off the loop
+        (``_open_then_consume``), and the rest follows in order once it is open.
+        """
         server, core, conn = self.server, self.server.core, self.conn
-        count = 0
-        try:
-            async for data in self.ws:
-                relayed = False
-                for event in core.frame(conn, data):
-                    room = core.room_to_open(conn, event, server.wall_clock())
+        now, wall = server.clock(), server.wall_clock()
+        recording = server.config.record_dir is not None
+        apply = server.apply
+        skip_check = bool(events)  # the held event's room was just opened
+        while True:
+            for i, event in enumerate(events):
+                if recording and not (skip_check and i == 0):
+                    room = core.room_to_open(conn, event, wall)
                     if room is not None:
-                        # A new room's recorder opens off the event loop first.
-                        await server.prepare_room(room)
-                    server.apply(core.handle(conn, event, server.clock(), server.wall_clock()))
-                    relayed = relayed or isinstance(event, UserEvent)
-                count += 1
-                # A peer flooding us must not starve the other connections. After
-                # a relayed event, let the peers' writers drain it before the next
-                # one: their bounded queues must measure how slow *they* are, not
-                # how many events this reader handled in one go.
-                if relayed or count % 32 == 0:
-                    await asyncio.sleep(0)
-        except ConnectionClosed:
-            pass
+                        self._hold(room, events[i:], messages)
+                        return
+                actions = core.handle(conn, event, now, wall)
+                if actions:
+                    apply(actions)
+            skip_check = False
+            data = next(messages, None)
+            if data is None:
+                return
+            events = core.frame(conn, data)
 
-    async def write_loop(self) -> None:
-        server, core, clock = self.server, self.server.core, self.server.clock
-        next_at: float | None = None
-        try:
-            while True:
-                # asyncio.timeout, not wait_for: on 3.11 wait_for can swallow a
-                # cancellation that arrives as the wake-up does, and loop forever.
-                with contextlib.suppress(TimeoutError):
-                    async with asyncio.timeout(None if next_at is None else next_at - clock()):
-                        await self.wake.wait()
-                self.wake.clear()
-                frames, next_at = core.take(self.conn, clock())
-                # The link's rate adaptation may have moved a tick earlier: the tick
-                # loop must hear it now, not at the next action some reader causes.
-                server.apply(core.pending())
-                for data in frames:
-                    await self.ws.send(data)
-                if not core.events_pending(self.conn):
-                    self.idle.set()
-        except ConnectionClosed:
-            pass
+    def _hold(self, room: str, events: list[Event], rest: Iterator[bytes | str]) -> None:
+        self._held = True
+        self._backlog = list(rest)
+        self.transport.pause_reading()
+        self.server.spawn(self._open_then_consume(room, events), f"open:{room}")
 
-    def wake_up(self) -> None:
-        if self.server.core.events_pending(self.conn):
-            self.idle.clear()
-        self.wake.set()
+    async def _open_then_consume(self, room: str, events: list[Event]) -> None:
+        await self.server.prepare_room(room)
+        if self.server._conns.get(self.conn) is not self:
+            return  # it ended meanwhile
+        backlog, self._held = self._backlog, False
+        self._backlog = []
+        self._consume(events, iter(backlog))
+        if not self._held:
+            self.transport.resume_reading()
+
+    # -- writing -----------------------------------------------------------------------------
+
+    def flush(self) -> None:
+        """Write what the core has for this connection now (unless the buffer is full)."""
+        if self.paused or self.protocol.state is not WsState.OPEN:
+            return
+        server = self.server
+        core = server.core
+        frames, next_at = core.take(self.conn, server.clock())
+        if frames:
+            write = self.transport.write
+            for data in frames:
+                # Frame once, write many: the same payload object, the same bytes.
+                if data is server._framed_src:
+                    write(server._framed)
+                else:
+                    framed = frame_binary(data)
+                    server._framed_src, server._framed = data, framed
+                    write(framed)
+        if next_at is not None:
+            self._link_due(next_at)
+        pending = core.pending()
+        if pending:  # the link's rate adaptation may have moved a tick earlier
+            server.apply(pending)
+
+    def _link_due(self, at: float) -> None:
+        """The emulated link delivers its next frame at ``at``: one timer, the earliest."""
+        timer = self._link_timer
+        if timer is not None:
+            if self._link_at <= at:
+                return
+            timer.cancel()
+        self._link_at = at
+        delay = max(0.0, at - self.server.clock())
+        self._link_timer = asyncio.get_running_loop().call_later(delay, self._link_fire)
+
+    def _link_fire(self) -> None:
+        self._link_timer = None
+        self.flush()
+
+    # -- closing -----------------------------------------------------------------------------
 
     def close(self, code: int, reason: str) -> None:
-        if self.close_request is None:
-            self.close_request = (code, reason)
-            self.must_close.set()
+        """Write the queued messages (waiting at most 0.5 s for the buffer), then close."""
+        if self.close_request is not None:
+            return
+        self.close_request = (code, reason)
+        self.flush()
+        if self.server.core.events_pending(self.conn):
+            loop = asyncio.get_running_loop()
+            self._drain_timer = loop.call_later(DRAIN_BEFORE_CLOSE, self._close_now)
+        else:
+            self._close_now()
 
-    async def close_watch(self) -> None:
-        await self.must_close.wait()
+    def _close_now(self) -> None:
+        if self._drain_timer is not None:
+            self._drain_timer.cancel()
+            self._drain_timer = None
         assert self.close_request is not None
-        code, reason = self.close_request
-        # Let queued messages (the error that explains the close) go out first.
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(0.5):
-                await self.idle.wait()
-        await self.close_now(code, reason)
-
-    async def close_now(self, code: int, reason: str) -> None:
-        """Closing handshake, bounded by ``close_timeout``; then drop the TCP connection.
-
-        ``ws.close`` waits for the write buffer to drain before it waits (with a
-        timeout) for the peer's close frame, and a peer that never reads never
-        lets it drain: without this bound its connection would never end.
-        """
-        try:
-            async with asyncio.timeout(self.server.config.close_timeout):
-                await self.ws.close(code, reason)
-        except TimeoutError:
-            log.info("user %s: no closing handshake, dropping the connection", self.user)
-            self.ws.transport.abort()
+        self.start_close(*self.close_request)
 
 
 class RelayServer:
@@ -188,11 +310,21 @@ class RelayServer:
         self.core = RelayCore(self.config)
         self.limits = self.core.limits
         self._conns: dict[int, _Connection] = {}
+        #: Every TCP connection, handshake or not (stop() waits for them all to end).
+        self._sockets: set[_Connection] = set()
+        self._all_gone = asyncio.Event()
+        self._all_gone.set()
         self._tg: asyncio.TaskGroup | None = None
         self._opening: dict[str, asyncio.Task[None]] = {}
-        self._reschedule = asyncio.Event()
         #: Set when a connection opens: its join deadline may be the next expiry.
         self._new_connection = asyncio.Event()
+        self._tick_timer: asyncio.TimerHandle | None = None
+        self._tick_at = 0.0
+        #: Frame once, write many: the last payload framed, and its frame.
+        self._framed_src: bytes | None = None
+        self._framed = b""
+        self.http = process_request(self.core, self.clock)
+        self.ws_log = QuietHttpLog(logging.getLogger("websockets.server"), {})
         # The one writer process every recorded room shares (started with the
         # server, again for the next room after a crash of the previous one).
         self._recorder_host: RecorderHost | None = None
@@ -201,7 +333,8 @@ class RelayServer:
         #: Finished recordings, in the order they closed.
         self.recordings: list[Path] = []
         self._stop = asyncio.Event()
-        self._ws_server: Server | None = None
+        #: Set once stop() has begun: handshakes from then on get a 503.
+        self._closing = False
         self.ready = asyncio.Event()
         self.port: int | None = None
 
@@ -233,44 +366,76 @@ class RelayServer:
     # -- carrying out the core's decisions ------------------------------------------------
 
     def apply(self, actions: list[Action]) -> None:
+        conns = self._conns
         for action in actions:
-            if isinstance(action, Wake):
-                conn = self._conns.get(action.conn)
+            if type(action) is Wake:
+                conn = conns.get(action.conn)
                 if conn is not None:
-                    conn.wake_up()
+                    conn.flush()
             elif isinstance(action, Close):
-                conn = self._conns.get(action.conn)
+                conn = conns.get(action.conn)
                 if conn is not None:
                     conn.close(action.code, action.reason)
             elif isinstance(action, Reschedule):
-                self._reschedule.set()
+                self._arm_ticks()
             elif isinstance(action, Rearm):
                 self._new_connection.set()
             elif isinstance(action, FinishRecording):
-                assert self._tg is not None
-                self._tg.create_task(
-                    self._close_recorder(action.room, action.recorder),
-                    name=f"close:{action.room}",
+                self.spawn(
+                    self._close_recorder(action.room, action.recorder), f"close:{action.room}"
                 )
 
-    async def _tick_loop(self) -> None:
-        """Tick the rooms at every due time; sleep until the next one or a change."""
-        await self._deadline_loop(self.core.next_deadline, self.core.tick, self._reschedule)
+    def spawn(self, job: Coroutine[Any, Any, None], name: str) -> None:
+        """Run ``job`` under the server's task group."""
+        try:
+            assert self._tg is not None
+            self._tg.create_task(job, name=name)
+        except (AssertionError, RuntimeError):
+            # Only after run() was cancelled: a connection aborted then ended late.
+            job.close()
+            log.warning("server stopped: %s not run", name)
+
+    # -- ticks: one timer, each due room at its own clock reading ---------------------------
+
+    def _arm_ticks(self) -> None:
+        """Have the tick timer fire at the earliest due tick (None due: no timer)."""
+        due = self.core.next_deadline()
+        timer = self._tick_timer
+        if timer is not None:
+            if due is not None and self._tick_at <= due:
+                return  # it fires no later; it re-arms for what is due then
+            timer.cancel()
+            self._tick_timer = None
+        if due is None:
+            return
+        self._tick_at = due
+        delay = max(0.0, due - self.clock())
+        self._tick_timer = asyncio.get_running_loop().call_later(delay, self._on_tick)
+
+    def _on_tick(self) -> None:
+        """Tick every due room, one at a time, each with a fresh reading of the clock;
+        the due subscribers' snapshots are written as each room's actions are applied."""
+        self._tick_timer = None
+        core, clock = self.core, self.clock
+        # At most one pass over the rooms per callback: other callbacks (reads) get the
+        # loop between passes even when every room is overdue.
+        budget = len(core.rooms) + 1
+        try:
+            while budget > 0 and (due := core.next_deadline()) is not None:
+                now = clock()
+                if due > now + 1e-9:
+                    break
+                budget -= 1
+                self.apply(core.tick(now, limit=1))
+        finally:
+            self._arm_ticks()
 
     async def _expiry_loop(self) -> None:
         """Close connections that have not joined in time (``join_timeout``), or whose
         access token expired."""
-        await self._deadline_loop(self.core.next_expiry, self.core.expire, self._new_connection)
-
-    async def _deadline_loop(
-        self,
-        next_due: Callable[[], float | None],
-        run: Callable[[float], list[Action]],
-        changed: asyncio.Event,
-    ) -> None:
-        """Call ``run(now)`` at every time ``next_due()`` names; ``changed`` wakes early."""
+        changed = self._new_connection
         while True:
-            due = next_due()
+            due = self.core.next_expiry()
             now = self.clock()
             if due is None or due > now:
                 changed.clear()
@@ -279,7 +444,7 @@ class RelayServer:
                     async with asyncio.timeout(None if due is None else due - now):
                         await changed.wait()
                 continue
-            self.apply(run(now))
+            self.apply(self.core.expire(now))
             await asyncio.sleep(0)
 
     # -- rooms and recordings --------------------------------------------------------------
@@ -291,7 +456,7 @@ class RelayServer:
         pending = self._opening.get(name)
         if pending is None:
             assert self._tg is not None
-            pending = self._tg.create_task(self._open_room(name), name=f"open:{name}")
+            pending = self._tg.create_task(self._open_room(name), name=f"opening:{name}")
             self._opening[name] = pending
         await asyncio.shield(pending)
 
@@ -361,32 +526,10 @@ class RelayServer:
         except Exception:
             log.exception("recording of room %r did not finish cleanly", name)
 
-    async def _handler(self, ws: ServerConnection) -> None:
-        conn = _Connection(self, ws)
-        self._conns[conn.conn] = conn
-        # Refused over a connection limit (a Close), or a join deadline to watch.
-        self.apply(self.core.pending())
-        self._new_connection.set()
-        if self._stop.is_set():
-            # Its handshake finished after stop() had closed the others. Through the
-            # core, which then handles nothing more it sends (no hello, no join).
-            self.apply(self.core.close(conn.conn, 1001, "going away"))
-        try:
-            async with asyncio.TaskGroup() as tg:
-                writer = tg.create_task(conn.write_loop())
-                closer = tg.create_task(conn.close_watch())
-                await conn.read_loop()
-                writer.cancel()
-                closer.cancel()
-        finally:
-            self._conns.pop(conn.conn, None)
-            # A close frame from the client is a goodbye; a dropped socket may resume.
-            said_bye = getattr(ws.protocol, "close_rcvd", None) is not None
-            self.apply(self.core.disconnect(conn.conn, self.clock(), said_bye))
-            if ws.state is WsState.OPEN:
-                # Only after a bug (the reader ended without the socket closing):
-                # websockets would close without a bound, so close here.
-                await conn.close_now(1011, "internal-error")
+    def _socket_gone(self, conn: _Connection) -> None:
+        self._sockets.discard(conn)
+        if not self._sockets:
+            self._all_gone.set()
 
     # -- lifecycle ---------------------------------------------------------------------
 
@@ -448,41 +591,44 @@ class RelayServer:
         try:
             async with asyncio.TaskGroup() as tg:
                 self._tg = tg
-                ticker = tg.create_task(self._tick_loop(), name="ticks")
                 expiry = tg.create_task(self._expiry_loop(), name="join-deadlines")
-                async with serve(
-                    self._handler,
-                    cfg.host,
-                    cfg.port,
-                    process_request=process_request(self.core, self.clock),
-                    logger=QuietHttpLog(logging.getLogger("websockets.server"), {}),
-                    max_size=self.limits.max_frame_size,
-                    close_timeout=cfg.close_timeout,
-                    compression=None,
-                    ssl=self._tls_context(),
-                    ping_interval=cfg.ping_interval or None,
-                    ping_timeout=cfg.ping_timeout or None,
-                ) as ws_server:
-                    self._ws_server = ws_server
-                    sock = next(iter(ws_server.sockets))
-                    self.port = int(sock.getsockname()[1])
-                    self.ready.set()
-                    await self._stop.wait()
-                    log.info("stopping: closing %d connections", len(self._conns))
-                    # Every connection closes through its own bounded path (see
-                    # _Connection.close_now); websockets' own close could wait forever
-                    # on a peer that does not read. Handshakes from now on get a 503.
-                    ws_server.close(close_connections=False)
-                    for conn in list(self._conns.values()):
-                        self.apply(self.core.close(conn.conn, 1001, "going away"))
-                    await ws_server.wait_closed()
-                ticker.cancel()
+                await self._serve()
                 expiry.cancel()
+                if self._tick_timer is not None:
+                    self._tick_timer.cancel()
+                    self._tick_timer = None
                 self.apply(self.core.close_rooms(self.clock()))
         finally:
             # Every room's recording is finished (the task group waited for them);
             # after a failure, rooms still open keep their .part files for recovery.
             await self._close_hosts()
+
+    async def _serve(self) -> None:
+        """Listen until stop(); then close every connection and wait for them to end."""
+        cfg = self.config
+        loop = asyncio.get_running_loop()
+        listener = await loop.create_server(
+            lambda: _Connection(self), cfg.host, cfg.port, ssl=self._tls_context()
+        )
+        try:
+            self.port = int(listener.sockets[0].getsockname()[1])
+            self.ready.set()
+            await self._stop.wait()
+            log.info("stopping: closing %d connections", len(self._conns))
+            # Every connection closes through its own bounded path (_Connection.close:
+            # 0.5 s for the queued messages, then close_timeout for the handshake).
+            self._closing = True  # handshakes from now on get a 503
+            listener.close()
+            for conn in list(self._conns.values()):
+                self.apply(self.core.close(conn.conn, 1001, "going away"))
+            for conn in list(self._sockets):
+                if not conn.is_open:  # no websocket yet (a handshake, a plain HTTP answer)
+                    conn.abort()
+            await self._all_gone.wait()
+        finally:
+            listener.close()
+            for conn in list(self._sockets):
+                conn.abort()
 
     # -- statistics ----------------------------------------------------------------------
 

@@ -1,8 +1,11 @@
 """The relay's HTTP side: ``GET /healthz``, ``GET /metrics`` (Prometheus text), quiet logs.
 
-Both answer on the websocket port (websockets' ``process_request``); any other
-path goes on to the websocket handshake. Plain HTTP requests are logged at
-DEBUG, not at websockets' INFO, so that a scraper every 15 s fills no log.
+Both answer on the websocket port, before the opening handshake
+(:func:`process_request`, called by the adapter with websockets' sans-I/O
+``ServerProtocol`` and the parsed request); any other path goes on to the
+websocket handshake, and a plain HTTP request that asks for no upgrade gets
+426. Plain HTTP requests are logged at DEBUG, not at websockets' INFO, so that
+a scraper every 15 s fills no log.
 """
 
 from __future__ import annotations
@@ -13,35 +16,35 @@ from collections.abc import Callable
 from http import HTTPStatus
 from typing import Any
 
-from websockets.asyncio.server import ServerConnection
 from websockets.http11 import Request, Response
+from websockets.server import ServerProtocol
 
-from server.core import RelayCore
+from server.core import TICK_LAG_BUCKETS, RelayCore
 
 __all__ = ["QuietHttpLog", "metrics_text", "process_request"]
 
 
 def process_request(
     core: RelayCore, clock: Callable[[], float] | None = None
-) -> Callable[[ServerConnection, Request], Response | None]:
-    """websockets' ``process_request`` hook answering /healthz and /metrics from ``core``
-    (``clock``: the core's, for the tick overdue gauge)."""
+) -> Callable[[ServerProtocol, Request], Response | None]:
+    """The hook answering /healthz and /metrics from ``core`` before the handshake
+    (``clock``: the core's, for the tick overdue gauge); None: go on to the handshake."""
 
-    def respond(connection: ServerConnection, request: Request) -> Response | None:
+    def respond(protocol: ServerProtocol, request: Request) -> Response | None:
         path = request.path.split("?", 1)[0]
         if path == "/healthz":
-            return connection.respond(HTTPStatus.OK, "ok\n")
+            return protocol.reject(HTTPStatus.OK, "ok\n")
         if path == "/metrics":
             now = None if clock is None else clock()
-            response = connection.respond(HTTPStatus.OK, metrics_text(core, now))
+            response = protocol.reject(HTTPStatus.OK, metrics_text(core, now))
             # Same headers as /healthz (Date, Connection: close), Prometheus' type.
             del response.headers["Content-Type"]
             response.headers["Content-Type"] = "text/plain; version=0.0.4; charset=utf-8"
             return response
         if "upgrade" not in request.headers.get("Connection", "").lower():
             # A browser or a probe, not a websocket client: answer plainly here
-            # (websockets < 17 would log the failed handshake as an error).
-            return connection.respond(
+            # (websockets' handshake would log the failed handshake as an error).
+            return protocol.reject(
                 HTTPStatus.UPGRADE_REQUIRED,
                 "posecast relay: connect with a websocket client; GET /healthz, /metrics\n",
             )
@@ -145,6 +148,18 @@ def metrics_text(core: RelayCore, now: float | None = None) -> str:
         total("protocol_errors"),
     )
     _limit_metrics(core, metric, total)
+    _room_metrics(core, metric)
+    _tick_lag_histogram(core, lines)
+    if now is not None:
+        _overdue_metric(core, metric, now)
+    return "\n".join(lines) + "\n"
+
+
+Metric = Callable[[str, str, str, list[tuple[str, float]]], None]
+
+
+def _room_metrics(core: RelayCore, metric: Metric) -> None:
+    """Members, poses sent and the largest tick lag of each room."""
     rooms = [r.statistics() for r in core.rooms.values()]
     metric(
         "posecast_room_members",
@@ -164,12 +179,23 @@ def metrics_text(core: RelayCore, now: float | None = None) -> str:
         "Largest delay of a room tick behind its due time, since the room was created.",
         [(f'{{room="{_label(r.name)}"}}', r.tick_lag_max_ms) for r in rooms],
     )
-    if now is not None:
-        _overdue_metric(core, metric, now)
-    return "\n".join(lines) + "\n"
 
 
-Metric = Callable[[str, str, str, list[tuple[str, float]]], None]
+def _tick_lag_histogram(core: RelayCore, lines: list[str]) -> None:
+    """``posecast_tick_lag_seconds``: every member tick's lag behind its due time."""
+    name = "posecast_tick_lag_seconds"
+    lines.append(
+        f"# HELP {name} Delay of each member's snapshot tick behind its due time "
+        "(one observation per member tick, each room ticked at its own clock reading)."
+    )
+    lines.append(f"# TYPE {name} histogram")
+    cumulative = 0
+    for bound, count in zip((*TICK_LAG_BUCKETS, math.inf), core.tick_lag_counts, strict=True):
+        cumulative += count
+        le = "+Inf" if math.isinf(bound) else f"{bound:g}"
+        lines.append(f'{name}_bucket{{le="{le}"}} {cumulative}')
+    lines.append(f"{name}_sum {_number(core.tick_lag_sum)}")
+    lines.append(f"{name}_count {cumulative}")
 
 
 def _overdue_metric(core: RelayCore, metric: Metric, now: float) -> None:

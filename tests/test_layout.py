@@ -112,6 +112,7 @@ def test_server_holds_only_the_relay() -> None:
         "logs.py",
         "app.py",
         "http.py",
+        "transport.py",
     }
     assert modules == relay
 

@@ -55,10 +55,13 @@ def parse_metrics(text: str) -> dict[str, dict[str, float]]:
             continue
         if line.startswith("# TYPE "):
             _, _, name, kind = line.split(" ")
-            assert kind in ("counter", "gauge"), line
+            assert kind in ("counter", "gauge", "histogram"), line
             if kind == "counter":
                 assert name.endswith("_total"), line
-            typed.add(name)
+            if kind == "histogram":
+                typed.update(name + part for part in ("_bucket", "_sum", "_count"))
+            else:
+                typed.add(name)
             continue
         m = SAMPLE.match(line)
         assert m is not None, f"not a sample line: {line!r}"

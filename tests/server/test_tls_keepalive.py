@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trustme
+import uvloop
 from relaykit import settle
 from support import running_server
 from typer.testing import CliRunner
@@ -121,3 +122,13 @@ async def test_a_peer_that_stops_answering_pings_is_closed_alone() -> None:
         assert alive.session.user in room.members and frozen.session.user not in room.members
         await alive.ws.close()
         frozen.ws.transport.abort()
+
+
+def test_wss_on_uvloop_relays_poses(pki: tuple[Path, Path, Path]) -> None:
+    """`posecast serve` runs on uvloop: its TLS transports carry the relay too."""
+
+    async def scenario() -> Snapshot:
+        async with running_server(_config(pki)) as srv:
+            return await _relay_once(f"wss://127.0.0.1:{srv.port}", Tls(cafile=str(pki[0])))
+
+    assert len(uvloop.run(scenario()).entries) == 3

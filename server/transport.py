@@ -1,0 +1,289 @@
+"""One websocket on the event loop's transport: an ``asyncio.Protocol``, no task, no Event.
+
+:class:`WebSocketConnection` carries websockets' sans-I/O
+:class:`~websockets.server.ServerProtocol` (opening handshake, frame parsing,
+the message size limit -> 1009, ping/pong, the closing handshake) on the
+transport the loop hands it: received bytes go to the protocol, the messages
+it parses go to :meth:`~WebSocketConnection.on_messages` in one batch per read,
+what it has to send is written at once. Writes of data frames bypass it:
+:func:`frame_binary` frames a payload once (a server's frames are unmasked,
+so the same bytes serve every subscriber of one snapshot) and
+:meth:`~WebSocketConnection.write` hands them to the transport.
+
+Time here is the loop's timers only (``call_later``): the opening handshake
+must end within ``open_timeout``; a keepalive ping goes out every
+``ping_interval`` and a pong must answer within ``ping_timeout`` (else 1011
+"keepalive ping timeout", as websockets does); once a close is expected (a
+close frame sent or received, a refused handshake) the TCP connection is
+aborted if it has not ended within ``close_timeout``. The relay's rules are
+the subclass's (``server/app.py``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import struct
+from typing import Any, cast
+
+from websockets.frames import Frame, Opcode
+from websockets.http11 import Request, Response
+from websockets.protocol import State
+from websockets.server import ServerProtocol
+
+__all__ = ["WRITE_HIGH_WATER", "WebSocketConnection", "frame_binary"]
+
+log = logging.getLogger("posecast.server")
+
+#: The transport pauses our writes above this many unsent bytes (websockets' own
+#: default ``write_limit``); it resumes them below a quarter of it.
+WRITE_HIGH_WATER = 32 * 1024
+
+_HEAD16 = struct.Struct("!BBH")
+_HEAD64 = struct.Struct("!BBQ")
+_PING = struct.Struct("!I")
+
+
+def frame_binary(payload: bytes) -> bytes:
+    """A complete unmasked binary websocket frame (FIN set) carrying ``payload``."""
+    n = len(payload)
+    if n < 126:
+        return bytes((0x82, n)) + payload
+    if n < 65536:
+        return _HEAD16.pack(0x82, 126, n) + payload
+    return _HEAD64.pack(0x82, 127, n) + payload
+
+
+class WebSocketConnection(asyncio.Protocol):
+    """A server websocket on a transport; subclasses implement the ``on_*`` hooks."""
+
+    def __init__(
+        self,
+        *,
+        max_size: int | None,
+        ping_interval: float | None,
+        ping_timeout: float | None,
+        close_timeout: float,
+        open_timeout: float,
+        logger: Any,
+    ) -> None:
+        self.protocol = ServerProtocol(max_size=max_size, logger=logger)
+        self.transport: asyncio.Transport = None  # type: ignore[assignment]
+        self.ping_interval = ping_interval
+        self.ping_timeout = ping_timeout
+        self.close_timeout = close_timeout
+        self.open_timeout = open_timeout
+        #: Set while the transport asks us to stop writing (its buffer is full).
+        self.paused = False
+        #: The handshake succeeded and on_open ran (on_end runs once, if so).
+        self.is_open = False
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._open_timer: asyncio.TimerHandle | None = None
+        self._ping_timer: asyncio.TimerHandle | None = None
+        self._pong_timer: asyncio.TimerHandle | None = None
+        self._abort_timer: asyncio.TimerHandle | None = None
+        self._ping_seq = 0
+        self._ping_data = b""
+        #: The parts of a fragmented message so far (None: not inside one).
+        self._parts: list[bytes] | None = None
+        self._text = False
+        self._lost = False
+
+    # -- hooks ---------------------------------------------------------------------------
+
+    def on_request(self, request: Request) -> Response | None:
+        """Answer ``request`` without a handshake (plain HTTP), or None to accept it."""
+        return None
+
+    def on_open(self) -> None:
+        """The opening handshake succeeded."""
+
+    def on_messages(self, messages: list[bytes | str]) -> None:
+        """Complete messages that arrived in one read, in order."""
+
+    def on_writable(self) -> None:
+        """The transport takes writes again (after a pause)."""
+
+    def on_end(self) -> None:
+        """The connection has ended (only after :meth:`on_open`)."""
+
+    # -- what the relay calls ----------------------------------------------------------------
+
+    @property
+    def ws(self) -> WebSocketConnection:
+        """This connection (where the websockets adapter had its connection object)."""
+        return self
+
+    @property
+    def state(self) -> State:
+        return self.protocol.state
+
+    def write(self, framed: bytes) -> None:
+        """Hand a framed message (:func:`frame_binary`) to the transport."""
+        self.transport.write(framed)
+
+    def start_close(self, code: int, reason: str) -> None:
+        """Send a close frame; the connection ends when the peer answers, or is
+        dropped ``close_timeout`` later."""
+        if self.protocol.state is State.OPEN:
+            self.protocol.send_close(code, reason)
+            self._send_pending()
+
+    def abort(self) -> None:
+        """Drop the TCP connection now."""
+        if self.transport is not None:
+            self.transport.abort()
+
+    # -- asyncio.Protocol ----------------------------------------------------------------
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        # (uvloop's transports quack like asyncio.Transport without deriving from it)
+        self.transport = cast(asyncio.Transport, transport)
+        self.transport.set_write_buffer_limits(high=WRITE_HIGH_WATER)
+        self._loop = asyncio.get_running_loop()
+        self._open_timer = self._loop.call_later(self.open_timeout, self._open_expired)
+
+    def data_received(self, data: bytes) -> None:
+        protocol = self.protocol
+        protocol.receive_data(data)
+        events = protocol.events_received()
+        messages: list[bytes | str] = []
+        for event in events:
+            if isinstance(event, Frame):
+                self._frame(event, messages)
+            elif isinstance(event, Request):
+                self._handshake(event)
+        self._send_pending()
+        if messages and self.is_open and not self._lost:
+            # (also those read with the peer's close frame: they came before it)
+            try:
+                self.on_messages(messages)
+            except Exception:
+                # A bug, not the peer's doing: this connection ends (1011), the others go on.
+                log.exception("handling a read failed; closing the connection")
+                if protocol.state is State.OPEN:
+                    protocol.fail(1011, "internal-error")
+                    self._send_pending()
+
+    def eof_received(self) -> bool | None:
+        self.protocol.receive_eof()
+        self._send_pending()
+        return None  # the transport closes itself
+
+    def pause_writing(self) -> None:
+        self.paused = True
+
+    def resume_writing(self) -> None:
+        self.paused = False
+        if self.is_open and not self._lost:
+            self.on_writable()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._lost = True
+        self.protocol.receive_eof()  # the protocol's state becomes CLOSED
+        for timer in (self._open_timer, self._ping_timer, self._pong_timer, self._abort_timer):
+            if timer is not None:
+                timer.cancel()
+        if self.is_open:
+            self.on_end()
+
+    # -- the protocol's work ---------------------------------------------------------------
+
+    def _frame(self, frame: Frame, messages: list[bytes | str]) -> None:
+        opcode = frame.opcode
+        if opcode is Opcode.BINARY or opcode is Opcode.TEXT:
+            if frame.fin:
+                self._message(bytes(frame.data), opcode is Opcode.TEXT, messages)
+            else:
+                self._parts, self._text = [bytes(frame.data)], opcode is Opcode.TEXT
+        elif opcode is Opcode.CONT:
+            if self._parts is not None:  # (the protocol refuses a stray continuation)
+                self._parts.append(bytes(frame.data))
+                if frame.fin:
+                    data, self._parts = b"".join(self._parts), None
+                    self._message(data, self._text, messages)
+        elif (
+            opcode is Opcode.PONG and frame.data == self._ping_data and self._pong_timer is not None
+        ):
+            self._pong_timer.cancel()
+            self._pong_timer = None
+            self._schedule_ping()
+
+    def _message(self, data: bytes, text: bool, messages: list[bytes | str]) -> None:
+        if not text:
+            messages.append(data)
+            return
+        try:
+            messages.append(data.decode())
+        except UnicodeDecodeError as exc:
+            # As websockets' own connection does: 1007, the rest of the read discarded.
+            self.protocol.fail(1007, f"{exc.reason} at position {exc.start}")
+
+    def _handshake(self, request: Request) -> None:
+        protocol = self.protocol
+        response = self.on_request(request)
+        if response is None:
+            response = protocol.accept(request)
+        protocol.send_response(response)
+        if protocol.state is State.OPEN:
+            if self._open_timer is not None:
+                self._open_timer.cancel()
+                self._open_timer = None
+            self.is_open = True
+            self._schedule_ping()
+            self.on_open()
+
+    def _send_pending(self) -> None:
+        """Write what the protocol has to send (an empty chunk: half-close); arm the
+        abort timer once the protocol expects the TCP connection to end."""
+        protocol, transport = self.protocol, self.transport
+        for data in protocol.data_to_send():
+            if self._lost:
+                break
+            if data:
+                transport.write(data)
+            elif transport.can_write_eof():
+                transport.write_eof()
+            else:
+                transport.close()  # TLS: no half-close
+        if self._abort_timer is None and not self._lost and protocol.close_expected():
+            assert self._loop is not None
+            self._abort_timer = self._loop.call_later(self.close_timeout, self._close_expired)
+
+    def _open_expired(self) -> None:
+        self._open_timer = None
+        if not self.is_open:
+            self.abort()
+
+    def _close_expired(self) -> None:
+        self._abort_timer = None
+        if not self._lost:
+            log.info(
+                "no closing handshake within %g s, dropping the connection", self.close_timeout
+            )
+            self.abort()
+
+    def _schedule_ping(self) -> None:
+        if self.ping_interval and self._loop is not None and not self._lost:
+            self._ping_timer = self._loop.call_later(self.ping_interval, self._ping)
+
+    def _ping(self) -> None:
+        self._ping_timer = None
+        if self.protocol.state is not State.OPEN or self._lost:
+            return
+        self._ping_seq += 1
+        self._ping_data = _PING.pack(self._ping_seq & 0xFFFFFFFF)
+        self.protocol.send_ping(self._ping_data)
+        self._send_pending()
+        if self.ping_timeout:
+            assert self._loop is not None
+            self._pong_timer = self._loop.call_later(self.ping_timeout, self._pong_missing)
+        else:
+            self._schedule_ping()
+
+    def _pong_missing(self) -> None:
+        self._pong_timer = None
+        if self.protocol.state is State.OPEN and not self._lost:
+            self.protocol.logger.debug("- timed out waiting for keepalive pong")
+            self.protocol.fail(1011, "keepalive ping timeout")
+            self._send_pending()
