@@ -217,3 +217,20 @@ def test_rendered_flight_follows_the_ballistic_path(scene: dict[str, BotReport])
     assert checked > 20, checked
     # The bound is reached mid-interval: a render far inside it would not be LERP.
     assert worst > 0.5, worst
+
+
+def test_the_drill_has_no_jump_across_its_handovers(scene: dict[str, BotReport]) -> None:
+    """Across every change of owner (throw, catch, hand-back, grab) the watcher's drill
+    keyframes keep increasing in time, and no step between two of them is longer
+    than the drill can move in that time: a new owner's clock offset never sends
+    the stream back in time or makes it jump."""
+    _, rs = _drill(scene["watcher"])
+    s = scene_script(0)
+    caps = np.asarray(rs.capture)
+    poses = np.asarray(rs.poses)[:, :3]
+    assert caps.size > 30 and bool(np.all(np.diff(caps) > 0))
+    speeds = np.linalg.norm(np.diff(s.drill[:, :3], axis=0), axis=1) * 90.0  # 90 Hz truth
+    v_max = max(float(speeds.max()), float(np.linalg.norm(s.velocity)) + GRAVITY * s.catch)
+    steps = np.linalg.norm(np.diff(poses, axis=0), axis=1)
+    allowed = v_max * np.diff(caps) + 0.005  # + the wire's rounding of both poses
+    assert bool(np.all(steps <= allowed)), float(np.max(steps - allowed))
