@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 from enum import StrEnum
 from pathlib import Path
@@ -343,8 +344,6 @@ def serve(
     recording of pose updates and SIGUSR2 resumes it (each pause is written
     into the files as a drops record).
     """
-    import logging
-
     from server.app import ServerConfig
 
     _check_serve_args(port, rate, min_rate, max_rate, record, record_writer, log_level)
