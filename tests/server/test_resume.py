@@ -170,7 +170,7 @@ def test_a_parked_member_leaves_no_due_tick_behind() -> None:
     """While a member is parked its grid moves on: the next tick is in the future, so
     ticking the room ends (it looped for ever) and other rooms go on."""
     core = RelayCore()
-    a, _, b = pair(core)
+    a, _, _ = pair(core)
     core.disconnect(a.conn, 1.2)  # dropped: parked
     core.tick(1.5)
     due = core.next_deadline()
