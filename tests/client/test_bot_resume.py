@@ -48,7 +48,9 @@ async def _session() -> tuple[_Bot, _Bot, list[type]]:
 def test_a_cut_bot_resumes_as_the_same_user_and_its_peer_sees_it_again() -> None:
     cut, peer, notices = asyncio.run(_session())
     assert len(cut.resumed_at) == 1
-    assert notices == [PeerStalled, PeerResumed]  # never peer_left
+    # Never peer_left for the cut; one may close the list when the bots' sessions end
+    # (both stop at 6 s, and whichever stops first says goodbye).
+    assert notices in ([PeerStalled, PeerResumed], [PeerStalled, PeerResumed, PeerLeft])
     mine = [rs for (user, _sid), rs in peer.remote.items() if user == cut.conn.user]  # type: ignore[union-attr]
     assert len(mine) == 3
     back = cut.resumed_at[0]
