@@ -177,10 +177,15 @@ class Directory:
         return directory
 
     async def close(self) -> None:
-        """Give up this node's leases (its rooms are free at once) and disconnect."""
+        """Give up this node's leases (its rooms are free at once) and disconnect; each
+        step bounded by ``lease`` (what is not given up runs out by itself)."""
         for key in list(self.held):
             await self._drop(key)
-        await self.nc.close()
+        try:
+            async with asyncio.timeout(self.lease):
+                await self.nc.close()
+        except TimeoutError:
+            log.warning("cluster: NATS connection did not close in %g s", self.lease)
 
     # -- leases ----------------------------------------------------------------------
 
@@ -225,7 +230,8 @@ class Directory:
         lease = self.held.pop(key, None)
         if lease is not None:
             try:
-                await self.kv.delete(key, last=lease.revision)
+                async with asyncio.timeout(self.lease):
+                    await self.kv.delete(key, last=lease.revision)
             except Exception:  # someone else holds it now, or NATS is gone: it expires
                 log.debug("lease %s not deleted; it runs out", key)
 
@@ -249,12 +255,19 @@ class Directory:
 
     async def keep_alive(self) -> None:
         """Renew the leases three times a lease, for ever (run it under a TaskGroup)."""
-        while True:
+        # nats-py waits for replies with asyncio.wait_for, which on 3.11 can swallow a
+        # cancellation that arrives with the reply (or turn it into its own error):
+        # a cancelled keeper must stop all the same, not renew for ever.
+        task = asyncio.current_task()
+        while task is None or not task.cancelling():
             await asyncio.sleep(self.lease / 3)
             try:
                 await self.renew()
             except Exception as exc:  # NATS away: keep serving, retry next round
+                if task is not None and task.cancelling():
+                    break
                 log.warning("cluster: cannot renew leases (%s); retrying", exc)
+        raise asyncio.CancelledError
 
     # -- nodes --------------------------------------------------------------------------
 

@@ -59,13 +59,14 @@ async def test_first_claim_owns_the_room_and_release_frees_it(nats_url: str) -> 
 
 
 async def test_renewed_leases_outlive_their_ttl(nats_url: str) -> None:
-    a = await Directory.open(nats_url, "a", lease=1.0)
-    b = await Directory.open(nats_url, "b", lease=1.0)
+    # A lease of 2 s: renewals every 0.67 s hold it even on a loaded machine.
+    a = await Directory.open(nats_url, "a", lease=2.0)
+    b = await Directory.open(nats_url, "b", lease=2.0)
     try:
         assert await a.claim("r") == "a"
-        async with asyncio.TaskGroup() as tg:
+        async with asyncio.timeout(60), asyncio.TaskGroup() as tg:
             keeper = tg.create_task(a.keep_alive())
-            for _ in range(6):  # three lease times, renewed every third of one
+            for _ in range(12):  # three lease times, renewed every third of one
                 await asyncio.sleep(0.5)
                 assert await b.claim("r") == "a"
             keeper.cancel()
