@@ -73,7 +73,6 @@ from __future__ import annotations
 
 import heapq
 import logging
-from bisect import bisect_left
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -109,13 +108,14 @@ from server.auth import token_permits
 from server.config import ServerConfig
 from server.limits import Admission, Deadlines, normalise_room, room_refusal, update_refusal
 from server.peer import COUNTERS, ConnectionStatistics, Peer
-from server.room import IdAllocator, Member, Room, room_phase
+from server.room import TICK_LAG_BUCKETS, IdAllocator, LagHistogram, Member, Room, room_phase
 
 if TYPE_CHECKING:
     from recorder import RoomRecorder
 
 __all__ = [
     "COUNTERS",
+    "TICK_LAG_BUCKETS",
     "Action",
     "Close",
     "ConnectionStatistics",
@@ -132,10 +132,6 @@ log = logging.getLogger("posecast.server")
 
 # Websocket framing of a server frame of 126-65535 bytes (no mask): the link's extra.
 _WS_HEADER = 4
-
-#: Upper bounds (s) of the tick lag histogram's buckets (``posecast_tick_lag_seconds``;
-#: one more bucket, +Inf, holds the rest).
-TICK_LAG_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0)
 
 
 class RelayCore:
@@ -174,10 +170,18 @@ class RelayCore:
         #: closed for misbehaving (over their budget).
         self.refused_connections = self.join_timeouts = self.misbehaviour_closes = 0
         self._spectators: set[int] = set()  # Join.spectator: publish nothing, unannounced
-        #: Member ticks per lag bucket (``TICK_LAG_BUCKETS``, then +Inf; not cumulative),
-        #: the lag measured from each member's due time, and the sum of those lags (s).
-        self.tick_lag_counts = [0] * (len(TICK_LAG_BUCKETS) + 1)
-        self.tick_lag_sum = 0.0
+        #: Every room's member ticks by lag (``posecast_tick_lag_seconds``).
+        self.tick_lags = LagHistogram()
+
+    @property
+    def tick_lag_counts(self) -> list[int]:
+        """Member ticks per lag bucket (``TICK_LAG_BUCKETS``, then +Inf)."""
+        return self.tick_lags.counts
+
+    @property
+    def tick_lag_sum(self) -> float:
+        """The sum of those lags (s)."""
+        return self.tick_lags.total
 
     # -- plumbing ----------------------------------------------------------------
 
@@ -394,7 +398,9 @@ class RelayCore:
     def _room_for(self, name: str) -> Room:
         room = self.rooms.get(name)
         if room is None:
-            room = self.rooms[name] = Room(name, phase=room_phase(name), volume=self.volume)
+            room = self.rooms[name] = Room(
+                name, phase=room_phase(name), volume=self.volume, lags=self.tick_lags
+            )
             log.info("room %r created", name)
         return room
 
@@ -424,7 +430,7 @@ class RelayCore:
 
         ``limit``: tick at most that many rooms (the adapter ticks one room per
         reading of its clock, so each room's lag and snapshot time are its own).
-        Each due member's lag behind its due time goes into ``tick_lag_counts``.
+        Each due member's lag behind its due time goes into ``tick_lags``.
         A room whose tick fails (a bug) is removed and its members closed with
         1011; the other rooms go on.
         """
@@ -435,7 +441,6 @@ class RelayCore:
                 break
             ticked += 1
             room = heapq.heappop(self._dues)[2]
-            self._observe_lags(room, now)
             try:
                 room.tick(now)
                 room.flush_drops(now)
@@ -445,15 +450,6 @@ class RelayCore:
             else:
                 self._schedule(room)
         return self._actions()
-
-    def _observe_lags(self, room: Room, now: float) -> None:
-        """Count the lag of every member of ``room`` due at ``now`` (the histogram)."""
-        counts, bounds = self.tick_lag_counts, TICK_LAG_BUCKETS
-        for member in room.members.values():
-            if member.next_due <= now + 1e-9 and not member.parked:
-                lag = max(0.0, now - member.next_due)
-                counts[bisect_left(bounds, lag)] += 1
-                self.tick_lag_sum += lag
 
     def _fail_room(self, room: Room) -> None:
         if self.rooms.get(room.name) is room:

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 import zlib
+from bisect import bisect_left
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -55,7 +56,9 @@ from server.objects import RoomObject
 
 __all__ = [
     "DEFAULT_EVENT_QUEUE",
+    "TICK_LAG_BUCKETS",
     "IdAllocator",
+    "LagHistogram",
     "Member",
     "Outbox",
     "Room",
@@ -69,6 +72,26 @@ DEFAULT_EVENT_QUEUE = 256
 KEY_INTERVAL = 2.0
 #: Coded versions kept per stream as baselines of compact subscribers' deltas.
 CODES_HISTORY = 16
+
+
+#: Upper bounds (s) of the tick lag histogram's buckets (``posecast_tick_lag_seconds``;
+#: one more bucket, +Inf, holds the rest).
+TICK_LAG_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0)
+
+
+@dataclass
+class LagHistogram:
+    """Member ticks per lag bucket (``TICK_LAG_BUCKETS``, then +Inf; not cumulative),
+    the lag measured from each member's due time, and the sum of those lags (s).
+    One for the server, shared by its rooms."""
+
+    counts: list[int] = field(default_factory=lambda: [0] * (len(TICK_LAG_BUCKETS) + 1))
+    total: float = 0.0
+
+    def observe(self, lag: float) -> None:
+        lag = max(0.0, lag)
+        self.counts[bisect_left(TICK_LAG_BUCKETS, lag)] += 1
+        self.total += lag
 
 
 def room_phase(name: str) -> float:
@@ -292,6 +315,8 @@ class Room:
     objects: dict[int, RoomObject] = field(default_factory=dict)
     #: Sequence numbers of the recorded flight keyframes.
     flight_seq: int = 0
+    #: The server's tick lag histogram, which every due member's tick goes into.
+    lags: LagHistogram | None = None
 
     def pause_recording(self, now: float) -> None:
         """Stop recording pose updates (counted, written as one drops record on resume)."""
@@ -469,6 +494,8 @@ class Room:
                 member.next_due = self._grid_after(now, member.rate)
                 continue
             lag = now - member.next_due
+            if self.lags is not None:
+                self.lags.observe(lag)
             self._lag_max = max(self._lag_max, lag)
             self._lag_sum += lag
             self._lag_n += 1
