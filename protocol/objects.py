@@ -52,6 +52,7 @@ from protocol._validate import (
     check_optional_int,
     check_text,
 )
+from protocol.limits import QUAT_NORM_TOLERANCE
 from protocol.messages import _OMIT_DEFAULT, OBJECT_PREFIX, ControlMessage, _register
 
 __all__ = [
@@ -105,9 +106,10 @@ def _check_object_name(where: str, name: object) -> str:
 
 
 def unit_problem(pose: Pose7) -> str | None:
-    """Why ``pose``'s quaternion is no rotation (off unit length by over 1e-3), or None."""
+    """Why ``pose``'s quaternion is no rotation (its norm off 1 by over
+    ``QUAT_NORM_TOLERANCE``, the bound of pose updates), or None."""
     norm = math.sqrt(sum(x * x for x in pose[3:]))
-    if abs(norm - 1.0) > 1e-3:
+    if abs(norm - 1.0) > QUAT_NORM_TOLERANCE:
         return f"quaternion norm {norm:.4g} is not 1"
     return None
 
