@@ -63,11 +63,13 @@ from server.core import (
 )
 from server.http import QuietHttpLog, metrics_text, process_request
 from server.logs import LogLimiter
+from server.node import cluster_clock, join_room
 from server.room import IdAllocator, Outbox, Room
 from server.transport import WebSocketConnection, frame_binary
 
 if TYPE_CHECKING:
     from recorder import RecorderHost, RecordOptions, RoomRecorder
+    from server.node import ClusterNode
 
 __all__ = ["ConnectionStatistics", "LogLimiter", "RelayServer", "ServerConfig"]
 
@@ -79,6 +81,9 @@ Clock = Callable[[], float]
 DRAIN_BEFORE_CLOSE = 0.5
 #: An opening handshake not finished this long after the TCP connection is dropped.
 OPEN_TIMEOUT = 10.0
+#: A forwarded client (its room is another cluster node's) with more than this
+#: unsent is closed as too slow: the owner node cannot see its socket's buffer.
+FORWARDED_BUFFER = 1 << 20
 
 
 class _Connection(WebSocketConnection):
@@ -103,6 +108,8 @@ class _Connection(WebSocketConnection):
         #: Set while a recorded room opens for a join: the reads after it wait here.
         self._held = False
         self._backlog: list[bytes | str] = []
+        #: In a cluster: its room is another node's, its frames are forwarded there.
+        self.forwarded = False
 
     @property
     def outbox(self) -> Outbox:
@@ -160,7 +167,12 @@ class _Connection(WebSocketConnection):
             self._backlog.extend(messages)
             return
         server = self.server
-        if server.config.record_dir is not None:
+        if self.forwarded:
+            assert server.cluster is not None
+            if not server.cluster.edge.forward(self.conn, messages):
+                self.close(1013, "try again later: the cluster is not taking frames")
+            return
+        if server.config.record_dir is not None or server.cluster is not None:
             self._consume([], iter(messages))
             return
         # No room to open first: each message straight through the core (one event
@@ -182,11 +194,15 @@ class _Connection(WebSocketConnection):
         server._conns.pop(self.conn, None)
         # A close frame from the client is a goodbye; a dropped socket may resume.
         said_bye = self.protocol.close_rcvd is not None
+        if self.forwarded and server.cluster is not None:
+            server.cluster.edge.gone(self.conn, said_bye)
         server.apply(server.core.disconnect(self.conn, server.clock(), said_bye))
 
     # -- reading -----------------------------------------------------------------------------
 
-    def _consume(self, events: list[Event], messages: Iterator[bytes | str]) -> None:
+    def _consume(
+        self, events: list[Event], messages: Iterator[bytes | str], raw: bytes | str = b""
+    ) -> None:
         """Feed ``events``, then each of ``messages``, to the core, with one clock reading.
 
         The actions of each event are carried out before the next event: a burst of
@@ -194,15 +210,23 @@ class _Connection(WebSocketConnection):
         their bounded queues measure how slow *they* are, not how many events this
         read held (pose updates cause no action: the batch costs nothing for them).
         A join that opens a recorded room stops here: the room opens off the loop
-        (``_open_then_consume``), and the rest follows in order once it is open.
+        (``_open_then_consume``), and the rest follows in order once it is open. In
+        a cluster, so does a join of a room this node does not own: the room is
+        claimed first (``_claim_then_consume``). ``raw``: the frame ``events`` came in.
         """
         server, core, conn = self.server, self.server.core, self.conn
         now, wall = server.clock(), server.wall_clock()
         recording = server.config.record_dir is not None
+        cluster = server.cluster
         apply = server.apply
         skip_check = bool(events)  # the held event's room was just opened
         while True:
             for i, event in enumerate(events):
+                if cluster is not None and not (skip_check and i == 0):
+                    name = join_room(event)
+                    if name is not None and not cluster.owns(name):
+                        self._hold(name, events[i:], messages, raw)
+                        return
                 if recording and not (skip_check and i == 0):
                     room = core.room_to_open(conn, event, wall)
                     if room is not None:
@@ -215,13 +239,63 @@ class _Connection(WebSocketConnection):
             data = next(messages, None)
             if data is None:
                 return
-            events = core.frame(conn, data)
+            events, raw = core.frame(conn, data), data
 
-    def _hold(self, room: str, events: list[Event], rest: Iterator[bytes | str]) -> None:
+    def _hold(
+        self, room: str, events: list[Event], rest: Iterator[bytes | str], raw: bytes | str = b""
+    ) -> None:
         self._held = True
         self._backlog = list(rest)
         self.transport.pause_reading()
-        self.server.spawn(self._open_then_consume(room, events), f"open:{room}")
+        if self.server.cluster is not None and not self.server.cluster.owns(room):
+            job = self._claim_then_consume(room, events, raw)
+        else:
+            job = self._open_then_consume(room, events)
+        self.server.spawn(job, f"open:{room}")
+
+    async def _claim_then_consume(self, room: str, events: list[Event], raw: bytes | str) -> None:
+        """Claim ``room`` in the cluster; join here if this node owns it now, else hand
+        the connection off to its owner, the join frame first."""
+        server = self.server
+        assert server.cluster is not None
+        try:
+            owner = await server.cluster.claim(room)
+        except Exception as exc:  # NATS away, or the room changes hands too fast
+            log.warning("cluster: cannot claim room %r: %s", room, exc)
+            owner = None
+        if server._conns.get(self.conn) is not self:
+            return  # it ended meanwhile
+        if owner is None:
+            self.close(1013, "try again later: the cluster cannot place the room")
+            return
+        if owner == server.cluster.name:
+            await self._open_then_consume(room, events)
+            return
+        peer = server.core.peer(self.conn)
+        backlog, self._held, self._backlog = self._backlog, False, []
+        address = self.transport.get_extra_info("peername")
+        self.forwarded = True
+        if not server.cluster.hand_off(
+            self.conn, owner, peer.name, str(address[0] if address else "?"), [raw, *backlog]
+        ):
+            self.close(1013, "try again later: the cluster is not taking frames")
+            return
+        self.transport.resume_reading()
+
+    def write_forwarded(self, data: bytes) -> None:
+        """Write a frame the room's owner node sent this (forwarded) client."""
+        if self.protocol.state is not WsState.OPEN or self.close_request is not None:
+            return
+        server = self.server
+        if self._buffered() > FORWARDED_BUFFER:
+            self.close(1008, "too-slow: the client does not read its frames")
+            return
+        if data is server._framed_src:
+            self.transport.write(server._framed)
+        else:
+            framed = frame_binary(data)
+            server._framed_src, server._framed = data, framed
+            self.transport.write(framed)
 
     async def _open_then_consume(self, room: str, events: list[Event]) -> None:
         await self.server.prepare_room(room)
@@ -305,6 +379,8 @@ class RelayServer:
         wall_clock: Clock = time.time,
     ) -> None:
         self.config = config or ServerConfig()
+        if self.config.cluster is not None and clock is time.monotonic:
+            clock = cluster_clock()  # one time on every node
         self.clock = clock
         self.wall_clock = wall_clock
         self.core = RelayCore(self.config)
@@ -323,7 +399,9 @@ class RelayServer:
         #: Frame once, write many: the last payload framed, and its frame.
         self._framed_src: bytes | None = None
         self._framed = b""
-        self.http = process_request(self.core, self.clock)
+        #: The cluster side (``--cluster``), from run() on.
+        self.cluster: ClusterNode | None = None
+        self.http = process_request(self.core, self.clock, self._cluster_metrics)
         self.ws_log = QuietHttpLog(logging.getLogger("websockets.server"), {})
         # The one writer process every recorded room shares (started with the
         # server, again for the next room after a crash of the previous one).
@@ -372,10 +450,14 @@ class RelayServer:
                 conn = conns.get(action.conn)
                 if conn is not None:
                     conn.flush()
+                elif self.cluster is not None and action.conn in self.cluster.members.remote:
+                    self.cluster.members.route([action])
             elif isinstance(action, Close):
                 conn = conns.get(action.conn)
                 if conn is not None:
                     conn.close(action.code, action.reason)
+                elif self.cluster is not None and action.conn in self.cluster.members.remote:
+                    self.cluster.members.route([action])
             elif isinstance(action, Reschedule):
                 self._arm_ticks()
             elif isinstance(action, Rearm):
@@ -588,12 +670,19 @@ class RelayServer:
                     await asyncio.to_thread(self._ensure_host)
                 except Exception:
                     log.exception("cannot start the recorder process; each new room will retry")
+        if cfg.cluster is not None:
+            await self._join_cluster(cfg.cluster)
         try:
             async with asyncio.TaskGroup() as tg:
                 self._tg = tg
                 expiry = tg.create_task(self._expiry_loop(), name="join-deadlines")
+                upkeep = None
+                if self.cluster is not None:
+                    upkeep = tg.create_task(self.cluster.run(), name="cluster")
                 await self._serve()
                 expiry.cancel()
+                if upkeep is not None:
+                    upkeep.cancel()
                 if self._tick_timer is not None:
                     self._tick_timer.cancel()
                     self._tick_timer = None
@@ -602,6 +691,42 @@ class RelayServer:
             # Every room's recording is finished (the task group waited for them);
             # after a failure, rooms still open keep their .part files for recovery.
             await self._close_hosts()
+            if self.cluster is not None:
+                await self.cluster.close()
+
+    async def _join_cluster(self, servers: str) -> None:
+        """Join the cluster of relays on NATS ``servers`` (ClusterError: one line)."""
+        import re
+        import socket
+
+        from server.node import ClusterNode
+
+        cfg = self.config
+        self.cluster = await ClusterNode.open(
+            servers,
+            cfg.node or re.sub(r"[^A-Za-z0-9_-]", "-", socket.gethostname())[:64],
+            self.core,
+            self.apply,
+            self._deliver_forwarded,
+            self._close_forwarded,
+            url=f"ws://{cfg.host}:{cfg.port}",
+            lease=cfg.cluster_lease,
+            clock=self.clock,
+            wall_clock=self.wall_clock,
+        )
+
+    def _deliver_forwarded(self, conn: int, data: bytes) -> None:
+        target = self._conns.get(conn)
+        if target is not None:
+            target.write_forwarded(data)
+
+    def _close_forwarded(self, conn: int, code: int, reason: str) -> None:
+        target = self._conns.get(conn)
+        if target is not None:
+            target.close(code, reason)
+
+    def _cluster_metrics(self) -> str:
+        return "" if self.cluster is None else self.cluster.metrics_text()
 
     async def _serve(self) -> None:
         """Listen until stop(); then close every connection and wait for them to end."""
@@ -642,4 +767,4 @@ class RelayServer:
 
     def metrics_text(self) -> str:
         """Prometheus text exposition of the server's counters."""
-        return metrics_text(self.core, self.clock())
+        return metrics_text(self.core, self.clock()) + self._cluster_metrics()

@@ -126,8 +126,11 @@ class Directory:
         JetStream, or another live node has that name.
         """
 
+        connected = False
+
         async def quiet(exc: Exception) -> None:
-            log.warning("cluster: NATS: %s", exc)
+            # Before the first connection the one line below says it all.
+            log.log(logging.WARNING if connected else logging.DEBUG, "cluster: NATS: %s", exc)
 
         try:
             # Reconnects are for ever (NATS may come back), so the first connect is
@@ -150,6 +153,7 @@ class Directory:
             raise ClusterError(
                 f"cannot reach NATS at {servers}: {exc or type(exc).__name__}"
             ) from None
+        connected = True
         js = nc.jetstream(timeout=patience)
         try:
             try:
@@ -313,6 +317,30 @@ class Directory:
             if await self._create(key, self.node.encode()):
                 return self.node
         raise ClusterError(f"room {room!r} changes owner too fast to claim")
+
+    async def take_over(self, room: str, dead: str) -> bool:
+        """Take ``room`` from node ``dead``, which NATS says is gone (nobody answers on
+        its subjects) before its lease ran out: a compare-and-set on the revision
+        that names ``dead``, so a live owner that renewed meanwhile keeps it."""
+        key = room_key(room)
+        try:
+            entry = await self.kv.get(key)
+        except (KeyNotFoundError, nats.js.errors.KeyDeletedError):
+            return await self._create(key, self.node.encode())
+        if entry.value != dead.encode() or entry.revision is None:
+            return False
+        value = self.node.encode()
+        try:
+            revision = await self._publish(key, value, last=entry.revision)
+        except KeyWrongLastSequenceError:
+            return False
+        self.held[key] = _Lease(key, value, revision)
+        log.warning("node %s took room %r over from node %s, which is gone", self.node, room, dead)
+        return True
+
+    def rooms(self) -> list[str]:
+        """The rooms this node holds the lease of."""
+        return [bytes.fromhex(k[5:]).decode() for k in self.held if k.startswith("room.")]
 
     async def owner(self, room: str) -> str | None:
         """The node that owns ``room``, or None."""

@@ -81,6 +81,12 @@ class ServerConfig:
     max_objects: int = 64
     #: Rooms recorded at once (``--record``); a join opening one more is refused.
     max_recorded_rooms: int = 32
+    #: Join the cluster of relays sharing this NATS (``nats://HOST:PORT``; None: alone).
+    cluster: str | None = None
+    #: This node's name in the cluster (unique among live nodes; None: the host name).
+    node: str | None = None
+    #: Seconds a node's and a room's lease live without renewal.
+    cluster_lease: float = 3.0
 
     @property
     def room_volume(self) -> Volume:

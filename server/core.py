@@ -255,7 +255,15 @@ class RelayCore:
 
     def _unjoined(self, conn: int, deadline: float) -> bool:
         peer = self.peers.get(conn)
-        return peer is not None and peer.room is None and peer.close_request is None
+        return (
+            peer is not None and peer.room is None and peer.close_request is None
+        ) and not peer.forwarded
+
+    def hand_off(self, conn: int) -> None:
+        """``conn`` joins a room another cluster node owns (``server/forward.py``): this
+        core handles nothing more of it; its user id stays taken until it ends."""
+        peer = self.peers[conn]
+        peer.forwarded, peer.resume_token = True, None
 
     def _token_due(self, conn: int, deadline: float) -> bool:
         peer = self.peers.get(conn)

@@ -47,7 +47,7 @@ from protocol import Hello, encode_message
 from server.actions import Action, Close, Wake
 from server.core import RelayCore
 
-__all__ = ["Edge", "Members", "inbox", "outbox"]
+__all__ = ["MAX_EDGE_BACKLOG", "Edge", "Members", "alive", "inbox", "outbox"]
 
 log = logging.getLogger("posecast.cluster")
 
@@ -90,7 +90,11 @@ class Members:
     async def start(self) -> None:
         """Subscribe to this node's inbox (the server has it when this returns)."""
         await self.nc.subscribe(inbox(self.node), cb=self._on_message)
+        await self.nc.subscribe(alive(self.node), cb=self._on_alive)
         await self.nc.flush()
+
+    async def _on_alive(self, msg: Msg) -> None:
+        await msg.respond(b"1")
 
     async def _on_message(self, msg: Msg) -> None:
         try:
@@ -107,7 +111,8 @@ class Members:
             conn = self.conns[key]
             for data in item[3]:
                 self.frames_in += 1
-                self.route(self.core.receive(conn, bytes(data), now, self.wall_clock()))
+                frame = data if isinstance(data, str) else bytes(data)  # a text frame: refused
+                self.route(self.core.receive(conn, frame, now, self.wall_clock()))
         elif kind == "gone" and key in self.conns:
             conn = self.conns.pop(key)
             del self.remote[conn]
@@ -177,45 +182,87 @@ class Members:
             await self.nc.publish(outbox(edge), msgpack.packb(["close", econn, code, reason]))
 
 
+#: Frames an edge holds for its owners while NATS takes them (per node, at most).
+MAX_EDGE_BACKLOG = 8192
+
+
+def alive(node: str) -> str:
+    """The subject a live node answers on (no responders: the node is gone)."""
+    return f"posecast.node.{node}.alive"
+
+
 @dataclass
 class Edge:
     """The edge's side: its clients whose room another node owns.
 
     ``deliver(econn, frame)`` writes a frame to that client's websocket;
-    ``close(econn, code, reason)`` closes it.
+    ``close(econn, code, reason)`` closes it. What the clients send is queued
+    here without waiting (``open``, ``forward``, ``gone`` are plain calls from the
+    websocket's callbacks) and published in order by :meth:`run`; the queue holds
+    at most ``max_backlog`` frames: ``forward`` returns False past it (NATS is not
+    taking them), and the adapter closes that client.
     """
 
     nc: Nats
     node: str
     deliver: Callable[[int, bytes], None]
     close: Callable[[int, int, str], None]
+    max_backlog: int = MAX_EDGE_BACKLOG
     #: Edge connection -> the node that owns its room.
     owners: dict[int, str] = field(default_factory=dict)
+    _queue: list[tuple[str, bytes]] = field(default_factory=list)
+    _frames_queued: int = 0
+    _ready: asyncio.Event = field(default_factory=asyncio.Event)
+    #: Frames forwarded to owners, and frames delivered from them (``/metrics``).
+    frames_out: int = 0
+    frames_in: int = 0
 
     async def start(self) -> None:
         """Subscribe to this node's outbox (the server has it when this returns)."""
         await self.nc.subscribe(outbox(self.node), cb=self._on_message)
         await self.nc.flush()
 
-    async def open(
+    def _push(self, owner: str, item: list[Any], frames: int = 0) -> None:
+        self._queue.append((inbox(owner), msgpack.packb(item)))
+        self._frames_queued += frames
+        self._ready.set()
+
+    def open(
         self, econn: int, owner: str, user: int, agent: str, resumable: bool, address: str
     ) -> None:
         """Client ``econn`` (welcomed here as ``user``) goes to a room of ``owner``."""
         self.owners[econn] = owner
-        item = ["open", self.node, econn, user, agent, resumable, address]
-        await self.nc.publish(inbox(owner), msgpack.packb(item))
+        self._push(owner, ["open", self.node, econn, user, agent, resumable, address])
 
-    async def forward(self, econn: int, frames: list[bytes]) -> None:
-        """Frames the client sent, in order."""
+    def forward(self, econn: int, frames: list[bytes | str]) -> bool:
+        """Frames the client sent, in order; False if the backlog is full."""
         owner = self.owners.get(econn)
-        if owner is not None and frames:
-            await self.nc.publish(inbox(owner), msgpack.packb(["frames", self.node, econn, frames]))
+        if owner is None or not frames:
+            return True
+        if self._frames_queued + len(frames) > self.max_backlog:
+            return False
+        self.frames_out += len(frames)
+        self._push(owner, ["frames", self.node, econn, frames], len(frames))
+        return True
 
-    async def gone(self, econn: int, said_bye: bool) -> None:
+    def gone(self, econn: int, said_bye: bool) -> None:
         """The client's websocket ended."""
         owner = self.owners.pop(econn, None)
         if owner is not None:
-            await self.nc.publish(inbox(owner), msgpack.packb(["gone", self.node, econn, said_bye]))
+            self._push(owner, ["gone", self.node, econn, said_bye])
+
+    def clients_of(self, owner: str) -> list[int]:
+        """This edge's clients in rooms of node ``owner``."""
+        return [econn for econn, node in self.owners.items() if node == owner]
+
+    async def run(self) -> None:
+        """Publish what the clients sent, in order, as it comes."""
+        while True:
+            await self._ready.wait()
+            self._ready.clear()
+            queue, self._queue, self._frames_queued = self._queue, [], 0
+            for subject, data in queue:
+                await self.nc.publish(subject, data)
 
     async def _on_message(self, msg: Msg) -> None:
         try:
@@ -228,6 +275,7 @@ class Edge:
                 frame = bytes(data)
                 for econn in targets:
                     if econn in self.owners:
+                        self.frames_in += 1
                         self.deliver(int(econn), frame)
         elif item[0] == "close":
             econn = int(item[1])

@@ -25,10 +25,13 @@ __all__ = ["QuietHttpLog", "metrics_text", "process_request"]
 
 
 def process_request(
-    core: RelayCore, clock: Callable[[], float] | None = None
+    core: RelayCore,
+    clock: Callable[[], float] | None = None,
+    extra: Callable[[], str] | None = None,
 ) -> Callable[[ServerProtocol, Request], Response | None]:
     """The hook answering /healthz and /metrics from ``core`` before the handshake
-    (``clock``: the core's, for the tick overdue gauge); None: go on to the handshake."""
+    (``clock``: the core's, for the tick overdue gauge; ``extra``: more metric lines,
+    the cluster's); None: go on to the handshake."""
 
     def respond(protocol: ServerProtocol, request: Request) -> Response | None:
         path = request.path.split("?", 1)[0]
@@ -36,7 +39,8 @@ def process_request(
             return protocol.reject(HTTPStatus.OK, "ok\n")
         if path == "/metrics":
             now = None if clock is None else clock()
-            response = protocol.reject(HTTPStatus.OK, metrics_text(core, now))
+            text = metrics_text(core, now) + ("" if extra is None else extra())
+            response = protocol.reject(HTTPStatus.OK, text)
             # Same headers as /healthz (Date, Connection: close), Prometheus' type.
             del response.headers["Content-Type"]
             response.headers["Content-Type"] = "text/plain; version=0.0.4; charset=utf-8"

@@ -95,6 +95,8 @@ class Peer:
         #: The user id given by the cluster node this member came through (its hello
         #: takes it instead of a new one; ``server.forward``).
         self.preset_user: int | None = None
+        #: In a cluster: its room is another node's, where its frames are forwarded.
+        self.forwarded = False
         self.name = ""
         self.room: Room | None = None
         self.member: Member | None = None

@@ -265,6 +265,23 @@ MaxObjectsOption = Annotated[
     int,
     typer.Option(help="Shared objects of one room at most.", envvar="POSECAST_MAX_OBJECTS"),
 ]
+ClusterOption = Annotated[
+    str | None,
+    typer.Option(
+        help="Join the cluster of relays sharing this NATS (nats://HOST:PORT, or a "
+        "comma-separated list of a NATS cluster's servers; JetStream on). A client may "
+        "then connect to any node and join any room.",
+        envvar="POSECAST_CLUSTER",
+    ),
+]
+NodeOption = Annotated[
+    str | None,
+    typer.Option(
+        help="This node's name in the cluster, unique among live nodes [default: the "
+        "host name].",
+        envvar="POSECAST_NODE",
+    ),
+]
 MaxRecordedRoomsOption = Annotated[
     int,
     typer.Option(help="Rooms recorded at once at most.", envvar="POSECAST_MAX_RECORDED_ROOMS"),
@@ -336,6 +353,8 @@ def serve(
     max_members: MaxMembersOption = 64,
     max_recorded_rooms: MaxRecordedRoomsOption = 32,
     max_objects: MaxObjectsOption = 64,
+    cluster: ClusterOption = None,
+    node: NodeOption = None,
 ) -> None:
     """Run the relay server until SIGINT/SIGTERM (then close all with 1001, exit 0).
 
@@ -367,8 +386,11 @@ def serve(
         raise _fail(f"--{bad[0].replace('_', '-')} must not be negative")
     secret = _secret(ctx, secret, secret_file)
     tier = _tier(link, tiers)
+    _check_cluster_args(cluster, node)
     logging.basicConfig(level=log_level.upper(), format=_LOG_FORMAT)
     cfg = ServerConfig(
+        cluster=cluster,
+        node=node,
         host=host,
         port=port,
         rate=rate,
@@ -384,6 +406,21 @@ def serve(
         **limits,  # type: ignore[arg-type]
     )
     _serve_until_stopped(cfg)
+
+
+def _check_cluster_args(cluster: str | None, node: str | None) -> None:
+    """--cluster and --node, checked now (a NATS that does not answer is a later line)."""
+    import re
+
+    if cluster is not None:
+        for url in cluster.split(","):
+            if not re.fullmatch(r"(nats|tls)://[^\s/]+(:\d+)?/?", url.strip()):
+                raise _fail(f"--cluster {url!r}: give a NATS URL such as nats://127.0.0.1:4222")
+    if node is not None:
+        if cluster is None:
+            raise _fail("--node names this relay in a cluster: give --cluster too")
+        if not re.fullmatch(r"[A-Za-z0-9_-]{1,64}", node):
+            raise _fail(f"--node {node!r}: use 1-64 letters, digits, '-' or '_'")
 
 
 def _check_tls_files(certfile: Path | None, keyfile: Path | None) -> None:

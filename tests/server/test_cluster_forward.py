@@ -86,6 +86,7 @@ async def test_a_member_through_another_node_is_one_of_the_room(nats_url: str) -
     try:
         async with asyncio.TaskGroup() as tg:
             writer = tg.create_task(members.run())
+            sender = tg.create_task(edge.run())
             local = connect(owner, now, room="lab", rate=20.0)
             # The edge welcomes its client (an id of its block), then the join goes on.
             econn = edge_core.connect(now)
@@ -96,9 +97,9 @@ async def test_a_member_through_another_node_is_one_of_the_room(nats_url: str) -
                 deliver(econn, frame)
             user = remote.got(Welcome)[0].user
             assert 1024 <= user < 2048
-            await edge.open(econn, "o", user, "far", False, "10.0.0.9")
+            edge.open(econn, "o", user, "far", False, "10.0.0.9")
             join = remote.session.send(Join(room="lab", streams=("head", "left"), rate=20.0))
-            await edge.forward(econn, [join])
+            edge.forward(econn, [join])
             await _until(lambda: bool(remote.got(Joined)))
             joined = remote.got(Joined)[0]
             await _until(lambda: bool(remote.got(PeerJoined)))
@@ -108,7 +109,7 @@ async def test_a_member_through_another_node_is_one_of_the_room(nats_url: str) -
             # The remote member publishes; the local one gets its poses, and back.
             ids = [joined.streams["head"], joined.streams["left"]]
             update = PoseUpdate.from_arrays(1, ids, [now, now], np.repeat(POSE, 2, axis=0))
-            await edge.forward(econn, [remote.session.send(update)])
+            edge.forward(econn, [remote.session.send(update)])
             await _until(lambda: members.frames_in >= 2)
             local.publish(now)
             now += 0.05
@@ -120,19 +121,20 @@ async def test_a_member_through_another_node_is_one_of_the_room(nats_url: str) -
             # Events in order, and pings answered on the owner's clock.
             for k in range(5):
                 local.send(UserEvent(kind="button", payload={"k": k}), now)
-            await edge.forward(econn, [remote.session.send(Ping(seq=1, time=7.0))])
+            edge.forward(econn, [remote.session.send(Ping(seq=1, time=7.0))])
             await _until(lambda: len(remote.got(UserEvent)) == 5 and bool(remote.got(Pong)))
             assert [e.payload["k"] for e in remote.got(UserEvent)] == [0, 1, 2, 3, 4]
             assert remote.got(Pong)[0].recv_time == now
             # A frame the owner's rules refuse: its error, then the close, reach the edge.
-            await edge.forward(econn, [b"\x00not msgpack"])
+            edge.forward(econn, [b"\x00not msgpack"])
             await _until(lambda: remote.closed is not None)
             assert remote.closed is not None and remote.closed[0] == 1002
             assert remote.got(ErrorMessage)[-1].code == "bad-frame"
-            await edge.gone(econn, said_bye=False)
+            edge.gone(econn, said_bye=False)
             await _until(lambda: not members.conns)
             local.read(now)
             writer.cancel()
+            sender.cancel()
     finally:
         await nc_owner.close()
         await nc_edge.close()
@@ -163,6 +165,7 @@ async def test_one_message_per_edge_carries_a_shared_snapshot_once(nats_url: str
     try:
         async with asyncio.TaskGroup() as tg:
             writer = tg.create_task(members.run())
+            sender = tg.create_task(edge.run())
             pub = connect(owner, now, room="lab", rate=20.0)
             for econn, session in sessions.items():
                 await _open_remote(edge, members, session, got[econn], econn, now)
@@ -175,6 +178,7 @@ async def test_one_message_per_edge_carries_a_shared_snapshot_once(nats_url: str
             snapshots = [t for t, data in frames if msgpack.unpackb(data)["type"] == "snapshot"]
             assert [sorted(targets) for targets in snapshots] == [[1, 2, 3]]
             writer.cancel()
+            sender.cancel()
     finally:
         await nc_owner.close()
         await nc_edge.close()
@@ -197,6 +201,6 @@ async def _open_remote(
     for frame in edge_core.take(conn, now)[0]:
         inbox.extend(session.receive_data(frame))
     user = next(e.user for e in inbox if isinstance(e, Welcome))
-    await edge.open(econn, "o", user, "far", False, "x")
-    await edge.forward(econn, [session.send(Join(room="lab", streams=("head",), rate=20.0))])
+    edge.open(econn, "o", user, "far", False, "x")
+    edge.forward(econn, [session.send(Join(room="lab", streams=("head",), rate=20.0))])
     await _until(lambda: any(isinstance(e, Joined) for e in inbox))

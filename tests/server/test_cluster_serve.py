@@ -1,0 +1,183 @@
+"""Relays as one server over a real nats-server: ``RelayServer`` with ``cluster`` set.
+
+Two (or three) relays on loopback share one NATS; real websocket clients join
+one room through different nodes and see one room: each other's presence,
+poses bit-exact, events in order, the owner's errors. Empty rooms are given
+up and claimed anew; an owner that goes away sends its forwarded clients
+elsewhere with 1012; an unreachable NATS is one clear error.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import re
+import urllib.request
+from collections.abc import AsyncIterator
+from functools import partial
+
+import numpy as np
+import pytest
+from conftest import needs_nats
+from relaykit import Bot, errors, raw_connect, raw_join, settle, until_closed
+from support import running_server
+
+from protocol import PeerJoined, PeerLeft, UserEvent
+from server.app import RelayServer, ServerConfig
+from server.cluster import USER_BLOCK, ClusterError
+from server.node import MOVED
+
+pytestmark = needs_nats
+
+
+def url_of(srv: RelayServer) -> str:
+    return f"ws://127.0.0.1:{srv.port}"
+
+
+def node(nats_url: str, name: str, **extra: object) -> ServerConfig:
+    # A short lease keeps the tests quick; upkeep runs every third of it.
+    return ServerConfig(
+        host="127.0.0.1", port=0, cluster=nats_url, node=name, cluster_lease=1.5, **extra
+    )  # type: ignore[arg-type]
+
+
+@contextlib.asynccontextmanager
+async def nodes(nats_url: str, *names: str) -> AsyncIterator[list[RelayServer]]:
+    async with contextlib.AsyncExitStack() as stack:
+        servers = [
+            await stack.enter_async_context(running_server(node(nats_url, n))) for n in names
+        ]
+        yield servers
+
+
+def _get(url: str) -> str:
+    with urllib.request.urlopen(url, timeout=5) as r:
+        return str(r.read().decode())
+
+
+async def metrics(srv: RelayServer) -> dict[str, float]:
+    """The cluster lines of a node's /metrics (fetched off the loop the node runs on)."""
+    text = await asyncio.to_thread(_get, f"http://127.0.0.1:{srv.port}/metrics")
+    out: dict[str, float] = {}
+    for line in text.splitlines():
+        if line.startswith("posecast_cluster_"):
+            name, value = line.split()
+            out[name] = float(value)
+    return out
+
+
+def sees(bot: Bot, user: int) -> bool:
+    return any(p.user == user for p in bot.of_type(PeerJoined))
+
+
+def got_poses_of(bot: Bot, user: int) -> bool:
+    return any(user in set(s.users.tolist()) for _, s in bot.snapshots)
+
+
+async def test_a_room_split_over_two_nodes_is_one_room(nats_url: str) -> None:
+    async with nodes(nats_url, "a", "b") as (a, b):
+        clock = a.clock
+        here = await Bot.join(url_of(a), clock, room="lab", rate=20.0, seed=1)
+        far = await Bot.join(url_of(b), clock, room="lab", rate=10.0, seed=2)
+        # Each node gave its client an id of its own block.
+        assert here.user // USER_BLOCK != far.user // USER_BLOCK
+        assert a.cluster is not None and a.cluster.owns("lab")
+        assert b.cluster is not None and not b.cluster.owns("lab")
+        assert "lab" not in b.rooms  # the room's state is on its owner only
+        async with here.running(), far.running():
+            await settle(partial(sees, here, far.user))
+            await settle(partial(sees, far, here.user))
+            await settle(partial(got_poses_of, here, far.user))
+            await settle(partial(got_poses_of, far, here.user))
+            await asyncio.sleep(0.5)
+            # Poses through the other node arrive bit-exact, at the rate each asked.
+            checked = 0
+            for bot, other in ((here, far), (far, here)):
+                for _, snap in bot.snapshots:
+                    caps = snap.capture_times
+                    for i, (user, sid) in enumerate(
+                        zip(snap.users.tolist(), snap.streams.tolist(), strict=True)
+                    ):
+                        if user != other.user:
+                            continue
+                        tol = abs(caps[i] - snap.send_time) * 2**-23 + 1e-9
+                        sent = other.sent[sid].find(float(caps[i]), tol)
+                        assert sent is not None
+                        np.testing.assert_array_equal(snap.poses[i], sent)
+                        checked += 1
+            assert checked > 20
+            assert here.rate == 20.0 and far.rate == 10.0
+            # Events reach the other node's member in order.
+            for k in range(6):
+                await here.conn.send(UserEvent(kind="button", payload={"k": k}))
+            await settle(lambda: len(far.of_type(UserEvent)) == 6)
+            assert [e.payload["k"] for e in far.of_type(UserEvent)] == list(range(6))
+            assert (await metrics(a))["posecast_cluster_remote_members"] == 1
+            assert (await metrics(a))["posecast_cluster_received_frames_total"] > 10
+            assert (await metrics(b))["posecast_cluster_forwarded_clients"] == 1
+            assert (await metrics(b))["posecast_cluster_forwarded_frames_total"] > 10
+            await far.conn.close()
+            await settle(lambda: bool(here.of_type(PeerLeft)))
+            assert [p.user for p in here.of_type(PeerLeft)] == [far.user]
+        await here.conn.close()
+
+
+async def test_the_owner_s_rules_hold_for_a_member_on_another_node(nats_url: str) -> None:
+    """A frame the owner refuses: the member through another node gets the owner's
+    error and close code, and the room's other member stays."""
+    async with nodes(nats_url, "a", "b") as (a, b):
+        here = await Bot.join(url_of(a), a.clock, room="lab", rate=10.0)
+        ws = await raw_connect(url_of(b))
+        user, _ = await raw_join(ws, "lab")
+        assert a.cluster is not None and user in {m.user for m in a.rooms["lab"].members.values()}
+        await ws.send(b"\x00not msgpack")
+        messages, code = await until_closed(ws)
+        assert code == 1002
+        assert [e.code for e in errors(messages)] == ["bad-frame"]
+        await settle(lambda: len(a.rooms["lab"].members) == 1)
+        assert not here.conn.session.closed
+        await here.conn.close()
+
+
+async def test_an_empty_room_is_given_up_and_claimed_by_the_next_joiner(nats_url: str) -> None:
+    async with nodes(nats_url, "a", "b") as (a, b):
+        assert a.cluster is not None and b.cluster is not None
+        first = await Bot.join(url_of(a), a.clock, room="lab", rate=10.0)
+        assert a.cluster.owns("lab")
+        await first.conn.close()
+        await settle(lambda: not a.cluster.owns("lab"), limit=10.0)  # type: ignore[union-attr]
+        second = await Bot.join(url_of(b), b.clock, room="lab", rate=10.0)
+        assert b.cluster.owns("lab") and "lab" in b.rooms
+        await second.conn.close()
+
+
+async def test_clients_of_a_gone_owner_are_sent_to_reconnect(nats_url: str) -> None:
+    async with running_server(node(nats_url, "b")) as b:
+        async with running_server(node(nats_url, "a")) as a:
+            owner = await Bot.join(url_of(a), a.clock, room="lab", rate=10.0)
+            far = await Bot.join(url_of(b), b.clock, room="lab", rate=10.0)
+            assert a.cluster is not None and a.cluster.owns("lab")
+            async with far.running(publish=False):
+                await settle(partial(sees, far, owner.user))
+                a.stop()  # the owner goes; its client here goes with it
+                with contextlib.suppress(Exception):
+                    await owner.conn.close()
+                await settle(lambda: far.closed is not None, limit=10.0)
+        assert far.closed is not None and far.closed.rcvd is not None
+        assert (far.closed.rcvd.code, far.closed.rcvd.reason) == MOVED
+        # It joins again through the same node, which owns the room now.
+        again = await Bot.join(url_of(b), b.clock, room="lab", rate=10.0)
+        assert b.cluster is not None and b.cluster.owns("lab")
+        await again.conn.close()
+
+
+async def test_an_unreachable_nats_is_one_clear_error() -> None:
+    server = RelayServer(ServerConfig(host="127.0.0.1", port=0, cluster="nats://127.0.0.1:1"))
+    with pytest.raises(ClusterError, match=re.escape("cannot reach NATS at nats://127.0.0.1:1")):
+        await server.run()
+
+
+async def test_two_live_nodes_cannot_share_a_name(nats_url: str) -> None:
+    async with running_server(node(nats_url, "a")):
+        with pytest.raises(ClusterError, match="a live node is named 'a'"):
+            await RelayServer(node(nats_url, "a")).run()
