@@ -113,6 +113,7 @@ def test_server_holds_only_the_relay() -> None:
         "app.py",
         "http.py",
         "transport.py",
+        "node.py",
     }
     assert modules == relay
 

@@ -13,7 +13,7 @@ import typer
 from rich.table import Table
 
 if TYPE_CHECKING:
-    from protocol.codec import Volume
+    pass
 
 from posecast.cli.common import (
     DEFAULT_METHODS,
@@ -26,6 +26,14 @@ from posecast.cli.common import (
     _run_async,
     _tier,
     console,
+)
+from posecast.cli.serve_checks import (
+    check_serve_args as _check_serve_args,
+)
+from posecast.cli.serve_checks import (
+    check_tls_files,
+    cluster_config,
+    room_volume,
 )
 
 
@@ -104,7 +112,6 @@ class Scene(StrEnum):
 
 _SECRET_HELP = "Require tokens signed with this secret (see `posecast token`); visible in ps."
 _SECRET_FILE_HELP = "Read the secret from the first line of this file (kept out of ps)."
-_LOG_LEVELS = ("debug", "info", "warning", "error")
 _LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 _MOTION_HELP = (
     "traces:sample (bundled), traces:dev, traces:eval (full sets), a CSV or folder, "
@@ -277,8 +284,7 @@ ClusterOption = Annotated[
 NodeOption = Annotated[
     str | None,
     typer.Option(
-        help="This node's name in the cluster, unique among live nodes [default: the "
-        "host name].",
+        help="This node's name in the cluster, unique among live nodes [default: the host name].",
         envvar="POSECAST_NODE",
     ),
 ]
@@ -366,7 +372,7 @@ def serve(
     from server.app import ServerConfig
 
     _check_serve_args(port, rate, min_rate, max_rate, record, record_writer, log_level)
-    _check_tls_files(certfile, keyfile)
+    check_tls_files(certfile, keyfile)
     limits = {
         "ping_interval": ping_interval,
         "ping_timeout": ping_timeout,
@@ -384,102 +390,24 @@ def serve(
     }
     if bad := [k for k, v in limits.items() if not v >= 0]:
         raise _fail(f"--{bad[0].replace('_', '-')} must not be negative")
-    secret = _secret(ctx, secret, secret_file)
-    tier = _tier(link, tiers)
-    _check_cluster_args(cluster, node)
     logging.basicConfig(level=log_level.upper(), format=_LOG_FORMAT)
     cfg = ServerConfig(
-        cluster=cluster,
-        node=node,
+        **cluster_config(cluster, node),
+        secret=_secret(ctx, secret, secret_file),
+        link=_tier(link, tiers),
         host=host,
         port=port,
         rate=rate,
         min_rate=min_rate,
         max_rate=max_rate,
-        secret=secret,
         record_dir=record,
         record_writer="thread" if record_writer == "thread" else "process",
-        link=tier,
-        volume=_volume(volume, room_extent),
+        volume=room_volume(volume, room_extent),
         certfile=certfile,
         keyfile=keyfile,
         **limits,  # type: ignore[arg-type]
     )
     _serve_until_stopped(cfg)
-
-
-def _check_cluster_args(cluster: str | None, node: str | None) -> None:
-    """--cluster and --node, checked now (a NATS that does not answer is a later line)."""
-    import re
-
-    if cluster is not None:
-        for url in cluster.split(","):
-            if not re.fullmatch(r"(nats|tls)://[^\s/]+(:\d+)?/?", url.strip()):
-                raise _fail(f"--cluster {url!r}: give a NATS URL such as nats://127.0.0.1:4222")
-    if node is not None:
-        if cluster is None:
-            raise _fail("--node names this relay in a cluster: give --cluster too")
-        if not re.fullmatch(r"[A-Za-z0-9_-]{1,64}", node):
-            raise _fail(f"--node {node!r}: use 1-64 letters, digits, '-' or '_'")
-
-
-def _check_tls_files(certfile: Path | None, keyfile: Path | None) -> None:
-    """--certfile and --keyfile, checked now: both or neither, readable, a valid pair."""
-    if (certfile is None) != (keyfile is None):
-        raise _fail("give both --certfile and --keyfile for wss://, or neither")
-    if certfile is not None and keyfile is not None:
-        import ssl
-
-        try:
-            ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER).load_cert_chain(certfile, keyfile)
-        except (OSError, ssl.SSLError) as exc:
-            raise _fail(
-                f"--certfile {certfile} / --keyfile {keyfile}: not a usable PEM "
-                f"certificate chain and key ({exc})"
-            ) from None
-
-
-def _volume(text: str, extent: float | None) -> Volume:
-    """The room volume of --volume / --room-extent; a clear one-line error if unusable."""
-    from protocol.codec import Volume
-    from protocol.errors import PosecastError
-
-    if extent is not None:
-        if not 0 < extent <= 2048:
-            raise _fail(f"--room-extent must be in (0, 2048] m, not {extent:g}")
-        return Volume((-extent,) * 3, (extent,) * 3)
-    try:
-        values = [float(v) for v in text.split(",")]
-        if len(values) != 6:
-            raise ValueError("give six numbers")
-        return Volume((values[0], values[1], values[2]), (values[3], values[4], values[5]))
-    except (ValueError, PosecastError) as exc:
-        raise _fail(f"--volume {text!r}: {exc} (X0,Y0,Z0,X1,Y1,Z1 in m, X0 < X1 ...)") from None
-
-
-def _check_serve_args(
-    port: int,
-    rate: float,
-    min_rate: float,
-    max_rate: float,
-    record: Path | None,
-    record_writer: str,
-    log_level: str,
-) -> None:
-    """Refuse, in one line, a serve option that cannot be used (exit 2)."""
-    if not 0 <= port <= 65535:
-        raise _fail(f"--port must be in 0..65535 (0 picks a free port), not {port}")
-    if not 0 < min_rate <= rate <= max_rate:
-        raise _fail("need 0 < --min-rate <= --rate <= --max-rate")
-    if record_writer not in ("process", "thread"):
-        raise _fail(f"--record-writer must be process or thread, not {record_writer!r}")
-    if log_level.lower() not in _LOG_LEVELS:
-        raise _fail(f"--log-level must be one of {', '.join(_LOG_LEVELS)}, not {log_level!r}")
-    if record is not None and record.exists() and not record.is_dir():
-        raise _fail(
-            f"--record {record} is a file; give a folder for the recordings "
-            "(it is created if missing)"
-        )
 
 
 def _serve_until_stopped(cfg: Any) -> None:
@@ -576,7 +504,14 @@ def _check_bot_args(
 
 
 # The options of `bots` (and of `demo` where they share one).
-UrlOption = Annotated[str, typer.Option(help="Server URL, e.g. ws://127.0.0.1:8765.")]
+UrlOption = Annotated[
+    str,
+    typer.Option(
+        help="Server URL, e.g. ws://127.0.0.1:8765; or relays separated by commas "
+        "(ws://a:8765,ws://b:8765): bot i starts on relay i (round-robin) and, when its "
+        "relay drops, resumes or rejoins on the next ones in order.",
+    ),
+]
 BotCountOption = Annotated[int, typer.Option(help="Number of bots.")]
 RoomOption = Annotated[str, typer.Option(help="Room to join.")]
 AskRateOption = Annotated[float, typer.Option(help="Snapshot rate each bot asks for (Hz).")]
@@ -636,7 +571,12 @@ def bots(
     out of ps); an explicit --token wins over a secret from the environment.
     """
     from client.bot import BotConfig
+    from client.connection import relay_urls
 
+    try:
+        urls = relay_urls(url)
+    except ValueError as exc:
+        raise _fail(f"--url: {exc}") from None
     methods = _check_bot_args(rate, n, duration, interp_, motion)
     key = _bot_secret(ctx, token_, secret, secret_file)
     if token_ is not None and n > 1:
@@ -645,7 +585,8 @@ def bots(
             "give --secret or --secret-file so that each bot gets a token of its own"
         )
     base = BotConfig(
-        url=url,
+        url=urls[0],
+        urls=urls if len(urls) > 1 else (),
         room=room,
         rate=rate,
         send_rate=send_rate,
@@ -710,14 +651,17 @@ def _run_swarm(base: Any, n: int, token_for: Any) -> dict[str, Any]:
         with console.status(f"{n} bots in room {base.room!r} for {base.duration:g} s ..."):
             reports = _run_async(run_bots(base, n, token_for=token_for))
     except* (OSError, InvalidURI, WebSocketException) as eg:
-        raise _fail(f"cannot connect to {base.url}: {eg.exceptions[0]}") from None
+        where = ", ".join(base.relays)
+        raise _fail(f"cannot connect to {where}: {eg.exceptions[0]}") from None
     report: dict[str, Any] = swarm_report(reports)
     return report
 
 
 def _print_ending(report: dict[str, Any]) -> None:
-    """A starved machine, and a session the server ended early, in one line each."""
-    for line in [report["starvation"]["warning"], *report["ending"]["lines"]]:
+    """A starved machine, bots that reconnected after a drop, and a session the server
+    ended early, in one line each."""
+    reconnects = report.get("reconnects", {}).get("lines", [])
+    for line in [report["starvation"]["warning"], *reconnects, *report["ending"]["lines"]]:
         if line:
             console.print(line, markup=False, highlight=False, soft_wrap=True)
 

@@ -1,0 +1,96 @@
+"""The checks of ``posecast serve``'s options: each refusal is one line (exit 2)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, TypedDict
+
+from posecast.cli.common import _fail
+
+if TYPE_CHECKING:
+    from protocol.codec import Volume
+
+__all__ = ["check_serve_args", "check_tls_files", "cluster_config", "room_volume"]
+
+_LOG_LEVELS = ("debug", "info", "warning", "error")
+
+
+class ClusterFields(TypedDict):
+    cluster: str | None
+    node: str | None
+
+
+def cluster_config(cluster: str | None, node: str | None) -> ClusterFields:
+    """--cluster and --node, checked now (a NATS that does not answer is a later line),
+    as ``ServerConfig`` fields."""
+    import re
+
+    if cluster is not None:
+        for url in cluster.split(","):
+            if not re.fullmatch(r"(nats|tls)://[^\s/]+(:\d+)?/?", url.strip()):
+                raise _fail(f"--cluster {url!r}: give a NATS URL such as nats://127.0.0.1:4222")
+    if node is not None:
+        if cluster is None:
+            raise _fail("--node names this relay in a cluster: give --cluster too")
+        if not re.fullmatch(r"[A-Za-z0-9_-]{1,64}", node):
+            raise _fail(f"--node {node!r}: use 1-64 letters, digits, '-' or '_'")
+    return {"cluster": cluster, "node": node}
+
+
+def check_tls_files(certfile: Path | None, keyfile: Path | None) -> None:
+    """--certfile and --keyfile, checked now: both or neither, readable, a valid pair."""
+    if (certfile is None) != (keyfile is None):
+        raise _fail("give both --certfile and --keyfile for wss://, or neither")
+    if certfile is not None and keyfile is not None:
+        import ssl
+
+        try:
+            ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER).load_cert_chain(certfile, keyfile)
+        except (OSError, ssl.SSLError) as exc:
+            raise _fail(
+                f"--certfile {certfile} / --keyfile {keyfile}: not a usable PEM "
+                f"certificate chain and key ({exc})"
+            ) from None
+
+
+def room_volume(text: str, extent: float | None) -> Volume:
+    """The room volume of --volume / --room-extent; a clear one-line error if unusable."""
+    from protocol.codec import Volume
+    from protocol.errors import PosecastError
+
+    if extent is not None:
+        if not 0 < extent <= 2048:
+            raise _fail(f"--room-extent must be in (0, 2048] m, not {extent:g}")
+        return Volume((-extent,) * 3, (extent,) * 3)
+    try:
+        values = [float(v) for v in text.split(",")]
+        if len(values) != 6:
+            raise ValueError("give six numbers")
+        return Volume((values[0], values[1], values[2]), (values[3], values[4], values[5]))
+    except (ValueError, PosecastError) as exc:
+        raise _fail(f"--volume {text!r}: {exc} (X0,Y0,Z0,X1,Y1,Z1 in m, X0 < X1 ...)") from None
+
+
+def check_serve_args(
+    port: int,
+    rate: float,
+    min_rate: float,
+    max_rate: float,
+    record: Path | None,
+    record_writer: str,
+    log_level: str,
+) -> None:
+    """Refuse, in one line, a serve option that cannot be used (exit 2)."""
+    if not 0 <= port <= 65535:
+        raise _fail(f"--port must be in 0..65535 (0 picks a free port), not {port}")
+    if not 0 < min_rate <= rate <= max_rate:
+        raise _fail("need 0 < --min-rate <= --rate <= --max-rate")
+    if record_writer not in ("process", "thread"):
+        raise _fail(f"--record-writer must be process or thread, not {record_writer!r}")
+    if log_level.lower() not in _LOG_LEVELS:
+        raise _fail(f"--log-level must be one of {', '.join(_LOG_LEVELS)}, not {log_level!r}")
+    if record is not None and record.exists() and not record.is_dir():
+        raise _fail(
+            f"--record {record} is a file; give a folder for the recordings "
+            "(it is created if missing)"
+        )
