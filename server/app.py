@@ -713,6 +713,7 @@ class RelayServer:
             lease=cfg.cluster_lease,
             clock=self.clock,
             wall_clock=self.wall_clock,
+            prepare=None if cfg.record_dir is None else self.prepare_room,
         )
 
     def _deliver_forwarded(self, conn: int, data: bytes) -> None:

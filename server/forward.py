@@ -35,7 +35,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -76,6 +76,9 @@ class Members:
     apply: Callable[[list[Action]], None]
     clock: Callable[[], float] = time.monotonic
     wall_clock: Callable[[], float] = time.time
+    #: A recording relay's room opener (``RelayServer.prepare_room``): a join of a
+    #: room not open yet waits for its recorder, as a local join does.
+    prepare: Callable[[str], Awaitable[None]] | None = None
     #: (edge, edge connection) -> core connection, and back.
     conns: dict[tuple[str, int], int] = field(default_factory=dict)
     remote: dict[int, tuple[str, int]] = field(default_factory=dict)
@@ -112,7 +115,15 @@ class Members:
             for data in item[3]:
                 self.frames_in += 1
                 frame = data if isinstance(data, str) else bytes(data)  # a text frame: refused
-                self.route(self.core.receive(conn, frame, now, self.wall_clock()))
+                if self.prepare is None:
+                    self.route(self.core.receive(conn, frame, now, self.wall_clock()))
+                    continue
+                for event in self.core.frame(conn, frame):
+                    room = self.core.room_to_open(conn, event, self.wall_clock())
+                    if room is not None:  # a recorded room opens first, off the loop
+                        await self.prepare(room)
+                        now = self.clock()
+                    self.route(self.core.handle(conn, event, now, self.wall_clock()))
         elif kind == "gone" and key in self.conns:
             conn = self.conns.pop(key)
             del self.remote[conn]

@@ -27,7 +27,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 
 import nats.errors
@@ -99,12 +99,13 @@ class ClusterNode:
         lease: float = 3.0,
         clock: Callable[[], float] = time.monotonic,
         wall_clock: Callable[[], float] = time.time,
+        prepare: Callable[[str], Awaitable[None]] | None = None,
     ) -> ClusterNode:
         """Join the cluster at ``servers`` as ``node`` (:class:`ClusterError` if not)."""
         directory = await Directory.open(servers, node, url=url, lease=lease)
         ids = directory.user_ids()
         core.users = IdAllocator(min(ids.stop, ROOM_USER), start=ids.start)
-        members = Members(core, directory.nc, node, apply, clock, wall_clock)
+        members = Members(core, directory.nc, node, apply, clock, wall_clock, prepare)
         edge = Edge(directory.nc, node, deliver, close)
         self = cls(directory, core, apply, members, edge, clock)
         directory.on_lost = self._lost

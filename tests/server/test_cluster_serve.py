@@ -15,6 +15,7 @@ import re
 import urllib.request
 from collections.abc import AsyncIterator
 from functools import partial
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,7 +23,9 @@ from conftest import needs_nats
 from relaykit import Bot, errors, raw_connect, raw_join, settle, until_closed
 from support import running_server
 
+from client.bot import BotConfig, run_bot
 from protocol import PeerJoined, PeerLeft, UserEvent
+from recorder import info, load_streams
 from server.app import RelayServer, ServerConfig
 from server.cluster import USER_BLOCK, ClusterError
 from server.node import MOVED
@@ -181,3 +184,53 @@ async def test_two_live_nodes_cannot_share_a_name(nats_url: str) -> None:
     async with running_server(node(nats_url, "a")):
         with pytest.raises(ClusterError, match="a live node is named 'a'"):
             await RelayServer(node(nats_url, "a")).run()
+
+
+@pytest.mark.parametrize("codec", ["raw", "compact"])
+async def test_a_split_room_has_one_recording_on_its_owner(
+    nats_url: str, tmp_path: Path, codec: str
+) -> None:
+    """Four bots, two through each of two recording nodes: one file, on the room's
+    owner, with every keyframe any bot received, bit-exact; the other node records
+    nothing."""
+    dirs = {name: tmp_path / name for name in ("a", "b")}
+    async with contextlib.AsyncExitStack() as stack:
+        servers = [
+            await stack.enter_async_context(running_server(node(nats_url, n, record_dir=d)))
+            for n, d in dirs.items()
+        ]
+        async with asyncio.TaskGroup() as tg:
+            tasks = [
+                tg.create_task(
+                    run_bot(
+                        BotConfig(
+                            url=url_of(servers[i % 2]),
+                            room="rec",
+                            rate=20,
+                            motion="synthetic:orbit",
+                            seed=i,
+                            duration=3.0,
+                            methods=("soa",),
+                            codec=codec,
+                        )
+                    )
+                )
+                for i in range(4)
+            ]
+    files = {name: sorted(d.glob("*.mcap")) for name, d in dirs.items()}
+    assert sorted(len(f) for f in files.values()) == [0, 1], files
+    (path,) = [f for fs in files.values() for f in fs]
+    assert len(info(path)["users"]) == 4
+    streams = load_streams(path)
+    time_tol = 1e-5 if codec == "raw" else 1.0e-3 + 1e-6
+    checked = 0
+    for report in (t.result() for t in tasks):
+        assert len(report.streams) == 9  # three peers, three streams each
+        for key, received in report.streams.items():
+            rec = streams[key]
+            for cap, pose in zip(received.capture, received.poses, strict=True):
+                i = int(np.argmin(np.abs(rec.times - cap)))
+                assert abs(rec.times[i] - cap) < time_tol
+                assert rec.poses[i].tobytes() == np.asarray(pose, dtype=np.float32).tobytes()
+                checked += 1
+    assert checked >= 4 * 9 * 2
