@@ -63,7 +63,13 @@ from server.core import (
 )
 from server.http import QuietHttpLog, metrics_text, process_request
 from server.logs import LogLimiter
-from server.node import cluster_clock, join_room
+from server.node import (
+    claim_then_consume,
+    cluster_clock,
+    join_room,
+    resume_then_consume,
+    resume_token,
+)
 from server.room import IdAllocator, Outbox, Room
 from server.transport import WebSocketConnection, frame_binary
 
@@ -227,6 +233,10 @@ class _Connection(WebSocketConnection):
                     if name is not None and not cluster.owns(name):
                         self._hold(name, events[i:], messages, raw)
                         return
+                    token = resume_token(event)
+                    if token is not None and not core.parking.has(token):
+                        self._hold("", events[i:], messages, raw, token)
+                        return
                 if recording and not (skip_check and i == 0):
                     room = core.room_to_open(conn, event, wall)
                     if room is not None:
@@ -242,45 +252,25 @@ class _Connection(WebSocketConnection):
             events, raw = core.frame(conn, data), data
 
     def _hold(
-        self, room: str, events: list[Event], rest: Iterator[bytes | str], raw: bytes | str = b""
+        self,
+        room: str,
+        events: list[Event],
+        rest: Iterator[bytes | str],
+        raw: bytes | str = b"",
+        token: str | None = None,
     ) -> None:
+        """Stop reading until ``room`` is open (or claimed in the cluster, or the
+        member resumable with ``token`` is found in it); then go on in order."""
         self._held = True
         self._backlog = list(rest)
         self.transport.pause_reading()
-        if self.server.cluster is not None and not self.server.cluster.owns(room):
-            job = self._claim_then_consume(room, events, raw)
+        if token is not None:
+            job = resume_then_consume(self, token, events, raw)
+        elif self.server.cluster is not None and not self.server.cluster.owns(room):
+            job = claim_then_consume(self, room, events, raw)
         else:
             job = self._open_then_consume(room, events)
         self.server.spawn(job, f"open:{room}")
-
-    async def _claim_then_consume(self, room: str, events: list[Event], raw: bytes | str) -> None:
-        """Claim ``room`` in the cluster; join here if this node owns it now, else hand
-        the connection off to its owner, the join frame first."""
-        server = self.server
-        assert server.cluster is not None
-        try:
-            owner = await server.cluster.claim(room)
-        except Exception as exc:  # NATS away, or the room changes hands too fast
-            log.warning("cluster: cannot claim room %r: %s", room, exc)
-            owner = None
-        if server._conns.get(self.conn) is not self:
-            return  # it ended meanwhile
-        if owner is None:
-            self.close(1013, "try again later: the cluster cannot place the room")
-            return
-        if owner == server.cluster.name:
-            await self._open_then_consume(room, events)
-            return
-        peer = server.core.peer(self.conn)
-        backlog, self._held, self._backlog = self._backlog, False, []
-        address = self.transport.get_extra_info("peername")
-        self.forwarded = True
-        if not server.cluster.hand_off(
-            self.conn, owner, peer.name, str(address[0] if address else "?"), [raw, *backlog]
-        ):
-            self.close(1013, "try again later: the cluster is not taking frames")
-            return
-        self.transport.resume_reading()
 
     def write_forwarded(self, data: bytes) -> None:
         """Write a frame the room's owner node sent this (forwarded) client."""
@@ -298,7 +288,8 @@ class _Connection(WebSocketConnection):
             self.transport.write(framed)
 
     async def _open_then_consume(self, room: str, events: list[Event]) -> None:
-        await self.server.prepare_room(room)
+        if room:
+            await self.server.prepare_room(room)
         if self.server._conns.get(self.conn) is not self:
             return  # it ended meanwhile
         backlog, self._held = self._backlog, False

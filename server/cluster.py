@@ -30,6 +30,7 @@ leases run out within ``lease`` seconds and its rooms can be claimed anew.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import os
@@ -337,6 +338,32 @@ class Directory:
         self.held[key] = _Lease(key, value, revision)
         log.warning("node %s took room %r over from node %s, which is gone", self.node, room, dead)
         return True
+
+    # -- records of other kinds (members, for a resume on another node) ----------------
+
+    async def put(self, key: str, value: bytes, ttl: float) -> None:
+        """Write ``key`` (whoever held it), living ``ttl`` s unless written again."""
+        await self.js.publish(f"$KV.{BUCKET}.{key}", value, msg_ttl=ttl)
+
+    async def delete(self, key: str) -> None:
+        with contextlib.suppress(KeyNotFoundError, nats.js.errors.KeyDeletedError):
+            await self.kv.delete(key)
+
+    async def values(self, pattern: str) -> dict[str, bytes]:
+        """Every live key matching ``pattern`` (``*`` matches one token), with its value;
+        the server filters, so this reads only what matches."""
+        watcher = await self.kv.watch(pattern, ignore_deletes=True)
+        out: dict[str, bytes] = {}
+        try:
+            async with asyncio.timeout(self.lease):
+                async for entry in watcher:
+                    if entry is None:
+                        break
+                    if entry.value:
+                        out[entry.key] = entry.value
+        finally:
+            await watcher.stop()  # type: ignore[no-untyped-call]
+        return out
 
     def rooms(self) -> list[str]:
         """The rooms this node holds the lease of."""

@@ -15,8 +15,10 @@ Subjects and messages (msgpack arrays), ordered per publisher and subject as
 NATS keeps them:
 
 ``posecast.node.<OWNER>.in`` (edge -> owner)
-    ``["open", edge, econn, user, agent, resumable, address]``: a client of
-    the edge, already welcomed there, comes to one of the owner's rooms;
+    ``["open", edge, econn, user, agent, resumable, address, token, hello]``: a
+    client of the edge, already welcomed there (with resume ``token``), comes to
+    one of the owner's rooms; with ``hello`` true it was not welcomed: it resumes
+    a member of the owner, and its hello is the first of its frames;
     ``["frames", edge, econn, [frame, ...]]``: what it sent, in order;
     ``["gone", edge, econn, said_bye]``: its websocket ended.
 ``posecast.node.<EDGE>.out`` (owner -> edge)
@@ -132,15 +134,23 @@ class Members:
 
     def _open(self, key: tuple[str, int], item: list[Any], now: float) -> None:
         user, agent, resumable, address = int(item[3]), str(item[4]), bool(item[5]), item[6]
+        token = item[7] if len(item) > 7 else None
+        hello_follows = len(item) > 8 and bool(item[8])
         conn = self.core.connect(now, lambda: 0, f"{key[0]}/{address}")
         self.conns[key], self.remote[conn] = conn, key
-        self.core.peer(conn).preset_user = user
+        peer = self.core.peer(conn)
+        peer.preset_user = user
         self.route(self.core.pending())
+        if hello_follows:
+            return  # a resume: the client's own hello comes next, and this node answers it
         hello = encode_message(Hello(agent=agent, resumable=resumable))
         self.route(self.core.receive(conn, hello, now, self.wall_clock()))
-        # The edge welcomed the client already (with this user id): drop this one.
+        # The edge welcomed the client already (with this user id and resume token):
+        # drop this welcome; a drop of its socket parks it under the edge's token.
         self.core.take(conn, now)
         self._dirty.discard(conn)
+        if token and peer.resume_token is not None:
+            peer.resume_token = str(token)
 
     def route(self, actions: list[Action]) -> None:
         """Keep the actions about remote members, hand the others to the adapter."""
@@ -239,11 +249,21 @@ class Edge:
         self._ready.set()
 
     def open(
-        self, econn: int, owner: str, user: int, agent: str, resumable: bool, address: str
+        self,
+        econn: int,
+        owner: str,
+        user: int,
+        agent: str,
+        resumable: bool,
+        address: str,
+        token: str | None = None,
+        hello_follows: bool = False,
     ) -> None:
-        """Client ``econn`` (welcomed here as ``user``) goes to a room of ``owner``."""
+        """Client ``econn`` (welcomed here as ``user``, with resume ``token``) goes to a
+        room of ``owner``; ``hello_follows``: it resumes, its hello is forwarded."""
         self.owners[econn] = owner
-        self._push(owner, ["open", self.node, econn, user, agent, resumable, address])
+        item = ["open", self.node, econn, user, agent, resumable, address, token, hello_follows]
+        self._push(owner, item)
 
     def forward(self, econn: int, frames: list[bytes | str]) -> bool:
         """Frames the client sent, in order; False if the backlog is full."""

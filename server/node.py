@@ -26,28 +26,47 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import re
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
+import msgpack
 import nats.errors
 
 from protocol.events import Event
-from protocol.messages import Join
+from protocol.messages import Hello, Join
 from protocol.objects import ROOM_USER
+from server import resume
 from server.actions import Action
 from server.cluster import Directory
 from server.core import RelayCore
 from server.forward import Edge, Members, alive
 from server.limits import normalise_room
-from server.room import IdAllocator
+from server.room import IdAllocator, Member, Outbox
 
-__all__ = ["MOVED", "ClusterNode", "cluster_clock", "join_room"]
+if TYPE_CHECKING:
+    from server.app import _Connection as Connection
+
+__all__ = [
+    "MOVED",
+    "ClusterNode",
+    "claim_then_consume",
+    "cluster_clock",
+    "join_room",
+    "resume_then_consume",
+    "resume_token",
+]
 
 log = logging.getLogger("posecast.cluster")
 
 #: The close of a client whose room's node is gone, or whose room moved.
 MOVED = (1012, "the room's node changed; reconnect")
+#: Seconds a member record lives unless its owner writes it again (every third).
+RECORD_TTL = 30.0
+#: What a resume token looks like (``Parking.new_token``): a safe NATS key token.
+_TOKEN = re.compile(r"[A-Za-z0-9_-]{8,64}")
 
 
 def cluster_clock() -> Callable[[], float]:
@@ -68,6 +87,11 @@ def join_room(event: Event) -> str | None:
         return None
 
 
+def resume_token(event: Event) -> str | None:
+    """The token a hello resumes with (None: not a hello, or not a resume)."""
+    return event.resume if isinstance(event, Hello) and event.resume else None
+
+
 @dataclass
 class ClusterNode:
     """The cluster side of one relay process (build it with :meth:`open`)."""
@@ -80,6 +104,8 @@ class ClusterNode:
     clock: Callable[[], float] = time.monotonic
     #: Rooms this node owns that were empty at the last upkeep round.
     _empty: set[str] = field(default_factory=set)
+    #: Member records this node wrote: key -> (value, when).
+    _written: dict[str, tuple[bytes, float]] = field(default_factory=dict)
     #: Last NATS round trip (s), NaN before the first.
     rtt: float = float("nan")
     joins_forwarded: int = 0
@@ -146,17 +172,111 @@ class ClusterNode:
                 return self.name
         return await self.directory.claim(room)
 
-    def hand_off(
-        self, conn: int, owner: str, agent: str, address: str, frames: list[bytes | str]
-    ) -> bool:
+    def hand_off(self, conn: int, owner: str, address: str, frames: list[bytes | str]) -> bool:
         """Forward connection ``conn`` (welcomed here) to ``owner``, starting with
-        ``frames`` (its join, and what followed it); False if the backlog is full."""
+        ``frames`` (its join, and what followed it); False if the backlog is full.
+        Its resume token goes along: a drop parks it on the owner under that token."""
         peer = self.core.peer(conn)
         assert peer.user is not None
+        token = peer.resume_token
         self.core.hand_off(conn)
         self.joins_forwarded += 1
-        self.edge.open(conn, owner, peer.user, agent, False, address)
+        self.edge.open(conn, owner, peer.user, peer.name, token is not None, address, token)
         return self.edge.forward(conn, frames)
+
+    def hand_off_resume(
+        self, conn: int, owner: str, user: int, address: str, frames: list[bytes | str]
+    ) -> bool:
+        """Forward connection ``conn``, whose hello (the first of ``frames``) resumes
+        ``user`` of a room ``owner`` holds: the owner answers the hello itself."""
+        self.core.hand_off(conn)
+        self.joins_forwarded += 1
+        self.edge.open(conn, owner, user, "", True, address, None, True)
+        return self.edge.forward(conn, frames)
+
+    # -- resume anywhere: members' records in NATS -----------------------------------
+
+    async def lookup(self, token: str) -> dict[str, Any] | None:
+        """The record of the member resumable with ``token`` (None: not in the cluster)."""
+        if not _TOKEN.fullmatch(token):
+            return None
+        found = await self.directory.values(f"member.*.{token}")
+        for value in found.values():
+            record: dict[str, Any] = msgpack.unpackb(value)
+            return record
+        return None
+
+    def restore_room(self, room: str, records: list[dict[str, Any]], now: float) -> int:
+        """Park the members of ``room`` recorded by its lost owner, for their clients to
+        resume here (``server.resume.restore``); returns how many were parked."""
+        target = self.core.rooms.get(room)
+        if target is None:
+            target = self.core._room_for(room)
+        parked = 0
+        for r in records:
+            member = Member(
+                int(r["user"]), str(r["name"]), {str(k): int(v) for k, v in r["streams"].items()},
+                float(r["rate"]), Outbox(self.core.config.max_event_queue), label=r["label"],
+                velocities=bool(r["v"]), sends_velocities=bool(r["sv"]),
+                compact=bool(r["compact"]), echo=bool(r["echo"]),
+            )  # fmt: skip
+            member.asked_rate = member.rate
+            parked += resume.restore(self.core, target, member, str(r["token"]), now)
+        self.apply(self.core.pending())
+        if parked:
+            log.warning("cluster: room %r came here with %d members to resume", room, parked)
+        return parked
+
+    async def adopt(self, room: str) -> None:
+        """This node owns ``room`` now and has no state of it: take in the members its
+        last owner recorded (if it was lost with them)."""
+        held = self.core.rooms.get(room)
+        if held is not None and held.members:
+            return
+        values = await self.directory.values(f"member.{room.encode().hex()}.*")
+        records = [msgpack.unpackb(v) for v in values.values()]
+        if records:
+            self.restore_room(room, records, self.clock())
+
+    def _records(self) -> dict[str, bytes]:
+        """Key -> record of every resumable member of the rooms this node owns."""
+        core = self.core
+        parked = core.parking.tokens()
+        out: dict[str, bytes] = {}
+        for name, room in core.rooms.items():
+            if not self.directory.owns(name):
+                continue
+            for member in room.members.values():
+                peer = core._by_user.get(member.user)
+                token = (
+                    parked.get(member.user)
+                    if member.parked or peer is None
+                    else (peer.resume_token)
+                )
+                if token is None:
+                    continue
+                record = {
+                    "room": name, "user": member.user, "name": member.name,
+                    "streams": member.streams, "rate": member.asked_rate or member.rate,
+                    "label": member.label, "v": member.velocities,
+                    "sv": member.sends_velocities, "compact": member.compact,
+                    "echo": member.echo, "token": token,
+                }  # fmt: skip
+                out[f"member.{name.encode().hex()}.{token}"] = msgpack.packb(record)
+        return out
+
+    async def _sync_records(self) -> None:
+        """Write new and changed member records, refresh old ones, delete those gone."""
+        now = self.clock()
+        records = self._records()
+        for key, value in records.items():
+            written = self._written.get(key)
+            if written is None or written[0] != value or now - written[1] > RECORD_TTL / 3:
+                await self.directory.put(key, value, RECORD_TTL)
+                self._written[key] = (value, now)
+        for key in [k for k in self._written if k not in records]:
+            del self._written[key]
+            await self.directory.delete(key)
 
     # -- upkeep ----------------------------------------------------------------------
 
@@ -187,6 +307,7 @@ class ClusterNode:
         for room in empty & self._empty:
             await self.directory.release(room)
         self._empty = empty
+        await self._sync_records()
         for owner in sorted(set(self.edge.owners.values())):
             if not await self._alive(owner):
                 self._owner_gone(owner)
@@ -242,3 +363,87 @@ class ClusterNode:
             text = "NaN" if value != value else f"{value:g}" if isinstance(value, float) else value
             lines += [f"# HELP {name} {help_}", f"# TYPE {name} {kind}", f"{name} {text}"]
         return "\n".join(lines) + "\n"
+
+
+# -- the adapter's side: a connection's join or resume, placed in the cluster -------------
+
+
+async def resume_then_consume(
+    c: Connection, token: str, events: list[Event], raw: bytes | str
+) -> None:
+    """A hello resuming a member this node does not hold: find its room in the
+    cluster; resume here if this node owns it now (taking in the members of a
+    lost owner), else hand the connection to the owner, the hello first."""
+    server = c.server
+    cluster = server.cluster
+    assert cluster is not None
+    owner = record = None
+    try:
+        record = await cluster.lookup(token)
+        if record is not None:
+            owner = await cluster.claim(str(record["room"]))
+    except Exception as exc:  # NATS away: this node answers (not resumed)
+        log.warning("cluster: cannot look up a resume: %s", exc)
+    if server._conns.get(c.conn) is not c:
+        return
+    if record is not None and owner is not None and owner != cluster.name:
+        _forward(c, owner, raw, int(record["user"]))
+        return
+    if record is not None and owner is not None:
+        await _adopt(c, str(record["room"]))
+    await c._open_then_consume("", events)
+
+
+async def _adopt(c: Connection, room: str) -> None:
+    """This node owns ``room`` now: open it (its recording) and take in the
+    members a lost owner left to resume."""
+    assert c.server.cluster is not None
+    await c.server.prepare_room(room)
+    try:
+        await c.server.cluster.adopt(room)
+    except Exception as exc:
+        log.warning("cluster: cannot read room %r's members: %s", room, exc)
+
+
+def _forward(c: Connection, owner: str, raw: bytes | str, resumes: int | None = None) -> None:
+    """From now on this connection's frames go to node ``owner``, ``raw`` first."""
+    server = c.server
+    assert server.cluster is not None
+    backlog, c._held, c._backlog = c._backlog, False, []
+    address = c.transport.get_extra_info("peername")
+    where = str(address[0] if address else "?")
+    c.forwarded = True
+    frames = [raw, *backlog]
+    if resumes is None:
+        ok = server.cluster.hand_off(c.conn, owner, where, frames)
+    else:
+        ok = server.cluster.hand_off_resume(c.conn, owner, resumes, where, frames)
+    if not ok:
+        c.close(1013, "try again later: the cluster is not taking frames")
+        return
+    c.transport.resume_reading()
+
+
+async def claim_then_consume(
+    c: Connection, room: str, events: list[Event], raw: bytes | str
+) -> None:
+    """Claim ``room`` in the cluster; join here if this node owns it now, else hand
+    the connection off to its owner, the join frame first."""
+    server = c.server
+    assert server.cluster is not None
+    try:
+        owner = await server.cluster.claim(room)
+    except Exception as exc:  # NATS away, or the room changes hands too fast
+        log.warning("cluster: cannot claim room %r: %s", room, exc)
+        owner = None
+    if server._conns.get(c.conn) is not c:
+        return  # it ended meanwhile
+    if owner is None:
+        c.close(1013, "try again later: the cluster cannot place the room")
+        return
+    if owner == server.cluster.name:
+        await _adopt(c, room)
+        if server._conns.get(c.conn) is c:
+            await c._open_then_consume(room, events)
+        return
+    _forward(c, owner, raw)

@@ -39,7 +39,7 @@ if TYPE_CHECKING:
     from server.core import RelayCore
     from server.peer import Peer
 
-__all__ = ["Parked", "Parking", "gone", "hello", "park", "parkable", "resume_join"]
+__all__ = ["Parked", "Parking", "gone", "hello", "park", "parkable", "restore", "resume_join"]
 
 
 @dataclass
@@ -90,6 +90,13 @@ class Parking:
         self._by_conn.pop(parked.conn, None)
         self.resumes += 1
         return parked
+
+    def has(self, token: str) -> bool:
+        return token in self._parked
+
+    def tokens(self) -> dict[int, str]:
+        """Parked users and the tokens they resume with."""
+        return {p.user: token for token, p in self._parked.items()}
 
     def holds(self, user: int) -> bool:
         """Whether ``user`` is parked (its id must not be given to anyone else)."""
@@ -224,4 +231,38 @@ def resume_join(core: RelayCore, peer: Peer, join: Join, name: str, now: float) 
             now,
         )  # fmt: skip
     core._rescheduled(room)
+    return True
+
+
+def restore(
+    core: RelayCore,
+    room: Room,
+    member: Member,
+    token: str,
+    now: float,
+) -> bool:
+    """Park ``member`` of a room whose cluster node was lost (``server.node``), so that
+    its client resumes here with ``token`` as on the node it was on: the same user
+    id and stream ids. False if the user or one of its stream ids is taken here."""
+    user = member.user
+    if user in room.members or user in core._by_user or core.parking.holds(user):
+        return False
+    if any(not room.stream_ids.reserve(sid) for sid in member.streams.values()):
+        return False
+    core.users.reserve(user)
+    room.add(member, now)
+    member.parked = True
+    core._next_conn += 1  # a connection id no socket will have: the parking's key
+    conn = core._next_conn
+    parking = core.parking
+    parking.park(conn, Parked(user, member.name, room, member, now, now + parking.window,
+                              token, conn))  # fmt: skip
+    if room.recorder is not None:
+        room.recorder.record_presence(
+            {"kind": "join", "user": user, "name": member.name, "label": member.label,
+             "streams": member.streams, "rate": member.rate},
+            now,
+        )  # fmt: skip
+    core._rescheduled(room)
+    core.emit_rearm()
     return True

@@ -121,6 +121,20 @@ class IdAllocator:
             raise RuntimeError("no free ids left")
         return self._free.popleft()
 
+    def reserve(self, ident: int) -> bool:
+        """Take ``ident`` itself (a member restored on another cluster node keeps its
+        ids); False if it is taken already. Ids outside the range are not tracked."""
+        if not self._start <= ident < self._limit:
+            return True
+        if ident >= self._next:
+            self._free.extend(range(self._next, ident))
+            self._next = ident + 1
+            return True
+        if ident in self._free:
+            self._free.remove(ident)
+            return True
+        return False
+
     def give_back(self, ident: int) -> None:
         if self._start <= ident < self._next:
             self._free.append(ident)

@@ -13,7 +13,7 @@ import asyncio
 import contextlib
 import re
 import urllib.request
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from functools import partial
 from pathlib import Path
 
@@ -24,7 +24,16 @@ from relaykit import Bot, errors, raw_connect, raw_join, settle, until_closed
 from support import running_server
 
 from client.bot import BotConfig, run_bot
-from protocol import PeerJoined, PeerLeft, UserEvent
+from client.connection import ClientConnection
+from protocol import (
+    PeerJoined,
+    PeerLeft,
+    PeerResumed,
+    PeerStalled,
+    PoseUpdate,
+    Snapshot,
+    UserEvent,
+)
 from recorder import info, load_streams
 from server.app import RelayServer, ServerConfig
 from server.cluster import USER_BLOCK, ClusterError
@@ -234,3 +243,61 @@ async def test_a_split_room_has_one_recording_on_its_owner(
                 assert rec.poses[i].tobytes() == np.asarray(pose, dtype=np.float32).tobytes()
                 checked += 1
     assert checked >= 4 * 9 * 2
+
+
+STREAMS = ("head", "left", "right")
+POSE = np.repeat(np.array([[0.0, 1.6, 0.0, 1.0, 0.0, 0.0, 0.0]]), 3, axis=0)
+
+
+async def _resume_at(
+    url: str, token: str, streams: dict[str, int], clock: Callable[[], float]
+) -> ClientConnection:
+    """Reconnect with ``token``: resumed as the same user, with the same stream ids."""
+    back = await ClientConnection.connect(url, resume=token, clock=clock)
+    assert back.welcome is not None and back.welcome.resumed
+    again = await back.join(room="lab", streams=STREAMS, rate=20)
+    assert again.streams == streams
+    return back
+
+
+async def _notices_until_poses_of(watcher: ClientConnection, user: int) -> list[type]:
+    """Presence notices the watcher gets until a snapshot carries ``user``'s poses."""
+    seen: list[object] = []
+    async with asyncio.timeout(15):
+        while not any(isinstance(e, Snapshot) and user in e.entries["user"] for e in seen):
+            seen.append((await watcher.recv()).event)
+    return [type(e) for e in seen if isinstance(e, PeerStalled | PeerResumed | PeerLeft)]
+
+
+@pytest.mark.parametrize("back_through", ["same node", "other node"])
+async def test_a_dropped_member_resumes_through_any_node(nats_url: str, back_through: str) -> None:
+    """A member that came through node b (its room is a's) drops and resumes, through
+    b again or through a: the same user and streams; the room's other member sees
+    peer_stalled then peer_resumed, never peer_left."""
+    async with nodes(nats_url, "a", "b") as (a, b):
+        assert a.cluster is not None and b.cluster is not None
+        clock = a.clock  # the cluster's time (the nodes' clocks are anchored to the wall)
+        watcher = await ClientConnection.open(
+            url_of(a), room="lab", streams=STREAMS, rate=20, clock=clock
+        )
+        x = await ClientConnection.connect(url_of(b), resumable=True, clock=clock)
+        assert x.welcome is not None and x.welcome.resume
+        joined = await x.join(room="lab", streams=STREAMS, rate=20)
+        token = x.welcome.resume
+        await settle(lambda: len(a.rooms["lab"].members) == 2)
+        x.ws.transport.abort()  # the network drops it
+        await settle(lambda: any(m.parked for m in a.rooms["lab"].members.values()))
+        # The owner keeps the member's record in NATS, for a resume through any node.
+        for _ in range(100):
+            if await b.cluster.lookup(token) is not None:
+                break
+            await asyncio.sleep(0.1)
+        url = url_of(b) if back_through == "same node" else url_of(a)
+        back = await _resume_at(url, token, joined.streams, clock)
+        assert back.welcome is not None and back.welcome.user == x.welcome.user
+        ids = list(joined.streams.values())
+        await back.send(PoseUpdate.from_arrays(1, ids, np.full(3, back.clock()), POSE))
+        notices = await _notices_until_poses_of(watcher, back.welcome.user)
+        assert notices == [PeerStalled, PeerResumed]
+        await watcher.close()
+        await back.close()

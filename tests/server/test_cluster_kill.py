@@ -1,0 +1,149 @@
+"""Node loss for real: relay processes on one nats-server, the room's owner SIGKILLed.
+
+The room's members resume on a live node with their user and stream ids: the
+one that came through the surviving node is told to reconnect (1012) and
+resumes there; the one whose socket was on the killed node reconnects to the
+other node and resumes too. Neither sees the other leave.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import re
+import signal
+import sys
+import time
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager, suppress
+
+import numpy as np
+from conftest import needs_nats
+from relaykit import settle
+from websockets.exceptions import ConnectionClosed
+
+from client.connection import ClientConnection
+from protocol import PeerLeft, PeerResumed, PoseUpdate, Snapshot
+from server.node import MOVED
+
+pytestmark = needs_nats
+
+STREAMS = ("head", "left", "right")
+POSE = np.repeat(np.array([[0.0, 1.6, 0.0, 1.0, 0.0, 0.0, 0.0]]), 3, axis=0)
+_LISTENING = re.compile(rb"posecast listening on ws://127\.0\.0\.1:(\d+)")
+
+
+def cluster_time() -> float:
+    """The nodes' clock (monotonic anchored to the wall clock: the wall clock's time)."""
+    return time.time()
+
+
+@asynccontextmanager
+async def relay(nats_url: str, name: str) -> AsyncIterator[tuple[asyncio.subprocess.Process, str]]:
+    """``posecast serve --cluster`` as its own process; its URL once it listens."""
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "posecast.cli", "serve", "--port", "0", "--cluster", nats_url,
+        "--node", name, "--log-level", "warning",
+        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.DEVNULL,
+    )  # fmt: skip
+    try:
+        assert proc.stdout is not None
+        async with asyncio.timeout(30):
+            while not (found := _LISTENING.search(await proc.stdout.readline())):
+                assert proc.returncode is None
+        yield proc, f"ws://127.0.0.1:{int(found.group(1))}"
+    finally:
+        if proc.returncode is None:
+            proc.terminate()
+            with suppress(TimeoutError):
+                async with asyncio.timeout(15):
+                    await proc.wait()
+            if proc.returncode is None:
+                proc.kill()
+                await proc.wait()
+
+
+async def _publish_and_watch(
+    conn: ClientConnection, stop: asyncio.Event, seen: list[object]
+) -> None:
+    """Publish 20 Hz until ``stop`` or the connection ends; what it receives into ``seen``."""
+    assert conn.joined is not None
+    ids = list(conn.joined.streams.values())
+
+    async def read() -> None:
+        with suppress(ConnectionClosed):
+            while True:
+                seen.append((await conn.recv()).event)
+
+    async with asyncio.TaskGroup() as tg:
+        reader = tg.create_task(read())
+        seq = 0
+        with suppress(ConnectionClosed):
+            while not stop.is_set() and not reader.done():
+                seq += 1
+                t = cluster_time()
+                await conn.send(PoseUpdate.from_arrays(seq, ids, np.full(3, t), POSE))
+                await asyncio.sleep(0.05)
+        reader.cancel()
+
+
+async def _resume(urls: list[str], token: str, streams: dict[str, int]) -> ClientConnection:
+    """What a bot does after a drop: try each node with its token until resumed."""
+    async with asyncio.timeout(20):
+        while True:
+            for url in urls:
+                with suppress(OSError, ConnectionClosed, TimeoutError):
+                    conn = await ClientConnection.connect(url, resume=token, clock=cluster_time)
+                    assert conn.welcome is not None and conn.welcome.resumed, conn.welcome
+                    joined = await conn.join(room="lab", streams=STREAMS, rate=20)
+                    assert joined.streams == streams
+                    return conn
+            await asyncio.sleep(0.2)
+
+
+async def test_members_of_a_killed_owner_resume_on_a_live_node(nats_url: str) -> None:
+    async with relay(nats_url, "a") as (owner, url_a), relay(nats_url, "b") as (_, url_b):
+        # The first joiner's node owns the room: x through a, y through b.
+        x = await ClientConnection.connect(url_a, resumable=True, clock=cluster_time)
+        joined_x = await x.join(room="lab", streams=STREAMS, rate=20)
+        y = await ClientConnection.connect(url_b, resumable=True, clock=cluster_time)
+        joined_y = await y.join(room="lab", streams=STREAMS, rate=20)
+        assert x.welcome is not None and y.welcome is not None
+        assert x.welcome.resume and y.welcome.resume
+        stop = asyncio.Event()
+        before: list[object] = []
+        async with asyncio.TaskGroup() as tg:
+            tg.create_task(_publish_and_watch(y, stop, before))
+            tg.create_task(_publish_and_watch(x, stop, []))
+            await asyncio.sleep(2.5)  # the owner's member records reach NATS (every 1 s)
+            killed_at = time.monotonic()
+            os.kill(owner.pid, signal.SIGKILL)
+            await owner.wait()
+            # y's node finds the owner gone and tells y to reconnect (the task ends).
+        assert y.ws.close_code == MOVED[0], y.ws.close_code
+        moved_after = time.monotonic() - killed_at
+        y2 = await _resume([url_b], y.welcome.resume, joined_y.streams)
+        x2 = await _resume([url_a, url_b], x.welcome.resume, joined_x.streams)
+        resumed_after = time.monotonic() - killed_at
+        assert y2.welcome is not None and y2.welcome.user == y.welcome.user
+        assert x2.welcome is not None and x2.welcome.user == x.welcome.user
+        after: list[object] = []
+        async with asyncio.TaskGroup() as tg:
+            tg.create_task(_publish_and_watch(y2, stop, after))
+            tg.create_task(_publish_and_watch(x2, stop, []))
+            user = x.welcome.user
+            await settle(lambda: any(_carries(e, user) for e in after), limit=15.0)
+            stop.set()
+        assert any(_carries(e, x.welcome.user) for e in before)
+        assert not [e for e in before + after if isinstance(e, PeerLeft)]
+        assert any(isinstance(e, PeerResumed) and e.user == x.welcome.user for e in after)
+        print(
+            f"\nkill drill: y told to reconnect {moved_after:.2f} s after the SIGKILL; "
+            f"both resumed {resumed_after:.2f} s after it"
+        )
+        await x2.close()
+        await y2.close()
+
+
+def _carries(event: object, user: int) -> bool:
+    return isinstance(event, Snapshot) and user in event.entries["user"]
