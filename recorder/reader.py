@@ -610,6 +610,10 @@ def _info(reader: SessionReader) -> dict[str, Any]:
         "room": session.get("room"),
         "posecast_version": session.get("posecast_version"),
         "start_utc": session.get("start_utc"),
+        # In a cluster: the node that recorded it, and the node whose recording of
+        # the same room this one continues (that node was lost; see docs/scaling.md).
+        "cluster_node": session.get("cluster_node"),
+        "continues_from_node": session.get("continues_from_node"),
         "start_time": _float(session.get("start_time")),
         "end_time": _float(end_md.get("end_time")),
         "first_time": None if first is None else first / 1e9,
@@ -713,6 +717,16 @@ def _num(x: float | None, fmt: str = ".1f") -> str:
     return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, fmt)
 
 
+def _cluster_lines(data: dict[str, Any]) -> list[str]:
+    node, lost = data.get("cluster_node"), data.get("continues_from_node")
+    if not node:
+        return []
+    line = f"  recorded on cluster node {node}"
+    if lost:
+        line += f"; continues the room's recording on node {lost} (lost; recovered there)"
+    return [line]
+
+
 def format_info(data: dict[str, Any]) -> str:
     """Plain-text rendering of :func:`info` for ``posecast info FILE``."""
     sizes, drops = data["sizes"], data["drops"]
@@ -721,6 +735,7 @@ def format_info(data: dict[str, Any]) -> str:
         f"{data['path']}: {state}",
         f"  room {data['room']!r}, posecast {data['posecast_version']},"
         f" started {data['start_utc']}",
+        *_cluster_lines(data),
         f"  duration {_num(data['duration'])} s"
         f" (server clock {_num(data['first_time'], '.3f')} .. {_num(data['last_time'], '.3f')})",
         "  records: " + ", ".join(f"{k} {v}" for k, v in data["records"].items()),

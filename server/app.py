@@ -549,6 +549,7 @@ class RelayServer:
                 # every 0.25 s: records reach the disk within 0.25 + 0.05 + 0.5 s.
                 batch_size=1024,
                 batch_delay=0.25,
+                metadata=None if self.cluster is None else self.cluster.recording_metadata(name),
             )
             rec: RoomRecorder | None = await asyncio.to_thread(opener, directory, name, options)
         except Exception:

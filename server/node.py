@@ -104,6 +104,8 @@ class ClusterNode:
     clock: Callable[[], float] = time.monotonic
     #: Rooms this node owns that were empty at the last upkeep round.
     _empty: set[str] = field(default_factory=set)
+    #: Rooms this node took over from a lost node: room -> that node.
+    taken_from: dict[str, str] = field(default_factory=dict)
     #: Member records this node wrote: key -> (value, when).
     _written: dict[str, tuple[bytes, float]] = field(default_factory=dict)
     #: Last NATS round trip (s), NaN before the first.
@@ -169,6 +171,7 @@ class ClusterNode:
             if owner == self.name or await self._alive(owner):
                 return owner
             if await self.directory.take_over(room, owner):
+                self.taken_from[room] = owner
                 return self.name
         return await self.directory.claim(room)
 
@@ -277,6 +280,15 @@ class ClusterNode:
         for key in [k for k in self._written if k not in records]:
             del self._written[key]
             await self.directory.delete(key)
+
+    def recording_metadata(self, room: str) -> dict[str, str]:
+        """What a recording of ``room`` made here says of the cluster: this node, and
+        the lost node whose recording of the room it continues."""
+        out = {"cluster_node": self.name}
+        lost = self.taken_from.pop(room, None)
+        if lost is not None:
+            out["continues_from_node"] = lost
+        return out
 
     # -- upkeep ----------------------------------------------------------------------
 

@@ -16,6 +16,7 @@ import sys
 import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager, suppress
+from pathlib import Path
 
 import numpy as np
 from conftest import needs_nats
@@ -24,6 +25,7 @@ from websockets.exceptions import ConnectionClosed
 
 from client.connection import ClientConnection
 from protocol import PeerLeft, PeerResumed, PoseUpdate, Snapshot
+from recorder import find_leftovers, info, load_streams, recover
 from server.node import MOVED
 
 pytestmark = needs_nats
@@ -39,11 +41,13 @@ def cluster_time() -> float:
 
 
 @asynccontextmanager
-async def relay(nats_url: str, name: str) -> AsyncIterator[tuple[asyncio.subprocess.Process, str]]:
-    """``posecast serve --cluster`` as its own process; its URL once it listens."""
+async def relay(
+    nats_url: str, name: str, record: Path
+) -> AsyncIterator[tuple[asyncio.subprocess.Process, str]]:
+    """``posecast serve --cluster --record`` as its own process; its URL once it listens."""
     proc = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "posecast.cli", "serve", "--port", "0", "--cluster", nats_url,
-        "--node", name, "--log-level", "warning",
+        "--node", name, "--log-level", "warning", "--record", str(record / name),
         stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.DEVNULL,
     )  # fmt: skip
     try:
@@ -101,8 +105,16 @@ async def _resume(urls: list[str], token: str, streams: dict[str, int]) -> Clien
             await asyncio.sleep(0.2)
 
 
-async def test_members_of_a_killed_owner_resume_on_a_live_node(nats_url: str) -> None:
-    async with relay(nats_url, "a") as (owner, url_a), relay(nats_url, "b") as (_, url_b):
+async def test_members_of_a_killed_owner_resume_on_a_live_node(
+    nats_url: str, tmp_path: Path
+) -> None:
+    """...and the room's recording goes on in a file on the new owner that names the
+    lost node's; the lost node's file, recovered, holds the poses up to the kill but
+    for the last second at most."""
+    async with (
+        relay(nats_url, "a", tmp_path) as (owner, url_a),
+        relay(nats_url, "b", tmp_path) as (_, url_b),
+    ):
         # The first joiner's node owns the room: x through a, y through b.
         x = await ClientConnection.connect(url_a, resumable=True, clock=cluster_time)
         joined_x = await x.join(room="lab", streams=STREAMS, rate=20)
@@ -116,7 +128,7 @@ async def test_members_of_a_killed_owner_resume_on_a_live_node(nats_url: str) ->
             tg.create_task(_publish_and_watch(y, stop, before))
             tg.create_task(_publish_and_watch(x, stop, []))
             await asyncio.sleep(2.5)  # the owner's member records reach NATS (every 1 s)
-            killed_at = time.monotonic()
+            killed_at, killed_time = time.monotonic(), cluster_time()
             os.kill(owner.pid, signal.SIGKILL)
             await owner.wait()
             # y's node finds the owner gone and tells y to reconnect (the task ends).
@@ -143,7 +155,23 @@ async def test_members_of_a_killed_owner_resume_on_a_live_node(nats_url: str) ->
         )
         await x2.close()
         await y2.close()
+    # b stopped (SIGTERM): its file is finished; a's was cut by the kill.
+    (moved,) = (tmp_path / "b").glob("*.mcap")
+    summary = info(moved)
+    assert summary["cluster_node"] == "b" and summary["continues_from_node"] == "a"
+    assert {u["user"] for u in summary["users"]} == {x.welcome.user, y.welcome.user}
+    (report,) = recover_all(tmp_path / "a")
+    lost = info(report)
+    assert lost["cluster_node"] == "a" and lost["continues_from_node"] is None
+    last = max(float(s.times.max()) for s in load_streams(report).values())
+    print(f"the lost node's recording ends {killed_time - last:.2f} s before the kill")
+    assert killed_time - last < 1.0
 
 
 def _carries(event: object, user: int) -> bool:
     return isinstance(event, Snapshot) and user in event.entries["user"]
+
+
+def recover_all(folder: Path) -> list[Path]:
+    """Recover the unfinished recordings a killed node left in ``folder``."""
+    return [recover(part).output for part in find_leftovers(folder)]
