@@ -17,7 +17,11 @@ duration (``complete``), the server closed the connection with a close frame
 (``closed``: e.g. 1001 "going away" when it shuts down) or the connection broke
 without one (``lost``: the server was killed, the network went away). In every
 case the bot scores and reports what it received until then; only failing to
-connect at all, or a refused join, is an exception.
+connect at all, or a refused join, is an exception. After a drop (or a close
+1012, or 1001 when it has other relays: ``BotConfig.urls``) it reconnects, to the
+relay it was on and then the others in order, cycling, for ``resume_window``: it
+resumes where its session is held and rejoins as a new member where it is not
+(its peers' streams from before are scored until the rejoin).
 
 The render loop also notes how often it ran late: a frame is *late* when it
 started more than one render period (1/90 s) after its scheduled time, i.e. it
@@ -49,21 +53,21 @@ import asyncio
 import contextlib
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
 from websockets.exceptions import ConnectionClosed
 
-from client.connection import ClientConnection, Tls
+from client.connection import ClientConnection, SessionEnd, Tls, connect_any, connect_first
 from client.remote import RemoteStream, evaluate_remote, remote_log, stream_delays
 from client.scene import OwnerChange, ThrowCatchActor
 from interp import info as interp_info
 from protocol import (
     ROOM_USER,
+    Joined,
     LocalProtocolError,
     Owner,
     PeerJoined,
@@ -108,7 +112,8 @@ F64 = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class BotConfig:
-    url: str
+    #: The relay it connects to (``ws://`` or ``wss://``); may be left out for ``urls``.
+    url: str = ""
     room: str = "lobby"
     #: Snapshot rate asked of the server (Hz).
     rate: float = 15.0
@@ -143,43 +148,18 @@ class BotConfig:
     resume: bool = True
     #: How long it tries to reconnect (s): the server keeps a place this long (10 s).
     resume_window: float = 10.0
-
-
-#: Close codes of a server that ended the session on purpose (normal, going away).
-GRACEFUL_CLOSE_CODES = frozenset({1000, 1001})
-
-
-@dataclass(frozen=True)
-class SessionEnd:
-    """How a bot's session ended, and after how many seconds of it.
-
-    ``kind``: ``complete`` (ran its duration), ``closed`` (the server sent a close
-    frame: ``code`` and ``reason`` are its) or ``lost`` (no close frame: the
-    connection broke). ``after_s`` counts from the start of the session (clock
-    synced, before joining) on the bot's clock.
-    """
-
-    kind: Literal["complete", "closed", "lost"] = "complete"
-    after_s: float = 0.0
-    code: int | None = None
-    reason: str = ""
+    #: Relays to fail over to (the nodes of a cluster, or spares): see :attr:`relays`.
+    urls: tuple[str, ...] = ()
 
     @property
-    def graceful(self) -> bool:
-        """Ran its duration, or the server ended it on purpose (1000/1001)."""
-        return self.kind == "complete" or (
-            self.kind == "closed" and self.code in GRACEFUL_CLOSE_CODES
-        )
-
-    def describe(self) -> str:
-        """``complete``, ``server closed: going away (1001) after 2.0 s``,
-        ``connection lost after 12.3 s``."""
-        if self.kind == "complete":
-            return "complete"
-        if self.kind == "closed":
-            why = self.reason or "no reason given"
-            return f"server closed: {why} ({self.code}) after {self.after_s:.1f} s"
-        return f"connection lost after {self.after_s:.1f} s"
+    def relays(self) -> tuple[str, ...]:
+        """The relays in the order the bot tries them: ``url`` (else ``urls[0]``) first,
+        then the others of ``urls`` after it, cycling."""
+        urls, url = self.urls, self.url
+        if url and url not in urls:
+            return (url, *urls)
+        i = urls.index(url) if url else 0
+        return urls[i:] + urls[:i]
 
 
 @dataclass
@@ -223,6 +203,12 @@ class BotReport:
     ownership: list[OwnerChange] = field(default_factory=list)
     #: Its role in the live throw-catch scene (``thrower``, ``catcher``, ``watcher``).
     role: str | None = None
+    #: After drops: times it resumed its session, times it rejoined as a new member
+    #: (a relay that did not hold its session; ``user`` is its last id), and the
+    #: relay it ended on.
+    resumed: int = 0
+    rejoined: int = 0
+    relay: str = ""
     streams: dict[tuple[int, int], RemoteStream] = field(default_factory=dict, repr=False)
     #: With ``keep_render_log``: (the room's playout time, the room's D, bot clock at
     #: render, {stream key: (pose, stalled)}); a stream shown late alone at frame
@@ -279,6 +265,7 @@ class _Bot:
     def __init__(self, cfg: BotConfig, clock: Callable[[], float]) -> None:
         self.cfg = cfg
         self.clock = clock
+        self.tls = Tls(cfg.cafile, cfg.insecure)
         self.est = ClockEstimator()
         needs = [m for m in cfg.methods if interp_info(m).needs_velocity]
         self.velocities = bool(needs) if cfg.velocities is None else cfg.velocities
@@ -327,8 +314,15 @@ class _Bot:
         self.ending: SessionEnd | None = None
         #: Set when the connection dropped and the bot may resume (``BotConfig.resume``).
         self.lost = asyncio.Event()
+        #: The close that made it reconnect (None: a drop): its ending if that fails.
+        self.dropped: SessionEnd | None = None
         #: Connections resumed after a drop, and when each resumed (bot clock).
         self.resumed_at: list[float] = []
+        #: Rejoins as a new member (bot clock); the relay it is on (index in cfg.relays).
+        self.rejoined_at: list[float] = []
+        self.relay = 0
+        #: Streams scored until a render frame only (a peer left; see _retire).
+        self.until: dict[tuple[int, int], int] = {}
 
     def server_now(self) -> float:
         return self.clock() + self.est.offset + self.cfg.clock_error
@@ -339,14 +333,26 @@ class _Bot:
             return
         after = max(0.0, self.clock() - self.started_local)
         rcvd = exc.rcvd
-        welcome = None if self.conn is None else self.conn.welcome
-        if rcvd is None and self.cfg.resume and welcome is not None and welcome.resume:
-            self.lost.set()  # dropped, not closed: _connected reconnects and resumes
+        if self._reconnects(None if rcvd is None else rcvd.code):
+            self.lost.set()  # _connected reconnects: resumes, or rejoins elsewhere
+            self.dropped = None if rcvd is None else SessionEnd("closed", 0, rcvd.code, rcvd.reason)
             return
         if rcvd is not None:
             self.ending = SessionEnd("closed", after, rcvd.code, rcvd.reason)
         else:
             self.ending = SessionEnd("lost", after)
+
+    def _reconnects(self, code: int | None) -> bool:
+        """Whether a joined session goes on after its connection ended: a drop (``code``
+        None) with a resume token or other relays; a relay going away (1001) with others;
+        a cluster node that asks its clients to reconnect (1012, its room's owner died)."""
+        conn, cfg = self.conn, self.cfg
+        if not cfg.resume or conn is None or conn.welcome is None or conn.joined is None:
+            return False
+        several = len(cfg.relays) > 1
+        if code is None:
+            return several or conn.welcome.resume is not None
+        return code == 1012 or (several and code == 1001)
 
     async def _sync(self, conn: ClientConnection, n: int) -> None:
         for _ in range(n):
@@ -360,6 +366,8 @@ class _Bot:
                 self._on_event(rec.event, rec.arrival, rec.size)
 
     def _add_peer(self, ev: PeerJoined) -> None:
+        if any(user == ev.user for user, _ in self.until):  # the id of one that left
+            self._retire({ev.user}, rekey=True)
         self.peers[ev.user] = ({sid: name for name, sid in ev.streams.items()}, ev.label)
         if ev.velocities:
             self.velocity_peers.add(ev.user)
@@ -375,12 +383,29 @@ class _Bot:
         elif isinstance(ev, PeerJoined):
             self._add_peer(ev)
         elif isinstance(ev, PeerLeft):
-            self.peers.pop(ev.user, None)
-            self.delay.forget(ev.user)
+            self._retire({ev.user})
         elif isinstance(ev, Owner):
             self.ownership.append(OwnerChange(ev.time, ev.stream, ev.owner, ev.previous, ev.reason))
             if self.actor is not None and self.conn is not None:
                 self.actor.on_owner(ev, self.conn.user)
+
+    def _retire(self, users: set[int], *, rekey: bool = False) -> None:
+        """Score ``users``' streams until this render frame only: a peer left, or the bot
+        left their relay. ``rekey``: key them apart (over every key), for new members
+        with those ids (the next relay's, or one reused)."""
+        frame, remote = len(self.play_t), {}
+        shift = ((max((u for u, _ in self.remote), default=0) >> 16) + 1) << 16 if rekey else 0
+        for key, rs in self.remote.items():  # in order: the order of the render rows
+            if key[0] in users:  # one that left before keeps its end
+                end, key = self.until.pop(key, frame), (key[0] + shift, key[1])
+                self.until[key] = end
+            remote[key] = rs
+        self.remote = remote
+        for user in users:
+            self.peers.pop(user, None)
+            self.user_streams.pop(user, None)
+            self.velocity_peers.discard(user)
+            self.delay.forget(user)
 
     def _sends_velocities(self, user: int) -> bool:
         """Whether ``user``'s keyframes come with velocities: a peer that said so; the
@@ -527,15 +552,9 @@ class _Bot:
             self.render_cpu += time.process_time() - c0
             if self.cfg.keep_render_log:
                 keys = [k for k, rs in self.remote.items() if len(rs.buffer)]
-                first = frame.poses[methods[0]]
-                self.render_log.append(
-                    (
-                        t_play,
-                        d,
-                        local,
-                        {k: (first[j], bool(frame.stalled[j])) for j, k in enumerate(keys)},
-                    )
-                )
+                first, stalled = frame.poses[methods[0]], frame.stalled
+                shown = {k: (first[j], bool(stalled[j])) for j, k in enumerate(keys)}
+                self.render_log.append((t_play, d, local, shown))
             self.frames += 1
             self.render_stalls += int(frame.stalled.sum())
             self.render_samples += frame.stalled.size
@@ -572,12 +591,8 @@ class _Bot:
 
     async def run(self) -> BotReport:
         cfg = self.cfg
-        conn = await ClientConnection.connect(
-            cfg.url,
-            agent=cfg.name,
-            clock=self.clock,
-            tls=Tls(cfg.cafile, cfg.insecure),
-            resumable=cfg.resume,
+        self.relay, conn = await connect_any(
+            cfg.relays, clock=self.clock, agent=cfg.name, tls=self.tls, resumable=cfg.resume
         )
         self.conn = conn
         self.started_local = self.clock()
@@ -619,16 +634,7 @@ class _Bot:
         self.trace = motion.select(DEVICE_NAMES)
         if self.velocities:
             self.send_velocities = _CausalVelocities(self.trace)
-        await conn.join(
-            room=cfg.room,
-            streams=self.trace.streams,
-            rate=cfg.rate,
-            token=cfg.token,
-            label=self.spec.label(),
-            sends_velocities=self.velocities,
-            wants_velocities=self.velocities,
-            codec=cfg.codec,
-        )
+        await self._join(conn, self.spec.label())
         for ev in conn.early_peers:
             self._add_peer(ev)
         stop = start + cfg.duration
@@ -637,6 +643,19 @@ class _Bot:
             # The render loop ends at ``stop`` or as soon as the connection ended.
             await self._render(stop)
             link.cancel()
+
+    async def _join(self, conn: ClientConnection, label: str | None) -> Joined:
+        cfg, streams = self.cfg, self.trace.streams if self.trace is not None else ()
+        return await conn.join(
+            room=cfg.room,
+            streams=streams,
+            rate=cfg.rate,
+            token=cfg.token,
+            label=label,
+            sends_velocities=self.velocities,
+            wants_velocities=self.velocities,
+            codec=cfg.codec,
+        )
 
     async def _connected(self, conn: ClientConnection, stop: float) -> None:
         """Receive, publish and ping on ``conn``; after a drop, resume on a new one."""
@@ -657,56 +676,77 @@ class _Bot:
             conn = resumed
 
     async def _resume(self, old: ClientConnection, stop: float) -> ClientConnection | None:
-        """Reconnect with the resume token and join again: the same user and streams.
-        None (the session ends as lost) if the window closed or the server refused."""
+        """Reconnect after a drop, within the resume window: to the relay it was on,
+        then the next ones of ``cfg.relays`` in order, cycling. A relay that holds its
+        session resumes it (the same user and streams); one that does not takes it
+        back as a new member (a rejoin: the same room, streams and motion, a new user
+        id; its peers see it leave and join). None if the window closed first, or its
+        one relay refused the join: the session ends as lost (or closed, as it was)."""
         cfg, welcome, joined = self.cfg, old.welcome, old.joined
-        assert welcome is not None and joined is not None and self.trace is not None
+        assert welcome is not None and joined is not None
+        assert self.trace is not None and self.spec is not None
         with contextlib.suppress(Exception):
             await old.ws.close()
         after = max(0.0, self.clock() - self.started_local)
+        relays = cfg.relays
         give_up = min(stop, self.server_now() + cfg.resume_window)
-        while self.server_now() < give_up:
-            try:
-                conn = await ClientConnection.connect(
-                    cfg.url,
-                    agent=cfg.name,
-                    clock=self.clock,
-                    tls=Tls(cfg.cafile, cfg.insecure),
-                    resumable=True,
-                    resume=welcome.resume,
-                )
-            except Exception:  # refused, reset, a handshake cut short: try again
-                await asyncio.sleep(0.2)
-                continue
-            try:
-                if conn.welcome is None or not conn.welcome.resumed:
-                    raise ConnectionError("the server no longer holds this session")
-                again = await conn.join(
-                    room=cfg.room,
-                    streams=self.trace.streams,
-                    rate=cfg.rate,
-                    token=cfg.token,
-                    sends_velocities=self.velocities,
-                    wants_velocities=self.velocities,
-                    codec=cfg.codec,
-                )
-                if again.streams != joined.streams:
+        while True:
+            found = await connect_first(
+                relays,
+                self.relay,
+                self.clock() + give_up - self.server_now(),
+                clock=self.clock,
+                agent=cfg.name,
+                tls=self.tls,
+                resumable=True,
+                resume=welcome.resume,
+            )
+            if found is None:
+                break
+            i, conn = found
+            resumed = conn.welcome is not None and conn.welcome.resumed
+            try:  # a rejoin says what it plays, as at the start
+                again = await self._join(conn, None if resumed else self.spec.label())
+                if resumed and again.streams != joined.streams:
                     raise ConnectionError("the resumed join got other stream ids")
-            except Exception:
+            except Exception:  # refused, or the relay went away meanwhile
                 with contextlib.suppress(Exception):
                     await conn.close()
-                break
+                if len(relays) == 1:
+                    break
+                self.relay = (i + 1) % len(relays)
+                continue
+            self.relay = i
+            if resumed:
+                self.resumed_at.append(self.clock())
+            else:  # everyone it knew is on the relay it left (16-bit ids, as here)
+                self._retire({user for user, _ in self.remote if user <= ROOM_USER}, rekey=True)
+                self.rejoined_at.append(self.clock())
             self.conn = conn
-            self.resumed_at.append(self.clock())
             for ev in conn.early_peers:
                 self._add_peer(ev)
             return conn
-        self.ending = SessionEnd("lost", after)
+        self.ending = replace(self.dropped or SessionEnd("lost"), after_s=after)
         return None
+
+    def _score(self) -> dict[str, dict[str, ErrorSamples]]:
+        """QoE of every stream over the frames it was shown for: to the end, or for a
+        peer that left (and every peer of a relay the bot left) until then."""
+        methods, n = self.cfg.methods, len(self.play_t)
+        groups: dict[int, dict[tuple[int, int], RemoteStream]] = {}
+        for key, rs in self.remote.items():
+            groups.setdefault(self.until.get(key, n), {})[key] = rs
+        out: dict[str, dict[str, ErrorSamples]] = {m: {} for m in methods}
+        for k, streams in groups.items():
+            part = evaluate_remote(streams, self.play_t[:k], self.play_d[:k], methods)
+            for m, classes in part.items():
+                for cls, samples in classes.items():
+                    out[m].setdefault(cls, ErrorSamples()).merge(samples)
+        return out
 
     def _report(self, start: float) -> BotReport:
         cfg = self.cfg
-        qoe = evaluate_remote(self.remote, self.play_t, self.play_d, cfg.methods)
+        qoe = self._score()
         end = self.play_t[-1] + self.play_d[-1] if self.play_t else start
         span = max(1e-9, end - start)
         # Per stream: new keyframes per second over the span it was received.
@@ -747,6 +787,9 @@ class _Bot:
             },
             ownership=self.ownership,
             role=None if self.actor is None else self.actor.role,
+            resumed=len(self.resumed_at),
+            rejoined=len(self.rejoined_at),
+            relay=cfg.relays[self.relay],
             streams=self.remote,
             render_log=self.render_log,
         )

@@ -4,15 +4,25 @@
 hands every received event to the caller through :meth:`recv` with its
 arrival time, and sends messages through the session so the state table is
 kept. Arrival times come from the ``clock`` passed in.
+
+A client may know several relays (the nodes of a cluster, or spares):
+:func:`relay_urls` reads them from one comma-separated option;
+:func:`connect_any` connects to the first of them that answers;
+:func:`connect_first` to the first that answers from a given one on, cycling
+until a deadline (a bot's failover after its relay died). :class:`SessionEnd`
+says how a bot's session ended.
 """
 
 from __future__ import annotations
 
+import asyncio
 import ssl
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Literal
+from urllib.parse import urlsplit
 
 from websockets.asyncio.client import ClientConnection as WsConnection
 from websockets.asyncio.client import connect
@@ -34,7 +44,75 @@ from protocol import (
 from protocol.events import Event, Message
 from protocol.objects import pose_tuple
 
-__all__ = ["ClientConnection", "JoinRefused", "Received", "Tls"]
+__all__ = [
+    "GRACEFUL_CLOSE_CODES",
+    "ClientConnection",
+    "JoinRefused",
+    "Received",
+    "SessionEnd",
+    "Tls",
+    "connect_any",
+    "connect_first",
+    "relay_urls",
+]
+
+#: Close codes of a server that ended the session on purpose (normal, going away).
+GRACEFUL_CLOSE_CODES = frozenset({1000, 1001})
+
+
+@dataclass(frozen=True)
+class SessionEnd:
+    """How a bot's session ended, and after how many seconds of it.
+
+    ``kind``: ``complete`` (ran its duration), ``closed`` (the server sent a close
+    frame: ``code`` and ``reason`` are its) or ``lost`` (no close frame: the
+    connection broke). ``after_s`` counts from the start of the session (clock
+    synced, before joining) on the bot's clock.
+    """
+
+    kind: Literal["complete", "closed", "lost"] = "complete"
+    after_s: float = 0.0
+    code: int | None = None
+    reason: str = ""
+
+    @property
+    def graceful(self) -> bool:
+        """Ran its duration, or the server ended it on purpose (1000/1001)."""
+        return self.kind == "complete" or (
+            self.kind == "closed" and self.code in GRACEFUL_CLOSE_CODES
+        )
+
+    def describe(self) -> str:
+        """``complete``, ``server closed: going away (1001) after 2.0 s``,
+        ``connection lost after 12.3 s``."""
+        if self.kind == "complete":
+            return "complete"
+        if self.kind == "closed":
+            why = self.reason or "no reason given"
+            return f"server closed: {why} ({self.code}) after {self.after_s:.1f} s"
+        return f"connection lost after {self.after_s:.1f} s"
+
+
+def relay_urls(text: str) -> tuple[str, ...]:
+    """The relay URLs of ``ws://a:8765,ws://b:8765`` (one URL is a list of one).
+
+    ValueError, in one line, for an empty item, a URL that is not ``ws://`` or
+    ``wss://`` with a host, or a URL listed twice.
+    """
+    urls = tuple(item.strip() for item in text.split(","))
+    for url in urls:
+        if not url:
+            raise ValueError(f"empty URL in {text!r}: separate the URLs by single commas")
+        try:
+            parts = urlsplit(url)
+            parts.port  # noqa: B018 - parsing it checks it
+        except ValueError as exc:
+            raise ValueError(f"{url!r} is not a valid URL: {exc}") from None
+        if parts.scheme not in ("ws", "wss") or not parts.hostname:
+            raise ValueError(f"{url!r} is not a ws:// or wss:// URL with a host")
+    if len(set(urls)) != len(urls):
+        raise ValueError(f"a URL is listed twice in {text!r}")
+    return urls
 
 
 @dataclass(frozen=True, slots=True)
@@ -315,3 +393,69 @@ class ClientConnection:
 
     async def close(self, reason: str = "bye") -> None:
         await self.ws.close(1000, reason)
+
+
+async def connect_any(
+    urls: Sequence[str],
+    *,
+    clock: Callable[[], float] = time.monotonic,
+    agent: str = "posecast-bot",
+    tls: Tls | None = None,
+    resumable: bool = False,
+) -> tuple[int, ClientConnection]:
+    """Connect to the first of ``urls`` that answers, trying each once in order: its
+    index and the connection; if none answers, the first one's error."""
+    error: Exception | None = None
+    for i, url in enumerate(urls):
+        try:
+            conn = await ClientConnection.connect(
+                url, agent=agent, clock=clock, tls=tls, resumable=resumable
+            )
+        except Exception as exc:
+            error = error or exc
+            continue
+        return i, conn
+    raise error or ValueError("no relay URL to connect to")
+
+
+async def connect_first(
+    urls: Sequence[str],
+    first: int,
+    deadline: float,
+    *,
+    clock: Callable[[], float] = time.monotonic,
+    agent: str = "posecast-bot",
+    tls: Tls | None = None,
+    resumable: bool = False,
+    resume: str | None = None,
+    attempt_timeout: float = 2.0,
+    pause: float = 0.2,
+) -> tuple[int, ClientConnection] | None:
+    """Connect to ``urls[first]``, else the next ones in order, cycling, until ``deadline``.
+
+    Returns the index of the URL that answered (its welcome arrived) and the
+    connection, or None when the deadline (on ``clock``) passed first. Each attempt
+    takes at most ``attempt_timeout`` seconds (a dead host may never answer); after
+    every URL failed once it waits ``pause`` before the next round. The other
+    arguments are :meth:`ClientConnection.connect`'s.
+    """
+    n, tries = len(urls), 0
+    while clock() < deadline:
+        i = (first + tries) % n
+        tries += 1
+        try:
+            conn = await ClientConnection.connect(
+                urls[i],
+                agent=agent,
+                clock=clock,
+                open_timeout=max(0.1, min(attempt_timeout, deadline - clock())),
+                tls=tls,
+                resumable=resumable,
+                resume=resume,
+            )
+        except Exception:  # refused, reset, timed out, a handshake cut short: the next
+            if tries % n == 0:
+                await asyncio.sleep(max(0.0, min(pause, deadline - clock())))
+            continue
+        return i, conn
+    return None

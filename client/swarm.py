@@ -1,10 +1,11 @@
 """Many bots at once, and the report they add up to.
 
-:func:`run_bots` starts N bots under one ``TaskGroup`` against a server URL;
+:func:`run_bots` starts N bots under one ``TaskGroup`` against a server URL (or
+several: bot i starts on relay i, round-robin, and fails over to the others);
 :func:`swarm_report` pools their QoE with :func:`scenarios.qoe.summarize` and
 adds the wire figures, in the JSON shape ``posecast bots/demo --json`` write.
 
-Two judgements on a finished swarm, pure functions of its reports:
+Judgements on a finished swarm, pure functions of its reports:
 
 - :func:`starvation`: did the machine starve the session? The figures of a starved
   session read worse than the method is. It is starved when the bots' mean
@@ -15,6 +16,8 @@ Two judgements on a finished swarm, pure functions of its reports:
 - :func:`session_ending`: how the session ended (every bot ran its duration, the
   server closed it, or the connection was lost), as lines to print and an exit
   code: 0 when every bot completed or the server closed with 1000/1001, else 1.
+- :func:`reconnections`: which bots resumed or rejoined after a drop, and where
+  they ended, as lines to print.
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ __all__ = [
     "STARVED_RENDER_LATE",
     "Starvation",
     "handovers",
+    "reconnections",
     "run_bots",
     "session_ending",
     "starvation",
@@ -51,19 +55,24 @@ async def run_bots(
     token_for: Callable[[int], str | None] | None = None,
     stagger: float = 0.05,
 ) -> list[BotReport]:
-    """Run ``n`` bots built from ``base`` (bot i gets motion i of ``base.motion``)."""
-    cfgs = []
+    """Run ``n`` bots built from ``base`` (bot i gets motion i of ``base.motion``).
+
+    With several relays (``base.relays``), bot i starts on relay ``i % len`` and
+    fails over to the next ones in order.
+    """
+    cfgs, relays = [], base.relays
     for i in range(n):
         motion, seed = motion_for_bot(base.motion, i)
-        cfgs.append(
-            replace(
-                base,
-                motion=motion,
-                seed=seed,
-                name=f"{base.name}{i}",
-                token=token_for(i) if token_for else base.token,
-            )
+        cfg = replace(
+            base,
+            motion=motion,
+            seed=seed,
+            name=f"{base.name}{i}",
+            token=token_for(i) if token_for else base.token,
         )
+        if len(relays) > 1:
+            cfg = replace(cfg, url=relays[i % len(relays)], urls=relays)
+        cfgs.append(cfg)
 
     async def one(i: int, cfg: BotConfig) -> BotReport:
         await asyncio.sleep(i * stagger)  # avoid a thundering herd of handshakes
@@ -172,6 +181,28 @@ def session_ending(reports: Sequence[BotReport]) -> tuple[list[str], int]:
     return lines, code
 
 
+def reconnections(reports: Sequence[BotReport]) -> list[str]:
+    """Lines that say which bots reconnected after a drop (none if no bot did), e.g.
+    ``reconnected after a drop: bot0 rejoined 1 (now on ws://b:8765); bot1 resumed 1``,
+    and, when the bots ended on several relays, how many ended on each."""
+    moved = []
+    for r in reports:
+        counts = [
+            f"{what} {k}" for what, k in (("resumed", r.resumed), ("rejoined", r.rejoined)) if k
+        ]
+        if counts:
+            where = f" (now on {r.relay})" if r.rejoined else ""
+            moved.append(f"{r.name} {' and '.join(counts)}{where}")
+    lines = [f"reconnected after a drop: {'; '.join(moved)}"] if moved else []
+    ends: dict[str, int] = {}
+    for r in reports:
+        if r.relay:
+            ends[r.relay] = ends.get(r.relay, 0) + 1
+    if len(ends) > 1:
+        lines.append("bots per relay at the end: " + ", ".join(f"{u} {k}" for u, k in ends.items()))
+    return lines
+
+
 def _object_classes(report: BotReport) -> dict[str, dict[str, dict[str, float]]]:
     """One bot's figures of the shared-object classes: ``{method: {class: stats}}``."""
     return {
@@ -231,6 +262,9 @@ def swarm_report(reports: Sequence[BotReport]) -> dict[str, Any]:
                 "codec": r.codec,
                 "up_bytes_per_pose": r.update_bytes / r.poses_sent if r.poses_sent else None,
                 "ended": r.ending.describe(),
+                "resumed": r.resumed,
+                "rejoined": r.rejoined,
+                "relay": r.relay,
                 "role": r.role,
                 # What this bot saw of a shared object (the throw-catch drill), if any.
                 "object": _object_classes(r),
@@ -238,6 +272,11 @@ def swarm_report(reports: Sequence[BotReport]) -> dict[str, Any]:
             for r in reports
         ],
         "objects": {"handovers": handovers(reports)},
+        "reconnects": {
+            "resumed": sum(r.resumed for r in reports),
+            "rejoined": sum(r.rejoined for r in reports),
+            "lines": reconnections(reports),
+        },
         "starvation": starvation(reports).as_dict(),
         "ending": {
             "complete": all(r.ending.kind == "complete" for r in reports),
