@@ -3,7 +3,10 @@
 No Docker engine runs the tests: the compose file is checked as YAML against
 what `docker compose up` needs (both services build the one image, the secret
 comes from the environment, the bots' default motion is inside the image), and
-the Dockerfile and pyproject.toml against what the image must contain.
+the Dockerfile and pyproject.toml against what the image must contain. The
+cluster (profile ``cluster``: NATS, scalable relays, bots that list them) is
+checked the same way, and plain `docker compose up` must start exactly the
+single server and its bots, as before.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import typer.main
 import yaml
 from typer.testing import CliRunner
 
+from client.connection import relay_urls
 from posecast.cli import app
 from scenarios.traces import SAMPLE_DIR, find_traces
 
@@ -58,10 +62,16 @@ def test_both_services_build_the_one_image() -> None:
     assert services["bots"]["image"] == services["server"]["image"]
 
 
+def _ours() -> dict[str, dict[str, Any]]:
+    """The services that run our image (the others, like nats, run someone else's)."""
+    services: dict[str, dict[str, Any]] = _compose()["services"]
+    return {name: svc for name, svc in services.items() if svc.get("build") == "."}
+
+
 def test_compose_commands_are_real_cli_commands() -> None:
-    """Each service's command starts with a posecast subcommand that exists."""
+    """Each of our services' command starts with a posecast subcommand that exists."""
     known = _commands()
-    for name, svc in _compose()["services"].items():
+    for name, svc in _ours().items():
         cmd = svc["command"]
         assert cmd[0] in known, f"{name}: unknown posecast command {cmd[0]!r}"
     bots = _compose()["services"]["bots"]["command"]
@@ -75,7 +85,8 @@ def test_the_secret_comes_from_the_environment_only() -> None:
     assert "--secret" not in text
     assert not re.search(r"SECRET\s*[:=]", text), "a secret value in the compose file"
     services = _compose()["services"]
-    for name in ("server", "bots"):
+    assert set(_ours()) == {"server", "bots", "relay", "cluster-bots"}
+    for name in _ours():
         env = services[name].get("environment", [])
         # The bare name: compose copies the host's value, or leaves it unset.
         assert "POSECAST_SECRET" in env, name
@@ -162,3 +173,85 @@ def test_the_bundled_traces_reach_the_image_and_the_wheel() -> None:
         in_package = path.relative_to(ROOT / "scenarios").as_posix()
         assert any(fnmatch.fnmatch(in_package, g) for g in globs), f"not package data: {rel}"
     assert _ignored("tests/test_deploy.py")  # the checker itself sees .dockerignore
+
+
+# -- the cluster -----------------------------------------------------------------------
+
+
+def _option(cmd: list[str], flag: str) -> str:
+    return cmd[cmd.index(flag) + 1]
+
+
+def test_plain_up_starts_exactly_the_single_server_and_its_bots() -> None:
+    """Only server and bots have no profile; the cluster's services are all in `cluster`."""
+    services = _compose()["services"]
+    plain = {name for name, svc in services.items() if not svc.get("profiles")}
+    assert plain == {"server", "bots"}
+    assert {name for name in services if name not in plain} == {"nats", "relay", "cluster-bots"}
+    for name in ("nats", "relay", "cluster-bots"):
+        assert services[name]["profiles"] == ["cluster"], name
+
+
+def test_every_flag_in_a_command_is_an_option_of_it() -> None:
+    """The compose commands use flags the CLI has (serve --cluster included), no typos."""
+    commands: Any = typer.main.get_command(app).commands  # type: ignore[attr-defined]
+    for name, svc in _ours().items():
+        cmd = svc["command"]
+        options = {opt for p in commands[cmd[0]].params for opt in p.opts}
+        for arg in cmd[1:]:
+            if str(arg).startswith("--"):
+                assert arg in options, f"{name}: {cmd[0]} has no {arg}"
+
+
+def test_nats_runs_jetstream_of_2_11_or_newer() -> None:
+    """The cluster's directory needs JetStream KV with per-message TTL: NATS >= 2.11, -js."""
+    nats = _compose()["services"]["nats"]
+    image, _, tag = nats["image"].partition(":")
+    assert image == "nats"
+    found = re.match(r"(\d+)\.(\d+)", tag)
+    assert found, tag
+    assert (int(found.group(1)), int(found.group(2))) >= (2, 11), tag
+    assert "-js" in nats["command"]
+    assert nats["healthcheck"]["test"][0] == "CMD"
+
+
+def test_relays_form_a_cluster_and_scale() -> None:
+    """relay serves on 8765 in the cluster of the nats service, with nothing that would
+    stop --scale relay=3: no container name, no fixed host port."""
+    services = _compose()["services"]
+    relay, server = services["relay"], services["server"]
+    cmd = relay["command"]
+    assert cmd[0] == "serve"
+    assert (_option(cmd, "--host"), _option(cmd, "--port")) == ("0.0.0.0", "8765")
+    cluster = _option(cmd, "--cluster")
+    assert cluster == "nats://nats:4222"  # the nats service, its client port
+    assert "--node" not in cmd  # each replica is named after its host name
+    assert "container_name" not in relay
+    for port in relay.get("ports", []):
+        assert ":" not in str(port), f"a fixed host port stops --scale: {port}"
+    assert relay["depends_on"]["nats"]["condition"] == "service_healthy"
+    assert relay["healthcheck"] == server["healthcheck"]
+    assert relay["image"] == server["image"] and relay["pull_policy"] == "build"
+    assert relay["deploy"]["replicas"] >= 2
+
+
+def test_cluster_bots_list_the_relays_by_replica_name() -> None:
+    """cluster-bots' --url (unless RELAYS is set) is a list the CLI accepts, of the
+    replicas' container names (project name, service, index) on the relays' port."""
+    compose = _compose()
+    services = compose["services"]
+    bots = services["cluster-bots"]
+    cmd = bots["command"]
+    assert cmd[0] == "bots"
+    url = _option(cmd, "--url")
+    assert url.startswith("${RELAYS:-")
+    urls = relay_urls(_default(url))
+    port = _option(services["relay"]["command"], "--port")
+    assert urls == tuple(
+        f"ws://{compose['name']}-relay-{k}:{port}" for k in range(1, len(urls) + 1)
+    )
+    assert len(urls) >= services["relay"]["deploy"]["replicas"]
+    assert bots["depends_on"]["relay"]["condition"] == "service_healthy"
+    assert "container_name" not in bots
+    assert _default(_option(cmd, "--motion")) == "traces:sample"
+    assert bots["volumes"] == services["bots"]["volumes"]
