@@ -62,7 +62,7 @@ from numpy.typing import NDArray
 from websockets.exceptions import ConnectionClosed
 
 from client.connection import ClientConnection, SessionEnd, Tls, connect_any, connect_first
-from client.remote import RemoteStream, evaluate_remote, remote_log, stream_delays
+from client.remote import RemoteStream, evaluate_remote, p50_p99_ms, remote_log, stream_delays
 from client.scene import OwnerChange, ThrowCatchActor
 from interp import info as interp_info
 from protocol import (
@@ -181,6 +181,8 @@ class BotReport:
     bytes_out: int
     duration: float
     clock_rtt_ms: float
+    #: Snapshot age at arrival (send time -> receipt, ms): p50 and p99.
+    snapshot_age_ms: tuple[float, float] = (float("nan"), float("nan"))
     #: Whether it sent and received velocity keyframes (snapshot bytes include them).
     velocities: bool = False
     #: Upstream codec (``raw`` or ``compact``), bytes of the update frames it sent
@@ -286,16 +288,12 @@ class _Bot:
         self.velocity_peers: set[int] = set()
         self.play_t: list[float] = []
         self.play_d: list[float] = []
-        self.render_stalls = 0
-        self.render_samples = 0
-        self.frames = 0
-        self.frames_late = 0
+        self.render_stalls = self.render_samples = self.frames = self.frames_late = 0
         self.render_cpu = 0.0
-        self.snapshot_bytes = 0
-        self.poses_in = 0
-        self.update_bytes = 0
-        self.poses_sent = 0
+        self.snapshot_bytes = self.poses_in = self.update_bytes = self.poses_sent = 0
         self.ping_seq = 0
+        #: Each snapshot's age at arrival (s): server send time -> receipt, server clock.
+        self.snapshot_ages: list[float] = []
         self.conn: ClientConnection | None = None
         #: The bot's part in the live throw-catch scene, if it plays one.
         self.actor: ThrowCatchActor | None = None
@@ -433,6 +431,7 @@ class _Bot:
         vels = snap.velocities
         vel64 = None if vels is None else vels.astype(np.float64)
         self.snapshot_bytes += size
+        self.snapshot_ages.append(arrival_srv - sent)
         floor = self.play_t[-1] if self.play_t else -np.inf
         for i in range(len(snap)):
             user = int(users[i])
@@ -771,6 +770,7 @@ class _Bot:
             bytes_out=self.conn.bytes_out,
             duration=span,
             clock_rtt_ms=1000.0 * self.est.rtt,
+            snapshot_age_ms=p50_p99_ms(self.snapshot_ages),
             velocities=self.velocities,
             codec=cfg.codec,
             update_bytes=self.update_bytes,

@@ -29,6 +29,7 @@ from scenarios.traces import TraceError
 __all__ = [
     "RemoteStream",
     "evaluate_remote",
+    "p50_p99_ms",
     "remote_log",
     "score_object",
     "stream_delays",
@@ -148,3 +149,11 @@ def score_object(
     unique = list(dict.fromkeys(shown.values()))
     res = score_drill(truth, log, at, unique, span, scene_script(spec.seed), spec.t0)
     return {m: res[shown[m]] for m in methods}
+
+
+def p50_p99_ms(values: list[float]) -> tuple[float, float]:
+    """The 50th and 99th percentiles of ``values`` (s), in ms (NaN if none)."""
+    if not values:
+        return float("nan"), float("nan")
+    p50, p99 = np.percentile(np.asarray(values), [50, 99])
+    return 1000.0 * float(p50), 1000.0 * float(p99)

@@ -258,6 +258,8 @@ def swarm_report(reports: Sequence[BotReport]) -> dict[str, Any]:
                 "frames_rendered": r.frames_rendered,
                 "render_cpu_ms_per_frame": 1000.0 * r.render_cpu_s / max(1, r.frames_rendered),
                 "clock_rtt_ms": r.clock_rtt_ms,
+                "snapshot_age_ms_p50": r.snapshot_age_ms[0],
+                "snapshot_age_ms_p99": r.snapshot_age_ms[1],
                 "render_late_fraction": r.frames_late / max(1, r.frames_rendered),
                 "codec": r.codec,
                 "up_bytes_per_pose": r.update_bytes / r.poses_sent if r.poses_sent else None,

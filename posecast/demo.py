@@ -2,12 +2,17 @@
 
 The server runs on an ephemeral port; the bots join one room, publish their
 motions and render everyone else's with every interpolator; a rich progress bar
-shows the session; the result is the swarm report of :mod:`client.swarm`.
+shows the session; the result is the swarm report of :mod:`client.swarm`. With
+``--nodes N`` the relay is a local cluster instead (``posecast.cluster_local``).
 """
 
 from __future__ import annotations
 
 import asyncio
+import statistics
+import tempfile
+from collections.abc import AsyncIterator
+from contextlib import AsyncExitStack, asynccontextmanager
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +21,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
 from client.bot import BotConfig
 from client.swarm import run_bots, swarm_report
+from posecast.cluster_local import LocalCluster, local_cluster
 from server.app import RelayServer, ServerConfig
 
 __all__ = ["run_demo"]
@@ -33,16 +39,32 @@ async def run_demo(
     record_dir: Path | None = None,
     codec: str = "compact",
     view_port: int | None = None,
+    nodes: int = 1,
 ) -> dict[str, Any]:
-    """Run the demo; with ``view_port``, a live viewer of its room is served there too."""
-    server = RelayServer(ServerConfig(host="127.0.0.1", port=0, record_dir=record_dir))
-    async with asyncio.TaskGroup() as tg:
-        tg.create_task(server.run())
-        await asyncio.wait_for(server.ready.wait(), 10)
-        url = f"ws://127.0.0.1:{server.port}"
-        viewer = None if view_port is None else _start_view(tg, url, methods, view_port, console)
+    """Run the demo; with ``view_port``, a live viewer of its room is served there too.
+
+    With ``nodes`` > 1 the relay is a cluster on this machine: a nats-server and
+    that many ``posecast serve --cluster`` processes, the bots spread over them
+    (bot i on node i % nodes); the report gains ``cluster``: each node, its bots,
+    the room's owner, and the age of the snapshots the bots got on the owner and
+    through another node (the cross-node path's cost)."""
+    async with AsyncExitStack() as stack:
+        cluster: LocalCluster | None = None
+        server: RelayServer | None = None
+        if nodes > 1:
+            store = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="posecast-")))
+            cluster = await stack.enter_async_context(local_cluster(nodes, store, record_dir))
+            urls = cluster.urls
+        else:
+            server = await stack.enter_async_context(_one_relay(record_dir))
+            urls = [f"ws://127.0.0.1:{server.port}"]
+        tg = await stack.enter_async_context(asyncio.TaskGroup())
+        viewer = (
+            None if view_port is None else _start_view(tg, urls[0], methods, view_port, console)
+        )
         base = BotConfig(
-            url=url,
+            url=urls[0],
+            urls=tuple(urls),
             room="demo",
             rate=rate,
             send_rate=send_rate,
@@ -52,37 +74,9 @@ async def run_demo(
             name="bot",
             codec=codec,
         )
-        progress = Progress(
-            TextColumn("[bold]session[/]"),
-            BarColumn(),
-            TextColumn("{task.description}"),
-            TimeRemainingColumn(),
-            console=console,
-            transient=True,
-        )
-
-        async def watch() -> None:
-            task = progress.add_task("", total=duration)
-            loop = asyncio.get_running_loop()
-            start = loop.time()
-            while True:
-                await asyncio.sleep(0.5)
-                stats = server.statistics()
-                rooms = stats["rooms"]
-                assert isinstance(rooms, dict)
-                room = rooms.get("demo")
-                desc = (
-                    f"{stats['connections']} bots, {room.poses_out} poses relayed, "
-                    f"{room.skips} skips"
-                    if room is not None
-                    else "starting"
-                )
-                progress.update(
-                    task, completed=min(duration, loop.time() - start), description=desc
-                )
-
-        with progress:
-            watcher = tg.create_task(watch())
+        seen: dict[str, dict[str, float]] = {}
+        with _progress(console) as progress:
+            watcher = tg.create_task(_watch(progress, duration, server, cluster, seen))
             try:
                 reports = await run_bots(base, bots)
             finally:
@@ -91,16 +85,138 @@ async def run_demo(
                     viewer.cancel()
         report = swarm_report(reports)
         report["server"] = {
-            "url": url,
+            "url": ",".join(urls),
             "rate_hz": rate,
             "send_rate_hz": send_rate,
             "duration_s": duration,
             "motion": motion,
             "codec": codec,
         }
-        server.stop()
-    report["recording"] = str(server.recordings[-1]) if server.recordings else None
+        if cluster is not None:
+            report["cluster"] = _cluster_report(cluster, report["bots"], seen)
+        if server is not None:
+            server.stop()
+    if server is not None:
+        report["recording"] = str(server.recordings[-1]) if server.recordings else None
+    else:
+        report["recording"] = await asyncio.to_thread(_newest_recording, record_dir)
     return report
+
+
+def _newest_recording(record_dir: Path | None) -> str | None:
+    """The cluster's recording of the demo: the newest file of any node's folder."""
+    files = [] if record_dir is None else list(record_dir.glob("node*/*.mcap"))
+    return str(max(files, key=lambda p: p.stat().st_mtime)) if files else None
+
+
+@asynccontextmanager
+async def _one_relay(record_dir: Path | None) -> AsyncIterator[RelayServer]:
+    """The demo's own relay in this process, on an ephemeral port."""
+    server = RelayServer(ServerConfig(host="127.0.0.1", port=0, record_dir=record_dir))
+    async with asyncio.TaskGroup() as tg:
+        tg.create_task(server.run())
+        await asyncio.wait_for(server.ready.wait(), 10)
+        try:
+            yield server
+        finally:
+            server.stop()
+
+
+def _progress(console: Console | None) -> Progress:
+    return Progress(
+        TextColumn("[bold]session[/]"),
+        BarColumn(),
+        TextColumn("{task.description}"),
+        TimeRemainingColumn(),
+        console=console,
+        transient=True,
+    )
+
+
+async def _watch(
+    progress: Progress,
+    duration: float,
+    server: RelayServer | None,
+    cluster: LocalCluster | None,
+    seen: dict[str, dict[str, float]],
+) -> None:
+    """The progress bar; a cluster's figures (rooms owned, members forwarded) into
+    ``seen`` by node, as last read during the session."""
+    task = progress.add_task("", total=duration)
+    loop = asyncio.get_running_loop()
+    start = loop.time()
+    while True:
+        await asyncio.sleep(0.5)
+        if server is not None:
+            stats = server.statistics()
+            rooms = stats["rooms"]
+            assert isinstance(rooms, dict)
+            room = rooms.get("demo")
+            desc = (
+                f"{stats['connections']} bots, {room.poses_out} poses relayed, {room.skips} skips"
+                if room is not None
+                else "starting"
+            )
+        else:
+            assert cluster is not None
+            for relay in cluster.relays:
+                # The largest value of each figure during the session (the members
+                # are gone by the end).
+                kept = seen.setdefault(relay.name, {})
+                for key, value in (await relay.metrics()).items():
+                    kept[key] = max(value, kept.get(key, value))
+            owner = [n for n, f in seen.items() if f.get("posecast_cluster_rooms_owned", 0) > 0]
+            forwarded = sum(f.get("posecast_cluster_remote_members", 0) for f in seen.values())
+            desc = (
+                f"{len(cluster.relays)} nodes, room on {', '.join(owner) or '?'}, "
+                f"{forwarded:g} bots through other nodes"
+            )
+        progress.update(task, completed=min(duration, loop.time() - start), description=desc)
+
+
+def _cluster_report(
+    cluster: LocalCluster, bots: list[dict[str, Any]], seen: dict[str, dict[str, float]]
+) -> dict[str, Any]:
+    """Nodes, the bots on each, the room's owner, and the snapshot age on the owner and
+    through another node."""
+    nan = float("nan")
+    owners = [n for n, f in seen.items() if f.get("posecast_cluster_rooms_owned", 0) > 0]
+    owner = owners[0] if len(owners) == 1 else None
+    for b in bots:
+        b["node"] = cluster.node_of(b.get("relay"))
+
+    def age(group: list[dict[str, Any]], key: str) -> float:
+        values = [b[key] for b in group if b[key] == b[key]]
+        return float(statistics.median(values)) if values else nan
+
+    on_owner = [b for b in bots if owner is not None and b["node"] == owner]
+    through = [b for b in bots if owner is not None and b["node"] not in (owner, None)]
+    return {
+        "nats": cluster.nats.url,
+        "owner": owner,
+        "nodes": [
+            {
+                "name": r.name,
+                "url": r.url,
+                "bots": sum(b["node"] == r.name for b in bots),
+                "rooms_owned": seen.get(r.name, {}).get("posecast_cluster_rooms_owned", nan),
+                "remote_members": seen.get(r.name, {}).get("posecast_cluster_remote_members", nan),
+                "nats_rtt_ms": 1e3
+                * seen.get(r.name, {}).get("posecast_cluster_nats_rtt_seconds", float("nan")),
+            }
+            for r in cluster.relays
+        ],
+        # Snapshot age (the owner's send time -> receipt), median over the bots of
+        # each group: the cross-node path adds edge -> client via NATS.
+        "snapshot_age_ms_on_owner": {
+            "p50": age(on_owner, "snapshot_age_ms_p50"),
+            "p99": age(on_owner, "snapshot_age_ms_p99"),
+        },
+        "snapshot_age_ms_through_other_node": {
+            "p50": age(through, "snapshot_age_ms_p50"),
+            "p99": age(through, "snapshot_age_ms_p99"),
+        },
+    }
 
 
 def _start_view(

