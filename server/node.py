@@ -308,7 +308,9 @@ class ClusterNode:
             try:
                 await self._round()
             except Exception as exc:  # NATS away: the rooms here keep running
-                log.warning("cluster: upkeep failed (%s); retrying", exc)
+                # (while NATS is away the lease keeper has said so, once)
+                level = logging.DEBUG if self.directory.unreachable else logging.WARNING
+                log.log(level, "cluster: upkeep failed (%s); retrying", exc)
 
     async def _round(self) -> None:
         began = time.perf_counter()
@@ -369,6 +371,9 @@ class ClusterNode:
              "Joins handed off to the room's owner node.", self.joins_forwarded),
             ("posecast_cluster_owners_lost_total", "counter",
              "Times an owner node this node forwarded to was found gone.", self.owners_lost),
+            ("posecast_cluster_nats_up", "gauge",
+             "1 while this node renews its leases in NATS, 0 while NATS is unreachable.",
+             int(not self.directory.unreachable)),
             ("posecast_cluster_nats_rtt_seconds", "gauge",
              "Round trip to NATS at the last upkeep round (NaN before it).", self.rtt),
         ]  # fmt: skip
