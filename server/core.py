@@ -259,6 +259,16 @@ class RelayCore:
             peer is not None and peer.room is None and peer.close_request is None
         ) and not peer.forwarded
 
+    def release_user(self, conn: int) -> None:
+        """A forwarded ``conn`` whose room's node is gone: its user id is the room's
+        again (the member restored from the lost node's records takes it)."""
+        peer = self.peers.get(conn)
+        if peer is not None and peer.forwarded and peer.user is not None:
+            if self._by_user.get(peer.user) is peer:
+                del self._by_user[peer.user]
+            self.users.give_back(peer.user)
+            peer.user = None
+
     def hand_off(self, conn: int) -> None:
         """``conn`` joins a room another cluster node owns (``server/forward.py``): this
         core handles nothing more of it; its user id stays taken until it ends."""

@@ -81,6 +81,9 @@ class Members:
     #: A recording relay's room opener (``RelayServer.prepare_room``): a join of a
     #: room not open yet waits for its recorder, as a local join does.
     prepare: Callable[[str], Awaitable[None]] | None = None
+    #: Waits until rooms this node is taking over have their members in
+    #: (``ClusterNode.settled``): a resume forwarded here waits for it.
+    settle: Callable[[], Awaitable[None]] | None = None
     #: (edge, edge connection) -> core connection, and back.
     conns: dict[tuple[str, int], int] = field(default_factory=dict)
     remote: dict[int, tuple[str, int]] = field(default_factory=dict)
@@ -111,6 +114,9 @@ class Members:
         key = (edge, econn)
         now = self.clock()
         if kind == "open" and key not in self.conns:
+            if self.settle is not None:
+                await self.settle()  # a room just taken over: its members come in first
+                now = self.clock()
             self._open(key, item, now)
         elif kind == "frames" and key in self.conns:
             conn = self.conns[key]

@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING, Any
 
 import msgpack
 import nats.errors
+from nats.aio.msg import Msg
 
 from protocol.events import Event
 from protocol.messages import Hello, Join
@@ -63,6 +64,8 @@ log = logging.getLogger("posecast.cluster")
 
 #: The close of a client whose room's node is gone, or whose room moved.
 MOVED = (1012, "the room's node changed; reconnect")
+#: The subject a node that took a room over from a lost node says so on.
+GONE = "posecast.cluster.gone"
 #: Seconds a member record lives unless its owner writes it again (every third).
 RECORD_TTL = 30.0
 #: What a resume token looks like (``Parking.new_token``): a safe NATS key token.
@@ -104,6 +107,8 @@ class ClusterNode:
     clock: Callable[[], float] = time.monotonic
     #: Rooms this node owns that were empty at the last upkeep round.
     _empty: set[str] = field(default_factory=set)
+    #: Claims under way (each takes its room's members in before it ends).
+    _adopting: set[asyncio.Future[None]] = field(default_factory=set)
     #: Rooms this node took over from a lost node: room -> that node.
     taken_from: dict[str, str] = field(default_factory=dict)
     #: Member records this node wrote: key -> (value, when).
@@ -136,9 +141,11 @@ class ClusterNode:
         members = Members(core, directory.nc, node, apply, clock, wall_clock, prepare)
         edge = Edge(directory.nc, node, deliver, close)
         self = cls(directory, core, apply, members, edge, clock)
+        members.settle = self.settled
         directory.on_lost = self._lost
         await members.start()
         await edge.start()
+        await directory.nc.subscribe(GONE, cb=self._on_gone)
         log.info("cluster: node %s (index %d) joined", node, directory.index)
         return self
 
@@ -165,13 +172,53 @@ class ClusterNode:
 
     async def claim(self, room: str) -> str:
         """The live node that owns ``room`` now: this one if it was free, or its owner
-        was gone (then this node takes it over)."""
+        was gone (then this node takes it over). When this node becomes its owner it
+        takes in the members a lost owner recorded before anything else of the room
+        is handled here: resumes forwarded by other nodes wait for it (:meth:`settled`)."""
+        if self.directory.owns(room):
+            await self.settled()
+            return self.name
+        adopting: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        self._adopting.add(adopting)
+        try:
+            owner = await self._claim(room)
+            if owner == self.name:
+                await self._take_in(room)
+            return owner
+        finally:
+            self._adopting.discard(adopting)
+            adopting.set_result(None)
+
+    @property
+    def busy(self) -> bool:
+        """Whether a claim is under way (joins and resumes here wait for it)."""
+        return bool(self._adopting)
+
+    async def settled(self) -> None:
+        """Wait until no room this node just claimed is still taking its members in."""
+        while self._adopting:
+            await asyncio.gather(*self._adopting)
+
+    async def _take_in(self, room: str) -> None:
+        """Open ``room`` (its recording) and park the members its lost owner recorded."""
+        try:
+            if self.members.prepare is not None:
+                await self.members.prepare(room)
+            await self.adopt(room)
+        except Exception as exc:  # NATS away: the room starts empty here
+            log.warning("cluster: cannot take room %r's members in: %s", room, exc)
+
+    async def _claim(self, room: str) -> str:
         for _ in range(3):
             owner = await self.directory.claim(room)
             if owner == self.name or await self._alive(owner):
                 return owner
             if await self.directory.take_over(room, owner):
                 self.taken_from[room] = owner
+                # Every node's clients forwarded to it reconnect now, not at their
+                # node's next upkeep round.
+                self._owner_gone(owner)
+                await self.directory.nc.publish(GONE, owner.encode())
                 return self.name
         return await self.directory.claim(room)
 
@@ -328,12 +375,21 @@ class ClusterNode:
             if not await self._alive(owner):
                 self._owner_gone(owner)
 
+    async def _on_gone(self, msg: Msg) -> None:
+        self._owner_gone(msg.data.decode(errors="replace"))
+
     def _owner_gone(self, owner: str) -> None:
+        """``owner`` is gone: its rooms' clients here reconnect (and resume where a
+        live node took their room over); their ids here are free for the members
+        restored from its records."""
         clients = self.edge.clients_of(owner)
+        if not clients:
+            return
         self.owners_lost += 1
         log.warning("cluster: node %s is gone; its %d clients here reconnect", owner, len(clients))
         for econn in clients:
             self.edge.gone(econn, said_bye=False)
+            self.core.release_user(econn)
             self.edge.close(econn, *MOVED)
 
     def _lost(self, room: str) -> None:
@@ -408,20 +464,7 @@ async def resume_then_consume(
     if record is not None and owner is not None and owner != cluster.name:
         _forward(c, owner, raw, int(record["user"]))
         return
-    if record is not None and owner is not None:
-        await _adopt(c, str(record["room"]))
     await c._open_then_consume("", events)
-
-
-async def _adopt(c: Connection, room: str) -> None:
-    """This node owns ``room`` now: open it (its recording) and take in the
-    members a lost owner left to resume."""
-    assert c.server.cluster is not None
-    await c.server.prepare_room(room)
-    try:
-        await c.server.cluster.adopt(room)
-    except Exception as exc:
-        log.warning("cluster: cannot read room %r's members: %s", room, exc)
 
 
 def _forward(c: Connection, owner: str, raw: bytes | str, resumes: int | None = None) -> None:
@@ -461,8 +504,6 @@ async def claim_then_consume(
         c.close(1013, "try again later: the cluster cannot place the room")
         return
     if owner == server.cluster.name:
-        await _adopt(c, room)
-        if server._conns.get(c.conn) is c:
-            await c._open_then_consume(room, events)
+        await c._open_then_consume(room, events)
         return
     _forward(c, owner, raw)
