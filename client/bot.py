@@ -61,8 +61,9 @@ import numpy as np
 from numpy.typing import NDArray
 from websockets.exceptions import ConnectionClosed
 
+import client.remote as scoring
 from client.connection import ClientConnection, SessionEnd, Tls, connect_any, connect_first
-from client.remote import RemoteStream, evaluate_remote, p50_p99_ms, remote_log, stream_delays
+from client.remote import RemoteStream, evaluate_remote, remote_log, stream_delays
 from client.scene import OwnerChange, ThrowCatchActor
 from interp import info as interp_info
 from protocol import (
@@ -181,8 +182,9 @@ class BotReport:
     bytes_out: int
     duration: float
     clock_rtt_ms: float
-    #: Snapshot age at arrival (send time -> receipt, ms): p50 and p99.
+    #: Snapshot age at arrival (send time -> receipt; ms: p50, p99), longest gap (s).
     snapshot_age_ms: tuple[float, float] = (float("nan"), float("nan"))
+    snapshot_gap_s: float = float("nan")
     #: Whether it sent and received velocity keyframes (snapshot bytes include them).
     velocities: bool = False
     #: Upstream codec (``raw`` or ``compact``), bytes of the update frames it sent
@@ -205,9 +207,8 @@ class BotReport:
     ownership: list[OwnerChange] = field(default_factory=list)
     #: Its role in the live throw-catch scene (``thrower``, ``catcher``, ``watcher``).
     role: str | None = None
-    #: After drops: times it resumed its session, times it rejoined as a new member
-    #: (a relay that did not hold its session; ``user`` is its last id), and the
-    #: relay it ended on.
+    #: After drops: times it resumed, times it rejoined as a new member (a relay that
+    #: did not hold its session; ``user`` is its last id), the relay it ended on.
     resumed: int = 0
     rejoined: int = 0
     relay: str = ""
@@ -289,11 +290,9 @@ class _Bot:
         self.play_t: list[float] = []
         self.play_d: list[float] = []
         self.render_stalls = self.render_samples = self.frames = self.frames_late = 0
-        self.render_cpu = 0.0
+        self.render_cpu, self.ping_seq = 0.0, 0
         self.snapshot_bytes = self.poses_in = self.update_bytes = self.poses_sent = 0
-        self.ping_seq = 0
-        #: Each snapshot's age at arrival (s): server send time -> receipt, server clock.
-        self.snapshot_ages: list[float] = []
+        self.snapshot_times: list[tuple[float, float]] = []  # arrival, send: server clock
         self.conn: ClientConnection | None = None
         #: The bot's part in the live throw-catch scene, if it plays one.
         self.actor: ThrowCatchActor | None = None
@@ -431,7 +430,7 @@ class _Bot:
         vels = snap.velocities
         vel64 = None if vels is None else vels.astype(np.float64)
         self.snapshot_bytes += size
-        self.snapshot_ages.append(arrival_srv - sent)
+        self.snapshot_times.append((arrival_srv, sent))
         floor = self.play_t[-1] if self.play_t else -np.inf
         for i in range(len(snap)):
             user = int(users[i])
@@ -770,7 +769,8 @@ class _Bot:
             bytes_out=self.conn.bytes_out,
             duration=span,
             clock_rtt_ms=1000.0 * self.est.rtt,
-            snapshot_age_ms=p50_p99_ms(self.snapshot_ages),
+            snapshot_age_ms=scoring.p50_p99_ms([a - s for a, s in self.snapshot_times]),
+            snapshot_gap_s=scoring.longest_gap([a for a, _ in self.snapshot_times]),
             velocities=self.velocities,
             codec=cfg.codec,
             update_bytes=self.update_bytes,

@@ -29,6 +29,7 @@ from scenarios.traces import TraceError
 __all__ = [
     "RemoteStream",
     "evaluate_remote",
+    "longest_gap",
     "p50_p99_ms",
     "remote_log",
     "score_object",
@@ -157,3 +158,8 @@ def p50_p99_ms(values: list[float]) -> tuple[float, float]:
         return float("nan"), float("nan")
     p50, p99 = np.percentile(np.asarray(values), [50, 99])
     return 1000.0 * float(p50), 1000.0 * float(p99)
+
+
+def longest_gap(times: list[float]) -> float:
+    """The longest interval between consecutive ``times`` (s; NaN if fewer than two)."""
+    return float(np.max(np.diff(np.asarray(times)))) if len(times) > 1 else float("nan")

@@ -260,6 +260,7 @@ def swarm_report(reports: Sequence[BotReport]) -> dict[str, Any]:
                 "clock_rtt_ms": r.clock_rtt_ms,
                 "snapshot_age_ms_p50": r.snapshot_age_ms[0],
                 "snapshot_age_ms_p99": r.snapshot_age_ms[1],
+                "snapshot_gap_s": r.snapshot_gap_s,
                 "render_late_fraction": r.frames_late / max(1, r.frames_rendered),
                 "codec": r.codec,
                 "up_bytes_per_pose": r.update_bytes / r.poses_sent if r.poses_sent else None,

@@ -43,18 +43,21 @@ class RelayProcess:
     def kill(self) -> None:
         """SIGKILL: the node dies without a word (the node-loss drill)."""
         if self.proc.returncode is None:
-            os.kill(self.proc.pid, signal.SIGKILL)
+            with suppress(ProcessLookupError):
+                os.kill(self.proc.pid, signal.SIGKILL)
 
     async def stop(self, grace: float = 15.0) -> None:
         """SIGTERM (the relay closes its clients and finishes its recordings), then
         SIGKILL after ``grace`` s."""
         if self.proc.returncode is None:
-            self.proc.terminate()
+            with suppress(ProcessLookupError):  # it died, not yet reaped
+                self.proc.terminate()
             with suppress(TimeoutError):
                 async with asyncio.timeout(grace):
                     await self.proc.wait()
         if self.proc.returncode is None:
-            self.proc.kill()
+            with suppress(ProcessLookupError):
+                self.proc.kill()
         await self.proc.wait()
 
     async def metrics(self) -> dict[str, float]:

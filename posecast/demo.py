@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import statistics
 import tempfile
+import time
 from collections.abc import AsyncIterator
 from contextlib import AsyncExitStack, asynccontextmanager
 from pathlib import Path
@@ -40,6 +41,7 @@ async def run_demo(
     codec: str = "compact",
     view_port: int | None = None,
     nodes: int = 1,
+    kill: tuple[str, float] | None = None,
 ) -> dict[str, Any]:
     """Run the demo; with ``view_port``, a live viewer of its room is served there too.
 
@@ -47,7 +49,10 @@ async def run_demo(
     that many ``posecast serve --cluster`` processes, the bots spread over them
     (bot i on node i % nodes); the report gains ``cluster``: each node, its bots,
     the room's owner, and the age of the snapshots the bots got on the owner and
-    through another node (the cross-node path's cost)."""
+    through another node (the cross-node path's cost). ``kill`` (node name or
+    ``owner``, seconds after the bots start) SIGKILLs that node then: the
+    node-loss drill; ``cluster.kill`` reports each bot's longest snapshot gap and
+    what the recordings hold (the killed node's file recovered)."""
     async with AsyncExitStack() as stack:
         cluster: LocalCluster | None = None
         server: RelayServer | None = None
@@ -62,40 +67,35 @@ async def run_demo(
         viewer = (
             None if view_port is None else _start_view(tg, urls[0], methods, view_port, console)
         )
-        base = BotConfig(
-            url=urls[0],
-            urls=tuple(urls),
-            room="demo",
-            rate=rate,
-            send_rate=send_rate,
-            methods=methods,
-            motion=motion,
-            duration=duration,
-            name="bot",
-            codec=codec,
-        )
+        base = BotConfig(url=urls[0], urls=tuple(urls), room="demo", rate=rate,
+                         send_rate=send_rate, methods=methods, motion=motion,
+                         duration=duration, name="bot", codec=codec)  # fmt: skip
         seen: dict[str, dict[str, float]] = {}
         with _progress(console) as progress:
             watcher = tg.create_task(_watch(progress, duration, server, cluster, seen))
+            killed: dict[str, Any] = {}
+            killer = None
+            if kill is not None and cluster is not None:
+                killer = tg.create_task(_kill_later(cluster, seen, kill, killed, console))
             try:
                 reports = await run_bots(base, bots)
             finally:
                 watcher.cancel()
+                if killer is not None:
+                    killer.cancel()
                 if viewer is not None:
                     viewer.cancel()
         report = swarm_report(reports)
-        report["server"] = {
-            "url": ",".join(urls),
-            "rate_hz": rate,
-            "send_rate_hz": send_rate,
-            "duration_s": duration,
-            "motion": motion,
-            "codec": codec,
-        }
+        report["server"] = {"url": ",".join(urls), "rate_hz": rate, "send_rate_hz": send_rate,
+                            "duration_s": duration, "motion": motion, "codec": codec}  # fmt: skip
         if cluster is not None:
             report["cluster"] = _cluster_report(cluster, report["bots"], seen)
+            if killed:
+                report["cluster"]["kill"] = killed
         if server is not None:
             server.stop()
+    if killed and record_dir is not None:
+        killed["recordings"] = await asyncio.to_thread(_drill_files, record_dir, killed)
     if server is not None:
         report["recording"] = str(server.recordings[-1]) if server.recordings else None
     else:
@@ -104,9 +104,9 @@ async def run_demo(
 
 
 def _newest_recording(record_dir: Path | None) -> str | None:
-    """The cluster's recording of the demo: the newest file of any node's folder."""
+    """The cluster's recording of the demo: the latest started, of any node's folder."""
     files = [] if record_dir is None else list(record_dir.glob("node*/*.mcap"))
-    return str(max(files, key=lambda p: p.stat().st_mtime)) if files else None
+    return str(max(files, key=lambda p: p.name)) if files else None  # NAME-<start time>
 
 
 @asynccontextmanager
@@ -172,6 +172,52 @@ async def _watch(
                 f"{forwarded:g} bots through other nodes"
             )
         progress.update(task, completed=min(duration, loop.time() - start), description=desc)
+
+
+async def _kill_later(
+    cluster: LocalCluster,
+    seen: dict[str, dict[str, float]],
+    kill: tuple[str, float],
+    out: dict[str, Any],
+    console: Console | None,
+) -> None:
+    """The drill: SIGKILL node ``kill[0]`` (``owner``: the room's) ``kill[1]`` s in."""
+    name, at = kill
+    await asyncio.sleep(at)
+    if name == "owner":
+        owners = [n for n, f in seen.items() if f.get("posecast_cluster_rooms_owned", 0) > 0]
+        name = owners[0] if owners else cluster.relays[0].name
+    relay = next(r for r in cluster.relays if r.name == name)
+    relay.kill()
+    out.update({"node": name, "at_s": at, "wall_time": time.time()})
+    if console is not None:
+        console.print(f"drill: node {name} SIGKILLed {at:g} s into the session")
+
+
+def _drill_files(record_dir: Path, killed: dict[str, Any]) -> list[dict[str, Any]]:
+    """Each node's recordings after the drill; the killed node's unfinished file is
+    recovered first (as that node would at its next start)."""
+    from recorder import find_leftovers, info, recover
+
+    for part in find_leftovers(record_dir / killed["node"]):
+        recover(part)
+    out = []
+    for path in sorted(record_dir.glob("node*/*.mcap")):
+        summary = info(path)
+        last = summary["last_time"]
+        out.append(
+            {
+                "path": str(path),
+                "node": summary.get("cluster_node"),
+                "continues_from_node": summary.get("continues_from_node"),
+                "users": len(summary["users"]),
+                "poses": summary["sizes"]["poses"],
+                # Server clock = wall clock on a cluster node: how long before the
+                # kill the killed node's file ends (its unwritten tail).
+                "ends_before_kill_s": None if last is None else killed["wall_time"] - last,
+            }
+        )
+    return out
 
 
 def _cluster_report(

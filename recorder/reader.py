@@ -610,10 +610,7 @@ def _info(reader: SessionReader) -> dict[str, Any]:
         "room": session.get("room"),
         "posecast_version": session.get("posecast_version"),
         "start_utc": session.get("start_utc"),
-        # In a cluster: the node that recorded it, and the node whose recording of
-        # the same room this one continues (that node was lost; see docs/scaling.md).
-        "cluster_node": session.get("cluster_node"),
-        "continues_from_node": session.get("continues_from_node"),
+        **{key: session.get(key) for key in _CLUSTER_KEYS},
         "start_time": _float(session.get("start_time")),
         "end_time": _float(end_md.get("end_time")),
         "first_time": None if first is None else first / 1e9,
@@ -715,6 +712,11 @@ def read_records(
 
 def _num(x: float | None, fmt: str = ".1f") -> str:
     return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, fmt)
+
+
+#: Session metadata of a cluster node's recording: the node that recorded it, and
+#: the lost node whose recording of the room it continues (docs/scaling.md).
+_CLUSTER_KEYS = ("cluster_node", "continues_from_node")
 
 
 def _cluster_lines(data: dict[str, Any]) -> list[str]:

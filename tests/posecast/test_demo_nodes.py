@@ -45,3 +45,30 @@ def test_demo_on_two_nodes_spreads_the_bots_and_records_once(tmp_path: Path) -> 
     assert report["recording"] == str(files[0])
     summary = info(files[0])
     assert summary["cluster_node"] == owner and len(summary["users"]) == 4
+
+
+def test_the_node_loss_drill_moves_every_bot_and_links_the_recordings(tmp_path: Path) -> None:
+    """demo --nodes 3 --kill owner@S: every bot resumes (none rejoins as a new member);
+    the new owner's recording continues the killed node's, recovered."""
+    demo = run_demo(
+        bots=3,
+        rate=15.0,
+        duration=6.0,
+        methods=("soa",),
+        motion="synthetic:orbit",
+        record_dir=tmp_path,
+        nodes=3,
+        kill=("owner", 2.5),
+    )
+    report = asyncio.run(demo)
+    kill = report["cluster"]["kill"]
+    assert kill["node"] in ("node1", "node2", "node3")
+    assert report["reconnects"]["rejoined"] == 0
+    assert report["reconnects"]["resumed"] == 3
+    assert all(math.isfinite(b["snapshot_gap_s"]) for b in report["bots"])
+    files = {f["node"]: f for f in kill["recordings"]}
+    (lost,) = [f for f in kill["recordings"] if f["node"] == kill["node"]]
+    (moved,) = [f for f in kill["recordings"] if f["node"] != kill["node"]]
+    assert moved["continues_from_node"] == kill["node"] and lost["continues_from_node"] is None
+    assert lost["users"] == moved["users"] == 3 and lost["poses"] > 0 and moved["poses"] > 0
+    assert len(files) == 2
