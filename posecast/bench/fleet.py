@@ -53,6 +53,8 @@ class LoadFleet:
         self._tmp = tempfile.TemporaryDirectory(prefix="posecast-load-")
         self.children: list[_Child] = []
         self.samples: list[Path] = []
+        #: The processes' own ``result`` messages, once :meth:`results` has them.
+        self.parts: list[dict[str, Any]] = []
         for k in range(procs):
             first, last = k * clients // procs, (k + 1) * clients // procs
             path = Path(self._tmp.name) / f"load-{k}.npz"
@@ -103,54 +105,8 @@ class LoadFleet:
     def results(self, timeout: float) -> dict[str, Any]:
         """Every process's result, merged: sums, extremes, percentiles of the samples."""
         parts = [child.wait_json("result", timeout=timeout) for child in self.children]
-        merged: dict[str, Any] = {key: sum(p.get(key, 0) for p in parts) for key in _SUMMED}
-        merged["window_s"] = max(float(p["window_s"]) for p in parts)
-        merged["snapshots_per_client_s"] = merged.pop("snapshots_per_client_s_sum") / max(
-            1, merged["load_clients"]
-        )
-        merged["snapshots_per_client_s_min"] = min(p["snapshots_per_client_s_min"] for p in parts)
-        merged["snapshots_per_client_s_max"] = max(p["snapshots_per_client_s_max"] for p in parts)
-        merged["close_reasons"] = sorted({r for p in parts for r in p["close_reasons"]})[:5]
-        errors: dict[str, int] = {}
-        for p in parts:
-            for code, n in p["server_errors"].items():
-                errors[code] = errors.get(code, 0) + int(n)
-        merged["server_errors"] = errors
-        merged["server_error_examples"] = {
-            code: text for p in parts for code, text in p["server_error_examples"].items()
-        }
-        merged["load_procs"] = len(parts)
-        merged.update(self._percentiles())
-        return merged
-
-    def _percentiles(self) -> dict[str, float]:
-        arrays: dict[str, list[np.ndarray]] = {}
-        for path in self.samples:
-            if not path.exists():
-                continue
-            with np.load(path) as data:
-                for key in data.files:
-                    arrays.setdefault(key, []).append(data[key])
-        cat = {k: np.concatenate(v) for k, v in arrays.items()}
-        empty = np.zeros(0)
-        lat, hold = cat.get("latency", empty), cat.get("hold", empty)
-        relay, lag = cat.get("relay", empty), cat.get("tick_lag", empty)
-        send = cat.get("send_lag", empty)
-        return {
-            "latency_p50_ms": _pct(lat, 50),
-            "latency_p99_ms": _pct(lat, 99),
-            "latency_max_ms": float(lat.max()) if len(lat) else math.nan,
-            "latency_samples": len(lat),
-            "hold_p50_ms": _pct(hold, 50),
-            "hold_p99_ms": _pct(hold, 99),
-            "relay_p50_ms": _pct(relay, 50),
-            "relay_p99_ms": _pct(relay, 99),
-            "relay_max_ms": float(relay.max()) if len(relay) else math.nan,
-            "tick_lag_p50_ms": _pct(lag, 50),
-            "tick_lag_p99_ms": _pct(lag, 99),
-            "send_lag_p99_ms": _pct(send, 99),
-            "send_lag_max_ms": float(send.max()) if len(send) else math.nan,
-        }
+        self.parts = parts
+        return {**merge_parts(parts), **sample_percentiles(self.samples)}
 
     def stop(self, grace: float) -> None:
         for child in self.children:  # all at once: each closes its clients in parallel
@@ -161,3 +117,61 @@ class LoadFleet:
 
     def fail(self, what: str) -> RuntimeError:
         return self.children[0].fail(what)
+
+
+def merge_parts(parts: list[dict[str, Any]]) -> dict[str, Any]:
+    """Load processes' ``result`` messages as one: sums and extremes (no percentiles)."""
+    merged: dict[str, Any] = {key: sum(p.get(key, 0) for p in parts) for key in _SUMMED}
+    merged["window_s"] = max(float(p["window_s"]) for p in parts)
+    merged["snapshots_per_client_s"] = merged.pop("snapshots_per_client_s_sum") / max(
+        1, merged["load_clients"]
+    )
+    merged["snapshots_per_client_s_min"] = min(p["snapshots_per_client_s_min"] for p in parts)
+    merged["snapshots_per_client_s_max"] = max(p["snapshots_per_client_s_max"] for p in parts)
+    merged["close_reasons"] = sorted({r for p in parts for r in p["close_reasons"]})[:5]
+    errors: dict[str, int] = {}
+    for p in parts:
+        for code, n in p["server_errors"].items():
+            errors[code] = errors.get(code, 0) + int(n)
+    merged["server_errors"] = errors
+    merged["server_error_examples"] = {
+        code: text for p in parts for code, text in p["server_error_examples"].items()
+    }
+    merged["load_procs"] = len(parts)
+    return merged
+
+
+def load_samples(paths: list[Path]) -> dict[str, np.ndarray]:
+    """The load processes' window samples (``.npz`` files), concatenated per key."""
+    arrays: dict[str, list[np.ndarray]] = {}
+    for path in paths:
+        if not path.exists():
+            continue
+        with np.load(path) as data:
+            for key in data.files:
+                arrays.setdefault(key, []).append(data[key])
+    return {k: np.concatenate(v) for k, v in arrays.items()}
+
+
+def sample_percentiles(paths: list[Path]) -> dict[str, float]:
+    """Latency percentiles (ms) over the samples of every file in ``paths``."""
+    cat = load_samples(paths)
+    empty = np.zeros(0)
+    lat, hold = cat.get("latency", empty), cat.get("hold", empty)
+    relay, lag = cat.get("relay", empty), cat.get("tick_lag", empty)
+    send = cat.get("send_lag", empty)
+    return {
+        "latency_p50_ms": _pct(lat, 50),
+        "latency_p99_ms": _pct(lat, 99),
+        "latency_max_ms": float(lat.max()) if len(lat) else math.nan,
+        "latency_samples": len(lat),
+        "hold_p50_ms": _pct(hold, 50),
+        "hold_p99_ms": _pct(hold, 99),
+        "relay_p50_ms": _pct(relay, 50),
+        "relay_p99_ms": _pct(relay, 99),
+        "relay_max_ms": float(relay.max()) if len(relay) else math.nan,
+        "tick_lag_p50_ms": _pct(lag, 50),
+        "tick_lag_p99_ms": _pct(lag, 99),
+        "send_lag_p99_ms": _pct(send, 99),
+        "send_lag_max_ms": float(send.max()) if len(send) else math.nan,
+    }

@@ -122,6 +122,10 @@ class _LoadStats:
         self._arrival: list[float] = []
         self._lat: list[np.ndarray] = []
         self._hold: list[np.ndarray] = []
+        # Who sent and who received each latency sample (user ids: in a cluster a
+        # user id's block names the node that welcomed it).
+        self._senders: list[np.ndarray] = []
+        self._receivers: list[np.ndarray] = []
 
     def snapshot(
         self,
@@ -175,6 +179,8 @@ class _LoadStats:
         due = np.repeat(np.asarray(self._due, dtype=np.float64), counts)[remote]
         self._lat.append(arrival - capture)
         self._hold.append(due - capture)
+        self._senders.append(entries["user"][remote].astype(np.int32))
+        self._receivers.append(owner[remote].astype(np.int32))
         for part in (self._bodies, self._owner, self._send, self._due, self._arrival):
             part.clear()
 
@@ -185,7 +191,12 @@ class _LoadStats:
         def cat(parts: list[np.ndarray]) -> np.ndarray:
             return np.concatenate(parts) * 1e3 if parts else np.zeros(0)
 
+        def ids(parts: list[np.ndarray]) -> np.ndarray:
+            return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int32)
+
         return {
+            "latency_sender": ids(self._senders),
+            "latency_receiver": ids(self._receivers),
             "latency": cat(self._lat),
             "hold": cat(self._hold),
             "relay": np.frombuffer(self.relay, dtype=np.float64) * 1e3,
@@ -238,8 +249,11 @@ class _BenchClient:
         stats: _LoadStats,
         codec: str,
         poses: np.ndarray | None = None,
+        offset: float = 0.0,
     ) -> None:
         self.index = index
+        #: The server's clock minus this process's (0 on one relay: both are monotonic).
+        self.offset = offset
         #: What it publishes: one frame (n, 7) or a cycle (K, n, 7) (default: a fixed pose).
         self.poses = Motion(STATIC, rate).cycle(index) if poses is None else poses
         self.room = room
@@ -324,7 +338,7 @@ class _BenchClient:
         if conn.buffered() > SEND_BUFFER_LIMIT:
             return False
         self._seq += 1
-        conn.write(frames.frame(self._seq, now))
+        conn.write(frames.frame(self._seq, now + self.offset))
         return True
 
     def _due(self, send: float) -> float:
@@ -367,7 +381,9 @@ class _BenchClient:
         own = self._own_run(data, at)
         if own < 0:
             own = self._own_count(data, at)
-        due = self._due(send)
+        # The tick grid is the server's: due in its clock, then both in ours.
+        due = self._due(send) - self.offset
+        send -= self.offset
         stats = self.stats
         if stats.snapshot(self.index, arrival, send, due, len(data), n, own):
             self._count += 1
@@ -400,9 +416,10 @@ class _BenchClient:
         """A relay codec snapshot, counted from its header (it never holds our own streams)."""
         _tick, base_us, n_key, n_delta = snapshot_counts(data)
         send = base_us / 1e6
+        due = self._due(send) - self.offset
         self.stats.codec_snapshots += 1
         self.stats.snapshot(
-            self.index, arrival, send, self._due(send), len(data), n_key + n_delta, 0
+            self.index, arrival, send - self.offset, due, len(data), n_key + n_delta, 0
         )
 
     def _decode(self, data: bytes, arrival: float) -> None:
@@ -432,8 +449,8 @@ class _BenchClient:
             if data[:1] == b"\xc1":
                 stats.codec_snapshots += 1
                 stats.codec_own_echo += own
-            send = event.send_time
-            due = self._due(send)
+            due = self._due(event.send_time) - self.offset
+            send = event.send_time - self.offset
             if stats.snapshot(self.index, arrival, send, due, len(data), len(records), own):
                 self._count += 1
                 if self._count % SAMPLE_EVERY == 0:
@@ -527,12 +544,17 @@ async def _load_main(cfg: dict[str, Any], emit: Callable[[dict[str, Any]], None]
     threading.Thread(target=read_stdin, daemon=True).start()
     first, last = int(cfg.get("first", 0)), int(cfg.get("last", cfg["clients"]))
     size, rate = int(cfg["room_size"]), float(cfg["rate"])
-    stats = _LoadStats(last - first)
+    # With ``members`` = [N, k] this process runs only the members j of each room
+    # with j % N == k (``bench relay --nodes N``: node k's share).
+    mod, keep = (int(x) for x in cfg.get("members", (1, 0)))
+    chosen = [i for i in range(first, last) if (i % size) % mod == keep]
+    stats = _LoadStats(len(chosen))
     codec = str(cfg.get("codec", "raw"))
     motion = Motion(str(cfg.get("motion", STATIC)), rate)
+    offset = float(cfg.get("clock_offset", 0.0))
     clients = [
-        _BenchClient(i - first, f"bench-{i // size}", rate, stats, codec, motion.cycle(i))
-        for i in range(first, last)
+        _BenchClient(n, f"bench-{i // size}", rate, stats, codec, motion.cycle(i), offset)
+        for n, i in enumerate(chosen)
     ]
     publisher = _Publisher(rate, stats, random.Random(int(cfg.get("seed", 0)) * 1009 + first))
     try:
@@ -577,6 +599,8 @@ async def _measure(
             relay=arrays["relay"],
             tick_lag=arrays["tick_lag"],
             send_lag=arrays["send_lag"],
+            latency_sender=arrays["latency_sender"],
+            latency_receiver=arrays["latency_receiver"],
         )
     summary["event"] = "result"
     emit(summary)
