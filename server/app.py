@@ -229,7 +229,7 @@ class _Connection(WebSocketConnection):
         while True:
             for i, event in enumerate(events):
                 if cluster is not None and not (skip_check and i == 0):
-                    name = join_room(event)
+                    name = join_room(event, server.config.secret, wall)
                     if name is not None and (cluster.busy or not cluster.owns(name)):
                         self._hold(name, events[i:], messages, raw)
                         return

@@ -41,6 +41,7 @@ from protocol.messages import Hello, Join
 from protocol.objects import ROOM_USER
 from server import resume
 from server.actions import Action
+from server.auth import token_permits
 from server.cluster import Directory
 from server.core import RelayCore
 from server.forward import Edge, Members, alive
@@ -80,14 +81,17 @@ def cluster_clock() -> Callable[[], float]:
     return lambda: time.monotonic() + anchor
 
 
-def join_room(event: Event) -> str | None:
-    """The room a join event names (None: not a join, or a name the core refuses)."""
+def join_room(event: Event, secret: str | None = None, wall: float = 0.0) -> str | None:
+    """The room a join event names (None: not a join, a name the core refuses, or a
+    token that does not admit to it: then this node's core refuses it, and no room
+    is claimed for a client that may not join it)."""
     if not isinstance(event, Join):
         return None
     try:
-        return normalise_room(event.room)
+        name = normalise_room(event.room)
     except ValueError:
         return None
+    return name if token_permits(secret, event.token, name, wall) else None
 
 
 def resume_token(event: Event) -> str | None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import re
+import time
 import urllib.request
 from collections.abc import AsyncIterator, Callable
 from functools import partial
@@ -20,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import needs_nats
-from relaykit import Bot, errors, raw_connect, raw_join, settle, until_closed
+from relaykit import HELLO, Bot, errors, frame, raw_connect, raw_join, settle, until_closed
 from support import running_server
 
 from client.bot import BotConfig, run_bot
@@ -36,6 +37,7 @@ from protocol import (
 )
 from recorder import info, load_streams
 from server.app import RelayServer, ServerConfig
+from server.auth import make_token
 from server.cluster import USER_BLOCK, ClusterError
 from server.node import MOVED
 
@@ -301,3 +303,34 @@ async def test_a_dropped_member_resumes_through_any_node(nats_url: str, back_thr
         assert notices == [PeerStalled, PeerResumed]
         await watcher.close()
         await back.close()
+
+
+async def test_tokens_are_checked_for_a_member_on_another_node(nats_url: str) -> None:
+    """With a secret on every node, a join through another node needs a token for
+    its room, as on one server; a refused one claims no room anywhere."""
+    secret = "cluster test secret"
+    async with contextlib.AsyncExitStack() as stack:
+        a, b = [
+            await stack.enter_async_context(running_server(node(nats_url, n, secret=secret)))
+            for n in ("a", "b")
+        ]
+        assert a.cluster is not None and b.cluster is not None
+        good = make_token(secret, "lab", "alice", ttl=60.0, now=time.time())
+        first = await ClientConnection.open(
+            url_of(a), room="lab", streams=STREAMS, rate=20, token=good, clock=a.clock
+        )
+        bob = make_token(secret, "lab", "bob", ttl=60.0, now=time.time())
+        ok = await ClientConnection.open(
+            url_of(b), room="lab", streams=STREAMS, rate=20, token=bob, clock=a.clock
+        )
+        assert ok.joined is not None and "lab" in a.rooms and len(a.rooms["lab"].members) == 2
+        other = make_token(secret, "other", "mallory", ttl=60.0, now=time.time())
+        ws = await raw_connect(url_of(b))
+        await ws.send(HELLO)
+        await ws.recv()
+        await ws.send(frame("join", room="vault", streams=["head"], rate=10.0, token=other))
+        messages, _ = await until_closed(ws, limit=3.0)
+        assert "unauthorized" in [e.code for e in errors(messages)]
+        assert await b.cluster.directory.owner("vault") is None
+        await first.close()
+        await ok.close()
