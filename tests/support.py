@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 
 from server.app import RelayServer, ServerConfig
 
-__all__ = ["running_server"]
+__all__ = ["poll_until", "relayed", "running_server"]
 
 
 @asynccontextmanager
@@ -23,3 +23,18 @@ async def running_server(config: ServerConfig | None = None) -> AsyncIterator[Re
             yield server
         finally:
             server.stop()
+
+
+async def poll_until(condition: Callable[[], bool], limit: float = 60.0) -> None:
+    """Poll ``condition``; ``limit`` is a hang guard, not a timing check."""
+    async with asyncio.timeout(limit):
+        while True:
+            if condition():
+                return
+            await asyncio.sleep(0.02)
+
+
+def relayed(server: RelayServer, room: str) -> int:
+    """Poses the relay has sent out in ``room`` so far (0 before the room exists)."""
+    r = server.rooms.get(room)
+    return 0 if r is None else r.statistics().poses_out

@@ -17,11 +17,10 @@ import contextlib
 import os
 import subprocess
 import sys
-from collections.abc import Callable
 from dataclasses import replace
 
 import pytest
-from support import running_server
+from support import poll_until, relayed, running_server
 
 from client.bot import BotConfig, BotReport, _Bot, run_bot
 from client.connection import relay_urls
@@ -31,20 +30,6 @@ from server.app import RelayServer, ServerConfig
 
 #: Long enough that the failover happens well inside the session.
 DURATION = 8.0
-
-
-async def _until(condition: Callable[[], bool], limit: float = 60.0) -> None:
-    """Poll ``condition``; ``limit`` is a hang guard, not a timing check."""
-    async with asyncio.timeout(limit):
-        while True:
-            if condition():
-                return
-            await asyncio.sleep(0.02)
-
-
-def _relayed(server: RelayServer, room: str) -> int:
-    r = server.rooms.get(room)
-    return 0 if r is None else r.statistics().poses_out
 
 
 def _end(server: RelayServer, how: str) -> None:
@@ -73,7 +58,7 @@ async def _failover(how: str) -> tuple[list[BotReport], str, str]:
         )
         async with asyncio.TaskGroup() as tg:
             swarm = tg.create_task(run_bots(base, 3))
-            await _until(lambda: _relayed(a, "r") >= 2 * 3 * 20)
+            await poll_until(lambda: relayed(a, "r") >= 2 * 3 * 20)
             _end(a, how)
         return swarm.result(), url_a, url_b
 
@@ -170,12 +155,12 @@ async def _restart() -> list[_Bot]:
         async with asyncio.TaskGroup() as tg:
             for bot in bots:
                 tg.create_task(bot.run())
-            await _until(lambda: _relayed(first, "r") >= 2 * 3 * 20)
+            await poll_until(lambda: relayed(first, "r") >= 2 * 3 * 20)
             _end(first, "kill")
             killed = first.clock()
             config = ServerConfig(host="127.0.0.1", port=first.port)
             again = await stack.enter_async_context(running_server(config))
-            await _until(lambda: all(b.rejoined_at for b in bots))
+            await poll_until(lambda: all(b.rejoined_at for b in bots))
             after = [round(1000 * (b.rejoined_at[0] - killed)) for b in bots]
             print(f"\nrejoined {after} ms after the kill")
             assert again.rooms["r"].members
@@ -272,7 +257,7 @@ async def _all_go_away() -> list[BotReport]:
         ]
         async with asyncio.TaskGroup() as tg:
             tasks = [tg.create_task(run_bot(replace(c, resume_window=1.0))) for c in cfgs]
-            await _until(lambda: _relayed(a, "r") >= 2 * 3 * 20)
+            await poll_until(lambda: relayed(a, "r") >= 2 * 3 * 20)
             b.stop()
             a.stop()
         return [t.result() for t in tasks]

@@ -15,32 +15,16 @@ import subprocess
 import sys
 import time
 import urllib.request
-from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from support import running_server
+from support import poll_until, relayed, running_server
 
 from client.bot import BotConfig, BotReport, SessionEnd, run_bot
 from client.swarm import session_ending, swarm_report
-from server.app import RelayServer
 
 #: Far longer than any test waits: a session only ends early here.
 LONG = 120.0
-
-
-async def _until(condition: Callable[[], bool], limit: float = 60.0) -> None:
-    """Poll ``condition``; ``limit`` is a hang guard, not a timing check."""
-    async with asyncio.timeout(limit):
-        while True:
-            if condition():
-                return
-            await asyncio.sleep(0.02)
-
-
-def _relayed(server: RelayServer, room: str) -> int:
-    r = server.rooms.get(room)
-    return 0 if r is None else r.statistics().poses_out
 
 
 async def _session_ended_by(end: str) -> list[BotReport]:
@@ -58,7 +42,7 @@ async def _session_ended_by(end: str) -> list[BotReport]:
         async with asyncio.TaskGroup() as tg:
             tasks = [tg.create_task(run_bot(c)) for c in cfgs]
             # Both bots joined and each got a good number of the other's poses.
-            await _until(lambda: _relayed(server, "gone") >= 2 * 3 * 20)
+            await poll_until(lambda: relayed(server, "gone") >= 2 * 3 * 20)
             if end == "stop":
                 server.stop()
             else:  # no close frame: the sockets just break under the bots
