@@ -22,6 +22,8 @@ layout is otherwise that of ``protocol.codec`` exactly.
 
 from __future__ import annotations
 
+import struct
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -33,10 +35,12 @@ from protocol.codec import (
     encode_update_codes,
     quantise,
 )
-from protocol.codec_frame import _read_uvarint, _svarint, _uvarint
+from protocol.codec_fast import UpdateGeometry, decode_update_rows, read_varint
+from protocol.codec_frame import F_UPDATE, F_VELOCITY, _read_uvarint, _svarint, _uvarint
+from protocol.codec_quant import dequantise_row, velocity_row
 from protocol.codec_relay import decode_relay_snapshot
 from protocol.errors import ProtocolViolation, RemoteProtocolError
-from protocol.poses import PoseUpdate, Snapshot
+from protocol.poses import UPDATE_DTYPE, UPDATE_VELOCITY_DTYPE, PoseUpdate, Snapshot
 
 __all__ = ["CODEC_FRAME_BYTE", "SnapshotDecoder", "UpstreamDecoder", "UpstreamEncoder"]
 
@@ -130,28 +134,43 @@ class UpstreamEncoder:
 
 
 class UpstreamDecoder:
-    """The server's half: codec update frame -> ``PoseUpdate``, baselines per stream."""
+    """The server's half: codec update frame -> ``PoseUpdate``, baselines per stream.
+
+    A small valid frame (the relay's every update) is read by
+    ``codec_fast.decode_update_rows`` straight into code rows, and its
+    ``PoseUpdate`` records are packed from them with no numpy call but the one
+    that wraps the bytes; anything else takes the reference path
+    (``codec.decode_update``), which decodes it the same or raises its error.
+    """
 
     def __init__(self, volume: Volume) -> None:
         self.volume = volume
-        self.baselines: Baselines = {}
+        #: Stream id -> codes (Python ints) of its last decoded pose. Only decoded
+        #: (hence validated) rows go in: the fast path does not check them again.
+        self.baselines: dict[int, list[int]] = {}
         self._previous: tuple[int, int] | None = None
         #: Stream id -> codes of the last decoded frame: a relay forwards these codes
         #: to compact subscribers rather than quantising the decoded floats again.
         self.last_codes: dict[int, list[int]] = {}
+        self._geometry = UpdateGeometry(volume)
 
     def decode(self, data: bytes | bytearray | memoryview) -> PoseUpdate:
         """The update in ``data``; raises ``RemoteProtocolError`` (in reply to "update")."""
+        data = bytes(data)
+        fast = self._decode_fast(data)
+        if fast is not None:
+            return fast
         try:
-            whole, header = absolute(bytes(data), self._previous)
-            frame = decode_update(whole, self.volume, self.baselines)
+            whole, header = absolute(data, self._previous)
+            frame = decode_update(whole, self.volume, self.baselines)  # type: ignore[arg-type]
         except ProtocolViolation as exc:
             raise RemoteProtocolError(exc.code, exc.message, in_reply_to="update") from None
         self._previous = header
         # The sender stored these codes when it sent them, whatever the session
         # rules say of the update next: keep the two copies equal.
-        frame.remember(self.baselines)
-        self.last_codes = dict(zip(frame.streams.tolist(), frame.codes.tolist(), strict=True))
+        codes = frame.codes.tolist()
+        self.last_codes = dict(zip(frame.streams.tolist(), codes, strict=True))
+        self.baselines.update(self.last_codes)
         return PoseUpdate.from_arrays(
             frame.number,
             frame.streams,
@@ -160,6 +179,71 @@ class UpstreamDecoder:
             base_time=frame.base_time,
             velocities=frame.velocities,
         )
+
+    def _decode_fast(self, data: bytes) -> PoseUpdate | None:
+        """The update of a small valid frame, or None (the reference path decides)."""
+        if len(data) < 4 or data[0] != CODEC_FRAME_BYTE:
+            return None
+        flags = data[1]
+        if flags & 0xF0 != 0x10 or flags & 0x0F & ~_UPDATE_FLAGS or not flags & F_UPDATE:
+            return None
+        try:
+            d, pos = read_varint(data, 2)
+            zz, pos = read_varint(data, pos)
+        except (RemoteProtocolError, IndexError):
+            return None
+        if flags & F_RELATIVE:
+            if self._previous is None:
+                return None
+            number = self._previous[0] + _unzz(d)
+            base_us = self._previous[1] + _unzz(zz)
+        else:
+            number, base_us = d, _unzz(zz)
+        if not (0 <= number < 1 << 63 and abs(base_us) < 1 << 62):
+            return None
+        got = decode_update_rows(data, pos, flags, self._geometry, self.baselines)
+        if got is None:
+            return None
+        streams, off, rows = got
+        self._previous = (number, base_us)
+        self.last_codes = codes = dict(zip(streams, rows, strict=True))
+        self.baselines.update(codes)
+        return _update_of_rows(number, base_us, streams, off, rows, self.volume)
+
+
+#: Flag bits an update frame may carry: update, velocities, class split, relative.
+_UPDATE_FLAGS = F_UPDATE | F_VELOCITY | 4 | F_RELATIVE
+_RECORD = struct.Struct("<Hf7f")
+_VELOCITY_RECORD = struct.Struct("<Hf7f6e")
+
+
+def _update_of_rows(
+    number: int,
+    base_us: int,
+    streams: list[int],
+    off: list[int],
+    rows: list[list[int]],
+    volume: Volume,
+) -> PoseUpdate:
+    """The ``PoseUpdate`` that ``PoseUpdate.from_arrays`` makes of these decoded rows:
+    the same float64 arithmetic (``dequantise_row``, ``capture - base``), each value
+    rounded to float32 (float16 for velocities) once, by ``struct``, as numpy does."""
+    base = base_us / 1e6
+    lo, step = volume.lo, volume.step
+    parts = []
+    if len(rows[0]) == 13:
+        pack = _VELOCITY_RECORD.pack
+        for s, o, r in zip(streams, off, rows, strict=True):
+            parts.append(
+                pack(s, (base - o / 1000.0) - base, *dequantise_row(r, lo, step), *velocity_row(r))
+            )
+        entries = np.frombuffer(b"".join(parts), UPDATE_VELOCITY_DTYPE)
+    else:
+        pack = _RECORD.pack
+        for s, o, r in zip(streams, off, rows, strict=True):
+            parts.append(pack(s, (base - o / 1000.0) - base, *dequantise_row(r, lo, step)))
+        entries = np.frombuffer(b"".join(parts), UPDATE_DTYPE)
+    return PoseUpdate._trusted(number, base, entries)
 
 
 class SnapshotDecoder:

@@ -8,24 +8,36 @@ and the numpy path then does the work or raises the error. Same bytes, same valu
 from __future__ import annotations
 
 import math
+import struct
+import zlib
 from collections.abc import Mapping
 from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.bits import _best_k_small
+from protocol.bits import MAX_EG_BITS, _best_k_small
 from protocol.codec_frame import (
     CODEC_MAGIC,
     CODEC_VERSION,
     F_UPDATE,
+    F_VELOCITY,
     Encoded,
     PoseFrame,
+    _min_entry_bits,
     _read_header,
+    _read_uvarint,
     _svarint,
     _uvarint,
 )
-from protocol.codec_quant import ROTATION_BITS, M, Volume, codes_problem_rows
+from protocol.codec_quant import (
+    _ANG_CODE_MAX,
+    _LIN_CODE_MAX,
+    ROTATION_BITS,
+    M,
+    Volume,
+    codes_problem_rows,
+)
 from protocol.codec_small import (
     SMALL_FRAME,
     Fallback,
@@ -37,8 +49,15 @@ from protocol.codec_small import (
     unzz,
     zz,
 )
+from protocol.errors import RemoteProtocolError
 
-__all__ = ["decode_small", "encode_small"]
+__all__ = [
+    "UpdateGeometry",
+    "decode_small",
+    "decode_update_rows",
+    "encode_small",
+    "read_varint",
+]
 
 I64 = NDArray[np.int64]
 _F_SPLIT = 4
@@ -360,3 +379,275 @@ def decode_small(
         np.array([i >= h.n_key for i in order], bool),
         volume,
     )
+
+
+# --------------------------------------------------------------------------- updates
+#
+# The relay decodes one small update per client and tick: the path below reads
+# one straight from its bytes into code rows (Python ints), with the baselines as
+# rows of ints, and builds no frame, no numpy array and no list per column. It
+# returns None for anything it would not accept, exactly like ``decode_small``:
+# the caller then takes the reference path, which accepts the frame or raises
+# its error. Checks that cannot fail for a baseline are left out: the decoder
+# stores only rows this path or the reference path validated.
+#
+# The bitstream is held twice: as a string of "0"/"1" (``str.find`` finds the
+# end of an Exp-Golomb prefix in C) and as one int (a suffix is a shift and a
+# mask). Each column is read by one loop over its entries, inline.
+
+#: How far a prefix may run, by order k: at most MAX_EG_BITS - k zeros and a one.
+_REACH = [MAX_EG_BITS - k + 1 for k in range(16)]
+_MASK = [(1 << w) - 1 for w in range(MAX_EG_BITS + 16)]
+#: By order k and prefix length L: the suffix's (width, leading one, mask). The value
+#: is the suffix with the leading one set (L > 0), or the suffix alone (L = 0).
+_SUFFIX = [
+    [(L - 1 + k, 1 << (L - 1 + k), _MASK[L - 1 + k]) if L else (k, 0, _MASK[k]) for L in range(r)]
+    for k, r in enumerate(_REACH)
+]
+_CHECK_ROW = {7: struct.Struct("<7i"), 13: struct.Struct("<13i")}
+UpdateRows = tuple[list[int], list[int], Rows]
+
+
+class UpdateGeometry:
+    """What the update path needs of a volume, computed once per decoder."""
+
+    __slots__ = ("delta_bits", "key_bits", "top", "volume", "widths")
+
+    def __init__(self, volume: Volume) -> None:
+        self.volume = volume
+        self.widths = volume.bits
+        self.top = tuple((1 << b) - 1 for b in volume.bits)
+        self.key_bits = {v: _min_entry_bits(True, v, volume)[0] for v in (False, True)}
+        self.delta_bits = {v: _min_entry_bits(True, v, volume)[1] for v in (False, True)}
+
+
+class _Bits:
+    """A bitstream as a string (prefix search) and as an int (suffixes), and a cursor."""
+
+    __slots__ = ("pos", "size", "text", "x")
+
+    def __init__(self, body: bytes) -> None:
+        self.x = int.from_bytes(body, "big")
+        self.size = 8 * len(body)
+        self.text = format(self.x, f"0{self.size}b") if body else ""
+        self.pos = 0
+
+    def eg(self, n: int, k: int) -> list[int]:
+        """``n`` Exp-Golomb codes of order k: every prefix, then every suffix."""
+        find, x, size, pos = self.text.find, self.x, self.size, self.pos
+        reach, suffix = _REACH[k], _SUFFIX[k]
+        parts = []
+        for _ in range(n):
+            j = find("1", pos, pos + reach)
+            if j < 0:
+                raise Fallback
+            parts.append(suffix[j - pos])
+            pos = j + 1
+        out = []
+        for width, lead, mask in parts:
+            pos += width
+            # Past the end, the shift is negative: ValueError (the caller's Fallback).
+            out.append(((x >> (size - pos)) & mask) | lead)
+        self.pos = pos
+        return out
+
+    def add_columns(self, jobs: list[tuple[Rows, int, int]]) -> None:
+        """For each (rows, c, k), in order: add one signed (zigzag) Exp-Golomb code of
+        order k to column c of each row (a column: every prefix, then every suffix)."""
+        find, x, size, pos = self.text.find, self.x, self.size, self.pos
+        for rows, c, k in jobs:
+            reach, suffix = _REACH[k], _SUFFIX[k]
+            parts = []
+            for _ in rows:
+                j = find("1", pos, pos + reach)
+                if j < 0:
+                    raise Fallback
+                parts.append(suffix[j - pos])
+                pos = j + 1
+            for row, (width, lead, mask) in zip(rows, parts, strict=True):
+                pos += width
+                z = ((x >> (size - pos)) & mask) | lead  # past the end: ValueError
+                row[c] += (z >> 1) ^ -(z & 1)
+        self.pos = pos
+
+    def fixed(self, n: int, width: int) -> list[int]:
+        end = self.pos + n * width
+        if end > self.size:
+            raise Fallback
+        self.pos = end
+        x, size, mask = self.x, self.size, _MASK[width]
+        return [(x >> (size - p)) & mask for p in range(end - (n - 1) * width, end + 1, width)]
+
+    def rest_is_padding(self) -> bool:
+        rest = self.size - self.pos
+        return rest < 8 and not self.x & _MASK[rest]
+
+
+def _update_ids(r: _Bits, n: int, k: int) -> tuple[list[int], list[int]]:
+    """Streams and ms offsets of an update section (no user column: every user is 0)."""
+    sg = r.eg(n, 0)
+    z = r.eg(1, k)[0]
+    same = r.eg(n - 1, 0)
+    s = sg[0]
+    o = (z >> 1) ^ -(z & 1)
+    if s > _ID_MAX or abs(o) >= _TIME_MS_LIMIT:
+        raise Fallback
+    streams, off = [s], [o]
+    for d, z in zip(sg[1:], same, strict=True):
+        step = (z >> 1) ^ -(z & 1)
+        if d > _ID_MAX or abs(step) >= _TIME_MS_LIMIT:
+            raise Fallback
+        s += d + 1
+        o += step
+        if s > _ID_MAX or abs(o) >= _TIME_MS_LIMIT:
+            raise Fallback
+        streams.append(s)
+        off.append(o)
+    return streams, off
+
+
+def _update_keys(r: _Bits, n: int, width: int, nib: list[int], g: UpdateGeometry) -> Rows:
+    """The code rows of an update's key section (after its ids and times)."""
+    cols = [r.fixed(n, 2)]
+    for _ in range(3):
+        cols.append([v - M for v in r.fixed(n, ROTATION_BITS)])
+    for b in g.widths:
+        cols.append(r.fixed(n, b))
+    rows = [list(row) for row in zip(*cols, strict=True)]
+    if width == 13:
+        for row in rows:
+            row += (0, 0, 0, 0, 0, 0)
+        r.add_columns([(rows, c, nib[1 if c < 10 else 2]) for c in range(7, 13)])
+    return rows
+
+
+def _update_deltas(
+    r: _Bits, streams: list[int], width: int, nib: list[int], base: Rows, split: bool
+) -> Rows:
+    """The code rows of an update's delta section (after its ids and times)."""
+    out = []
+    for b, d in zip(base, r.eg(len(streams), 0), strict=True):
+        idx = (b[0] + d) & 3
+        # A baseline is a valid row: the same idx predicts its own components.
+        row = b[:] if idx == b[0] else [idx, *predict_row(b, idx), *b[4:]]
+        out.append(row)
+    # Class 1: every stream but stream 0, when the frame splits classes.
+    if not split:
+        classes = [out, []]
+    elif 0 in streams:
+        classes = [[out[streams.index(0)]], [row for row, s in zip(out, streams, strict=True) if s]]
+    else:
+        classes = [[], out]
+    jobs = []
+    for at, lo in enumerate(range(1, width, 3)):
+        for c in range(lo, lo + 3):
+            for want in (0, 1):
+                if classes[want]:
+                    jobs.append((classes[want], c, nib[1 + 2 * at + want]))
+    r.add_columns(jobs)
+    return out
+
+
+def _rows_valid(rows: Rows, top: tuple[int, ...]) -> bool:
+    """``codes_problem_rows(rows) is None`` (every idx is 0..3 here by construction)."""
+    lim = 2 * M * M
+    tx, ty, tz = top
+    for r in rows:
+        a, b, c = r[1], r[2], r[3]
+        if not (-M <= a <= M and -M <= b <= M and -M <= c <= M and a * a + b * b + c * c <= lim):
+            return False
+        if not (0 <= r[4] <= tx and 0 <= r[5] <= ty and 0 <= r[6] <= tz):
+            return False
+        if len(r) == 13 and not (
+            max(abs(r[7]), abs(r[8]), abs(r[9])) <= _LIN_CODE_MAX
+            and max(abs(r[10]), abs(r[11]), abs(r[12])) <= _ANG_CODE_MAX
+        ):
+            return False
+    return True
+
+
+def read_varint(data: bytes, pos: int) -> tuple[int, int]:
+    """``codec_frame._read_uvarint``, one-byte values without a loop (the usual case);
+    raises ``RemoteProtocolError`` (or IndexError) likewise."""
+    byte = data[pos]
+    if byte < 0x80:
+        return byte, pos + 1
+    return _read_uvarint(data, pos)
+
+
+def _update_header(data: bytes, pos: int, velocity: bool) -> tuple[int, int, int, list[int], int]:
+    """(n_key, n_delta, check, nibbles, offset of the bitstream) after the base time."""
+    nk, pos = read_varint(data, pos)
+    nd, pos = read_varint(data, pos)
+    size = len(data)
+    check = -1
+    if nd:
+        if pos + 2 > size:
+            raise Fallback
+        check = data[pos] | data[pos + 1] << 8
+        pos += 2
+    n_nib = (1 + (2 if velocity else 0) if nk else 0) + (5 + (4 if velocity else 0) if nd else 0)
+    end = pos + (n_nib + 1) // 2
+    if end > size:
+        raise Fallback
+    nib: list[int] = []
+    for byte in data[pos:end]:
+        nib += (byte >> 4, byte & 0x0F)
+    if len(nib) > n_nib and nib.pop():
+        raise Fallback
+    return nk, nd, check, nib, end
+
+
+def decode_update_rows(
+    data: bytes,
+    pos: int,
+    flags: int,
+    geometry: UpdateGeometry,
+    baselines: Mapping[int, list[int]],
+) -> UpdateRows | None:
+    """Streams (ascending), ms offsets and code rows of a small valid update frame
+    whose header up to the base time is read (``pos``: what follows it; ``flags``
+    checked by the caller); None for anything else (take the reference path).
+
+    ``baselines``: stream -> code row (Python ints) that the caller validated.
+    """
+    velocity = bool(flags & F_VELOCITY)
+    width = 13 if velocity else 7
+    try:
+        nk, nd, check, nib, pos = _update_header(data, pos, velocity)
+        n = nk + nd
+        need = nk * geometry.key_bits[velocity] + nd * geometry.delta_bits[velocity]
+        if not 0 < n <= SMALL_FRAME or need > 8 * (len(data) - pos):
+            return None
+        r = _Bits(data[pos:])
+        streams: list[int] = []
+        off: list[int] = []
+        rows: Rows = []
+        if nk:
+            streams, off = _update_ids(r, nk, nib[0])
+            rows = _update_keys(r, nk, width, nib, geometry)
+            nib = nib[1 + (2 if velocity else 0) :]
+        if nd:
+            s, o = _update_ids(r, nd, nib[0])
+            base = [baselines[x] for x in s]
+            if any(len(b) != width for b in base):
+                return None
+            pack = _CHECK_ROW[width].pack
+            if zlib.crc32(b"".join([pack(*b) for b in base])) & 0xFFFF != check:
+                return None
+            out = _update_deltas(r, s, width, nib, base, bool(flags & _F_SPLIT))
+            streams, off, rows = streams + s, off + o, rows + out
+        if not r.rest_is_padding():
+            return None
+    except (Fallback, KeyError, IndexError, ValueError, RemoteProtocolError, struct.error):
+        return None
+    if not _rows_valid(rows, geometry.top):
+        return None
+    if nk and nd:
+        order = sorted(range(n), key=streams.__getitem__)
+        streams = [streams[i] for i in order]
+        off = [off[i] for i in order]
+        rows = [rows[i] for i in order]
+    if len(set(streams)) != n:
+        return None
+    return streams, off, rows

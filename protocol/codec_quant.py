@@ -31,11 +31,13 @@ __all__ = [
     "Volume",
     "codes_problem",
     "dequantise",
+    "dequantise_row",
     "float_array",
     "local_error",
     "predict_rotation",
     "quantise",
     "remote_error",
+    "velocity_row",
 ]
 
 I64 = NDArray[np.int64]
@@ -99,19 +101,32 @@ class Volume:
     @property
     def bits(self) -> tuple[int, int, int]:
         """Bits per axis of a key position."""
-        b = [
-            max(1, math.ceil(math.log2((h - lo) / POSITION_STEP_MAX + 1.0)))
-            for lo, h in zip(self.lo, self.hi, strict=True)
-        ]
-        return (b[0], b[1], b[2])
+        return _geometry(self.lo, self.hi)[0]
 
     @property
     def step(self) -> tuple[float, float, float]:
         """Quantisation step per axis, metres (<= POSITION_STEP_MAX)."""
-        s = [
-            (h - lo) / ((1 << b) - 1) for lo, h, b in zip(self.lo, self.hi, self.bits, strict=True)
+        return _geometry(self.lo, self.hi)[1]
+
+
+_Geometry = tuple[tuple[int, int, int], tuple[float, float, float]]
+#: (bits, step) by (lo, hi): every codec call asks for them, a few logs each time.
+_GEOMETRY: dict[tuple[tuple[float, ...], tuple[float, ...]], _Geometry] = {}
+
+
+def _geometry(lo: tuple[float, ...], hi: tuple[float, ...]) -> _Geometry:
+    got = _GEOMETRY.get((lo, hi))
+    if got is None:
+        b = [
+            max(1, math.ceil(math.log2((h - low) / POSITION_STEP_MAX + 1.0)))
+            for low, h in zip(lo, hi, strict=True)
         ]
-        return (s[0], s[1], s[2])
+        s = [(h - low) / ((1 << n) - 1) for low, h, n in zip(lo, hi, b, strict=True)]
+        if len(_GEOMETRY) < 256:  # volumes come from configuration: few of them
+            _GEOMETRY[(lo, hi)] = got = ((b[0], b[1], b[2]), (s[0], s[1], s[2]))
+        else:
+            return (b[0], b[1], b[2]), (s[0], s[1], s[2])
+    return got
 
 
 #: A 16 m x 6 m x 16 m room (x, z in [-8, 8], y in [-2, 4]): 15 + 14 + 15 bits.
@@ -321,23 +336,36 @@ def _quantise_small(
     return rows
 
 
+def dequantise_row(
+    r: list[int], lo: tuple[float, float, float], step: tuple[float, float, float]
+) -> list[float]:
+    """The pose (7 Python floats, before the float32 cast) of one valid code row:
+    :func:`dequantise`'s arithmetic, in the same order (numpy's einsum of a
+    contiguous (n, 3) array sums (x x + z z) + y y)."""
+    x, y, z = r[1] / _ROT_SCALE, r[2] / _ROT_SCALE, r[3] / _ROT_SCALE
+    q = [0.0, 0.0, 0.0, 0.0]
+    q[r[0]] = math.sqrt(max(0.0, 1.0 - ((x * x + z * z) + y * y)))
+    a, b, c = _OTHERS_T[r[0]]
+    q[a], q[b], q[c] = x, y, z
+    return [lo[0] + r[4] * step[0], lo[1] + r[5] * step[1], lo[2] + r[6] * step[2], *q]
+
+
+def velocity_row(r: list[int]) -> list[float]:
+    """The velocity (6 Python floats) of one valid code row of 13."""
+    return [v * LIN_STEP for v in r[7:10]] + [v * ANG_STEP for v in r[10:13]]
+
+
 def _dequantise_small(
     codes: I64, volume: Volume
 ) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
-    """:func:`dequantise` of a few rows with Python floats (numpy's einsum of a
-    contiguous (n, 3) array sums (x x + z z) + y y: the same order here)."""
+    """:func:`dequantise` of a few rows with Python floats (:func:`dequantise_row`)."""
     lo, step = volume.lo, volume.step
     poses = []
     vels = []
     for r in codes.tolist():
-        x, y, z = r[1] / _ROT_SCALE, r[2] / _ROT_SCALE, r[3] / _ROT_SCALE
-        q = [0.0, 0.0, 0.0, 0.0]
-        q[r[0]] = math.sqrt(max(0.0, 1.0 - ((x * x + z * z) + y * y)))
-        for o, v in zip(_OTHERS_T[r[0]], (x, y, z), strict=True):
-            q[o] = v
-        poses.append([lo[0] + r[4] * step[0], lo[1] + r[5] * step[1], lo[2] + r[6] * step[2], *q])
+        poses.append(dequantise_row(r, lo, step))
         if len(r) == 13:
-            vels.append([v * LIN_STEP for v in r[7:10]] + [v * ANG_STEP for v in r[10:13]])
+            vels.append(velocity_row(r))
     out = np.array(poses, np.float64).astype(np.float32)
     if codes.shape[1] == 7:
         return out, None
