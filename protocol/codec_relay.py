@@ -52,6 +52,7 @@ import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from itertools import pairwise
+from operator import itemgetter
 
 import numpy as np
 from numpy.typing import NDArray
@@ -159,10 +160,67 @@ class _Bits:
             self.n += width
 
 
+class _Spliced:
+    """One section's blocks joined with their user gaps, with the joins of every prefix
+    and suffix, so that the section without one user's block is a few big-int shifts
+    (the user after it gets a new gap), not a join of every block."""
+
+    __slots__ = ("blocks", "check", "index", "n", "prefix", "suffix")
+
+    def __init__(self, blocks: list[_Block]) -> None:
+        self.blocks = blocks
+        self.index = {b.user: j for j, b in enumerate(blocks)}
+        #: prefix[j]: (bits, bit count) of blocks[:j]; suffix[j]: of blocks[j:].
+        self.prefix = [(0, 0)]
+        acc = nbits = n = check = prev = 0
+        for b in blocks:
+            code, width = _eg_bits(b.user - prev, 0)
+            acc = (((acc << width) | code) << b.nbits) | b.bits
+            nbits += width + b.nbits
+            self.prefix.append((acc, nbits))
+            n += b.n
+            check ^= b.check
+            prev = b.user
+        self.n, self.check = n, check
+        self.suffix = [(0, 0)] * (len(blocks) + 1)
+        acc = nbits = 0
+        for j in range(len(blocks) - 1, -1, -1):
+            b = blocks[j]
+            code, width = _eg_bits(b.user - (blocks[j - 1].user if j else 0), 0)
+            acc |= ((code << b.nbits) | b.bits) << nbits
+            nbits += width + b.nbits
+            self.suffix[j] = (acc, nbits)
+
+    def without(self, user: int | None) -> tuple[int, int, int, int]:
+        """(bits, bit count, entries, check) of the section without ``user``'s block."""
+        j = self.index.get(user) if user is not None else None
+        if j is None:
+            acc, nbits = self.prefix[-1]
+            return acc, nbits, self.n, self.check
+        blocks = self.blocks
+        acc, nbits = self.prefix[j]
+        if j + 1 < len(blocks):
+            b = blocks[j + 1]
+            code, width = _eg_bits(b.user - (blocks[j - 1].user if j else 0), 0)
+            rest, rest_bits = self.suffix[j + 2]
+            acc = (((((acc << width) | code) << b.nbits) | b.bits) << rest_bits) | rest
+            nbits += width + b.nbits + rest_bits
+        return acc, nbits, self.n - blocks[j].n, self.check ^ blocks[j].check
+
+
 class GroupSnapshot:
     """A group's snapshot, encoded once; :meth:`frame` splices one subscriber's bytes."""
 
-    __slots__ = ("_delta", "_head", "_key", "_nibbles", "base_time", "tick")
+    __slots__ = (
+        "_delta",
+        "_head",
+        "_key",
+        "_nibbles",
+        "_orders",
+        "_spliced",
+        "base_time",
+        "tick",
+    )
 
     def __init__(
         self,
@@ -180,6 +238,11 @@ class GroupSnapshot:
         self._key = key
         self._delta = delta
         self._nibbles = nibbles
+        #: The sections prepared for splicing, made at the second frame asked for (a
+        #: group of one subscriber never needs them).
+        self._spliced: tuple[_Spliced, _Spliced] | None = None
+        #: The nibble bytes of the orders, by (any key entry, any delta entry).
+        self._orders: dict[tuple[bool, bool], bytes] = {}
 
     @property
     def users(self) -> list[int]:
@@ -189,6 +252,16 @@ class GroupSnapshot:
     def frame(self, exclude: int | None = None) -> tuple[bytes, int]:
         """The bytes for a subscriber that does not receive ``exclude``'s streams,
         and how many entries they hold (0: nothing to send, and ``b""``)."""
+        spliced = self._spliced
+        if spliced is None:
+            self._spliced = (_Spliced(self._key), _Spliced(self._delta))
+            return self._frame_joined(exclude)
+        kacc, kbits, nk, _ = spliced[0].without(exclude)
+        dacc, dbits, nd, check = spliced[1].without(exclude)
+        return self._bytes(nk, nd, check, (kacc << dbits) | dacc, kbits + dbits)
+
+    def _frame_joined(self, exclude: int | None) -> tuple[bytes, int]:
+        """:meth:`frame` by joining every block (the first frame of a group)."""
         acc = nbits = check = 0
         counts = [0, 0]
         for section, blocks in enumerate((self._key, self._delta)):
@@ -202,19 +275,25 @@ class GroupSnapshot:
                 counts[section] += b.n
                 check ^= b.check
                 prev = b.user
-        nk, nd = counts
+        return self._bytes(counts[0], counts[1], check, acc, nbits)
+
+    def _bytes(self, nk: int, nd: int, check: int, acc: int, nbits: int) -> tuple[bytes, int]:
         if not nk + nd:
             return b"", 0
-        nib = (self._nibbles[0] if nk else []) + (self._nibbles[1] if nd else [])
-        if len(nib) % 2:
-            nib.append(0)
+        orders = self._orders.get((nk > 0, nd > 0))
+        if orders is None:
+            nib = (self._nibbles[0] if nk else []) + (self._nibbles[1] if nd else [])
+            if len(nib) % 2:
+                nib.append(0)
+            orders = bytes((a << 4) | c for a, c in zip(nib[::2], nib[1::2], strict=True))
+            self._orders[(nk > 0, nd > 0)] = orders
         pad = -nbits % 8
         return (
             self._head
             + _uvarint(nk)
             + _uvarint(nd)
             + (check.to_bytes(4, "little") if nd else b"")
-            + bytes((a << 4) | c for a, c in zip(nib[::2], nib[1::2], strict=True))
+            + orders
             + (acc << pad).to_bytes((nbits + pad) // 8, "big"),
             nk + nd,
         )
@@ -320,6 +399,61 @@ def _key_blocks(
     return blocks, nib
 
 
+def _delta_values(
+    entries: list[RelayEntry],
+    groups: list[list[int]],
+    fields: list[tuple[int, int]],
+    width: int,
+) -> tuple[list[list[int]], list[int], list[list[list[int]]]]:
+    """Per user: the values its block codes, in order (per entry: ug = 0 but for the
+    user's first, sg, time code, idx step, then the zigzagged differences, 3 per column
+    group); per user its share of the check; and per (column group, class) a histogram
+    of the differences' bit lengths, from which the Exp-Golomb order of each is chosen
+    (see ``bits._best_k_small``)."""
+    hists = [[[0] * (MAX_EG_BITS + 2) for _ in range(2)] for _ in range((width - 1) // 3)]
+    (rot0, rot1), (pos0, pos1) = hists[0], hists[1]
+    pack = _CHECKS[width].pack
+    values: list[list[int]] = []
+    checks: list[int] = []
+    for g in groups:
+        cls, hr, hp = 0, rot0, pos0
+        row: list[int] = []
+        check = 0
+        user = entries[g[0]][0]
+        for i in g:
+            e = entries[i]
+            r, b = e[3], e[4]
+            assert b is not None
+            if r[0] == b[0]:
+                p0, p1, p2 = b[1], b[2], b[3]
+            else:
+                p0, p1, p2 = predict_row(b, r[0])
+            # Zigzag as (v << 1) ^ (v >> 63): code differences are far below 2**62.
+            v0, v1, v2 = r[1] - p0, r[2] - p1, r[3] - p2
+            v3, v4, v5 = r[4] - b[4], r[5] - b[5], r[6] - b[6]
+            z0, z1, z2 = (v0 << 1) ^ (v0 >> 63), (v1 << 1) ^ (v1 >> 63), (v2 << 1) ^ (v2 >> 63)
+            z3, z4, z5 = (v3 << 1) ^ (v3 >> 63), (v4 << 1) ^ (v4 >> 63), (v5 << 1) ^ (v5 >> 63)
+            hr[z0.bit_length()] += 1
+            hr[z1.bit_length()] += 1
+            hr[z2.bit_length()] += 1
+            hp[z3.bit_length()] += 1
+            hp[z4.bit_length()] += 1
+            hp[z5.bit_length()] += 1
+            if cls:
+                row.append(0)  # ug: the same user
+            row += (*fields[i], (r[0] - b[0]) & 3, z0, z1, z2, z3, z4, z5)
+            for c in range(7, width):
+                v = r[c] - b[c]
+                z = (v << 1) ^ (v >> 63)
+                row.append(z)
+                hists[(c - 1) // 3][cls][z.bit_length()] += 1
+            check ^= zlib.crc32(pack(user, e[1], *b))
+            cls, hr, hp = 1, rot1, pos1
+        values.append(row)
+        checks.append(check)
+    return values, checks, hists
+
+
 def _delta_blocks(
     entries: list[RelayEntry], base: float, velocity: bool
 ) -> tuple[list[_Block], list[int]]:
@@ -329,68 +463,29 @@ def _delta_blocks(
     groups = _by_user(entries)
     kt, fields = _time_fields(entries, off, groups)
     width = 13 if velocity else 7
-    # Per entry: idx step, then the zigzagged differences, 3 per column group; and
-    # per (column group, class) a histogram of the differences' bit lengths, from
-    # which the Exp-Golomb order of each is chosen (see ``bits._best_k_small``).
-    ncol = (width - 1) // 3
-    hists = [[[0] * (MAX_EG_BITS + 2) for _ in range(2)] for _ in range(ncol)]
-    diffs: list[list[int]] = []
-    for g in groups:
-        cls = 0
-        for i in g:
-            e = entries[i]
-            r, b = e[3], e[4]
-            assert b is not None
-            if r[0] == b[0]:
-                p0, p1, p2 = b[1], b[2], b[3]
-            else:
-                p0, p1, p2 = predict_row(b, r[0])
-            row = [(r[0] - b[0]) & 3]
-            hist = hists[0][cls]
-            for v in (r[1] - p0, r[2] - p1, r[3] - p2):
-                z = v << 1 if v >= 0 else -(v << 1) - 1
-                row.append(z)
-                hist[z.bit_length()] += 1
-            for c in range(4, width):
-                v = r[c] - b[c]
-                z = v << 1 if v >= 0 else -(v << 1) - 1
-                row.append(z)
-                hists[(c - 1) // 3][cls][z.bit_length()] += 1
-            diffs.append(row)
-            cls = 1
+    values, checks, hists = _delta_values(entries, groups, fields, width)
     ks = [[k_of_histogram(h) for h in pair] for pair in hists]
     nib = [kt] + [k for pair in ks for k in pair]
-    # Per class: the order of each field after the idx step.
-    korders = [[ks[f // 3][c] for f in range(width - 1)] for c in (0, 1)]
-    pack = _CHECKS[width].pack
+    # The orders of a user's first entry's values (sg, time, idx step, differences),
+    # and of its other entries' (ug first).
+    first = (0, kt, 0, *(ks[f // 3][0] for f in range(width - 1)))
+    other = (0, 0, 0, 0, *(ks[f // 3][1] for f in range(width - 1)))
+    orders: dict[int, tuple[int, ...]] = {}
     tables = _EG_TABLES
     blocks = []
-    for g in groups:
-        acc = nbits = check = 0
-        user = entries[g[0]][0]
-        order = korders[0]
-        tk = kt
-        first = True
-        for i in g:
-            sg, tz = fields[i]
-            d = diffs[i]
-            if not first:  # not the user's first entry: ug = 0 (1 bit) first
-                acc = (acc << 1) | 1
-                nbits += 1
-            for v, k in zip((sg, tz, *d), (0, tk, 0, *order), strict=True):
-                if v < _TABLE_SIZE:
-                    c, w = tables[k][v]
-                else:
-                    c, w = _eg_bits(v, k)
-                acc = (acc << w) | c
-                nbits += w
-            b = entries[i][4]
-            assert b is not None
-            check ^= zlib.crc32(pack(user, entries[i][1], *b))
-            order = korders[1]
-            tk = 0
-            first = False
-        blocks.append(_Block(user, len(g), acc, nbits, check))
+    for g, vals, check in zip(groups, values, checks, strict=True):
+        order = orders.get(len(g))
+        if order is None:
+            order = orders[len(g)] = first + other * (len(g) - 1)
+        acc = nbits = 0
+        for v, k in zip(vals, order, strict=True):
+            if v < _TABLE_SIZE:
+                c, w = tables[k][v]
+            else:
+                c, w = _eg_bits(v, k)
+            acc = (acc << w) | c
+            nbits += w
+        blocks.append(_Block(entries[g[0]][0], len(g), acc, nbits, check))
     return blocks, nib
 
 
@@ -417,20 +512,21 @@ def encode_group(
         raise local_error(ErrorCode.BAD_MESSAGE, "base time out of range")
     base = base_us / 1e6
     width = 13 if velocity else 7
-    ordered = sorted(entries, key=lambda e: (e[0], e[1]))
-    seen = set()
+    ordered = sorted(entries, key=itemgetter(0, 1))
+    previous = None
     for e in ordered:
-        if not (0 <= e[0] <= _ID_MAX and 0 <= e[1] <= _ID_MAX):
+        name = e[0], e[1]
+        if not (0 <= name[0] <= _ID_MAX and 0 <= name[1] <= _ID_MAX):
             raise local_error(ErrorCode.BAD_MESSAGE, "user or stream id out of range")
-        if (e[0], e[1]) in seen:
+        if name == previous:  # sorted: a stream's twin is next to it
             raise local_error(ErrorCode.BAD_MESSAGE, f"stream {e[1]} of user {e[0]} twice")
-        seen.add((e[0], e[1]))
-        rows = [e[3]] if e[4] is None else [e[3], e[4]]
-        if any(len(r) != width for r in rows):
+        previous = name
+        if len(e[3]) != width or (e[4] is not None and len(e[4]) != width):
             raise local_error(ErrorCode.BAD_MESSAGE, f"codes must be rows of {width}")
-        problem = None if trusted else codes_problem_rows(rows, volume)
-        if problem:
-            raise local_error(ErrorCode.BAD_POSE, problem)
+        if not trusted:
+            problem = codes_problem_rows([e[3]] if e[4] is None else [e[3], e[4]], volume)
+            if problem:
+                raise local_error(ErrorCode.BAD_POSE, problem)
     key, knib = _key_blocks([e for e in ordered if e[4] is None], base, volume, velocity)
     delta, dnib = _delta_blocks([e for e in ordered if e[4] is not None], base, velocity)
     return GroupSnapshot(tick, base_us, velocity, key, delta, (knib, dnib))

@@ -107,6 +107,18 @@ class Writer:
         return (self.acc << pad).to_bytes((self.total + pad) // 8, "big")
 
 
+def _sources(i0: int, idx: int) -> tuple[int, int, int, int]:
+    """Where, in (a, b, c, dropped) of a row of largest index i0, the full quaternion's
+    components ``_OTHERS[idx]`` and its component ``idx`` (the sign) are."""
+    at = {o: j for j, o in enumerate(_OTHERS[i0])}
+    at[i0] = 3
+    o0, o1, o2 = _OTHERS[idx]
+    return at[o0], at[o1], at[o2], at[idx]
+
+
+_SOURCES = [[_sources(i0, idx) for idx in range(4)] for i0 in range(4)]
+
+
 def predict_row(base: list[int], idx: int) -> list[int]:
     """``codec_quant.predict_rotation`` of one baseline row (the same integer steps)."""
     i0, a, b, c = base[0], base[1], base[2], base[3]
@@ -114,13 +126,11 @@ def predict_row(base: list[int], idx: int) -> list[int]:
         # The dropped component (>= 0) stays dropped: sign +1, nothing to clip.
         return [a, b, c]
     rest = max(0, 2 * M * M - (a * a + b * b + c * c))
-    big = (math.floor(math.sqrt(4.0 * rest)) + 1) // 2
-    full = [0, 0, 0, 0]
-    full[i0] = big
-    for o, v in zip(_OTHERS[i0], (a, b, c), strict=True):
-        full[o] = v
-    sign = -1 if full[idx] < 0 else 1
-    return [min(M, max(-M, full[o] * sign)) for o in _OTHERS[idx]]
+    full = (a, b, c, (math.floor(math.sqrt(4.0 * rest)) + 1) // 2)
+    j0, j1, j2, js = _SOURCES[i0][idx]
+    if full[js] < 0:
+        return [min(M, max(-M, -full[j0])), min(M, max(-M, -full[j1])), min(M, max(-M, -full[j2]))]
+    return [min(M, max(-M, full[j0])), min(M, max(-M, full[j1])), min(M, max(-M, full[j2]))]
 
 
 def crc_rows(rows: list[list[int]], size: int) -> int:
