@@ -282,7 +282,9 @@ class _Session:
 
     # Shared checks -------------------------------------------------------
 
-    def _check_update(self, update: PoseUpdate) -> None:
+    def _check_update(self, update: PoseUpdate, decoded: bool = False) -> None:
+        """Stream ownership and the records; ``decoded``: a compact update, whose poses and
+        velocities the codec made from valid codes (finite, unit: not checked again)."""
         entries = update.entries
         owned = self._owned
         if len(entries) > len(owned):
@@ -298,11 +300,14 @@ class _Session:
             )
         if len(seen) != len(ids):
             raise ProtocolViolation(ErrorCode.DUPLICATE_STREAM, "stream twice in one update")
-        self._check_records("update", entries, self.sends_velocities)
+        self._check_records("update", entries, self.sends_velocities, decoded)
 
     @staticmethod
-    def _check_records(type_: str, entries: NDArray[np.void], agreed: bool) -> None:
-        """A pose frame's records: the variant agreed at join, usable poses and velocities."""
+    def _check_records(
+        type_: str, entries: NDArray[np.void], agreed: bool, decoded: bool = False
+    ) -> None:
+        """A pose frame's records: the variant agreed at join, usable poses and velocities
+        (``decoded``: dequantised from valid codec codes, hence usable; tests check it)."""
         velocity = has_velocity(entries)
         if velocity and not agreed:
             raise ProtocolViolation(
@@ -312,6 +317,8 @@ class _Session:
             raise ProtocolViolation(
                 ErrorCode.BAD_MESSAGE, f"{type_} without velocities, agreed at join"
             )
+        if decoded:
+            return
         problem = pose_problem(entries)
         if problem is not None:
             raise ProtocolViolation(ErrorCode.BAD_POSE, problem)
@@ -448,7 +455,7 @@ class ServerSession(_Session):
             self._compact_update = None
             update = self._strip_stray_objects(message)
             if update is not None:
-                self._check_update(update)
+                self._check_update(update, decoded=self._upstream is not None)
             return update
         elif isinstance(message, ObjectCreate):
             if not is_valid_stream_name(message.name, self.limits.max_stream_name_length):
