@@ -331,6 +331,11 @@ class Room:
     flight_seq: int = 0
     #: The server's tick lag histogram, which every due member's tick goes into.
     lags: LagHistogram | None = None
+    #: ``next_due()`` as last computed, and the member count it was computed for
+    #: (None: to compute again). Every change of a member's due time goes through
+    #: this class (add, set_rate, tick) and clears it; so does ``remove``.
+    _due: float | None = None
+    _due_members: int = 0
 
     def pause_recording(self, now: float) -> None:
         """Stop recording pose updates (counted, written as one drops record on resume)."""
@@ -390,9 +395,11 @@ class Room:
         member.last_version = member.delivered_version = 0
         member.key_slot = -1
         self.members[member.user] = member
+        self._due = None
 
     def remove(self, user: int) -> Member | None:
         member = self.members.pop(user, None)
+        self._due = None
         if member is not None:
             for sid in member.streams.values():
                 self._streams.pop(sid, None)
@@ -418,6 +425,7 @@ class Room:
         member.rate = rate
         member.next_due = self._grid_after(now, rate)
         member.key_slot = -1
+        self._due = None
 
     # -- ingest -------------------------------------------------------------------
 
@@ -448,7 +456,13 @@ class Room:
             row = None if codes is None else codes.get(sid)
             if row is not None and len(row) == 7:
                 row = row + [0] * 6
-            self.store(sid, publisher, t, pose, ZERO_VELOCITY if vel is None else vel, row)
+            velocity = ZERO_VELOCITY if vel is None else vel
+            if cur is None:
+                self.store(sid, publisher, t, pose, velocity, row)
+            else:  # store(), without looking the stream up again
+                self._version += 1
+                cur.capture, cur.pose, cur.version = t, pose, self._version
+                cur.velocity, cur.codes = velocity, row
         self._stale += stale
         return stale
 
@@ -488,15 +502,23 @@ class Room:
         return (math.floor(now * rate - ph + 1e-9) + 1 + ph) / rate
 
     def next_due(self) -> float | None:
-        if not self.members:
+        """The earliest due time of a member (None: no member); the relay asks at every
+        check of its schedule, so it is computed once per change, not once per ask."""
+        members = self.members
+        if not members:
             return None
-        return min(m.next_due for m in self.members.values())
+        due = self._due
+        if due is None or self._due_members != len(members):
+            due = self._due = min(m.next_due for m in members.values())
+            self._due_members = len(members)
+        return due
 
     def tick(self, now: float) -> int:
         """Send a snapshot to every due member; returns how many were offered."""
         cache: dict[tuple[int, bool], tuple[bytes, int]] = {}
         groups: dict[tuple[int, bool], GroupSnapshot | None] = {}
         offered = 0
+        self._due = None  # due members move on to their next grid point
         if self.objects:
             objects.fly(self, now)
         for member in self.members.values():
