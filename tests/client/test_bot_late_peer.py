@@ -86,11 +86,14 @@ def delays_before_and_with(rep: BotReport, late: int) -> tuple[float, float]:
 
 
 def test_honest_bots_keep_their_clean_delay(rooms: tuple[list[BotReport], BotReport]) -> None:
-    """Each honest bot's D with the late member is within 25 % of its D before it came."""
+    """Each honest bot's D with the late member stays within a quarter of the late
+    member's lateness (200 ms) of its D before it came: a room D that took the late
+    member in would rise by all of its 800 ms. (A ratio of the two D's is not a
+    sound bound: D follows the arrival jitter, which a loaded machine changes.)"""
     honest, late = rooms
     for rep in honest:
         clean, attacked = delays_before_and_with(rep, late.user)
-        assert 0.75 * clean <= attacked <= 1.25 * clean, (clean, attacked)
+        assert attacked <= clean + 250.0 * LATE_BY, (clean, attacked)
         # No honest peer was shown late alone; the late member was.
         assert set(rep.late_delay_ms) == {late.user}
 
