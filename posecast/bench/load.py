@@ -347,9 +347,13 @@ class _BenchClient:
         # next is due at the first grid point after ``now`` (missed points are
         # skipped). A snapshot's send time is the ``now`` of its tick, so each
         # snapshot's due time follows from the previous one's send time.
+        # A codec snapshot's send time is rounded to the microsecond: half a
+        # microsecond before the grid point it was due at reads as due a period
+        # earlier. Ticks never run early, so a microsecond of slack is safe.
         rate, ph, prev = self.rate, self._phase, self._prev
-        latest = (math.floor(send * rate - ph + 1e-9) + ph) / rate
-        due = latest if prev is None else (math.floor(prev * rate - ph + 1e-9) + 1 + ph) / rate
+        slack = 1e-6 * rate + 1e-9
+        latest = (math.floor(send * rate - ph + slack) + ph) / rate
+        due = latest if prev is None else (math.floor(prev * rate - ph + slack) + 1 + ph) / rate
         self._prev = send
         return latest if due > send else due
 

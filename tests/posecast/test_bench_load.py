@@ -355,3 +355,18 @@ def test_cli_refuses_bad_relay_bench_options_in_one_line() -> None:
         )
         assert run.returncode == 2, (args, run.stderr)
         assert message in run.stderr and "Traceback" not in run.stderr
+
+
+def test_a_send_time_rounded_to_the_microsecond_is_due_at_its_own_grid_point() -> None:
+    """A codec snapshot carries its send time rounded to 1 us: a tick that ran just
+    after its grid point can read as half a microsecond before it, and must not be
+    taken for one due a whole period earlier (it made compact runs' relay p99 read
+    one period, 50 ms, at low load)."""
+    client = _client(7, [21])
+    rate, phase = client.rate, client._phase
+    grid = [(k + phase) / rate for k in range(1000, 1040)]
+    for point in grid:
+        send = round(point * 1e6) / 1e6  # rounded as a relay codec snapshot's base
+        assert abs(client._due(send) - point) < 1e-6
+    # A tick that ran late by a tenth of a period is still due at its grid point.
+    assert abs(client._due(grid[-1] + 0.1 / rate + 1 / rate) - (grid[-1] + 1 / rate)) < 1e-6
