@@ -11,6 +11,8 @@ the three parts of ``server/cluster.py`` and ``server/forward.py`` together:
   owner sends back is written to its websocket;
 - the owner side (:class:`~server.forward.Members`) runs the forwarded clients
   of other nodes as connections of this node's core;
+- the members of its rooms, written to NATS four times a second, so that a
+  member can resume through any node, also after this one is lost;
 - upkeep, every third of a lease: renew the leases, give up rooms that stayed
   empty for a whole round, check that the owners this node forwards to are
   alive (a node killed with SIGKILL has no subscriber left, and NATS says so at
@@ -69,6 +71,8 @@ MOVED = (1012, "the room's node changed; reconnect")
 GONE = "posecast.cluster.gone"
 #: Seconds a member record lives unless its owner writes it again (every third).
 RECORD_TTL = 30.0
+#: How often the owner writes new, changed and gone member records (s).
+RECORD_INTERVAL = 0.25
 #: What a resume token looks like (``Parking.new_token``): a safe NATS key token.
 _TOKEN = re.compile(r"[A-Za-z0-9_-]{8,64}")
 
@@ -164,6 +168,7 @@ class ClusterNode:
             tg.create_task(self.edge.run(), name="cluster-edge")
             tg.create_task(self.directory.keep_alive(), name="cluster-leases")
             tg.create_task(self._upkeep(), name="cluster-upkeep")
+            tg.create_task(self._keep_records(), name="cluster-records")
 
     async def close(self) -> None:
         """Give up this node's leases and leave NATS (bounded)."""
@@ -363,6 +368,16 @@ class ClusterNode:
                 level = logging.DEBUG if self.directory.unreachable else logging.WARNING
                 log.log(level, "cluster: upkeep failed (%s); retrying", exc)
 
+    async def _keep_records(self) -> None:
+        """Member records to NATS within ``RECORD_INTERVAL`` of a join or a leave (a
+        node lost sooner loses that member's resume: it rejoins)."""
+        while True:
+            await asyncio.sleep(RECORD_INTERVAL)
+            try:
+                await self._sync_records()
+            except Exception as exc:  # NATS away: said by the lease keeper
+                log.debug("cluster: member records not written (%s)", exc)
+
     async def _round(self) -> None:
         began = time.perf_counter()
         await self.directory.nc.rtt(timeout=max(1, int(self.directory.lease)))
@@ -374,7 +389,6 @@ class ClusterNode:
         for room in empty & self._empty:
             await self.directory.release(room)
         self._empty = empty
-        await self._sync_records()
         for owner in sorted(set(self.edge.owners.values())):
             if not await self._alive(owner):
                 self._owner_gone(owner)
