@@ -12,8 +12,7 @@ import asyncio
 import statistics
 import tempfile
 import time
-from collections.abc import AsyncIterator
-from contextlib import AsyncExitStack, asynccontextmanager
+from contextlib import AsyncExitStack
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +22,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from client.bot import BotConfig
 from client.swarm import run_bots, swarm_report
 from posecast.cluster_local import LocalCluster, local_cluster
-from server.app import RelayServer, ServerConfig
+from server.app import RelayServer, ServerConfig, serving
 
 __all__ = ["run_demo"]
 
@@ -61,7 +60,8 @@ async def run_demo(
             cluster = await stack.enter_async_context(local_cluster(nodes, store, record_dir))
             urls = cluster.urls
         else:
-            server = await stack.enter_async_context(_one_relay(record_dir))
+            relay = RelayServer(ServerConfig(host="127.0.0.1", port=0, record_dir=record_dir))
+            server = await stack.enter_async_context(serving(relay))
             urls = [f"ws://127.0.0.1:{server.port}"]
         tg = await stack.enter_async_context(asyncio.TaskGroup())
         viewer = (
@@ -107,19 +107,6 @@ def _newest_recording(record_dir: Path | None) -> str | None:
     """The cluster's recording of the demo: the latest started, of any node's folder."""
     files = [] if record_dir is None else list(record_dir.glob("node*/*.mcap"))
     return str(max(files, key=lambda p: p.name)) if files else None  # NAME-<start time>
-
-
-@asynccontextmanager
-async def _one_relay(record_dir: Path | None) -> AsyncIterator[RelayServer]:
-    """The demo's own relay in this process, on an ephemeral port."""
-    server = RelayServer(ServerConfig(host="127.0.0.1", port=0, record_dir=record_dir))
-    async with asyncio.TaskGroup() as tg:
-        tg.create_task(server.run())
-        await asyncio.wait_for(server.ready.wait(), 10)
-        try:
-            yield server
-        finally:
-            server.stop()
 
 
 def _progress(console: Console | None) -> Progress:

@@ -42,7 +42,7 @@ import logging
 import ssl
 import threading
 import time
-from collections.abc import Callable, Coroutine, Iterator
+from collections.abc import AsyncIterator, Callable, Coroutine, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -77,7 +77,7 @@ if TYPE_CHECKING:
     from recorder import RecorderHost, RecordOptions, RoomRecorder
     from server.node import ClusterNode
 
-__all__ = ["ConnectionStatistics", "LogLimiter", "RelayServer", "ServerConfig"]
+__all__ = ["ConnectionStatistics", "LogLimiter", "RelayServer", "ServerConfig", "serving"]
 
 log = logging.getLogger("posecast.server")
 
@@ -763,3 +763,16 @@ class RelayServer:
     def metrics_text(self) -> str:
         """Prometheus text exposition of the server's counters."""
         return metrics_text(self.core, self.clock()) + self._cluster_metrics()
+
+
+@contextlib.asynccontextmanager
+async def serving(server: RelayServer, within: float = 10.0) -> AsyncIterator[RelayServer]:
+    """Run ``server`` under a TaskGroup while the block runs: it listens when the block
+    starts (``within`` s at most) and has stopped, every connection closed, after."""
+    async with asyncio.TaskGroup() as tg:
+        tg.create_task(server.run())
+        await asyncio.wait_for(server.ready.wait(), within)
+        try:
+            yield server
+        finally:
+            server.stop()

@@ -3,26 +3,17 @@
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator, Callable
-from contextlib import asynccontextmanager
+from collections.abc import Callable
+from contextlib import AbstractAsyncContextManager
 
-from server.app import RelayServer, ServerConfig
+from server.app import RelayServer, ServerConfig, serving
 
 __all__ = ["poll_until", "relayed", "running_server"]
 
 
-@asynccontextmanager
-async def running_server(config: ServerConfig | None = None) -> AsyncIterator[RelayServer]:
-    """Run a RelayServer on 127.0.0.1:0 inside a TaskGroup; stop it on exit."""
-    cfg = config or ServerConfig(host="127.0.0.1", port=0)
-    server = RelayServer(cfg)
-    async with asyncio.TaskGroup() as tg:
-        tg.create_task(server.run())
-        await asyncio.wait_for(server.ready.wait(), 10)
-        try:
-            yield server
-        finally:
-            server.stop()
+def running_server(config: ServerConfig | None = None) -> AbstractAsyncContextManager[RelayServer]:
+    """Run a RelayServer on 127.0.0.1:0 while the block runs; stop it on exit."""
+    return serving(RelayServer(config or ServerConfig(host="127.0.0.1", port=0)))
 
 
 async def poll_until(condition: Callable[[], bool], limit: float = 60.0) -> None:

@@ -18,7 +18,7 @@ from relaykit import joined_raw, settle, update_bytes
 from test_http import http_get
 from websockets.exceptions import ConnectionClosed
 
-from server.app import LogLimiter, RelayServer, ServerConfig
+from server.app import LogLimiter, RelayServer, ServerConfig, serving
 
 ServerFactory = Callable[..., Any]
 
@@ -161,22 +161,16 @@ async def test_bad_frames_are_logged_once_per_interval_with_the_count(
     clock = FakeClock()
     # No misbehaviour budget: this is about logging, not closing.
     cfg = ServerConfig(host="127.0.0.1", port=0, peer_log_interval=1.0, misbehaviour_burst=0)
-    srv = RelayServer(cfg, clock=clock)
-    async with asyncio.TaskGroup() as tg:
-        tg.create_task(srv.run())
-        await asyncio.wait_for(srv.ready.wait(), 10)
-        try:
-            ws, _, ids = await joined_raw(url_of(srv), "r")
-            for burst in range(3):
-                for seq in range(500):
-                    await ws.send(update_bytes(ids, NAN_POSE, seq, clock()))
-                total = 500 * (burst + 1)
-                await settle(lambda t=total: protocol_errors(srv) >= t)
-                clock.now += 1.0
-            await ws.close()
-            await settle(lambda: srv.closed_connections == 1)
-        finally:
-            srv.stop()
+    async with serving(RelayServer(cfg, clock=clock)) as srv:
+        ws, _, ids = await joined_raw(url_of(srv), "r")
+        for burst in range(3):
+            for seq in range(500):
+                await ws.send(update_bytes(ids, NAN_POSE, seq, clock()))
+            total = 500 * (burst + 1)
+            await settle(lambda t=total: protocol_errors(srv) >= t)
+            clock.now += 1.0
+        await ws.close()
+        await settle(lambda: srv.closed_connections == 1)
     lines = [r.getMessage() for r in _records(caplog, "bad-pose")]
     assert len(lines) == 3, lines
     assert lines[0].endswith("(bad-pose)")
