@@ -12,20 +12,18 @@ from __future__ import annotations
 
 import asyncio
 import os
-import re
 import signal
 import sys
-import urllib.request
 from collections.abc import AsyncIterator
 from contextlib import AsyncExitStack, asynccontextmanager, suppress
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from posecast.bench.common import _LISTENING
+from posecast.bench.procs import _scrape
 from server.cluster import LocalNats
 
 __all__ = ["LocalCluster", "RelayProcess", "local_cluster", "start_relay"]
-
-_LISTENING = re.compile(rb"posecast listening on ws://[^:\s]+:(\d+)")
 
 
 @dataclass
@@ -62,22 +60,8 @@ class RelayProcess:
 
     async def metrics(self) -> dict[str, float]:
         """The ``posecast_cluster_*`` figures of its /metrics ({} if it does not answer)."""
-
-        def get() -> str:
-            with urllib.request.urlopen(f"http://127.0.0.1:{self.port}/metrics", timeout=2) as r:
-                return str(r.read().decode())
-
-        try:
-            text = await asyncio.to_thread(get)
-        except OSError:
-            return {}
-        out: dict[str, float] = {}
-        for line in text.splitlines():
-            if line.startswith("posecast_cluster_"):
-                key, _, value = line.partition(" ")
-                with suppress(ValueError):
-                    out[key] = float(value)
-        return out
+        figures = await asyncio.to_thread(_scrape, self.port, 2.0) or {}
+        return {k: v for k, v in figures.items() if k.startswith("posecast_cluster_")}
 
 
 async def start_relay(
@@ -96,7 +80,7 @@ async def start_relay(
     assert proc.stdout is not None
     try:
         async with asyncio.timeout(patience):
-            while not (found := _LISTENING.search(line := await proc.stdout.readline())):
+            while not (found := _LISTENING.search((line := await proc.stdout.readline()).decode())):
                 if not line:
                     raise RuntimeError(f"relay {name} exited with {await proc.wait()}")
     except BaseException:
@@ -104,7 +88,7 @@ async def start_relay(
             proc.kill()
             await proc.wait()
         raise
-    return RelayProcess(name, f"ws://127.0.0.1:{int(found.group(1))}", proc)
+    return RelayProcess(name, f"ws://127.0.0.1:{int(found.group(2))}", proc)
 
 
 @dataclass

@@ -13,7 +13,6 @@ import asyncio
 import contextlib
 import re
 import time
-import urllib.request
 from collections.abc import AsyncIterator, Callable
 from functools import partial
 from pathlib import Path
@@ -26,6 +25,7 @@ from support import running_server
 
 from client.bot import BotConfig, run_bot
 from client.connection import ClientConnection
+from posecast.bench.procs import _scrape
 from protocol import (
     PeerJoined,
     PeerLeft,
@@ -64,20 +64,11 @@ async def nodes(nats_url: str, *names: str) -> AsyncIterator[list[RelayServer]]:
         yield servers
 
 
-def _get(url: str) -> str:
-    with urllib.request.urlopen(url, timeout=5) as r:
-        return str(r.read().decode())
-
-
 async def metrics(srv: RelayServer) -> dict[str, float]:
-    """The cluster lines of a node's /metrics (fetched off the loop the node runs on)."""
-    text = await asyncio.to_thread(_get, f"http://127.0.0.1:{srv.port}/metrics")
-    out: dict[str, float] = {}
-    for line in text.splitlines():
-        if line.startswith("posecast_cluster_"):
-            name, value = line.split()
-            out[name] = float(value)
-    return out
+    """A node's /metrics (fetched off the loop the node runs on)."""
+    figures = await asyncio.to_thread(_scrape, srv.port or 0, 5.0)
+    assert figures is not None
+    return figures
 
 
 def sees(bot: Bot, user: int) -> bool:
