@@ -230,7 +230,7 @@ class _Connection(WebSocketConnection):
             for i, event in enumerate(events):
                 if cluster is not None and not (skip_check and i == 0):
                     name = join_room(event, server.config.secret, wall)
-                    if name is not None and (cluster.busy or not cluster.owns(name)):
+                    if name is not None and cluster.must_claim(name):
                         self._hold(name, events[i:], messages, raw)
                         return
                     token = resume_token(event)
@@ -266,9 +266,7 @@ class _Connection(WebSocketConnection):
         self.transport.pause_reading()
         if token is not None:
             job = resume_then_consume(self, token, events, raw)
-        elif self.server.cluster is not None and (
-            self.server.cluster.busy or not self.server.cluster.owns(room)
-        ):
+        elif self.server.cluster is not None and self.server.cluster.must_claim(room):
             job = claim_then_consume(self, room, events, raw)
         else:
             job = self._open_then_consume(room, events)

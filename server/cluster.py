@@ -55,9 +55,11 @@ __all__ = [
     "Directory",
     "LocalNats",
     "find_nats_server",
+    "member_key",
     "nats_ports",
     "nats_server_argv",
     "room_key",
+    "room_of",
 ]
 
 log = logging.getLogger("posecast.cluster")
@@ -76,6 +78,17 @@ class ClusterError(PosecastError, RuntimeError):
 def room_key(room: str) -> str:
     """The bucket key of room ``room`` (any name: keys allow few characters)."""
     return "room." + room.encode().hex()
+
+
+def room_of(key: str) -> str | None:
+    """The room a ``room.<HEX>`` key names (None: another kind of key)."""
+    return bytes.fromhex(key[5:]).decode() if key.startswith("room.") else None
+
+
+def member_key(room: str, token: str = "*") -> str:
+    """The key of the record of the member of ``room`` resumable with ``token``
+    (``*``: the pattern of all of the room's)."""
+    return f"member.{room.encode().hex()}.{token}"
 
 
 def _last_sequence(error: KeyWrongLastSequenceError) -> int:
@@ -261,17 +274,15 @@ class Directory:
         for key, lease in list(self.held.items()):
             try:
                 lease.revision = await self._publish(key, lease.value, lease.revision)
-            except nats.js.errors.NoStreamResponseError:
-                await self._make_bucket()
-                lease.revision = 0
+            except (nats.js.errors.NoStreamResponseError, KeyWrongLastSequenceError) as exc:
+                if isinstance(exc, nats.js.errors.NoStreamResponseError):
+                    await self._make_bucket()
+                # Expired (deleted by its TTL), taken, or its bucket was gone: take it
+                # again if it is free.
                 del self.held[key]
-                if not await self._create(key, lease.value) and key.startswith("room."):
-                    lost.append(bytes.fromhex(key[5:]).decode())
-            except KeyWrongLastSequenceError:
-                # Expired (deleted by its TTL) or taken: take it again if it is free.
-                del self.held[key]
-                if not await self._create(key, lease.value) and key.startswith("room."):
-                    lost.append(bytes.fromhex(key[5:]).decode())
+                room = room_of(key)
+                if not await self._create(key, lease.value) and room is not None:
+                    lost.append(room)
         for room in lost:
             log.warning("node %s lost room %r to another node", self.node, room)
             if self.on_lost is not None:
@@ -401,7 +412,7 @@ class Directory:
 
     def rooms(self) -> list[str]:
         """The rooms this node holds the lease of."""
-        return [bytes.fromhex(k[5:]).decode() for k in self.held if k.startswith("room.")]
+        return [room for k in self.held if (room := room_of(k)) is not None]
 
     async def owner(self, room: str) -> str | None:
         """The node that owns ``room``, or None."""

@@ -44,7 +44,7 @@ from protocol.objects import ROOM_USER
 from server import resume
 from server.actions import Action
 from server.auth import token_permits
-from server.cluster import Directory
+from server.cluster import Directory, member_key
 from server.core import RelayCore
 from server.forward import Edge, Members, alive
 from server.limits import normalise_room
@@ -179,6 +179,11 @@ class ClusterNode:
     def owns(self, room: str) -> bool:
         return self.directory.owns(room)
 
+    def must_claim(self, room: str) -> bool:
+        """Whether a join of ``room`` waits for :meth:`claim`: this node does not own
+        it, or a claim under way may be taking members in."""
+        return self.busy or not self.directory.owns(room)
+
     async def claim(self, room: str) -> str:
         """The live node that owns ``room`` now: this one if it was free, or its owner
         was gone (then this node takes it over). When this node becomes its owner it
@@ -292,7 +297,7 @@ class ClusterNode:
         held = self.core.rooms.get(room)
         if held is not None and held.members:
             return
-        values = await self.directory.values(f"member.{room.encode().hex()}.*")
+        values = await self.directory.values(member_key(room))
         records = [msgpack.unpackb(v) for v in values.values()]
         if records:
             self.restore_room(room, records, self.clock())
@@ -321,7 +326,7 @@ class ClusterNode:
                     "sv": member.sends_velocities, "compact": member.compact,
                     "echo": member.echo, "token": token,
                 }  # fmt: skip
-                out[f"member.{name.encode().hex()}.{token}"] = msgpack.packb(record)
+                out[member_key(name, token)] = msgpack.packb(record)
         return out
 
     async def _sync_records(self) -> None:
