@@ -16,13 +16,16 @@ def running_server(config: ServerConfig | None = None) -> AbstractAsyncContextMa
     return serving(RelayServer(config or ServerConfig(host="127.0.0.1", port=0)))
 
 
-async def poll_until(condition: Callable[[], bool], limit: float = 60.0) -> None:
-    """Poll ``condition``; ``limit`` is a hang guard, not a timing check."""
+async def poll_until(
+    condition: Callable[[], bool], limit: float = 60.0, every: float = 0.02
+) -> None:
+    """Poll ``condition`` every ``every`` s until it holds; ``limit`` is a hang guard
+    (TimeoutError), not a timing check."""
     async with asyncio.timeout(limit):
         while True:
             if condition():
                 return
-            await asyncio.sleep(0.02)
+            await asyncio.sleep(every)
 
 
 def relayed(server: RelayServer, room: str) -> int:

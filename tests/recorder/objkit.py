@@ -24,12 +24,12 @@ import asyncio
 import contextlib
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
-from support import running_server
+from support import poll_until, running_server
 from websockets.exceptions import ConnectionClosed
 
 from client.connection import ClientConnection
@@ -139,13 +139,8 @@ class Session:
     owners: list[Owner]
 
 
-async def _until(cond: Callable[[], bool], limit: float = 10.0) -> None:
-    """Poll for ``cond``; ``limit`` is a hang guard, not a timing check."""
-    async with asyncio.timeout(limit):
-        while True:
-            if cond():
-                return
-            await asyncio.sleep(0.005)
+#: Poll for a condition; ``limit`` is a hang guard, not a timing check.
+_until = partial(poll_until, limit=10.0, every=0.005)
 
 
 async def _owned(actor: Actor, n: int) -> Owner:

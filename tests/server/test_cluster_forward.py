@@ -11,13 +11,14 @@ and errors and closes from the owner's rules.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Callable
+from functools import partial
 
 import msgpack
 import nats
 import numpy as np
 from conftest import needs_nats
 from nats.aio.msg import Msg
+from support import poll_until
 from test_core import connect
 
 from protocol import (
@@ -55,12 +56,7 @@ class Remote:
         return [e for e in self.inbox if isinstance(e, kind)]
 
 
-async def _until(check: Callable[[], bool], limit: float = 10.0) -> None:
-    for _ in range(int(limit / 0.01)):
-        if check():
-            return
-        await asyncio.sleep(0.01)
-    raise AssertionError(f"not within {limit} s")
+_until = partial(poll_until, limit=10.0, every=0.01)
 
 
 async def test_a_member_through_another_node_is_one_of_the_room(nats_url: str) -> None:
