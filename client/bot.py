@@ -441,16 +441,14 @@ class _Bot:
             if rs is None:
                 names, label = self._names(user)
                 rs = self.remote[key] = RemoteStream(
-                    user,
-                    key[1],
-                    names.get(key[1], f"stream{key[1]}"),
-                    label,
+                    user, key[1], names.get(key[1], f"stream{key[1]}"), label,
                     sends_velocities=self._sends_velocities(user),
                     buffer=self.room_buffers.stream(),
-                )
+                )  # fmt: skip
                 self.user_streams.setdefault(user, []).append(rs)
-            cap = float(caps[i])
-            pose = np.array(poses[i])
+            cap, pose = float(caps[i]), np.array(poses[i])
+            if rs.repeats(cap, pose):
+                continue
             self.poses_in += 1
             rs.capture.append(cap)
             rs.arrival.append(arrival_srv)

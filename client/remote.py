@@ -39,6 +39,10 @@ __all__ = [
 F64 = NDArray[np.float64]
 
 
+#: A relay codec snapshot codes capture times to 1 ms against its own base time.
+REPEAT_TIME = 1e-3 + 1e-9
+
+
 @dataclass
 class RemoteStream:
     """One remote stream: buffer for rendering, log for the QoE evaluation."""
@@ -68,6 +72,17 @@ class RemoteStream:
 
     def __post_init__(self) -> None:
         self.buffer.has_velocities = self.sends_velocities
+
+    def repeats(self, capture: float, pose: NDArray[np.float32]) -> bool:
+        """Whether a received keyframe is the last one again: a key snapshot resends a
+        stream that did not change (a shared object at rest), its capture time coded
+        anew against the snapshot's own base, so within the codec's 1 ms of the
+        first; the same pose bits say it is no new keyframe."""
+        return (
+            bool(self.capture)
+            and abs(capture - self.capture[-1]) <= REPEAT_TIME
+            and np.array_equal(pose, self.poses[-1])
+        )
 
 
 def remote_log(rs: RemoteStream) -> KeyframeLog:
