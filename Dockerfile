@@ -19,7 +19,7 @@ COPY posecast ./posecast
 # The check runs from / so that it imports the installed package, not /app: the
 # image is not built if the wheel left the bundled traces out.
 RUN pip install . \
-    && cd / && python -c "from scenarios.traces import find_traces; print(len(find_traces('traces:sample')), 'sample traces')" \
+    && cd / && python -c "from posecast.scenarios.traces import find_traces; print(len(find_traces('traces:sample')), 'sample traces')" \
     && useradd --create-home posecast
 
 USER posecast

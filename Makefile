@@ -23,10 +23,18 @@ demo: $(VENV)/.installed-run
 test: $(VENV)/.installed-test
 	$(BIN)/python -m pytest -q
 
+# mypy reads modules from files, not through the install's folder mapping: it checks
+# a tree of links laid out as the installed package (posecast/server -> server/, ...).
+FOLDERS := server client protocol interp recorder scenarios
+TYPECHECK := build/typecheck
+
 lint: $(VENV)/.installed-test
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(BIN)/mypy
+	rm -rf $(TYPECHECK) && mkdir -p $(TYPECHECK)/posecast
+	for e in posecast/*; do ln -s ../../../$$e $(TYPECHECK)/posecast/; done
+	for d in $(FOLDERS); do ln -s ../../../$$d $(TYPECHECK)/posecast/$$d; done
+	cd $(TYPECHECK) && ../../$(BIN)/mypy --config-file ../../pyproject.toml
 
 bench: $(VENV)/.installed-test
 	$(BIN)/posecast bench interp

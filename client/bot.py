@@ -61,12 +61,12 @@ import numpy as np
 from numpy.typing import NDArray
 from websockets.exceptions import ConnectionClosed
 
-import client.remote as scoring
-from client.connection import ClientConnection, SessionEnd, Tls, connect_any, connect_first
-from client.remote import RemoteStream, evaluate_remote, remote_log, stream_delays
-from client.scene import OwnerChange, ThrowCatchActor
-from interp import info as interp_info
-from protocol import (
+import posecast.client.remote as scoring
+from posecast.client.connection import ClientConnection, SessionEnd, Tls, connect_any, connect_first
+from posecast.client.remote import RemoteStream, evaluate_remote, remote_log, stream_delays
+from posecast.client.scene import OwnerChange, ThrowCatchActor
+from posecast.interp import info as interp_info
+from posecast.protocol import (
     ROOM_USER,
     Joined,
     LocalProtocolError,
@@ -79,16 +79,16 @@ from protocol import (
     Snapshot,
     encode_update,
 )
-from scenarios.motion import MotionSpec, sample_at
-from scenarios.qoe import ErrorSamples
-from scenarios.receiver import (
+from posecast.scenarios.motion import MotionSpec, sample_at
+from posecast.scenarios.qoe import ErrorSamples
+from posecast.scenarios.receiver import (
     ClockEstimator,
     RoomBuffers,
     RoomPlayoutDelay,
     render_buffers,
 )
-from scenarios.throw_catch import SCENE, role_motion, scene_epoch, scene_role
-from scenarios.traces import (
+from posecast.scenarios.throw_catch import SCENE, role_motion, scene_epoch, scene_role
+from posecast.scenarios.traces import (
     CAUSAL_SAMPLES,
     DEVICE_NAMES,
     Trace,

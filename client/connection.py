@@ -27,7 +27,7 @@ from urllib.parse import urlsplit
 from websockets.asyncio.client import ClientConnection as WsConnection
 from websockets.asyncio.client import connect
 
-from protocol import (
+from posecast.protocol import (
     ClientSession,
     ErrorMessage,
     Hello,
@@ -41,8 +41,8 @@ from protocol import (
     RequestOwnership,
     Welcome,
 )
-from protocol.events import Event, Message
-from protocol.objects import pose_tuple
+from posecast.protocol.events import Event, Message
+from posecast.protocol.objects import pose_tuple
 
 __all__ = [
     "GRACEFUL_CLOSE_CODES",

@@ -19,12 +19,17 @@ from typing import cast
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol import ROOM_USER
-from scenarios.motion import MotionSpec
-from scenarios.qoe import ErrorSamples, KeyframeLog
-from scenarios.receiver import ReceivedStream, StreamBuffer, rendered_method, score_received
-from scenarios.throw_catch import DRILL, scene_role, scene_script, score_drill
-from scenarios.traces import TraceError
+from posecast.protocol import ROOM_USER
+from posecast.scenarios.motion import MotionSpec
+from posecast.scenarios.qoe import ErrorSamples, KeyframeLog
+from posecast.scenarios.receiver import (
+    ReceivedStream,
+    StreamBuffer,
+    rendered_method,
+    score_received,
+)
+from posecast.scenarios.throw_catch import DRILL, scene_role, scene_script, score_drill
+from posecast.scenarios.traces import TraceError
 
 __all__ = [
     "RemoteStream",

@@ -64,8 +64,8 @@ import numpy as np
 from numpy.typing import NDArray
 from websockets.exceptions import ConnectionClosed
 
-from client.connection import ClientConnection
-from protocol import (
+from posecast.client.connection import ClientConnection
+from posecast.protocol import (
     MAX_TEXT_LENGTH,
     ErrorMessage,
     ObjectCreate,
@@ -79,13 +79,13 @@ from protocol import (
     Welcome,
     encode_update,
 )
-from protocol.errors import ErrorCode
-from protocol.objects import pose_tuple
-from recorder.objects import ObjectAction
-from recorder.plan import ReplayPlan, UserPlan, merge_updates, plan_replay, select_plan
-from scenarios.motion import MotionSpec
-from scenarios.receiver import ClockEstimator
-from scenarios.traces import TraceError
+from posecast.protocol.errors import ErrorCode
+from posecast.protocol.objects import pose_tuple
+from posecast.recorder.objects import ObjectAction
+from posecast.recorder.plan import ReplayPlan, UserPlan, merge_updates, plan_replay, select_plan
+from posecast.scenarios.motion import MotionSpec
+from posecast.scenarios.receiver import ClockEstimator
+from posecast.scenarios.traces import TraceError
 
 __all__ = [
     "DEFAULT_MAX_SEND_RATE",

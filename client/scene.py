@@ -24,17 +24,17 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from client.connection import ClientConnection
-from protocol import Owner
-from scenarios.synthetic import NATIVE_RATE
-from scenarios.throw_catch import (
+from posecast.client.connection import ClientConnection
+from posecast.protocol import Owner
+from posecast.scenarios.synthetic import NATIVE_RATE
+from posecast.scenarios.throw_catch import (
     DRILL,
     PERIOD,
     Action,
     drill_label,
     scene_script,
 )
-from scenarios.traces import causal_velocities
+from posecast.scenarios.traces import causal_velocities
 
 __all__ = ["LEAD", "MAX_LATE", "OwnerChange", "ThrowCatchActor"]
 

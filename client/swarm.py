@@ -27,8 +27,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
-from client.bot import BotConfig, BotReport, motion_for_bot, run_bot
-from scenarios.qoe import summarize
+from posecast.client.bot import BotConfig, BotReport, motion_for_bot, run_bot
+from posecast.scenarios.qoe import summarize
 
 __all__ = [
     "STARVED_KEYFRAME_SHARE",

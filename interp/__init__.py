@@ -5,11 +5,16 @@ Public API: :func:`get` (name to ``f(a, b, s)``), :func:`names`,
 error measures.
 """
 
-from interp.cubic import VELOCITY_SIZE, motor_cubic, motor_hermite, screw_extrapolate
-from interp.kernels import RowKernel
-from interp.methods import dq_slerp, motor_lerp, soa
-from interp.metrics import TIP_OFFSET_M, position_error_mm, rotation_error_deg, tip_error_mm
-from interp.pose import (
+from posecast.interp.cubic import VELOCITY_SIZE, motor_cubic, motor_hermite, screw_extrapolate
+from posecast.interp.kernels import RowKernel
+from posecast.interp.methods import dq_slerp, motor_lerp, soa
+from posecast.interp.metrics import (
+    TIP_OFFSET_M,
+    position_error_mm,
+    rotation_error_deg,
+    tip_error_mm,
+)
+from posecast.interp.pose import (
     as_pose,
     dq_to_pose,
     matrix_to_pose,
@@ -23,8 +28,8 @@ from interp.pose import (
     quat_mul,
     quat_rotate,
 )
-from interp.quintic import motor_quintic
-from interp.registry import (
+from posecast.interp.quintic import motor_quintic
+from posecast.interp.registry import (
     ENTRY_POINT_GROUP,
     Interpolator,
     InterpolatorInfo,
@@ -34,7 +39,7 @@ from interp.registry import (
     names,
     register,
 )
-from interp.track import (
+from posecast.interp.track import (
     Brackets,
     TrackResult,
     bracket,

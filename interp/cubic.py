@@ -30,9 +30,9 @@ import itertools
 import numpy as np
 from numpy.typing import ArrayLike
 
-from interp.kernels import SCRATCH_ROWS, scratch
-from interp.methods import _rows, dq_slerp, hemisphere_sign
-from interp.pose import F64, UNIT_TOLERANCE
+from posecast.interp.kernels import SCRATCH_ROWS, scratch
+from posecast.interp.methods import _rows, dq_slerp, hemisphere_sign
+from posecast.interp.pose import F64, UNIT_TOLERANCE
 
 __all__ = [
     "VELOCITY_SIZE",

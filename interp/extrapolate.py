@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from interp.pose import F64, as_pose
+from posecast.interp.pose import F64, as_pose
 
 __all__ = ["twist_extrapolate"]
 

@@ -52,9 +52,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from interp.cubic import _exact_ends, _hermite_basis, _hermite_inputs
-from interp.methods import _cross, _qmul, _rotate, hemisphere_sign
-from interp.pose import F64
+from posecast.interp.cubic import _exact_ends, _hermite_basis, _hermite_inputs
+from posecast.interp.methods import _cross, _qmul, _rotate, hemisphere_sign
+from posecast.interp.pose import F64
 
 __all__ = ["soa_hermite"]
 

@@ -35,8 +35,8 @@ from typing import NamedTuple, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from interp.pose import F64
-from interp.rowops import (
+from posecast.interp.pose import F64
+from posecast.interp.rowops import (
     C_VEC,
     CALLER_ROWS,
     CHUNK,

@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from interp.kernels import (
+from posecast.interp.kernels import (
     CHUNK,
     RowKernel,
     dq_slerp_rows,
@@ -37,7 +37,7 @@ from interp.kernels import (
     scratch,
     soa_rows,
 )
-from interp.pose import F64, UNIT_TOLERANCE
+from posecast.interp.pose import F64, UNIT_TOLERANCE
 
 __all__ = ["dq_slerp", "hemisphere_sign", "motor_lerp", "prepare", "soa"]
 

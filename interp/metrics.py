@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from interp.pose import F64, quat_rotate
+from posecast.interp.pose import F64, quat_rotate
 
 __all__ = ["TIP_OFFSET_M", "position_error_mm", "rotation_error_deg", "tip_error_mm"]
 

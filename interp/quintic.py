@@ -47,9 +47,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from interp.cubic import _checked, _float_array, _window_curve
-from interp.methods import _rows
-from interp.pose import F64
+from posecast.interp.cubic import _checked, _float_array, _window_curve
+from posecast.interp.methods import _rows
+from posecast.interp.pose import F64
 
 __all__ = ["QUINTIC_LOOKAHEAD", "QUINTIC_LOOKBEHIND", "motor_quintic", "motor_window_spline"]
 

@@ -47,12 +47,12 @@ from typing import Any, Literal
 
 from numpy.typing import ArrayLike
 
-from interp.cubic import motor_cubic, motor_hermite
-from interp.hermite import soa_hermite
-from interp.kernels import RowKernel, dq_slerp_rows, motor_lerp_rows, soa_rows
-from interp.methods import dq_slerp, motor_lerp, soa
-from interp.pose import F64
-from interp.quintic import QUINTIC_LOOKAHEAD, QUINTIC_LOOKBEHIND, motor_quintic
+from posecast.interp.cubic import motor_cubic, motor_hermite
+from posecast.interp.hermite import soa_hermite
+from posecast.interp.kernels import RowKernel, dq_slerp_rows, motor_lerp_rows, soa_rows
+from posecast.interp.methods import dq_slerp, motor_lerp, soa
+from posecast.interp.pose import F64
+from posecast.interp.quintic import QUINTIC_LOOKAHEAD, QUINTIC_LOOKBEHIND, motor_quintic
 
 __all__ = [
     "ENTRY_POINT_GROUP",

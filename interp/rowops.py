@@ -32,7 +32,7 @@ from typing import NamedTuple, TypeVar, cast
 import numpy as np
 from numpy.typing import NDArray
 
-from interp.pose import F64
+from posecast.interp.pose import F64
 
 __all__ = [
     "CALLER_ROWS",

@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from interp.pose import F64, as_pose
-from interp.registry import Interpolator, info
+from posecast.interp.pose import F64, as_pose
+from posecast.interp.registry import Interpolator, info
 
 __all__ = [
     "Brackets",

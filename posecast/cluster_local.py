@@ -21,7 +21,7 @@ from pathlib import Path
 
 from posecast.bench.common import _LISTENING
 from posecast.bench.procs import _scrape
-from server.cluster import LocalNats
+from posecast.server.cluster import LocalNats
 
 __all__ = ["LocalCluster", "RelayProcess", "local_cluster", "start_relay"]
 

@@ -19,10 +19,10 @@ from typing import Any
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
-from client.bot import BotConfig
-from client.swarm import run_bots, swarm_report
+from posecast.client.bot import BotConfig
+from posecast.client.swarm import run_bots, swarm_report
 from posecast.cluster_local import LocalCluster, local_cluster
-from server.app import RelayServer, ServerConfig, serving
+from posecast.server.app import RelayServer, ServerConfig, serving
 
 __all__ = ["run_demo"]
 
@@ -184,7 +184,7 @@ async def _kill_later(
 def _drill_files(record_dir: Path, killed: dict[str, Any]) -> list[dict[str, Any]]:
     """Each node's recordings after the drill; the killed node's unfinished file is
     recovered first (as that node would at its next start)."""
-    from recorder import find_leftovers, info, recover
+    from posecast.recorder import find_leftovers, info, recover
 
     for part in find_leftovers(record_dir / killed["node"]):
         recover(part)

@@ -91,7 +91,7 @@ def _table1_job(
     )
 
     def run(out: Path, prov: Mapping[str, Any]) -> None:
-        from scenarios.table1 import run_table1
+        from posecast.scenarios.table1 import run_table1
 
         run_table1(
             list(traces), methods=methods, out_dir=out, command=command, provenance=prov, **opts
@@ -113,8 +113,8 @@ def _analyze_job(name: str, sources: Sequence[str], split: str) -> Job:
         )
 
     def run(out: Path, prov: Mapping[str, Any]) -> None:
-        from recorder.analyze import analyze, format_analysis
-        from scenarios.table1 import resolve_traces
+        from posecast.recorder.analyze import analyze, format_analysis
+        from posecast.scenarios.table1 import resolve_traces
 
         traces = [tr for s in sources for tr in resolve_traces(s)]
         result = analyze(traces, (2, 3), RECORDING_METHODS)
@@ -134,8 +134,8 @@ def _velocity_sources_job() -> Job:
     )
 
     def run(out: Path, prov: Mapping[str, Any]) -> None:
-        from scenarios.table1 import resolve_traces
-        from scenarios.velocity_sources import compare_velocity_sources
+        from posecast.scenarios.table1 import resolve_traces
+        from posecast.scenarios.velocity_sources import compare_velocity_sources
 
         res = compare_velocity_sources(resolve_traces("traces:eval"), rates, sources)
         data = {"provenance": dict(prov), "method": "motor-hermite", "hands": res}
@@ -181,8 +181,8 @@ def relative_error_budget(traces: Sequence[Any]) -> dict[str, Any]:
     ``|a| dt^2 / (2 |p|)``: acceleration, frame interval squared, and distance
     from the world origin. Returns those factors pooled per device class.
     """
-    from recorder.analyze import relative_error_pct
-    from scenarios.traces import device_class
+    from posecast.recorder.analyze import relative_error_pct
+    from posecast.scenarios.traces import device_class
 
     pools: dict[str, dict[str, list[Any]]] = {}
     for tr in traces:
@@ -303,7 +303,7 @@ def changes(before: Mapping[Path, str], after: Mapping[Path, str]) -> list[tuple
 
 
 def _write_json(path: Path, data: Any) -> None:
-    from scenarios.table1.report import jsonable
+    from posecast.scenarios.table1.report import jsonable
 
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(jsonable(data), indent=1) + "\n")

@@ -185,7 +185,7 @@ def _split(name: str) -> Callable[[Path], str]:
     """Which part of each gain is the velocities, which the algebra."""
 
     def block(results: Path) -> str:
-        from scenarios.table1.smoothness import gain_split_markdown
+        from posecast.scenarios.table1.smoothness import gain_split_markdown
 
         rep = _load(results, name)
         return "\n".join([*_body(gain_split_markdown(rep)), *_tail(rep, name)])
@@ -363,7 +363,7 @@ def _report_section(name: str, section: str) -> Callable[[Path], str]:
     """A section of a table1.md (without its header), from the report module."""
 
     def block(results: Path) -> str:
-        from scenarios.table1 import report as rp
+        from posecast.scenarios.table1 import report as rp
 
         rep = _load(results, name)
         fn = {"link": rp.link_markdown, "per-trace": rp.per_trace_markdown}[section]
@@ -376,7 +376,7 @@ def _codecs(name: str) -> Callable[[Path], str]:
     """Bytes/s at equal QoE with the raw and the compact codec (table1's ``codecs``)."""
 
     def block(results: Path) -> str:
-        from scenarios.table1.codec_bytes import codec_markdown
+        from posecast.scenarios.table1.codec_bytes import codec_markdown
 
         rep = _load(results, name)
         if "codecs" not in rep:

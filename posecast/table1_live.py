@@ -34,10 +34,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-import interp
-from client.bot import BotConfig, BotReport, remote_log, run_bot
-from protocol import frame_size
-from scenarios.live_agreement import (
+from posecast import interp
+from posecast.client.bot import BotConfig, BotReport, remote_log, run_bot
+from posecast.protocol import frame_size
+from posecast.scenarios.live_agreement import (
     AMPLE_DELAY_S,
     ReceiverSim,
     SenderView,
@@ -46,13 +46,13 @@ from scenarios.live_agreement import (
     model_rate,
     simulate_receiver,
 )
-from scenarios.motion import MotionSpec
-from scenarios.network import Tier, websocket_header_bytes
-from scenarios.qoe import ErrorSamples, summarize
-from scenarios.receiver import ReceivedStream, score_received
-from scenarios.traces import DEVICE_NAMES, Trace, TraceError, find_traces
-from server.app import RelayServer, ServerConfig
-from server.room import room_phase
+from posecast.scenarios.motion import MotionSpec
+from posecast.scenarios.network import Tier, websocket_header_bytes
+from posecast.scenarios.qoe import ErrorSamples, summarize
+from posecast.scenarios.receiver import ReceivedStream, score_received
+from posecast.scenarios.traces import DEVICE_NAMES, Trace, TraceError, find_traces
+from posecast.server.app import RelayServer, ServerConfig
+from posecast.server.room import room_phase
 
 __all__ = ["LiveConfig", "LiveProgress", "live_motions", "run_live", "run_live_tier"]
 

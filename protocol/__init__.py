@@ -10,8 +10,8 @@ layout in ``protocol.poses``. ``protocol.codec`` is the compact pose codec
 code the client's updates with it (``protocol._compact``).
 """
 
-from protocol._state import Role, State
-from protocol.codec import (
+from posecast.protocol._state import Role, State
+from posecast.protocol.codec import (
     DEFAULT_VOLUME,
     BaselineMismatch,
     PoseFrame,
@@ -23,7 +23,7 @@ from protocol.codec import (
     encode_snapshot_codes,
     encode_update_codes,
 )
-from protocol.errors import (
+from posecast.protocol.errors import (
     MAX_CLOSE_REASON_BYTES,
     ErrorCode,
     LocalProtocolError,
@@ -32,8 +32,8 @@ from protocol.errors import (
     RemoteProtocolError,
     close_reason,
 )
-from protocol.events import Event, Message, ProtocolError
-from protocol.limits import (
+from posecast.protocol.events import Event, Message, ProtocolError
+from posecast.protocol.limits import (
     DEFAULT_LIMITS,
     MAX_EVENT_PAYLOAD,
     MAX_FRAME_SIZE,
@@ -47,7 +47,7 @@ from protocol.limits import (
     QUAT_NORM_TOLERANCE,
     Limits,
 )
-from protocol.messages import (
+from posecast.protocol.messages import (
     CODECS,
     DEVICE_NAMES,
     EVENT_KINDS,
@@ -70,7 +70,7 @@ from protocol.messages import (
     Welcome,
     is_valid_stream_name,
 )
-from protocol.objects import (
+from posecast.protocol.objects import (
     ROOM_USER,
     ObjectCreate,
     ObjectInfo,
@@ -79,7 +79,7 @@ from protocol.objects import (
     Release,
     RequestOwnership,
 )
-from protocol.poses import (
+from posecast.protocol.poses import (
     POSE_BYTES,
     SNAPSHOT_DTYPE,
     SNAPSHOT_ENTRY_SIZE,
@@ -105,8 +105,8 @@ from protocol.poses import (
     update_records,
     velocity_problem,
 )
-from protocol.session import ClientSession, ServerSession, SessionStatistics
-from protocol.wire import MESSAGE_TYPES, decode_message, encode_message
+from posecast.protocol.session import ClientSession, ServerSession, SessionStatistics
+from posecast.protocol.wire import MESSAGE_TYPES, decode_message, encode_message
 
 __all__ = [
     "CODECS",

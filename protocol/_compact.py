@@ -27,7 +27,7 @@ import struct
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.codec import (
+from posecast.protocol.codec import (
     BaselineMismatch,
     PoseFrame,
     Volume,
@@ -35,12 +35,12 @@ from protocol.codec import (
     encode_update_codes,
     quantise,
 )
-from protocol.codec_fast import UpdateGeometry, decode_update_rows, read_varint
-from protocol.codec_frame import F_UPDATE, F_VELOCITY, _read_uvarint, _svarint, _uvarint
-from protocol.codec_quant import dequantise_row, velocity_row
-from protocol.codec_relay import decode_relay_snapshot
-from protocol.errors import ProtocolViolation, RemoteProtocolError
-from protocol.poses import UPDATE_DTYPE, UPDATE_VELOCITY_DTYPE, PoseUpdate, Snapshot
+from posecast.protocol.codec_fast import UpdateGeometry, decode_update_rows, read_varint
+from posecast.protocol.codec_frame import F_UPDATE, F_VELOCITY, _read_uvarint, _svarint, _uvarint
+from posecast.protocol.codec_quant import dequantise_row, velocity_row
+from posecast.protocol.codec_relay import decode_relay_snapshot
+from posecast.protocol.errors import ProtocolViolation, RemoteProtocolError
+from posecast.protocol.poses import UPDATE_DTYPE, UPDATE_VELOCITY_DTYPE, PoseUpdate, Snapshot
 
 __all__ = ["CODEC_FRAME_BYTE", "SnapshotDecoder", "UpstreamDecoder", "UpstreamEncoder"]
 

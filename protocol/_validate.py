@@ -11,8 +11,8 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 
-from protocol.errors import ErrorCode, LocalProtocolError
-from protocol.limits import MAX_PAYLOAD_DEPTH, MAX_TEXT_LENGTH
+from posecast.protocol.errors import ErrorCode, LocalProtocolError
+from posecast.protocol.limits import MAX_PAYLOAD_DEPTH, MAX_TEXT_LENGTH
 
 __all__ = [
     "U16_MAX",

@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.errors import ErrorCode, RemoteProtocolError
+from posecast.protocol.errors import ErrorCode, RemoteProtocolError
 
 __all__ = [
     "MAX_EG_BITS",

@@ -77,8 +77,8 @@ from collections.abc import Mapping
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from protocol.codec_fast import decode_small, encode_small
-from protocol.codec_frame import (
+from posecast.protocol.codec_fast import decode_small, encode_small
+from posecast.protocol.codec_frame import (
     CODEC_MAGIC,
     CODEC_VERSION,
     F_UPDATE,
@@ -89,7 +89,7 @@ from protocol.codec_frame import (
     decode_frame,
     encode_frame,
 )
-from protocol.codec_quant import (
+from posecast.protocol.codec_quant import (
     DEFAULT_VOLUME,
     POSITION_STEP_MAX,
     ROTATION_BITS,
@@ -101,7 +101,7 @@ from protocol.codec_quant import (
     local_error,
     quantise,
 )
-from protocol.errors import ErrorCode
+from posecast.protocol.errors import ErrorCode
 
 __all__ = [
     "CODEC_MAGIC",

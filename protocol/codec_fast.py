@@ -16,8 +16,8 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.bits import MAX_EG_BITS, _best_k_small
-from protocol.codec_frame import (
+from posecast.protocol.bits import MAX_EG_BITS, _best_k_small
+from posecast.protocol.codec_frame import (
     CODEC_MAGIC,
     CODEC_VERSION,
     F_UPDATE,
@@ -30,7 +30,7 @@ from protocol.codec_frame import (
     _svarint,
     _uvarint,
 )
-from protocol.codec_quant import (
+from posecast.protocol.codec_quant import (
     _ANG_CODE_MAX,
     _LIN_CODE_MAX,
     ROTATION_BITS,
@@ -38,7 +38,7 @@ from protocol.codec_quant import (
     Volume,
     codes_problem_rows,
 )
-from protocol.codec_small import (
+from posecast.protocol.codec_small import (
     SMALL_FRAME,
     Fallback,
     Reader,
@@ -49,7 +49,7 @@ from protocol.codec_small import (
     unzz,
     zz,
 )
-from protocol.errors import RemoteProtocolError
+from posecast.protocol.errors import RemoteProtocolError
 
 __all__ = [
     "UpdateGeometry",

@@ -17,8 +17,8 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.bits import BitReader, BitWriter, best_k, unzigzag, zigzag
-from protocol.codec_quant import (
+from posecast.protocol.bits import BitReader, BitWriter, best_k, unzigzag, zigzag
+from posecast.protocol.codec_quant import (
     ROTATION_BITS,
     M,
     Volume,
@@ -28,7 +28,7 @@ from protocol.codec_quant import (
     predict_rotation,
     remote_error,
 )
-from protocol.errors import ErrorCode, RemoteProtocolError
+from posecast.protocol.errors import ErrorCode, RemoteProtocolError
 
 __all__ = [
     "CODEC_MAGIC",

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from protocol.errors import ErrorCode, LocalProtocolError, RemoteProtocolError
-from protocol.limits import QUAT_NORM_TOLERANCE
+from posecast.protocol.errors import ErrorCode, LocalProtocolError, RemoteProtocolError
+from posecast.protocol.limits import QUAT_NORM_TOLERANCE
 
 __all__ = [
     "ANG_STEP",

@@ -57,8 +57,8 @@ from operator import itemgetter
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.bits import MAX_EG_BITS, MAX_K, _best_k_small, k_of_histogram
-from protocol.codec_frame import (
+from posecast.protocol.bits import MAX_EG_BITS, MAX_K, _best_k_small, k_of_histogram
+from posecast.protocol.codec_frame import (
     CODEC_MAGIC,
     F_UPDATE,
     F_VELOCITY,
@@ -69,7 +69,7 @@ from protocol.codec_frame import (
     _svarint,
     _uvarint,
 )
-from protocol.codec_quant import (
+from posecast.protocol.codec_quant import (
     ROTATION_BITS,
     M,
     Volume,
@@ -78,8 +78,8 @@ from protocol.codec_quant import (
     local_error,
     remote_error,
 )
-from protocol.codec_small import predict_row
-from protocol.errors import ErrorCode
+from posecast.protocol.codec_small import predict_row
+from posecast.protocol.errors import ErrorCode
 
 __all__ = [
     "RELAY_CODEC_VERSION",

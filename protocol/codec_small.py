@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.bits import MAX_EG_BITS
-from protocol.codec_quant import M
+from posecast.protocol.bits import MAX_EG_BITS
+from posecast.protocol.codec_quant import M
 
 __all__ = [
     "SMALL_FRAME",

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from protocol.errors import ErrorCode, close_reason
-from protocol.messages import (
+from posecast.protocol.errors import ErrorCode, close_reason
+from posecast.protocol.messages import (
     Bye,
     ErrorMessage,
     Hello,
@@ -29,7 +29,7 @@ from protocol.messages import (
     UserEvent,
     Welcome,
 )
-from protocol.objects import (
+from posecast.protocol.objects import (
     ObjectCreate,
     ObjectInfo,
     ObjectRemoved,
@@ -37,7 +37,7 @@ from protocol.objects import (
     Release,
     RequestOwnership,
 )
-from protocol.poses import PoseUpdate, Snapshot
+from posecast.protocol.poses import PoseUpdate, Snapshot
 
 __all__ = ["Event", "Message", "ProtocolError"]
 

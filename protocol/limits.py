@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from protocol.errors import ErrorCode, LocalProtocolError
+from posecast.protocol.errors import ErrorCode, LocalProtocolError
 
 __all__ = [
     "DEFAULT_LIMITS",

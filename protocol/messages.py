@@ -22,7 +22,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import MISSING, dataclass, field, fields
 from typing import Any, ClassVar, Self, TypeVar
 
-from protocol._validate import (
+from posecast.protocol._validate import (
     U16_MAX,
     U63_MAX,
     bad,
@@ -36,9 +36,9 @@ from protocol._validate import (
     check_stream_map,
     check_text,
 )
-from protocol.codec import DEFAULT_VOLUME, Volume
-from protocol.errors import ErrorCode
-from protocol.limits import (
+from posecast.protocol.codec import DEFAULT_VOLUME, Volume
+from posecast.protocol.errors import ErrorCode
+from posecast.protocol.limits import (
     MAX_RATE,
     MAX_STREAM_NAME_LENGTH,
     MAX_STREAMS_PER_USER,

@@ -42,7 +42,7 @@ import math
 from dataclasses import dataclass, field
 from typing import ClassVar
 
-from protocol._validate import (
+from posecast.protocol._validate import (
     U16_MAX,
     bad,
     check_bool,
@@ -52,8 +52,8 @@ from protocol._validate import (
     check_optional_int,
     check_text,
 )
-from protocol.limits import QUAT_NORM_TOLERANCE
-from protocol.messages import _OMIT_DEFAULT, OBJECT_PREFIX, ControlMessage, _register
+from posecast.protocol.limits import QUAT_NORM_TOLERANCE
+from posecast.protocol.messages import _OMIT_DEFAULT, OBJECT_PREFIX, ControlMessage, _register
 
 __all__ = [
     "OBJECT_MESSAGE_TYPES",

@@ -56,8 +56,8 @@ import msgpack
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from protocol._validate import U16_MAX, U63_MAX, bad, check_float, check_int
-from protocol.limits import QUAT_NORM_TOLERANCE
+from posecast.protocol._validate import U16_MAX, U63_MAX, bad, check_float, check_int
+from posecast.protocol.limits import QUAT_NORM_TOLERANCE
 
 __all__ = [
     "POSE_BYTES",

@@ -55,18 +55,23 @@ import msgpack
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol._compact import (
+from posecast.protocol._compact import (
     CODEC_FRAME_BYTE,
     SnapshotDecoder,
     UpstreamDecoder,
     UpstreamEncoder,
 )
-from protocol._state import ERROR_FATAL, ERROR_JOIN, TRANSITIONS, Role, State, moves
-from protocol.codec import DEFAULT_VOLUME, Volume
-from protocol.errors import ErrorCode, LocalProtocolError, ProtocolViolation, RemoteProtocolError
-from protocol.events import Event, Message, ProtocolError
-from protocol.limits import DEFAULT_LIMITS, PROTOCOL_VERSION, Limits
-from protocol.messages import (
+from posecast.protocol._state import ERROR_FATAL, ERROR_JOIN, TRANSITIONS, Role, State, moves
+from posecast.protocol.codec import DEFAULT_VOLUME, Volume
+from posecast.protocol.errors import (
+    ErrorCode,
+    LocalProtocolError,
+    ProtocolViolation,
+    RemoteProtocolError,
+)
+from posecast.protocol.events import Event, Message, ProtocolError
+from posecast.protocol.limits import DEFAULT_LIMITS, PROTOCOL_VERSION, Limits
+from posecast.protocol.messages import (
     ErrorMessage,
     Hello,
     Join,
@@ -78,9 +83,15 @@ from protocol.messages import (
     Welcome,
     is_valid_stream_name,
 )
-from protocol.objects import ObjectCreate, ObjectInfo, ObjectRemoved, Owner, unit_problem
-from protocol.poses import PoseUpdate, Snapshot, has_velocity, pose_problem, velocity_problem
-from protocol.wire import decode_message, encode_message
+from posecast.protocol.objects import ObjectCreate, ObjectInfo, ObjectRemoved, Owner, unit_problem
+from posecast.protocol.poses import (
+    PoseUpdate,
+    Snapshot,
+    has_velocity,
+    pose_problem,
+    velocity_problem,
+)
+from posecast.protocol.wire import decode_message, encode_message
 
 __all__ = ["ClientSession", "ServerSession", "SessionStatistics"]
 

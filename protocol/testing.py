@@ -11,9 +11,9 @@ from collections.abc import Mapping, Sequence
 
 import msgpack
 
-from protocol.events import Event, Message
-from protocol.messages import Hello, Join, Joined
-from protocol.session import ClientSession, ServerSession
+from posecast.protocol.events import Event, Message
+from posecast.protocol.messages import Hello, Join, Joined
+from posecast.protocol.session import ClientSession, ServerSession
 
 __all__ = ["SessionPair", "raw_frame"]
 

@@ -14,11 +14,11 @@ from collections.abc import Callable
 import msgpack
 import numpy as np
 
-from protocol._validate import U63_MAX, check_float, check_int
-from protocol.errors import ErrorCode, ProtocolViolation, RemoteProtocolError
-from protocol.events import Message
-from protocol.limits import MAX_FRAME_SIZE, PROTOCOL_VERSION
-from protocol.messages import (
+from posecast.protocol._validate import U63_MAX, check_float, check_int
+from posecast.protocol.errors import ErrorCode, ProtocolViolation, RemoteProtocolError
+from posecast.protocol.events import Message
+from posecast.protocol.limits import MAX_FRAME_SIZE, PROTOCOL_VERSION
+from posecast.protocol.messages import (
     Bye,
     ControlMessage,
     ErrorMessage,
@@ -36,8 +36,8 @@ from protocol.messages import (
     UserEvent,
     Welcome,
 )
-from protocol.objects import OBJECT_MESSAGE_TYPES
-from protocol.poses import (
+from posecast.protocol.objects import OBJECT_MESSAGE_TYPES
+from posecast.protocol.poses import (
     POSES_KEY,
     SNAPSHOT_DTYPE,
     SNAPSHOT_VELOCITY_DTYPE,

@@ -17,10 +17,10 @@
 - ``recorder.scan``: the forgiving linear MCAP parser behind recovery.
 """
 
-from recorder.format import FormatError, PoseRecord, decode_pose, encode_pose
-from recorder.host import ProcessRecorder, RecorderHost, RoomRecorder
-from recorder.options import RecordOptions
-from recorder.reader import (
+from posecast.recorder.format import FormatError, PoseRecord, decode_pose, encode_pose
+from posecast.recorder.host import ProcessRecorder, RecorderHost, RoomRecorder
+from posecast.recorder.options import RecordOptions
+from posecast.recorder.reader import (
     DropRecord,
     EventRecord,
     PoseColumns,
@@ -35,15 +35,15 @@ from recorder.reader import (
     load_streams,
     read_records,
 )
-from recorder.recovery import (
+from posecast.recorder.recovery import (
     RecoveryError,
     RecoveryReport,
     find_leftovers,
     recover,
     recover_leftovers,
 )
-from recorder.scan import ScanProblem
-from recorder.writer import RecorderError, RecorderStatistics, SessionRecorder
+from posecast.recorder.scan import ScanProblem
+from posecast.recorder.writer import RecorderError, RecorderStatistics, SessionRecorder
 
 __all__ = [
     "DropRecord",

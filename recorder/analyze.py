@@ -47,11 +47,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from interp import info as interp_info
-from interp import interpolate_brackets, position_error_mm, rotation_error_deg, tip_error_mm
-from recorder.export import sorted_streams
-from scenarios.qoe import CLASS_ORDER, ErrorSamples
-from scenarios.traces import Trace, device_class, find_traces, load_trace
+from posecast.interp import info as interp_info
+from posecast.interp import (
+    interpolate_brackets,
+    position_error_mm,
+    rotation_error_deg,
+    tip_error_mm,
+)
+from posecast.recorder.export import sorted_streams
+from posecast.scenarios.qoe import CLASS_ORDER, ErrorSamples
+from posecast.scenarios.traces import Trace, device_class, find_traces, load_trace
 
 __all__ = [
     "DEFAULT_EULER_SEQ",

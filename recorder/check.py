@@ -6,8 +6,8 @@ import os
 import struct
 from pathlib import Path
 
-from recorder.format import PROFILE, FormatError
-from recorder.scan import MAGIC
+from posecast.recorder.format import PROFILE, FormatError
+from posecast.recorder.scan import MAGIC
 
 __all__ = ["EXPORT_LIBRARY_PREFIX", "check_recording"]
 

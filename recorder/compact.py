@@ -56,10 +56,10 @@ from typing import Final
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.codec import Volume, dequantise
-from protocol.codec_quant import codes_problem
-from protocol.poses import PoseUpdate
-from recorder.format import FormatError, PoseRecord, encode_pose, to_ns, to_ns_many
+from posecast.protocol.codec import Volume, dequantise
+from posecast.protocol.codec_quant import codes_problem
+from posecast.protocol.poses import PoseUpdate
+from posecast.recorder.format import FormatError, PoseRecord, encode_pose, to_ns, to_ns_many
 
 __all__ = [
     "COMPACT_VERSION",

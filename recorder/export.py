@@ -52,9 +52,9 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 from numpy.typing import NDArray
 
-from recorder.check import EXPORT_LIBRARY_PREFIX
-from recorder.compact import expand_group, is_group
-from recorder.format import (
+from posecast.recorder.check import EXPORT_LIBRARY_PREFIX
+from posecast.recorder.compact import expand_group, is_group
+from posecast.recorder.format import (
     EVENTS_TOPIC,
     POSES_TOPIC,
     PRESENCE_TOPIC,
@@ -63,8 +63,8 @@ from recorder.format import (
     posecast_version,
     to_ns,
 )
-from recorder.objects import ROOM_USER, ObjectTrack, split_objects
-from recorder.reader import (
+from posecast.recorder.objects import ROOM_USER, ObjectTrack, split_objects
+from posecast.recorder.reader import (
     SessionReader,
     StreamData,
     UserInfo,

@@ -8,7 +8,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import IO, Any
 
-from recorder.format import (
+from posecast.recorder.format import (
     CHANNELS,
     FORMAT_VERSION,
     PROFILE,
@@ -16,8 +16,8 @@ from recorder.format import (
     encode_json,
     posecast_version,
 )
-from recorder.mcapfile import ChunkWriter
-from recorder.options import RecordOptions
+from posecast.recorder.mcapfile import ChunkWriter
+from posecast.recorder.options import RecordOptions
 
 __all__ = ["PART_SUFFIX", "create_part", "fsync_dir", "safe_name", "start_event", "start_file"]
 

@@ -79,7 +79,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from protocol.errors import PosecastError
+from posecast.protocol.errors import PosecastError
 
 __all__ = [
     "CHANNELS",

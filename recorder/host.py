@@ -58,11 +58,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
 
-from protocol.codec import Volume
-from protocol.poses import PoseUpdate
-from recorder.format import DROPS_TOPIC, POSES_TOPIC, QUEUE_OVERFLOW_KIND, encode_json, to_ns
-from recorder.options import Clock, RecordOptions
-from recorder.pipe import (
+from posecast.protocol.codec import Volume
+from posecast.protocol.poses import PoseUpdate
+from posecast.recorder.format import (
+    DROPS_TOPIC,
+    POSES_TOPIC,
+    QUEUE_OVERFLOW_KIND,
+    encode_json,
+    to_ns,
+)
+from posecast.recorder.options import Clock, RecordOptions
+from posecast.recorder.pipe import (
     _CHANNEL_INDEX,
     _COMPACT_EXTRA,
     _COMPACT_PACK,
@@ -82,7 +88,7 @@ from recorder.pipe import (
     _frame,
     _room_config,
 )
-from recorder.writer import RecorderError, RecorderStatistics, RecordTap, SessionRecorder
+from posecast.recorder.writer import RecorderError, RecorderStatistics, RecordTap, SessionRecorder
 
 __all__ = ["ProcessRecorder", "RecorderHost", "RoomRecorder"]
 

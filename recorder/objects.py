@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from recorder.reader import StreamData, UserInfo
+from posecast.recorder.reader import StreamData, UserInfo
 
 __all__ = [
     "MIN_STEP",

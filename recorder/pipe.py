@@ -27,9 +27,9 @@ import struct
 from pathlib import Path
 from typing import Any, Final
 
-from protocol.poses import UPDATE_DTYPE, UPDATE_VELOCITY_DTYPE
-from recorder.format import CHANNELS
-from recorder.options import RecordOptions
+from posecast.protocol.poses import UPDATE_DTYPE, UPDATE_VELOCITY_DTYPE
+from posecast.recorder.format import CHANNELS
+from posecast.recorder.options import RecordOptions
 
 __all__ = ["EXIT_ERROR", "EXIT_OK", "EXIT_RELAY_GONE"]
 

@@ -20,11 +20,11 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol import is_valid_stream_name
-from recorder.export import read_session
-from recorder.objects import ROOM_USER, ObjectAction, object_actions, owner_keyframes
-from recorder.reader import StreamData, UserInfo
-from recorder.replay import user_matches
+from posecast.protocol import is_valid_stream_name
+from posecast.recorder.export import read_session
+from posecast.recorder.objects import ROOM_USER, ObjectAction, object_actions, owner_keyframes
+from posecast.recorder.reader import StreamData, UserInfo
+from posecast.recorder.replay import user_matches
 
 __all__ = ["ReplayPlan", "UserPlan", "merge_updates", "plan_replay", "select_plan"]
 

@@ -35,9 +35,9 @@ import numpy as np
 from mcap.reader import McapReader, make_reader
 from numpy.typing import NDArray
 
-from recorder.check import check_recording
-from recorder.compact import GROUP_SPAN_MAX, expand_group, is_group
-from recorder.format import (
+from posecast.recorder.check import check_recording
+from posecast.recorder.compact import GROUP_SPAN_MAX, expand_group, is_group
+from posecast.recorder.format import (
     DROPS_TOPIC,
     EVENTS_TOPIC,
     FORMAT_VERSION,
@@ -56,7 +56,7 @@ from recorder.format import (
     decode_pose,
     to_ns,
 )
-from recorder.scan import (
+from posecast.recorder.scan import (
     ChannelRecord,
     HeaderRecord,
     McapScanner,
@@ -585,7 +585,7 @@ def _info(reader: SessionReader) -> dict[str, Any]:
         first = log_time if first is None else min(first, log_time)
         last = log_time if last is None else max(last, log_time)
         seqs.append(seq)
-    from recorder.objects import objects_info, split_objects  # it builds on this module
+    from posecast.recorder.objects import objects_info, split_objects  # it builds on this module
 
     pieces, users = reader.load_streams(), reader.users()
     streams, tracks = split_objects((e.data for e in reader.events()), pieces, users)
@@ -766,6 +766,6 @@ def format_info(data: dict[str, Any]) -> str:
                 f" {s['keyframes']:>8} keyframes {_num(s['duration'])} s"
                 f" {_num(s['rate'])} /s" + (" + velocities" if s.get("velocities") else "")
             )
-    from recorder.objects import format_objects
+    from posecast.recorder.objects import format_objects
 
     return "\n".join(lines + format_objects(data.get("objects", [])))

@@ -26,9 +26,9 @@ from pathlib import Path
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, IndexType, Writer
 
-from protocol.errors import PosecastError
-from recorder.format import CHANNELS, POSE_ENCODING, PROFILE, posecast_version
-from recorder.scan import (
+from posecast.protocol.errors import PosecastError
+from posecast.recorder.format import CHANNELS, POSE_ENCODING, PROFILE, posecast_version
+from posecast.recorder.scan import (
     ChannelRecord,
     HeaderRecord,
     McapScanner,
@@ -37,7 +37,7 @@ from recorder.scan import (
     ScanProblem,
     SchemaRecord,
 )
-from recorder.writer import PART_SUFFIX, fsync_dir
+from posecast.recorder.writer import PART_SUFFIX, fsync_dir
 
 __all__ = [
     "RecoveryError",

@@ -39,13 +39,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from interp import info as interp_info
-from recorder.export import POSE_COLUMNS, csv_bytes, read_session
-from recorder.objects import ObjectTrack
-from recorder.reader import StreamData
-from recorder.writer import SessionRecorder
-from scenarios.motion import MotionSpec
-from scenarios.qoe import (
+from posecast.interp import info as interp_info
+from posecast.recorder.export import POSE_COLUMNS, csv_bytes, read_session
+from posecast.recorder.objects import ObjectTrack
+from posecast.recorder.reader import StreamData
+from posecast.recorder.writer import SessionRecorder
+from posecast.scenarios.motion import MotionSpec
+from posecast.scenarios.qoe import (
     ErrorSamples,
     KeyframeLog,
     evaluate_group,
@@ -56,7 +56,7 @@ from scenarios.qoe import (
     summarize,
     window_depth,
 )
-from scenarios.traces import DEVICE_NAMES, Trace, find_traces, load_trace
+from posecast.scenarios.traces import DEVICE_NAMES, Trace, find_traces, load_trace
 
 __all__ = [
     "DEFAULT_RENDER_RATE",
@@ -651,5 +651,5 @@ def bench_replay(
         }
 
 
-if __name__ == "__main__":  # python -m recorder.replay: the benchmark
+if __name__ == "__main__":  # python -m posecast.recorder.replay: the benchmark
     bench_replay()

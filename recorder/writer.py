@@ -40,10 +40,10 @@ from typing import IO, Any, Final
 import numpy as np
 from numpy.typing import ArrayLike
 
-from protocol.codec import Volume
-from protocol.errors import PosecastError
-from protocol.poses import PoseUpdate
-from recorder.compact import (
+from posecast.protocol.codec import Volume
+from posecast.protocol.errors import PosecastError
+from posecast.protocol.poses import PoseUpdate
+from posecast.recorder.compact import (
     GROUP_SPAN_MAX,
     GROUP_UPDATES_MAX,
     CompactUpdate,
@@ -51,7 +51,7 @@ from recorder.compact import (
     encode_group,
     newest_ns,
 )
-from recorder.files import (
+from posecast.recorder.files import (
     PART_SUFFIX,
     create_part,
     fsync_dir,
@@ -59,7 +59,7 @@ from recorder.files import (
     start_event,
     start_file,
 )
-from recorder.format import (
+from posecast.recorder.format import (
     CHANNELS,
     DROPS_TOPIC,
     EVENTS_TOPIC,
@@ -71,8 +71,8 @@ from recorder.format import (
     encode_pose,
     to_ns,
 )
-from recorder.mcapfile import MESSAGE_OVERHEAD, ChunkWriter
-from recorder.options import (
+from posecast.recorder.mcapfile import MESSAGE_OVERHEAD, ChunkWriter
+from posecast.recorder.options import (
     DEFAULT_CHUNK_BYTES,
     DEFAULT_FLUSH_INTERVAL,
     DEFAULT_QUEUE_SIZE,

@@ -28,12 +28,12 @@ from typing import Any, Final
 
 import numpy as np
 
-from protocol.codec import Volume
-from protocol.poses import UPDATE_DTYPE, UPDATE_VELOCITY_DTYPE
-from recorder.compact import CompactUpdate, newest_ns
-from recorder.format import POSES_TOPIC, encode_pose_batch, to_ns, to_ns_many
-from recorder.options import RecordOptions
-from recorder.pipe import (
+from posecast.protocol.codec import Volume
+from posecast.protocol.poses import UPDATE_DTYPE, UPDATE_VELOCITY_DTYPE
+from posecast.recorder.compact import CompactUpdate, newest_ns
+from posecast.recorder.format import POSES_TOPIC, encode_pose_batch, to_ns, to_ns_many
+from posecast.recorder.options import RecordOptions
+from posecast.recorder.pipe import (
     _COMPACT,
     _FRAME,
     _FRAME_BATCH,
@@ -53,7 +53,7 @@ from recorder.pipe import (
     EXIT_OK,
     EXIT_RELAY_GONE,
 )
-from recorder.writer import RecorderError, SessionRecorder
+from posecast.recorder.writer import RecorderError, SessionRecorder
 
 __all__ = ["main"]
 

@@ -26,12 +26,12 @@ long enough to measure. Everything timed is single-threaded numpy/scipy code
 - one keyframe-track render (``interp.evaluate_track``, K = 30 keyframes, 100
   streams, one query time), median of many runs, microseconds;
 - the entry paths: throughput at batch 10,000 in this process, in a fresh
-  ``python -m scenarios.bench_interp`` (a plain interpreter, glibc's allocator
+  ``python -m posecast.scenarios.bench_interp`` (a plain interpreter, glibc's allocator
   as it comes; the ``posecast`` CLI tunes it) and in a fresh ``python -c`` that
   imports ``interp`` only (as a notebook does; pair methods), side by side.
 
 The bench prints figures and ratios against the targets; it never decides pass
-or fail. ``python -m scenarios.bench_interp [--batch N]`` prints this
+or fail. ``python -m posecast.scenarios.bench_interp [--batch N]`` prints this
 process's poses/s of every method at batch N as JSON.
 """
 
@@ -57,9 +57,9 @@ from numpy.typing import NDArray
 from rich.console import Console
 from rich.table import Table
 
-import interp
-from scenarios.receiver import RoomBuffers, render_buffers
-from scenarios.traces import find_traces, load_trace
+from posecast import interp
+from posecast.scenarios.receiver import RoomBuffers, render_buffers
+from posecast.scenarios.traces import find_traces, load_trace
 
 __all__ = ["TARGETS", "frame_room", "run_interp_bench", "throughput_at"]
 
@@ -462,11 +462,11 @@ print(json.dumps(rates))"""
 
 
 def _plain_python_rates(batch: int, notebook: bool = False) -> dict[str, float] | str:
-    """:func:`throughput_at` in a fresh ``python -m scenarios.bench_interp``: a plain
+    """:func:`throughput_at` in a fresh ``python -m posecast.scenarios.bench_interp``: a plain
     interpreter, glibc's allocator as it comes. With ``notebook``, the pair methods in a
     fresh ``python -c`` that imports ``interp`` only. The reason as a string on failure."""
     env = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"}
-    cmd = [sys.executable, "-m", "scenarios.bench_interp", "--batch", str(batch)]
+    cmd = [sys.executable, "-m", "posecast.scenarios.bench_interp", "--batch", str(batch)]
     if notebook:
         cmd = [sys.executable, "-c", _IMPORT_INTERP, str(batch)]
     try:
@@ -576,7 +576,7 @@ def _entry_paths(
         notebook = _plain_python_rates(TARGET_BATCH, notebook=True)
     return {
         entry: here,
-        "python -m scenarios.bench_interp (allocator as it comes)": plain,
+        "python -m posecast.scenarios.bench_interp (allocator as it comes)": plain,
         "python -c 'import interp' (as a notebook)": notebook,
     }
 
@@ -783,7 +783,7 @@ def _targets_table(report: dict[str, Any]) -> Table:
 
 
 def _main() -> None:
-    """``python -m scenarios.bench_interp --batch N``: this process's poses/s as JSON."""
+    """``python -m posecast.scenarios.bench_interp --batch N``: this process's poses/s as JSON."""
     parser = argparse.ArgumentParser(description=_main.__doc__)
     parser.add_argument("--batch", type=int, default=TARGET_BATCH, help="Batch size to time.")
     args = parser.parse_args()

@@ -19,7 +19,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from interp.pose import UNIT_TOLERANCE
+from posecast.interp.pose import UNIT_TOLERANCE
 
 __all__ = ["DEFAULT_BUFFER_CAPACITY", "RoomBuffers", "StreamBuffer"]
 

@@ -14,10 +14,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-from interp import info
-from scenarios.qoe import evaluate_group, ideal_delay, ideal_log, summarize
-from scenarios.traces import Trace, load_trace
-from scenarios.velocity_sources import DEFAULT_VELOCITY_SOURCE, source_velocities
+from posecast.interp import info
+from posecast.scenarios.qoe import evaluate_group, ideal_delay, ideal_log, summarize
+from posecast.scenarios.traces import Trace, load_trace
+from posecast.scenarios.velocity_sources import DEFAULT_VELOCITY_SOURCE, source_velocities
 
 __all__ = ["Comparison", "compare_trace", "run_compare"]
 

@@ -39,10 +39,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from scenarios.network import Delivery, LinkModel, Tier, affordable_rate
-from scenarios.qoe import ErrorSamples, KeyframeLog, evaluate_group
-from scenarios.table1.report import jsonable
-from scenarios.traces import Trace
+from posecast.scenarios.network import Delivery, LinkModel, Tier, affordable_rate
+from posecast.scenarios.qoe import ErrorSamples, KeyframeLog, evaluate_group
+from posecast.scenarios.table1.report import jsonable
+from posecast.scenarios.traces import Trace
 
 __all__ = [
     "AGREEMENT_CLASSES",

@@ -18,10 +18,16 @@ from pathlib import Path
 
 import numpy as np
 
-from interp import quat_mul
-from scenarios import synthetic
-from scenarios.throw_catch import ROLES, SCENE, scene_motion, scene_role
-from scenarios.traces import DEVICE_NAMES, Trace, TraceError, default_trace_root, load_trace
+from posecast.interp import quat_mul
+from posecast.scenarios import synthetic
+from posecast.scenarios.throw_catch import ROLES, SCENE, scene_motion, scene_role
+from posecast.scenarios.traces import (
+    DEVICE_NAMES,
+    Trace,
+    TraceError,
+    default_trace_root,
+    load_trace,
+)
 
 __all__ = [
     "SCENE_MOTIONS",

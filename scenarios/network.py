@@ -48,8 +48,8 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from protocol import SNAPSHOT_ENTRY_SIZE, frame_size
-from protocol.errors import PosecastError
+from posecast.protocol import SNAPSHOT_ENTRY_SIZE, frame_size
+from posecast.protocol.errors import PosecastError
 
 __all__ = [
     "GAMMA_SHAPE",
@@ -173,7 +173,7 @@ def _parse_tiers(text: str, where: str, base: Mapping[str, Tier] | None = None) 
 
 def builtin_tiers() -> dict[str, Tier]:
     """The packaged tiers (``scenarios/data/tiers.toml``), in file order."""
-    text = resources.files("scenarios").joinpath("data/tiers.toml").read_text()
+    text = resources.files("posecast.scenarios").joinpath("data/tiers.toml").read_text()
     return _parse_tiers(text, "scenarios/data/tiers.toml")
 
 

@@ -23,7 +23,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from interp import (
+from posecast.interp import (
     dq_slerp,
     interpolate_brackets,
     position_error_mm,
@@ -31,17 +31,17 @@ from interp import (
     screw_extrapolate,
     tip_error_mm,
 )
-from interp import (
+from posecast.interp import (
     info as interp_info,
 )
-from interp.extrapolate import twist_extrapolate
-from scenarios.qoe_stats import (
+from posecast.interp.extrapolate import twist_extrapolate
+from posecast.scenarios.qoe_stats import (
     EXTRAPOLATION_KEYS,
     STAT_KEYS,
     ErrorSamples,
     tip_velocity_error_mps,
 )
-from scenarios.traces import Trace, device_class
+from posecast.scenarios.traces import Trace, device_class
 
 __all__ = [
     "CLASS_ORDER",

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from interp import TIP_OFFSET_M, quat_rotate
+from posecast.interp import TIP_OFFSET_M, quat_rotate
 
 __all__ = [
     "EXTRAPOLATION_KEYS",

@@ -33,14 +33,14 @@ from typing import NamedTuple, cast
 import numpy as np
 from numpy.typing import NDArray
 
-from interp import InterpolatorInfo, interpolate_brackets
-from interp import info as interp_info
-from interp.kernels import SHARES_PRODUCTS, share_rows
-from interp.registry import generation as registry_generation
-from scenarios.buffers import DEFAULT_BUFFER_CAPACITY, RoomBuffers, StreamBuffer
-from scenarios.motion import MotionSpec
-from scenarios.qoe import ErrorSamples, KeyframeLog, evaluate_group, window_depth
-from scenarios.traces import Trace, TraceError
+from posecast.interp import InterpolatorInfo, interpolate_brackets
+from posecast.interp import info as interp_info
+from posecast.interp.kernels import SHARES_PRODUCTS, share_rows
+from posecast.interp.registry import generation as registry_generation
+from posecast.scenarios.buffers import DEFAULT_BUFFER_CAPACITY, RoomBuffers, StreamBuffer
+from posecast.scenarios.motion import MotionSpec
+from posecast.scenarios.qoe import ErrorSamples, KeyframeLog, evaluate_group, window_depth
+from posecast.scenarios.traces import Trace, TraceError
 
 __all__ = [
     "DEFAULT_BUFFER_CAPACITY",

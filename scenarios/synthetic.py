@@ -62,8 +62,8 @@ from typing import Any
 
 import numpy as np
 
-from scenarios.synthetic_body import F64, NATIVE_RATE, min_jerk
-from scenarios.synthetic_scenes import (
+from posecast.scenarios.synthetic_body import F64, NATIVE_RATE, min_jerk
+from posecast.scenarios.synthetic_scenes import (
     DrillParams,
     DrillTossParams,
     HandOverParams,
@@ -80,7 +80,7 @@ from scenarios.synthetic_scenes import (
     _build_spin_drift,
     _build_throw_catch,
 )
-from scenarios.traces import Trace, TraceError
+from posecast.scenarios.traces import Trace, TraceError
 
 __all__ = [
     "MOTIONS",
@@ -295,7 +295,7 @@ class SuiteEntry:
 
 
 def _default_suite_text() -> str:
-    return resources.files("scenarios").joinpath("data/synthetic.toml").read_text()
+    return resources.files("posecast.scenarios").joinpath("data/synthetic.toml").read_text()
 
 
 def load_suite(path: str | Path | None = None) -> list[SuiteEntry]:

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from interp import quat_conj, quat_mul, quat_rotate
+from posecast.interp import quat_conj, quat_mul, quat_rotate
 
 __all__ = ["NATIVE_RATE", "min_jerk"]
 

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from interp import quat_conj, quat_mul, quat_rotate
-from scenarios.synthetic_body import (
+from posecast.interp import quat_conj, quat_mul, quat_rotate
+from posecast.scenarios.synthetic_body import (
     _EYE_OFFSET,
     _G,
     _IDENTITY,

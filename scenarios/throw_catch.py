@@ -45,9 +45,9 @@ from typing import Literal
 
 import numpy as np
 
-from interp import quat_conj, quat_mul, quat_rotate
-from scenarios.qoe import ErrorSamples, KeyframeLog, evaluate_group
-from scenarios.synthetic_body import (
+from posecast.interp import quat_conj, quat_mul, quat_rotate
+from posecast.scenarios.qoe import ErrorSamples, KeyframeLog, evaluate_group
+from posecast.scenarios.synthetic_body import (
     _G,
     _IDENTITY,
     _X,
@@ -63,7 +63,7 @@ from scenarios.synthetic_body import (
     _pose_mul,
     _unit,
 )
-from scenarios.traces import DEVICE_NAMES, Trace
+from posecast.scenarios.traces import DEVICE_NAMES, Trace
 
 __all__ = [
     "CATCH_WINDOW",

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.errors import PosecastError
+from posecast.protocol.errors import PosecastError
 
 __all__ = [
     "CAUSAL_DEGREE",

@@ -17,9 +17,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from scenarios.network import VELOCITY_WIRE_DTYPE
-from scenarios.qoe import evaluate_group, ideal_delay, ideal_log, summarize
-from scenarios.traces import Trace
+from posecast.scenarios.network import VELOCITY_WIRE_DTYPE
+from posecast.scenarios.qoe import evaluate_group, ideal_delay, ideal_log, summarize
+from posecast.scenarios.traces import Trace
 
 __all__ = ["DEFAULT_VELOCITY_SOURCE", "compare_velocity_sources", "source_velocities"]
 

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from recorder import RoomRecorder
+    from posecast.recorder import RoomRecorder
 
 __all__ = ["Action", "Close", "FinishRecording", "Rearm", "Reschedule", "Wake"]
 

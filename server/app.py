@@ -49,8 +49,8 @@ from typing import TYPE_CHECKING, Any
 from websockets.http11 import Request, Response
 from websockets.protocol import State as WsState
 
-from protocol.events import Event
-from server.core import (
+from posecast.protocol.events import Event
+from posecast.server.core import (
     Action,
     Close,
     ConnectionStatistics,
@@ -61,21 +61,21 @@ from server.core import (
     ServerConfig,
     Wake,
 )
-from server.http import QuietHttpLog, metrics_text, process_request
-from server.logs import LogLimiter
-from server.node import (
+from posecast.server.http import QuietHttpLog, metrics_text, process_request
+from posecast.server.logs import LogLimiter
+from posecast.server.node import (
     claim_then_consume,
     cluster_clock,
     join_room,
     resume_then_consume,
     resume_token,
 )
-from server.room import IdAllocator, Outbox, Room
-from server.transport import WebSocketConnection, frame_binary
+from posecast.server.room import IdAllocator, Outbox, Room
+from posecast.server.transport import WebSocketConnection, frame_binary
 
 if TYPE_CHECKING:
-    from recorder import RecorderHost, RecordOptions, RoomRecorder
-    from server.node import ClusterNode
+    from posecast.recorder import RecorderHost, RecordOptions, RoomRecorder
+    from posecast.server.node import ClusterNode
 
 __all__ = ["ConnectionStatistics", "LogLimiter", "RelayServer", "ServerConfig", "serving"]
 
@@ -534,7 +534,7 @@ class RelayServer:
         await asyncio.shield(pending)
 
     async def _open_room(self, name: str) -> None:
-        from recorder import RecordOptions, SessionRecorder
+        from posecast.recorder import RecordOptions, SessionRecorder
 
         directory = self.config.record_dir
         assert directory is not None
@@ -570,7 +570,7 @@ class RelayServer:
 
     def _ensure_host(self) -> RecorderHost:
         """The running writer process; a new one if there is none or it died (blocks)."""
-        from recorder import RecorderHost
+        from posecast.recorder import RecorderHost
 
         with self._host_lock:
             host = self._recorder_host
@@ -651,7 +651,7 @@ class RelayServer:
         if cfg.secret is None:
             log.warning("no --secret: the server is open, anyone can join any room")
         if cfg.record_dir is not None:
-            from recorder import recover_leftovers
+            from posecast.recorder import recover_leftovers
 
             cfg.record_dir.mkdir(parents=True, exist_ok=True)
             for report in await asyncio.to_thread(recover_leftovers, cfg.record_dir):
@@ -691,7 +691,7 @@ class RelayServer:
         import re
         import socket
 
-        from server.node import ClusterNode
+        from posecast.server.node import ClusterNode
 
         cfg = self.config
         self.cluster = await ClusterNode.open(

@@ -14,7 +14,7 @@ import hmac
 import json
 from dataclasses import dataclass
 
-from protocol.errors import PosecastError
+from posecast.protocol.errors import PosecastError
 
 __all__ = ["TokenClaims", "TokenError", "make_token", "token_permits", "verify_token"]
 

@@ -47,7 +47,7 @@ from nats.js.api import KeyValueConfig, StorageType
 from nats.js.errors import KeyNotFoundError, KeyWrongLastSequenceError
 from nats.js.kv import KeyValue
 
-from protocol.errors import PosecastError
+from posecast.protocol.errors import PosecastError
 
 __all__ = [
     "BUCKET",

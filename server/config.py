@@ -10,9 +10,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from protocol.codec import DEFAULT_VOLUME, Volume
-from scenarios.network import Tier
-from server.room import DEFAULT_EVENT_QUEUE
+from posecast.protocol.codec import DEFAULT_VOLUME, Volume
+from posecast.scenarios.network import Tier
+from posecast.server.room import DEFAULT_EVENT_QUEUE
 
 __all__ = ["ServerConfig"]
 

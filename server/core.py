@@ -76,7 +76,7 @@ import logging
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from protocol import (
+from posecast.protocol import (
     ROOM_USER,
     Bye,
     ErrorCode,
@@ -100,18 +100,31 @@ from protocol import (
     close_reason,
     encode_message,
 )
-from protocol.events import Event, Message
-from scenarios.network import EgressLink
-from server import objects, resume, tokens
-from server.actions import Action, Close, FinishRecording, Rearm, Reschedule, Wake
-from server.auth import token_permits
-from server.config import ServerConfig
-from server.limits import Admission, Deadlines, normalise_room, room_refusal, update_refusal
-from server.peer import COUNTERS, ConnectionStatistics, Peer
-from server.room import TICK_LAG_BUCKETS, IdAllocator, LagHistogram, Member, Room, room_phase
+from posecast.protocol.events import Event, Message
+from posecast.scenarios.network import EgressLink
+from posecast.server import objects, resume, tokens
+from posecast.server.actions import Action, Close, FinishRecording, Rearm, Reschedule, Wake
+from posecast.server.auth import token_permits
+from posecast.server.config import ServerConfig
+from posecast.server.limits import (
+    Admission,
+    Deadlines,
+    normalise_room,
+    room_refusal,
+    update_refusal,
+)
+from posecast.server.peer import COUNTERS, ConnectionStatistics, Peer
+from posecast.server.room import (
+    TICK_LAG_BUCKETS,
+    IdAllocator,
+    LagHistogram,
+    Member,
+    Room,
+    room_phase,
+)
 
 if TYPE_CHECKING:
-    from recorder import RoomRecorder
+    from posecast.recorder import RoomRecorder
 
 __all__ = [
     "COUNTERS",

@@ -45,9 +45,9 @@ import msgpack
 from nats.aio.client import Client as Nats
 from nats.aio.msg import Msg
 
-from protocol import Hello, encode_message
-from server.actions import Action, Close, Wake
-from server.core import RelayCore
+from posecast.protocol import Hello, encode_message
+from posecast.server.actions import Action, Close, Wake
+from posecast.server.core import RelayCore
 
 __all__ = ["MAX_EDGE_BACKLOG", "Edge", "Members", "alive", "inbox", "outbox"]
 

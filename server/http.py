@@ -19,7 +19,7 @@ from typing import Any
 from websockets.http11 import Request, Response
 from websockets.server import ServerProtocol
 
-from server.core import TICK_LAG_BUCKETS, RelayCore
+from posecast.server.core import TICK_LAG_BUCKETS, RelayCore
 
 __all__ = ["QuietHttpLog", "metrics_text", "process_request"]
 

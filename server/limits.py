@@ -23,12 +23,12 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
-from protocol import UPDATE_DTYPE, UPDATE_VELOCITY_DTYPE, PoseUpdate
-from protocol.codec import Volume
+from posecast.protocol import UPDATE_DTYPE, UPDATE_VELOCITY_DTYPE, PoseUpdate
+from posecast.protocol.codec import Volume
 
 if TYPE_CHECKING:
-    from server.config import ServerConfig
-    from server.room import Room
+    from posecast.server.config import ServerConfig
+    from posecast.server.room import Room
 
 __all__ = [
     "MAX_ROOM_NAME_BYTES",

@@ -38,20 +38,20 @@ import msgpack
 import nats.errors
 from nats.aio.msg import Msg
 
-from protocol.events import Event
-from protocol.messages import Hello, Join
-from protocol.objects import ROOM_USER
-from server import resume
-from server.actions import Action
-from server.auth import token_permits
-from server.cluster import Directory, member_key
-from server.core import RelayCore
-from server.forward import Edge, Members, alive
-from server.limits import normalise_room
-from server.room import IdAllocator, Member, Outbox
+from posecast.protocol.events import Event
+from posecast.protocol.messages import Hello, Join
+from posecast.protocol.objects import ROOM_USER
+from posecast.server import resume
+from posecast.server.actions import Action
+from posecast.server.auth import token_permits
+from posecast.server.cluster import Directory, member_key
+from posecast.server.core import RelayCore
+from posecast.server.forward import Edge, Members, alive
+from posecast.server.limits import normalise_room
+from posecast.server.room import IdAllocator, Member, Outbox
 
 if TYPE_CHECKING:
-    from server.app import _Connection as Connection
+    from posecast.server.app import _Connection as Connection
 
 __all__ = [
     "MOVED",

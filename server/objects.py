@@ -66,7 +66,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from protocol import (
+from posecast.protocol import (
     ROOM_USER,
     ErrorCode,
     ObjectCreate,
@@ -79,9 +79,9 @@ from protocol import (
 )
 
 if TYPE_CHECKING:
-    from server.core import RelayCore
-    from server.peer import Peer
-    from server.room import Room
+    from posecast.server.core import RelayCore
+    from posecast.server.peer import Peer
+    from posecast.server.room import Room
 
 __all__ = ["GRAVITY", "Flight", "RoomObject", "handle", "introduce", "owner_left", "restore"]
 

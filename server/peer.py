@@ -11,16 +11,16 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from protocol import ServerSession
-from scenarios.network import EgressLink
-from server.actions import Wake
-from server.limits import Budget
-from server.logs import LogLimiter
-from server.room import Member, Outbox, Room
+from posecast.protocol import ServerSession
+from posecast.scenarios.network import EgressLink
+from posecast.server.actions import Wake
+from posecast.server.limits import Budget
+from posecast.server.logs import LogLimiter
+from posecast.server.room import Member, Outbox, Room
 
 if TYPE_CHECKING:
-    from server.core import RelayCore
-    from server.resume import Parked
+    from posecast.server.core import RelayCore
+    from posecast.server.resume import Parked
 
 __all__ = ["COUNTERS", "ConnectionStatistics", "Peer"]
 

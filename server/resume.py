@@ -21,7 +21,7 @@ import secrets
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
-from protocol import (
+from posecast.protocol import (
     Hello,
     Join,
     Joined,
@@ -31,13 +31,13 @@ from protocol import (
     UserEvent,
     decode_message,
 )
-from server import objects
-from server.limits import Deadlines
-from server.room import Member, Room
+from posecast.server import objects
+from posecast.server.limits import Deadlines
+from posecast.server.room import Member, Room
 
 if TYPE_CHECKING:
-    from server.core import RelayCore
-    from server.peer import Peer
+    from posecast.server.core import RelayCore
+    from posecast.server.peer import Peer
 
 __all__ = ["Parked", "Parking", "gone", "hello", "park", "parkable", "restore", "resume_join"]
 

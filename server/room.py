@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from protocol import (
+from posecast.protocol import (
     ROOM_USER,
     ZERO_VELOCITY,
     PeerJoined,
@@ -48,11 +48,11 @@ from protocol import (
     pack_velocity_snapshot,
     update_records,
 )
-from protocol.codec import DEFAULT_VOLUME, Volume, quantise
-from protocol.codec_relay import GroupSnapshot, RelayEntry, encode_group
-from recorder import RoomRecorder
-from server import objects
-from server.objects import RoomObject
+from posecast.protocol.codec import DEFAULT_VOLUME, Volume, quantise
+from posecast.protocol.codec_relay import GroupSnapshot, RelayEntry, encode_group
+from posecast.recorder import RoomRecorder
+from posecast.server import objects
+from posecast.server.objects import RoomObject
 
 __all__ = [
     "DEFAULT_EVENT_QUEUE",

@@ -12,12 +12,12 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from protocol import ErrorCode, ErrorMessage, Join, Renew
-from server.auth import TokenClaims, TokenError, verify_token
+from posecast.protocol import ErrorCode, ErrorMessage, Join, Renew
+from posecast.server.auth import TokenClaims, TokenError, verify_token
 
 if TYPE_CHECKING:
-    from server.core import RelayCore
-    from server.peer import Peer
+    from posecast.server.core import RelayCore
+    from posecast.server.peer import Peer
 
 __all__ = ["admit_join", "renew"]
 

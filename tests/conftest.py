@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from hypothesis import settings
 
-from scenarios.traces import SAMPLE_DIR, default_trace_root, full_traces_available
+from posecast.scenarios.traces import SAMPLE_DIR, default_trace_root, full_traces_available
 
 # CI runs the same examples every time (no flaky reds from a lucky draw); local
 # runs keep exploring.

@@ -6,9 +6,21 @@ import asyncio
 from collections.abc import Callable
 from contextlib import AbstractAsyncContextManager
 
-from server.app import RelayServer, ServerConfig, serving
+from posecast.server.app import RelayServer, ServerConfig, serving
 
-__all__ = ["poll_until", "relayed", "running_server"]
+__all__ = ["import_root", "poll_until", "relayed", "running_server"]
+
+#: The repository's folders, each installed as ``posecast.<folder>``.
+FOLDERS = frozenset({"server", "client", "protocol", "interp", "recorder", "scenarios"})
+
+
+def import_root(name: str) -> str:
+    """The package a module name belongs to: ``posecast.protocol.wire`` is ``protocol``
+    (a folder installed under ``posecast.``), ``posecast.cli`` is ``posecast``,
+    ``numpy.linalg`` is ``numpy``."""
+    head, _, rest = name.partition(".")
+    sub = rest.split(".")[0]
+    return sub if head == "posecast" and sub in FOLDERS else head
 
 
 def running_server(config: ServerConfig | None = None) -> AbstractAsyncContextManager[RelayServer]:

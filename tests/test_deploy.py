@@ -21,9 +21,9 @@ import typer.main
 import yaml
 from typer.testing import CliRunner
 
-from client.connection import relay_urls
 from posecast.cli import app
-from scenarios.traces import SAMPLE_DIR, find_traces
+from posecast.client.connection import relay_urls
+from posecast.scenarios.traces import SAMPLE_DIR, find_traces
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -121,8 +121,8 @@ def test_dockerfile_copies_every_package() -> None:
     """The image installs every top-level package and runs the posecast CLI."""
     text = (ROOT / "Dockerfile").read_text()
     pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text())
-    packages = pyproject["tool"]["setuptools"]["packages"]
-    for pkg in sorted({p.split(".")[0] for p in packages}):
+    folders = pyproject["tool"]["setuptools"]["package-dir"].values()
+    for pkg in sorted({"posecast", *folders}):
         assert f"COPY {pkg} ./{pkg}" in text, pkg
     assert 'ENTRYPOINT ["posecast"]' in text
     assert "pip install ." in text

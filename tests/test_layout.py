@@ -36,15 +36,27 @@ ALLOWED: dict[str, frozenset[str]] = {
 }
 
 
+def folder_name(name: str) -> str:
+    """A module name with the install prefix dropped: ``posecast.server.core`` is
+    ``server.core`` (the folder it lives in); ``posecast.cli`` stays as it is."""
+    head, _, rest = name.partition(".")
+    if head == "posecast" and rest.split(".")[0] in PACKAGES[1:]:
+        return rest
+    return name
+
+
 def imports_of(path: Path) -> list[str]:
-    """Absolute module names a file imports (relative imports stay in their package)."""
+    """Folder-relative module names a file imports (relative imports stay in their
+    package); ``from posecast import interp`` imports ``interp``, not ``posecast``."""
     names: list[str] = []
     for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
         if isinstance(node, ast.Import):
-            names.extend(alias.name for alias in node.names)
+            names.extend(folder_name(alias.name) for alias in node.names)
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            names.append(node.module)
-            names.extend(f"{node.module}.{alias.name}" for alias in node.names)
+            subs = [folder_name(f"{node.module}.{alias.name}") for alias in node.names]
+            if node.module != "posecast" or any(s.startswith("posecast") for s in subs):
+                names.append(folder_name(node.module))
+            names.extend(subs)
     return names
 
 
@@ -83,11 +95,12 @@ def test_the_checker_sees_a_forbidden_edge(tmp_path: Path) -> None:
     """The parser finds every form of import (so a clean result means something)."""
     f = tmp_path / "m.py"
     f.write_text(
-        "import server.core\nfrom client import bot\nfrom posecast.cli import app\n"
+        "import posecast.server.core\nfrom posecast.client import bot\n"
+        "from posecast.cli import app\nfrom posecast import interp\n"
         "from . import sibling\nimport numpy\n"
     )
     found = imports_of(f)
-    assert {"server.core", "client", "client.bot", "posecast.cli"} <= set(found)
+    assert {"server.core", "client", "client.bot", "posecast.cli", "interp"} <= set(found)
     assert "numpy" in found and not any(n.startswith("sibling") for n in found)
 
 

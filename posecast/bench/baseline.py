@@ -37,9 +37,9 @@ from websockets.asyncio.server import ServerConnection, broadcast, serve
 from websockets.exceptions import ConnectionClosed
 
 from posecast.bench.common import _run_loop
-from protocol import ErrorMessage, Hello, Join, Joined, Welcome, pack_snapshot
-from protocol.wire import decode_message, encode_message
-from server.room import room_phase
+from posecast.protocol import ErrorMessage, Hello, Join, Joined, Welcome, pack_snapshot
+from posecast.protocol.wire import decode_message, encode_message
+from posecast.server.room import room_phase
 
 __all__ = ["BaselineServer"]
 

@@ -60,8 +60,8 @@ from posecast.bench.relay import (
 )
 from posecast.bench.report import _f, print_relay_report, saturation
 from posecast.bench.wsclient import client_frame, open_connection
-from protocol import ClientSession, Hello, Ping, Pong, Welcome
-from server.cluster import USER_BLOCK, find_nats_server, nats_ports, nats_server_argv
+from posecast.protocol import ClientSession, Hello, Ping, Pong, Welcome
+from posecast.server.cluster import USER_BLOCK, find_nats_server, nats_ports, nats_server_argv
 
 __all__ = ["MAX_NODES", "print_split_table", "run_cluster_bench"]
 

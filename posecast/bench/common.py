@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from protocol import PoseUpdate
+from posecast.protocol import PoseUpdate
 
 #: The streams every bench client publishes.
 STREAMS = ("head", "left", "right")
@@ -82,7 +82,7 @@ class Motion:
 
 def _bench_traces(spec: str) -> list[Any]:
     """The traces of ``spec`` that have every stream of :data:`STREAMS`; ValueError if none."""
-    from scenarios.traces import find_traces, load_trace
+    from posecast.scenarios.traces import find_traces, load_trace
 
     traces = [load_trace(path) for path in find_traces(spec)]
     usable = [t.select(STREAMS) for t in traces if set(STREAMS) <= set(t.streams)]

@@ -42,7 +42,7 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, WebSocketException
 
 from posecast.bench.common import _raise_nofile, _run_loop
-from protocol import encode_update
+from posecast.protocol import encode_update
 
 __all__ = ["ATTACKS", "AttackConfig", "run_attack"]
 

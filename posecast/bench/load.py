@@ -54,7 +54,7 @@ from posecast.bench.wsclient import (
     client_frame,
     open_connection,
 )
-from protocol import (
+from posecast.protocol import (
     SNAPSHOT_DTYPE,
     SNAPSHOT_ENTRY_SIZE,
     ClientSession,
@@ -67,8 +67,8 @@ from protocol import (
     Snapshot,
     Welcome,
 )
-from protocol.codec_relay import snapshot_counts
-from server.room import room_phase
+from posecast.protocol.codec_relay import snapshot_counts
+from posecast.server.room import room_phase
 
 #: One snapshot in this many of each client has its poses decoded (capture -> receipt).
 SAMPLE_EVERY = 16

@@ -92,7 +92,7 @@ def _median_summary(rounds: list[dict[str, Any]]) -> dict[str, Any]:
 
 def _disk_figures(files: list[Path]) -> dict[str, Any]:
     """Files, bytes and poses of a run's recordings (read before they are deleted)."""
-    from recorder import info as recording_info
+    from posecast.recorder import info as recording_info
 
     return {
         "files": len(files),

@@ -31,9 +31,9 @@ from typing import Any, cast
 import msgpack
 import numpy as np
 
-from protocol import PoseUpdate
-from protocol._compact import F_RELATIVE
-from protocol.codec_frame import _svarint, _uvarint
+from posecast.protocol import PoseUpdate
+from posecast.protocol._compact import F_RELATIVE
+from posecast.protocol.codec_frame import _svarint, _uvarint
 
 __all__ = [
     "CompactUpdateFrames",

@@ -17,7 +17,7 @@ def bench_interp(
         typer.Option(
             help=(
                 "Also time batch 10,000 in two fresh processes with glibc's allocator "
-                "untuned (`python -m scenarios.bench_interp`, and `python -c` importing "
+                "untuned (`python -m posecast.scenarios.bench_interp`, and `python -c` importing "
                 "interp only, as a notebook does) and show them beside this CLI's figures."
             )
         ),
@@ -25,7 +25,7 @@ def bench_interp(
 ) -> None:
     """Poses/s of each interpolator beside scipy, pytransform3d and kingdon; the
     100-stream render frame; throughput by entry path."""
-    from scenarios.bench_interp import run_interp_bench
+    from posecast.scenarios.bench_interp import run_interp_bench
 
     if max_batch < 1:
         raise _fail("--max-batch must be at least 1")

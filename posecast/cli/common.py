@@ -88,10 +88,10 @@ def _user_error(exc: BaseException) -> tuple[str, int] | None:
         if not found or any(f is None for f in found):
             return None
         return found[0]
-    from protocol.errors import PosecastError
+    from posecast.protocol.errors import PosecastError
 
     if isinstance(exc, PosecastError):
-        from client.connection import JoinRefused
+        from posecast.client.connection import JoinRefused
 
         if isinstance(exc, JoinRefused):
             message = f"join refused ({exc.code}): {exc.message}"
@@ -140,7 +140,7 @@ def _parse_rates(text: str) -> list[float]:
 
 
 def _parse_methods(text: str, live: bool = False) -> list[str]:
-    import interp
+    from posecast import interp
 
     methods = [m.strip() for m in text.split(",") if m.strip()]
     known = interp.names()
@@ -210,7 +210,7 @@ def print_comparison(
 def _tier(name: str | None, path: Path | None) -> Any:
     """The tier called ``name`` (None: no link emulation) from the built-in tiers and
     ``path``; a tiers file is read, and checked, even without a name."""
-    from scenarios.network import load_tiers
+    from posecast.scenarios.network import load_tiers
 
     known = load_tiers(path) if path is not None or name is not None else {}
     if name is None:

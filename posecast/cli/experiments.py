@@ -36,8 +36,8 @@ def compare(
     ] = None,
 ) -> None:
     """Offline interpolator comparison on one trace (ideal network, one-interval playout)."""
-    from scenarios.compare import run_compare
-    from scenarios.traces import TraceError
+    from posecast.scenarios.compare import run_compare
+    from posecast.scenarios.traces import TraceError
 
     rate_list = _parse_rates(rates)
     methods = _parse_methods(interp_)
@@ -169,10 +169,10 @@ def _plan_live(
     live_bots: int,
 ) -> tuple[list[Any], Any]:
     """The tiers and LiveConfig of --live, checked before the offline sweep starts."""
-    import interp
+    from posecast import interp
+    from posecast.scenarios.network import TierError, load_tiers
+    from posecast.scenarios.traces import TraceError
     from posecast.table1_live import LiveConfig, live_motions
-    from scenarios.network import TierError, load_tiers
-    from scenarios.traces import TraceError
 
     live_methods = tuple(
         dict.fromkeys(m for m in ["soa", *method_list] if not interp.info(m).needs_velocity)
@@ -203,8 +203,8 @@ def _run_offline(
     """The offline Table 1 sweep (``options``: run_table1's keywords) under a progress bar."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from scenarios.table1 import run_table1
-    from scenarios.traces import TraceError
+    from posecast.scenarios.table1 import run_table1
+    from posecast.scenarios.traces import TraceError
 
     command = "posecast table1 " + " ".join(sys.argv[2:])
     bar = Progress(
@@ -240,9 +240,9 @@ def _run_live_tiers(
 
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
+    from posecast.scenarios.live_agreement import write_live
+    from posecast.scenarios.traces import TraceError
     from posecast.table1_live import run_live
-    from scenarios.live_agreement import write_live
-    from scenarios.traces import TraceError
 
     # One open relay per tier on loopback: its "no --secret" warning is noise here.
     logging.getLogger("posecast.server").setLevel(logging.ERROR)
@@ -277,7 +277,7 @@ def _run_live_tiers(
 
 def _print_table1(report: dict[str, Any], method_list: list[str]) -> None:
     """Table 1 (equal-QoE rate and saving per tier, beside the paper's) and its notes."""
-    from scenarios.table1 import describe_rates, snapped_range
+    from posecast.scenarios.table1 import describe_rates, snapped_range
 
     searched = report["config"]["rates"]
     table = Table(
@@ -356,7 +356,7 @@ def _print_live(live_report: dict[str, Any]) -> None:
 
 def list_interpolators() -> None:
     """List the registered interpolators (built-in and plug-ins)."""
-    import interp
+    from posecast import interp
 
     for name in interp.names():
         info = interp.info(name)
@@ -380,8 +380,8 @@ def velocity_sources(
     method: Annotated[str, typer.Option(help="The velocity interpolator.")] = "motor-hermite",
 ) -> None:
     """Hands' tip error of a velocity interpolator per velocity source (ideal network)."""
-    from scenarios.traces import find_traces, load_trace
-    from scenarios.velocity_sources import compare_velocity_sources
+    from posecast.scenarios.traces import find_traces, load_trace
+    from posecast.scenarios.velocity_sources import compare_velocity_sources
 
     trace_list = [load_trace(f) for f in find_traces(traces)]
     rate_list = [float(r) for r in rates.split(",")]

@@ -20,7 +20,7 @@ from posecast.cli.common import (
 
 def _recording(file: Path) -> None:
     """Refuse, in one line, a FILE that is not a posecast recording (exit 2)."""
-    from recorder.reader import check_recording
+    from posecast.recorder.reader import check_recording
 
     if file.is_dir():
         raise _fail(f"{file} is a directory; give a recording file (.mcap) in it")
@@ -36,8 +36,8 @@ def info(
     json_out: Annotated[bool, typer.Option("--json", help="Print JSON instead of text.")] = False,
 ) -> None:
     """Users, streams, durations, rates, sizes and drops of a recording."""
-    from recorder import format_info
-    from recorder import info as recording_info
+    from posecast.recorder import format_info
+    from posecast.recorder import info as recording_info
 
     _recording(file)
     try:
@@ -56,7 +56,7 @@ def recover(
     overwrite: Annotated[bool, typer.Option(help="Replace an existing output file.")] = False,
 ) -> None:
     """Recover every intact chunk of a crashed or damaged recording into a complete MCAP."""
-    from recorder import recover as recover_file
+    from posecast.recorder import recover as recover_file
 
     _recording(file)  # nothing is written for a file that is not a recording
     try:
@@ -116,7 +116,7 @@ def replay(
     _check_replay_args(offline, url, (start, duration, users, loop), codec, object_patience)
     chosen = None if users is None else [u for u in users.split(",") if u.strip()]
     if offline:
-        from recorder.replay import replay_offline
+        from posecast.recorder.replay import replay_offline
 
         methods = _parse_methods(interp_)
         if rate <= 0:
@@ -218,7 +218,7 @@ def _replay_passes(
     """Replay live once, or (``--loop``) again and again until Ctrl-C; the last report."""
     from websockets.exceptions import InvalidURI, WebSocketException
 
-    from client.replay import replay_live
+    from posecast.client.replay import replay_live
 
     start, duration, users = window
     codec, patience = options
@@ -256,7 +256,7 @@ def export(
     out: Annotated[Path | None, typer.Option(help="Output path (default beside FILE).")] = None,
 ) -> None:
     """Export a recording as CSV, NPZ, or MCAP with Foxglove frame transforms."""
-    from recorder.export import export as export_file
+    from posecast.recorder.export import export as export_file
 
     if to not in ("csv", "npz", "foxglove"):
         raise _fail("--to takes csv, npz or foxglove")
@@ -285,9 +285,9 @@ def analyze(
     json_out: Annotated[Path | None, typer.Option("--json", help="Write results as JSON.")] = None,
 ) -> None:
     """The paper's Tables 2 and 3: decimate, interpolate the missing frames, score."""
-    from recorder.analyze import analyze as run_analysis
-    from recorder.analyze import format_analysis
-    from scenarios.traces import TraceError
+    from posecast.recorder.analyze import analyze as run_analysis
+    from posecast.recorder.analyze import format_analysis
+    from posecast.scenarios.traces import TraceError
 
     if (file is None) == (not trace):
         raise _fail("give a recording FILE or --trace, not both")

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, TypedDict
 from posecast.cli.common import _fail
 
 if TYPE_CHECKING:
-    from protocol.codec import Volume
+    from posecast.protocol.codec import Volume
 
 __all__ = ["check_serve_args", "check_tls_files", "cluster_config", "room_volume"]
 
@@ -55,8 +55,8 @@ def check_tls_files(certfile: Path | None, keyfile: Path | None) -> None:
 
 def room_volume(text: str, extent: float | None) -> Volume:
     """The room volume of --volume / --room-extent; a clear one-line error if unusable."""
-    from protocol.codec import Volume
-    from protocol.errors import PosecastError
+    from posecast.protocol.codec import Volume
+    from posecast.protocol.errors import PosecastError
 
     if extent is not None:
         if not 0 < extent <= 2048:

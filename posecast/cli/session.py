@@ -379,7 +379,7 @@ def serve(
     recording of pose updates and SIGUSR2 resumes it (each pause is written
     into the files as a drops record).
     """
-    from server.app import ServerConfig
+    from posecast.server.app import ServerConfig
 
     _check_serve_args(port, rate, min_rate, max_rate, record, record_writer, log_level)
     check_tls_files(certfile, keyfile)
@@ -441,7 +441,7 @@ async def _serve_main(cfg: Any) -> None:
     import asyncio
     import signal
 
-    from server.app import RelayServer
+    from posecast.server.app import RelayServer
 
     server = RelayServer(cfg)
     loop = asyncio.get_running_loop()
@@ -475,7 +475,7 @@ def token(
     """Print an access token for `posecast serve --secret/--secret-file`."""
     import time
 
-    from server.auth import make_token
+    from posecast.server.auth import make_token
 
     key = _secret(ctx, secret, secret_file)
     if key is None:
@@ -493,7 +493,7 @@ def _check_bot_args(
     rate: float, n: int, duration: float, interp_text: str, motion: str
 ) -> tuple[str, ...]:
     """Validate what bots and demo share; returns the interpolator names."""
-    from scenarios.traces import TraceError, find_traces
+    from posecast.scenarios.traces import TraceError, find_traces
 
     if n < 1:
         raise _fail("the number of bots must be at least 1")
@@ -580,8 +580,8 @@ def bots(
     The secret can also come from POSECAST_SECRET or POSECAST_SECRET_FILE (kept
     out of ps); an explicit --token wins over a secret from the environment.
     """
-    from client.bot import BotConfig
-    from client.connection import relay_urls
+    from posecast.client.bot import BotConfig
+    from posecast.client.connection import relay_urls
 
     try:
         urls = relay_urls(url)
@@ -643,7 +643,7 @@ def _token_minter(secret: str | None, room: str, duration: float) -> Any:
         return None
     import time
 
-    from server.auth import make_token
+    from posecast.server.auth import make_token
 
     def token_for(i: int) -> str:
         return make_token(secret, room, f"bot{i}", duration + 600, time.time())
@@ -655,7 +655,7 @@ def _run_swarm(base: Any, n: int, token_for: Any) -> dict[str, Any]:
     """Run ``n`` bots like ``base`` to their end; their swarm report."""
     from websockets.exceptions import InvalidURI, WebSocketException
 
-    from client.swarm import run_bots, swarm_report
+    from posecast.client.swarm import run_bots, swarm_report
 
     try:
         with console.status(f"{n} bots in room {base.room!r} for {base.duration:g} s ..."):
@@ -716,7 +716,7 @@ def demo(
 ) -> None:
     """The main job: a server and N bots on loopback, then QoE per interpolator."""
     from posecast.demo import run_demo
-    from server.app import ServerConfig
+    from posecast.server.app import ServerConfig
 
     if scene is not None:
         if _given(ctx, "motion"):

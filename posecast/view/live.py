@@ -26,12 +26,12 @@ import viser
 from numpy.typing import NDArray
 from websockets.exceptions import ConnectionClosed
 
-from client.bot import BotConfig, _Bot
-from client.connection import ClientConnection
+from posecast.client.bot import BotConfig, _Bot
+from posecast.client.connection import ClientConnection
+from posecast.protocol import ROOM_USER, Join, Joined, PeerLeft, Snapshot
+from posecast.protocol.codec import DEFAULT_VOLUME
+from posecast.scenarios.receiver import render_buffers
 from posecast.view.scene import AvatarScene
-from protocol import ROOM_USER, Join, Joined, PeerLeft, Snapshot
-from protocol.codec import DEFAULT_VOLUME
-from scenarios.receiver import render_buffers
 
 __all__ = ["LiveConfig", "LiveView", "UserStats", "run_live_view"]
 

@@ -22,7 +22,7 @@ import numpy as np
 import viser
 from numpy.typing import NDArray
 
-from protocol.codec import DEFAULT_VOLUME, Volume
+from posecast.protocol.codec import DEFAULT_VOLUME, Volume
 
 __all__ = ["GHOST_OPACITY", "METHOD_COLOURS", "AvatarScene", "user_colour"]
 

@@ -56,7 +56,7 @@ The package: :mod:`~scenarios.table1.common` (constants, pure helpers),
 pipeline).
 """
 
-from scenarios.table1.common import (
+from posecast.scenarios.table1.common import (
     CORRECTION_TIME_S,
     CURVE_KEYS,
     DEFAULT_METHODS,
@@ -80,14 +80,14 @@ from scenarios.table1.common import (
     snapped_range,
     tier_rate,
 )
-from scenarios.table1.frontier import _refine as _refine
-from scenarios.table1.frontier import _same_bracket as _same_bracket
-from scenarios.table1.frontier import cheapest_point, pareto_frontier
-from scenarios.table1.report import SNAPPED_RATE, SNAPPED_SAVING
-from scenarios.table1.run import run_table1
-from scenarios.table1.runtime import _prepare_receiver as _prepare_receiver
-from scenarios.table1.runtime import receiver_cpu_time, receiver_cpu_times
-from scenarios.table1.sweep import _ideal_log as _ideal_log
+from posecast.scenarios.table1.frontier import _refine as _refine
+from posecast.scenarios.table1.frontier import _same_bracket as _same_bracket
+from posecast.scenarios.table1.frontier import cheapest_point, pareto_frontier
+from posecast.scenarios.table1.report import SNAPPED_RATE, SNAPPED_SAVING
+from posecast.scenarios.table1.run import run_table1
+from posecast.scenarios.table1.runtime import _prepare_receiver as _prepare_receiver
+from posecast.scenarios.table1.runtime import receiver_cpu_time, receiver_cpu_times
+from posecast.scenarios.table1.sweep import _ideal_log as _ideal_log
 
 __all__ = [
     "CORRECTION_TIME_S",

@@ -32,10 +32,10 @@ from typing import Any
 
 import numpy as np
 
-from protocol.codec import DEFAULT_VOLUME, Volume, quantise
-from protocol.codec_relay import encode_group
-from scenarios.network import TCP_IP_HEADER_BYTES, TCP_MSS, websocket_header_bytes
-from scenarios.traces import Trace
+from posecast.protocol.codec import DEFAULT_VOLUME, Volume, quantise
+from posecast.protocol.codec_relay import encode_group
+from posecast.scenarios.network import TCP_IP_HEADER_BYTES, TCP_MSS, websocket_header_bytes
+from posecast.scenarios.traces import Trace
 
 __all__ = [
     "CODECS",

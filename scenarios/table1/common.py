@@ -10,16 +10,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-import interp
-from scenarios.network import (
+from posecast import interp
+from posecast.scenarios.network import (
     VELOCITY_BYTES_PER_POSE,
     Tier,
     affordable_rate,
     wire_bytes,
 )
-from scenarios.synthetic import suite_traces, synthetic_motion
-from scenarios.traces import Trace, TraceError, find_traces, load_trace
-from scenarios.velocity_sources import DEFAULT_VELOCITY_SOURCE, source_velocities
+from posecast.scenarios.synthetic import suite_traces, synthetic_motion
+from posecast.scenarios.traces import Trace, TraceError, find_traces, load_trace
+from posecast.scenarios.velocity_sources import DEFAULT_VELOCITY_SOURCE, source_velocities
 
 F64 = NDArray[np.float64]
 #: ``progress(stage, done, total)``.

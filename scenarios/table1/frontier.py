@@ -19,9 +19,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-import interp
-from scenarios.network import VELOCITY_BYTES_PER_POSE, Tier, Transport
-from scenarios.qoe import (
+from posecast import interp
+from posecast.scenarios.network import VELOCITY_BYTES_PER_POSE, Tier, Transport
+from posecast.scenarios.qoe import (
     KeyframeLog,
     Playout,
     Rendered,
@@ -32,9 +32,9 @@ from scenarios.qoe import (
     playout_brackets,
     window_depth,
 )
-from scenarios.table1.common import F64, FRONTIER_RATES, PAPER, VARIANTS, saving_pct
-from scenarios.table1.sweep import _ideal_log, _link_log_maker, _LogMaker, _Wire
-from scenarios.traces import Trace, device_class
+from posecast.scenarios.table1.common import F64, FRONTIER_RATES, PAPER, VARIANTS, saving_pct
+from posecast.scenarios.table1.sweep import _ideal_log, _link_log_maker, _LogMaker, _Wire
+from posecast.scenarios.traces import Trace, device_class
 
 #: ``(network name, keyframe log maker, rates)`` of one network of the view.
 _Network = tuple[str, _LogMaker, Sequence[int]]

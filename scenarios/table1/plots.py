@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from scenarios.table1.common import PAPER
-from scenarios.table1.sweep import _Sweep
+from posecast.scenarios.table1.common import PAPER
+from posecast.scenarios.table1.sweep import _Sweep
 
 
 def _pyplot() -> Any:

@@ -15,9 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from scenarios.network import VELOCITY_BYTES_PER_POSE
-from scenarios.table1.codec_bytes import codec_markdown
-from scenarios.table1.common import (
+from posecast.scenarios.network import VELOCITY_BYTES_PER_POSE
+from posecast.scenarios.table1.codec_bytes import codec_markdown
+from posecast.scenarios.table1.common import (
     PAPER,
     VARIANTS,
     VELOCITY_SOURCE,
@@ -25,8 +25,8 @@ from scenarios.table1.common import (
     describe_rates,
     snapped_range,
 )
-from scenarios.table1.smoothness import gain_split_markdown, smoothness_markdown
-from scenarios.traces import CAUSAL_DEGREE, CAUSAL_SAMPLES, Trace
+from posecast.scenarios.table1.smoothness import gain_split_markdown, smoothness_markdown
+from posecast.scenarios.traces import CAUSAL_DEGREE, CAUSAL_SAMPLES, Trace
 
 # ---------------------------------------------------------------- JSON
 

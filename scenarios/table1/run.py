@@ -14,10 +14,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import interp
-from scenarios.network import Tier, Transport, load_tiers, wire_bytes
-from scenarios.table1.codec_bytes import CODECS, SizeCache, codec_report
-from scenarios.table1.common import (
+from posecast import interp
+from posecast.scenarios.network import Tier, Transport, load_tiers, wire_bytes
+from posecast.scenarios.table1.codec_bytes import CODECS, SizeCache, codec_report
+from posecast.scenarios.table1.common import (
     CORRECTION_TIME_S,
     DEFAULT_METHODS,
     DEFAULT_ROOM_POSES,
@@ -28,17 +28,17 @@ from scenarios.table1.common import (
     _as_traces,
     tier_rate,
 )
-from scenarios.table1.frontier import _Network, frontier_networks, frontier_report
-from scenarios.table1.plots import frontier_plot, write_plots
-from scenarios.table1.report import (
+from posecast.scenarios.table1.frontier import _Network, frontier_networks, frontier_report
+from posecast.scenarios.table1.plots import frontier_plot, write_plots
+from posecast.scenarios.table1.report import (
     assemble_report,
     jsonable,
     run_config,
     write_json,
     write_markdown,
 )
-from scenarios.table1.runtime import bench_tier_rows
-from scenarios.table1.sweep import (
+from posecast.scenarios.table1.runtime import bench_tier_rows
+from posecast.scenarios.table1.sweep import (
     _curves_json,
     _ideal_log,
     _Sweep,
@@ -49,7 +49,7 @@ from scenarios.table1.sweep import (
     link_rows,
     per_trace_report,
 )
-from scenarios.traces import Trace, device_class
+from posecast.scenarios.traces import Trace, device_class
 
 
 def run_table1(

@@ -16,17 +16,17 @@ from typing import Any
 
 import numpy as np
 
-import interp
-from protocol import decode_message, encode_snapshot
-from protocol.poses import Snapshot
-from scenarios.receiver import StreamBuffer, render_buffers
-from scenarios.table1.common import (
+from posecast import interp
+from posecast.protocol import decode_message, encode_snapshot
+from posecast.protocol.poses import Snapshot
+from posecast.scenarios.receiver import StreamBuffer, render_buffers
+from posecast.scenarios.table1.common import (
     DEFAULT_ROOM_POSES,
     Progress,
     keyframe_velocities,
     saving_pct,
 )
-from scenarios.traces import Trace
+from posecast.scenarios.traces import Trace
 
 #: ``{(method, rate): {figure: value}}``, as :func:`receiver_cpu_times` returns it.
 CpuTimes = dict[tuple[str, float], dict[str, float]]

@@ -15,9 +15,9 @@ from typing import Any
 
 import numpy as np
 
-import interp
-from scenarios.network import LinkModel, Tier, Transport
-from scenarios.qoe import (
+from posecast import interp
+from posecast.scenarios.network import LinkModel, Tier, Transport
+from posecast.scenarios.qoe import (
     ErrorSamples,
     KeyframeLog,
     evaluate_group,
@@ -26,7 +26,7 @@ from scenarios.qoe import (
     sample_keyframes,
     summarize,
 )
-from scenarios.table1.common import (
+from posecast.scenarios.table1.common import (
     CURVE_KEYS,
     F64,
     HEADLINE,
@@ -39,8 +39,8 @@ from scenarios.table1.common import (
     saving_pct,
     snapped_range,
 )
-from scenarios.table1.smoothness import gain_split
-from scenarios.traces import Trace
+from posecast.scenarios.table1.smoothness import gain_split
+from posecast.scenarios.traces import Trace
 
 #: ``stage(name)`` gives the tick to call once per trace done in that stage.
 StageTicks = Callable[[str], Callable[[], None]]

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from support import running_server
 
-from client.bot import BotConfig, BotReport, RemoteStream, remote_log, run_bot
-from client.swarm import run_bots, swarm_report
-from interp import get
-from scenarios.qoe import STAT_KEYS, playout_brackets
-from server.room import room_phase
+from posecast.client.bot import BotConfig, BotReport, RemoteStream, remote_log, run_bot
+from posecast.client.swarm import run_bots, swarm_report
+from posecast.interp import get
+from posecast.scenarios.qoe import STAT_KEYS, playout_brackets
+from posecast.server.room import room_phase
 
 
 async def _session(configs: list[BotConfig]) -> list[BotReport]:
@@ -61,7 +61,7 @@ def three_bots() -> list[BotReport]:
             name="c",
         ),
     ]
-    from client.bot import motion_for_bot
+    from posecast.client.bot import motion_for_bot
 
     configs[2] = BotConfig(
         **{**configs[2].__dict__, "motion": motion_for_bot("traces:sample", 1)[0]}

@@ -6,8 +6,8 @@ import asyncio
 
 from support import running_server
 
-from client.bot import BotConfig, BotReport, motion_for_bot, run_bot
-from client.swarm import swarm_report
+from posecast.client.bot import BotConfig, BotReport, motion_for_bot, run_bot
+from posecast.client.swarm import swarm_report
 
 #: What a raw snapshot spends a pose (SNAPSHOT_ENTRY_SIZE): compact updates beat it.
 RAW_SNAPSHOT_POSE = 36

@@ -22,11 +22,11 @@ from dataclasses import replace
 import pytest
 from support import poll_until, relayed, running_server
 
-from client.bot import BotConfig, BotReport, _Bot, run_bot
-from client.connection import relay_urls
-from client.remote import evaluate_remote
-from client.swarm import reconnections, run_bots, swarm_report
-from server.app import RelayServer, ServerConfig
+from posecast.client.bot import BotConfig, BotReport, _Bot, run_bot
+from posecast.client.connection import relay_urls
+from posecast.client.remote import evaluate_remote
+from posecast.client.swarm import reconnections, run_bots, swarm_report
+from posecast.server.app import RelayServer, ServerConfig
 
 #: Long enough that the failover happens well inside the session.
 DURATION = 8.0

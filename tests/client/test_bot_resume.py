@@ -12,8 +12,8 @@ import asyncio
 import numpy as np
 from support import running_server
 
-from client.bot import BotConfig, _Bot
-from protocol import PeerLeft, PeerResumed, PeerStalled
+from posecast.client.bot import BotConfig, _Bot
+from posecast.protocol import PeerLeft, PeerResumed, PeerStalled
 
 
 async def _session() -> tuple[_Bot, _Bot, list[type]]:

@@ -20,8 +20,8 @@ from pathlib import Path
 import pytest
 from support import poll_until, relayed, running_server
 
-from client.bot import BotConfig, BotReport, SessionEnd, run_bot
-from client.swarm import session_ending, swarm_report
+from posecast.client.bot import BotConfig, BotReport, SessionEnd, run_bot
+from posecast.client.swarm import session_ending, swarm_report
 
 #: Far longer than any test waits: a session only ends early here.
 LONG = 120.0

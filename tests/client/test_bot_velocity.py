@@ -11,7 +11,8 @@ import pytest
 from support import running_server
 from typer.testing import CliRunner
 
-from client.bot import (
+from posecast.cli import app
+from posecast.client.bot import (
     BotConfig,
     BotReport,
     RemoteStream,
@@ -20,26 +21,30 @@ from client.bot import (
     remote_log,
     run_bot,
 )
-from client.swarm import swarm_report
-from interp import interpolate_brackets
-from posecast.cli import app
-from protocol import VELOCITY_BYTES, VELOCITY_MAX, frame_size
-from scenarios.motion import MotionSpec
-from scenarios.network import (
+from posecast.client.swarm import swarm_report
+from posecast.interp import interpolate_brackets
+from posecast.protocol import VELOCITY_BYTES, VELOCITY_MAX, frame_size
+from posecast.scenarios.motion import MotionSpec
+from posecast.scenarios.network import (
     TCP_IP_HEADER_BYTES,
     TCP_MSS,
     VELOCITY_BYTES_PER_POSE,
     websocket_header_bytes,
     wire_bytes,
 )
-from scenarios.qoe import (
+from posecast.scenarios.qoe import (
     KeyframeLog,
     evaluate_group,
     playout_brackets,
     summarize,
 )
-from scenarios.receiver import VELOCITY_FALLBACK, StreamBuffer, render_buffers, rendered_method
-from scenarios.traces import DEVICE_NAMES
+from posecast.scenarios.receiver import (
+    VELOCITY_FALLBACK,
+    StreamBuffer,
+    render_buffers,
+    rendered_method,
+)
+from posecast.scenarios.traces import DEVICE_NAMES
 
 
 @pytest.mark.parametrize("n", [1, 3, 18, 48, 200, 1500])
@@ -297,8 +302,8 @@ def test_demo_command_renders_motor_hermite_live(tmp_path: Path) -> None:
 
 def test_bot_velocity_table_equals_the_whole_trace_estimate(dev_trace_path: Path) -> None:
     """The bot's chunked causal velocities are exactly Trace.causal_velocities()."""
-    from client.bot import _CausalVelocities
-    from scenarios.traces import load_trace
+    from posecast.client.bot import _CausalVelocities
+    from posecast.scenarios.traces import load_trace
 
     trace = load_trace(dev_trace_path).select(DEVICE_NAMES).window(0.0, 12.0)
     full = trace.causal_velocities()

@@ -13,13 +13,13 @@ import pytest
 from support import running_server
 from websockets.exceptions import ConnectionClosed
 
-from client.connection import ClientConnection
-from client.replay import DEFAULT_MAX_SEND_RATE, plan_replay, replay_live
-from protocol import PeerJoined, Snapshot
-from protocol.codec import DEFAULT_VOLUME, dequantise, quantise
-from recorder.export import read_session
-from recorder.replay import synthesize_recording
-from scenarios.motion import MotionSpec
+from posecast.client.connection import ClientConnection
+from posecast.client.replay import DEFAULT_MAX_SEND_RATE, plan_replay, replay_live
+from posecast.protocol import PeerJoined, Snapshot
+from posecast.protocol.codec import DEFAULT_VOLUME, dequantise, quantise
+from posecast.recorder.export import read_session
+from posecast.recorder.replay import synthesize_recording
+from posecast.scenarios.motion import MotionSpec
 
 SUB_RATE = 30.0
 TICK = 1.0 / SUB_RATE

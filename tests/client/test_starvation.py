@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from client.bot import BotReport, RemoteStream
-from client.swarm import (
+from posecast.client.bot import BotReport, RemoteStream
+from posecast.client.swarm import (
     STARVED_KEYFRAME_SHARE,
     STARVED_RENDER_LATE,
     Starvation,

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from client.scene import LEAD, ThrowCatchActor
-from scenarios.throw_catch import PERIOD, scene_script
+from posecast.client.scene import LEAD, ThrowCatchActor
+from posecast.scenarios.throw_catch import PERIOD, scene_script
 
 T0 = 1000.0
 

@@ -20,11 +20,11 @@ import numpy as np
 import pytest
 from support import running_server
 
-from client.bot import BotConfig, BotReport, run_bot
-from client.swarm import handovers, swarm_report
-from protocol import ROOM_USER
-from scenarios.motion import MotionSpec
-from scenarios.throw_catch import DRILL, PERIOD, scene_script
+from posecast.client.bot import BotConfig, BotReport, run_bot
+from posecast.client.swarm import handovers, swarm_report
+from posecast.protocol import ROOM_USER
+from posecast.scenarios.motion import MotionSpec
+from posecast.scenarios.throw_catch import DRILL, PERIOD, scene_script
 
 RATE = 10.0
 GRAVITY = 9.81

@@ -17,8 +17,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
 
-import interp
-from interp.extrapolate import twist_extrapolate
+from posecast import interp
+from posecast.interp.extrapolate import twist_extrapolate
 
 F64 = NDArray[np.float64]
 

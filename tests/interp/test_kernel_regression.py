@@ -16,7 +16,7 @@ import pytest
 from numpy.polynomial import polynomial as P
 from numpy.typing import NDArray
 
-import interp
+from posecast import interp
 
 F64 = NDArray[np.float64]
 
@@ -288,7 +288,7 @@ def test_motor_quintic_each_window_alone_matches_reference() -> None:
 
 @pytest.mark.parametrize(("lb", "la"), [(1, 1), (3, 3), (2, 0), (0, 2), (1, 3)])
 def test_window_spline_other_sizes_match_reference(lb: int, la: int) -> None:
-    from interp.quintic import motor_window_spline
+    from posecast.interp.quintic import motor_window_spline
 
     k = lb + 2 + la
     keys, times, t = windows(5 + k, 200, k, lb)

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from test_pair_kernels import hard_pairs
 
-import interp
+from posecast import interp
 
 NAMES = ["soa", "dq-slerp", "motor-lerp"]
 

@@ -21,8 +21,8 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-import interp
-from interp.kernels import CHUNK, dq_slerp_rows, motor_lerp_rows, share_rows, soa_rows
+from posecast import interp
+from posecast.interp.kernels import CHUNK, dq_slerp_rows, motor_lerp_rows, share_rows, soa_rows
 
 F64 = NDArray[np.float64]
 

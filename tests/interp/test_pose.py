@@ -9,7 +9,7 @@ import pytest
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-import interp
+from posecast import interp
 
 F64 = NDArray[np.float64]
 

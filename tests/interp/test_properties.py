@@ -18,7 +18,7 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
 
-import interp
+from posecast import interp
 
 F64 = NDArray[np.float64]
 

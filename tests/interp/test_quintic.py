@@ -13,9 +13,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
 
-import interp
-from interp.extrapolate import twist_extrapolate
-from interp.quintic import motor_window_spline
+from posecast import interp
+from posecast.interp.extrapolate import twist_extrapolate
+from posecast.interp.quintic import motor_window_spline
 
 F64 = NDArray[np.float64]
 

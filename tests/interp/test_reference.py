@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-import interp
+from posecast import interp
 
 F64 = NDArray[np.float64]
 Reference = Callable[[F64, F64, float], F64]

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from numpy.typing import ArrayLike, NDArray
 
-import interp
-from interp import registry
+from posecast import interp
+from posecast.interp import registry
 
 F64 = NDArray[np.float64]
 #: The paper's three pair interpolators (more built-ins may follow them).

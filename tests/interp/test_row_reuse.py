@@ -19,8 +19,15 @@ import pytest
 from numpy.typing import NDArray
 from test_pair_kernels import REFERENCES, hard_pairs
 
-from interp import rowops
-from interp.kernels import RowKernel, dq_slerp_rows, motor_lerp_rows, scratch, share_rows, soa_rows
+from posecast.interp import rowops
+from posecast.interp.kernels import (
+    RowKernel,
+    dq_slerp_rows,
+    motor_lerp_rows,
+    scratch,
+    share_rows,
+    soa_rows,
+)
 
 F64 = NDArray[np.float64]
 KERNELS: dict[str, RowKernel] = {

@@ -14,9 +14,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
 
-import interp
-from interp.extrapolate import twist_extrapolate
-from interp.hermite import soa_hermite
+from posecast import interp
+from posecast.interp.extrapolate import twist_extrapolate
+from posecast.interp.hermite import soa_hermite
 
 F64 = NDArray[np.float64]
 
@@ -371,7 +371,7 @@ def test_bad_inputs_are_rejected_like_motor_hermite() -> None:
 @pytest.mark.parametrize("theta", [1e-8, 5e-3, 9.99e-3, 1.001e-2, 0.5, 2.0, 3.0, np.pi])
 def test_inverse_right_jacobian_matches_the_inverted_closed_form(theta: float) -> None:
     """J_r^-1(r) w against solve(J_r(r), w), on both sides of the series switch."""
-    from interp.hermite import _dexp_inv
+    from posecast.interp.hermite import _dexp_inv
 
     axis = _unit(np.array([0.6, -0.2, 0.7]))
     r = axis * theta

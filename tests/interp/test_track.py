@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from numpy.typing import ArrayLike, NDArray
 
-import interp
+from posecast import interp
 
 F64 = NDArray[np.float64]
 

@@ -15,8 +15,8 @@ import pytest
 from numpy.typing import ArrayLike, NDArray
 from window_probe import Probe, expected, probes  # noqa: F401
 
-import interp
-from interp import registry
+from posecast import interp
+from posecast.interp import registry
 
 F64 = NDArray[np.float64]
 

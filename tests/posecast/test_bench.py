@@ -11,7 +11,7 @@ import pytest
 from rich.console import Console
 
 from posecast.bench import run_relay_bench, update_template
-from protocol import encode_update
+from posecast.protocol import encode_update
 
 EXPECTED_KEYS = {
     "clients",

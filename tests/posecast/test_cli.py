@@ -47,7 +47,7 @@ def test_compare_bad_inputs_are_clear(tmp_path: Path) -> None:
 @pytest.fixture(scope="module")
 def small_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A 3-user, 4 s recording synthesised from the dev traces."""
-    from recorder.replay import synthesize_recording
+    from posecast.recorder.replay import synthesize_recording
 
     folder = tmp_path_factory.mktemp("rec")
     return synthesize_recording(folder, users=3, rate=30.0, duration=4.0)

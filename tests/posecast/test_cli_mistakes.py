@@ -21,11 +21,11 @@ from pathlib import Path
 
 import pytest
 
-from client.connection import JoinRefused
-from protocol import PosecastError, ProtocolViolation
-from recorder import FormatError, RecorderError, RecoveryError
-from scenarios.network import TierError
-from server.auth import TokenError, verify_token
+from posecast.client.connection import JoinRefused
+from posecast.protocol import PosecastError, ProtocolViolation
+from posecast.recorder import FormatError, RecorderError, RecoveryError
+from posecast.scenarios.network import TierError
+from posecast.server.auth import TokenError, verify_token
 
 _EXE = Path(sys.executable).with_name("posecast")
 _COMMAND = [str(_EXE)] if _EXE.exists() else [sys.executable, "-m", "posecast.cli"]
@@ -300,7 +300,7 @@ def test_demo_checks_the_rate_before_starting(tmp_path: Path) -> None:
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A small real recording (2 users, 1 s)."""
-    from recorder.replay import synthesize_recording
+    from posecast.recorder.replay import synthesize_recording
 
     return synthesize_recording(tmp_path_factory.mktemp("rec"), users=2, rate=30.0, duration=1.0)
 

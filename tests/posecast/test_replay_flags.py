@@ -15,12 +15,12 @@ from support import running_server
 from typer.testing import CliRunner
 from websockets.exceptions import ConnectionClosed
 
-from client.connection import ClientConnection
-from client.replay import plan_replay, select_plan
 from posecast.cli import app
-from protocol import Join, Snapshot
-from recorder.export import sorted_streams
-from recorder.replay import synthesize_recording
+from posecast.client.connection import ClientConnection
+from posecast.client.replay import plan_replay, select_plan
+from posecast.protocol import Join, Snapshot
+from posecast.recorder.export import sorted_streams
+from posecast.recorder.replay import synthesize_recording
 
 runner = CliRunner()
 

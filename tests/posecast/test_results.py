@@ -11,9 +11,9 @@ from typing import Any
 import pytest
 
 from posecast import results, results_docs
-from recorder.analyze import analyze
-from scenarios.table1 import run_table1
-from scenarios.traces import load_trace
+from posecast.recorder.analyze import analyze
+from posecast.scenarios.table1 import run_table1
+from posecast.scenarios.traces import load_trace
 
 PAGE = """# Title
 

@@ -11,9 +11,9 @@ import pytest
 from typer.testing import CliRunner
 
 from posecast.cli import app
+from posecast.scenarios.live_agreement import Tolerance
+from posecast.scenarios.network import load_tiers
 from posecast.table1_live import LiveConfig, live_motions, run_live_tier
-from scenarios.live_agreement import Tolerance
-from scenarios.network import load_tiers
 
 runner = CliRunner()
 

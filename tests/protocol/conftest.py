@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from protocol.testing import SessionPair
+from posecast.protocol.testing import SessionPair
 
 
 @pytest.fixture

@@ -11,9 +11,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
 
-from protocol import ErrorCode, LocalProtocolError, RemoteProtocolError
-from protocol.bits import BitReader, BitWriter, best_k, bit_length
-from protocol.codec import (
+from posecast.protocol import ErrorCode, LocalProtocolError, RemoteProtocolError
+from posecast.protocol.bits import BitReader, BitWriter, best_k, bit_length
+from posecast.protocol.codec import (
     DEFAULT_VOLUME,
     ROTATION_ERROR_MAX_DEG,
     BaselineMismatch,

@@ -19,8 +19,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
 
-from protocol import ErrorCode, RemoteProtocolError
-from protocol.codec import (
+from posecast.protocol import ErrorCode, RemoteProtocolError
+from posecast.protocol.codec import (
     DEFAULT_VOLUME,
     PoseFrame,
     decode_snapshot,
@@ -30,7 +30,7 @@ from protocol.codec import (
     encode_update_codes,
     quantise,
 )
-from protocol.codec_quant import codes_problem
+from posecast.protocol.codec_quant import codes_problem
 
 FAST = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 V = DEFAULT_VOLUME

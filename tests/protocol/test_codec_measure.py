@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from protocol.bits import best_k, bit_length, zigzag
-from protocol.codec import (
+from posecast.protocol.bits import best_k, bit_length, zigzag
+from posecast.protocol.codec import (
     DEFAULT_VOLUME,
     ROTATION_ERROR_MAX_DEG,
     decode_snapshot,
@@ -29,8 +29,8 @@ from protocol.codec import (
     encode_update_codes,
     quantise,
 )
-from protocol.codec_quant import predict_rotation
-from scenarios.traces import Trace, TraceError, find_traces, load_trace
+from posecast.protocol.codec_quant import predict_rotation
+from posecast.scenarios.traces import Trace, TraceError, find_traces, load_trace
 
 ROOM = 10
 DURATION = 36.0
@@ -276,8 +276,8 @@ def test_upstream_bytes_through_the_session(capsys: pytest.CaptureFixture[str]) 
     """Update frames as a bot sends them (``UpstreamEncoder``: delta per stream, relative
     header after the first); prints B/pose per rate on traces:sample and, when the full
     sets are there, traces:eval. Asserts that the relative header only ever saves."""
-    from protocol._compact import UpstreamEncoder, absolute
-    from protocol.poses import PoseUpdate
+    from posecast.protocol._compact import UpstreamEncoder, absolute
+    from posecast.protocol.poses import PoseUpdate
 
     lines = []
     for split in ("traces:sample", "traces:eval"):

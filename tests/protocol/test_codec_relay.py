@@ -10,9 +10,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
 
-from protocol import ErrorCode, RemoteProtocolError
-from protocol.codec import DEFAULT_VOLUME, BaselineMismatch, quantise
-from protocol.codec_relay import RelayEntry, decode_relay_snapshot, encode_group
+from posecast.protocol import ErrorCode, RemoteProtocolError
+from posecast.protocol.codec import DEFAULT_VOLUME, BaselineMismatch, quantise
+from posecast.protocol.codec_relay import RelayEntry, decode_relay_snapshot, encode_group
 
 FAST = settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 V = DEFAULT_VOLUME

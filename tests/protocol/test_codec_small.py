@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol import codec
-from protocol.codec_quant import dequantise, quantise
+from posecast.protocol import codec
+from posecast.protocol.codec_quant import dequantise, quantise
 
 FRAMES_SHA256 = "7c17bc7a6e4264c5efea7fd20ca351ea8a33ea599b674039ad703f36a96093f7"
 

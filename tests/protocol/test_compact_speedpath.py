@@ -17,11 +17,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from protocol import _compact
-from protocol._compact import UpstreamDecoder, UpstreamEncoder, absolute
-from protocol.codec import DEFAULT_VOLUME, Volume, decode_update
-from protocol.errors import ProtocolViolation, RemoteProtocolError
-from protocol.poses import PoseUpdate
+from posecast.protocol import _compact
+from posecast.protocol._compact import UpstreamDecoder, UpstreamEncoder, absolute
+from posecast.protocol.codec import DEFAULT_VOLUME, Volume, decode_update
+from posecast.protocol.errors import ProtocolViolation, RemoteProtocolError
+from posecast.protocol.poses import PoseUpdate
 
 SMALL_VOLUME = Volume((-3.0, -0.5, -4.0), (5.0, 2.5, 4.0))
 

@@ -8,10 +8,14 @@ import pkgutil
 import sys
 from pathlib import Path
 
-import protocol
+from support import import_root
+
+from posecast import protocol
 
 PACKAGE_DIR = Path(protocol.__file__).parent
-MODULES = sorted(f"protocol.{info.name}" for info in pkgutil.iter_modules([str(PACKAGE_DIR)]))
+MODULES = sorted(
+    f"posecast.protocol.{info.name}" for info in pkgutil.iter_modules([str(PACKAGE_DIR)])
+)
 ALLOWED_ROOTS = {"protocol", "numpy", "msgpack", "__future__"} | set(sys.stdlib_module_names)
 
 
@@ -35,7 +39,7 @@ def test_package_reexports_exactly_all() -> None:
 def test_public_modules_reexported() -> None:
     """Everything the public modules export is also reachable from the package."""
     for name in ("errors", "events", "limits", "messages", "poses", "session", "wire"):
-        module = importlib.import_module(f"protocol.{name}")
+        module = importlib.import_module(f"posecast.protocol.{name}")
         missing = set(module.__all__) - set(protocol.__all__)
         assert not missing, f"protocol.{name}: {missing}"
 
@@ -45,9 +49,11 @@ def test_imports_only_stdlib_numpy_msgpack() -> None:
     for path in PACKAGE_DIR.glob("*.py"):
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Import):
-                roots = {alias.name.split(".")[0] for alias in node.names}
+                roots = {import_root(alias.name) for alias in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.module == "posecast":
+                roots = {import_root(f"posecast.{alias.name}") for alias in node.names}
             elif isinstance(node, ast.ImportFrom):
-                roots = {(node.module or "").split(".")[0]}
+                roots = {import_root(node.module or "")}
             else:
                 continue
             assert roots <= ALLOWED_ROOTS, f"{path.name} imports {roots - ALLOWED_ROOTS}"

@@ -6,7 +6,7 @@ import struct
 
 import pytest
 
-from protocol import (
+from posecast.protocol import (
     Bye,
     ErrorCode,
     ErrorMessage,
@@ -192,7 +192,7 @@ IDS = [message.TYPE for message, _ in PINNED]
 
 def test_every_type_is_pinned() -> None:
     """The pinned table covers every message type."""
-    from protocol import MESSAGE_TYPES
+    from posecast.protocol import MESSAGE_TYPES
 
     assert set(IDS) == MESSAGE_TYPES
 

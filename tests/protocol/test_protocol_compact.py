@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from protocol import (
+from posecast.protocol import (
     DEFAULT_VOLUME,
     ErrorCode,
     Hello,
@@ -27,8 +27,8 @@ from protocol import (
     encode_message,
     encode_update,
 )
-from protocol._compact import F_RELATIVE, absolute, relative
-from protocol.testing import SessionPair, raw_frame
+from posecast.protocol._compact import F_RELATIVE, absolute, relative
+from posecast.protocol.testing import SessionPair, raw_frame
 
 # The raw session of tests/protocol (hello agent "a", welcome user 7 at 12.5 s,
 # join lab head/left/right at 20 Hz, joined 0/1/2, one update of two poses),

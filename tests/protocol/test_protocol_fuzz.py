@@ -17,7 +17,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from protocol import (
+from posecast.protocol import (
     MAX_CLOSE_REASON_BYTES,
     UPDATE_ENTRY_SIZE,
     ClientSession,
@@ -33,7 +33,7 @@ from protocol import (
     encode_snapshot,
     encode_update,
 )
-from protocol.testing import SessionPair, raw_frame
+from posecast.protocol.testing import SessionPair, raw_frame
 
 FUZZ = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 

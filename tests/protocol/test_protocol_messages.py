@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from protocol import (
+from posecast.protocol import (
     Bye,
     ControlMessage,
     ErrorCode,
@@ -30,7 +30,7 @@ from protocol import (
     encode_message,
     is_valid_stream_name,
 )
-from protocol.testing import raw_frame
+from posecast.protocol.testing import raw_frame
 
 MESSAGES: list[ControlMessage] = [
     Hello(),

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import protocol
-from protocol import (
+from posecast import protocol
+from posecast.protocol import (
     QUAT_NORM_TOLERANCE,
     SNAPSHOT_DTYPE,
     SNAPSHOT_ENTRY_SIZE,
@@ -24,7 +24,7 @@ from protocol import (
     frame_size,
     pose_problem,
 )
-from protocol.testing import raw_frame
+from posecast.protocol.testing import raw_frame
 
 
 def random_poses(n: int, seed: int = 0) -> np.ndarray:

@@ -8,7 +8,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from protocol import (
+from posecast.protocol import (
     PROTOCOL_VERSION,
     Bye,
     ClientSession,
@@ -35,7 +35,7 @@ from protocol import (
     encode_snapshot,
     encode_update,
 )
-from protocol.testing import SessionPair, raw_frame
+from posecast.protocol.testing import SessionPair, raw_frame
 
 IDENTITY = [0.0, 1.6, 0.0, 1.0, 0.0, 0.0, 0.0]
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from protocol import (
+from posecast.protocol import (
     ErrorCode,
     Join,
     LocalProtocolError,
@@ -12,7 +12,7 @@ from protocol import (
     decode_message,
     encode_message,
 )
-from protocol.testing import raw_frame
+from posecast.protocol.testing import raw_frame
 
 
 def test_spectator_travels_only_when_true() -> None:

@@ -10,8 +10,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-import protocol
-from protocol import (
+from posecast import protocol
+from posecast.protocol import (
     SNAPSHOT_ENTRY_SIZE,
     SNAPSHOT_VELOCITY_DTYPE,
     SNAPSHOT_VELOCITY_ENTRY_SIZE,
@@ -35,7 +35,7 @@ from protocol import (
     encode_update,
     frame_size,
 )
-from protocol.testing import SessionPair, raw_frame
+from posecast.protocol.testing import SessionPair, raw_frame
 
 FUZZ = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 

@@ -32,10 +32,18 @@ import numpy as np
 from support import poll_until, running_server
 from websockets.exceptions import ConnectionClosed
 
-from client.connection import ClientConnection
-from protocol import ROOM_USER, ObjectCreate, ObjectInfo, Owner, PoseUpdate, Release, Snapshot
-from protocol.objects import RequestOwnership
-from server.app import ServerConfig
+from posecast.client.connection import ClientConnection
+from posecast.protocol import (
+    ROOM_USER,
+    ObjectCreate,
+    ObjectInfo,
+    Owner,
+    PoseUpdate,
+    Release,
+    Snapshot,
+)
+from posecast.protocol.objects import RequestOwnership
+from posecast.server.app import ServerConfig
 
 __all__ = ["ROOM", "Actor", "Session", "drill_pose", "record_handover_session"]
 

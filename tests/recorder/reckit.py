@@ -11,7 +11,7 @@ from mcap.reader import make_reader
 from mcap.records import Chunk, Message
 from mcap.stream_reader import StreamReader, breakup_chunk
 
-from recorder import SessionRecorder
+from posecast.recorder import SessionRecorder
 
 __all__ = [
     "T0",

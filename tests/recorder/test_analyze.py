@@ -11,15 +11,15 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from recorder.analyze import (
+from posecast.recorder.analyze import (
     analyze,
     decimate,
     format_analysis,
     quat_to_euler,
     relative_error_pct,
 )
-from recorder.replay import synthesize_recording
-from scenarios.traces import SAMPLE_DIR, Trace, load_trace
+from posecast.recorder.replay import synthesize_recording
+from posecast.scenarios.traces import SAMPLE_DIR, Trace, load_trace
 
 SEQUENCES = [
     "".join(a) for a in itertools.product("xyz", repeat=3) if a[0] != a[1] and a[1] != a[2]

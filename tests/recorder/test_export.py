@@ -11,15 +11,15 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from recorder import SessionReader
-from recorder.export import (
+from posecast.recorder import SessionReader
+from posecast.recorder.export import (
     FRAME_TRANSFORM_SCHEMA,
     csv_bytes,
     export,
     read_session,
     stream_label,
 )
-from recorder.replay import synthesize_recording
+from posecast.recorder.replay import synthesize_recording
 
 
 @pytest.fixture(scope="module")

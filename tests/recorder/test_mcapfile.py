@@ -8,8 +8,8 @@ import random
 import pytest
 from mcap.reader import NonSeekingReader, make_reader
 
-from recorder.mcapfile import MAGIC, ChunkWriter
-from recorder.scan import ChannelRecord, McapScanner, MessageRecord, MetadataRecord
+from posecast.recorder.mcapfile import MAGIC, ChunkWriter
+from posecast.recorder.scan import ChannelRecord, McapScanner, MessageRecord, MetadataRecord
 
 
 def _write(chunks: list[list[tuple[int, int, bytes, int]]]) -> tuple[bytes, list[tuple]]:

@@ -20,14 +20,14 @@ from objkit import CUP, DRILL, SKEW_B, Session, record_handover_session
 from typer.testing import CliRunner
 
 from posecast.cli import app
-from protocol import Owner
-from recorder import PoseRecord, SessionReader, info, read_records, recover
-from recorder.analyze import analyze
-from recorder.export import export, read_session
-from recorder.format import EVENTS_TOPIC, POSES_TOPIC
-from recorder.objects import MIN_STEP, ROOM_USER, ObjectTrack, split_objects
-from recorder.reader import StreamData, UserInfo
-from recorder.replay import replay_offline
+from posecast.protocol import Owner
+from posecast.recorder import PoseRecord, SessionReader, info, read_records, recover
+from posecast.recorder.analyze import analyze
+from posecast.recorder.export import export, read_session
+from posecast.recorder.format import EVENTS_TOPIC, POSES_TOPIC
+from posecast.recorder.objects import MIN_STEP, ROOM_USER, ObjectTrack, split_objects
+from posecast.recorder.reader import StreamData, UserInfo
+from posecast.recorder.replay import replay_offline
 
 GRAVITY = 9.81
 #: float16 velocities (recorded flight keyframes): 11 significant bits, |v| < 8 m/s.

@@ -19,14 +19,14 @@ from objkit import Session, record_handover_session
 from support import running_server
 from typer.testing import CliRunner
 
-from client.connection import ClientConnection
-from client.replay import plan_replay, replay_live, select_plan
-from interp import get as get_interp
 from posecast.cli import app
-from protocol.codec import DEFAULT_VOLUME, dequantise, quantise
-from recorder.export import read_session
-from recorder.objects import RESTED, ObjectTrack
-from server.app import ServerConfig
+from posecast.client.connection import ClientConnection
+from posecast.client.replay import plan_replay, replay_live, select_plan
+from posecast.interp import get as get_interp
+from posecast.protocol.codec import DEFAULT_VOLUME, dequantise, quantise
+from posecast.recorder.export import read_session
+from posecast.recorder.objects import RESTED, ObjectTrack
+from posecast.server.app import ServerConfig
 
 GRAVITY = 9.81
 

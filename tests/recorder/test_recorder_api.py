@@ -8,10 +8,14 @@ import pkgutil
 import sys
 from pathlib import Path
 
-import recorder
+from support import import_root
+
+from posecast import recorder
 
 PACKAGE_DIR = Path(recorder.__file__).parent
-MODULES = sorted(f"recorder.{info.name}" for info in pkgutil.iter_modules([str(PACKAGE_DIR)]))
+MODULES = sorted(
+    f"posecast.recorder.{info.name}" for info in pkgutil.iter_modules([str(PACKAGE_DIR)])
+)
 # recorder sits beside scenarios: it may use its QoE and traces (never the reverse).
 ALLOWED_ROOTS = {"recorder", "protocol", "interp", "scenarios", "numpy", "mcap", "zstandard", "lz4"}
 ALLOWED_ROOTS |= {"msgpack"}  # the writer process reads update frames
@@ -21,7 +25,7 @@ ALLOWED_ROOTS |= {"__future__"} | set(sys.stdlib_module_names)
 def test_every_module_declares_all_and_a_docstring() -> None:
     """Every recorder module has a docstring and an __all__ whose names exist."""
     assert MODULES
-    for name in ["recorder", *MODULES]:
+    for name in ["posecast.recorder", *MODULES]:
         module = importlib.import_module(name)
         assert module.__doc__, name
         assert isinstance(module.__all__, list), name
@@ -42,9 +46,11 @@ def test_imports_nothing_from_server_or_client() -> None:
     for path in PACKAGE_DIR.glob("*.py"):
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Import):
-                roots = {alias.name.split(".")[0] for alias in node.names}
+                roots = {import_root(alias.name) for alias in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.module == "posecast":
+                roots = {import_root(f"posecast.{alias.name}") for alias in node.names}
             elif isinstance(node, ast.ImportFrom):
-                roots = {(node.module or "").split(".")[0]}
+                roots = {import_root(node.module or "")}
             else:
                 continue
             assert roots <= ALLOWED_ROOTS, f"{path.name} imports {roots - ALLOWED_ROOTS}"

@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from protocol import DEFAULT_VOLUME, PoseUpdate
-from protocol._compact import UpstreamDecoder, UpstreamEncoder
-from recorder import (
+from posecast.protocol import DEFAULT_VOLUME, PoseUpdate
+from posecast.protocol._compact import UpstreamDecoder, UpstreamEncoder
+from posecast.recorder import (
     FormatError,
     PoseRecord,
     ProcessRecorder,
@@ -28,7 +28,7 @@ from recorder import (
     load_streams,
     recover,
 )
-from recorder.compact import (
+from posecast.recorder.compact import (
     _HEAD,
     CompactUpdate,
     _Cursor,
@@ -37,10 +37,10 @@ from recorder.compact import (
     encode_group,
     is_group,
 )
-from recorder.export import read_session
-from recorder.format import POSES_TOPIC
-from recorder.scan import ChannelRecord, McapScanner, MessageRecord
-from scenarios.traces import find_traces, load_trace
+from posecast.recorder.export import read_session
+from posecast.recorder.format import POSES_TOPIC
+from posecast.recorder.scan import ChannelRecord, McapScanner, MessageRecord
+from posecast.scenarios.traces import find_traces, load_trace
 
 #: (arrival, user, the update the relay relays, its codes)
 Relayed = tuple[float, int, PoseUpdate, dict[int, list[int]]]

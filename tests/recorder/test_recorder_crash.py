@@ -11,14 +11,14 @@ from pathlib import Path
 
 import pytest
 
-from recorder import PoseRecord, find_leftovers, read_records, recover
+from posecast.recorder import PoseRecord, find_leftovers, read_records, recover
 
 # The writer: 20 users' updates in bursts, ~2000 updates/s; after each burst a
 # progress line "<updates offered so far> <time.monotonic()>".
 _WRITER = """
 import sys, time
 import numpy as np
-from recorder import SessionRecorder
+from posecast.recorder import SessionRecorder
 rec = SessionRecorder.open(sys.argv[1], "crash", name="crash")
 rng = np.random.default_rng(0)
 poses = rng.normal(size=(3, 7)).astype(np.float32)

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from recorder.format import (
+from posecast.recorder.format import (
     CHANNELS,
     FormatError,
     decode_json,
@@ -122,7 +122,7 @@ def test_to_ns_rounds_and_clamps() -> None:
 
 def test_decode_poses_matches_decode_pose_one_by_one() -> None:
     """The public batch decoder: mixed sizes, bit-exact, in message order."""
-    from recorder import decode_poses
+    from posecast.recorder import decode_poses
 
     rng = np.random.default_rng(7)
     datas, want = [], []
@@ -149,8 +149,8 @@ def test_decode_poses_matches_decode_pose_one_by_one() -> None:
 
 def test_pose_messages_with_velocities_round_trip_bit_exact() -> None:
     """Flags bit 0: float16 velocities after the poses, 12 B a stream; mixed batches decode."""
-    from recorder import decode_poses
-    from recorder.format import VELOCITY_FLAG, pose_message_size
+    from posecast.recorder import decode_poses
+    from posecast.recorder.format import VELOCITY_FLAG, pose_message_size
 
     rng = np.random.default_rng(3)
     streams = np.array([4, 5, 6], np.uint16)
@@ -182,8 +182,8 @@ def test_pose_messages_with_velocities_round_trip_bit_exact() -> None:
 
 
 def test_info_says_which_streams_carry_velocities(tmp_path: Path) -> None:
-    from recorder import format_info, info
-    from recorder.replay import synthesize_recording
+    from posecast.recorder import format_info, info
+    from posecast.recorder.replay import synthesize_recording
 
     plain = info(synthesize_recording(tmp_path / "a", users=1, duration=1.0))
     assert [s["velocities"] for s in plain["streams"]] == [False] * 3
@@ -197,7 +197,7 @@ def test_info_says_which_streams_carry_velocities(tmp_path: Path) -> None:
 @pytest.mark.parametrize("with_velocities", [False, True])
 def test_encode_pose_batch_is_encode_pose_row_by_row(n: int, with_velocities: bool) -> None:
     """The writer process's vectorised encoder makes the same bytes, NaN payloads included."""
-    from recorder.format import encode_pose_batch
+    from posecast.recorder.format import encode_pose_batch
 
     rng = np.random.default_rng(n)
     m = 17

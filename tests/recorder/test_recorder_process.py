@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from reckit import T0, make_updates
 
-from protocol import PoseUpdate, decode_message, encode_message
-from recorder import (
+from posecast.protocol import PoseUpdate, decode_message, encode_message
+from posecast.recorder import (
     DropRecord,
     EventRecord,
     PoseRecord,

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from reckit import T0, Update, make_updates
 
-from recorder import (
+from posecast.recorder import (
     DropRecord,
     PoseRecord,
     RecorderError,

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from reckit import Msg, OracleChunk, make_updates, messages_of, oracle_chunks, write_session
 
-from recorder import (
+from posecast.recorder import (
     FormatError,
     PoseRecord,
     RecoveryReport,
@@ -20,7 +20,7 @@ from recorder import (
     recover,
     recover_leftovers,
 )
-from recorder.scan import MAGIC
+from posecast.recorder.scan import MAGIC
 
 
 @pytest.fixture(scope="module")
@@ -103,7 +103,7 @@ def test_channels_lost_with_a_chunk_are_restored(
     """mcap's own Writer puts channel records into the first chunk: lost with it, restored."""
     from mcap.writer import CompressionType, Writer
 
-    from recorder.format import CHANNELS, PROFILE
+    from posecast.recorder.format import CHANNELS, PROFILE
 
     _data, chunks = many_chunks
     part = tmp_path / "old.mcap.part"

@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from protocol import PoseUpdate
-from recorder import SessionRecorder, info, load_streams
-from scenarios.traces import find_traces, load_trace
+from posecast.protocol import PoseUpdate
+from posecast.recorder import SessionRecorder, info, load_streams
+from posecast.scenarios.traces import find_traces, load_trace
 
 USERS, RATE, SECONDS = 20, 20.0, 15.0
 #: Chunks close every 0.5 s in a live room (DEFAULT_FLUSH_INTERVAL); a 20-user room

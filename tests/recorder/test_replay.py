@@ -9,13 +9,24 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from interp import info as interp_info
-from recorder import info as recording_info
-from recorder.export import read_session
-from recorder.replay import bench_replay, recording_stem, replay_offline, synthesize_recording
-from scenarios.motion import MotionSpec
-from scenarios.qoe import KeyframeLog, evaluate_group, ideal_delay, sample_keyframes, summarize
-from scenarios.traces import Trace
+from posecast.interp import info as interp_info
+from posecast.recorder import info as recording_info
+from posecast.recorder.export import read_session
+from posecast.recorder.replay import (
+    bench_replay,
+    recording_stem,
+    replay_offline,
+    synthesize_recording,
+)
+from posecast.scenarios.motion import MotionSpec
+from posecast.scenarios.qoe import (
+    KeyframeLog,
+    evaluate_group,
+    ideal_delay,
+    sample_keyframes,
+    summarize,
+)
+from posecast.scenarios.traces import Trace
 
 
 @pytest.fixture(scope="module")

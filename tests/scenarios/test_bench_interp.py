@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from rich.console import Console
 
-import scenarios.bench_interp as bench
-from scenarios.receiver import render_buffers
+import posecast.scenarios.bench_interp as bench
+from posecast.scenarios.receiver import render_buffers
 
 
 def test_frame_room_holds_100_streams_of_real_motion() -> None:
@@ -58,7 +58,7 @@ def test_report_carries_frame_figures_and_targets(monkeypatch: pytest.MonkeyPatc
 
 
 def test_plain_python_child_reports_every_method() -> None:
-    """``python -m scenarios.bench_interp --batch N`` runs in a fresh interpreter, JSON out."""
+    """``python -m posecast.scenarios.bench_interp --batch N``: a fresh interpreter, JSON out."""
     rates = bench._plain_python_rates(64)
     assert isinstance(rates, dict), rates
     assert set(rates) == set(bench.ALL_METHODS)

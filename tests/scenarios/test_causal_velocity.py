@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from scenarios.traces import (
+from posecast.scenarios.traces import (
     CAUSAL_DEGREE,
     CAUSAL_SAMPLES,
     VELOCITY_SOURCES,
@@ -16,7 +16,7 @@ from scenarios.traces import (
     causal_velocities,
     load_trace,
 )
-from scenarios.velocity_sources import compare_velocity_sources, source_velocities
+from posecast.scenarios.velocity_sources import compare_velocity_sources, source_velocities
 
 
 def uneven_times(n: int, seed: int = 0) -> np.ndarray:

@@ -18,11 +18,11 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from interp import info
-from protocol.codec import DEFAULT_VOLUME, dequantise, quantise
-from scenarios.qoe import evaluate_group, ideal_delay, ideal_log, summarize
-from scenarios.traces import Trace, find_traces, load_trace
-from scenarios.velocity_sources import source_velocities
+from posecast.interp import info
+from posecast.protocol.codec import DEFAULT_VOLUME, dequantise, quantise
+from posecast.scenarios.qoe import evaluate_group, ideal_delay, ideal_log, summarize
+from posecast.scenarios.traces import Trace, find_traces, load_trace
+from posecast.scenarios.velocity_sources import source_velocities
 
 RATES = (5.0, 10.0, 15.0, 20.0, 30.0)
 METHODS = ("soa", "motor-hermite")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scenarios.network import EgressLink, Tier
+from posecast.scenarios.network import EgressLink, Tier
 
 
 def _tier(**kw: float) -> Tier:

@@ -9,8 +9,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from interp.extrapolate import twist_extrapolate
-from scenarios.qoe import (
+from posecast.interp.extrapolate import twist_extrapolate
+from posecast.scenarios.qoe import (
     EXTRAPOLATION_KEYS,
     STAT_KEYS,
     KeyframeLog,
@@ -20,14 +20,14 @@ from scenarios.qoe import (
     sample_keyframes,
     summarize,
 )
-from scenarios.table1 import (
+from posecast.scenarios.table1 import (
     _ideal_log,
     cheapest_point,
     keyframe_velocities,
     pareto_frontier,
     run_table1,
 )
-from scenarios.traces import Trace, load_trace
+from posecast.scenarios.traces import Trace, load_trace
 
 # --- frontier arithmetic --------------------------------------------------------------
 
@@ -258,7 +258,7 @@ def test_frontier_points_equal_evaluate_group(
 
 def test_refinement_bisects_to_the_cheapest_qualifying_rate() -> None:
     """With quality rising with rate, bisection finds the exact lowest qualifying rate."""
-    from scenarios.table1 import _refine
+    from posecast.scenarios.table1 import _refine
 
     def point(net: str, m: str, r: int) -> dict[str, object]:
         # SoA: 100 mm at 20 Hz; "x" reaches 100 mm from 13 Hz on, at the same latency.

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from scenarios.live_agreement import (
+from posecast.scenarios.live_agreement import (
     SenderView,
     Tolerance,
     check_agreement,
@@ -20,8 +20,8 @@ from scenarios.live_agreement import (
     simulate_receiver,
     write_live,
 )
-from scenarios.network import Tier, affordable_rate
-from scenarios.traces import Trace
+from posecast.scenarios.network import Tier, affordable_rate
+from posecast.scenarios.traces import Trace
 
 
 def _stats(p50: float, p95: float, stall: float = 0.0) -> dict[str, float]:

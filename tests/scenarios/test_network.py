@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from protocol import frame_size
-from scenarios.network import (
+from posecast.protocol import frame_size
+from posecast.scenarios.network import (
     GAMMA_SHAPE,
     LinkModel,
     Tier,

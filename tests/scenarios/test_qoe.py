@@ -6,15 +6,15 @@ from pathlib import Path
 
 import numpy as np
 
-from scenarios.compare import compare_trace
-from scenarios.qoe import (
+from posecast.scenarios.compare import compare_trace
+from posecast.scenarios.qoe import (
     KeyframeLog,
     evaluate_group,
     ideal_delay,
     playout_brackets,
     sample_keyframes,
 )
-from scenarios.traces import Trace, load_trace
+from posecast.scenarios.traces import Trace, load_trace
 
 
 def _line_trace(n: int = 91, rate: float = 90.0) -> Trace:

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from scenarios.compare import compare_trace
-from scenarios.qoe import (
+from posecast.scenarios.compare import compare_trace
+from posecast.scenarios.qoe import (
     STAT_KEYS,
     ErrorSamples,
     KeyframeLog,
@@ -19,7 +19,7 @@ from scenarios.qoe import (
     summarize,
     tip_velocity_error_mps,
 )
-from scenarios.traces import Trace, load_trace
+from posecast.scenarios.traces import Trace, load_trace
 
 F64 = NDArray[np.float64]
 

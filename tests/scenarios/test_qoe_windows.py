@@ -16,8 +16,8 @@ import pytest
 from numpy.typing import NDArray
 from window_probe import Probe, expected, probes  # noqa: F401
 
-import interp
-from scenarios.qoe import (
+from posecast import interp
+from posecast.scenarios.qoe import (
     KeyframeLog,
     evaluate_group,
     ideal_delay,
@@ -26,7 +26,7 @@ from scenarios.qoe import (
     sample_keyframes,
     window_depth,
 )
-from scenarios.traces import Trace
+from posecast.scenarios.traces import Trace
 
 F64 = NDArray[np.float64]
 

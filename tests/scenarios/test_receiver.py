@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from interp import soa
-from scenarios.receiver import ClockEstimator, PlayoutDelay, StreamBuffer, render_buffers
+from posecast.interp import soa
+from posecast.scenarios.receiver import ClockEstimator, PlayoutDelay, StreamBuffer, render_buffers
 
 
 def _pose(x: float) -> np.ndarray:

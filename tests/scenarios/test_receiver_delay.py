@@ -11,9 +11,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scenarios.motion import MotionSpec
-from scenarios.qoe import KeyframeLog
-from scenarios.receiver import (
+from posecast.scenarios.motion import MotionSpec
+from posecast.scenarios.qoe import KeyframeLog
+from posecast.scenarios.receiver import (
     PlayoutDelay,
     ReceivedStream,
     RoomBuffers,

@@ -18,9 +18,9 @@ import pytest
 from numpy.typing import ArrayLike, NDArray
 from test_receiver_room import former_render, trace_room
 
-import interp
-from interp import registry
-from scenarios.receiver import RoomBuffers, render_buffers
+from posecast import interp
+from posecast.interp import registry
+from posecast.scenarios.receiver import RoomBuffers, render_buffers
 
 F64 = NDArray[np.float64]
 PAIRS = ["soa", "dq-slerp", "motor-lerp"]

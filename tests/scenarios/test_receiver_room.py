@@ -19,15 +19,15 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-import interp
-from scenarios.qoe import window_depth
-from scenarios.receiver import (
+from posecast import interp
+from posecast.scenarios.qoe import window_depth
+from posecast.scenarios.receiver import (
     RoomBuffers,
     StreamBuffer,
     render_buffers,
     rendered_method,
 )
-from scenarios.traces import find_traces, load_trace
+from posecast.scenarios.traces import find_traces, load_trace
 
 F64 = NDArray[np.float64]
 

@@ -14,10 +14,15 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-import interp
-from scenarios.qoe import KeyframeLog, evaluate_group, playout_brackets, render_playout
-from scenarios.receiver import VELOCITY_FALLBACK, StreamBuffer, render_buffers, rendered_method
-from scenarios.traces import DEVICE_NAMES, Trace, load_trace
+from posecast import interp
+from posecast.scenarios.qoe import KeyframeLog, evaluate_group, playout_brackets, render_playout
+from posecast.scenarios.receiver import (
+    VELOCITY_FALLBACK,
+    StreamBuffer,
+    render_buffers,
+    rendered_method,
+)
+from posecast.scenarios.traces import DEVICE_NAMES, Trace, load_trace
 
 F64 = NDArray[np.float64]
 

@@ -12,8 +12,8 @@ import numpy as np
 from numpy.typing import NDArray
 from window_probe import Probe, expected, probes  # noqa: F401
 
-import interp
-from scenarios.receiver import StreamBuffer, render_buffers
+from posecast import interp
+from posecast.scenarios.receiver import StreamBuffer, render_buffers
 
 F64 = NDArray[np.float64]
 

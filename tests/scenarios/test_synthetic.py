@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from interp import evaluate_track, quat_conj, quat_mul, quat_rotate
-from scenarios.motion import SYNTHETIC_MOTIONS, MotionSpec
-from scenarios.qoe import sample_keyframes
-from scenarios.synthetic import (
+from posecast.interp import evaluate_track, quat_conj, quat_mul, quat_rotate
+from posecast.scenarios.motion import SYNTHETIC_MOTIONS, MotionSpec
+from posecast.scenarios.qoe import sample_keyframes
+from posecast.scenarios.synthetic import (
     NATIVE_RATE,
     load_params,
     load_suite,
@@ -18,7 +18,7 @@ from scenarios.synthetic import (
     suite_traces,
     synthetic_motion,
 )
-from scenarios.traces import Trace, TraceError
+from posecast.scenarios.traces import Trace, TraceError
 
 RATES = [5.0, 7.3, 12.0, 30.0, 45.0]
 

@@ -11,9 +11,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from scenarios.network import Tier, builtin_tiers, wire_bytes
-from scenarios.synthetic import synthetic_motion
-from scenarios.table1 import (
+from posecast.scenarios.network import Tier, builtin_tiers, wire_bytes
+from posecast.scenarios.synthetic import synthetic_motion
+from posecast.scenarios.table1 import (
     PAPER,
     describe_rates,
     equal_qoe_rate,
@@ -23,7 +23,7 @@ from scenarios.table1 import (
     snapped_range,
     tier_rate,
 )
-from scenarios.traces import TraceError, load_trace
+from posecast.scenarios.traces import TraceError, load_trace
 
 STAT_KEYS = {"pos_p50_mm", "pos_p95_mm", "rot_p50_deg", "rot_p95_deg", "tip_p50_mm", "tip_p95_mm"}
 
@@ -212,7 +212,7 @@ def test_every_interpolator_kind_runs_with_its_own_delay_and_bytes(dev_trace_pat
 
 def test_velocity_keyframes_are_float16_and_accurate_enough(dev_trace_path: Path) -> None:
     """The velocity variant rounds to float16: under 0.05 % of the value, far below what matters."""
-    from scenarios.table1 import VELOCITY_SOURCE, keyframe_velocities
+    from posecast.scenarios.table1 import VELOCITY_SOURCE, keyframe_velocities
 
     trace = load_trace(dev_trace_path)
     for source in ("causal", "central"):

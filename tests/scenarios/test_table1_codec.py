@@ -9,12 +9,16 @@ from typing import Any
 import numpy as np
 import pytest
 
-from protocol.codec import DEFAULT_VOLUME
-from protocol.codec_relay import decode_relay_snapshot, snapshot_counts
-from scenarios.network import frame_size, wire_bytes
-from scenarios.table1 import keyframe_velocities, run_table1
-from scenarios.table1.codec_bytes import KEY_INTERVAL_S, compact_snapshot_bytes, payload_wire_bytes
-from scenarios.traces import Trace, load_trace
+from posecast.protocol.codec import DEFAULT_VOLUME
+from posecast.protocol.codec_relay import decode_relay_snapshot, snapshot_counts
+from posecast.scenarios.network import frame_size, wire_bytes
+from posecast.scenarios.table1 import keyframe_velocities, run_table1
+from posecast.scenarios.table1.codec_bytes import (
+    KEY_INTERVAL_S,
+    compact_snapshot_bytes,
+    payload_wire_bytes,
+)
+from posecast.scenarios.traces import Trace, load_trace
 
 
 @pytest.fixture(scope="module")
@@ -120,7 +124,7 @@ def test_headline_is_the_cheapest_match_of_raw_soa_at_30_hz(report: dict[str, An
 
 
 def _markdown(report: dict[str, Any]) -> str:
-    from scenarios.table1.codec_bytes import codec_markdown
+    from posecast.scenarios.table1.codec_bytes import codec_markdown
 
     return "\n".join(codec_markdown(report))
 
@@ -151,9 +155,9 @@ def test_posecast_table1_codecs_flag(dev_trace_path: Path, tmp_path: Path) -> No
 
 def test_room_volume_holds_motions_that_leave_the_default() -> None:
     """The default volume where it holds the traces; grown to whole metres where not."""
-    from protocol.codec import DEFAULT_VOLUME
-    from scenarios.synthetic import synthetic_motion
-    from scenarios.table1.codec_bytes import room_volume
+    from posecast.protocol.codec import DEFAULT_VOLUME
+    from posecast.scenarios.synthetic import synthetic_motion
+    from posecast.scenarios.table1.codec_bytes import room_volume
 
     calm = synthetic_motion("look-around", 0, duration_s=5.0)
     assert room_volume([calm]) is DEFAULT_VOLUME

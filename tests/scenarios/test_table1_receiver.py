@@ -11,15 +11,15 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol import VELOCITY_BYTES, decode_message, frame_size
-from protocol.poses import Snapshot
-from scenarios.table1 import (
+from posecast.protocol import VELOCITY_BYTES, decode_message, frame_size
+from posecast.protocol.poses import Snapshot
+from posecast.scenarios.table1 import (
     _prepare_receiver,
     keyframe_velocities,
     receiver_cpu_times,
     run_table1,
 )
-from scenarios.traces import load_trace
+from posecast.scenarios.traces import load_trace
 
 #: What the velocity variant adds to a 6-pose snapshot: 12 B a pose, and framing.
 EXTRA_BYTES = frame_size(6, velocities=True) - frame_size(6)

@@ -9,10 +9,14 @@ from typing import Any
 
 import pytest
 
-from scenarios.compare import compare_trace
-from scenarios.table1 import PAPER, run_table1
-from scenarios.table1.smoothness import gain_split, gain_split_markdown, smoothness_markdown
-from scenarios.traces import load_trace
+from posecast.scenarios.compare import compare_trace
+from posecast.scenarios.table1 import PAPER, run_table1
+from posecast.scenarios.table1.smoothness import (
+    gain_split,
+    gain_split_markdown,
+    smoothness_markdown,
+)
+from posecast.scenarios.traces import load_trace
 
 METHODS = ["soa", "dq-slerp", "soa-hermite", "motor-hermite"]
 

@@ -12,10 +12,10 @@ from pathlib import Path
 
 import pytest
 
-from interp import window_indices
-from scenarios.qoe import evaluate_group, playout_brackets, summarize
-from scenarios.table1 import _ideal_log, keyframe_velocities, run_table1
-from scenarios.traces import Trace, load_trace
+from posecast.interp import window_indices
+from posecast.scenarios.qoe import evaluate_group, playout_brackets, summarize
+from posecast.scenarios.table1 import _ideal_log, keyframe_velocities, run_table1
+from posecast.scenarios.traces import Trace, load_trace
 
 
 @pytest.fixture(scope="module")

@@ -10,12 +10,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from client.bot import motion_for_bot
-from interp import rotation_error_deg
-from scenarios.motion import MotionSpec, synthetic_trace
-from scenarios.qoe import KeyframeLog
-from scenarios.synthetic_body import _pose_inv, _pose_mul
-from scenarios.throw_catch import (
+from posecast.client.bot import motion_for_bot
+from posecast.interp import rotation_error_deg
+from posecast.scenarios.motion import MotionSpec, synthetic_trace
+from posecast.scenarios.qoe import KeyframeLog
+from posecast.scenarios.synthetic_body import _pose_inv, _pose_mul
+from posecast.scenarios.throw_catch import (
     CATCH_WINDOW,
     DRILL,
     PERIOD,
@@ -26,8 +26,8 @@ from scenarios.throw_catch import (
     scene_script,
     score_drill,
 )
-from scenarios.traces import TraceError
-from server.objects import Flight
+from posecast.scenarios.traces import TraceError
+from posecast.server.objects import Flight
 
 SEEDS = (0, 1, 7)
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scenarios.traces import TraceError, device_class, find_traces, load_trace
+from posecast.scenarios.traces import TraceError, device_class, find_traces, load_trace
 
 
 def test_loads_real_dev_trace(dev_trace_path: Path) -> None:

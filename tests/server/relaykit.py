@@ -25,9 +25,9 @@ from websockets.asyncio.client import ClientConnection as WsConnection
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
-from client.connection import ClientConnection
-from protocol import ErrorMessage, PoseUpdate, Snapshot, decode_message, encode_update
-from server.app import RelayServer
+from posecast.client.connection import ClientConnection
+from posecast.protocol import ErrorMessage, PoseUpdate, Snapshot, decode_message, encode_update
+from posecast.server.app import RelayServer
 
 T = TypeVar("T")
 Clock = Callable[[], float]

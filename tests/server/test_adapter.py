@@ -32,13 +32,13 @@ from test_http import http_get, parse_metrics
 from websockets.frames import Frame, Opcode
 from websockets.streams import StreamReader
 
-import server.app
-from client.connection import ClientConnection
-from protocol import PoseUpdate, Snapshot, UserEvent, encode_message
-from server.app import ServerConfig
-from server.core import TICK_LAG_BUCKETS, RelayCore
-from server.http import metrics_text
-from server.transport import frame_binary
+import posecast.server.app as server_app
+from posecast.client.connection import ClientConnection
+from posecast.protocol import PoseUpdate, Snapshot, UserEvent, encode_message
+from posecast.server.app import ServerConfig
+from posecast.server.core import TICK_LAG_BUCKETS, RelayCore
+from posecast.server.http import metrics_text
+from posecast.server.transport import frame_binary
 
 POSE = [[0.5, 1.5, 0.0, 1.0, 0.0, 0.0, 0.0]]
 
@@ -76,7 +76,7 @@ async def test_subscribers_of_one_tick_group_share_one_frame(
         built.append(len(payload))
         return frame_binary(payload)
 
-    monkeypatch.setattr(server.app, "frame_binary", counting)
+    monkeypatch.setattr(server_app, "frame_binary", counting)
     async with running_server(config()) as srv:
         url = f"ws://127.0.0.1:{srv.port}"
         pub = await Bot.join(url, srv.clock, room="g", rate=20.0, seed=1)
@@ -196,7 +196,7 @@ async def test_a_connection_that_never_handshakes_is_dropped(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """A TCP connection that sends no HTTP request is dropped after the open timeout."""
-    monkeypatch.setattr(server.app, "OPEN_TIMEOUT", 0.3)
+    monkeypatch.setattr(server_app, "OPEN_TIMEOUT", 0.3)
     async with running_server(config()) as srv:
         reader, writer = await asyncio.open_connection("127.0.0.1", srv.port)
         async with asyncio.timeout(10):
@@ -277,7 +277,7 @@ def test_the_relay_runs_on_uvloop() -> None:
 
 async def test_stop_drops_a_socket_still_in_its_handshake() -> None:
     """stop() does not wait for a TCP connection that never sent its HTTP request."""
-    srv = server.app.RelayServer(config())
+    srv = server_app.RelayServer(config())
     task = asyncio.create_task(srv.run())
     await asyncio.wait_for(srv.ready.wait(), 10)
     sock = socket.create_connection(("127.0.0.1", srv.port or 0))

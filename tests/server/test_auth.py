@@ -12,9 +12,9 @@ import msgpack
 import pytest
 from relaykit import HELLO, errors, frame, raw_connect, until_closed
 
-from client.connection import ClientConnection, JoinRefused
-from server.app import RelayServer, ServerConfig
-from server.auth import TokenClaims, TokenError, make_token, verify_token
+from posecast.client.connection import ClientConnection, JoinRefused
+from posecast.server.app import RelayServer, ServerConfig
+from posecast.server.auth import TokenClaims, TokenError, make_token, verify_token
 
 ServerFactory = Callable[..., Any]
 SECRET = "correct horse battery staple"
@@ -84,7 +84,7 @@ def test_token_missing_or_malformed(token: str | None, why: str) -> None:
 
 def test_token_signed_garbage_payload_refused() -> None:
     """A correctly signed payload that is not the claims map is "malformed", not a crash."""
-    from server.auth import _b64, _sign
+    from posecast.server.auth import _b64, _sign
 
     for body in (b"not json", b"[1, 2]", b'{"room": "lab"}'):
         payload = _b64(body)

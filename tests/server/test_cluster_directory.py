@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 from conftest import needs_nats
 
-from server.cluster import ClusterError, Directory
+from posecast.server.cluster import ClusterError, Directory
 
 pytestmark = needs_nats
 

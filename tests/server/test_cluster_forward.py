@@ -21,7 +21,7 @@ from nats.aio.msg import Msg
 from support import poll_until
 from test_core import connect
 
-from protocol import (
+from posecast.protocol import (
     ClientSession,
     ErrorMessage,
     Hello,
@@ -35,9 +35,9 @@ from protocol import (
     UserEvent,
     Welcome,
 )
-from server.core import RelayCore
-from server.forward import Edge, Members
-from server.room import IdAllocator
+from posecast.server.core import RelayCore
+from posecast.server.forward import Edge, Members
+from posecast.server.room import IdAllocator
 
 pytestmark = needs_nats
 

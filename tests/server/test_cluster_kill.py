@@ -19,11 +19,11 @@ from conftest import needs_nats
 from relaykit import settle
 from websockets.exceptions import ConnectionClosed
 
-from client.connection import ClientConnection
+from posecast.client.connection import ClientConnection
 from posecast.cluster_local import RelayProcess, start_relay
-from protocol import PeerLeft, PeerResumed, PoseUpdate, Snapshot
-from recorder import find_leftovers, info, load_streams, recover
-from server.node import MOVED
+from posecast.protocol import PeerLeft, PeerResumed, PoseUpdate, Snapshot
+from posecast.recorder import find_leftovers, info, load_streams, recover
+from posecast.server.node import MOVED
 
 pytestmark = needs_nats
 

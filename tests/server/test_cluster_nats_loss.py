@@ -13,8 +13,8 @@ from conftest import needs_nats
 from relaykit import Bot, settle
 from support import running_server
 
-from server.app import ServerConfig
-from server.cluster import Directory, LocalNats
+from posecast.server.app import ServerConfig
+from posecast.server.cluster import Directory, LocalNats
 
 pytestmark = needs_nats
 

@@ -23,10 +23,10 @@ from conftest import needs_nats
 from relaykit import HELLO, Bot, errors, frame, raw_connect, raw_join, settle, until_closed
 from support import running_server
 
-from client.bot import BotConfig, run_bot
-from client.connection import ClientConnection
 from posecast.bench.procs import _scrape
-from protocol import (
+from posecast.client.bot import BotConfig, run_bot
+from posecast.client.connection import ClientConnection
+from posecast.protocol import (
     PeerJoined,
     PeerLeft,
     PeerResumed,
@@ -35,11 +35,11 @@ from protocol import (
     Snapshot,
     UserEvent,
 )
-from recorder import info, load_streams
-from server.app import RelayServer, ServerConfig
-from server.auth import make_token
-from server.cluster import USER_BLOCK, ClusterError
-from server.node import MOVED
+from posecast.recorder import info, load_streams
+from posecast.server.app import RelayServer, ServerConfig
+from posecast.server.auth import make_token
+from posecast.server.cluster import USER_BLOCK, ClusterError
+from posecast.server.node import MOVED
 
 pytestmark = needs_nats
 

@@ -19,11 +19,11 @@ import time
 import numpy as np
 import pytest
 
-from protocol import ClientSession, Hello, Join, Joined, PoseUpdate, Snapshot, Welcome
-from protocol.codec_relay import snapshot_counts
-from scenarios.traces import Trace, find_traces, load_trace
-from server.core import RelayCore
-from server.room import Room
+from posecast.protocol import ClientSession, Hello, Join, Joined, PoseUpdate, Snapshot, Welcome
+from posecast.protocol.codec_relay import snapshot_counts
+from posecast.scenarios.traces import Trace, find_traces, load_trace
+from posecast.server.core import RelayCore
+from posecast.server.room import Room
 
 ROOM = 10
 RATE = 30.0

@@ -15,11 +15,20 @@ import numpy as np
 import pytest
 from test_core import Client
 
-from protocol import Hello, Join, Joined, PoseUpdate, ProtocolError, SetRate, Snapshot, Welcome
-from protocol.codec import DEFAULT_VOLUME, dequantise, quantise
-from protocol.codec_relay import snapshot_counts
-from server.core import RelayCore, ServerConfig
-from server.room import KEY_INTERVAL
+from posecast.protocol import (
+    Hello,
+    Join,
+    Joined,
+    PoseUpdate,
+    ProtocolError,
+    SetRate,
+    Snapshot,
+    Welcome,
+)
+from posecast.protocol.codec import DEFAULT_VOLUME, dequantise, quantise
+from posecast.protocol.codec_relay import snapshot_counts
+from posecast.server.core import RelayCore, ServerConfig
+from posecast.server.room import KEY_INTERVAL
 
 
 class Walker(Client):

@@ -14,16 +14,16 @@ import math
 import numpy as np
 import pytest
 
-from protocol import PoseUpdate
-from protocol._compact import _update_of_rows
-from protocol.codec import DEFAULT_VOLUME, Volume, quantise
-from protocol.codec_quant import _ANG_CODE_MAX, _LIN_CODE_MAX, M, predict_rotation
-from protocol.codec_relay import GroupSnapshot, RelayEntry, encode_group
-from protocol.codec_small import predict_row
-from protocol.poses import pose_problem, velocity_problem
-from server import limits
-from server.limits import update_refusal
-from server.room import Member, Outbox, Room
+from posecast.protocol import PoseUpdate
+from posecast.protocol._compact import _update_of_rows
+from posecast.protocol.codec import DEFAULT_VOLUME, Volume, quantise
+from posecast.protocol.codec_quant import _ANG_CODE_MAX, _LIN_CODE_MAX, M, predict_rotation
+from posecast.protocol.codec_relay import GroupSnapshot, RelayEntry, encode_group
+from posecast.protocol.codec_small import predict_row
+from posecast.protocol.poses import pose_problem, velocity_problem
+from posecast.server import limits
+from posecast.server.limits import update_refusal
+from posecast.server.room import Member, Outbox, Room
 
 SMALL_VOLUME = Volume((-3.0, -0.5, -4.0), (5.0, 2.5, 4.0))
 

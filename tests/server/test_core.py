@@ -14,7 +14,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from protocol import (
+from posecast.protocol import (
     Bye,
     ClientSession,
     ErrorMessage,
@@ -31,8 +31,8 @@ from protocol import (
     UserEvent,
     Welcome,
 )
-from server.auth import make_token
-from server.core import Close, FinishRecording, RelayCore, Reschedule, ServerConfig, Wake
+from posecast.server.auth import make_token
+from posecast.server.core import Close, FinishRecording, RelayCore, Reschedule, ServerConfig, Wake
 
 POSE = np.array([[0.0, 1.6, 0.0, 1.0, 0.0, 0.0, 0.0]] * 3)
 

@@ -12,9 +12,9 @@ import pytest
 from test_core import POSE, Client, connect
 from test_core_schedule import Tap
 
-from protocol import ErrorMessage, Hello, Join, Joined, PoseUpdate, encode_update
-from server.core import Close, RelayCore, ServerConfig
-from server.limits import normalise_room
+from posecast.protocol import ErrorMessage, Hello, Join, Joined, PoseUpdate, encode_update
+from posecast.server.core import Close, RelayCore, ServerConfig
+from posecast.server.limits import normalise_room
 
 NAN_POSE = np.array([[float("nan"), 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]])
 

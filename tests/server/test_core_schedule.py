@@ -8,10 +8,10 @@ from __future__ import annotations
 import pytest
 from test_core import connect
 
-from protocol import PoseUpdate, SetRate
-from scenarios.network import Tier
-from server.core import Close, FinishRecording, RelayCore, Reschedule, ServerConfig
-from server.room import Room
+from posecast.protocol import PoseUpdate, SetRate
+from posecast.scenarios.network import Tier
+from posecast.server.core import Close, FinishRecording, RelayCore, Reschedule, ServerConfig
+from posecast.server.room import Room
 
 
 class Tap:

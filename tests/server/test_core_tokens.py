@@ -8,9 +8,9 @@ from __future__ import annotations
 
 from test_core import Client
 
-from protocol import ErrorMessage, Hello, Join, Joined, Renew
-from server.auth import make_token
-from server.core import Close, Rearm, RelayCore, ServerConfig
+from posecast.protocol import ErrorMessage, Hello, Join, Joined, Renew
+from posecast.server.auth import make_token
+from posecast.server.core import Close, Rearm, RelayCore, ServerConfig
 
 SECRET = "s3cret"
 WALL = 1000.0

@@ -36,8 +36,8 @@ from relaykit import (
 from websockets.asyncio.client import ClientConnection as WsConnection
 from websockets.exceptions import ConnectionClosed
 
-from protocol import PeerLeft, UserEvent
-from server.app import RelayServer, ServerConfig
+from posecast.protocol import PeerLeft, UserEvent
+from posecast.server.app import RelayServer, ServerConfig
 
 ServerFactory = Callable[..., Any]
 

@@ -12,10 +12,10 @@ import pytest
 from relaykit import Bot, settle
 from test_core import connect
 
-from protocol import PoseUpdate
-from server.app import RelayServer, ServerConfig
-from server.core import RelayCore
-from server.http import metrics_text
+from posecast.protocol import PoseUpdate
+from posecast.server.app import RelayServer, ServerConfig
+from posecast.server.core import RelayCore
+from posecast.server.http import metrics_text
 
 ServerFactory = Callable[..., Any]
 

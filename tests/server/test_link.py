@@ -7,10 +7,10 @@ import asyncio
 import numpy as np
 from support import running_server
 
-from client.connection import ClientConnection
-from protocol import Snapshot, encode_update
-from scenarios.network import Tier
-from server.app import ServerConfig
+from posecast.client.connection import ClientConnection
+from posecast.protocol import Snapshot, encode_update
+from posecast.scenarios.network import Tier
+from posecast.server.app import ServerConfig
 
 POSE = np.tile(np.array([0.0, 1.6, 0.0, 1.0, 0.0, 0.0, 0.0], dtype=np.float32), (3, 1))
 

@@ -18,7 +18,7 @@ from relaykit import joined_raw, settle, update_bytes
 from test_http import http_get
 from websockets.exceptions import ConnectionClosed
 
-from server.app import LogLimiter, RelayServer, ServerConfig, serving
+from posecast.server.app import LogLimiter, RelayServer, ServerConfig, serving
 
 ServerFactory = Callable[..., Any]
 

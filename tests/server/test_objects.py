@@ -17,8 +17,8 @@ import numpy as np
 from support import running_server
 from test_core import Client, connect
 
-from client.connection import ClientConnection
-from protocol import (
+from posecast.client.connection import ClientConnection
+from posecast.protocol import (
     ROOM_USER,
     ErrorMessage,
     Hello,
@@ -34,11 +34,11 @@ from protocol import (
     Snapshot,
     encode_message,
 )
-from protocol.errors import ErrorCode
-from recorder import SessionReader
-from server.config import ServerConfig
-from server.core import Close, RelayCore
-from server.objects import GRAVITY, Flight
+from posecast.protocol.errors import ErrorCode
+from posecast.recorder import SessionReader
+from posecast.server.config import ServerConfig
+from posecast.server.core import Close, RelayCore
+from posecast.server.objects import GRAVITY, Flight
 
 DRILL = (0.0, 1.0, 0.0, 1.0, 0.0, 0.0, 0.0)
 

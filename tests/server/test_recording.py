@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 from support import running_server
 
-from client.bot import BotConfig, BotReport, run_bot
-from client.connection import ClientConnection
-from protocol import Snapshot, encode_update
-from recorder import ProcessRecorder, find_leftovers, info, load_streams, recover
-from recorder.scan import ChannelRecord, McapScanner, MessageRecord
-from server.app import RelayServer, ServerConfig
+from posecast.client.bot import BotConfig, BotReport, run_bot
+from posecast.client.connection import ClientConnection
+from posecast.protocol import Snapshot, encode_update
+from posecast.recorder import ProcessRecorder, find_leftovers, info, load_streams, recover
+from posecast.recorder.scan import ChannelRecord, McapScanner, MessageRecord
+from posecast.server.app import RelayServer, ServerConfig
 
 
 def _proc_state(pid: int) -> str:
@@ -121,8 +121,8 @@ def test_velocity_keyframes_are_recorded_bit_exact(tmp_path: Path, codec: str) -
 _PUBLISHER = r"""
 import asyncio, sys, time
 import numpy as np
-from client.connection import ClientConnection
-from protocol import Snapshot, encode_update
+from posecast.client.connection import ClientConnection
+from posecast.protocol import Snapshot, encode_update
 
 async def echo(conn):
     # The relay sends a subscriber its own streams too: seeing an update come back
@@ -228,8 +228,8 @@ async def _paused_session(
     Returns the recording and the server clock just before and just after the pause
     and the resume calls: (path, before pause, after pause, before resume, after resume).
     """
-    from client.connection import ClientConnection
-    from protocol import encode_update
+    from posecast.client.connection import ClientConnection
+    from posecast.protocol import encode_update
 
     config = ServerConfig(host="127.0.0.1", port=0, record_dir=tmp)
     async with running_server(config) as server:
@@ -267,7 +267,7 @@ async def _paused_session(
 
 def test_paused_recording_skips_pose_updates_and_says_so(tmp_path: Path) -> None:
     """While paused no pose update is recorded; the file has one drops record for the pause."""
-    from recorder import DropRecord, PoseRecord, read_records
+    from posecast.recorder import DropRecord, PoseRecord, read_records
 
     path, paused_at, paused_by, resumed_at, resumed_by = asyncio.run(
         _paused_session(tmp_path, (30, 25, 20))
@@ -283,7 +283,7 @@ def test_paused_recording_skips_pose_updates_and_says_so(tmp_path: Path) -> None
 
 
 def test_a_room_closed_while_paused_records_the_pause(tmp_path: Path) -> None:
-    from recorder import DropRecord, PoseRecord, read_records
+    from posecast.recorder import DropRecord, PoseRecord, read_records
 
     path, *_ = asyncio.run(_paused_session(tmp_path, (10, 0, 0)))
     assert len([r for r in read_records(path) if isinstance(r, PoseRecord)]) == 10

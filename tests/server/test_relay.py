@@ -19,10 +19,10 @@ import numpy as np
 import pytest
 from relaykit import Bot, StreamKey, frame, keyframe_rates, rate_of, settle
 
-from client.connection import ClientConnection
-from protocol import ErrorMessage, PeerJoined, PeerLeft, Ping, Pong, SetRate, UserEvent
-from server.app import RelayServer
-from server.room import Room, room_phase
+from posecast.client.connection import ClientConnection
+from posecast.protocol import ErrorMessage, PeerJoined, PeerLeft, Ping, Pong, SetRate, UserEvent
+from posecast.server.app import RelayServer
+from posecast.server.room import Room, room_phase
 
 ServerFactory = Callable[..., Any]
 

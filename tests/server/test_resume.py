@@ -12,8 +12,8 @@ import numpy as np
 from support import running_server
 from test_core import POSE, Client
 
-from client.connection import ClientConnection
-from protocol import (
+from posecast.client.connection import ClientConnection
+from posecast.protocol import (
     Bye,
     Hello,
     Join,
@@ -27,7 +27,7 @@ from protocol import (
     UserEvent,
     Welcome,
 )
-from server.core import RelayCore, ServerConfig
+from posecast.server.core import RelayCore, ServerConfig
 
 STREAMS = ("head", "left", "right")
 

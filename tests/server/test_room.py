@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from protocol import PoseUpdate, Snapshot, decode_message
-from server.room import IdAllocator, Member, Outbox, Room, room_phase
+from posecast.protocol import PoseUpdate, Snapshot, decode_message
+from posecast.server.room import IdAllocator, Member, Outbox, Room, room_phase
 
 IDENTITY = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
 

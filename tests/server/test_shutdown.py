@@ -21,8 +21,8 @@ from relaykit import HELLO, Bot, join_frame, never_reader, raw_connect, settle
 from websockets.asyncio.client import ClientConnection as WsConnection
 from websockets.exceptions import ConnectionClosed
 
-from client.connection import ClientConnection
-from server.app import RelayServer, ServerConfig
+from posecast.client.connection import ClientConnection
+from posecast.server.app import RelayServer, ServerConfig
 
 CLI = [sys.executable, "-c", "from posecast.cli import main; main()"]
 LISTENING = re.compile(r"posecast listening on ws://(?P<host>[^\s:]+):(?P<port>\d+)")

@@ -15,8 +15,8 @@ from support import running_server
 from test_core import Client, connect
 from websockets.exceptions import ConnectionClosed
 
-from client.connection import ClientConnection
-from protocol import (
+from posecast.client.connection import ClientConnection
+from posecast.protocol import (
     ErrorMessage,
     Hello,
     Join,
@@ -26,7 +26,7 @@ from protocol import (
     Snapshot,
     UserEvent,
 )
-from server.core import Close, RelayCore
+from posecast.server.core import Close, RelayCore
 
 POSE = np.array([[0.0, 1.6, 0.0, 1.0, 0.0, 0.0, 0.0]], dtype=np.float32)
 

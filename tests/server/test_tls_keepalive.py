@@ -20,11 +20,11 @@ from relaykit import settle
 from support import running_server
 from typer.testing import CliRunner
 
-from client.bot import BotConfig, run_bot
-from client.connection import ClientConnection, Tls
 from posecast.cli import app
-from protocol import PoseUpdate, Snapshot
-from server.app import ServerConfig
+from posecast.client.bot import BotConfig, run_bot
+from posecast.client.connection import ClientConnection, Tls
+from posecast.protocol import PoseUpdate, Snapshot
+from posecast.server.app import ServerConfig
 
 POSE = np.array([[0.0, 1.6, 0.0, 1.0, 0.0, 0.0, 0.0]] * 3)
 

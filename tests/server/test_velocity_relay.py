@@ -13,8 +13,8 @@ import numpy as np
 from relaykit import random_poses, settle
 from websockets.exceptions import ConnectionClosed
 
-from client.connection import ClientConnection
-from protocol import (
+from posecast.client.connection import ClientConnection
+from posecast.protocol import (
     VELOCITY_MAX,
     ErrorCode,
     ErrorMessage,
@@ -23,7 +23,7 @@ from protocol import (
     Snapshot,
     encode_update,
 )
-from server.app import RelayServer
+from posecast.server.app import RelayServer
 
 ServerFactory = Callable[..., Any]
 

@@ -29,11 +29,11 @@ sys.path[:0] = [str(_HERE.parents[2]), str(_HERE.parents[1]), str(_HERE)]
 from pagekit import CHROMIUM_ARGS, find_chromium, until  # noqa: E402
 from support import running_server  # noqa: E402
 
-from client.bot import BotConfig, motion_for_bot, run_bot  # noqa: E402
+from posecast.client.bot import BotConfig, motion_for_bot, run_bot  # noqa: E402
+from posecast.recorder.replay import synthesize_recording  # noqa: E402
+from posecast.scenarios.throw_catch import PERIOD, scene_script  # noqa: E402
 from posecast.view.live import LiveConfig, LiveView  # noqa: E402
 from posecast.view.replay import ReplayView  # noqa: E402
-from recorder.replay import synthesize_recording  # noqa: E402
-from scenarios.throw_catch import PERIOD, scene_script  # noqa: E402
 
 METHODS = ("soa", "dq-slerp", "motor-hermite")
 HIDE_TOASTS = (

@@ -9,8 +9,8 @@ from pagekit import canvas_rgb, project, saturated_near, until
 from playwright.async_api import Page
 from support import running_server
 
-import interp
-from client.bot import BotConfig, run_bot
+from posecast import interp
+from posecast.client.bot import BotConfig, run_bot
 from posecast.view.live import LiveConfig, LiveView
 
 METHODS = ("soa", "dq-slerp")

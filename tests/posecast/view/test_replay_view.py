@@ -10,10 +10,10 @@ import pytest
 from pagekit import canvas_rgb, project, saturated_near, until
 from playwright.async_api import Page
 
+from posecast.recorder.reader import SessionReader
+from posecast.recorder.replay import synthesize_recording
 from posecast.view.replay import ReplayView
 from posecast.view.timeline import TRUTH, ReplayModel
-from recorder.reader import SessionReader
-from recorder.replay import synthesize_recording
 
 METHODS = ("soa", "dq-slerp", "motor-hermite")
 

@@ -8,7 +8,7 @@ import pytest
 from typer.testing import CliRunner
 
 from posecast.cli import app
-from recorder.replay import synthesize_recording
+from posecast.recorder.replay import synthesize_recording
 
 runner = CliRunner()
 
