@@ -285,7 +285,7 @@ class Join(ControlMessage):
     it snapshots and events like any member. Its ``streams`` are nominal."""
 
     def __post_init__(self) -> None:
-        check_text("join.room", self.room, empty=False)
+        check_text("join.room", self.room)  # empty: the server says bad-room
         if type(self.codec) is not str or self.codec not in CODECS:
             raise bad("join.codec", f"must be one of {', '.join(CODECS)}")
         check_bool("join.sends_velocities", self.sends_velocities)

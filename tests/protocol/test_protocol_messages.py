@@ -78,7 +78,6 @@ def test_float_fields_normalised() -> None:
         lambda: Welcome(user=True, server_time=0.0),
         lambda: Welcome(user=1, server_time=math.nan),
         lambda: Welcome(user=1, server_time=0.0, min_rate=10.0, max_rate=5.0),
-        lambda: Join(room="", streams=("head",), rate=20.0),
         lambda: Join(room="lab", streams="head", rate=20.0),
         lambda: Join(room="lab", streams=(1,), rate=20.0),
         lambda: Join(room="lab", streams=("head",), rate=math.inf),
