@@ -1,0 +1,153 @@
+"""docs/protocol.md says what the code does: generated parts, message tables, token recipe.
+
+The error table and the worked examples are generated (``protocol/golden.py``) and
+must be in the doc verbatim (regenerate them with
+``python -m posecast.protocol.golden docs/protocol.md``); every message's field
+table must list the dataclass's fields in order, with the right required and
+omitted-at-default marks; the Python token recipe, taken from the doc, must mint a
+token a real relay with a secret accepts.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from dataclasses import MISSING, fields
+from pathlib import Path
+from typing import Any
+
+import pytest
+from support import running_server
+from websockets.asyncio.client import connect
+from websockets.exceptions import ConnectionClosed
+
+from posecast.protocol import ClientSession, ErrorMessage, Hello, Join, Joined, Welcome
+from posecast.protocol.golden import doc_sections, error_rows, rewrite
+from posecast.protocol.messages import ControlMessage
+from posecast.protocol.objects import OBJECT_MESSAGE_TYPES
+from posecast.protocol.wire import _CONTROL
+from posecast.server.app import ServerConfig
+
+DOC = Path(__file__).resolve().parents[2] / "docs" / "protocol.md"
+
+
+def _doc() -> str:
+    return DOC.read_text(encoding="utf-8")
+
+
+def test_generated_sections_match_the_code() -> None:
+    """The error table and the worked examples are what protocol/golden.py generates."""
+    text = _doc()
+    assert rewrite(text, doc_sections()) == text, (
+        "docs/protocol.md is stale: run python -m posecast.protocol.golden docs/protocol.md"
+    )
+
+
+def test_error_table_lists_every_code() -> None:
+    """Every ErrorCode has a row in errors.py's docstring table, so none is left undocumented."""
+    from posecast.protocol import ErrorCode
+
+    assert [code for code, _ in error_rows()] == [str(c) for c in ErrorCode]
+
+
+def _field_tables(text: str) -> list[list[list[str]]]:
+    """Every markdown table whose header is ``| field | type | default | meaning |``."""
+    tables: list[list[list[str]]] = []
+    rows: list[list[str]] | None = None
+    for line in text.splitlines():
+        if line.startswith("| field | type | default | meaning |"):
+            rows = []
+            tables.append(rows)
+        elif rows is not None and line.startswith("|"):
+            if not line.startswith("|---"):
+                rows.append([cell.strip() for cell in line.strip()[1:-1].split("|")])
+        else:
+            rows = None
+    return tables
+
+
+def _spec_of(cls: type[ControlMessage]) -> list[tuple[str, bool, bool]]:
+    """(name, required, omitted at default) of each field, in wire order."""
+    out = []
+    for f in fields(cls):  # type: ignore[arg-type]
+        required = f.default is MISSING and f.default_factory is MISSING
+        out.append((f.name, required, f.name in cls._OMIT))
+    return out
+
+
+@pytest.mark.parametrize(
+    "cls", sorted(_CONTROL.values(), key=lambda c: c.TYPE), ids=lambda c: c.TYPE
+)
+def test_message_table_matches_the_dataclass(cls: type[ControlMessage]) -> None:
+    """Each control message has a doc table listing its fields in order, with the
+    required ones (no default) and the omitted-at-default ones marked."""
+    want = _spec_of(cls)
+    names = [name for name, _, _ in want]
+    tables = [t for t in _field_tables(_doc()) if [r[0].strip("`") for r in t] == names]
+    assert tables, f"no field table for {cls.TYPE!r} with fields {names}"
+    for row, (name, required, omitted) in zip(tables[0], want, strict=True):
+        default = row[2]
+        assert (default == "") == required, f"{cls.TYPE}.{name}: default column {default!r}"
+        assert ("*omitted*" in default) == omitted, f"{cls.TYPE}.{name}: omitted mark"
+
+
+def test_every_message_type_has_a_heading() -> None:
+    """The doc names every message type the wire knows."""
+    text = _doc()
+    types = set(_CONTROL) | {"update", "snapshot"}
+    assert all(f"`{t}`" in text for t in types)
+    assert {c.TYPE for c in OBJECT_MESSAGE_TYPES} <= types
+
+
+def _token_recipe() -> Any:
+    """The doc's Python token recipe, run as written; its ``mint_token``."""
+    blocks = re.findall(r"```python\n(.*?)```", _doc(), flags=re.S)
+    (source,) = [b for b in blocks if "def mint_token" in b]
+    scope: dict[str, Any] = {}
+    exec(compile(source, "docs/protocol.md", "exec"), scope)  # the doc's own code
+    return scope["mint_token"]
+
+
+def test_token_recipe_matches_the_server() -> None:
+    """The recipe's token verifies with the server's own checker, for its room only."""
+    from posecast.server.auth import TokenError, verify_token
+
+    token = _token_recipe()("s3cret", "lab", "alice", 60.0)
+    claims = verify_token("s3cret", token, "lab", time.time())
+    assert (claims.room, claims.user) == ("lab", "alice")
+    with pytest.raises(TokenError, match="room"):
+        verify_token("s3cret", token, "other", time.time())
+
+
+async def _join(port: int, token: str) -> tuple[list[object], int | None]:
+    """Hello and join with ``token``: the messages received, and the close code if closed."""
+    session = ClientSession()
+    got: list[object] = []
+    async with connect(f"ws://127.0.0.1:{port}") as ws:
+        await ws.send(session.send(Hello(agent="doc")))
+        got += session.receive_data(await ws.recv())
+        await ws.send(session.send(Join(room="lab", streams=("head",), rate=10.0, token=token)))
+        try:
+            while not any(isinstance(m, Joined | ErrorMessage) for m in got):
+                got += session.receive_data(await ws.recv())
+            if any(isinstance(m, ErrorMessage) for m in got):
+                await ws.recv()  # the close follows the fatal error
+        except ConnectionClosed as exc:
+            return got, exc.rcvd.code if exc.rcvd else None
+    return got, None
+
+
+async def test_token_recipe_admits_a_join_on_a_real_relay() -> None:
+    """A relay with a secret admits the doc recipe's token and refuses a forged one (1008)."""
+    mint = _token_recipe()
+    config = ServerConfig(host="127.0.0.1", port=0, secret="s3cret")
+    async with running_server(config) as srv:
+        assert srv.port is not None
+        got, code = await _join(srv.port, mint("s3cret", "lab", "alice", 60.0))
+        assert isinstance(got[0], Welcome) and isinstance(got[-1], Joined)
+        assert code is None
+        got, code = await _join(srv.port, mint("not the secret", "lab", "bob", 60.0))
+        errors = [m for m in got if isinstance(m, ErrorMessage)]
+        assert [(e.code, e.fatal) for e in errors] == [("unauthorized", True)]
+        assert errors[0].message == "invalid access token signature"
+        assert code == 1008
