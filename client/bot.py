@@ -79,7 +79,7 @@ from posecast.protocol import (
     Snapshot,
     encode_update,
 )
-from posecast.scenarios.motion import MotionSpec, sample_at
+from posecast.scenarios.motion import MotionSpec, SpawnPoint, sample_at
 from posecast.scenarios.qoe import ErrorSamples
 from posecast.scenarios.receiver import (
     ClockEstimator,
@@ -151,6 +151,7 @@ class BotConfig:
     resume_window: float = 10.0
     #: Relays to fail over to (the nodes of a cluster, or spares): see :attr:`relays`.
     urls: tuple[str, ...] = ()
+    spawn: SpawnPoint | None = None  # its motion moved there (scenarios.spawn); None: not
 
     @property
     def relays(self) -> tuple[str, ...]:
@@ -626,6 +627,7 @@ class _Bot:
         else:
             self.spec = MotionSpec.for_trace(Path(source), start)
         # Reading a trace CSV takes a while: not on the event loop.
+        self.spec = await asyncio.to_thread(self.spec.placed, cfg.spawn, conn.session.volume)
         motion = await asyncio.to_thread(self.spec.load)
         self.trace = motion.select(DEVICE_NAMES)
         if self.velocities:

@@ -29,6 +29,7 @@ from typing import Any
 
 from posecast.client.bot import BotConfig, BotReport, motion_for_bot, run_bot
 from posecast.scenarios.qoe import summarize
+from posecast.scenarios.spawn import layout_points
 
 __all__ = [
     "STARVED_KEYFRAME_SHARE",
@@ -54,19 +55,23 @@ async def run_bots(
     *,
     token_for: Callable[[int], str | None] | None = None,
     stagger: float = 0.05,
+    spawn: str = "none",
 ) -> list[BotReport]:
-    """Run ``n`` bots built from ``base`` (bot i gets motion i of ``base.motion``).
+    """Run ``n`` bots built from ``base`` (bot i gets motion i of ``base.motion``, and
+    spawn point i of the layout ``spawn``: ``scenarios.spawn.layout_points``).
 
     With several relays (``base.relays``), bot i starts on relay ``i % len`` and
     fails over to the next ones in order.
     """
     cfgs, relays = [], base.relays
+    points = layout_points(spawn, n)
     for i in range(n):
         motion, seed = motion_for_bot(base.motion, i)
         cfg = replace(
             base,
             motion=motion,
             seed=seed,
+            spawn=base.spawn if points is None else points[i],
             name=f"{base.name}{i}",
             token=token_for(i) if token_for else base.token,
         )

@@ -41,6 +41,7 @@ async def run_demo(
     view_port: int | None = None,
     nodes: int = 1,
     kill: tuple[str, float] | None = None,
+    spawn: str = "none",
 ) -> dict[str, Any]:
     """Run the demo; with ``view_port``, a live viewer of its room is served there too.
 
@@ -78,7 +79,7 @@ async def run_demo(
             if kill is not None and cluster is not None:
                 killer = tg.create_task(_kill_later(cluster, seen, kill, killed, console))
             try:
-                reports = await run_bots(base, bots)
+                reports = await run_bots(base, bots, spawn=spawn)
             finally:
                 watcher.cancel()
                 if killer is not None:

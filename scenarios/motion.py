@@ -8,18 +8,22 @@ samples as ground truth.
 
 Labels: ``trace:<path>|t0=<seconds>`` or ``synthetic:<name>|seed=<n>|t0=<s>``,
 where a trace path under the vr-traces folder is written relative to it
-(``dev/S02_riftS_expertplus.csv``) so it resolves on every machine.
+(``dev/S02_riftS_expertplus.csv``) so it resolves on every machine. A motion
+moved to a spawn point (:mod:`scenarios.spawn`) adds ``|at=<yaw_deg>,<x>,<z>``,
+the rigid map its samples went through.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from posecast.interp import quat_mul
+from posecast.protocol.codec import DEFAULT_VOLUME, Volume
 from posecast.scenarios import synthetic
+from posecast.scenarios.spawn import Placement, SpawnPoint, check_inside, place, placement_for
 from posecast.scenarios.throw_catch import ROLES, SCENE, scene_motion, scene_role
 from posecast.scenarios.traces import (
     DEVICE_NAMES,
@@ -33,6 +37,7 @@ __all__ = [
     "SCENE_MOTIONS",
     "SYNTHETIC_MOTIONS",
     "MotionSpec",
+    "SpawnPoint",
     "loop_period",
     "sample_at",
     "synthetic_trace",
@@ -106,12 +111,16 @@ class MotionSpec:
     source: str  # "trace:<path>" or "synthetic:<name>"
     seed: int = 0
     t0: float = 0.0
+    #: The rigid map to its spawn point (None: where the motion is).
+    placement: Placement | None = None
 
     def label(self) -> str:
         parts = [self.source]
         if self.source.startswith("synthetic:"):
             parts.append(f"seed={self.seed}")
         parts.append(f"t0={self.t0!r}")
+        if self.placement is not None:
+            parts.append(f"at={self.placement.label()}")
         return "|".join(parts)
 
     @classmethod
@@ -123,8 +132,9 @@ class MotionSpec:
             opts[key] = value
         if not (source.startswith("trace:") or source.startswith("synthetic:")):
             raise TraceError(f"unknown motion label {label!r}")
+        at = Placement.parse(opts["at"]) if "at" in opts else None
         try:
-            return cls(source, int(opts.get("seed", 0)), float(opts.get("t0", 0.0)))
+            return cls(source, int(opts.get("seed", 0)), float(opts.get("t0", 0.0)), at)
         except ValueError:
             raise TraceError(f"malformed motion label {label!r}") from None
 
@@ -139,7 +149,12 @@ class MotionSpec:
             return cls(f"trace:{p}", 0, t0)
 
     def load(self) -> Trace:
-        """The motion's samples, times relative to its own start (not ``t0``)."""
+        """The motion's samples, times relative to its own start (not ``t0``), at its
+        spawn point (``placement``)."""
+        return place(self.load_unplaced(), self.placement)
+
+    def load_unplaced(self) -> Trace:
+        """The motion's samples where they were recorded (no ``placement``)."""
         kind, _, what = self.source.partition(":")
         if kind == "synthetic":
             return synthetic_trace(what, self.seed)
@@ -147,6 +162,22 @@ class MotionSpec:
         if not path.is_absolute():
             path = default_trace_root() / path
         return load_trace(path)
+
+    def placed(self, point: SpawnPoint | None, volume: Volume | None = None) -> MotionSpec:
+        """This motion moved to ``point``: the spec with the placement that puts it there
+        (:func:`scenarios.spawn.placement_for`, after any placement it had). A scripted
+        scene's roles (``throw-catch.*``) and ``point`` None keep their place. Refuses,
+        in one line, a placed motion that leaves ``volume`` (a room's ``welcome.volume``;
+        default: the default volume). Loads the motion: not for an event loop."""
+        if point is None or scene_role(self.source.partition(":")[2]) is not None:
+            return self
+        at = placement_for(self.load(), point)
+        if self.placement is not None:
+            at = self.placement.then(at)
+        vol = DEFAULT_VOLUME if volume is None else volume
+        spec = replace(self, placement=at)
+        check_inside(spec.load(), vol.lo, vol.hi, f"{self.source} at ({point.x:g}, {point.z:g})")
+        return spec
 
     def truth(self, until: float | None = None) -> Trace:
         """The samples in server time (``t0 + times``), looped up to ``until``."""

@@ -528,6 +528,28 @@ AskRateOption = Annotated[float, typer.Option(help="Snapshot rate each bot asks 
 SendRateOption = Annotated[float, typer.Option(help="Rate each bot publishes at (Hz).")]
 InterpOption = Annotated[str, typer.Option("--interp", help="Interpolators rendered side by side.")]
 MotionOption = Annotated[str, typer.Option(help=_MOTION_HELP)]
+SpawnOption = Annotated[
+    str,
+    typer.Option(
+        help="Where each bot stands: circle (facing the centre, neighbours 1.5 m apart; "
+        "circle:R for radius R m), grid (grid:S: S m apart, default 2), none (everyone "
+        "at the motion's own place) or a JSON file of spawn points. A rigid move: the "
+        "QoE is the same. A scripted --scene keeps its own places.",
+    ),
+]
+
+
+def _check_spawn(spawn: str, n: int) -> None:
+    """A spawn layout that names n points (scenarios.spawn), or a one-line refusal."""
+    from posecast.scenarios.spawn import layout_points
+    from posecast.scenarios.traces import TraceError
+
+    try:
+        layout_points(spawn, n)
+    except TraceError as exc:
+        raise _fail(f"--spawn: {exc}") from None
+
+
 DurationOption = Annotated[float, typer.Option(help="Seconds to run.")]
 TokenOption = Annotated[str | None, typer.Option("--token", help="Access token.")]
 BotSecretOption = Annotated[
@@ -574,6 +596,7 @@ def bots(
     codec: CodecOption = Codec.compact,
     cafile: CafileOption = None,
     insecure: InsecureOption = False,
+    spawn: SpawnOption = "circle",
 ) -> None:
     """Run N headless bots against a server and report QoE per interpolator.
 
@@ -588,6 +611,7 @@ def bots(
     except ValueError as exc:
         raise _fail(f"--url: {exc}") from None
     methods = _check_bot_args(rate, n, duration, interp_, motion)
+    _check_spawn(spawn, n)
     key = _bot_secret(ctx, token_, secret, secret_file)
     if token_ is not None and n > 1:
         raise _fail(
@@ -609,7 +633,7 @@ def bots(
         cafile=None if cafile is None else str(cafile),
         insecure=insecure,
     )
-    report = _run_swarm(base, n, _token_minter(key, room, duration))
+    report = _run_swarm(base, n, _token_minter(key, room, duration), spawn)
     print_swarm(report, f"{n} bots at {rate:g} Hz for {duration:g} s ({motion})")
     _print_ending(report)
     _write_json(report, json_out)
@@ -651,18 +675,21 @@ def _token_minter(secret: str | None, room: str, duration: float) -> Any:
     return token_for
 
 
-def _run_swarm(base: Any, n: int, token_for: Any) -> dict[str, Any]:
+def _run_swarm(base: Any, n: int, token_for: Any, spawn: str = "none") -> dict[str, Any]:
     """Run ``n`` bots like ``base`` to their end; their swarm report."""
     from websockets.exceptions import InvalidURI, WebSocketException
 
     from posecast.client.swarm import run_bots, swarm_report
+    from posecast.scenarios.traces import TraceError
 
     try:
         with console.status(f"{n} bots in room {base.room!r} for {base.duration:g} s ..."):
-            reports = _run_async(run_bots(base, n, token_for=token_for))
+            reports = _run_async(run_bots(base, n, token_for=token_for, spawn=spawn))
     except* (OSError, InvalidURI, WebSocketException) as eg:
         where = ", ".join(base.relays)
         raise _fail(f"cannot connect to {where}: {eg.exceptions[0]}") from None
+    except* TraceError as eg:  # e.g. a spawn point that puts a bot outside the volume
+        raise _fail(str(eg.exceptions[0])) from None
     report: dict[str, Any] = swarm_report(reports)
     return report
 
@@ -713,6 +740,7 @@ def demo(
     ] = None,
     nodes: NodesOption = 1,
     kill: KillOption = None,
+    spawn: SpawnOption = "circle",
 ) -> None:
     """The main job: a server and N bots on loopback, then QoE per interpolator."""
     from posecast.demo import run_demo
@@ -725,6 +753,7 @@ def demo(
         if not _given(ctx, "bots"):
             bots = 3
     methods = _check_bot_args(rate, bots, duration, interp_, motion)
+    _check_spawn(spawn, bots)
     if view and not 0 <= view_port <= 65535:
         raise _fail(f"--view-port {view_port} is not a TCP port (0-65535)")
     server_cfg = ServerConfig()  # what run_demo's own server allows
@@ -746,6 +775,7 @@ def demo(
             view_port=view_port if view else None,
             nodes=nodes,
             kill=kill_drill(kill, nodes, duration),
+            spawn=spawn,
         )
     )
     print_swarm(
