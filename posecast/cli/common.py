@@ -7,9 +7,11 @@ in the order ``posecast --help`` lists them, in :mod:`posecast.cli`.
 from __future__ import annotations
 
 import errno
+import importlib
 import sys
+from difflib import get_close_matches
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import typer
 from rich.console import Console
@@ -37,6 +39,25 @@ class _PosecastGroup(TyperGroup):
                 raise
             raise _fail(*found) from None
 
+    def main(self, *args: Any, **kwargs: Any) -> Any:
+        """Run the command line; a mistake the parser finds (an unknown command or
+        option, a bad or missing value) is one line and exit 2, not a usage box."""
+        if not kwargs.get("standalone_mode", True):
+            return super().main(*args, **kwargs)
+        kwargs["standalone_mode"] = False
+        click = _click_exceptions()
+        try:
+            result = super().main(*args, **kwargs)
+        except click.ClickException as exc:
+            if type(exc).__name__ == "NoArgsIsHelpError":  # the help, already shown by rich
+                if message := exc.format_message().strip():
+                    print(message, file=sys.stderr)
+                sys.exit(exc.exit_code)
+            sys.exit(_fail(_parser_message(exc), exc.exit_code).exit_code)
+        except typer.Abort:
+            sys.exit(_fail("aborted", 1).exit_code)
+        sys.exit(result if isinstance(result, int) else 0)
+
 
 app = typer.Typer(
     name="posecast",
@@ -49,6 +70,54 @@ app = typer.Typer(
     add_completion=False,
     pretty_exceptions_enable=False,
 )
+
+
+def version_lines() -> list[str]:
+    """What ``posecast --version`` prints: the package, the protocol it speaks, the codec path.
+
+    The codec path is ``protocol.codec.IMPLEMENTATION`` when the codec module
+    sets it (a compiled accelerator names itself there), else the pure-Python one.
+    """
+    from importlib.metadata import PackageNotFoundError, version
+
+    from posecast.protocol import PROTOCOL_VERSION
+    from posecast.protocol import codec as codec_module
+
+    try:
+        package = version("posecast")
+    except PackageNotFoundError:  # run from a source tree that is not installed
+        package = "unknown (not installed)"
+    path = getattr(codec_module, "IMPLEMENTATION", "pure Python (numpy)")
+    return [
+        f"posecast {package}",
+        f"protocol version {PROTOCOL_VERSION}",
+        f"codec: {path}",
+        f"python {sys.version.split()[0]}",
+    ]
+
+
+def _show_version(value: bool) -> None:
+    if value:
+        print("\n".join(version_lines()))
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: Annotated[
+        bool,
+        typer.Option(
+            "--version",
+            is_eager=True,
+            callback=_show_version,
+            help="Print the package and protocol versions and the codec path, and exit.",
+        ),
+    ] = False,
+) -> None:
+    """Networked VR pose streaming: relay server, headless bots, pose interpolators
+    and a QoE bench."""
+
+
 bench_app = typer.Typer(
     help="Benchmarks that print figures (never pass/fail).", no_args_is_help=True
 )
@@ -71,6 +140,57 @@ def _fail(message: str, code: int = 2) -> typer.Exit:
     return typer.Exit(code)
 
 
+def _click_exceptions() -> Any:
+    """The click exceptions typer raises (typer >= 0.23 vendors click as typer._click)."""
+    try:
+        return importlib.import_module("typer._click.exceptions")
+    except ImportError:
+        return importlib.import_module("click.exceptions")
+
+
+def _parser_message(exc: Any) -> str:
+    """One line for a mistake the parser found, with a "did you mean" where one is close."""
+    ctx = getattr(exc, "ctx", None)
+    where = "posecast" if ctx is None else ctx.command_path
+    see = f"see `{where} --help`"
+    name = type(exc).__name__
+    if name == "NoSuchOption":
+        option = exc.option_name
+        known = _option_names(ctx)
+        close = list(exc.possibilities or ()) or get_close_matches(option, known, n=3)
+        close = [c for c in close if c in known] or close
+        if close:
+            return f"{where} has no option {option}; did you mean {' or '.join(close)}?"
+        return f"{where} has no option {option}; {see}"
+    text = " ".join(exc.format_message().split())
+    if text.startswith("No such command"):
+        text = text.split(". Did you mean")[0].rstrip(".")
+        typed = text.split("'")[1] if text.count("'") >= 2 else ""
+        commands = sorted(getattr(ctx.command, "commands", {}) or {}) if ctx else []
+        close = get_close_matches(typed, commands, n=3)
+        if close:
+            return f"{where} has no command {typed!r}; did you mean {' or '.join(close)}?"
+        return f"{where} has no command {typed!r}; commands: {', '.join(commands)}"
+    text = text.replace("Value error, ", "").replace("Input should be", "it should be")
+    text = text[:1].lower() + text[1:]
+    return f"{where}: {text.rstrip('.')}; {see}"
+
+
+def _option_names(ctx: Any) -> list[str]:
+    """Every long and short option name of the command of ``ctx``."""
+    if ctx is None:
+        return []
+    names: list[str] = []
+    for param in ctx.command.params:
+        names.extend(
+            o for o in (*param.opts, *getattr(param, "secondary_opts", ())) if o[:1] == "-"
+        )
+    return names
+
+
+# Refusals that answer what the user typed (a rate, a room name): usage mistakes, exit 2.
+_USAGE_CODES = ("bad-rate", "bad-room")
+
 _PATH_ERRORS = (FileNotFoundError, FileExistsError, IsADirectoryError, NotADirectoryError)
 
 
@@ -78,7 +198,7 @@ def _user_error(exc: BaseException) -> tuple[str, int] | None:
     """The one line and exit code for a user-facing error; None for anything else.
 
     A :class:`PosecastError` that is also a ``ValueError`` (a bad file, tier, trace,
-    token...) or a refused rate is a usage mistake (2); any other one failed at run
+    token...) or a refused rate or room name is a usage mistake (2); any other one failed at run
     time (1). An ``OSError`` naming a path that is missing, present or of the
     wrong kind is a usage mistake (2), any other (a taken port, a full disk) 1. An
     exception group counts if all its exceptions do; the first one is reported.
@@ -97,7 +217,7 @@ def _user_error(exc: BaseException) -> tuple[str, int] | None:
             message = f"join refused ({exc.code}): {exc.message}"
         else:
             message = str(exc)
-        usage = isinstance(exc, ValueError) or getattr(exc, "code", None) == "bad-rate"
+        usage = isinstance(exc, ValueError) or getattr(exc, "code", None) in _USAGE_CODES
         return message, 2 if usage else 1
     if isinstance(exc, OSError) and exc.errno != errno.EPIPE:
         return _os_message(exc), 2 if isinstance(exc, _PATH_ERRORS) else 1

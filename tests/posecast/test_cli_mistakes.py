@@ -377,3 +377,59 @@ def test_a_real_recording_still_passes(recording: Path) -> None:
     part.write_bytes(recording.read_bytes()[: recording.stat().st_size // 2])
     res = posecast("info", part)
     assert res.code == 0 and "UNFINISHED" in res.stdout, res.stderr
+
+
+def test_an_empty_room_name_is_bad_room(relay: str) -> None:
+    """--room '' reaches the server, which refuses it with bad-room (not bad-message)."""
+    res = _bots(relay, "--room", "", "--secret", "s3cret")
+    assert_one_line(res, 2, "join refused (bad-room)", "room name is empty")
+
+
+# -- what the parser finds: one line, a "did you mean", never a usage box ----------------
+
+
+@pytest.mark.parametrize(
+    ("args", "words"),
+    [
+        (("demo", "--bogus"), ("posecast demo has no option --bogus", "did you mean --bots?")),
+        (("demo", "--rat", "5"), ("posecast demo has no option --rat", "did you mean --rate")),
+        (("demoo",), ("posecast has no command 'demoo'", "did you mean demo?")),
+        (("bench", "relai"), ("posecast bench has no command 'relai'", "did you mean relay?")),
+        (("frobnicate",), ("no command 'frobnicate'", "commands: analyze", "demo")),
+        (("demo", "--rate", "abc"), ("posecast demo", "'--rate'", "number", "--help")),
+        (("demo", "--codec", "foo"), ("'--codec'", "'foo' is not one of 'compact', 'raw'")),
+        (("bots",), ("posecast bots: missing option '--url'", "posecast bots --help")),
+        (("info",), ("posecast info: missing argument 'file'",)),
+    ],
+)
+def test_parser_mistakes_are_one_line(args: tuple[str, ...], words: tuple[str, ...]) -> None:
+    """Unknown commands and options, bad and missing values: one line, exit 2, no box."""
+    res = posecast(*args)
+    assert_one_line(res, 2, *words)
+    assert "Usage:" not in res.stderr and "╭" not in res.stderr, res.stderr
+
+
+def test_a_bad_environment_value_is_one_line() -> None:
+    """POSECAST_PORT=zz is refused like --port zz, naming the variable."""
+    assert_one_line(posecast("serve", POSECAST_PORT="zz"), 2, "'--port'", "POSECAST_PORT")
+
+
+def test_no_arguments_still_print_the_help() -> None:
+    """`posecast` alone prints the help (exit 2 as before), not an error line."""
+    res = posecast()
+    assert res.code == 2 and "Usage: posecast" in res.stdout + res.stderr
+    assert "error:" not in res.stderr
+
+
+def test_version_names_package_protocol_and_codec_path() -> None:
+    """--version: the installed package version, PROTOCOL_VERSION and the codec path."""
+    from importlib.metadata import version
+
+    from posecast.protocol import PROTOCOL_VERSION
+
+    res = posecast("--version")
+    assert res.code == 0, res.stderr
+    lines = res.stdout.splitlines()
+    assert lines[0] == f"posecast {version('posecast')}"
+    assert lines[1] == f"protocol version {PROTOCOL_VERSION}"
+    assert lines[2] == "codec: pure Python (numpy)"
