@@ -6,8 +6,8 @@ there, ``--list`` for the outputs). Each output (a folder under
 ``docs/results/``, see :data:`JOBS`) is recomputed from the traces by the same
 code the commands run (``posecast table1``, ``posecast analyze``,
 ``posecast velocity-sources``), with its command, the git revision and the
-traces split written into it. Then the generated blocks of ``docs/results.md``
-and ``docs/results-recording.md`` (between ``<!-- results:NAME -->`` and
+traces split written into it. Then the generated blocks of ``docs/lab/results.md``
+and ``docs/lab/results-recording.md`` (between ``<!-- results:NAME -->`` and
 ``<!-- /results:NAME -->``, see :mod:`posecast.results_docs`) are rewritten from
 the outputs, and the runner prints which files changed (JSON compared without
 its timings, which change on every run).
@@ -39,7 +39,7 @@ __all__ = ["JOBS", "Job", "main", "provenance", "run_results"]
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "docs" / "results"
-PAGES = (ROOT / "docs" / "results.md", ROOT / "docs" / "results-recording.md")
+PAGES = (ROOT / "docs" / "lab" / "results.md", ROOT / "docs" / "lab" / "results-recording.md")
 
 #: Every interpolator of the published tables.
 ALL_METHODS = (

@@ -2,7 +2,7 @@
 
 Sessions use it through ``protocol._compact`` (updates) and ``protocol.codec_relay``
 (the relay's snapshots, a second layout of the same fields).
-See ``docs/codec.md`` for the measured sizes and errors on the real traces. The
+See ``docs/concepts/codec.md`` for the measured sizes and errors on the real traces. The
 work is split: quantisers and :class:`Volume` in ``protocol.codec_quant``, the
 frame layout below in ``protocol.codec_frame``, bit packing in ``protocol.bits``;
 this module is the public API (every public name is importable from here).

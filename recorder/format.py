@@ -16,7 +16,7 @@ drops      ``json``            drop or skip on the server, or records the record
 
 The relay's keyframes of a thrown shared object in flight are pose messages of
 user 65535 (``ROOM_USER``); an owner's updates carry the object's stream among its
-own (``recorder.objects``, ``docs/recording.md``).
+own (``recorder.objects``, ``docs/reference/recording-format.md``).
 
 Every message's ``log_time`` is its arrival time on the server clock in
 nanoseconds; ``publish_time`` is the (newest) capture time in nanoseconds, and the

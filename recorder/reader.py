@@ -715,7 +715,7 @@ def _num(x: float | None, fmt: str = ".1f") -> str:
 
 
 #: Session metadata of a cluster node's recording: the node that recorded it, and
-#: the lost node whose recording of the room it continues (docs/scaling.md).
+#: the lost node whose recording of the room it continues (docs/guides/cluster.md).
 _CLUSTER_KEYS = ("cluster_node", "continues_from_node")
 
 

@@ -72,7 +72,7 @@ AGREEMENT_STATS = ("tip_p50_mm", "tip_p95_mm")
 
 @dataclass(frozen=True)
 class Tolerance:
-    """How close live and offline must be (see ``docs/results.md``, "Live beside offline").
+    """How close live and offline must be (see ``docs/lab/results.md``, "Live beside offline").
 
     A figure agrees when ``|live - offline| <= max(absolute, relative x |offline|)``.
     Set on the dev traces before the eval run (four-tier runs of 3 and 4 bots x

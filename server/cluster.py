@@ -4,7 +4,7 @@
 relays that share one NATS (or NATS cluster). The design is room affinity: one
 node owns a room's state and fan-out (its members' updates, the tick grid, the
 recording); the other nodes forward their members' frames to it and relay its
-frames to them. See ``docs/scaling.md`` for why, with the figures.
+frames to them. See ``docs/guides/cluster.md`` for why, with the figures.
 
 This module is the cluster's directory, with no consensus of its own: every
 fact lives in a JetStream key-value bucket as a *lease*, a key written with a

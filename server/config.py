@@ -1,7 +1,7 @@
 """Everything ``posecast serve`` can set: :class:`ServerConfig` (one frozen dataclass).
 
 Each field is a ``posecast serve`` flag and a ``POSECAST_*`` variable; the
-limits are explained in ``docs/security.md``. ``server.core`` re-exports it.
+limits are explained in ``docs/guides/security.md``. ``server.core`` re-exports it.
 """
 
 from __future__ import annotations
@@ -54,7 +54,7 @@ class ServerConfig:
     #: at most once per this many seconds per connection, with a count of the
     #: records held back, so that a misbehaving peer cannot fill the disk.
     peer_log_interval: float = 1.0
-    # -- limits (docs/security.md); 0 turns a count limit off --------------------------
+    # -- limits (docs/guides/security.md); 0 turns a count limit off --------------------------
     #: An update captured longer ago than this (s, server clock) is refused.
     max_capture_age: float = 1.0
     #: ... and one captured later than now plus this (the clock-sync error allowance).

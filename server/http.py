@@ -216,7 +216,7 @@ def _overdue_metric(core: RelayCore, metric: Metric, now: float) -> None:
 def _limit_metrics(
     core: RelayCore, metric: Metric, total: Callable[..., list[tuple[str, float]]]
 ) -> None:
-    """What the limits refused or closed (docs/security.md)."""
+    """What the limits refused or closed (docs/guides/security.md)."""
     metric(
         "posecast_updates_refused_total",
         "counter",

@@ -2,7 +2,7 @@
 
 :class:`server.core.RelayCore` applies these; each limit is a
 :class:`server.core.ServerConfig` field and a ``posecast serve`` flag, and
-``docs/security.md`` gives the threat model behind them.
+``docs/guides/security.md`` gives the threat model behind them.
 
 - :func:`normalise_room`: one room per name as people read it (NFC, stripped),
   refusing names that display as something else (control characters, bidi

@@ -32,7 +32,7 @@ from posecast.bench.procs import _Child, _histogram_quantile, _scrape
 
 __all__ = ["HostileConfig", "run_hostile_bench"]
 
-#: Targets of issue 14 (docs/security.md): honest D and hands p95 within 25 % of
+#: Targets of issue 14 (docs/guides/security.md): honest D and hands p95 within 25 % of
 #: the clean run and tick lag p99 under 50 ms under these attacks ...
 _QOE_TARGETS = ("timestamp", "fuzz")
 _QOE_RATIO = 1.25

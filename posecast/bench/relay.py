@@ -470,7 +470,7 @@ def _add_figures(
             "server_poses_out": _delta(m0, m1, "posecast_room_poses_out_total"),
             "tick_lag_max_ms_start": _gauge(m0, "posecast_room_tick_lag_max_ms"),
             "tick_lag_max_ms_end": _gauge(m1, "posecast_room_tick_lag_max_ms"),
-            # Only if the server exports the histogram (see docs/relay-benchmark.md).
+            # Only if the server exports the histogram (see docs/lab/relay-benchmark.md).
             "metrics_tick_lag_p99_ms": 1e3
             * _histogram_quantile(m0, m1, "posecast_tick_lag_seconds", 0.99),
             "connections_end": _value(m1, "posecast_connections"),

@@ -214,7 +214,7 @@ TiersOption = Annotated[
 LogLevelOption = Annotated[
     str, typer.Option(help="debug, info, warning or error.", envvar="POSECAST_LOG_LEVEL")
 ]
-# Limits of serve (docs/security.md); 0 turns a count limit off.
+# Limits of serve (docs/guides/security.md); 0 turns a count limit off.
 MaxCaptureAgeOption = Annotated[
     float,
     typer.Option(

@@ -1,5 +1,5 @@
 """The 3D viewer (``posecast view``): a live room as a spectator, or a recording with a
-timeline, drawn in the browser by viser (see ``docs/viewer.md``).
+timeline, drawn in the browser by viser (see ``docs/guides/viewer.md``).
 
 - :mod:`posecast.view.scene`: floor, room volume and one avatar per user, with
   interpolator ghosts;

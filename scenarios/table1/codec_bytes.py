@@ -19,7 +19,7 @@ of the codec's bit layout shows here without any change to this module. Framing 
 :func:`scenarios.network.wire_bytes` counts it: the codec frame is the websocket
 payload (not msgpack), plus the websocket header and TCP/IP headers per segment.
 
-The codec's own error (at most 0.25 mm, 0.034 deg, 0.5 ms; ``docs/codec.md``) is
+The codec's own error (at most 0.25 mm, 0.034 deg, 0.5 ms; ``docs/concepts/codec.md``) is
 not fed back into the QoE here: the equal-QoE rates are those of the float poses.
 """
 

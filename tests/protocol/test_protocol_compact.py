@@ -47,7 +47,7 @@ RAW_SESSION = [
     "4c3e9a99993fcdcccc3d000000000000803f0000000000000000",
 ]
 TWO_POSES = [[0, 1.6, 0, 1, 0, 0, 0], [0.2, 1.2, 0.1, 0, 1, 0, 0]]
-# The codec's errors (docs/codec.md): half a position step, 0.0343 deg, 0.5 ms.
+# The codec's errors (docs/concepts/codec.md): half a position step, 0.0343 deg, 0.5 ms.
 POS_ERR = max(DEFAULT_VOLUME.step) / 2 + 1e-6
 ROT_ERR_RAD = np.deg2rad(0.0343) + 1e-6
 TIME_ERR = 0.5e-3 + 1e-6
