@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo test lint bench results clean
+.PHONY: demo test lint bench results docs clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -39,11 +39,20 @@ lint: $(VENV)/.installed-test
 bench: $(VENV)/.installed-test
 	$(BIN)/posecast bench interp
 
-# Regenerate every published result (docs/results/, the tables of docs/results.md and
-# docs/results-recording.md) with the current code; prints which outputs changed.
+# Regenerate every published result (docs/results/, the tables of docs/lab/results.md and
+# docs/lab/results-recording.md) with the current code; prints which outputs changed.
 # Needs the full trace sets (POSECAST_TRACES); 12-20 minutes. Not part of `test`.
 results: $(VENV)/.installed-run
 	nice -n 5 $(BIN)/python -m posecast.results
 
+$(VENV)/.installed-docs: pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install -q -e '.[docs]'
+	touch $@ $(VENV)/.installed-run
+
+# The documentation site into site/ (mkdocs-material); any warning fails the build. The
+# Reference pages are written from the code by docs/hooks/reference.py as it builds.
+docs: $(VENV)/.installed-docs
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict
+
 clean:
-	rm -rf $(VENV) build *.egg-info
+	rm -rf $(VENV) build site *.egg-info
