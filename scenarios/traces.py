@@ -6,11 +6,16 @@ One CSV per recording (plain ``.csv`` or gzip ``.csv.gz``): ``t`` then 7 columns
 ``(N, S, 7)`` float64); :func:`find_traces` resolves a trace set into paths:
 
 - ``traces:sample``: the excerpt shipped inside the package
-  (``scenarios/data/traces``: the first 60 s of four ``dev`` recordings), so a
-  fresh clone demos and tests with nothing beside it;
-- ``traces:dev`` / ``traces:eval``: the full sets, under ``POSECAST_TRACES`` or
-  ``shared/data/vr-traces`` in a parent folder of the checkout;
+  (``scenarios/data/traces``: the first 60 s of four ``dev`` recordings), so
+  tests and the demo stay quick;
+- ``traces:dev`` / ``traces:eval``: the full sets, also shipped inside the package
+  (``scenarios/data/traces/dev``, ``.../eval``), so a fresh clone re-runs Table 1
+  on eval with nothing beside it; ``POSECAST_TRACES=/path/to/vr-traces`` points at
+  another copy, used when it holds that split;
 - a directory (every ``*.csv`` / ``*.csv.gz`` in it) or one file.
+
+One correction is made on load (:data:`FLOOR_LIFTS`): X01's origin is where its
+headset started, not the floor, so its heights are raised to a standing user's.
 """
 
 from __future__ import annotations
@@ -29,9 +34,11 @@ from numpy.typing import NDArray
 from posecast.protocol.errors import PosecastError
 
 __all__ = [
+    "BUNDLED_DIR",
     "CAUSAL_DEGREE",
     "CAUSAL_SAMPLES",
     "DEVICE_NAMES",
+    "FLOOR_LIFTS",
     "SAMPLE_DIR",
     "VELOCITY_SOURCES",
     "Trace",
@@ -60,7 +67,18 @@ CAUSAL_DEGREE = 2
 
 #: The bundled excerpt of the real traces (``traces:sample``).
 SAMPLE_DIR = Path(__file__).resolve().parent / "data" / "traces"
+#: The bundled full sets: ``dev/`` and ``eval/`` under it (``traces:dev``, ``traces:eval``).
+BUNDLED_DIR = SAMPLE_DIR
 _SUFFIXES = (".csv", ".csv.gz")
+
+#: Metres added to every y (height) of a trace on load, by trace name. X01
+#: (questset, scripted head motion) has its origin where the headset started, not
+#: on the floor: its head sits at y = 0.02 m (median) and its controllers below
+#: the floor (-0.36 and -0.81 m). Raised by 1.677 m, its median head height is
+#: 1.697 m, the median of the dev Beat Saber recordings' (S01-S05) median head
+#: heights, and its lowest controller sample is at 0.50 m. A change of world
+#: frame changes no interpolation error (every method commutes with it).
+FLOOR_LIFTS: dict[str, float] = {"X01_quest2_scripted_head": 1.677}
 
 
 class TraceError(PosecastError, ValueError):
@@ -268,7 +286,9 @@ def load_trace(path: str | os.PathLike[str]) -> Trace:
     poses = data[:, 1:].reshape(-1, len(DEVICE_NAMES), 7).copy()
     q = poses[..., 3:]
     q /= np.linalg.norm(q, axis=-1, keepdims=True)
-    return Trace(_trace_name(p), times, poses, DEVICE_NAMES)
+    name = _trace_name(p)
+    poses[..., 1] += FLOOR_LIFTS.get(name, 0.0)
+    return Trace(name, times, poses, DEVICE_NAMES)
 
 
 def _trace_name(p: Path) -> str:
@@ -290,21 +310,25 @@ def _open_text(p: Path) -> io.TextIOWrapper:
 
 
 def default_trace_root() -> Path:
-    """The full trace sets: ``POSECAST_TRACES``, else ``shared/data/vr-traces`` in a parent."""
+    """The folder of the full sets: ``POSECAST_TRACES`` when it holds one, else the bundled."""
     env = os.environ.get("POSECAST_TRACES")
-    if env:
+    if env and any(_trace_files(Path(env) / split) for split in ("dev", "eval")):
         return Path(env)
-    here = Path(__file__).resolve().parent.parent
-    for base in (here, *here.parents):
-        cand = base / "shared" / "data" / "vr-traces"
-        if cand.is_dir():
-            return cand
-    return here.parent / "shared" / "data" / "vr-traces"
+    return BUNDLED_DIR
+
+
+def _split_dir(split: str) -> Path:
+    """Where ``traces:SPLIT`` is read: ``$POSECAST_TRACES/SPLIT`` if it holds traces, else
+    the bundled copy."""
+    env = os.environ.get("POSECAST_TRACES")
+    if env and _trace_files(Path(env) / split):
+        return Path(env) / split
+    return BUNDLED_DIR / split
 
 
 def full_traces_available(split: str = "dev") -> bool:
     """Whether the full ``split`` set (``dev`` or ``eval``) can be found."""
-    return _trace_files(default_trace_root() / split) != []
+    return _trace_files(_split_dir(split)) != []
 
 
 def _trace_files(folder: Path) -> list[Path]:
@@ -321,14 +345,12 @@ def find_traces(spec: str | os.PathLike[str]) -> list[Path]:
         if split == "sample":
             path = SAMPLE_DIR
         elif split in ("dev", "eval"):
-            path = default_trace_root() / split
+            path = _split_dir(split)
             if not _trace_files(path):
-                where = (
-                    "POSECAST_TRACES" if os.environ.get("POSECAST_TRACES") else "no POSECAST_TRACES"
-                )
                 raise TraceError(
-                    f"the full {split!r} traces are not here ({path}, {where}): set "
-                    "POSECAST_TRACES=/path/to/vr-traces, or use traces:sample (bundled)"
+                    f"the full {split!r} traces are not here ({path}, nor under "
+                    "POSECAST_TRACES): set POSECAST_TRACES=/path/to/vr-traces, "
+                    "or use traces:sample (bundled)"
                 )
         else:
             raise TraceError(

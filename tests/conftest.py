@@ -1,10 +1,9 @@
 """Shared fixtures: paths to the real traces.
 
 Tests read the bundled excerpt (``traces:sample``: the first 60 s of four real
-``dev`` recordings), so a fresh clone tests with nothing beside it. Only tests
-that need the full sets ask for ``trace_root``; it skips them, with the reason,
-when the full traces are not here (``POSECAST_TRACES`` unset and no
-``shared/data/vr-traces`` above the checkout).
+``dev`` recordings), which keeps them quick. Tests that need the full sets ask for
+``trace_root``: the sets bundled in the package (or ``POSECAST_TRACES``); it skips
+them, with the reason, only when an install left them out.
 """
 
 from __future__ import annotations

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from posecast.scenarios import traces
 from posecast.scenarios.traces import TraceError, device_class, find_traces, load_trace
 
 
@@ -27,6 +28,52 @@ def test_find_traces_splits(trace_root: Path) -> None:
     ev = find_traces("traces:eval")
     assert len(dev) == 7 and len(ev) == 5
     assert all(p.parent.name == "dev" for p in dev)
+
+
+def test_full_sets_are_bundled(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without POSECAST_TRACES, traces:dev and traces:eval are the sets shipped in the package."""
+    monkeypatch.delenv("POSECAST_TRACES", raising=False)
+    dev, ev = find_traces("traces:dev"), find_traces("traces:eval")
+    assert [p.parent for p in dev] == [traces.BUNDLED_DIR / "dev"] * 7
+    assert [p.parent for p in ev] == [traces.BUNDLED_DIR / "eval"] * 5
+    assert all(p.name.endswith(".csv.gz") for p in dev + ev)
+    names = {load_trace(p).name for p in ev}
+    assert names == {
+        "S06_quest2link_expertplus_60hz",
+        "S07_riftCV1_expert",
+        "S08_quest1_expertplus_72hz",
+        "S09_quest2_hard",
+        "S10_vive_wands_expertplus",
+    }
+    for licence in ("README.md", "LICENSE-MIT.txt", "LICENSE-BSD-3-Clause.txt"):
+        assert (traces.BUNDLED_DIR / licence).is_file()
+
+
+def test_posecast_traces_wins_when_it_holds_the_split(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, dev_trace_path: Path
+) -> None:
+    """POSECAST_TRACES with a dev/ folder is read for traces:dev; eval falls back to the bundle."""
+    (tmp_path / "dev").mkdir()
+    own = tmp_path / "dev" / "mine.csv.gz"
+    own.write_bytes(dev_trace_path.read_bytes())
+    monkeypatch.setenv("POSECAST_TRACES", str(tmp_path))
+    assert find_traces("traces:dev") == [own]
+    assert [p.parent for p in find_traces("traces:eval")] == [traces.BUNDLED_DIR / "eval"] * 5
+
+
+def test_x01_is_lifted_onto_the_floor() -> None:
+    """X01's origin is its headset's start: on load every height is raised by FLOOR_LIFTS."""
+    lift = traces.FLOOR_LIFTS["X01_quest2_scripted_head"]
+    (path,) = [p for p in find_traces("traces:dev") if p.name.startswith("X01")]
+    tr = load_trace(path)
+    raw = np.loadtxt(path, delimiter=",", skiprows=1)
+    np.testing.assert_allclose(tr.poses[:, :, 1], raw[:, 2::7][:, :3] + lift, atol=1e-12)
+    assert 1.6 < np.median(tr.poses[:, 0, 1]) < 1.8  # a standing user's head
+    assert tr.poses[:, :, 1].min() > 0.0  # nothing under the floor
+    # Every other trace loads as written.
+    s02 = load_trace(find_traces("traces:sample")[0])
+    raw02 = np.loadtxt(find_traces("traces:sample")[0], delimiter=",", skiprows=1)
+    np.testing.assert_array_equal(s02.poses[:, :, 1], raw02[:, 2::7][:, :3])
 
 
 def test_bad_trace_files_give_clear_errors(tmp_path: Path) -> None:
@@ -84,9 +131,10 @@ def test_gzip_and_plain_csv_load_alike(dev_trace_path: Path, tmp_path: Path) -> 
     assert find_traces(tmp_path) == [plain]
 
 
-def test_sample_is_the_start_of_the_full_dev_trace(trace_root: Path, dev_trace_path: Path) -> None:
+def test_sample_is_the_start_of_the_full_dev_trace(dev_trace_path: Path) -> None:
     """The bundled excerpt holds the full dev recording's first 60 s, bit for bit."""
-    full = load_trace(trace_root / "dev" / "S02_riftS_expertplus.csv")
+    (path,) = [p for p in find_traces("traces:dev") if p.name.startswith("S02_")]
+    full = load_trace(path)
     part = load_trace(dev_trace_path)
     np.testing.assert_array_equal(full.window(0.0, 60.0).times, part.times)
     np.testing.assert_array_equal(full.window(0.0, 60.0).poses, part.poses)
@@ -95,8 +143,10 @@ def test_sample_is_the_start_of_the_full_dev_trace(trace_root: Path, dev_trace_p
 def test_missing_full_sets_say_how_to_point_at_them(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """traces:dev/eval without the full sets: one line naming POSECAST_TRACES and traces:sample."""
+    """traces:dev/eval missing (a trimmed install, POSECAST_TRACES empty): one line naming
+    POSECAST_TRACES and traces:sample."""
     monkeypatch.setenv("POSECAST_TRACES", str(tmp_path / "nowhere"))
+    monkeypatch.setattr(traces, "BUNDLED_DIR", tmp_path / "trimmed")
     for split in ("dev", "eval"):
         with pytest.raises(TraceError) as err:
             find_traces(f"traces:{split}")
