@@ -161,17 +161,18 @@ def _ignored(rel: str) -> bool:
 
 
 def test_the_bundled_traces_reach_the_image_and_the_wheel() -> None:
-    """scenarios/data/traces is neither docker-ignored nor left out of the package data."""
-    files = sorted(SAMPLE_DIR.glob("*.csv.gz"))
-    assert files
+    """scenarios/data/traces (the sample, dev/ and eval/) is neither docker-ignored nor left
+    out of the package data."""
+    files = sorted(SAMPLE_DIR.rglob("*.csv.gz"))
+    assert len(files) == 4 + 7 + 5
     globs = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"][
         "package-data"
-    ]["scenarios"]
+    ]
     for path in files:
         rel = path.relative_to(ROOT).as_posix()
         assert not _ignored(rel), f".dockerignore drops {rel}"
-        in_package = path.relative_to(ROOT / "scenarios").as_posix()
-        assert any(fnmatch.fnmatch(in_package, g) for g in globs), f"not package data: {rel}"
+        package = ".".join(("posecast", *path.parent.relative_to(ROOT).parts))
+        assert any(fnmatch.fnmatch(path.name, g) for g in globs.get(package, [])), rel
     assert _ignored("tests/test_deploy.py")  # the checker itself sees .dockerignore
 
 
