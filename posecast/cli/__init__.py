@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import sys
 
-from posecast.cli import benchmarks, experiments, recordings, session
+from posecast.cli import benchmarks, experiments, recordings, session, vectors
 from posecast.cli import view as view_cli
 from posecast.cli.common import app, bench_app
 
@@ -30,6 +30,7 @@ app.command()(recordings.export)
 app.command()(recordings.analyze)
 app.command("interpolators")(experiments.list_interpolators)
 app.command("velocity-sources")(experiments.velocity_sources)
+app.command()(vectors.vectors)
 
 
 def _tune_allocator() -> None:
