@@ -58,7 +58,6 @@ __all__ = [
     "VELOCITY_BYTES_PER_POSE",
     "VELOCITY_WIRE_DTYPE",
     "Delivery",
-    "EgressLink",
     "LinkModel",
     "Tier",
     "TierError",
@@ -362,61 +361,3 @@ class LinkModel:
             lost = np.zeros(n, dtype=bool)
         lost &= ~skipped
         return Delivery(send, size, departure, arrival, skipped, lost)
-
-
-class EgressLink:
-    """One subscriber's emulated downlink in a live server, frame by frame.
-
-    The live counterpart of :class:`LinkModel` (same tier fields, same delay
-    distribution), fed one frame at a time with the time passed in:
-    :meth:`offer` says when the frame arrives, or ``None`` when it is skipped
-    (the token bucket lacks its size: it is never queued behind the cap) or lost.
-    :meth:`rate_for` is the update rate the cap allows for the frames seen so
-    far, which the server adopts for this subscriber.
-    """
-
-    def __init__(self, tier: Tier, seed: int = 0, *, burst_bytes: float | None = None) -> None:
-        self.tier = tier
-        self._rng = np.random.default_rng(seed)
-        self.burst_bytes = 0.05 * tier.bytes_per_s if burst_bytes is None else float(burst_bytes)
-        self._tokens = 0.0
-        self._t: float | None = None
-        self._size_ema: float | None = None
-        theta = tier.jitter_ms / 1000.0 / math.sqrt(GAMMA_SHAPE)
-        self._theta = theta
-        self._floor = tier.latency_ms / 1000.0 - GAMMA_SHAPE * theta
-        self.frames = 0
-        self.bytes = 0
-        self.cap_skips = 0
-        self.lost = 0
-
-    def offer(self, now: float, size: int) -> float | None:
-        """Arrival time of a ``size``-byte frame offered at ``now``; None if skipped or lost."""
-        rate = self.tier.bytes_per_s
-        burst = self.burst_bytes
-        tokens = burst if self._t is None else min(burst, self._tokens + (now - self._t) * rate)
-        self._t = now
-        self._size_ema = size if self._size_ema is None else 0.9 * self._size_ema + 0.1 * size
-        # A deficit bucket: a frame goes while the balance is not negative and is
-        # charged in full (the balance may dip below zero), so the long-run rate
-        # is exactly the cap and a burst never exceeds one frame over it.
-        if tokens < 0.0:
-            self._tokens = tokens
-            self.cap_skips += 1
-            return None
-        self._tokens = tokens - size
-        one_way = self._floor + (
-            float(self._rng.gamma(GAMMA_SHAPE, self._theta)) if self._theta > 0 else 0.0
-        )
-        if self._rng.random() < self.tier.loss_pct / 100.0:
-            self.lost += 1
-            return None
-        self.frames += 1
-        self.bytes += size
-        return now + one_way
-
-    def rate_for(self, asked: float) -> float:
-        """The rate to serve: what was asked, capped by the tier and its bandwidth."""
-        if self._size_ema is None:
-            return min(asked, self.tier.max_rate_hz)
-        return min(asked, affordable_rate(self.tier, self._size_ema))

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Literal
 
 from posecast.protocol.codec import DEFAULT_VOLUME, Volume
-from posecast.scenarios.network import Tier
+from posecast.server.link import LinkTier
 from posecast.server.room import DEFAULT_EVENT_QUEUE
 
 __all__ = ["ServerConfig"]
@@ -47,7 +47,7 @@ class ServerConfig:
     #: list appends) or ``thread`` (a thread of the server's process).
     record_writer: Literal["process", "thread"] = "process"
     #: Emulate this network tier on every subscriber's downlink (``--link``).
-    link: Tier | None = None
+    link: LinkTier | None = None
     #: Snapshots held in one subscriber's emulated link at most (older ones drop).
     link_max_in_flight: int = 64
     #: What a peer causes (its protocol errors, the errors it reports) is logged

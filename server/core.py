@@ -101,7 +101,6 @@ from posecast.protocol import (
     encode_message,
 )
 from posecast.protocol.events import Event, Message
-from posecast.scenarios.network import EgressLink
 from posecast.server import objects, resume, tokens
 from posecast.server.actions import Action, Close, FinishRecording, Rearm, Reschedule, Wake
 from posecast.server.auth import token_permits
@@ -113,6 +112,7 @@ from posecast.server.limits import (
     room_refusal,
     update_refusal,
 )
+from posecast.server.link import Downlink
 from posecast.server.peer import COUNTERS, ConnectionStatistics, Peer
 from posecast.server.room import (
     TICK_LAG_BUCKETS,
@@ -142,9 +142,6 @@ __all__ = [
 ]
 
 log = logging.getLogger("posecast.server")
-
-# Websocket framing of a server frame of 126-65535 bytes (no mask): the link's extra.
-_WS_HEADER = 4
 
 
 class RelayCore:
@@ -350,23 +347,25 @@ class RelayCore:
         if peer is None:
             return [], None
         out: list[bytes] = []
-        delayed = peer.delayed
-        while delayed and delayed[0][0] <= now:
-            out.append(heapq.heappop(delayed)[2])
+        downlink = peer.downlink
+        if downlink is not None:
+            downlink.arrived(now, out)
         outbox = peer.outbox
         while True:
             data, is_snapshot = outbox.take_with_kind()
             if data is None:
                 break
-            if is_snapshot and peer.link is not None:
-                self._into_link(peer, data, now)
+            if is_snapshot and downlink is not None:
+                self._into_link(peer, downlink, data, now)
             else:
                 out.append(data)
-        while delayed and delayed[0][0] <= now:
-            out.append(heapq.heappop(delayed)[2])
+        next_at = None
+        if downlink is not None:
+            downlink.arrived(now, out)
+            next_at = downlink.next_arrival()
         peer.frames_out += len(out)
         peer.bytes_out += sum(len(d) for d in out)
-        return out, (delayed[0][0] if delayed else None)
+        return out, next_at
 
     def events_pending(self, conn: int) -> bool:
         """Whether reliable messages of ``conn`` wait to be written."""
@@ -679,7 +678,7 @@ class RelayCore:
         )
         member.asked_rate = join.rate
         if self.config.link is not None:
-            peer.link = EgressLink(self.config.link, seed=peer.user)
+            peer.downlink = Downlink(self.config.link, peer.user, self.config.link_max_in_flight)
         if join.spectator:
             self._spectators.add(peer.user)
         self._introduce(peer, member, room)
@@ -716,7 +715,7 @@ class RelayCore:
             return
         if peer.member is not None:
             peer.member.asked_rate = event.rate
-        rate = event.rate if peer.link is None else peer.link.rate_for(event.rate)
+        rate = event.rate if peer.downlink is None else peer.downlink.rate_for(event.rate)
         room.set_rate(user, max(self.config.min_rate, rate), now)
         self._rescheduled(room)
         if room.recorder is not None:
@@ -775,20 +774,12 @@ class RelayCore:
                 if stale:
                     room.note_drop("stale", user, stale)
 
-    def _into_link(self, peer: Peer, data: bytes, now: float) -> None:
+    def _into_link(self, peer: Peer, downlink: Downlink, data: bytes, now: float) -> None:
         """Put a snapshot on the emulated link; adopt the rate its cap allows."""
-        link = peer.link
-        assert link is not None
-        arrival = link.offer(now, len(data) + _WS_HEADER)
-        if arrival is not None:
-            if len(peer.delayed) >= self.config.link_max_in_flight:
-                heapq.heappop(peer.delayed)
-                peer.link_overflow += 1
-            peer._link_seq += 1
-            heapq.heappush(peer.delayed, (arrival, peer._link_seq, data))
+        downlink.send(now, data)
         room, member = peer.room, peer.member
         if room is not None and member is not None:
-            rate = max(self.config.min_rate, link.rate_for(member.asked_rate))
+            rate = max(self.config.min_rate, downlink.rate_for(member.asked_rate))
             if abs(rate - member.rate) > 0.25:
                 room.set_rate(member.user, rate, now)
                 self._rescheduled(room)

@@ -12,9 +12,9 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from posecast.protocol import ServerSession
-from posecast.scenarios.network import EgressLink
 from posecast.server.actions import Wake
 from posecast.server.limits import Budget
+from posecast.server.link import Downlink
 from posecast.server.logs import LogLimiter
 from posecast.server.room import Member, Outbox, Room
 
@@ -113,10 +113,7 @@ class Peer:
         #: Each refused frame or update costs a token; none left: closed 1008.
         self.budget = Budget(cfg.misbehaviour_burst, cfg.misbehaviour_refill, now)
         #: The emulated downlink (``ServerConfig.link``), set at join.
-        self.link: EgressLink | None = None
-        self.delayed: list[tuple[float, int, bytes]] = []
-        self._link_seq = 0
-        self.link_overflow = 0
+        self.downlink: Downlink | None = None
         self._bucket = cfg.max_update_rate
         self._bucket_time = now
         self.log_limit = LogLimiter(cfg.peer_log_interval)
@@ -147,7 +144,8 @@ class Peer:
         self._core.emit(Wake(self.conn))
 
     def statistics(self) -> ConnectionStatistics:
-        m, link = self.member, self.link
+        m = self.member
+        link = None if self.downlink is None else self.downlink.link
         return ConnectionStatistics(
             user=self.user,
             room=self.room.name if self.room else None,

@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from posecast.scenarios.network import EgressLink, Tier
+from posecast.scenarios import network
+from posecast.scenarios.network import Tier
+from posecast.server.link import GAMMA_SHAPE, EgressLink
 
 
 def _tier(**kw: float) -> Tier:
@@ -53,3 +55,8 @@ def test_loss_fraction_and_rate_for() -> None:
     big.offer(0.0, 1000)
     assert big.rate_for(30.0) == pytest.approx(10.0)  # 10,000 B/s / 1000 B
     assert big.rate_for(5.0) == 5.0
+
+
+def test_the_live_link_draws_the_offline_models_delays() -> None:
+    """The relay's link and the offline LinkModel share one delay distribution."""
+    assert GAMMA_SHAPE == network.GAMMA_SHAPE
