@@ -40,7 +40,6 @@ import asyncio
 import contextlib
 import logging
 import ssl
-import threading
 import time
 from collections.abc import AsyncIterator, Callable, Coroutine, Iterator
 from pathlib import Path
@@ -63,18 +62,12 @@ from posecast.server.core import (
 )
 from posecast.server.http import QuietHttpLog, metrics_text, process_request
 from posecast.server.logs import LogLimiter
-from posecast.server.node import (
-    claim_then_consume,
-    cluster_clock,
-    join_room,
-    resume_then_consume,
-    resume_token,
-)
+from posecast.server.node import cluster_clock, join_room, resume_token
+from posecast.server.recordings import Recordings
 from posecast.server.room import IdAllocator, Outbox, Room
 from posecast.server.transport import WebSocketConnection, frame_binary
 
 if TYPE_CHECKING:
-    from posecast.recorder import RecorderHost, RecordOptions, RoomRecorder
     from posecast.server.node import ClusterNode
 
 __all__ = ["ConnectionStatistics", "LogLimiter", "RelayServer", "ServerConfig", "serving"]
@@ -265,9 +258,9 @@ class _Connection(WebSocketConnection):
         self._backlog = list(rest)
         self.transport.pause_reading()
         if token is not None:
-            job = resume_then_consume(self, token, events, raw)
+            job = self._resume_then_consume(token, events, raw)
         elif self.server.cluster is not None and self.server.cluster.must_claim(room):
-            job = claim_then_consume(self, room, events, raw)
+            job = self._claim_then_consume(room, events, raw)
         else:
             job = self._open_then_consume(room, events)
         self.server.spawn(job, f"open:{room}")
@@ -297,6 +290,52 @@ class _Connection(WebSocketConnection):
         self._consume(events, iter(backlog))
         if not self._held:
             self.transport.resume_reading()
+
+    async def _claim_then_consume(self, room: str, events: list[Event], raw: bytes | str) -> None:
+        """Claim ``room`` in the cluster; join here if this node owns it now, else hand
+        the connection off to its owner, the join frame first."""
+        cluster = self.server.cluster
+        assert cluster is not None
+        owner = await cluster.place_join(room)
+        if self.server._conns.get(self.conn) is not self:
+            return  # it ended meanwhile
+        if owner is None:
+            self.close(1013, "try again later: the cluster cannot place the room")
+        elif owner == cluster.name:
+            await self._open_then_consume(room, events)
+        else:
+            self._forward(owner, raw)
+
+    async def _resume_then_consume(self, token: str, events: list[Event], raw: bytes | str) -> None:
+        """A hello resuming a member this node does not hold: resume here if this node
+        owns its room now, else hand the connection to the owner, the hello first."""
+        cluster = self.server.cluster
+        assert cluster is not None
+        placed = await cluster.place_resume(token)
+        if self.server._conns.get(self.conn) is not self:
+            return
+        if placed is not None and placed[0] != cluster.name:
+            self._forward(placed[0], raw, placed[1])
+        else:
+            await self._open_then_consume("", events)
+
+    def _forward(self, owner: str, raw: bytes | str, resumes: int | None = None) -> None:
+        """From now on this connection's frames go to node ``owner``, ``raw`` first."""
+        cluster = self.server.cluster
+        assert cluster is not None
+        backlog, self._held, self._backlog = self._backlog, False, []
+        address = self.transport.get_extra_info("peername")
+        where = str(address[0] if address else "?")
+        self.forwarded = True
+        frames = [raw, *backlog]
+        if resumes is None:
+            ok = cluster.hand_off(self.conn, owner, where, frames)
+        else:
+            ok = cluster.hand_off_resume(self.conn, owner, resumes, where, frames)
+        if not ok:
+            self.close(1013, "try again later: the cluster is not taking frames")
+            return
+        self.transport.resume_reading()
 
     # -- writing -----------------------------------------------------------------------------
 
@@ -382,7 +421,6 @@ class RelayServer:
         self._all_gone = asyncio.Event()
         self._all_gone.set()
         self._tg: asyncio.TaskGroup | None = None
-        self._opening: dict[str, asyncio.Task[None]] = {}
         #: Set when a connection opens: its join deadline may be the next expiry.
         self._new_connection = asyncio.Event()
         self._tick_timer: asyncio.TimerHandle | None = None
@@ -394,13 +432,10 @@ class RelayServer:
         self.cluster: ClusterNode | None = None
         self.http = process_request(self.core, self.clock, self._cluster_metrics)
         self.ws_log = QuietHttpLog(logging.getLogger("websockets.server"), {})
-        # The one writer process every recorded room shares (started with the
-        # server, again for the next room after a crash of the previous one).
-        self._recorder_host: RecorderHost | None = None
-        self._host_lock = threading.Lock()
-        self._retired_hosts: list[RecorderHost] = []
-        #: Finished recordings, in the order they closed.
-        self.recordings: list[Path] = []
+        #: Recorders of the rooms (``--record``), opened and closed off the loop.
+        self.recorders = Recordings(
+            self.config, clock, wall_clock, self.core.add_room, self._recording_metadata
+        )
         self._stop = asyncio.Event()
         #: Set once stop() has begun: handshakes from then on get a 503.
         self._closing = False
@@ -455,7 +490,7 @@ class RelayServer:
                 self._new_connection.set()
             elif isinstance(action, FinishRecording):
                 self.spawn(
-                    self._close_recorder(action.room, action.recorder), f"close:{action.room}"
+                    self.recorders.finish(action.room, action.recorder), f"close:{action.room}"
                 )
 
     def spawn(self, job: Coroutine[Any, Any, None], name: str) -> None:
@@ -526,79 +561,13 @@ class RelayServer:
         """Make sure room ``name`` exists, opening its recorder off the event loop."""
         if self.config.record_dir is None or name in self.rooms:
             return
-        pending = self._opening.get(name)
-        if pending is None:
-            assert self._tg is not None
-            pending = self._tg.create_task(self._open_room(name), name=f"opening:{name}")
-            self._opening[name] = pending
-        await asyncio.shield(pending)
+        assert self._tg is not None
+        await self.recorders.prepare(name, self.rooms, self._tg)
 
-    async def _open_room(self, name: str) -> None:
-        from posecast.recorder import RecordOptions, SessionRecorder
-
-        directory = self.config.record_dir
-        assert directory is not None
-        opener: Callable[..., RoomRecorder] = (
-            SessionRecorder.open if self.config.record_writer == "thread" else self._open_on_host
-        )
-        try:
-            options = RecordOptions(
-                clock=self.clock,
-                wall_clock=self.wall_clock,
-                # A hand-off (one pipe write, one wake-up of the writer) at most
-                # every 0.25 s: records reach the disk within 0.25 + 0.05 + 0.5 s.
-                batch_size=1024,
-                batch_delay=0.25,
-                metadata=None if self.cluster is None else self.cluster.recording_metadata(name),
-            )
-            rec: RoomRecorder | None = await asyncio.to_thread(opener, directory, name, options)
-        except Exception:
-            log.exception("cannot record room %r; it runs unrecorded", name)
-            rec = None
-        try:
-            if self.core.add_room(name, rec, self.clock()):
-                if rec is not None:
-                    log.info("recording room %r to %s", name, rec.path)
-            elif rec is not None:
-                await rec.aclose()
-        finally:
-            self._opening.pop(name, None)
-
-    def _open_on_host(self, directory: Path, name: str, options: RecordOptions) -> RoomRecorder:
-        """Open room ``name``'s recording on the shared writer process (a worker thread)."""
-        return self._ensure_host().open_room(directory, name, options)
-
-    def _ensure_host(self) -> RecorderHost:
-        """The running writer process; a new one if there is none or it died (blocks)."""
-        from posecast.recorder import RecorderHost
-
-        with self._host_lock:
-            host = self._recorder_host
-            if host is None or not host.alive:
-                if host is not None:
-                    log.warning("the recorder process is gone; starting a new one")
-                    self._retired_hosts.append(host)
-                host = self._recorder_host = RecorderHost.start()
-                log.info("recorder process started (pid %d)", host.pid)
-            return host
-
-    async def _close_hosts(self) -> None:
-        """Wait for the writer process(es) to end, once every room is closed."""
-        hosts = [*self._retired_hosts, self._recorder_host]
-        self._recorder_host, self._retired_hosts = None, []
-        for host in hosts:
-            if host is not None:
-                code = await asyncio.to_thread(host.close)
-                if code != 0:
-                    log.warning("the recorder process exited with code %s", code)
-
-    async def _close_recorder(self, name: str, rec: RoomRecorder) -> None:
-        try:
-            path = await rec.aclose(self.clock())
-            self.recordings.append(path)
-            log.info("room %r recorded to %s", name, path)
-        except Exception:
-            log.exception("recording of room %r did not finish cleanly", name)
+    @property
+    def recordings(self) -> list[Path]:
+        """Finished recordings, in the order they closed."""
+        return self.recorders.paths
 
     def _socket_gone(self, conn: _Connection) -> None:
         self._sockets.discard(conn)
@@ -651,17 +620,7 @@ class RelayServer:
         if cfg.secret is None:
             log.warning("no --secret: the server is open, anyone can join any room")
         if cfg.record_dir is not None:
-            from posecast.recorder import recover_leftovers
-
-            cfg.record_dir.mkdir(parents=True, exist_ok=True)
-            for report in await asyncio.to_thread(recover_leftovers, cfg.record_dir):
-                log.warning("recovered leftover recording: %s", report.summary())
-            if cfg.record_writer == "process":
-                # Up front, so that no join waits for the writer's start-up.
-                try:
-                    await asyncio.to_thread(self._ensure_host)
-                except Exception:
-                    log.exception("cannot start the recorder process; each new room will retry")
+            await self.recorders.start()
         if cfg.cluster is not None:
             await self._join_cluster(cfg.cluster)
         try:
@@ -682,7 +641,7 @@ class RelayServer:
         finally:
             # Every room's recording is finished (the task group waited for them);
             # after a failure, rooms still open keep their .part files for recovery.
-            await self._close_hosts()
+            await self.recorders.close_hosts()
             if self.cluster is not None:
                 await self.cluster.close()
 
@@ -717,6 +676,9 @@ class RelayServer:
         target = self._conns.get(conn)
         if target is not None:
             target.close(code, reason)
+
+    def _recording_metadata(self, room: str) -> dict[str, str] | None:
+        return None if self.cluster is None else self.cluster.recording_metadata(room)
 
     def _cluster_metrics(self) -> str:
         return "" if self.cluster is None else self.cluster.metrics_text()

@@ -71,7 +71,6 @@ encodes one snapshot per tick group, shared by every due member. Shared objects
 
 from __future__ import annotations
 
-import heapq
 import logging
 from collections.abc import Callable
 from typing import TYPE_CHECKING
@@ -109,7 +108,6 @@ from posecast.server.limits import (
     Admission,
     Deadlines,
     normalise_room,
-    room_refusal,
     update_refusal,
 )
 from posecast.server.link import Downlink
@@ -120,8 +118,8 @@ from posecast.server.room import (
     LagHistogram,
     Member,
     Room,
-    room_phase,
 )
+from posecast.server.rooms import RoomTable
 
 if TYPE_CHECKING:
     from posecast.recorder import RoomRecorder
@@ -152,7 +150,6 @@ class RelayCore:
         self.limits = Limits(min_rate=self.config.min_rate, max_rate=self.config.max_rate)
         self.volume = self.config.room_volume
         self.users = IdAllocator(ROOM_USER)  # ROOM_USER is the shared objects' user id
-        self.rooms: dict[str, Room] = {}
         self.peers: dict[int, Peer] = {}
         self._by_user: dict[int, Peer] = {}
         self._next_conn = 0
@@ -160,14 +157,9 @@ class RelayCore:
         self.closed_connections = 0
         #: Counters of connections that have ended, so that totals never go down.
         self.totals = dict.fromkeys(COUNTERS, 0)
-        #: Pose updates are not recorded while set (see :meth:`pause_recording`).
-        self.recording_paused = False
-        #: (due, seq, room) of every room with members; entries a later change made
-        #: stale are dropped when met, so a wake-up costs O(log rooms), not O(members).
-        self._dues: list[tuple[float, int, Room]] = []
-        self._due_seq = 0
-        #: Set by :meth:`close_rooms`: the server is stopping, no room is added.
-        self.closed = False
+        #: The rooms and their ticks (``server.rooms``); ``rooms`` is its dict of them.
+        self.table = RoomTable(self.config, self.volume, self.emit)
+        self.rooms: dict[str, Room] = self.table.rooms
         cfg = self.config
         self.admission = Admission(cfg.max_connections, cfg.max_connections_per_address)
         self._join_deadlines = Deadlines(self._unjoined)
@@ -180,8 +172,11 @@ class RelayCore:
         #: closed for misbehaving (over their budget).
         self.refused_connections = self.join_timeouts = self.misbehaviour_closes = 0
         self._spectators: set[int] = set()  # Join.spectator: publish nothing, unannounced
-        #: Every room's member ticks by lag (``posecast_tick_lag_seconds``).
-        self.tick_lags = LagHistogram()
+
+    @property
+    def tick_lags(self) -> LagHistogram:
+        """Every room's member ticks by lag (``posecast_tick_lag_seconds``)."""
+        return self.table.tick_lags
 
     @property
     def tick_lag_counts(self) -> list[int]:
@@ -213,6 +208,23 @@ class RelayCore:
     def peer_of(self, user: int) -> Peer:
         return self._by_user[user]
 
+    def connected(self, user: int) -> Peer | None:
+        """The live connection of ``user`` (None: none, e.g. it is parked)."""
+        return self._by_user.get(user)
+
+    def bind_user(self, user: int, peer: Peer) -> None:
+        """``user`` is ``peer``'s from its hello on."""
+        self._by_user[user] = peer
+
+    def is_spectator(self, user: int | None) -> bool:
+        """Whether ``user`` joined as a spectator (publishes nothing, unannounced)."""
+        return user in self._spectators
+
+    def new_conn(self) -> int:
+        """A new connection id (also for parked members no socket holds)."""
+        self._next_conn += 1
+        return self._next_conn
+
     # -- connections ---------------------------------------------------------------
 
     def connect(
@@ -223,14 +235,13 @@ class RelayCore:
         Over ``max_connections`` (or ``max_connections_per_address``) it is closed
         at once with 1013 "try again later" (the ``Close`` is in :meth:`pending`).
         """
-        self._next_conn += 1
-        conn = self._next_conn
+        conn = self.new_conn()
         peer = self.peers[conn] = Peer(conn, self, buffered, now, address)
         refused = self.admission.admit(address)
         if refused is not None:
             self.refused_connections += 1
             log.info("connection from %s refused: %s", address, refused)
-            self._close(peer, 1013, f"try again later: {refused}")
+            self.close_peer(peer, 1013, f"try again later: {refused}")
         else:
             peer.admitted = True
             self._join_deadlines.add(conn, now + self.config.join_timeout)
@@ -247,14 +258,16 @@ class RelayCore:
         and every connection whose access token expired without a renew."""
         for conn in self._join_deadlines.pop_due(now):
             self.join_timeouts += 1
-            self._close(self.peers[conn], 1008, f"no join within {self.config.join_timeout:g} s")
+            self.close_peer(
+                self.peers[conn], 1008, f"no join within {self.config.join_timeout:g} s"
+            )
         for conn in self._token_deadlines.pop_due(now):
             self.token_expiries += 1
             expired = ErrorMessage.from_code(
                 ErrorCode.UNAUTHORIZED, "access token expired; renew it"
             )
-            self._send(self.peers[conn], expired)
-            self._close(self.peers[conn], 1008, "access token expired")
+            self.send(self.peers[conn], expired)
+            self.close_peer(self.peers[conn], 1008, "access token expired")
         for parked in self.parking.expire(now):
             resume.gone(self, parked, now)
         return self._actions()
@@ -289,7 +302,7 @@ class RelayCore:
         peer = self.peers.get(conn)
         return peer is not None and peer.token_deadline == deadline and not peer.close_request
 
-    def _token_expires(self, peer: Peer, deadline: float) -> None:
+    def token_expires_at(self, peer: Peer, deadline: float) -> None:
         """Close ``peer`` at ``deadline`` (server clock) unless it renews its token."""
         peer.token_deadline = deadline
         self._token_deadlines.add(peer.conn, deadline)
@@ -320,7 +333,7 @@ class RelayCore:
         if (
             name in self.rooms
             or not token_permits(self.config.secret, event.token, name, wall)
-            or self._room_refusal(name) is not None
+            or self.table.refusal(name) is not None
         ):
             return None
         return name
@@ -376,7 +389,7 @@ class RelayCore:
         """Close ``conn`` on the server's own decision (e.g. 1001 going away)."""
         peer = self.peers.get(conn)
         if peer is not None:
-            self._close(peer, code, reason)
+            self.close_peer(peer, code, reason)
         return self._actions()
 
     def disconnect(self, conn: int, now: float, said_bye: bool = False) -> list[Action]:
@@ -413,47 +426,23 @@ class RelayCore:
             self.totals[key] += getattr(stats, key)
         return self._actions()
 
-    # -- rooms and ticks -------------------------------------------------------------
+    # -- rooms and ticks (``server.rooms``) --------------------------------------------
 
     def add_room(self, name: str, recorder: RoomRecorder | None, now: float) -> bool:
         """Create room ``name`` with its (opened) recorder; False if it exists already."""
-        if name in self.rooms or self.closed or self._room_refusal(name) is not None:
-            return False
-        room = self._room_for(name)
-        room.recorder = recorder
-        if recorder is not None and self.recording_paused:
-            room.pause_recording(now)
-        return True
+        return self.table.add(name, recorder, now)
 
-    def _room_for(self, name: str) -> Room:
-        room = self.rooms.get(name)
-        if room is None:
-            room = self.rooms[name] = Room(
-                name, phase=room_phase(name), volume=self.volume, lags=self.tick_lags
-            )
-            log.info("room %r created", name)
-        return room
+    def room_for(self, name: str) -> Room:
+        """Room ``name``, created if there is none."""
+        return self.table.room_for(name)
 
     def next_deadline(self) -> float | None:
         """When the next room tick is due (None: no member anywhere)."""
-        dues = self._dues
-        while dues:
-            due, _, room = dues[0]
-            if self.rooms.get(room.name) is room and room.next_due() == due:
-                return due
-            heapq.heappop(dues)  # stale: the room's schedule changed, or it is gone
-        return None
+        return self.table.next_deadline()
 
-    def _schedule(self, room: Room) -> None:
-        """Room ``room``'s earliest due time may have moved: queue the new one."""
-        due = room.next_due()
-        if due is not None:
-            self._due_seq += 1
-            heapq.heappush(self._dues, (due, self._due_seq, room))
-
-    def _rescheduled(self, room: Room) -> None:
-        self._schedule(room)
-        self.emit(Reschedule())
+    def rescheduled(self, room: Room) -> None:
+        """A member of ``room`` joined, left or changed its rate: its ticks moved."""
+        self.table.rescheduled(room)
 
     def tick(self, now: float, limit: int | None = None) -> list[Action]:
         """Send a snapshot to every due member of every room; flush drop counts.
@@ -464,72 +453,34 @@ class RelayCore:
         A room whose tick fails (a bug) is removed and its members closed with
         1011; the other rooms go on.
         """
-        ticked = 0
-        while limit is None or ticked < limit:
-            due = self.next_deadline()
-            if due is None or due > now + 1e-9:
-                break
-            ticked += 1
-            room = heapq.heappop(self._dues)[2]
-            try:
-                room.tick(now)
-                room.flush_drops(now)
-            except Exception:
-                log.exception("room %r failed", room.name)
-                self._fail_room(room)
-            else:
-                self._schedule(room)
+        for room in self.table.tick(now, limit):
+            for member in list(room.members.values()):
+                peer = self._by_user.get(member.user)
+                if peer is not None:
+                    self.close_peer(peer, 1011, "internal-error: room failed")
         return self._actions()
 
-    def _fail_room(self, room: Room) -> None:
-        if self.rooms.get(room.name) is room:
-            del self.rooms[room.name]
-        for member in list(room.members.values()):
-            peer = self._by_user.get(member.user)
-            if peer is not None:
-                self._close(peer, 1011, "internal-error: room failed")
-
-    def _forget_room_if_empty(self, room: Room, now: float) -> None:
-        # A failed room is no longer in ``rooms``: its recording ends with its last member.
-        if not room.members and not room.retired:
-            if self.rooms.get(room.name) is room:
-                del self.rooms[room.name]
-            log.info("room %r removed", room.name)
-            self._retire(room, now)
-
-    def _retire(self, room: Room, now: float) -> None:
-        """A room is gone: its recording gets the last drops and is to be finished."""
-        room.retire()
-        rec = room.recorder
-        if rec is not None:
-            room.resume_recording(now)  # a pause in progress goes into the file
-            room.flush_drops(now, force=True)  # the drops of the last second too
-            room.recorder = None
-            self.emit(FinishRecording(room.name, rec))
+    def forget_room_if_empty(self, room: Room, now: float) -> None:
+        """Remove ``room`` once its last member is gone (its recording is finished)."""
+        self.table.forget_if_empty(room, now)
 
     def close_rooms(self, now: float) -> list[Action]:
         """Server shutdown: forget every room; recorded ones are to be finished."""
-        for room in list(self.rooms.values()):
-            room.members.clear()
-            self._retire(room, now)
-        self.rooms.clear()
-        self._dues.clear()
-        self.closed = True
+        self.table.close_all(now)
         return self._actions()
+
+    @property
+    def recording_paused(self) -> bool:
+        """Pose updates are not recorded while set (see :meth:`pause_recording`)."""
+        return self.table.recording_paused
 
     def pause_recording(self, now: float) -> None:
         """Stop recording pose updates in every room, and in rooms opened later."""
-        if not self.recording_paused:
-            self.recording_paused = True
-            for room in self.rooms.values():
-                room.pause_recording(now)
+        self.table.pause_recording(now)
 
     def resume_recording(self, now: float) -> None:
         """Record pose updates again after :meth:`pause_recording`."""
-        if self.recording_paused:
-            self.recording_paused = False
-            for room in self.rooms.values():
-                room.resume_recording(now)
+        self.table.resume_recording(now)
 
     # -- statistics ---------------------------------------------------------------------
 
@@ -543,11 +494,11 @@ class RelayCore:
         events for its resume and misses presence notices (it gets the room anew)."""
         peer = self._by_user.get(member.user)
         if peer is not None and not member.parked:
-            self._send(peer, message)
+            self.send(peer, message)
         elif isinstance(message, UserEvent):
             member.outbox.offer_event(encode_message(message))
 
-    def _send(self, peer: Peer, message: Message) -> None:
+    def send(self, peer: Peer, message: Message) -> None:
         """Queue a reliable message; overflow closes that connection, not others.
 
         A message the session may no longer carry (it ended on a fatal error or
@@ -562,13 +513,13 @@ class RelayCore:
             return
         if not peer.outbox.offer_event(data):
             peer.event_drops += 1
-            self._close(
+            self.close_peer(
                 peer,
                 ErrorCode.TOO_SLOW.close_code or 1008,
                 f"too-slow: event queue overflow ({peer.outbox.max_events})",
             )
 
-    def _close(self, peer: Peer, code: int, reason: str) -> None:
+    def close_peer(self, peer: Peer, code: int, reason: str) -> None:
         if peer.close_request is None:
             peer.close_request = (code, close_reason(reason))
             self.emit(Close(peer.conn, *peer.close_request))
@@ -583,9 +534,9 @@ class RelayCore:
     def _protocol_error(self, peer: Peer, err: ProtocolError, now: float) -> None:
         peer.protocol_errors += 1
         self._log_peer(peer, now, "user %s: %s (%s)", peer.user, err.message, err.code)
-        self._send(peer, err.to_message())
+        self.send(peer, err.to_message())
         if err.fatal:
-            self._close(peer, err.close_code or 1002, err.close_reason)
+            self.close_peer(peer, err.close_code or 1002, err.close_reason)
         self._misbehaved(peer, now)
 
     def _misbehaved(self, peer: Peer, now: float) -> None:
@@ -593,14 +544,14 @@ class RelayCore:
         if not peer.budget.spend(now) and peer.close_request is None:
             self.misbehaviour_closes += 1
             log.info("user %s: over its misbehaviour budget, closing", peer.user)
-            self._close(peer, 1008, "misbehaving: too many invalid frames")
+            self.close_peer(peer, 1008, "misbehaving: too many invalid frames")
 
-    def _refuse(
+    def refuse(
         self, peer: Peer, code: ErrorCode, message: str, what: str, now: float, charge: bool = True
     ) -> None:
         """Answer a refused ``what`` (join, update) with a non-fatal error; charge the budget."""
         self._log_peer(peer, now, "user %s: %s refused: %s (%s)", peer.user, what, message, code)
-        self._send(peer, ErrorMessage.from_code(code, message, in_reply_to=what))
+        self.send(peer, ErrorMessage.from_code(code, message, in_reply_to=what))
         if charge:
             self._misbehaved(peer, now)
 
@@ -611,9 +562,7 @@ class RelayCore:
         if isinstance(event, PoseUpdate):
             self._on_update(peer, event, now)
         elif isinstance(event, Ping):
-            self._send(
-                peer, Pong(seq=event.seq, ping_time=event.time, recv_time=now, send_time=now)
-            )
+            self.send(peer, Pong(seq=event.seq, ping_time=event.time, recv_time=now, send_time=now))
         elif isinstance(event, ProtocolError):
             self._protocol_error(peer, event, now)
         elif isinstance(event, Hello):
@@ -622,7 +571,7 @@ class RelayCore:
             try:
                 name = normalise_room(event.room)
             except ValueError as exc:
-                self._refuse(peer, ErrorCode.BAD_ROOM, str(exc), "join", now)
+                self.refuse(peer, ErrorCode.BAD_ROOM, str(exc), "join", now)
                 return
             self._on_join(peer, event, name, now, wall)
         elif isinstance(event, SetRate):
@@ -634,18 +583,14 @@ class RelayCore:
         elif isinstance(event, ObjectCreate | RequestOwnership | Release):
             objects.handle(self, peer, event, now)
         elif isinstance(event, Bye):
-            self._close(peer, 1000, event.reason or "bye")
+            self.close_peer(peer, 1000, event.reason or "bye")
         elif isinstance(event, ErrorMessage):
             self._log_peer(
                 peer, now, "user %s reports %s: %s", peer.user, event.code, event.message
             )
             if event.fatal:
                 # Its session is over (CLOSED): nothing more may be sent to it.
-                self._close(peer, 1000, f"client ended the session: {event.code}")
-
-    def _room_refusal(self, name: str) -> str | None:
-        """Why a join of room ``name`` is refused (``room-full``) now; None: it is not."""
-        return room_refusal(self.config, self.rooms, name)
+                self.close_peer(peer, 1000, f"client ended the session: {event.code}")
 
     def _on_join(self, peer: Peer, join: Join, name: str, now: float, wall: float) -> None:
         """Join room ``name`` (``join.room`` normalised; ``joined`` echoes ``join.room``)."""
@@ -654,16 +599,16 @@ class RelayCore:
         assert peer.user is not None  # the state table puts hello before join
         if resume.resume_join(self, peer, join, name, now):
             return
-        refused = self._room_refusal(name)
+        refused = self.table.refusal(name)
         if refused is not None:
-            self._send(
+            self.send(
                 peer, ErrorMessage.from_code(ErrorCode.ROOM_FULL, refused, in_reply_to="join")
             )
             return
-        room = self._room_for(name)
+        room = self.room_for(name)
         streams = room.allocate_streams(join.streams)
         shared = objects.joined_objects(room)
-        self._send(peer, Joined(room=join.room, streams=streams, rate=join.rate, objects=shared))
+        self.send(peer, Joined(room=join.room, streams=streams, rate=join.rate, objects=shared))
         member = Member(
             peer.user,
             peer.name,
@@ -684,7 +629,7 @@ class RelayCore:
         self._introduce(peer, member, room)
         objects.introduce(self, peer, room)
         room.add(member, now)
-        self._rescheduled(room)
+        self.rescheduled(room)
         peer.room, peer.member = room, member
         if room.recorder is not None and not join.spectator:
             room.recorder.record_presence(
@@ -705,7 +650,7 @@ class RelayCore:
         spectators = self._spectators
         for other in room.members.values():
             if other.user not in spectators:
-                self._send(peer, Room.announce(other))
+                self.send(peer, Room.announce(other))
             if member.user not in spectators:
                 self.to_member(other, Room.announce(member))
 
@@ -717,13 +662,13 @@ class RelayCore:
             peer.member.asked_rate = event.rate
         rate = event.rate if peer.downlink is None else peer.downlink.rate_for(event.rate)
         room.set_rate(user, max(self.config.min_rate, rate), now)
-        self._rescheduled(room)
+        self.rescheduled(room)
         if room.recorder is not None:
             room.recorder.record_presence({"kind": "rate", "user": user, "rate": event.rate}, now)
 
     def _on_user_event(self, peer: Peer, event: UserEvent, now: float) -> None:
         room = peer.room
-        if room is None or not self._admit(peer, now):
+        if room is None or not self.admit_update(peer, now):
             return
         for m in list(room.members.values()):
             if m.user != peer.user:
@@ -740,18 +685,18 @@ class RelayCore:
                 now,
             )
 
-    def _admit(self, peer: Peer, now: float) -> bool:
+    def admit_update(self, peer: Peer, now: float) -> bool:
         """The update bucket (:meth:`Peer.admit`); a connection that keeps flooding is closed."""
         rate = self.config.max_update_rate
         if peer.admit(rate, now):
             return True
         if peer.flood_drops > 10 * rate:
-            self._close(peer, 1008, f"update flood: over {rate:g} updates/s")
+            self.close_peer(peer, 1008, f"update flood: over {rate:g} updates/s")
         return False
 
     def _on_update(self, peer: Peer, update: PoseUpdate, now: float) -> None:
         room, user = peer.room, peer.user
-        if self._admit(peer, now) and room is not None and user is not None:
+        if self.admit_update(peer, now) and room is not None and user is not None:
             cfg = self.config
             refused = update_refusal(
                 update, now, cfg.max_capture_age, cfg.max_capture_ahead, self.volume
@@ -762,7 +707,7 @@ class RelayCore:
                 # A stale capture may be the relay's own lag (its loop behind), not the
                 # client's doing: refused and counted, never charged to its budget.
                 charge = refused.kind != "stale-capture"
-                self._refuse(peer, ErrorCode.BAD_POSE, refused.message, "update", now, charge)
+                self.refuse(peer, ErrorCode.BAD_POSE, refused.message, "update", now, charge)
                 return
             stale = room.ingest(user, update, peer.session.compact_codes())
             rec = room.recorder
@@ -782,14 +727,14 @@ class RelayCore:
             rate = max(self.config.min_rate, downlink.rate_for(member.asked_rate))
             if abs(rate - member.rate) > 0.25:
                 room.set_rate(member.user, rate, now)
-                self._rescheduled(room)
+                self.rescheduled(room)
 
     def _leave(self, peer: Peer, now: float) -> None:
         room, user = peer.room, peer.user
         if room is not None and user is not None:
             objects.owner_left(self, room, user, now)
             room.remove(user)
-            self._rescheduled(room)
+            self.rescheduled(room)
             spectator = user in self._spectators
             self._spectators.discard(user)
             if room.recorder is not None and not spectator:
@@ -799,5 +744,5 @@ class RelayCore:
             for other in list(room.members.values()):
                 if not spectator:
                     self.to_member(other, PeerLeft(user=user, reason="left"))
-            self._forget_room_if_empty(room, now)
+            self.forget_room_if_empty(room, now)
         peer.room = peer.member = None

@@ -32,7 +32,7 @@ import re
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import msgpack
 import nats.errors
@@ -50,18 +50,7 @@ from posecast.server.forward import Edge, Members, alive
 from posecast.server.limits import normalise_room
 from posecast.server.room import IdAllocator, Member, Outbox
 
-if TYPE_CHECKING:
-    from posecast.server.app import _Connection as Connection
-
-__all__ = [
-    "MOVED",
-    "ClusterNode",
-    "claim_then_consume",
-    "cluster_clock",
-    "join_room",
-    "resume_then_consume",
-    "resume_token",
-]
+__all__ = ["MOVED", "ClusterNode", "cluster_clock", "join_room", "resume_token"]
 
 log = logging.getLogger("posecast.cluster")
 
@@ -258,6 +247,28 @@ class ClusterNode:
         self.edge.open(conn, owner, user, "", True, address, None, True)
         return self.edge.forward(conn, frames)
 
+    async def place_join(self, room: str) -> str | None:
+        """The node a join of ``room`` goes to (claimed in the cluster, see :meth:`claim`);
+        None: the cluster cannot place it now (NATS away, or the room changes hands too
+        fast: the adapter closes the client with 1013, to try again)."""
+        try:
+            return await self.claim(room)
+        except Exception as exc:
+            log.warning("cluster: cannot claim room %r: %s", room, exc)
+            return None
+
+    async def place_resume(self, token: str) -> tuple[str, int] | None:
+        """(owner node, user) of the member resumable with ``token``, its room claimed
+        (taking in the members of a lost owner when this node takes it over); None: not
+        in the cluster, or NATS away (then this node answers the hello: not resumed)."""
+        try:
+            record = await self.lookup(token)
+            if record is not None:
+                return await self.claim(str(record["room"])), int(record["user"])
+        except Exception as exc:
+            log.warning("cluster: cannot look up a resume: %s", exc)
+        return None
+
     # -- resume anywhere: members' records in NATS -----------------------------------
 
     async def lookup(self, token: str) -> dict[str, Any] | None:
@@ -275,7 +286,7 @@ class ClusterNode:
         resume here (``server.resume.restore``); returns how many were parked."""
         target = self.core.rooms.get(room)
         if target is None:
-            target = self.core._room_for(room)
+            target = self.core.room_for(room)
         parked = 0
         for r in records:
             member = Member(
@@ -311,7 +322,7 @@ class ClusterNode:
             if not self.directory.owns(name):
                 continue
             for member in room.members.values():
-                peer = core._by_user.get(member.user)
+                peer = core.connected(member.user)
                 token = (
                     parked.get(member.user)
                     if member.parked or peer is None
@@ -461,72 +472,3 @@ class ClusterNode:
             text = "NaN" if value != value else f"{value:g}" if isinstance(value, float) else value
             lines += [f"# HELP {name} {help_}", f"# TYPE {name} {kind}", f"{name} {text}"]
         return "\n".join(lines) + "\n"
-
-
-# -- the adapter's side: a connection's join or resume, placed in the cluster -------------
-
-
-async def resume_then_consume(
-    c: Connection, token: str, events: list[Event], raw: bytes | str
-) -> None:
-    """A hello resuming a member this node does not hold: find its room in the
-    cluster; resume here if this node owns it now (taking in the members of a
-    lost owner), else hand the connection to the owner, the hello first."""
-    server = c.server
-    cluster = server.cluster
-    assert cluster is not None
-    owner = record = None
-    try:
-        record = await cluster.lookup(token)
-        if record is not None:
-            owner = await cluster.claim(str(record["room"]))
-    except Exception as exc:  # NATS away: this node answers (not resumed)
-        log.warning("cluster: cannot look up a resume: %s", exc)
-    if server._conns.get(c.conn) is not c:
-        return
-    if record is not None and owner is not None and owner != cluster.name:
-        _forward(c, owner, raw, int(record["user"]))
-        return
-    await c._open_then_consume("", events)
-
-
-def _forward(c: Connection, owner: str, raw: bytes | str, resumes: int | None = None) -> None:
-    """From now on this connection's frames go to node ``owner``, ``raw`` first."""
-    server = c.server
-    assert server.cluster is not None
-    backlog, c._held, c._backlog = c._backlog, False, []
-    address = c.transport.get_extra_info("peername")
-    where = str(address[0] if address else "?")
-    c.forwarded = True
-    frames = [raw, *backlog]
-    if resumes is None:
-        ok = server.cluster.hand_off(c.conn, owner, where, frames)
-    else:
-        ok = server.cluster.hand_off_resume(c.conn, owner, resumes, where, frames)
-    if not ok:
-        c.close(1013, "try again later: the cluster is not taking frames")
-        return
-    c.transport.resume_reading()
-
-
-async def claim_then_consume(
-    c: Connection, room: str, events: list[Event], raw: bytes | str
-) -> None:
-    """Claim ``room`` in the cluster; join here if this node owns it now, else hand
-    the connection off to its owner, the join frame first."""
-    server = c.server
-    assert server.cluster is not None
-    try:
-        owner = await server.cluster.claim(room)
-    except Exception as exc:  # NATS away, or the room changes hands too fast
-        log.warning("cluster: cannot claim room %r: %s", room, exc)
-        owner = None
-    if server._conns.get(c.conn) is not c:
-        return  # it ended meanwhile
-    if owner is None:
-        c.close(1013, "try again later: the cluster cannot place the room")
-        return
-    if owner == server.cluster.name:
-        await c._open_then_consume(room, events)
-        return
-    _forward(c, owner, raw)

@@ -205,7 +205,7 @@ def introduce(core: RelayCore, peer: Peer, room: Room) -> None:
     """A joiner learns every object of ``room``: its pose, time and owner."""
     peer.session.objects = room.objects
     for obj in room.objects.values():
-        core._send(peer, _info(room, obj))
+        core.send(peer, _info(room, obj))
 
 
 def restore(core: RelayCore, peer: Peer, room: Room) -> None:
@@ -221,9 +221,9 @@ def handle(
 ) -> None:
     """Apply one shared-object request of ``peer``."""
     room, user = peer.room, peer.user
-    if room is None or user is None or not core._admit(peer, now):
+    if room is None or user is None or not core.admit_update(peer, now):
         return
-    if user in core._spectators:
+    if core.is_spectator(user):
         _refuse(core, peer, event, "spectators own nothing", now, charge=True)
     elif isinstance(event, ObjectCreate):
         _create(core, peer, room, user, event, now)
@@ -245,7 +245,7 @@ def _refuse(
     now: float,
     charge: bool = False,
 ) -> None:
-    core._refuse(peer, ErrorCode.OWNERSHIP_REFUSED, message, event.TYPE, now, charge)
+    core.refuse(peer, ErrorCode.OWNERSHIP_REFUSED, message, event.TYPE, now, charge)
 
 
 def _create(
@@ -259,14 +259,14 @@ def _create(
         return
     box = zip(core.volume.lo, event.pose[:3], core.volume.hi, strict=True)
     if not all(lo <= x <= hi for lo, x, hi in box):
-        core._refuse(
+        core.refuse(
             peer, ErrorCode.BAD_POSE, "object position outside the room volume", event.TYPE, now
         )
         return
     capture = now if event.time is None else event.time
     cfg = core.config
     if not now - cfg.max_capture_age <= capture <= now + cfg.max_capture_ahead:
-        core._refuse(
+        core.refuse(
             peer,
             ErrorCode.BAD_POSE,
             f"object_create.time {capture - now:+.3f} s from now",
@@ -349,13 +349,15 @@ def _change(
 ) -> None:
     """Move ``obj`` to ``owner``: the sessions' rights; told (unless a release) and recorded."""
     previous = obj.owner
-    if previous is not None and previous in core._by_user:
-        core.peer_of(previous).session.let_go(obj.stream)
+    held_by = None if previous is None else core.connected(previous)
+    if held_by is not None:
+        held_by.session.let_go(obj.stream)
     obj.give(owner)
     obj.locked = lock and owner is not None
     if owner is not None:
-        if owner in core._by_user:
-            core.peer_of(owner).session.hold(obj.stream)
+        taker = core.connected(owner)
+        if taker is not None:
+            taker.session.hold(obj.stream)
         _announce(core, room, obj, owner, previous, reason, now)
 
 
@@ -408,8 +410,9 @@ def owner_left(core: RelayCore, room: Room, user: int, now: float) -> None:
 
 
 def _remove(core: RelayCore, room: Room, obj: RoomObject, reason: str, now: float) -> None:
-    if obj.owner is not None and obj.owner in core._by_user:
-        core.peer_of(obj.owner).session.let_go(obj.stream)
+    held_by = None if obj.owner is None else core.connected(obj.owner)
+    if held_by is not None:
+        held_by.session.let_go(obj.stream)
     del room.objects[obj.stream]
     room.drop_stream(obj.stream)
     message = ObjectRemoved(stream=obj.stream, reason=reason)

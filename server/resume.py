@@ -130,12 +130,12 @@ def hello(core: RelayCore, peer: Peer, event: Hello, now: float) -> None:
         # A member forwarded by another cluster node comes with the id it was given there.
         peer.user = core.users.take() if peer.preset_user is None else peer.preset_user
         peer.name = event.agent or f"user{peer.user}"
-    core._by_user[peer.user] = peer
+    core.bind_user(peer.user, peer)
     welcome = peer.session.make_welcome(peer.user, now)
     if parking.window > 0 and (event.resumable or parked is not None):
         peer.resume_token = parking.new_token()
         welcome = replace(welcome, resume=peer.resume_token, resumed=parked is not None)
-    core._send(peer, welcome)
+    core.send(peer, welcome)
 
 
 def parkable(core: RelayCore, peer: Peer) -> bool:
@@ -147,7 +147,7 @@ def parkable(core: RelayCore, peer: Peer) -> bool:
         and peer.room is not None
         and not peer.room.retired
         and peer.close_request is None
-        and peer.user not in core._spectators
+        and not core.is_spectator(peer.user)
     )
 
 
@@ -164,7 +164,7 @@ def park(core: RelayCore, peer: Peer, now: float) -> None:
                peer.resume_token, peer.conn),
     )  # fmt: skip
     for other in list(room.members.values()):
-        if other.user != peer.user and other.user not in core._spectators:
+        if other.user != peer.user and not core.is_spectator(other.user):
             core.to_member(other, PeerStalled(user=peer.user))
     peer.room = peer.member = None
     core.emit_rearm()
@@ -176,7 +176,7 @@ def gone(core: RelayCore, parked: Parked, now: float) -> None:
     if room.members.get(user) is parked.member:
         objects.owner_left(core, room, user, now)
         room.remove(user)
-        core._rescheduled(room)
+        core.rescheduled(room)
         if room.recorder is not None:
             room.recorder.record_drop(
                 {"kind": "disconnected", "user": user, "first_time": parked.since,
@@ -185,10 +185,10 @@ def gone(core: RelayCore, parked: Parked, now: float) -> None:
             )  # fmt: skip
             room.recorder.record_presence({"kind": "leave", "user": user, "reason": "gone"}, now)
         for other in list(room.members.values()):
-            if other.user not in core._spectators:
+            if not core.is_spectator(other.user):
                 core.to_member(other, PeerLeft(user=user, reason="gone"))
-        core._forget_room_if_empty(room, now)
-    if user not in core._by_user:
+        core.forget_room_if_empty(room, now)
+    if core.connected(user) is None:
         core.users.give_back(user)
 
 
@@ -211,11 +211,11 @@ def resume_join(core: RelayCore, peer: Peer, join: Join, name: str, now: float) 
     room.set_rate(member.user, join.rate, now)  # a key snapshot on its next tick
     peer.room, peer.member = room, member
     shared = objects.joined_objects(room)
-    core._send(peer, Joined(room=join.room, streams=member.streams, rate=join.rate, objects=shared))
+    core.send(peer, Joined(room=join.room, streams=member.streams, rate=join.rate, objects=shared))
     for other in list(room.members.values()):
-        if other.user == member.user or other.user in core._spectators:
+        if other.user == member.user or core.is_spectator(other.user):
             continue
-        core._send(peer, Room.announce(other))
+        core.send(peer, Room.announce(other))
         core.to_member(other, PeerResumed(user=member.user))
     objects.restore(core, peer, room)
     # The events it missed, in order, once it knows the room; presence notices and
@@ -230,7 +230,7 @@ def resume_join(core: RelayCore, peer: Peer, join: Join, name: str, now: float) 
              "last_time": now, "count": 1},
             now,
         )  # fmt: skip
-    core._rescheduled(room)
+    core.rescheduled(room)
     return True
 
 
@@ -245,15 +245,14 @@ def restore(
     its client resumes here with ``token`` as on the node it was on: the same user
     id and stream ids. False if the user or one of its stream ids is taken here."""
     user = member.user
-    if user in room.members or user in core._by_user or core.parking.holds(user):
+    if user in room.members or core.connected(user) is not None or core.parking.holds(user):
         return False
     if any(not room.stream_ids.reserve(sid) for sid in member.streams.values()):
         return False
     core.users.reserve(user)
     room.add(member, now)
     member.parked = True
-    core._next_conn += 1  # a connection id no socket will have: the parking's key
-    conn = core._next_conn
+    conn = core.new_conn()  # a connection id no socket will have: the parking's key
     parking = core.parking
     parking.park(conn, Parked(user, member.name, room, member, now, now + parking.window,
                               token, conn))  # fmt: skip
@@ -263,6 +262,6 @@ def restore(
              "streams": member.streams, "rate": member.rate},
             now,
         )  # fmt: skip
-    core._rescheduled(room)
+    core.rescheduled(room)
     core.emit_rearm()
     return True

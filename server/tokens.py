@@ -23,8 +23,8 @@ __all__ = ["admit_join", "renew"]
 
 
 def _unauthorized(core: RelayCore, peer: Peer, exc: TokenError, what: str) -> None:
-    core._send(peer, ErrorMessage.from_code(ErrorCode.UNAUTHORIZED, str(exc), in_reply_to=what))
-    core._close(peer, 1008, str(exc))
+    core.send(peer, ErrorMessage.from_code(ErrorCode.UNAUTHORIZED, str(exc), in_reply_to=what))
+    core.close_peer(peer, 1008, str(exc))
 
 
 def admit_join(core: RelayCore, peer: Peer, join: Join, name: str, now: float, wall: float) -> bool:
@@ -41,7 +41,7 @@ def admit_join(core: RelayCore, peer: Peer, join: Join, name: str, now: float, w
     back = peer.parked is not None and peer.parked.name == claims.user
     room = core.rooms.get(name)
     if not back and room is not None and room.has_member_named(claims.user):
-        core._refuse(
+        core.refuse(
             peer,
             ErrorCode.USER_TAKEN,
             f"user {claims.user!r} is already in room {name!r} on another connection",
@@ -50,7 +50,7 @@ def admit_join(core: RelayCore, peer: Peer, join: Join, name: str, now: float, w
         )
         return False
     peer.name = claims.user
-    core._token_expires(peer, now + (claims.exp - wall))
+    core.token_expires_at(peer, now + (claims.exp - wall))
     return True
 
 
@@ -66,4 +66,4 @@ def renew(core: RelayCore, peer: Peer, event: Renew, now: float, wall: float) ->
     except TokenError as exc:
         _unauthorized(core, peer, exc, "renew")
         return
-    core._token_expires(peer, now + (claims.exp - wall))
+    core.token_expires_at(peer, now + (claims.exp - wall))

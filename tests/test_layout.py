@@ -123,6 +123,8 @@ def test_server_holds_only_the_relay() -> None:
         "limits.py",
         "link.py",
         "room.py",
+        "rooms.py",
+        "recordings.py",
         "auth.py",
         "logs.py",
         "app.py",

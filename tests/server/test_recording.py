@@ -372,7 +372,7 @@ async def _rooms_share_one_writer(tmp: Path) -> tuple[RelayServer, list[Path], s
         ]
         recorders = [room.recorder for room in server.rooms.values()]
         assert len(recorders) == 3
-        first = server._recorder_host
+        first = server.recorders.host
         assert first is not None and first.rooms == 3
         assert {rec.host.pid for rec in recorders if isinstance(rec, ProcessRecorder)} == {
             first.pid
@@ -395,7 +395,7 @@ async def _rooms_share_one_writer(tmp: Path) -> tuple[RelayServer, list[Path], s
             await ClientConnection.open(url, room="late", streams=("head",), rate=20)
             for _ in range(2)
         ]
-        second = server._recorder_host
+        second = server.recorders.host
         assert second is not None and second.pid != first.pid and second.alive
         for seq in range(1, 21):
             for conn in late:
@@ -409,7 +409,7 @@ async def _rooms_share_one_writer(tmp: Path) -> tuple[RelayServer, list[Path], s
 
 def test_rooms_share_one_writer_process_and_survive_its_death(tmp_path: Path) -> None:
     server, files, pids = asyncio.run(_rooms_share_one_writer(tmp_path))
-    assert server._recorder_host is None  # closed with the server
+    assert server.recorders.host is None  # closed with the server
     for pid in pids:  # no writer process outlives the server
         assert not Path(f"/proc/{pid}").exists() or "Z" in _proc_state(pid)
     # The late room finished cleanly; the three rooms the dead writer held left .part files.
