@@ -24,14 +24,17 @@ from __future__ import annotations
 import asyncio
 import logging
 import struct
+from collections.abc import Sequence
 from typing import Any, cast
 
+from websockets.exceptions import NegotiationError
 from websockets.frames import Frame, Opcode
 from websockets.http11 import Request, Response
 from websockets.protocol import State
 from websockets.server import ServerProtocol
+from websockets.typing import Subprotocol
 
-__all__ = ["WRITE_HIGH_WATER", "WebSocketConnection", "frame_binary"]
+__all__ = ["SUBPROTOCOL", "WRITE_HIGH_WATER", "WebSocketConnection", "frame_binary"]
 
 log = logging.getLogger("posecast.server")
 
@@ -42,6 +45,21 @@ WRITE_HIGH_WATER = 32 * 1024
 _HEAD16 = struct.Struct("!BBH")
 _HEAD64 = struct.Struct("!BBQ")
 _PING = struct.Struct("!I")
+
+#: The websocket subprotocol of this wire format (selected when offered, not required).
+SUBPROTOCOL = "posecast.v1"
+
+
+def _select_subprotocol(
+    protocol: ServerProtocol, offered: Sequence[Subprotocol]
+) -> Subprotocol | None:
+    """``posecast.v1`` if offered; none if nothing is offered; else refuse (HTTP 400)."""
+    if not offered:
+        return None
+    if SUBPROTOCOL in offered:
+        return Subprotocol(SUBPROTOCOL)
+    names = ", ".join(offered)
+    raise NegotiationError(f"unsupported subprotocol {names}; this relay speaks {SUBPROTOCOL}")
 
 
 def frame_binary(payload: bytes) -> bytes:
@@ -67,7 +85,12 @@ class WebSocketConnection(asyncio.Protocol):
         open_timeout: float,
         logger: Any,
     ) -> None:
-        self.protocol = ServerProtocol(max_size=max_size, logger=logger)
+        self.protocol = ServerProtocol(
+            max_size=max_size,
+            logger=logger,
+            subprotocols=[Subprotocol(SUBPROTOCOL)],
+            select_subprotocol=_select_subprotocol,
+        )
         self.transport: asyncio.Transport = None  # type: ignore[assignment]
         self.ping_interval = ping_interval
         self.ping_timeout = ping_timeout
