@@ -25,7 +25,8 @@ own. One task sleeps until :meth:`RelayCore.next_expiry` and closes the
 connections that have not joined in time. Recordings open and close off the
 event loop (a connection whose join opens a recorded room stops reading until
 the room is open). ``GET /healthz`` and ``GET /metrics`` are answered on the
-websocket port (``server/http.py``).
+websocket port (``server/http.py``); a browser page from an origin not in
+``allow_origins`` is refused with 403 before its handshake (``server/http.py``).
 
 Logging is sized for a server that runs for weeks: plain HTTP requests (health
 probes, metrics scrapes, rejected handshakes) are logged at DEBUG, not at
@@ -60,7 +61,7 @@ from posecast.server.core import (
     ServerConfig,
     Wake,
 )
-from posecast.server.http import QuietHttpLog, metrics_text, process_request
+from posecast.server.http import OriginPolicy, QuietHttpLog, metrics_text, process_request
 from posecast.server.logs import LogLimiter
 from posecast.server.node import cluster_clock, join_room, resume_token
 from posecast.server.recordings import Recordings
@@ -145,6 +146,13 @@ class _Connection(WebSocketConnection):
         response = server.http(self.protocol, request)
         if response is None and server._closing:
             return self.protocol.reject(503, "Service Unavailable: the relay is stopping\n")
+        if response is None:
+            origins = request.headers.get_all("Origin")
+            if len(origins) > 1:
+                return self.protocol.reject(400, "Bad Request: more than one Origin header\n")
+            refused = server.origins.refusal(origins[0] if origins else None)
+            if refused is not None:
+                return self.protocol.reject(403, f"Forbidden: {refused}\n")
         return response
 
     def on_open(self) -> None:
@@ -431,6 +439,7 @@ class RelayServer:
         #: The cluster side (``--cluster``), from run() on.
         self.cluster: ClusterNode | None = None
         self.http = process_request(self.core, self.clock, self._cluster_metrics)
+        self.origins = OriginPolicy(self.config.allow_origins)
         self.ws_log = QuietHttpLog(logging.getLogger("websockets.server"), {})
         #: Recorders of the rooms (``--record``), opened and closed off the loop.
         self.recorders = Recordings(

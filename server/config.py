@@ -87,6 +87,10 @@ class ServerConfig:
     node: str | None = None
     #: Seconds a node's and a room's lease live without renewal.
     cluster_lease: float = 3.0
+    #: Browser origins allowed to connect (``--allow-origin``; normalised as in
+    #: ``server.http``); others get HTTP 403. None: any origin. Handshakes
+    #: without an Origin header (non-browser clients) are never refused for it.
+    allow_origins: tuple[str, ...] | None = None
 
     @property
     def room_volume(self) -> Volume:

@@ -6,12 +6,34 @@ Both answer on the websocket port, before the opening handshake
 websocket handshake, and a plain HTTP request that asks for no upgrade gets
 426. Plain HTTP requests are logged at DEBUG, not at websockets' INFO, so that
 a scraper every 15 s fills no log.
+
+Browser origins (:class:`OriginPolicy`, asked by the adapter before each
+handshake): which browser pages may open a websocket to the relay. A browser
+sends the page's origin (``scheme://host[:port]``) with every websocket
+handshake; other clients (the Python bot, ``websocat``, a game engine) send
+none. ``posecast serve --allow-origin`` (``POSECAST_ALLOW_ORIGIN``) lists the
+origins allowed, comma-separated: a handshake from any other origin is refused
+with HTTP 403 before it becomes a websocket. A handshake without an ``Origin``
+header is never refused here (it is not a browser; tokens are what gate joins).
+
+Without ``--allow-origin`` any origin may connect, as any client may connect to
+a relay without ``--secret``: that keeps ``posecast web`` (served from whatever
+address a headset on the LAN uses) and local development working, and the relay
+logs the first browser origin it sees once, saying how to restrict them.
+``docs/security.md`` says why this is safe for posecast (no cookies, no ambient
+credentials: a page can do nothing a script could not) and when to set it.
+
+Origins are compared after normalising both sides as browsers write them:
+lowercase scheme and host, no default port (``:443`` for https, ``:80`` for
+http), no trailing slash. ``null`` (a ``file://`` page, a sandboxed frame) is
+allowed only if listed; ``*`` allows any origin (the default, said explicitly).
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import re
 from collections.abc import Callable
 from http import HTTPStatus
 from typing import Any
@@ -21,7 +43,16 @@ from websockets.server import ServerProtocol
 
 from posecast.server.core import TICK_LAG_BUCKETS, RelayCore
 
-__all__ = ["QuietHttpLog", "metrics_text", "process_request"]
+__all__ = [
+    "OriginPolicy",
+    "QuietHttpLog",
+    "metrics_text",
+    "normalise_origin",
+    "parse_allow_origin",
+    "process_request",
+]
+
+log = logging.getLogger("posecast.server")
 
 
 def process_request(
@@ -261,3 +292,78 @@ def _number(value: float) -> str:
 
 def _label(value: str) -> str:
     return value.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")
+
+
+# -- browser origins ------------------------------------------------------------
+_ORIGIN = re.compile(
+    r"(?P<scheme>[a-z][a-z0-9+.-]*)://"
+    r"(?P<host>\[[0-9a-f:.]+\]|[^\s/:@\[\]]+)(?::(?P<port>\d{1,5}))?/?"
+)
+_DEFAULT_PORTS = {"http": "80", "https": "443", "ws": "80", "wss": "443"}
+#: Refused origins logged (once each) at most; the rest are counted only.
+_LOGGED_REFUSALS = 32
+
+
+def normalise_origin(text: str) -> str:
+    """``text`` as a browser writes an origin; ValueError (one line) if it is not one."""
+    value = text.strip().lower()
+    if value in ("null", "*"):
+        return value
+    m = _ORIGIN.fullmatch(value)
+    if m is None:
+        raise ValueError(
+            f"{text.strip()!r} is not an origin; write scheme://host[:port], "
+            "e.g. https://app.example.com or http://localhost:8080"
+        )
+    scheme, host, port = m["scheme"], m["host"], m["port"]
+    if port is not None:
+        if int(port) > 65535:
+            raise ValueError(f"{text.strip()!r}: port {port} is out of range")
+        port = None if _DEFAULT_PORTS.get(scheme) == str(int(port)) else str(int(port))
+    return f"{scheme}://{host}" + ("" if port is None else f":{port}")
+
+
+def parse_allow_origin(text: str) -> tuple[str, ...] | None:
+    """The origins of a ``--allow-origin`` list (None: any origin, ``*`` or empty)."""
+    items = [normalise_origin(part) for part in text.split(",") if part.strip()]
+    if not items or "*" in items:
+        return None
+    return tuple(dict.fromkeys(items))
+
+
+class OriginPolicy:
+    """Decides on each handshake's ``Origin`` header; sans I/O apart from its log lines."""
+
+    def __init__(self, allowed: tuple[str, ...] | None) -> None:
+        #: Normalised allowed origins (None: any).
+        self.allowed = None if allowed is None else frozenset(map(normalise_origin, allowed))
+        self.refused = 0
+        self._noted_any = False
+        self._logged: set[str] = set()
+
+    def refusal(self, origin: str | None) -> str | None:
+        """Why a handshake with this ``Origin`` header is refused (None: it is not)."""
+        if origin is None:
+            return None  # not a browser
+        allowed = self.allowed
+        if allowed is None:
+            if not self._noted_any:
+                self._noted_any = True
+                log.info(
+                    "a browser page from %s connected; any origin may connect "
+                    "(restrict with --allow-origin)",
+                    origin[:200],
+                )
+            return None
+        try:
+            key = normalise_origin(origin)
+        except ValueError:
+            key = origin
+        if key in allowed:
+            return None
+        self.refused += 1
+        shown = origin[:200]
+        if shown not in self._logged and len(self._logged) < _LOGGED_REFUSALS:
+            self._logged.add(shown)
+            log.info("refused a browser page from %s: not in --allow-origin", shown)
+        return f"origin {shown} is not allowed by this relay (--allow-origin)"

@@ -1,18 +1,56 @@
-"""The checks of ``posecast serve``'s options: each refusal is one line (exit 2)."""
+"""The checks of ``posecast serve``'s options (and options of its own): each refusal is one
+line (exit 2)."""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, TypedDict
+from typing import TYPE_CHECKING, Annotated, TypedDict
+
+import typer
 
 from posecast.cli.common import _fail
 
 if TYPE_CHECKING:
     from posecast.protocol.codec import Volume
 
-__all__ = ["check_serve_args", "check_tls_files", "cluster_config", "room_volume"]
+__all__ = [
+    "SERVE_LIMITS",
+    "AllowOriginOption",
+    "allowed_origins",
+    "check_serve_args",
+    "check_tls_files",
+    "cluster_config",
+    "room_volume",
+]
 
 _LOG_LEVELS = ("debug", "info", "warning", "error")
+
+#: The options of ``serve`` that are ServerConfig limits of the same name (none negative).
+SERVE_LIMITS = (
+    "ping_interval",
+    "ping_timeout",
+    "max_capture_age",
+    "max_capture_ahead",
+    "misbehaviour_burst",
+    "misbehaviour_refill",
+    "join_timeout",
+    "max_connections",
+    "max_connections_per_address",
+    "max_rooms",
+    "max_members",
+    "max_recorded_rooms",
+    "max_objects",
+)
+
+AllowOriginOption = Annotated[
+    str | None,
+    typer.Option(
+        help="Browser origins allowed to connect, comma-separated (e.g. "
+        "https://app.example.com,http://localhost:8080); other pages get HTTP 403. "
+        "Clients that send no Origin (not browsers) are not affected. [default: any]",
+        envvar="POSECAST_ALLOW_ORIGIN",
+    ),
+]
 
 
 class ClusterFields(TypedDict):
@@ -35,6 +73,18 @@ def cluster_config(cluster: str | None, node: str | None) -> ClusterFields:
         if not re.fullmatch(r"[A-Za-z0-9_-]{1,64}", node):
             raise _fail(f"--node {node!r}: use 1-64 letters, digits, '-' or '_'")
     return {"cluster": cluster, "node": node}
+
+
+def allowed_origins(text: str | None) -> tuple[str, ...] | None:
+    """--allow-origin as ``ServerConfig.allow_origins`` (None: any origin)."""
+    from posecast.server.http import parse_allow_origin
+
+    if text is None:
+        return None
+    try:
+        return parse_allow_origin(text)
+    except ValueError as exc:
+        raise _fail(f"--allow-origin: {exc}") from None
 
 
 def check_tls_files(certfile: Path | None, keyfile: Path | None) -> None:

@@ -29,12 +29,15 @@ from posecast.cli.common import (
     console,
 )
 from posecast.cli.serve_checks import (
-    check_serve_args as _check_serve_args,
-)
-from posecast.cli.serve_checks import (
+    SERVE_LIMITS,
+    AllowOriginOption,
+    allowed_origins,
     check_tls_files,
     cluster_config,
     room_volume,
+)
+from posecast.cli.serve_checks import (
+    check_serve_args as _check_serve_args,
 )
 
 
@@ -371,6 +374,7 @@ def serve(
     max_objects: MaxObjectsOption = 64,
     cluster: ClusterOption = None,
     node: NodeOption = None,
+    allow_origin: AllowOriginOption = None,
 ) -> None:
     """Run the relay server until SIGINT/SIGTERM (then close all with 1001, exit 0).
 
@@ -383,21 +387,8 @@ def serve(
 
     _check_serve_args(port, rate, min_rate, max_rate, record, record_writer, log_level)
     check_tls_files(certfile, keyfile)
-    limits = {
-        "ping_interval": ping_interval,
-        "ping_timeout": ping_timeout,
-        "max_capture_age": max_capture_age,
-        "max_capture_ahead": max_capture_ahead,
-        "misbehaviour_burst": misbehaviour_burst,
-        "misbehaviour_refill": misbehaviour_refill,
-        "join_timeout": join_timeout,
-        "max_connections": max_connections,
-        "max_connections_per_address": max_connections_per_address,
-        "max_rooms": max_rooms,
-        "max_members": max_members,
-        "max_recorded_rooms": max_recorded_rooms,
-        "max_objects": max_objects,
-    }
+    given = locals()
+    limits = {name: given[name] for name in SERVE_LIMITS}
     if bad := [k for k, v in limits.items() if not v >= 0]:
         raise _fail(f"--{bad[0].replace('_', '-')} must not be negative")
     logging.basicConfig(level=log_level.upper(), format=_LOG_FORMAT)
@@ -415,7 +406,8 @@ def serve(
         volume=room_volume(volume, room_extent),
         certfile=certfile,
         keyfile=keyfile,
-        **limits,  # type: ignore[arg-type]
+        allow_origins=allowed_origins(allow_origin),
+        **limits,
     )
     _serve_until_stopped(cfg)
 

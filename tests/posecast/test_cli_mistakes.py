@@ -116,6 +116,15 @@ def test_serve_refuses_a_port_out_of_range() -> None:
     assert_one_line(posecast("serve", POSECAST_PORT="70000"), 2, "0..65535", "70000")
 
 
+def test_serve_refuses_a_malformed_allow_origin() -> None:
+    """--allow-origin (or POSECAST_ALLOW_ORIGIN) with a bare host name says how to write one."""
+    for res in (
+        posecast("serve", "--port", "0", "--allow-origin", "app.example.com"),
+        posecast("serve", "--port", "0", POSECAST_ALLOW_ORIGIN="https://a.example,junk"),
+    ):
+        assert_one_line(res, 2, "--allow-origin", "scheme://host[:port]")
+
+
 def test_serve_refuses_a_file_as_the_recording_folder(tmp_path: Path) -> None:
     """--record FILE where FILE is a regular file: exit 2 before anything starts."""
     target = tmp_path / "notes.txt"
