@@ -89,3 +89,21 @@ def test_errors_page_lists_every_code_with_its_close_code() -> None:
         assert cells[1] == ("yes" if code.fatal else "no")
         assert cells[2] == ("" if code.close_code is None else str(code.close_code))
         assert cells[3], code
+
+
+def test_links_to_moved_pages_and_repository_files_resolve() -> None:
+    """A link to a page that moved follows it; one out of docs/ becomes the repository path."""
+    fix = _hook().fix_links
+    uris = {"protocol.md", "guides/shared-objects.md", "guides/viewer.md", "viewer-live.png"}
+    assert fix("[so](shared-objects.md#rules)", "protocol.md", uris) == (
+        "[so](guides/shared-objects.md#rules)"
+    )
+    assert fix("[v](viewer.md)", "guides/security.md", uris) == "[v](viewer.md)"
+    assert fix("[`protocol/vectors/`](../protocol/vectors/README.md)", "protocol.md", uris) == (
+        "`protocol/vectors/`"
+    )
+    assert fix("[the vectors](../protocol/vectors/README.md)", "protocol.md", uris) == (
+        "the vectors (`protocol/vectors/README.md`)"
+    )
+    assert fix("![p](../viewer-live.png)", "guides/viewer.md", uris) == "![p](../viewer-live.png)"
+    assert fix("[x](https://a.b/c.md)", "protocol.md", uris) == "[x](https://a.b/c.md)"

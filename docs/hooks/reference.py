@@ -24,10 +24,11 @@ from __future__ import annotations
 
 import ast
 import enum
+import posixpath
 import re
 import sys
 from collections.abc import Callable, Iterator
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -391,6 +392,45 @@ def on_config(config: Any) -> Any:
     """mkdocs event: a page still being written (no file yet) is left out of the nav."""
     config["nav"] = _drop_missing(config["nav"], Path(config["docs_dir"]))
     return config
+
+
+_LINK = re.compile(r"(?<!!)\[([^\]]*)\]\(([^)\s#]+)(#[^)\s]*)?\)")
+
+
+def fix_links(markdown: str, page_uri: str, doc_uris: set[str]) -> str:
+    """Links of a page that would not resolve, made to (the site has no other way):
+
+    - a link to a page that moved (no such file, one page of the same name
+      elsewhere in docs/) points at where it is now;
+    - a link out of docs/ (``../protocol/vectors/README.md``: a file of the
+      repository) becomes its text, followed by the path in the repository as code
+      unless the text already names it.
+    """
+    base = PurePosixPath(page_uri).parent
+
+    def fix(m: re.Match[str]) -> str:
+        text, target, anchor = m.group(1), m.group(2), m.group(3) or ""
+        if "://" in target or target.startswith(("mailto:", "/")):
+            return m.group(0)
+        resolved = posixpath.normpath((base / target).as_posix())
+        if resolved in doc_uris:
+            return m.group(0)
+        if not resolved.startswith(".."):
+            same = [u for u in doc_uris if PurePosixPath(u).name == PurePosixPath(target).name]
+            if len(same) == 1:
+                rel = posixpath.relpath(same[0], base.as_posix() or ".")
+                return f"[{text}]({rel}{anchor})"
+            return m.group(0)
+        in_repo = posixpath.normpath(("docs" / PurePosixPath(resolved)).as_posix())
+        return text if text.strip("`").rstrip("/") in in_repo else f"{text} (`{in_repo}`)"
+
+    return _LINK.sub(fix, markdown)
+
+
+def on_page_markdown(markdown: str, page: Any, config: Any, files: Any) -> str:
+    """mkdocs event: links to moved pages and to the repository's files resolve."""
+    uris = {f.src_uri for f in files}
+    return fix_links(markdown, page.file.src_uri, uris)
 
 
 def on_files(files: Any, config: Any) -> Any:
