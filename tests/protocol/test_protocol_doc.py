@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from support import running_server
+from support import poll_until, running_server
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
@@ -151,3 +151,43 @@ async def test_token_recipe_admits_a_join_on_a_real_relay() -> None:
         assert [(e.code, e.fatal) for e in errors] == [("unauthorized", True)]
         assert errors[0].message == "invalid access token signature"
         assert code == 1008
+
+
+async def _hello(port: int, hello: Hello, join: Join | None = None) -> list[object]:
+    """One connection: ``hello`` (and ``join``), the messages up to welcome (joined); then
+    the TCP connection is cut without a close frame, as a dropped connection is."""
+    session = ClientSession()
+    got: list[object] = []
+    async with connect(f"ws://127.0.0.1:{port}") as ws:
+        await ws.send(session.send(hello))
+        got += session.receive_data(await ws.recv())
+        if join is not None:
+            await ws.send(session.send(join))
+            while not any(isinstance(m, Joined) for m in got):
+                got += session.receive_data(await ws.recv())
+        ws.transport.abort()
+    return got
+
+
+async def test_resume_tokens_behave_as_the_doc_says() -> None:
+    """Section 9: a dropped resumable member resumes with the same user and stream ids and
+    a fresh token; a bad resume token gets a new user id, no resumed, a new token."""
+    join = Join(room="lab", streams=("head", "left"), rate=10.0)
+    async with running_server() as srv:
+        assert srv.port is not None
+        first = await _hello(srv.port, Hello(agent="a", resumable=True), join)
+        welcome, joined = first[0], first[-1]
+        assert isinstance(welcome, Welcome) and isinstance(joined, Joined)
+        assert welcome.resume is not None and not welcome.resumed
+        token = welcome.resume
+        await poll_until(lambda: srv.core.parking.has(token))
+        back = await _hello(srv.port, Hello(agent="a", resumable=True, resume=welcome.resume), join)
+        again, rejoined = back[0], back[-1]
+        assert isinstance(again, Welcome) and isinstance(rejoined, Joined)
+        assert (again.user, again.resumed) == (welcome.user, True)
+        assert again.resume not in (None, welcome.resume)
+        assert rejoined.streams == joined.streams
+        bogus = await _hello(srv.port, Hello(agent="b", resumable=True, resume="not-a-token"))
+        fresh = bogus[0]
+        assert isinstance(fresh, Welcome) and not fresh.resumed
+        assert fresh.user != welcome.user and fresh.resume is not None
