@@ -11,6 +11,8 @@ token a real relay with a secret accepts.
 from __future__ import annotations
 
 import re
+import shutil
+import subprocess
 import time
 from dataclasses import MISSING, fields
 from pathlib import Path
@@ -117,6 +119,32 @@ def test_token_recipe_matches_the_server() -> None:
     assert (claims.room, claims.user) == ("lab", "alice")
     with pytest.raises(TokenError, match="room"):
         verify_token("s3cret", token, "other", time.time())
+
+
+def _js_recipes() -> list[str]:
+    """The doc's JavaScript token recipes (node:crypto, then WebCrypto)."""
+    blocks = re.findall(r"```js\n(.*?)```", _doc(), flags=re.S)
+    return [b for b in blocks if "mintToken" in b]
+
+
+@pytest.mark.skipif(shutil.which("node") is None, reason="needs Node.js")
+@pytest.mark.parametrize("which", [0, 1], ids=["node-crypto", "webcrypto"])
+def test_js_token_recipes_match_the_server(which: int, tmp_path: Path) -> None:
+    """The doc's JavaScript recipes, run by Node, mint tokens the server's checker accepts."""
+    from posecast.server.auth import verify_token
+
+    recipes = _js_recipes()
+    assert len(recipes) == 2
+    script = tmp_path / "mint.mjs"
+    script.write_text(
+        recipes[which] + '\nconsole.log(await mintToken("s3cret", "lab", "alice", 60));\n',
+        encoding="utf-8",
+    )
+    token = subprocess.run(
+        ["node", str(script)], capture_output=True, text=True, check=True, timeout=60
+    ).stdout.strip()
+    claims = verify_token("s3cret", token, "lab", time.time())
+    assert (claims.room, claims.user) == ("lab", "alice")
 
 
 async def _join(port: int, token: str) -> tuple[list[object], int | None]:
