@@ -41,8 +41,8 @@ compact was agreed (else it is no msgpack: a fatal "bad-frame"), refuses raw
 update records then (a fatal "bad-message", as for the other velocity variant),
 and returns the decoded ``PoseUpdate``, checked by the rules above. A position
 decoded outside the volume is a non-fatal "bad-pose"; a frame coded against
-baselines the server does not hold is a fatal "bad-message" (the codec's
-``BaselineMismatch``: there is no code of its own yet).
+baselines the server does not hold is a fatal "bad-baseline" (the codec's
+``BaselineMismatch``).
 """
 
 from __future__ import annotations
