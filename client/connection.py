@@ -65,20 +65,22 @@ class SessionEnd:
     """How a bot's session ended, and after how many seconds of it.
 
     ``kind``: ``complete`` (ran its duration), ``closed`` (the server sent a close
-    frame: ``code`` and ``reason`` are its) or ``lost`` (no close frame: the
-    connection broke). ``after_s`` counts from the start of the session (clock
+    frame: ``code`` and ``reason`` are its), ``lost`` (no close frame: the
+    connection broke) or ``interrupted`` (its runner stopped it early, e.g. on
+    Ctrl-C: ``run_bot(stop=...)``). ``after_s`` counts from the start of the session (clock
     synced, before joining) on the bot's clock.
     """
 
-    kind: Literal["complete", "closed", "lost"] = "complete"
+    kind: Literal["complete", "closed", "lost", "interrupted"] = "complete"
     after_s: float = 0.0
     code: int | None = None
     reason: str = ""
 
     @property
     def graceful(self) -> bool:
-        """Ran its duration, or the server ended it on purpose (1000/1001)."""
-        return self.kind == "complete" or (
+        """Ran its duration (or as long as its runner wanted), or the server ended it
+        on purpose (1000/1001)."""
+        return self.kind in ("complete", "interrupted") or (
             self.kind == "closed" and self.code in GRACEFUL_CLOSE_CODES
         )
 
@@ -90,6 +92,8 @@ class SessionEnd:
         if self.kind == "closed":
             why = self.reason or "no reason given"
             return f"server closed: {why} ({self.code}) after {self.after_s:.1f} s"
+        if self.kind == "interrupted":
+            return f"interrupted after {self.after_s:.1f} s"
         return f"connection lost after {self.after_s:.1f} s"
 
 

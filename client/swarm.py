@@ -56,12 +56,14 @@ async def run_bots(
     token_for: Callable[[int], str | None] | None = None,
     stagger: float = 0.05,
     spawn: str = "none",
+    stop: asyncio.Event | None = None,
 ) -> list[BotReport]:
     """Run ``n`` bots built from ``base`` (bot i gets motion i of ``base.motion``, and
     spawn point i of the layout ``spawn``: ``scenarios.spawn.layout_points``).
 
     With several relays (``base.relays``), bot i starts on relay ``i % len`` and
-    fails over to the next ones in order.
+    fails over to the next ones in order. Setting ``stop`` (Ctrl-C) ends every bot's
+    session there; each reports the time it ran.
     """
     cfgs, relays = [], base.relays
     points = layout_points(spawn, n)
@@ -81,7 +83,7 @@ async def run_bots(
 
     async def one(i: int, cfg: BotConfig) -> BotReport:
         await asyncio.sleep(i * stagger)  # avoid a thundering herd of handshakes
-        return await run_bot(cfg)
+        return await run_bot(cfg, stop=stop)
 
     async with asyncio.TaskGroup() as tg:
         tasks = [tg.create_task(one(i, c)) for i, c in enumerate(cfgs)]
