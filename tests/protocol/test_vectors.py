@@ -283,3 +283,69 @@ def test_vectors_cover_what_the_spec_promises() -> None:
 def test_build_is_deterministic() -> None:
     """Two builds in one process give equal vectors (no state leaks between them)."""
     assert build_vectors() == build_vectors()
+
+
+def _random_codes(rng: np.random.Generator, n: int, width: int, volume: Volume) -> list[list[int]]:
+    """Valid code rows: any idx, a rotation inside the ball, any position, any velocity."""
+    rows = []
+    top = [(1 << b) - 1 for b in volume.bits]
+    while len(rows) < n:
+        a, b, c = (int(x) for x in rng.integers(-4095, 4096, 3))
+        if a * a + b * b + c * c > 2 * 4095**2:
+            continue
+        row = [int(rng.integers(0, 4)), a, b, c, *(int(rng.integers(0, t + 1)) for t in top)]
+        if width == 13:
+            row += [int(x) for x in rng.integers(-32768, 32769, 3)]
+            row += [int(x) for x in rng.integers(-16384, 16385, 3)]
+        rows.append(row)
+    return rows
+
+
+@pytest.mark.parametrize("velocity", [False, True])
+def test_spec_reader_agrees_on_random_frames(velocity: bool) -> None:
+    """golden_walk, written from the spec, reads random update and snapshot frames (many
+    users, both classes, index changes, big differences, splicing) as the codec wrote them."""
+    rng = np.random.default_rng(26)
+    volume = Volume((-3.0, 0.0, -5.0), (3.0, 2.5, 5.0))
+    walk_volume = (volume.lo, volume.hi)
+    width = 13 if velocity else 7
+    for _ in range(40):
+        n = int(rng.integers(1, 9))
+        streams = sorted(int(s) for s in rng.choice(40, n, replace=False))
+        old = _random_codes(rng, n, width, volume)
+        new = _random_codes(rng, n, width, volume)
+        held = {s: old[i] for i, s in enumerate(streams) if rng.random() < 0.7}
+        offsets = [int(x) for x in rng.integers(-50, 2000, n)]
+        base_us = int(rng.integers(0, 1 << 40))
+        encoded = encode_update_codes(
+            int(rng.integers(0, 1 << 20)),
+            base_us / 1e6,
+            streams,
+            [base_us / 1e6 - o / 1000.0 for o in offsets],
+            np.array(new, np.int64),
+            volume,
+            {s: np.array(r, np.int64) for s, r in held.items()},
+        )
+        previous = (int(rng.integers(0, 1 << 20)), int(rng.integers(0, 1 << 40)))
+        data = relative(encoded.data, previous)[0]
+        walked = walk_update(data, walk_volume, held, previous)
+        assert sorted((e["stream"], e["delta"], e["codes"]) for e in walked.entries) == sorted(
+            (s, s in held, new[i]) for i, s in enumerate(streams)
+        )
+        users = [int(u) for u in rng.integers(0, 6, n)]
+        sent = [
+            (users[i], s, base_us / 1e6 - offsets[i] / 1000.0, new[i], held.get(s))
+            for i, s in enumerate(streams)
+        ]
+        group = encode_group(7, base_us / 1e6, sent, volume, velocity)
+        for exclude in (None, users[0]):
+            frame, count = group.frame(exclude)
+            if not count:
+                continue
+            bases = {(u, s): b for u, s, _, _, b in sent if b is not None}
+            got = walk_snapshot(frame, walk_volume, bases)
+            want = sorted((u, s, b is not None, r) for u, s, _, r, b in sent if u != exclude)
+            assert (
+                sorted((e["user"], e["stream"], e["delta"], e["codes"]) for e in got.entries)
+                == want
+            )
