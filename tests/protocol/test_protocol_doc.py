@@ -219,3 +219,14 @@ async def test_resume_tokens_behave_as_the_doc_says() -> None:
         fresh = bogus[0]
         assert isinstance(fresh, Welcome) and not fresh.resumed
         assert fresh.user != welcome.user and fresh.resume is not None
+
+
+def test_contents_links_reach_headings() -> None:
+    """Every in-page link of the doc names a heading (as mkdocs slugs it)."""
+    text = _doc()
+    slugs = set()
+    for heading in re.findall(r"^#{2,4} (.+)$", text, flags=re.M):
+        slug = re.sub(r"[^\w\s-]", "", heading.lower()).strip()
+        slugs.add(re.sub(r"[\s]+", "-", slug))
+    links = re.findall(r"\]\(#([^)]+)\)", text)
+    assert links and set(links) <= slugs, set(links) - slugs
