@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from posecast.recorder.reader import StreamData, UserInfo
+from posecast.recorder.streams import StreamData, UserInfo
 
 __all__ = [
     "MIN_STEP",

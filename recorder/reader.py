@@ -26,7 +26,7 @@ import math
 import mmap
 import os
 from collections.abc import Iterable, Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -56,6 +56,7 @@ from posecast.recorder.format import (
     decode_pose,
     to_ns,
 )
+from posecast.recorder.objects import format_objects, objects_info, split_objects
 from posecast.recorder.scan import (
     ChannelRecord,
     HeaderRecord,
@@ -63,6 +64,7 @@ from posecast.recorder.scan import (
     MessageRecord,
     MetadataRecord,
 )
+from posecast.recorder.streams import StreamData, UserInfo
 
 __all__ = [
     "DropRecord",
@@ -111,50 +113,6 @@ class DropRecord(_JsonRecord):
 
 
 Record = PoseRecord | EventRecord | PresenceRecord | DropRecord
-
-
-@dataclass(frozen=True, eq=False)
-class StreamData:
-    """One stream's keyframes in arrival order: ``times`` are capture times (s)."""
-
-    user: int
-    stream: int
-    name: str | None
-    user_name: str | None
-    times: NDArray[np.float64]
-    arrival: NDArray[np.float64]
-    poses: NDArray[np.float32]
-    #: ``(N, 6)`` velocities the updates carried (float32; NaN where one carried
-    #: none), or ``None`` if none of this stream's updates carried velocities.
-    velocities: NDArray[np.float32] | None = None
-
-    def __len__(self) -> int:
-        return len(self.times)
-
-    @property
-    def duration(self) -> float:
-        """Capture time span of the keyframes, s."""
-        return float(self.times.max() - self.times.min()) if len(self.times) > 1 else 0.0
-
-    @property
-    def rate(self) -> float:
-        """Keyframes per second over the capture time span (0 for fewer than two)."""
-        d = self.duration
-        return (len(self.times) - 1) / d if d > 0 else 0.0
-
-
-@dataclass
-class UserInfo:
-    """A user as the presence records and the session metadata describe it."""
-
-    user: int
-    name: str | None = None
-    label: str | None = None
-    streams: dict[int, str] = field(default_factory=dict)
-    """Stream id -> name."""
-    rate: float | None = None
-    joined: float | None = None
-    left: float | None = None
 
 
 # (topic, log_time ns, publish_time ns, sequence, data)
@@ -585,8 +543,6 @@ def _info(reader: SessionReader) -> dict[str, Any]:
         first = log_time if first is None else min(first, log_time)
         last = log_time if last is None else max(last, log_time)
         seqs.append(seq)
-    from posecast.recorder.objects import objects_info, split_objects  # it builds on this module
-
     pieces, users = reader.load_streams(), reader.users()
     streams, tracks = split_objects((e.data for e in reader.events()), pieces, users)
     for user, _sid in streams:
@@ -766,6 +722,4 @@ def format_info(data: dict[str, Any]) -> str:
                 f" {s['keyframes']:>8} keyframes {_num(s['duration'])} s"
                 f" {_num(s['rate'])} /s" + (" + velocities" if s.get("velocities") else "")
             )
-    from posecast.recorder.objects import format_objects
-
     return "\n".join(lines + format_objects(data.get("objects", [])))
