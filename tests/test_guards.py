@@ -1,0 +1,162 @@
+"""Guards on how our modules tie together, read from the source (ast, nothing imported).
+
+No import cycles between modules, within a package or across ours. Every import
+counts: at module level, under ``if TYPE_CHECKING:`` and inside a function -- a
+deferred or type-only import hides a cycle from the interpreter, not from the
+reader, who still cannot understand one module without the other.
+
+The cycles that exist today are listed in :data:`ALLOWED_CYCLES`, each by its
+modules. The list only shrinks: a new cycle, or a module joining a listed one,
+fails; a listed cycle that got smaller or went away fails too, until its entry
+is cut to what is left (so the list always says what remains to untie).
+"""
+
+from __future__ import annotations
+
+import ast
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGES = ("posecast", "server", "client", "protocol", "interp", "recorder", "scenarios")
+
+#: The cycles of issue 27 still to untie (the relay core and its satellites, the
+#: adapter and the cluster node), each as the set of modules it binds.
+ALLOWED_CYCLES: tuple[frozenset[str], ...] = (
+    frozenset(
+        {
+            "posecast.server.config",
+            "posecast.server.core",
+            "posecast.server.limits",
+            "posecast.server.objects",
+            "posecast.server.peer",
+            "posecast.server.resume",
+            "posecast.server.room",
+            "posecast.server.tokens",
+        }
+    ),
+    frozenset({"posecast.server.app", "posecast.server.node"}),
+)
+
+
+def module_files() -> dict[str, Path]:
+    """Installed module name -> source file (``server/core.py`` is ``posecast.server.core``)."""
+    out = {}
+    for package in PACKAGES:
+        for path in (ROOT / package).rglob("*.py"):
+            parts = list(path.relative_to(ROOT).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                parts.pop()
+            if parts[0] != "posecast":
+                parts.insert(0, "posecast")
+            out[".".join(parts)] = path
+    return out
+
+
+def imported(module: str, path: Path, modules: Mapping[str, Path]) -> Iterator[str]:
+    """The modules of ours that ``module`` imports anywhere in its file.
+    ``from a.b import c`` imports ``a.b.c`` when that is a module, else ``a.b``."""
+    is_package = path.name == "__init__.py"
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            yield from (a.name for a in node.names if a.name in modules)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = module.split(".")[: None if is_package else -1]
+                base = base[: len(base) - node.level + 1]
+                source = ".".join([*base, *([node.module] if node.module else [])])
+            else:
+                source = node.module or ""
+            for alias in node.names:
+                name = f"{source}.{alias.name}"
+                target = name if name in modules else source
+                if target in modules and target != module:
+                    yield target
+
+
+def import_graph() -> dict[str, set[str]]:
+    modules = module_files()
+    return {m: set(imported(m, p, modules)) for m, p in modules.items()}
+
+
+def cycles(graph: Mapping[str, set[str]]) -> list[frozenset[str]]:
+    """The strongly connected components of more than one module (Tarjan, iterative)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found: list[frozenset[str]] = []
+    for root in sorted(graph):
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            v, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = len(index)
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph.get(child, ())))))
+                elif child in on_stack:
+                    low[v] = min(low[v], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[v])
+            if low[v] == index[v]:
+                component = set()
+                while True:
+                    w = stack.pop()
+                    on_stack.discard(w)
+                    component.add(w)
+                    if w == v:
+                        break
+                if len(component) > 1:
+                    found.append(frozenset(component))
+    return found
+
+
+def test_no_new_import_cycle() -> None:
+    """Every cycle among our modules is one of ALLOWED_CYCLES (or part of one)."""
+    new = [sorted(c) for c in cycles(import_graph()) if not any(c <= a for a in ALLOWED_CYCLES)]
+    assert not new, f"import cycles not in ALLOWED_CYCLES: {new}"
+
+
+def test_allowed_cycles_only_shrink() -> None:
+    """Each ALLOWED_CYCLES entry is exactly a cycle that still exists: when one is
+    untied (fully or partly), its entry is cut to what remains or removed."""
+    now = set(cycles(import_graph()))
+    stale = [sorted(a) for a in ALLOWED_CYCLES if a not in now]
+    assert not stale, f"ALLOWED_CYCLES entries that changed; now {[sorted(c) for c in now]}"
+
+
+def test_the_cycle_finder_sees_cycles(tmp_path: Path) -> None:
+    """Deferred, type-only and relative imports all count; a chain is no cycle."""
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}, "e": set()}
+    assert cycles(graph) == [frozenset({"a", "b", "c"})]
+    assert cycles({"a": {"b"}, "b": set()}) == []
+    pkg = tmp_path / "recorder"
+    pkg.mkdir()
+    f = pkg / "x.py"
+    f.write_text(
+        "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from .y import Y\n"
+        "def g():\n    from posecast.recorder import z\n"
+        "from posecast.recorder.w import W\n"
+    )
+    modules = {f"posecast.recorder.{n}": f for n in "xyzw"}
+    found = set(imported("posecast.recorder.x", f, modules))
+    assert found == {"posecast.recorder.y", "posecast.recorder.z", "posecast.recorder.w"}
+
+
+def test_the_graph_covers_every_package() -> None:
+    """The graph holds every package's modules and their imports of each other."""
+    graph = import_graph()
+    assert {m.split(".")[1] for m in graph if m.count(".")} >= set(PACKAGES[1:])
+    assert "posecast.protocol" in graph["posecast.server.core"] or any(
+        t.startswith("posecast.protocol.") for t in graph["posecast.server.core"]
+    )
