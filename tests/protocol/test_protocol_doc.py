@@ -23,7 +23,15 @@ from support import poll_until, running_server
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
-from posecast.protocol import ClientSession, ErrorMessage, Hello, Join, Joined, Welcome
+from posecast.protocol import (
+    ClientSession,
+    ErrorCode,
+    ErrorMessage,
+    Hello,
+    Join,
+    Joined,
+    Welcome,
+)
 from posecast.protocol.golden import doc_sections, error_rows, rewrite
 from posecast.protocol.messages import ControlMessage
 from posecast.protocol.objects import OBJECT_MESSAGE_TYPES
@@ -181,9 +189,12 @@ async def test_token_recipe_admits_a_join_on_a_real_relay() -> None:
         assert code == 1008
 
 
-async def _hello(port: int, hello: Hello, join: Join | None = None) -> list[object]:
+async def _hello(
+    port: int, hello: Hello, join: Join | None = None, last: ErrorMessage | None = None
+) -> list[object]:
     """One connection: ``hello`` (and ``join``), the messages up to welcome (joined); then
-    the TCP connection is cut without a close frame, as a dropped connection is."""
+    the TCP connection is cut without a close frame, as a dropped connection is, or
+    (``last``) that error is sent and the socket closed as the SDK does after one."""
     session = ClientSession()
     got: list[object] = []
     async with connect(f"ws://127.0.0.1:{port}") as ws:
@@ -193,7 +204,11 @@ async def _hello(port: int, hello: Hello, join: Join | None = None) -> list[obje
             await ws.send(session.send(join))
             while not any(isinstance(m, Joined) for m in got):
                 got += session.receive_data(await ws.recv())
-        ws.transport.abort()
+        if last is None:
+            ws.transport.abort()
+        else:
+            await ws.send(session.send(last))
+            await ws.close(1002, last.message)
     return got
 
 
@@ -230,3 +245,19 @@ def test_contents_links_reach_headings() -> None:
         slugs.add(re.sub(r"[\s]+", "-", slug))
     links = re.findall(r"\]\(#([^)]+)\)", text)
     assert links and set(links) <= slugs, set(links) - slugs
+
+
+async def test_a_session_ended_on_an_error_is_not_resumed() -> None:
+    """Section 11.3: a client that ends its session with a fatal error (bad-baseline) has
+    left; its resume token then gets a new user id (section 9.3), not its old place."""
+    join = Join(room="lab", streams=("head",), rate=10.0)
+    error = ErrorMessage.from_code(ErrorCode.BAD_BASELINE, "check differs", in_reply_to="snapshot")
+    async with running_server() as srv:
+        assert srv.port is not None
+        first = await _hello(srv.port, Hello(agent="a", resumable=True), join, last=error)
+        welcome = first[0]
+        assert isinstance(welcome, Welcome) and welcome.resume is not None
+        await poll_until(lambda: not srv.rooms)  # it left: the room is gone
+        back = await _hello(srv.port, Hello(agent="a", resumable=True, resume=welcome.resume))
+        again = back[0]
+        assert isinstance(again, Welcome) and not again.resumed
