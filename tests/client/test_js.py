@@ -148,7 +148,7 @@ async def _room(codec: str, seconds: float, node: Node) -> tuple[dict[str, objec
     return report, py.result()
 
 
-@pytest.mark.parametrize("codec", ["raw"])
+@pytest.mark.parametrize("codec", ["raw", "compact"])
 def test_js_bot_and_python_bot_see_each_other(node: Node, codec: str) -> None:
     """A JS bot and a Python bot in one room of a real relay: each receives the other's
     head and hands, equal to what was sent within the codec's bounds."""

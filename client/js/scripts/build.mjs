@@ -1,5 +1,5 @@
-// Build the SDK: dist/posecast.js (one ES module, @msgpack/msgpack bundled in, for
-// browsers and Node), dist/posecast.min.js (minified), and the type declarations.
+// Build the SDK: dist/posecast.js (one ES module with no dependencies, for browsers
+// and Node), dist/posecast.min.js (minified), and the type declarations.
 import { build } from "esbuild";
 import { execFileSync } from "node:child_process";
 import { fileURLToPath } from "node:url";
@@ -11,8 +11,6 @@ const common = {
   bundle: true,
   format: "esm",
   platform: "neutral",
-  mainFields: ["module", "main"],
-  conditions: ["import", "default"],
   target: "es2022",
   logLevel: "warning",
 };

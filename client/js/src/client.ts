@@ -382,10 +382,17 @@ export class PosecastClient extends Emitter<ClientEvents> {
       this.decodeErrors++;
       const e = err instanceof PosecastError ? err : new DecodeError("bad-frame", String(err));
       this.emit("error", e);
-      if (e.code === "bad-baseline") {
-        // The delta chain is broken: nothing more can be decoded on this connection.
-        // Reconnecting (resume) starts a new chain from a key frame.
-        this.link?.close(1002, "bad-baseline");
+      if (e.code === "bad-baseline" || (e instanceof DecodeError && this.compact?.isCompact(data as Uint8Array))) {
+        // The delta chain is broken (docs/protocol.md 11.3): nothing more can be
+        // decoded on this connection. Say so, close, and reconnect: a new connection
+        // (resumed) starts from a key snapshot.
+        this.rekey = true;
+        try {
+          this.send({ type: "error", code: e.code, message: e.message.slice(0, 200), fatal: true, in_reply_to: "snapshot" });
+        } catch {
+          // the link may be gone already
+        }
+        this.link?.close(1002, e.code);
       }
       return;
     }
@@ -465,6 +472,8 @@ export class PosecastClient extends Emitter<ClientEvents> {
   }
 
   private closing = false;
+  /** The connection was closed for a broken compact chain: reconnect whatever the code. */
+  private rekey = false;
 
   private serverError(m: ErrorMessage): void {
     const handshake = m.in_reply_to === "join" || m.in_reply_to === "hello" || this.state === "connecting" || this.state === "reconnecting";
@@ -487,7 +496,9 @@ export class PosecastClient extends Emitter<ClientEvents> {
     for (const w of this.waiters) w.reject(closed);
     this.waiters = [];
     if (this.state !== "joined") return; // connect() and the reconnect loop handle theirs
-    if (!this.closing && this.reconnects(closed.closeCode)) {
+    const rekey = this.rekey;
+    this.rekey = false;
+    if (!this.closing && (this.reconnects(closed.closeCode) || (rekey && this.options.resume))) {
       void this.reconnect(closed);
       return;
     }

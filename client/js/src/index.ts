@@ -32,6 +32,20 @@ export {
 } from "./errors.js";
 export { Link, defaultWebSocket } from "./link.js";
 export type { WebSocketLike } from "./link.js";
-export { CompactSession, CODEC_FRAME_BYTE } from "./compact.js";
+export {
+  CompactSession,
+  CODEC_FRAME_BYTE,
+  Volume,
+  poseCodes,
+  codesToPose,
+  codesValid,
+  predict,
+  encodeUpdateFrame,
+  decodeUpdateFrame,
+  decodeSnapshotFrame,
+  crc32,
+  roundHalfEven,
+} from "./compact.js";
+export type { CompactEntry, CompactFrame, CompactHeader, Baselines } from "./compact.js";
 export { XRPublisher, xrPose, inVolume } from "./webxr.js";
 export type { XRPublisherOptions } from "./webxr.js";

@@ -3,12 +3,14 @@
  *
  * Every control message is `{"type": TYPE, field: value, ...}` with its fields in
  * the order of the table below. Fields marked `omit` are left out while they hold
- * their default; the others are always written (null as nil). Decoding checks
- * every known field's type, fills defaults, and ignores unknown fields.
+ * their default; the others are always written (null as nil): the canonical
+ * encoding of docs/protocol.md section 3. Decoding checks every field's type (a
+ * float where an int belongs is refused), fills defaults, and refuses unknown
+ * fields (`bad-message`), as the spec says.
  */
-import { decode } from "@msgpack/msgpack";
 import { DecodeError } from "./errors.js";
-import { F64, Writer } from "./msgpack.js";
+import { F64, MsgpackError, plain, unpack, Writer } from "./msgpack.js";
+import type { Packable } from "./msgpack.js";
 
 export type Pose = [number, number, number, number, number, number, number];
 export type Vec3 = [number, number, number];
@@ -297,8 +299,16 @@ function bad(where: string, why: string): DecodeError {
   return new DecodeError("bad-message", `${where} ${why}`);
 }
 
-function isNumber(x: unknown): x is number {
-  return typeof x === "number" && Number.isFinite(x);
+/** A float field's value: any int within +-2^53 or float, finite; else undefined. */
+function floatValue(x: unknown): number | undefined {
+  const v = x instanceof F64 ? x.value : x;
+  if (typeof v !== "number" || !Number.isFinite(v)) return undefined;
+  if (!(x instanceof F64) && Math.abs(v) > 2 ** 53) return undefined;
+  return v;
+}
+
+function isNumber(x: unknown): boolean {
+  return floatValue(x) !== undefined;
 }
 
 function checkField(type: string, spec: FieldSpec, value: unknown): unknown {
@@ -309,15 +319,17 @@ function checkField(type: string, spec: FieldSpec, value: unknown): unknown {
   }
   const floats = (n: number): number[] => {
     if (!Array.isArray(value) || value.length !== n || !value.every(isNumber)) throw bad(where, `must be ${n} numbers`);
-    return value as number[];
+    return value.map((x) => floatValue(x)!);
   };
   switch (spec.kind) {
     case "int":
       if (typeof value !== "number" || !Number.isInteger(value) || value < 0) throw bad(where, "must be an int >= 0");
       return value;
-    case "float":
-      if (!isNumber(value)) throw bad(where, "must be a finite number");
-      return value;
+    case "float": {
+      const v = floatValue(value);
+      if (v === undefined) throw bad(where, "must be a finite number");
+      return v;
+    }
     case "str":
       if (typeof value !== "string") throw bad(where, "must be a string");
       return value;
@@ -341,8 +353,8 @@ function checkField(type: string, spec: FieldSpec, value: unknown): unknown {
     case "volume":
       return floats(6);
     case "map":
-      if (!value || typeof value !== "object" || Array.isArray(value) || value instanceof Uint8Array) throw bad(where, "must be a map");
-      return value;
+      if (!value || typeof value !== "object" || Array.isArray(value) || value instanceof Uint8Array || value instanceof F64) throw bad(where, "must be a map");
+      return plain(value as Packable);
   }
 }
 
@@ -356,11 +368,12 @@ export function decodeMessage(data: Uint8Array): Message {
   if (data.length > 64 * 1024) throw new DecodeError("frame-too-large", `frame of ${data.length} bytes`);
   let wire: unknown;
   try {
-    wire = decode(data);
-  } catch {
-    throw new DecodeError("bad-frame", "not a msgpack frame");
+    wire = unpack(data);
+  } catch (err) {
+    if (err instanceof MsgpackError) throw new DecodeError("bad-frame", `not a msgpack frame: ${err.message}`);
+    throw err;
   }
-  if (!wire || typeof wire !== "object" || Array.isArray(wire) || wire instanceof Uint8Array) {
+  if (!wire || typeof wire !== "object" || Array.isArray(wire) || wire instanceof Uint8Array || wire instanceof F64) {
     throw new DecodeError("bad-frame", "frame is not a map");
   }
   const map = wire as Record<string, unknown>;
@@ -373,6 +386,9 @@ export function decodeMessage(data: Uint8Array): Message {
     throw new DecodeError("version-mismatch", `${type} for version ${String(map.version).slice(0, 16)}, this is ${PROTOCOL_VERSION}`);
   }
   const out: Record<string, unknown> = { type };
+  for (const key of Object.keys(map)) {
+    if (key !== "type" && !schema.some((spec) => spec.name === key)) throw bad(type, `has unknown field '${key.slice(0, 32)}'`);
+  }
   for (const spec of schema) {
     if (!(spec.name in map)) {
       if (!("def" in spec)) throw bad(type, `lacks field '${spec.name}'`);
@@ -389,10 +405,14 @@ function decodePoseFrame(map: Record<string, unknown>, type: "update" | "snapsho
   const velocity = "vpose" in map;
   const body = map[velocity ? "vpose" : "poses"];
   if (!(body instanceof Uint8Array)) throw bad(type, "needs poses (or vpose) as bin");
+  const keys = Object.keys(map).sort().join(",");
+  const plainKeys = ["type", counter, "time", "poses"].sort().join(",");
+  const velocityKeys = ["type", counter, "time", "vpose"].sort().join(",");
+  if (keys !== plainKeys && keys !== velocityKeys) throw bad(type, `needs exactly ${counter}, time and poses (or vpose)`);
   const n = map[counter];
-  const time = map.time;
+  const time = floatValue(map.time);
   if (typeof n !== "number" || !Number.isInteger(n) || n < 0) throw bad(`${type}.${counter}`, "must be an int >= 0");
-  if (!isNumber(time)) throw bad(`${type}.time`, "must be a finite number");
+  if (time === undefined) throw bad(`${type}.time`, "must be a finite number");
   const sizes = RECORD_SIZES[type];
   const size = velocity ? sizes.velocity : sizes.plain;
   if (body.length % size) throw bad(type, `records are not whole ${size}-byte records`);

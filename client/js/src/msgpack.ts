@@ -1,9 +1,12 @@
 /**
- * A small msgpack writer that chooses every number's encoding itself: integers in
- * their smallest form, and fields the protocol types as float always as float64
- * (as Python's msgpack writes a float, even 20.0). Byte-for-byte what the relay's
- * encoder writes, so the golden vectors' client frames can be reproduced.
- * Decoding is `@msgpack/msgpack`'s.
+ * msgpack, the subset posecast uses (nil, bool, int, float, str, bin, array, map).
+ *
+ * The writer chooses every number's encoding itself: integers in their smallest
+ * form, fields the protocol types as float always as float64 (as the relay's
+ * encoder writes a float, even 20.0): the canonical encoding of docs/protocol.md
+ * section 3, so the golden vectors' client frames are reproduced byte for byte.
+ * The reader keeps floats apart from ints (`F64`), since an int field given a
+ * float is refused.
  */
 
 /** A number to be written as a float64 even when it is integral. */
@@ -171,4 +174,110 @@ export function pack(x: Packable): Uint8Array {
   const w = new Writer();
   w.any(x);
   return w.bytes();
+}
+
+const textDecoder = new TextDecoder("utf-8", { fatal: true });
+
+/** Why a msgpack frame could not be read (the caller turns it into bad-frame). */
+export class MsgpackError extends Error {}
+
+/**
+ * Read one msgpack value that fills `data` exactly. Floats come back as `F64`
+ * (so a schema can tell `3.0` from `3`), ints as numbers, bin as Uint8Array,
+ * maps as plain objects (string keys only). Every length is checked against the
+ * bytes present before anything is allocated.
+ */
+export function unpack(data: Uint8Array, maxDepth = 64): Packable {
+  const view = new DataView(data.buffer, data.byteOffset, data.byteLength);
+  let at = 0;
+  const need = (n: number): void => {
+    if (at + n > data.length) throw new MsgpackError("truncated");
+  };
+  const u = (n: 1 | 2 | 4): number => {
+    need(n);
+    const v = n === 1 ? view.getUint8(at) : n === 2 ? view.getUint16(at) : view.getUint32(at);
+    at += n;
+    return v;
+  };
+  const bytes = (n: number): Uint8Array => {
+    need(n);
+    const out = data.subarray(at, at + n);
+    at += n;
+    return out;
+  };
+  const read = (depth: number): Packable => {
+    if (depth > maxDepth) throw new MsgpackError("nested too deep");
+    const tag = u(1);
+    if (tag < 0x80) return tag;
+    if (tag >= 0xe0) return tag - 0x100;
+    if (tag <= 0x8f) return map(tag & 0x0f, depth);
+    if (tag <= 0x9f) return array(tag & 0x0f, depth);
+    if (tag <= 0xbf) return str(tag & 0x1f);
+    switch (tag) {
+      case 0xc0: return null;
+      case 0xc2: return false;
+      case 0xc3: return true;
+      case 0xc4: return bytes(u(1)).slice();
+      case 0xc5: return bytes(u(2)).slice();
+      case 0xc6: return bytes(u(4)).slice();
+      case 0xca: need(4); at += 4; return new F64(view.getFloat32(at - 4));
+      case 0xcb: need(8); at += 8; return new F64(view.getFloat64(at - 8));
+      case 0xcc: return u(1);
+      case 0xcd: return u(2);
+      case 0xce: return u(4);
+      case 0xcf: need(8); at += 8; return Number(view.getBigUint64(at - 8));
+      case 0xd0: need(1); at += 1; return view.getInt8(at - 1);
+      case 0xd1: need(2); at += 2; return view.getInt16(at - 2);
+      case 0xd2: need(4); at += 4; return view.getInt32(at - 4);
+      case 0xd3: need(8); at += 8; return Number(view.getBigInt64(at - 8));
+      case 0xd9: return str(u(1));
+      case 0xda: return str(u(2));
+      case 0xdb: return str(u(4));
+      case 0xdc: return array(u(2), depth);
+      case 0xdd: return array(u(4), depth);
+      case 0xde: return map(u(2), depth);
+      case 0xdf: return map(u(4), depth);
+      default: throw new MsgpackError(`msgpack type 0x${tag.toString(16)} is not used by posecast`);
+    }
+  };
+  const str = (n: number): string => {
+    try {
+      return textDecoder.decode(bytes(n));
+    } catch (err) {
+      if (err instanceof MsgpackError) throw err;
+      throw new MsgpackError("invalid UTF-8");
+    }
+  };
+  const array = (n: number, depth: number): Packable[] => {
+    need(n); // every element takes at least a byte
+    const out: Packable[] = [];
+    for (let i = 0; i < n; i++) out.push(read(depth + 1));
+    return out;
+  };
+  const map = (n: number, depth: number): { [key: string]: Packable } => {
+    need(2 * n);
+    const out: { [key: string]: Packable } = {};
+    for (let i = 0; i < n; i++) {
+      const key = read(depth + 1);
+      if (typeof key !== "string") throw new MsgpackError("a map key is not a string");
+      // defineProperty: a "__proto__" key is data, never the prototype.
+      Object.defineProperty(out, key, { value: read(depth + 1), enumerable: true, writable: true, configurable: true });
+    }
+    return out;
+  };
+  const value = read(0);
+  if (at !== data.length) throw new MsgpackError("trailing bytes after frame");
+  return value;
+}
+
+/** `x` with every F64 replaced by its number (for free-form payloads). */
+export function plain(x: Packable): unknown {
+  if (x instanceof F64) return x.value;
+  if (Array.isArray(x)) return x.map((v: Packable) => plain(v));
+  if (x && typeof x === "object" && !(x instanceof Uint8Array)) {
+    const out: Record<string, unknown> = {};
+    for (const [k, v] of Object.entries(x)) Object.defineProperty(out, k, { value: plain(v), enumerable: true, writable: true, configurable: true });
+    return out;
+  }
+  return x;
 }
