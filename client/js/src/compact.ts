@@ -262,8 +262,11 @@ const OTHERS = [
 /** The codes of a pose (and velocity): 7 or 13 integers. A position more than half a
  * step outside the volume, or a non-finite value, is a `bad-pose` UsageError. */
 export function poseCodes(pose: ArrayLike<number>, volume: Volume, velocity?: ArrayLike<number> | null): number[] {
-  const q = [pose[3]!, pose[4]!, pose[5]!, pose[6]!];
-  const norm = Math.sqrt(q[0]! * q[0]! + q[1]! * q[1]! + q[2]! * q[2]! + q[3]! * q[3]!);
+  // Quantised as sent raw: the float32 values of the 7 numbers, widened (11.2).
+  const f = Math.fround;
+  const q = [f(pose[3]!), f(pose[4]!), f(pose[5]!), f(pose[6]!)];
+  // The reference's summation order: (w*w + y*y) + (x*x + z*z).
+  const norm = Math.sqrt(q[0]! * q[0]! + q[2]! * q[2]! + (q[1]! * q[1]! + q[3]! * q[3]!));
   if (!(norm > 0) || !Number.isFinite(norm)) throw new UsageError("bad-pose", "quaternion is zero or not finite");
   for (let i = 0; i < 4; i++) q[i]! /= norm;
   let idx = 0;
@@ -272,7 +275,7 @@ export function poseCodes(pose: ArrayLike<number>, volume: Volume, velocity?: Ar
   const codes = [idx];
   for (const o of OTHERS[idx]!) codes.push(Math.max(-M, Math.min(M, roundHalfEven(sign * q[o]! * S))));
   for (let i = 0; i < 3; i++) {
-    const c = roundHalfEven((pose[i]! - volume.lo[i]!) / volume.step[i]!);
+    const c = roundHalfEven((f(pose[i]!) - volume.lo[i]!) / volume.step[i]!);
     if (!(c >= 0 && c <= volume.max(i))) {
       throw new UsageError("bad-pose", `position ${pose[i]} outside the room volume [${volume.lo[i]}, ${volume.hi[i]}] on axis ${"xyz"[i]}`);
     }
@@ -535,13 +538,13 @@ function readHead(data: Uint8Array, expect: "update" | "snapshot", previous: Com
   if (data.length < 2) throw truncated();
   const flags = data[1]!;
   const version = flags >> 4;
-  const update = (flags & FLAG_UPDATE) !== 0;
-  if (version !== 1 && version !== 2) throw new DecodeError("bad-frame", `compact codec version ${version}`);
-  if (update !== (expect === "update")) {
-    throw new DecodeError("bad-message", expect === "update" ? "a snapshot frame where an update is expected" : "an update frame where a snapshot is expected");
-  }
-  if (expect === "update" ? version !== 1 : version !== 2 || (flags & FLAG_RELATIVE) !== 0) {
-    throw new DecodeError("bad-frame", `flags 0x${flags.toString(16)} are no version-${expect === "update" ? 1 : 2} ${expect}`);
+  // The order of docs/protocol.md 11.4: version and flag bits (bad-frame), then the kind.
+  const bits = flags & 0x0f;
+  if (expect === "update") {
+    if (version !== 1) throw new DecodeError("bad-frame", `compact codec version ${version} on an update`);
+    if (!(bits & FLAG_UPDATE)) throw new DecodeError("bad-message", "a snapshot frame where an update is expected");
+  } else if (version !== 2 || (bits & ~(FLAG_VELOCITY | FLAG_SPLIT)) !== 0) {
+    throw new DecodeError("bad-frame", `flags 0x${flags.toString(16)}: no version-2 snapshot`);
   }
   const velocity = (flags & FLAG_VELOCITY) !== 0;
   const at = { i: 2 };
@@ -759,7 +762,7 @@ export class CompactSession {
   /** bad-pose UsageError unless `pose`'s position is in the room volume. */
   checkVolume(name: string, pose: Pose): void {
     for (let i = 0; i < 3; i++) {
-      const c = roundHalfEven((pose[i]! - this.volume.lo[i]!) / this.volume.step[i]!);
+      const c = roundHalfEven((Math.fround(pose[i]!) - this.volume.lo[i]!) / this.volume.step[i]!);
       if (!(c >= 0 && c <= this.volume.max(i))) {
         throw new UsageError("bad-pose", `${name}: position ${pose[i]} outside the room volume on axis ${"xyz"[i]}`);
       }
