@@ -73,6 +73,10 @@ class ServerConfig:
     join_timeout: float = 5.0
     #: A resumable client's dropped connection keeps its place this long (s); 0: off.
     resume_window: float = 10.0
+    #: A member whose updates stop this long (s) while its connection stays up (a
+    #: frozen browser tab answers pings) is announced ``peer_stalled`` to its
+    #: peers, and ``peer_resumed`` when its updates come back; 0: off.
+    stall_after: float = 1.0
     max_connections: int = 1024
     max_connections_per_address: int = 64
     max_rooms: int = 256

@@ -62,6 +62,9 @@ says bye / leaves   closes 1000; the room hears ``peer_left``; an empty room is
 is too slow         latest-wins snapshots are skipped (counted) while one is
                     unsent or the socket holds over ``congested_bytes``;
                     overflowing the reliable queue (256) closes 1008 too-slow
+stops publishing    after ``stall_after`` (1 s) with no accepted update, its
+                    peers hear ``peer_stalled``; its next update brings
+                    ``peer_resumed`` (``server.resume.Silence``)
 ==================  ==========================================================
 
 A room (:class:`server.room.Room`) ticks each member on its own rate grid and
@@ -167,6 +170,8 @@ class RelayCore:
         self._token_deadlines = Deadlines(self._token_due)
         #: Members of dropped resumable connections, kept for ``resume_window``.
         self.parking = resume.Parking(cfg.resume_window)
+        #: Members whose updates stopped (``stall_after``): peers hear peer_stalled.
+        self.silence = resume.Silence(cfg.stall_after)
         self.token_expiries = 0
         #: Connections refused (over a limit), closed for not joining in time, and
         #: closed for misbehaving (over their budget).
@@ -248,14 +253,21 @@ class RelayCore:
         return conn
 
     def next_expiry(self) -> float | None:
-        """When the next connection is due to be closed: one that has not joined in
-        time, or whose access token expires (None: none)."""
-        due = [self._join_deadlines.next(), self._token_deadlines.next(), self.parking.next()]
+        """When the next connection is due to be closed (one that has not joined in
+        time, or whose access token expires), or a publisher may have gone silent
+        (None: none)."""
+        due = [
+            self._join_deadlines.next(),
+            self._token_deadlines.next(),
+            self.parking.next(),
+            self.silence.next(),
+        ]
         return min((t for t in due if t is not None), default=None)
 
     def expire(self, now: float) -> list[Action]:
         """Close (1008) every connection not joined ``join_timeout`` after it opened,
-        and every connection whose access token expired without a renew."""
+        and every connection whose access token expired without a renew; announce
+        every publisher whose updates stopped ``stall_after`` ago (``peer_stalled``)."""
         for conn in self._join_deadlines.pop_due(now):
             self.join_timeouts += 1
             self.close_peer(
@@ -270,6 +282,7 @@ class RelayCore:
             self.close_peer(self.peers[conn], 1008, "access token expired")
         for parked in self.parking.expire(now):
             resume.gone(self, parked, now)
+        self.silence.expire(self, now)
         return self._actions()
 
     def emit_rearm(self) -> None:
@@ -710,6 +723,8 @@ class RelayCore:
                 self.refuse(peer, ErrorCode.BAD_POSE, refused.message, "update", now, charge)
                 return
             stale = room.ingest(user, update, peer.session.compact_codes())
+            if peer.member is not None:
+                self.silence.updated(self, room, peer.member, now)
             rec = room.recorder
             if rec is not None:
                 if room.recording_paused:

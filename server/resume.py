@@ -12,11 +12,21 @@ the queued events first, a key snapshot, ``peer_resumed`` to the peers and a
 one resume; the resumed connection gets a new one. When the window closes
 first, the member leaves as any other (``peer_left``, reason "gone").
 
+A member whose connection stays up but whose pose updates stop for
+``stall_after`` seconds (a frozen browser tab: its network process still answers
+websocket pings, so keepalive never fires) is announced the same way: peers get
+``peer_stalled`` (the same message, no new field: its streams stay frozen at their
+last pose, as a parked member's), and ``peer_resumed`` at its next accepted
+update (:class:`Silence`). A member that has never published is never silent. A
+silent member whose connection then drops is parked without a second
+``peer_stalled``; a resumed one is watched again from its resume.
+
 Sans-I/O like the core: the time is an argument.
 """
 
 from __future__ import annotations
 
+import heapq
 import secrets
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
@@ -36,10 +46,21 @@ from posecast.server.limits import Deadlines
 from posecast.server.room import Member, Room
 
 if TYPE_CHECKING:
+    from posecast.protocol.events import Message
     from posecast.server.core import RelayCore
     from posecast.server.peer import Peer
 
-__all__ = ["Parked", "Parking", "gone", "hello", "park", "parkable", "restore", "resume_join"]
+__all__ = [
+    "Parked",
+    "Parking",
+    "Silence",
+    "gone",
+    "hello",
+    "park",
+    "parkable",
+    "restore",
+    "resume_join",
+]
 
 
 @dataclass
@@ -163,9 +184,8 @@ def park(core: RelayCore, peer: Peer, now: float) -> None:
         Parked(peer.user, peer.name, room, member, now, now + parking.window,
                peer.resume_token, peer.conn),
     )  # fmt: skip
-    for other in list(room.members.values()):
-        if other.user != peer.user and not core.is_spectator(other.user):
-            core.to_member(other, PeerStalled(user=peer.user))
+    if not member.silent:  # (a silent member's peers have heard it stalled)
+        _tell_peers(core, room, member, PeerStalled(user=peer.user))
     peer.room = peer.member = None
     core.emit_rearm()
 
@@ -218,6 +238,8 @@ def resume_join(core: RelayCore, peer: Peer, join: Join, name: str, now: float) 
         core.send(peer, Room.announce(other))
         core.to_member(other, PeerResumed(user=member.user))
     objects.restore(core, peer, room)
+    member.silent = False  # peers heard it resume
+    core.silence.watch(room, member, now)
     # The events it missed, in order, once it knows the room; presence notices and
     # pongs still queued from before the drop are stale (it just got the room anew).
     for data in old.events:
@@ -265,3 +287,73 @@ def restore(
     core.rescheduled(room)
     core.emit_rearm()
     return True
+
+
+def _tell_peers(core: RelayCore, room: Room, member: Member, notice: Message) -> None:
+    """Queue ``notice`` (about ``member``) to every other member but spectators."""
+    for other in list(room.members.values()):
+        if other.user != member.user and not core.is_spectator(other.user):
+            core.to_member(other, notice)
+
+
+class Silence:
+    """Publishers whose updates stopped while their connection stays up.
+
+    Each publishing member has one deadline at most, at its last update plus
+    ``after``: met with no newer update, its peers hear ``peer_stalled``;
+    its next update brings ``peer_resumed``. An accepted update costs a store and
+    two flag checks (a deadline is added only when a member starts publishing
+    again), so the heap holds one entry per publisher, moved when it is met.
+    """
+
+    def __init__(self, after: float) -> None:
+        #: The bound (s); 0: off.
+        self.after = after
+        self._heap: list[tuple[float, int, Room, Member]] = []
+        self._seq = 0
+        #: Members announced stalled for silence, and announced back.
+        self.stalls = self.resumes = 0
+
+    def updated(self, core: RelayCore, room: Room, member: Member, now: float) -> None:
+        """``member`` of ``room`` had an update accepted at ``now``."""
+        member.last_update = now
+        if member.silent:
+            member.silent = False
+            self.resumes += 1
+            _tell_peers(core, room, member, PeerResumed(user=member.user))
+        if not member.watched and self.after > 0:
+            self._push(now + self.after, room, member)
+            core.emit_rearm()
+
+    def watch(self, room: Room, member: Member, now: float) -> None:
+        """Watch a publisher from ``now`` on afresh (it resumed after a drop)."""
+        if member.last_update is not None and self.after > 0:
+            member.last_update = now
+            if not member.watched:
+                self._push(now + self.after, room, member)
+
+    def _push(self, at: float, room: Room, member: Member) -> None:
+        member.watched = True
+        self._seq += 1
+        heapq.heappush(self._heap, (at, self._seq, room, member))
+
+    def next(self) -> float | None:
+        """When the earliest publisher may have been silent for ``after`` (None: none)."""
+        return self._heap[0][0] if self._heap else None
+
+    def expire(self, core: RelayCore, now: float) -> None:
+        """Announce every publisher silent for ``after`` at ``now``; re-arm the others."""
+        heap = self._heap
+        while heap and heap[0][0] <= now:
+            _, _, room, member = heapq.heappop(heap)
+            member.watched = False
+            if room.members.get(member.user) is not member or member.parked:
+                continue  # it left, or dropped (parked: its peers heard that)
+            last = member.last_update
+            assert last is not None
+            if now - last >= self.after - 1e-9:
+                member.silent = True
+                self.stalls += 1
+                _tell_peers(core, room, member, PeerStalled(user=member.user))
+            else:
+                self._push(last + self.after, room, member)

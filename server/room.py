@@ -235,6 +235,12 @@ class Member:
     #: Its connection dropped and it waits to be resumed (``server.resume``): no
     #: snapshots meanwhile, its streams stay at their last pose.
     parked: bool = False
+    #: Server time of its last accepted pose update (None: it has published none),
+    #: whether its peers were told it stalled for having stopped publishing, and
+    #: whether a silence deadline watches it (``server.resume.Silence``).
+    last_update: float | None = None
+    silent: bool = False
+    watched: bool = False
 
 
 @dataclass(frozen=True, slots=True)

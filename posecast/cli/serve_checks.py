@@ -16,6 +16,7 @@ if TYPE_CHECKING:
 __all__ = [
     "SERVE_LIMITS",
     "AllowOriginOption",
+    "StallAfterOption",
     "allowed_origins",
     "check_serve_args",
     "check_tls_files",
@@ -40,8 +41,17 @@ SERVE_LIMITS = (
     "max_members",
     "max_recorded_rooms",
     "max_objects",
+    "stall_after",
 )
 
+StallAfterOption = Annotated[
+    float,
+    typer.Option(
+        help="Tell a member's peers it stalled (peer_stalled) when its updates stop this "
+        "long (s) while its connection stays up, e.g. a frozen browser tab; 0: off.",
+        envvar="POSECAST_STALL_AFTER",
+    ),
+]
 AllowOriginOption = Annotated[
     str | None,
     typer.Option(

@@ -31,6 +31,7 @@ from posecast.cli.common import (
 from posecast.cli.serve_checks import (
     SERVE_LIMITS,
     AllowOriginOption,
+    StallAfterOption,
     allowed_origins,
     check_tls_files,
     cluster_config,
@@ -375,6 +376,7 @@ def serve(
     cluster: ClusterOption = None,
     node: NodeOption = None,
     allow_origin: AllowOriginOption = None,
+    stall_after: StallAfterOption = 1.0,
 ) -> None:
     """Run the relay server until SIGINT/SIGTERM (then close all with 1001, exit 0).
 

@@ -123,6 +123,7 @@ def test_serve_refuses_a_malformed_allow_origin() -> None:
         posecast("serve", "--port", "0", POSECAST_ALLOW_ORIGIN="https://a.example,junk"),
     ):
         assert_one_line(res, 2, "--allow-origin", "scheme://host[:port]")
+    assert_one_line(posecast("serve", "--stall-after", "-1"), 2, "--stall-after", "negative")
 
 
 def test_serve_refuses_a_file_as_the_recording_folder(tmp_path: Path) -> None:
