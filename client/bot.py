@@ -266,13 +266,9 @@ class _CausalVelocities:
 
 
 class _Bot:
-    def __init__(
-        self, cfg: BotConfig, clock: Callable[[], float], stop: asyncio.Event | None = None
-    ) -> None:
+    def __init__(self, cfg: BotConfig, clock: Callable[[], float]) -> None:
         self.cfg = cfg
         self.clock = clock
-        #: Set from outside (Ctrl-C): end the session now and report what it has.
-        self.stop = stop
         self.tls = Tls(cfg.cafile, cfg.insecure)
         self.est = ClockEstimator()
         needs = [m for m in cfg.methods if interp_info(m).needs_velocity]
@@ -542,10 +538,6 @@ class _Bot:
         methods = self.cfg.methods
         nxt = self.clock()
         while self.ending is None and self.server_now() < stop:
-            if self.stop is not None and self.stop.is_set():
-                after = max(0.0, self.clock() - self.started_local)
-                self.ending = SessionEnd("interrupted", after)
-                break
             local = self.clock()
             if local - nxt > period:  # missed its display slot
                 self.frames_late += 1
@@ -803,9 +795,6 @@ class _Bot:
         )
 
 
-async def run_bot(
-    cfg: BotConfig, clock: Callable[[], float] = time.monotonic, stop: asyncio.Event | None = None
-) -> BotReport:
-    """Run one bot to the end of its duration (or until ``stop`` is set: its ending is
-    then ``interrupted``) and return what it measured."""
-    return await _Bot(cfg, clock, stop).run()
+async def run_bot(cfg: BotConfig, clock: Callable[[], float] = time.monotonic) -> BotReport:
+    """Run one bot to the end of its duration and return what it measured."""
+    return await _Bot(cfg, clock).run()

@@ -23,11 +23,13 @@ Judgements on a finished swarm, pure functions of its reports:
 from __future__ import annotations
 
 import asyncio
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
-from posecast.client.bot import BotConfig, BotReport, motion_for_bot, run_bot
+from posecast.client.bot import BotConfig, BotReport, _Bot, motion_for_bot, run_bot
+from posecast.client.connection import SessionEnd
 from posecast.scenarios.qoe import summarize
 from posecast.scenarios.spawn import layout_points
 
@@ -83,11 +85,27 @@ async def run_bots(
 
     async def one(i: int, cfg: BotConfig) -> BotReport:
         await asyncio.sleep(i * stagger)  # avoid a thundering herd of handshakes
-        return await run_bot(cfg, stop=stop)
+        if stop is None:
+            return await run_bot(cfg)
+        bot = _Bot(cfg, time.monotonic)
+        async with asyncio.TaskGroup() as tg:
+            watcher = tg.create_task(_interrupt(bot, stop))
+            report = await bot.run()
+            watcher.cancel()
+        return report
 
     async with asyncio.TaskGroup() as tg:
         tasks = [tg.create_task(one(i, c)) for i, c in enumerate(cfgs)]
     return [t.result() for t in tasks]
+
+
+async def _interrupt(bot: _Bot, stop: asyncio.Event) -> None:
+    """When ``stop`` is set, end ``bot``'s session as ``interrupted``: its render loop
+    ends at its next frame, and it reports the time it ran."""
+    await stop.wait()
+    if bot.ending is None:
+        after = bot.clock() - bot.started_local if bot.started_local else 0.0
+        bot.ending = SessionEnd("interrupted", max(0.0, after))
 
 
 @dataclass(frozen=True)
