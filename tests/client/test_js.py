@@ -19,10 +19,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from support import running_server
+from support import poll_until, running_server
 
 from posecast.client.bot import BotConfig, BotReport, run_bot
 from posecast.scenarios.motion import MotionSpec
+from posecast.server.app import RelayServer
 
 JS = Path(__file__).resolve().parents[2] / "client" / "js"
 BOT = JS / "examples" / "bot.mjs"
@@ -36,6 +37,10 @@ COMPACT_ROTATION_DEG = 0.04
 #: Raw records carry float32 poses.
 RAW_POSITION_M = 1e-6
 RAW_ROTATION_DEG = 1e-3
+#: Compact capture times are whole milliseconds: bot.mjs's motion (at most 0.35 m/s
+#: and 1.44 rad/s) moves this far in the half millisecond they may be off.
+COMPACT_TIME_SLACK_M = 0.35 * 0.5e-3
+COMPACT_TIME_SLACK_DEG = math.degrees(1.44 * 0.5e-3)
 
 
 @dataclass(frozen=True)
@@ -83,8 +88,16 @@ def node() -> Node:
     if not installed.exists() or installed.stat().st_mtime < lock.stat().st_mtime:
         done = _npm(found, "ci", "--no-audit", "--no-fund")
         assert done.returncode == 0, f"npm ci failed:\n{done.stdout}\n{done.stderr}"
-    done = _npm(found, "run", "build")
-    assert done.returncode == 0, f"npm run build failed:\n{done.stdout}\n{done.stderr}"
+    # The bundle only (npm test typechecks and builds everything itself).
+    done = subprocess.run(
+        [found.node, "scripts/build.mjs", "--no-types"],
+        cwd=JS,
+        env=found.env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, f"the build failed:\n{done.stdout}\n{done.stderr}"
     return found
 
 
@@ -116,12 +129,21 @@ def _angle_deg(q1: np.ndarray, q2: np.ndarray) -> float:
     return math.degrees(2 * math.acos(d))
 
 
+def _updates_in(server: RelayServer, room: str) -> int:
+    r = server.rooms.get(room)
+    return 0 if r is None else r.statistics().updates_in
+
+
 async def _room(codec: str, seconds: float, node: Node) -> tuple[dict[str, object], BotReport]:
+    """The JS bot joins first; once its updates reach the relay, a Python bot runs
+    ``seconds`` beside it (the JS bot stays two seconds longer: both see each other
+    for the Python bot's whole session, however long Node took to start)."""
     async with running_server() as server:
         url = f"ws://127.0.0.1:{server.port}"
+        room = f"js-{codec}"
         cfg = BotConfig(
             url=url,
-            room=f"js-{codec}",
+            room=room,
             rate=15,
             motion="synthetic:orbit",
             duration=seconds,
@@ -132,15 +154,17 @@ async def _room(codec: str, seconds: float, node: Node) -> tuple[dict[str, objec
         proc = await asyncio.create_subprocess_exec(
             node.node,
             str(BOT),
-            *("--url", url, "--room", cfg.room, "--seconds", str(seconds)),
+            *("--url", url, "--room", room, "--seconds", str(seconds + 2)),
             *("--codec", codec, "--keyframes"),
             env=node.env,
             stdout=asyncio.subprocess.PIPE,
             stderr=asyncio.subprocess.PIPE,
         )
         async with asyncio.TaskGroup() as tg:
+            js = tg.create_task(proc.communicate())
+            await poll_until(lambda: _updates_in(server, room) > 0 or js.done())
             py = tg.create_task(run_bot(cfg))
-            out, err = await proc.communicate()
+        out, err = js.result()
     assert proc.returncode == 0, err.decode()
     lines = out.decode().strip().splitlines()
     assert len(lines) == 1, out.decode()
@@ -152,7 +176,7 @@ async def _room(codec: str, seconds: float, node: Node) -> tuple[dict[str, objec
 def test_js_bot_and_python_bot_see_each_other(node: Node, codec: str) -> None:
     """A JS bot and a Python bot in one room of a real relay: each receives the other's
     head and hands, equal to what was sent within the codec's bounds."""
-    js, py = asyncio.run(_room(codec, 4.0, node))
+    js, py = asyncio.run(_room(codec, 3.0, node))
     position_m, rotation_deg = (
         (COMPACT_POSITION_M, COMPACT_ROTATION_DEG)
         if codec == "compact"
@@ -192,6 +216,9 @@ def test_js_bot_and_python_bot_see_each_other(node: Node, codec: str) -> None:
     # The Python bot got the JS bot's scripted motion, within the same bounds.
     mine = {rs.name: rs for rs in py.streams.values() if rs.user == js["user"]}
     assert set(mine) == {"head", "left", "right"}
+    if codec == "compact":
+        position_m += COMPACT_TIME_SLACK_M
+        rotation_deg += COMPACT_TIME_SLACK_DEG
     for name, rs in mine.items():
         assert len(rs.capture) > 10, name
         for capture, pose in zip(rs.capture, rs.poses, strict=True):
@@ -199,3 +226,39 @@ def test_js_bot_and_python_bot_see_each_other(node: Node, codec: str) -> None:
             assert np.linalg.norm(pose[:3] - want[:3]) <= position_m * math.sqrt(3) + 1e-6
             assert _angle_deg(np.asarray(pose[3:], float), want[3:]) <= rotation_deg
     print(f"\n{codec}: JS bot bytes per pose up {bpp['up']:.2f}, down {bpp['down']:.2f}")
+
+
+async def _objects(node: Node) -> dict[str, object]:
+    async with running_server() as server:
+        proc = await asyncio.create_subprocess_exec(
+            node.node,
+            str(JS / "test" / "live" / "objects.mjs"),
+            *("--url", f"ws://127.0.0.1:{server.port}", "--room", "js-objects"),
+            env=node.env,
+            stdout=asyncio.subprocess.PIPE,
+            stderr=asyncio.subprocess.PIPE,
+        )
+        out, err = await proc.communicate()
+    assert proc.returncode == 0, err.decode()
+    report: dict[str, object] = json.loads(out.decode().strip().splitlines()[-1])
+    return report
+
+
+def test_js_shared_object_thrown_and_caught(node: Node) -> None:
+    """Through a real relay, one JS client creates a held object, carries and throws
+    it; another sees the owner changes, the flight as the relay's keyframes (up from
+    the 1 m release height), and catches it."""
+    rep = asyncio.run(_objects(node))
+    assert rep["errors"] == [], rep
+    assert rep["name"] == "object:ball"
+    thrower, catcher = rep["thrower"], rep["catcher"]
+    assert rep["reasons"] == [
+        ["create", thrower, None],
+        ["throw", None, [1.0, 3.0, 0.0]],
+        ["catch", catcher, None],
+    ]
+    assert rep["owner"] == catcher
+    assert isinstance(rep["flight_keyframes"], int) and rep["flight_keyframes"] >= 5, rep
+    # Thrown up at 3 m/s from y = 1 m: the flight rises (apex 1.46 m).
+    assert isinstance(rep["flight_max_y"], float) and 1.2 < rep["flight_max_y"] < 1.5, rep
+    assert isinstance(rep["rendered"], int) and rep["rendered"] > 0

@@ -1,5 +1,7 @@
-// Run the unit tests: bundle each test/*.test.ts with esbuild (Node 20 runs no
-// TypeScript by itself) into .test-build/, then `node --test` over them.
+// `npm test`: typecheck (tsc --noEmit), build dist/, then run the unit tests:
+// bundle each test/*.test.ts with esbuild (Node 20 runs no TypeScript by itself)
+// into .test-build/, then `node --test` over them. Arguments pick test files by
+// name and skip the typecheck and build. No nested npm: it runs with any node.
 import { build } from "esbuild";
 import { readdirSync, rmSync } from "node:fs";
 import { spawnSync } from "node:child_process";
@@ -10,6 +12,12 @@ const root = join(dirname(fileURLToPath(import.meta.url)), "..");
 const out = join(root, ".test-build");
 rmSync(out, { recursive: true, force: true });
 const only = process.argv.slice(2);
+if (!only.length) {
+  for (const step of [[join(root, "node_modules/typescript/bin/tsc"), "--noEmit", "-p", join(root, "tsconfig.json")], [join(root, "scripts/build.mjs")]]) {
+    const done = spawnSync(process.execPath, step, { stdio: "inherit", cwd: root });
+    if (done.status !== 0) process.exit(done.status ?? 1);
+  }
+}
 const tests = readdirSync(join(root, "test"))
   .filter((f) => f.endsWith(".test.ts"))
   .filter((f) => !only.length || only.some((o) => f.includes(o)));

@@ -296,7 +296,7 @@ export class PosecastClient extends Emitter<ClientEvents> {
     this.send({
       type: "join",
       room: this.options.room,
-      streams: this.options.spectator ? [] : this.streamNames,
+      streams: this.streamNames, // nominal for a spectator, but a join needs at least one
       rate,
       token: this.opts.token ?? null,
       label,
