@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 if TYPE_CHECKING:
     from posecast.recorder import RoomRecorder
 
-__all__ = ["Action", "Close", "FinishRecording", "Rearm", "Reschedule", "Wake"]
+__all__ = ["Action", "Close", "FinishRecording", "Hold", "Rearm", "Reschedule", "Wake"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -43,6 +43,19 @@ class FinishRecording:
 
     room: str
     recorder: RoomRecorder
+
+
+@dataclass(frozen=True, slots=True)
+class Hold:
+    """Connection ``conn``'s event (and what it sent after it) waits for the adapter:
+    ``open`` room ``room``'s recording, ``claim`` room ``room`` in the cluster, or
+    ``resume``: find the member resumable with ``token`` in the cluster. Once done,
+    the adapter hands the same event to ``handle`` (see ``RelayCore.hold``)."""
+
+    conn: int
+    kind: Literal["open", "claim", "resume"]
+    room: str = ""
+    token: str | None = None
 
 
 Action = Wake | Close | Reschedule | Rearm | FinishRecording

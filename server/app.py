@@ -55,6 +55,7 @@ from posecast.server.core import (
     Close,
     ConnectionStatistics,
     FinishRecording,
+    Hold,
     Rearm,
     RelayCore,
     Reschedule,
@@ -63,7 +64,7 @@ from posecast.server.core import (
 )
 from posecast.server.http import OriginPolicy, QuietHttpLog, metrics_text, process_request
 from posecast.server.logs import LogLimiter
-from posecast.server.node import cluster_clock, join_room, resume_token
+from posecast.server.node import cluster_clock
 from posecast.server.recordings import Recordings
 from posecast.server.room import IdAllocator, Outbox, Room
 from posecast.server.transport import WebSocketConnection, frame_binary
@@ -223,25 +224,14 @@ class _Connection(WebSocketConnection):
         """
         server, core, conn = self.server, self.server.core, self.conn
         now, wall = server.clock(), server.wall_clock()
-        recording = server.config.record_dir is not None
-        cluster = server.cluster
         apply = server.apply
         skip_check = bool(events)  # the held event's room was just opened
         while True:
             for i, event in enumerate(events):
-                if cluster is not None and not (skip_check and i == 0):
-                    name = join_room(event, server.config.secret, wall)
-                    if name is not None and cluster.must_claim(name):
-                        self._hold(name, events[i:], messages, raw)
-                        return
-                    token = resume_token(event)
-                    if token is not None and not core.parking.has(token):
-                        self._hold("", events[i:], messages, raw, token)
-                        return
-                if recording and not (skip_check and i == 0):
-                    room = core.room_to_open(conn, event, wall)
-                    if room is not None:
-                        self._hold(room, events[i:], messages)
+                if not (skip_check and i == 0):
+                    held = core.hold(conn, event, wall)
+                    if held is not None:
+                        self._hold(held, events[i:], messages, raw)
                         return
                 actions = core.handle(conn, event, now, wall)
                 if actions:
@@ -253,25 +243,21 @@ class _Connection(WebSocketConnection):
             events, raw = core.frame(conn, data), data
 
     def _hold(
-        self,
-        room: str,
-        events: list[Event],
-        rest: Iterator[bytes | str],
-        raw: bytes | str = b"",
-        token: str | None = None,
+        self, held: Hold, events: list[Event], rest: Iterator[bytes | str], raw: bytes | str
     ) -> None:
-        """Stop reading until ``room`` is open (or claimed in the cluster, or the
-        member resumable with ``token`` is found in it); then go on in order."""
+        """Stop reading until the core's ``held`` is done (the room open, or claimed in
+        the cluster, or the member resumable with its token found); then go on in order."""
         self._held = True
         self._backlog = list(rest)
         self.transport.pause_reading()
-        if token is not None:
-            job = self._resume_then_consume(token, events, raw)
-        elif self.server.cluster is not None and self.server.cluster.must_claim(room):
-            job = self._claim_then_consume(room, events, raw)
+        if held.kind == "resume":
+            assert held.token is not None
+            job = self._resume_then_consume(held.token, events, raw)
+        elif held.kind == "claim":
+            job = self._claim_then_consume(held.room, events, raw)
         else:
-            job = self._open_then_consume(room, events)
-        self.server.spawn(job, f"open:{room}")
+            job = self._open_then_consume(held.room, events)
+        self.server.spawn(job, f"open:{held.room}")
 
     def write_forwarded(self, data: bytes) -> None:
         """Write a frame the room's owner node sent this (forwarded) client."""

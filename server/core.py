@@ -76,7 +76,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 from posecast.protocol import (
     ROOM_USER,
@@ -104,8 +104,15 @@ from posecast.protocol import (
 )
 from posecast.protocol.events import Event, Message
 from posecast.server import objects, resume, tokens
-from posecast.server.actions import Action, Close, FinishRecording, Rearm, Reschedule, Wake
-from posecast.server.auth import token_permits
+from posecast.server.actions import (
+    Action,
+    Close,
+    FinishRecording,
+    Hold,
+    Rearm,
+    Reschedule,
+    Wake,
+)
 from posecast.server.config import ServerConfig
 from posecast.server.limits import (
     Admission,
@@ -134,6 +141,7 @@ __all__ = [
     "Close",
     "ConnectionStatistics",
     "FinishRecording",
+    "Hold",
     "Peer",
     "Rearm",
     "RelayCore",
@@ -143,6 +151,14 @@ __all__ = [
 ]
 
 log = logging.getLogger("posecast.server")
+
+
+class ClusterView(Protocol):
+    """What the core asks of the cluster it is a node of (``server.node.ClusterNode``)."""
+
+    def must_claim(self, room: str) -> bool:
+        """Whether a join of ``room`` waits for a claim in the cluster first."""
+        ...
 
 
 class RelayCore:
@@ -168,6 +184,8 @@ class RelayCore:
         self._join_deadlines = Deadlines(self._unjoined)
         #: Access-token expiries (server clock) of joined connections; see Renew.
         self._token_deadlines = Deadlines(self._token_due)
+        #: The cluster this relay is a node of (``server.node`` sets it; None: alone).
+        self.cluster: ClusterView | None = None
         #: Members of dropped resumable connections, kept for ``resume_window``.
         self.parking = resume.Parking(cfg.resume_window)
         #: Members whose updates stopped (``stall_after``): peers hear peer_stalled.
@@ -337,19 +355,31 @@ class RelayCore:
 
     def room_to_open(self, conn: int, event: Event, wall: float) -> str | None:
         """The room a recording server must open (off the loop) before ``event``."""
-        if self.config.record_dir is None or not isinstance(event, Join):
+        if self.config.record_dir is None:
             return None
-        try:
-            name = normalise_room(event.room)
-        except ValueError:
-            return None
-        if (
-            name in self.rooms
-            or not token_permits(self.config.secret, event.token, name, wall)
-            or self.table.refusal(name) is not None
-        ):
+        name = tokens.joinable_room(event, self.config.secret, wall)
+        if name is None or name in self.rooms or self.table.refusal(name) is not None:
             return None
         return name
+
+    def hold(self, conn: int, event: Event, wall: float) -> Hold | None:
+        """Whether ``event`` of ``conn`` must wait before :meth:`handle` (None: it need not).
+
+        In a cluster, a join of a room this node must claim first (it does not own
+        it, or a claim under way may be taking members in) waits for the claim, and
+        a hello resuming a member not parked here waits for the cluster's lookup;
+        on a recording server, a join that creates a room waits for its recording
+        to open. The adapter holds the connection's reads meanwhile (in order).
+        """
+        cluster = self.cluster
+        if cluster is not None:
+            name = tokens.joinable_room(event, self.config.secret, wall)
+            if name is not None and cluster.must_claim(name):
+                return Hold(conn, "claim", name)
+            if isinstance(event, Hello) and event.resume and not self.parking.has(event.resume):
+                return Hold(conn, "resume", token=event.resume)
+        room = self.room_to_open(conn, event, wall)
+        return None if room is None else Hold(conn, "open", room)
 
     def handle(self, conn: int, event: Event, now: float, wall: float = 0.0) -> list[Action]:
         """Apply one decoded event of connection ``conn``."""

@@ -38,19 +38,15 @@ import msgpack
 import nats.errors
 from nats.aio.msg import Msg
 
-from posecast.protocol.events import Event
-from posecast.protocol.messages import Hello, Join
 from posecast.protocol.objects import ROOM_USER
 from posecast.server import resume
 from posecast.server.actions import Action
-from posecast.server.auth import token_permits
 from posecast.server.cluster import Directory, member_key
 from posecast.server.core import RelayCore
 from posecast.server.forward import Edge, Members, alive
-from posecast.server.limits import normalise_room
 from posecast.server.room import IdAllocator, Member, Outbox
 
-__all__ = ["MOVED", "ClusterNode", "cluster_clock", "join_room", "resume_token"]
+__all__ = ["MOVED", "ClusterNode", "cluster_clock"]
 
 log = logging.getLogger("posecast.cluster")
 
@@ -72,24 +68,6 @@ def cluster_clock() -> Callable[[], float]:
     client synced with one node keeps its offset when its frames go to another."""
     anchor = time.time() - time.monotonic()
     return lambda: time.monotonic() + anchor
-
-
-def join_room(event: Event, secret: str | None = None, wall: float = 0.0) -> str | None:
-    """The room a join event names (None: not a join, a name the core refuses, or a
-    token that does not admit to it: then this node's core refuses it, and no room
-    is claimed for a client that may not join it)."""
-    if not isinstance(event, Join):
-        return None
-    try:
-        name = normalise_room(event.room)
-    except ValueError:
-        return None
-    return name if token_permits(secret, event.token, name, wall) else None
-
-
-def resume_token(event: Event) -> str | None:
-    """The token a hello resumes with (None: not a hello, or not a resume)."""
-    return event.resume if isinstance(event, Hello) and event.resume else None
 
 
 @dataclass
@@ -138,6 +116,7 @@ class ClusterNode:
         members = Members(core, directory.nc, node, apply, clock, wall_clock, prepare)
         edge = Edge(directory.nc, node, deliver, close)
         self = cls(directory, core, apply, members, edge, clock)
+        core.cluster = self
         members.settle = self.settled
         directory.on_lost = self._lost
         await members.start()

@@ -13,13 +13,28 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from posecast.protocol import ErrorCode, ErrorMessage, Join, Renew
-from posecast.server.auth import TokenClaims, TokenError, verify_token
+from posecast.protocol.events import Event
+from posecast.server.auth import TokenClaims, TokenError, token_permits, verify_token
+from posecast.server.limits import normalise_room
 
 if TYPE_CHECKING:
     from posecast.server.core import RelayCore
     from posecast.server.peer import Peer
 
-__all__ = ["admit_join", "renew"]
+__all__ = ["admit_join", "joinable_room", "renew"]
+
+
+def joinable_room(event: Event, secret: str | None, wall: float) -> str | None:
+    """The room a join event names, if the join may go on (None: not a join, a name
+    the core refuses, or a token that does not admit to it: then the core refuses
+    it, and nothing is opened or claimed for a client that may not join)."""
+    if not isinstance(event, Join):
+        return None
+    try:
+        name = normalise_room(event.room)
+    except ValueError:
+        return None
+    return name if token_permits(secret, event.token, name, wall) else None
 
 
 def _unauthorized(core: RelayCore, peer: Peer, exc: TokenError, what: str) -> None:

@@ -13,6 +13,8 @@ from test_core import POSE, Client, connect
 from test_core_schedule import Tap
 
 from posecast.protocol import ErrorMessage, Hello, Join, Joined, PoseUpdate, encode_update
+from posecast.server.actions import Hold
+from posecast.server.auth import make_token
 from posecast.server.core import Close, RelayCore, ServerConfig
 from posecast.server.limits import normalise_room
 
@@ -238,6 +240,39 @@ def test_recorded_rooms_are_limited(tmp_path: Path) -> None:
     (err,) = [e for e in c.inbox if isinstance(e, ErrorMessage)]
     assert err.code == "room-full" and "recorded rooms" in err.message
     assert set(core.rooms) == {"a"}
+
+
+class Cluster:
+    """A cluster node that owns the rooms it is told (the core asks only must_claim)."""
+
+    def __init__(self, owned: set[str]) -> None:
+        self.owned = owned
+
+    def must_claim(self, room: str) -> bool:
+        return room not in self.owned
+
+
+def test_which_joins_and_hellos_wait_for_the_adapter(tmp_path: Path) -> None:
+    """The core decides what waits: a join creating a recorded room waits for its
+    recording, a join of a room this node does not own for a claim, a hello resuming
+    a member not parked here for the cluster's lookup; a join the core refuses anyway
+    (bad name, bad token) waits for nothing."""
+    core = RelayCore(ServerConfig(record_dir=tmp_path, secret="s3"))
+    token = make_token("s3", "a", "ann", ttl=100.0, now=0.0)
+    join_a = Join(room=" a", streams=("head",), rate=10.0, token=token)
+    assert core.hold(1, join_a, 50.0) == Hold(1, "open", "a")
+    assert core.hold(1, join_a, 150.0) is None  # expired: refused by the core, not held
+    assert core.hold(1, Join(room="", streams=("head",), rate=10.0), 50.0) is None
+    assert core.add_room("a", Tap(), 1.0)  # type: ignore[arg-type]
+    assert core.hold(1, join_a, 50.0) is None  # open already
+    core.cluster = Cluster(owned={"a"})
+    assert core.hold(1, join_a, 50.0) is None
+    join_b = Join(
+        room="b", streams=("head",), rate=10.0, token=make_token("s3", "b", "ann", 100.0, 0.0)
+    )
+    assert core.hold(2, join_b, 50.0) == Hold(2, "claim", "b")
+    assert core.hold(3, Hello(agent="x", resume="tok3n"), 50.0) == Hold(3, "resume", token="tok3n")
+    assert core.hold(3, Hello(agent="x"), 50.0) is None
 
 
 def test_room_names_are_one_room_or_refused() -> None:
