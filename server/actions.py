@@ -3,12 +3,24 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 if TYPE_CHECKING:
-    from posecast.recorder import RoomRecorder
+    from posecast.protocol import PoseUpdate
+    from posecast.protocol.codec import Volume
 
-__all__ = ["Action", "Close", "FinishRecording", "Hold", "Rearm", "Reschedule", "Wake"]
+__all__ = [
+    "Action",
+    "Close",
+    "FinishRecording",
+    "Hold",
+    "PollRecording",
+    "Rearm",
+    "Record",
+    "RecordPose",
+    "Reschedule",
+    "Wake",
+]
 
 
 @dataclass(frozen=True, slots=True)
@@ -39,10 +51,40 @@ class Rearm:
 
 @dataclass(frozen=True, slots=True)
 class FinishRecording:
-    """Room ``room`` is gone: close ``recorder`` (blocking work: off the event loop)."""
+    """Room ``room`` is gone: close its recording (blocking work: off the event loop)."""
 
     room: str
-    recorder: RoomRecorder
+
+
+@dataclass(frozen=True, slots=True)
+class Record:
+    """Write ``record`` at ``now`` on room ``room``'s recording: a ``presence`` (join,
+    leave, rate), ``event`` (a user event, an object's change) or ``drop`` record."""
+
+    room: str
+    topic: Literal["presence", "event", "drop"]
+    record: dict[str, Any]
+    now: float
+
+
+@dataclass(frozen=True, slots=True)
+class RecordPose:
+    """Record ``user``'s pose ``update`` (``codes``: a compact update's codec codes,
+    quantised in ``volume``) at ``now`` on room ``room``'s recording."""
+
+    room: str
+    user: int
+    now: float
+    update: PoseUpdate
+    codes: dict[int, list[int]] | None
+    volume: Volume
+
+
+@dataclass(frozen=True, slots=True)
+class PollRecording:
+    """Room ``room`` ticked: its recording may hand its batch to the writer now."""
+
+    room: str
 
 
 @dataclass(frozen=True, slots=True)
@@ -58,4 +100,6 @@ class Hold:
     token: str | None = None
 
 
-Action = Wake | Close | Reschedule | Rearm | FinishRecording
+Action = (
+    Wake | Close | Reschedule | Rearm | FinishRecording | Hold | Record | RecordPose | PollRecording
+)

@@ -484,9 +484,11 @@ class RelayServer:
             elif isinstance(action, Rearm):
                 self._new_connection.set()
             elif isinstance(action, FinishRecording):
-                self.spawn(
-                    self.recorders.finish(action.room, action.recorder), f"close:{action.room}"
-                )
+                rec = self.recorders.take(action.room)
+                if rec is not None:
+                    self.spawn(self.recorders.finish(action.room, rec), f"close:{action.room}")
+            else:  # Record, RecordPose, PollRecording
+                self.recorders.carry_out(action)
 
     def spawn(self, job: Coroutine[Any, Any, None], name: str) -> None:
         """Run ``job`` under the server's task group."""
@@ -583,13 +585,13 @@ class RelayServer:
             log.warning("pause requested, but this server does not record")
             return
         if not self.core.recording_paused:
-            self.core.pause_recording(self.clock())
+            self.apply(self.core.pause_recording(self.clock()))
             log.info("recording paused")
 
     def resume_recording(self) -> None:
         """Record pose updates again after :meth:`pause_recording`."""
         if self.core.recording_paused:
-            self.core.resume_recording(self.clock())
+            self.apply(self.core.resume_recording(self.clock()))
             log.info("recording resumed")
 
     def stop(self) -> None:

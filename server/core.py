@@ -16,9 +16,17 @@ is checked) and returns the :data:`Action` s the adapter must carry out:
     (the error that explains the close) are written; the first close wins.
 ``Reschedule()``
     the earliest tick may have moved: ask :meth:`~RelayCore.next_deadline` again.
-``FinishRecording(room, recorder)``
+``Record(room, topic, record, now)``, ``RecordPose(room, user, now, update, ...)``
+    write a presence, event or drops record, or a pose update, on the room's
+    recording (the adapter holds the recorders; the core only says what to write).
+``PollRecording(room)``
+    a recorded room ticked: its recording may hand its batch to the writer.
+``FinishRecording(room)``
     a recorded room was removed (its last drops and presence are in): close its
     recording, which may block, off the event loop.
+``Hold(conn, kind, room, token)``
+    (from :meth:`~RelayCore.hold`) the event waits for the adapter: a recording
+    to open, a cluster claim, a cluster resume lookup.
 
 The wire protocol (hello, join, the message state table, codes) is
 :class:`protocol.ServerSession`'s; this module adds the relay's rules on top:
@@ -76,7 +84,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 from posecast.protocol import (
     ROOM_USER,
@@ -130,9 +138,6 @@ from posecast.server.room import (
     Room,
 )
 from posecast.server.rooms import RoomTable
-
-if TYPE_CHECKING:
-    from posecast.recorder import RoomRecorder
 
 __all__ = [
     "COUNTERS",
@@ -471,9 +476,10 @@ class RelayCore:
 
     # -- rooms and ticks (``server.rooms``) --------------------------------------------
 
-    def add_room(self, name: str, recorder: RoomRecorder | None, now: float) -> bool:
-        """Create room ``name`` with its (opened) recorder; False if it exists already."""
-        return self.table.add(name, recorder, now)
+    def add_room(self, name: str, recorded: bool, now: float) -> bool:
+        """Create room ``name``, ``recorded`` (the adapter opened its recording); False if
+        it exists already or may not be created (then the adapter closes the recording)."""
+        return self.table.add(name, recorded, now)
 
     def room_for(self, name: str) -> Room:
         """Room ``name``, created if there is none."""
@@ -517,13 +523,15 @@ class RelayCore:
         """Pose updates are not recorded while set (see :meth:`pause_recording`)."""
         return self.table.recording_paused
 
-    def pause_recording(self, now: float) -> None:
+    def pause_recording(self, now: float) -> list[Action]:
         """Stop recording pose updates in every room, and in rooms opened later."""
         self.table.pause_recording(now)
+        return self._actions()
 
-    def resume_recording(self, now: float) -> None:
+    def resume_recording(self, now: float) -> list[Action]:
         """Record pose updates again after :meth:`pause_recording`."""
         self.table.resume_recording(now)
+        return self._actions()
 
     # -- statistics ---------------------------------------------------------------------
 
@@ -674,8 +682,9 @@ class RelayCore:
         room.add(member, now)
         self.rescheduled(room)
         peer.room, peer.member = room, member
-        if room.recorder is not None and not join.spectator:
-            room.recorder.record_presence(
+        if room.recorded and not join.spectator:
+            room.record(
+                "presence",
                 {
                     "kind": "join",
                     "user": peer.user,
@@ -706,8 +715,7 @@ class RelayCore:
         rate = event.rate if peer.downlink is None else peer.downlink.rate_for(event.rate)
         room.set_rate(user, max(self.config.min_rate, rate), now)
         self.rescheduled(room)
-        if room.recorder is not None:
-            room.recorder.record_presence({"kind": "rate", "user": user, "rate": event.rate}, now)
+        room.record("presence", {"kind": "rate", "user": user, "rate": event.rate}, now)
 
     def _on_user_event(self, peer: Peer, event: UserEvent, now: float) -> None:
         room = peer.room
@@ -716,8 +724,9 @@ class RelayCore:
         for m in list(room.members.values()):
             if m.user != peer.user:
                 self.to_member(m, event)
-        if room.recorder is not None:
-            room.recorder.record_event(
+        if room.recorded:
+            room.record(
+                "event",
                 {
                     "kind": event.kind,
                     "user": event.user,
@@ -755,12 +764,11 @@ class RelayCore:
             stale = room.ingest(user, update, peer.session.compact_codes())
             if peer.member is not None:
                 self.silence.updated(self, room, peer.member, now)
-            rec = room.recorder
-            if rec is not None:
+            if room.recorded:
                 if room.recording_paused:
                     room.paused_updates += 1
                     return
-                rec.record_pose_update(user, now, update, peer.session.compact_codes(), self.volume)
+                room.record_pose(user, now, update, peer.session.compact_codes())
                 if stale:
                     room.note_drop("stale", user, stale)
 
@@ -782,10 +790,8 @@ class RelayCore:
             self.rescheduled(room)
             spectator = user in self._spectators
             self._spectators.discard(user)
-            if room.recorder is not None and not spectator:
-                room.recorder.record_presence(
-                    {"kind": "leave", "user": user, "reason": "left"}, now
-                )
+            if not spectator:
+                room.record("presence", {"kind": "leave", "user": user, "reason": "left"}, now)
             for other in list(room.members.values()):
                 if not spectator:
                     self.to_member(other, PeerLeft(user=user, reason="left"))

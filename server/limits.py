@@ -208,7 +208,7 @@ def room_refusal(cfg: ServerConfig, rooms: Mapping[str, Room], name: str) -> str
     if cfg.max_rooms and len(rooms) >= cfg.max_rooms:
         return f"too many rooms ({cfg.max_rooms}), try later"
     if cfg.record_dir is not None and cfg.max_recorded_rooms:
-        recorded = sum(r.recorder is not None for r in rooms.values())
+        recorded = sum(r.recorded for r in rooms.values())
         if recorded >= cfg.max_recorded_rooms:
             return f"too many recorded rooms ({cfg.max_recorded_rooms}), try later"
     return None

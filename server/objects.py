@@ -425,8 +425,9 @@ def _record(
     room: Room, kind: str, user: int | None, obj: RoomObject, now: float, **payload: object
 ) -> None:
     """An object's change, on the recording's events topic (``kind`` says which)."""
-    if room.recorder is not None:
-        room.recorder.record_event(
+    if room.recorded:
+        room.record(
+            "event",
             {
                 "kind": kind,
                 "user": user,
@@ -449,8 +450,7 @@ def fly(room: Room, now: float) -> None:
         room.store(obj.stream, ROOM_USER, now, pose_raw, vel_raw)
         if landed:
             obj.flight = None
-        rec = room.recorder
-        if rec is not None and not room.recording_paused:
+        if room.recorded and not room.recording_paused:
             room.flight_seq += 1
             update = PoseUpdate.from_arrays(
                 room.flight_seq,
@@ -459,4 +459,4 @@ def fly(room: Room, now: float) -> None:
                 np.array([pose], dtype=np.float64),
                 velocities=np.array([velocity], dtype=np.float64),
             )
-            rec.record_pose_update(ROOM_USER, now, update, None, room.volume)
+            room.record_pose(ROOM_USER, now, update, None)

@@ -1,12 +1,14 @@
 """The adapter's recordings (``posecast serve --record``): files, threads, a writer process.
 
 The relay core decides when a room needs a recording (a join opening a
-recorded room is held until it is open) and when one is finished (the
-``FinishRecording`` action); :class:`Recordings` does the blocking part off the
-event loop: it recovers leftover ``.part`` files at start, starts the one
-writer process every recorded room shares (and a new one for the next room
-after a crash of the previous), opens a room's recorder in a worker thread
-while the join that needs it waits, and closes it when the room is gone.
+recorded room is held until it is open), what goes into it (``Record``,
+``RecordPose`` actions) and when it is finished (``FinishRecording``);
+:class:`Recordings` holds the rooms' recorders and carries those actions out.
+The blocking part runs off the event loop: it recovers leftover ``.part``
+files at start, starts the one writer process every recorded room shares (and
+a new one for the next room after a crash of the previous), opens a room's
+recorder in a worker thread while the join that needs it waits, and closes it
+when the room is gone.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from collections.abc import Callable, Container
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from posecast.server.actions import Action, PollRecording, Record, RecordPose
 from posecast.server.config import ServerConfig
 
 if TYPE_CHECKING:
@@ -27,8 +30,8 @@ __all__ = ["Recordings"]
 
 log = logging.getLogger("posecast.server")
 
-#: Adds an opened room (and its recorder) to the core; False: it may not be added.
-AddRoom = Callable[[str, "RoomRecorder | None", float], bool]
+#: Adds an opened room (recorded or not) to the core; False: it may not be added.
+AddRoom = Callable[[str, bool, float], bool]
 
 
 class Recordings:
@@ -48,6 +51,8 @@ class Recordings:
         self.add_room = add_room
         self.metadata = metadata
         self._opening: dict[str, asyncio.Task[None]] = {}
+        #: The recorder of every recorded room, by room name.
+        self.open: dict[str, RoomRecorder] = {}
         #: The one writer process every recorded room shares (started with the
         #: server, again for the next room after a crash of the previous one).
         self.host: RecorderHost | None = None
@@ -105,8 +110,9 @@ class Recordings:
             log.exception("cannot record room %r; it runs unrecorded", name)
             rec = None
         try:
-            if self.add_room(name, rec, self.clock()):
+            if self.add_room(name, rec is not None, self.clock()):
                 if rec is not None:
+                    self.open[name] = rec
                     log.info("recording room %r to %s", name, rec.path)
             elif rec is not None:
                 await rec.aclose()
@@ -140,6 +146,33 @@ class Recordings:
                 code = await asyncio.to_thread(host.close)
                 if code != 0:
                     log.warning("the recorder process exited with code %s", code)
+
+    def carry_out(self, action: Action) -> None:
+        """Write what the core says to write on a room's recording."""
+        if type(action) is RecordPose:
+            rec = self.open.get(action.room)
+            if rec is not None:
+                rec.record_pose_update(
+                    action.user, action.now, action.update, action.codes, action.volume
+                )
+        elif isinstance(action, Record):
+            rec = self.open.get(action.room)
+            if rec is None:
+                return
+            if action.topic == "presence":
+                rec.record_presence(action.record, action.now)
+            elif action.topic == "event":
+                rec.record_event(action.record, action.now)
+            else:
+                rec.record_drop(action.record, action.now)
+        elif isinstance(action, PollRecording):
+            rec = self.open.get(action.room)
+            if rec is not None:
+                rec.poll()
+
+    def take(self, name: str) -> RoomRecorder | None:
+        """Room ``name``'s recorder, no longer written to (its room is gone)."""
+        return self.open.pop(name, None)
 
     async def finish(self, name: str, rec: RoomRecorder) -> None:
         """Close room ``name``'s recording (its room is gone)."""

@@ -197,13 +197,13 @@ def gone(core: RelayCore, parked: Parked, now: float) -> None:
         objects.owner_left(core, room, user, now)
         room.remove(user)
         core.rescheduled(room)
-        if room.recorder is not None:
-            room.recorder.record_drop(
-                {"kind": "disconnected", "user": user, "first_time": parked.since,
-                 "last_time": now, "count": 1},
-                now,
-            )  # fmt: skip
-            room.recorder.record_presence({"kind": "leave", "user": user, "reason": "gone"}, now)
+        room.record(
+            "drop",
+            {"kind": "disconnected", "user": user, "first_time": parked.since,
+             "last_time": now, "count": 1},
+            now,
+        )  # fmt: skip
+        room.record("presence", {"kind": "leave", "user": user, "reason": "gone"}, now)
         for other in list(room.members.values()):
             if not core.is_spectator(other.user):
                 core.to_member(other, PeerLeft(user=user, reason="gone"))
@@ -246,12 +246,12 @@ def resume_join(core: RelayCore, peer: Peer, join: Join, name: str, now: float) 
         if decode_message(data).TYPE == UserEvent.TYPE and not peer.outbox.offer_event(data):
             break
     old.events.clear()
-    if room.recorder is not None:
-        room.recorder.record_drop(
-            {"kind": "disconnected", "user": member.user, "first_time": parked.since,
-             "last_time": now, "count": 1},
-            now,
-        )  # fmt: skip
+    room.record(
+        "drop",
+        {"kind": "disconnected", "user": member.user, "first_time": parked.since,
+         "last_time": now, "count": 1},
+        now,
+    )  # fmt: skip
     core.rescheduled(room)
     return True
 
@@ -278,12 +278,12 @@ def restore(
     parking = core.parking
     parking.park(conn, Parked(user, member.name, room, member, now, now + parking.window,
                               token, conn))  # fmt: skip
-    if room.recorder is not None:
-        room.recorder.record_presence(
-            {"kind": "join", "user": user, "name": member.name, "label": member.label,
-             "streams": member.streams, "rate": member.rate},
-            now,
-        )  # fmt: skip
+    room.record(
+        "presence",
+        {"kind": "join", "user": user, "name": member.name, "label": member.label,
+         "streams": member.streams, "rate": member.rate},
+        now,
+    )  # fmt: skip
     core.rescheduled(room)
     core.emit_rearm()
     return True

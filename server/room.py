@@ -36,6 +36,7 @@ from bisect import bisect_left
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any, Literal
 
 import numpy as np
 
@@ -50,8 +51,8 @@ from posecast.protocol import (
 )
 from posecast.protocol.codec import DEFAULT_VOLUME, Volume, quantise
 from posecast.protocol.codec_relay import GroupSnapshot, RelayEntry, encode_group
-from posecast.recorder import RoomRecorder
 from posecast.server import objects
+from posecast.server.actions import Action, PollRecording, Record, RecordPose
 from posecast.server.objects import RoomObject
 
 __all__ = [
@@ -318,8 +319,11 @@ class Room:
     retired: bool = False
     #: Offset of this room's tick grid, as a fraction of an interval (see room_phase).
     phase: float = 0.0
-    #: The session recorder tapping this room (``posecast serve --record``), if any.
-    recorder: RoomRecorder | None = None
+    #: Whether this room is recorded (``posecast serve --record``): its records go
+    #: out as actions (``Record``, ``RecordPose``) through ``emit``; the adapter
+    #: holds the recorder.
+    recorded: bool = False
+    emit: Callable[[Action], None] | None = None
     _drops: dict[tuple[str, int], int] = field(default_factory=dict)
     _skips_reported: dict[int, int] = field(default_factory=dict)
     _drops_flushed: float = 0.0
@@ -345,7 +349,7 @@ class Room:
 
     def pause_recording(self, now: float) -> None:
         """Stop recording pose updates (counted, written as one drops record on resume)."""
-        if self.recorder is not None and not self.recording_paused:
+        if self.recorded and not self.recording_paused:
             self.recording_paused = True
             self.paused_updates = 0
             self._paused_since = now
@@ -355,8 +359,9 @@ class Room:
         if not self.recording_paused:
             return
         self.recording_paused = False
-        if self.recorder is not None:
-            self.recorder.record_drop(
+        if self.recorded:
+            self.record(
+                "drop",
                 {
                     "kind": "recording-paused",
                     "count": self.paused_updates,
@@ -368,16 +373,15 @@ class Room:
 
     def note_drop(self, kind: str, user: int, count: int = 1) -> None:
         """Count a server-side drop; recorded (aggregated) at most once a second."""
-        if self.recorder is not None:
+        if self.recorded:
             key = (kind, user)
             self._drops[key] = self._drops.get(key, 0) + count
 
     def flush_drops(self, now: float, force: bool = False) -> None:
         """Write the drops and snapshot skips counted since the last flush."""
-        rec = self.recorder
-        if rec is None:
+        if not self.recorded:
             return
-        rec.poll()
+        self._emit(PollRecording(self.name))
         if not force and now - self._drops_flushed < 1.0:
             return
         self._drops_flushed = now
@@ -388,8 +392,25 @@ class Room:
                 self._skips_reported[m.user] = total
                 self._drops[("skip", m.user)] = self._drops.get(("skip", m.user), 0) + new
         for (kind, user), count in self._drops.items():
-            rec.record_drop({"kind": kind, "user": user, "count": count}, now)
+            self.record("drop", {"kind": kind, "user": user, "count": count}, now)
         self._drops.clear()
+
+    def _emit(self, action: Action) -> None:
+        assert self.emit is not None, "a recorded room has an emit"
+        self.emit(action)
+
+    def record(
+        self, topic: Literal["presence", "event", "drop"], record: dict[str, Any], now: float
+    ) -> None:
+        """Write ``record`` on this room's recording, if it is recorded (an action)."""
+        if self.recorded:
+            self._emit(Record(self.name, topic, record, now))
+
+    def record_pose(
+        self, user: int, now: float, update: PoseUpdate, codes: dict[int, list[int]] | None
+    ) -> None:
+        """Record ``user``'s pose ``update`` (the caller checked :attr:`recorded`)."""
+        self._emit(RecordPose(self.name, user, now, update, codes, self.volume))
 
     # -- membership ---------------------------------------------------------------
 

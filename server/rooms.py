@@ -17,16 +17,12 @@ from __future__ import annotations
 import heapq
 import logging
 from collections.abc import Callable
-from typing import TYPE_CHECKING
 
 from posecast.protocol.codec import Volume
 from posecast.server.actions import Action, FinishRecording, Reschedule
 from posecast.server.config import ServerConfig
 from posecast.server.limits import room_refusal
 from posecast.server.room import LagHistogram, Room, room_phase
-
-if TYPE_CHECKING:
-    from posecast.recorder import RoomRecorder
 
 __all__ = ["RoomTable"]
 
@@ -55,13 +51,14 @@ class RoomTable:
         """Why a join of room ``name`` is refused (``room-full``) now; None: it is not."""
         return room_refusal(self.config, self.rooms, name)
 
-    def add(self, name: str, recorder: RoomRecorder | None, now: float) -> bool:
-        """Create room ``name`` with its (opened) recorder; False if it exists already."""
+    def add(self, name: str, recorded: bool, now: float) -> bool:
+        """Create room ``name``, ``recorded`` (its recording is open); False if it exists
+        already or may not be created."""
         if name in self.rooms or self.closed or self.refusal(name) is not None:
             return False
         room = self.room_for(name)
-        room.recorder = recorder
-        if recorder is not None and self.recording_paused:
+        room.recorded = recorded
+        if recorded and self.recording_paused:
             room.pause_recording(now)
         return True
 
@@ -70,7 +67,11 @@ class RoomTable:
         room = self.rooms.get(name)
         if room is None:
             room = self.rooms[name] = Room(
-                name, phase=room_phase(name), volume=self.volume, lags=self.tick_lags
+                name,
+                phase=room_phase(name),
+                volume=self.volume,
+                lags=self.tick_lags,
+                emit=self.emit,
             )
             log.info("room %r created", name)
         return room
@@ -132,12 +133,11 @@ class RoomTable:
     def _retire(self, room: Room, now: float) -> None:
         """A room is gone: its recording gets the last drops and is to be finished."""
         room.retire()
-        rec = room.recorder
-        if rec is not None:
+        if room.recorded:
             room.resume_recording(now)  # a pause in progress goes into the file
             room.flush_drops(now, force=True)  # the drops of the last second too
-            room.recorder = None
-            self.emit(FinishRecording(room.name, rec))
+            room.recorded = False
+            self.emit(FinishRecording(room.name))
 
     def close_all(self, now: float) -> None:
         """Server shutdown: forget every room; recorded ones are to be finished."""

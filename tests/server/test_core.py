@@ -8,7 +8,9 @@ from the frames :meth:`RelayCore.take` hands out.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import Any
 
 import msgpack
 import numpy as np
@@ -31,6 +33,7 @@ from posecast.protocol import (
     UserEvent,
     Welcome,
 )
+from posecast.server.actions import Record, RecordPose
 from posecast.server.auth import make_token
 from posecast.server.core import Close, FinishRecording, RelayCore, Reschedule, ServerConfig, Wake
 
@@ -48,10 +51,14 @@ class Client:
     user: int = -1
     streams: dict[str, int] = field(default_factory=dict)
     seq: int = 0
+    #: Every action the core returned for what this client sent, in order.
+    actions: list[object] = field(default_factory=list)
 
     def send(self, message: object, now: float, wall: float = 0.0) -> list[object]:
         data = self.session.send(message)  # type: ignore[arg-type]
-        return list(self.core.receive(self.conn, data, now, wall))
+        out = list(self.core.receive(self.conn, data, now, wall))
+        self.actions.extend(out)
+        return out
 
     def read(self, now: float) -> list[object]:
         """Decode whatever the core has for this connection now."""
@@ -248,36 +255,29 @@ def test_leaving_tells_the_room_and_removes_it_when_empty() -> None:
 
 
 def test_a_recorded_room_is_finished_when_removed() -> None:
-    """An empty recorded room hands its recorder back to be closed."""
-
-    class Tap:
-        def __init__(self) -> None:
-            self.presence: list[dict[str, object]] = []
-            self.updates = 0
-
-        def record_presence(self, record: dict[str, object], now: float) -> None:
-            self.presence.append(record)
-
-        def record_pose_update(self, user: int, now: float, update: PoseUpdate, *_: object) -> bool:
-            self.updates += 1
-            return True
-
-        def record_drop(self, record: dict[str, object], now: float) -> None:
-            pass
-
-        def poll(self) -> None:
-            pass
-
+    """A recorded room's joins, updates and leaves are actions to record; an empty
+    recorded room is to be finished, after its last records."""
     core = RelayCore()
-    tap = Tap()
-    assert core.add_room("lobby", tap, 0.5)  # type: ignore[arg-type]
-    assert not core.add_room("lobby", None, 0.5)
+    assert core.add_room("lobby", True, 0.5)
+    assert not core.add_room("lobby", False, 0.5)
     a = connect(core, 1.0)
-    a.publish(1.0)
-    assert tap.updates == 1 and [p["kind"] for p in tap.presence] == ["join"]
+    poses = [x for x in a.publish(1.0) if isinstance(x, RecordPose)]
+    assert [(x.room, x.user, x.now) for x in poses] == [("lobby", a.user, 1.0)]
+    assert [r["kind"] for r in recorded(a.actions, "presence")] == ["join"]
     actions = core.disconnect(a.conn, 2.0)
-    assert FinishRecording("lobby", tap) in actions  # type: ignore[arg-type]
-    assert [p["kind"] for p in tap.presence] == ["join", "leave"]
+    assert [r["kind"] for r in recorded(actions, "presence")] == ["leave"]
+    assert actions[-1] == FinishRecording("lobby")
+
+
+def recorded(
+    actions: Iterable[object], topic: str, room: str | None = None
+) -> list[dict[str, Any]]:
+    """The records of ``topic`` the core said to write (in ``room``), in order."""
+    return [
+        x.record
+        for x in actions
+        if isinstance(x, Record) and x.topic == topic and room in (None, x.room)
+    ]
 
 
 def test_set_rate_moves_the_grid() -> None:

@@ -9,8 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_core import POSE, Client, connect
-from test_core_schedule import Tap
+from test_core import POSE, Client, connect, recorded
 
 from posecast.protocol import ErrorMessage, Hello, Join, Joined, PoseUpdate, encode_update
 from posecast.server.actions import Hold
@@ -19,17 +18,6 @@ from posecast.server.core import Close, RelayCore, ServerConfig
 from posecast.server.limits import normalise_room
 
 NAN_POSE = np.array([[float("nan"), 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]])
-
-
-class Drops(Tap):
-    """A recorder that keeps its drops records."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.drops: list[dict[str, object]] = []
-
-    def record_drop(self, record: dict[str, object], now: float) -> None:
-        self.drops.append(record)
 
 
 def closes(actions: list[object]) -> list[Close]:
@@ -54,7 +42,7 @@ def stored_capture(core: RelayCore, room: str = "lobby") -> list[float]:
 def test_an_update_captured_out_of_the_window_is_refused(offset: float, kind: str) -> None:
     """Not stored nor relayed; counted; a drops record; a non-fatal bad-pose error."""
     core = RelayCore(ServerConfig(record_dir=Path("unused")))
-    core.add_room("lobby", Drops(), 0.0)  # type: ignore[arg-type]
+    core.add_room("lobby", True, 0.0)
     a = connect(core, 10.0)
     a.publish(10.0)
     actions = a.publish(10.5, capture=10.5 + offset)
@@ -67,7 +55,7 @@ def test_an_update_captured_out_of_the_window_is_refused(offset: float, kind: st
     assert counted[kind] == 1 and sum(counted.values()) == 1
     room = core.rooms["lobby"]
     room.flush_drops(12.0, force=True)
-    assert {"kind": kind, "user": a.user, "count": 1} in room.recorder.drops  # type: ignore[union-attr]
+    assert {"kind": kind, "user": a.user, "count": 1} in recorded(core.pending(), "drop")
 
 
 @pytest.mark.parametrize("offset", [-0.99, 0.0, 0.24])
@@ -232,10 +220,10 @@ def test_recorded_rooms_are_limited(tmp_path: Path) -> None:
     core = RelayCore(ServerConfig(record_dir=tmp_path, max_recorded_rooms=1))
     first = Join(room="a", streams=("head",), rate=10.0)
     assert core.room_to_open(0, first, 0.0) == "a"
-    assert core.add_room("a", Tap(), 1.0)  # type: ignore[arg-type]
+    assert core.add_room("a", True, 1.0)
     second = Join(room="b", streams=("head",), rate=10.0)
     assert core.room_to_open(0, second, 0.0) is None
-    assert not core.add_room("b", Tap(), 1.0)  # type: ignore[arg-type]
+    assert not core.add_room("b", True, 1.0)
     c = connect(core, 1.0, room="b")
     (err,) = [e for e in c.inbox if isinstance(e, ErrorMessage)]
     assert err.code == "room-full" and "recorded rooms" in err.message
@@ -263,7 +251,7 @@ def test_which_joins_and_hellos_wait_for_the_adapter(tmp_path: Path) -> None:
     assert core.hold(1, join_a, 50.0) == Hold(1, "open", "a")
     assert core.hold(1, join_a, 150.0) is None  # expired: refused by the core, not held
     assert core.hold(1, Join(room="", streams=("head",), rate=10.0), 50.0) is None
-    assert core.add_room("a", Tap(), 1.0)  # type: ignore[arg-type]
+    assert core.add_room("a", True, 1.0)
     assert core.hold(1, join_a, 50.0) is None  # open already
     core.cluster = Cluster(owned={"a"})
     assert core.hold(1, join_a, 50.0) is None

@@ -6,34 +6,13 @@ Sans-I/O like ``test_core.py``: the time is an argument, nothing sleeps.
 from __future__ import annotations
 
 import pytest
-from test_core import connect
+from test_core import connect, recorded
 
-from posecast.protocol import PoseUpdate, SetRate
+from posecast.protocol import SetRate
 from posecast.scenarios.network import Tier
+from posecast.server.actions import PollRecording
 from posecast.server.core import Close, FinishRecording, RelayCore, Reschedule, ServerConfig
 from posecast.server.room import Room
-
-
-class Tap:
-    """A recorder that only counts (the core calls nothing else of it)."""
-
-    def __init__(self) -> None:
-        self.presence: list[str] = []
-
-    def record_presence(self, record: dict[str, object], now: float) -> None:
-        self.presence.append(str(record["kind"]))
-
-    def record_pose_update(self, user: int, now: float, update: PoseUpdate, *_: object) -> bool:
-        return True
-
-    def record_drop(self, record: dict[str, object], now: float) -> None:
-        pass
-
-    def record_event(self, record: dict[str, object], now: float) -> None:
-        pass
-
-    def poll(self) -> None:
-        pass
 
 
 def brute_deadline(core: RelayCore) -> float | None:
@@ -110,8 +89,7 @@ def test_a_failed_room_closes_1011_and_its_recording_is_finished_once() -> None:
     """A room whose tick raises: members closed with 1011, the others go on; the recording
     is finished when its last member is gone, once, and the name can be used again."""
     core = RelayCore()
-    tap = Tap()
-    assert core.add_room("bad", tap, 0.5)  # type: ignore[arg-type]
+    assert core.add_room("bad", True, 0.5)
     a, b = connect(core, 1.0, room="bad"), connect(core, 1.0, room="bad")
     ok = connect(core, 1.0, room="good")
     bad = core.rooms["bad"]
@@ -128,10 +106,12 @@ def test_a_failed_room_closes_1011_and_its_recording_is_finished_once() -> None:
     closes = [x for x in actions if isinstance(x, Close)]
     assert sorted((x.conn, x.code) for x in closes) == [(a.conn, 1011), (b.conn, 1011)]
     assert "bad" not in core.rooms and "good" in core.rooms
-    assert not [x for x in core.disconnect(a.conn, 2.0) if isinstance(x, FinishRecording)]
+    first = core.disconnect(a.conn, 2.0)
+    assert not [x for x in first if isinstance(x, FinishRecording)]
     last = core.disconnect(b.conn, 2.1)
-    assert [x for x in last if isinstance(x, FinishRecording)] == [FinishRecording("bad", tap)]  # type: ignore[arg-type]
-    assert tap.presence == ["join", "join", "leave", "leave"]
+    assert [x for x in last if isinstance(x, FinishRecording)] == [FinishRecording("bad")]
+    presence = recorded([*a.actions, *b.actions, *first, *last], "presence", "bad")
+    assert [r["kind"] for r in presence] == ["join", "join", "leave", "leave"]
     assert not [x for x in core.close_rooms(3.0) if isinstance(x, FinishRecording)]
     assert not [x for x in core.disconnect(ok.conn, 3.1) if isinstance(x, FinishRecording)]
 
@@ -139,10 +119,9 @@ def test_a_failed_room_closes_1011_and_its_recording_is_finished_once() -> None:
 def test_after_close_rooms_no_room_is_added_or_finished_twice() -> None:
     """Shutdown finishes every recorded room once; a recorder opened late is refused."""
     core = RelayCore()
-    tap = Tap()
-    assert core.add_room("lobby", tap, 0.5)  # type: ignore[arg-type]
+    assert core.add_room("lobby", True, 0.5)
     a = connect(core, 1.0)
-    assert core.close_rooms(2.0) == [FinishRecording("lobby", tap)]  # type: ignore[arg-type]
+    assert core.close_rooms(2.0) == [PollRecording("lobby"), FinishRecording("lobby")]
     assert not [x for x in core.disconnect(a.conn, 2.1) if isinstance(x, FinishRecording)]
-    assert not core.add_room("late", Tap(), 2.2)  # type: ignore[arg-type]
+    assert not core.add_room("late", True, 2.2)
     assert core.rooms == {} and core.next_deadline() is None

@@ -370,7 +370,7 @@ async def _rooms_share_one_writer(tmp: Path) -> tuple[RelayServer, list[Path], s
             await ClientConnection.open(url, room=f"r{i // 2}", streams=("head",), rate=20)
             for i in range(6)
         ]
-        recorders = [room.recorder for room in server.rooms.values()]
+        recorders = list(server.recorders.open.values())
         assert len(recorders) == 3
         first = server.recorders.host
         assert first is not None and first.rooms == 3
