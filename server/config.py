@@ -7,12 +7,14 @@ limits are explained in ``docs/guides/security.md``. ``server.core`` re-exports 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 from posecast.protocol.codec import DEFAULT_VOLUME, Volume
 from posecast.server.link import LinkTier
 from posecast.server.room import DEFAULT_EVENT_QUEUE
+
+if TYPE_CHECKING:
+    from pathlib import Path
 
 __all__ = ["ServerConfig"]
 

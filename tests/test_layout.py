@@ -157,3 +157,116 @@ def test_no_function_over_80_lines() -> None:
                 if size > 80:
                     long.append((str(path.relative_to(ROOT)), node.name, size))
     assert not long, long
+
+
+# -- the relay's parts (server/) ---------------------------------------------------------
+
+#: The relay core and its parts: sans I/O (the adapter is app, transport, http,
+#: recordings, and the cluster side: node, cluster, forward).
+RELAY_CORE = (
+    "actions",
+    "auth",
+    "config",
+    "core",
+    "limits",
+    "link",
+    "logs",
+    "objects",
+    "peer",
+    "resume",
+    "room",
+    "rooms",
+    "tokens",
+)
+
+#: What touches a clock, a file, a socket or a thread: never imported (at run time)
+#: by the relay core. ``logging`` is allowed: the one effect not returned as an action.
+IO_MODULES = frozenset(
+    {"asyncio", "io", "mmap", "nats", "os", "pathlib", "select", "selectors", "shutil",
+     "socket", "ssl", "subprocess", "tempfile", "threading", "time", "websockets",
+     "recorder"}
+)  # fmt: skip
+
+
+def _runtime_imports(tree: ast.Module) -> list[str]:
+    """Top-level names a module imports when it runs (``if TYPE_CHECKING:`` left out)."""
+    typing_only = {
+        id(sub)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test)
+        for sub in ast.walk(node)
+    }
+    names: list[str] = []
+    for node in ast.walk(tree):
+        if id(node) in typing_only:
+            continue
+        if isinstance(node, ast.Import):
+            names.extend(folder_name(alias.name) for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names.append(folder_name(node.module))
+    return names
+
+
+def test_the_relay_core_touches_no_clock_file_or_socket() -> None:
+    """The relay core's modules import nothing that reads a clock or does I/O: the
+    adapter carries out what they decide."""
+    bad = [
+        (module, name)
+        for module in RELAY_CORE
+        for name in _runtime_imports(ast.parse((ROOT / "server" / f"{module}.py").read_text()))
+        if name.split(".")[0] in IO_MODULES
+    ]
+    assert not bad, bad
+
+
+def _attributes(tree: ast.Module) -> set[str]:
+    """Attribute names a module's classes define: methods, class fields, ``x.name = ...``."""
+    out: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ClassDef):
+            for item in node.body:
+                if isinstance(item, ast.FunctionDef | ast.AsyncFunctionDef):
+                    out.add(item.name)
+                elif isinstance(item, ast.AnnAssign) and isinstance(item.target, ast.Name):
+                    out.add(item.target.id)
+                elif isinstance(item, ast.Assign):
+                    out.update(t.id for t in item.targets if isinstance(t, ast.Name))
+        elif isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Store):
+            out.add(node.attr)
+    return out
+
+
+def private_reaches(folder: Path) -> list[tuple[str, int, str]]:
+    """Every ``x._name`` (``x`` not ``self`` or ``cls``) in a module of ``folder`` whose
+    ``_name`` is no attribute of that module's own classes: one part reading another
+    part's private state (a module's classes may share their private names)."""
+    out = []
+    for path in sorted(folder.glob("*.py")):
+        tree = ast.parse(path.read_text())
+        own = _attributes(tree)
+        for node in ast.walk(tree):
+            if not isinstance(node, ast.Attribute):
+                continue
+            attr = node.attr
+            if not attr.startswith("_") or attr.startswith("__") or attr in own:
+                continue
+            if isinstance(node.value, ast.Name) and node.value.id in ("self", "cls"):
+                continue
+            out.append((path.name, node.lineno, ast.unparse(node)))
+    return out
+
+
+def test_no_part_of_the_relay_reads_another_parts_private_names() -> None:
+    """server/'s modules talk through public methods and fields only."""
+    assert private_reaches(ROOT / "server") == []
+
+
+def test_the_private_reach_check_finds_one(tmp_path: Path) -> None:
+    """The checker sees a private name of another module, and lets a module's own pass."""
+    (tmp_path / "a.py").write_text("class A:\n    def __init__(self):\n        self._x = 1\n")
+    (tmp_path / "b.py").write_text(
+        "def _x():\n    pass\n"
+        "class B:\n    def __init__(self, a):\n        self._own = a._x\n"
+        "    def f(self, other):\n        return other._own\n"
+    )
+    assert private_reaches(tmp_path) == [("b.py", 5, "a._x")]
