@@ -122,6 +122,8 @@ interface Waiter {
 
 const DEVICES = ["head", "left", "right"];
 const QUAT_NORM_TOLERANCE = 1e-3;
+/** Unsent bytes in the socket above which `publish` skips an update (bounded queue). */
+const MAX_BUFFERED = 64 * 1024;
 
 export class PosecastClient extends Emitter<ClientEvents> {
   readonly urls: string[];
@@ -142,6 +144,9 @@ export class PosecastClient extends Emitter<ClientEvents> {
   updatesSent = 0;
   posesSent = 0;
   updateBytes = 0;
+  /** Updates not sent because the socket still held over `MAX_BUFFERED` unsent bytes
+   * (a stalled network: poses are latest-wins, a backlog would only add delay). */
+  updatesSkipped = 0;
   /** Snapshot frames received and their bytes, on all connections. */
   snapshotsIn = 0;
   snapshotBytes = 0;
@@ -562,12 +567,17 @@ export class PosecastClient extends Emitter<ClientEvents> {
 
   /** Send this user's poses: stream name -> [px, py, pz, qw, qx, qy, qz] (metres,
    * unit quaternion w first), captured at `capture` (server clock; default now).
-   * Returns the frame's size in bytes. */
+   * Returns the frame's size in bytes; 0 when nothing was sent (not joined, or the
+   * socket still holds 64 KiB unsent: the update is skipped, `updatesSkipped`). */
   publish(
     poses: Readonly<Record<string, ArrayLike<number> | null | undefined>>,
     opts: { capture?: number; velocities?: Readonly<Record<string, ArrayLike<number>>> } = {},
   ): number {
     if (this.state !== "joined" || !this.link || !this.joined) return 0;
+    if (this.link.buffered > MAX_BUFFERED) {
+      this.updatesSkipped++;
+      return 0;
+    }
     const capture = opts.capture ?? this.serverNow();
     const entries: PoseEntry[] = [];
     for (const [name, pose] of Object.entries(poses)) {

@@ -216,3 +216,19 @@ test("in a browser, the page going hidden sends bye and closes", async () => {
     delete g.removeEventListener;
   }
 });
+
+test("publish skips updates while the socket holds 64 KiB unsent (latest wins, no backlog)", async () => {
+  FakeSocket.handler = relay();
+  const c = client();
+  await c.connect();
+  const ws = FakeSocket.sockets[0]!;
+  const pose: [number, number, number, number, number, number, number] = [0, 1.6, 0, 1, 0, 0, 0];
+  assert.ok(c.publish({ head: pose }) > 0);
+  ws.bufferedAmount = 70 * 1024;
+  assert.equal(c.publish({ head: pose }), 0);
+  assert.equal(c.updatesSkipped, 1);
+  ws.bufferedAmount = 0;
+  assert.ok(c.publish({ head: pose }) > 0);
+  assert.equal(c.updatesSent, 2);
+  c.close();
+});
