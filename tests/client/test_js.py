@@ -14,6 +14,7 @@ import math
 import os
 import shutil
 import subprocess
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -262,3 +263,85 @@ def test_js_shared_object_thrown_and_caught(node: Node) -> None:
     # Thrown up at 3 m/s from y = 1 m: the flight rises (apex 1.46 m).
     assert isinstance(rep["flight_max_y"], float) and 1.2 < rep["flight_max_y"] < 1.5, rep
     assert isinstance(rep["rendered"], int) and rep["rendered"] > 0
+
+
+class _Cutter:
+    """A TCP relay-in-the-middle whose connections the test can cut (the network drops)."""
+
+    def __init__(self, port: int) -> None:
+        self.port = port
+        self.writers: list[asyncio.StreamWriter] = []
+
+    async def handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        up_reader, up_writer = await asyncio.open_connection("127.0.0.1", self.port)
+        self.writers += [writer, up_writer]
+
+        async def pipe(r: asyncio.StreamReader, w: asyncio.StreamWriter) -> None:
+            try:
+                while data := await r.read(65536):
+                    w.write(data)
+                    await w.drain()
+            except ConnectionError:
+                pass
+            finally:
+                w.close()
+
+        async with asyncio.TaskGroup() as tg:
+            tg.create_task(pipe(reader, up_writer))
+            tg.create_task(pipe(up_reader, writer))
+
+    def cut(self) -> None:
+        for w in self.writers:
+            w.transport.abort()
+        self.writers.clear()
+
+
+async def _cut_session(node: Node) -> tuple[dict[str, object], BotReport, float]:
+    async with running_server() as server:
+        cutter = _Cutter(server.port)
+        proxy = await asyncio.start_server(cutter.handle, "127.0.0.1", 0)
+        proxy_port = proxy.sockets[0].getsockname()[1]
+        room = "js-cut"
+        proc = await asyncio.create_subprocess_exec(
+            node.node,
+            str(BOT),
+            *("--url", f"ws://127.0.0.1:{proxy_port}", "--room", room, "--seconds", "6"),
+            *("--codec", "compact"),
+            env=node.env,
+            stdout=asyncio.subprocess.PIPE,
+            stderr=asyncio.subprocess.PIPE,
+        )
+        cfg = BotConfig(
+            url=f"ws://127.0.0.1:{server.port}",
+            room=room,
+            rate=15,
+            duration=4.0,
+            methods=("soa",),
+            name="peer",
+        )
+        async with asyncio.TaskGroup() as tg:
+            js = tg.create_task(proc.communicate())
+            await poll_until(lambda: _updates_in(server, room) > 0 or js.done())
+            py = tg.create_task(run_bot(cfg))
+            await asyncio.sleep(1.5)
+            cut_at = time.monotonic()
+            cutter.cut()
+        proxy.close()
+        await proxy.wait_closed()
+        out, err = js.result()
+    assert proc.returncode == 0, err.decode()
+    report: dict[str, object] = json.loads(out.decode().strip().splitlines()[-1])
+    return report, py.result(), cut_at
+
+
+def test_js_bot_resumes_after_the_network_drops(node: Node) -> None:
+    """The JS bot's TCP connection is cut (1006): it reconnects with its resume token
+    and goes on as the same user; its peer gets its poses again after the cut."""
+    js, py, cut_at = asyncio.run(_cut_session(node))
+    assert js["resumed"] == 1 and js["rejoined"] == 0, js
+    assert js["decode_errors"] == 0 and js["errors"] == [], js
+    mine = [rs for rs in py.streams.values() if rs.user == js["user"]]
+    assert {rs.name for rs in mine} == {"head", "left", "right"}
+    later = [a for rs in mine for a in rs.arrival_local if a > cut_at + 0.1]
+    assert later, "the peer never received the resumed JS bot's poses"
+    print(f"\nJS bot shown again {1000 * (min(later) - cut_at):.0f} ms after the cut")
