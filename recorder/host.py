@@ -60,13 +60,6 @@ from typing import Any, Final
 
 from posecast.protocol.codec import Volume
 from posecast.protocol.poses import PoseUpdate
-from posecast.recorder.format import (
-    DROPS_TOPIC,
-    POSES_TOPIC,
-    QUEUE_OVERFLOW_KIND,
-    encode_json,
-    to_ns,
-)
 from posecast.recorder.options import Clock, RecordOptions
 from posecast.recorder.pipe import (
     _CHANNEL_INDEX,
@@ -89,6 +82,8 @@ from posecast.recorder.pipe import (
     _room_config,
 )
 from posecast.recorder.writer import RecorderError, RecorderStatistics, RecordTap, SessionRecorder
+
+from .format import DROPS_TOPIC, POSES_TOPIC, QUEUE_OVERFLOW_KIND, encode_json, to_ns
 
 __all__ = ["ProcessRecorder", "RecorderHost", "RoomRecorder"]
 
