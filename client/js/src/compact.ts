@@ -473,9 +473,15 @@ export function encodeUpdateFrame(
       for (let i = 4; i < e.codes.length; i++) d.push(zigzag(e.codes[i]! - b[i]!));
       return d;
     });
-    const cls = entries.map((e) => (e.stream === 0 ? 0 : 1));
-    const group = (cols: number[], c: number): number[] => diffs.flatMap((d, i) => (cls[i] === c ? cols.map((j) => d[j]!) : []));
-    const groups: [number[], number][] = [
+    // Class 0: stream 0; class 1: the others (the split flag is always set).
+    const members: [number[], number[]] = [[], []];
+    entries.forEach((e, i) => members[e.stream === 0 ? 0 : 1].push(i));
+    const group = (cols: number[], c: 0 | 1): number[] => {
+      const out: number[] = [];
+      for (const i of members[c]) for (const j of cols) out.push(diffs[i]![j]!);
+      return out;
+    };
+    const groups: [number[], 0 | 1][] = [
       [[1, 2, 3], 0],
       [[1, 2, 3], 1],
       [[4, 5, 6], 0],
@@ -488,8 +494,8 @@ export function encodeUpdateFrame(
       head();
       egColumn(w, diffs.map((d) => d[0]!), 0);
       const column = (j: number, k0: number, k1: number): void => {
-        egColumn(w, diffs.filter((_, i) => cls[i] === 0).map((d) => d[j]!), k0);
-        egColumn(w, diffs.filter((_, i) => cls[i] === 1).map((d) => d[j]!), k1);
+        egColumn(w, members[0].map((i) => diffs[i]![j]!), k0);
+        egColumn(w, members[1].map((i) => diffs[i]![j]!), k1);
       };
       for (const j of [1, 2, 3]) column(j, orders[0]!, orders[1]!);
       for (const j of [4, 5, 6]) column(j, orders[2]!, orders[3]!);
