@@ -9,6 +9,7 @@ import sys
 
 from posecast.cli import benchmarks, experiments, recordings, session, vectors
 from posecast.cli import view as view_cli
+from posecast.cli import web as web_cli
 from posecast.cli.common import app, bench_app
 
 __all__ = ["app", "main"]
@@ -26,6 +27,7 @@ app.command()(recordings.info)
 app.command()(recordings.recover)
 app.command()(recordings.replay)
 app.command()(view_cli.view)
+app.command()(web_cli.web)
 app.command()(recordings.export)
 app.command()(recordings.analyze)
 app.command("interpolators")(experiments.list_interpolators)

