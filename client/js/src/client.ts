@@ -12,7 +12,7 @@
  * page is hidden or left.
  */
 import { ClockEstimator, monotonicSeconds } from "./clock.js";
-import { ConnectionClosed, DecodeError, JoinRefused, PosecastError, ServerError, UsageError } from "./errors.js";
+import { ConnectionClosed, DecodeError, ERROR_CODES, JoinRefused, PosecastError, ServerError, UsageError } from "./errors.js";
 import { Emitter } from "./events.js";
 import { defaultWebSocket, Link } from "./link.js";
 import type { WebSocketLike } from "./link.js";
@@ -387,18 +387,7 @@ export class PosecastClient extends Emitter<ClientEvents> {
       this.decodeErrors++;
       const e = err instanceof PosecastError ? err : new DecodeError("bad-frame", String(err));
       this.emit("error", e);
-      if (e.code === "bad-baseline" || (e instanceof DecodeError && this.compact?.isCompact(data as Uint8Array))) {
-        // The delta chain is broken (docs/protocol.md 11.3): nothing more can be
-        // decoded on this connection. Say so, close, and reconnect: a new connection
-        // (resumed) starts from a key snapshot.
-        this.rekey = true;
-        try {
-          this.send({ type: "error", code: e.code, message: e.message.slice(0, 200), fatal: true, in_reply_to: "snapshot" });
-        } catch {
-          // the link may be gone already
-        }
-        this.link?.close(1002, e.code);
-      }
+      this.fatalDecodeError(e, typeof data === "string" ? undefined : data);
       return;
     }
     if (message.type === "snapshot") {
@@ -406,6 +395,28 @@ export class PosecastClient extends Emitter<ClientEvents> {
       this.snapshotBytes += data.length;
     }
     this.dispatch(message, arrival);
+  }
+
+  /** A frame from the relay could not be decoded: every such error is fatal
+   * (docs/protocol.md 8). Tell the relay, close with the error's close code, and
+   * then either fail the handshake under way or reconnect: a broken compact chain
+   * (bad-baseline, 11.3) can only be mended by a new connection. */
+  private fatalDecodeError(e: PosecastError, data?: Uint8Array): void {
+    const closeCode = ERROR_CODES[e.code] ?? 1002;
+    try {
+      const inReplyTo = data && this.compact?.isCompact(data) ? "snapshot" : null;
+      this.send({ type: "error", code: e.code, message: e.message.slice(0, 200), fatal: true, in_reply_to: inReplyTo });
+    } catch {
+      // the link may be gone already
+    }
+    if (this.waiters.length) {
+      const waiters = this.waiters;
+      this.waiters = [];
+      for (const w of waiters) w.reject(e);
+    } else {
+      this.rekey = true;
+    }
+    this.link?.close(closeCode, e.code);
   }
 
   private dispatch(m: Message, arrival: number): void {

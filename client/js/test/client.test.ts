@@ -4,7 +4,7 @@ import { test } from "node:test";
 import assert from "node:assert/strict";
 import { readFileSync } from "node:fs";
 import { PosecastClient } from "../src/client.js";
-import { JoinRefused } from "../src/errors.js";
+import { DecodeError, JoinRefused } from "../src/errors.js";
 import { decodeMessage, encodeControl } from "../src/messages.js";
 import type { ControlMessage, Message } from "../src/messages.js";
 
@@ -230,5 +230,32 @@ test("publish skips updates while the socket holds 64 KiB unsent (latest wins, n
   ws.bufferedAmount = 0;
   assert.ok(c.publish({ head: pose }) > 0);
   assert.equal(c.updatesSent, 2);
+  c.close();
+});
+
+test("a welcome of another protocol version fails connect() with version-mismatch at once", async () => {
+  FakeSocket.handler = (m, ws) => {
+    if (m.type === "hello") ws.deliver({ type: "welcome", user: 1, server_time: 5, version: 2, min_rate: 5, max_rate: 30, max_streams: 16, volume: [-8, -2, -8, 8, 4, 8], resume: null, resumed: false });
+  };
+  const c = client();
+  await assert.rejects(c.connect(), (e: unknown) => e instanceof DecodeError && e.code === "version-mismatch");
+  const ws = FakeSocket.sockets[0]!;
+  const err = decodeMessage(ws.sent.at(-1)!);
+  assert.ok(err.type === "error" && err.code === "version-mismatch" && err.fatal);
+  assert.equal(ws.closedWith, 1002);
+});
+
+test("an undecodable frame while joined: fatal error sent, closed with its code, back as a new member", async () => {
+  FakeSocket.handler = relay();
+  const c = client();
+  await c.connect();
+  const back = c.once("rejoined");
+  const first = FakeSocket.sockets[0]!;
+  first.deliver(new Uint8Array([0x81, 0xa4, 0x74, 0x79, 0x70, 0x65, 0xa3, 0x66, 0x6f, 0x6f])); // {"type": "foo"}
+  assert.equal(c.decodeErrors, 1);
+  const err = decodeMessage(first.sent.at(-1)!);
+  assert.ok(err.type === "error" && err.code === "unknown-type" && err.fatal);
+  assert.equal(first.closedWith, 1002);
+  await back;
   c.close();
 });
