@@ -122,6 +122,7 @@ async function main() {
   }
   const { scene, camera, renderer } = scene3();
   state.scene = scene;
+  state.renderer = renderer;
   const avatars = (state.avatars = new Avatars(scene));
   document.body.appendChild(VRButton.createButton(renderer));
 
