@@ -57,6 +57,7 @@ import math
 import os
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -83,6 +84,7 @@ from posecast.protocol.errors import ErrorCode
 from posecast.protocol.objects import pose_tuple
 from posecast.recorder.objects import ObjectAction
 from posecast.recorder.plan import ReplayPlan, UserPlan, merge_updates, plan_replay, select_plan
+from posecast.recorder.replay import spawn_plan
 from posecast.scenarios.motion import MotionSpec
 from posecast.scenarios.receiver import ClockEstimator
 from posecast.scenarios.traces import TraceError
@@ -115,7 +117,7 @@ def _replay_label(label: str | None, speed: float, shift: float) -> str | None:
     if speed == 1.0:
         try:
             spec = MotionSpec.parse(label)
-            return MotionSpec(spec.source, spec.seed, spec.t0 + shift).label()
+            return replace(spec, t0=spec.t0 + shift).label()
         except TraceError:
             pass
     return f"replay:{label}"[:MAX_TEXT_LENGTH]
@@ -557,6 +559,7 @@ async def replay_live(
     users: Sequence[str] | None = None,
     codec: str = "compact",
     object_patience: float = DEFAULT_OBJECT_PATIENCE,
+    spawn: str = "none",
 ) -> dict[str, Any]:
     """Replay the recording at ``path`` into the server at ``url``; returns a report.
 
@@ -582,13 +585,16 @@ async def replay_live(
     users (:func:`select_plan`); ``origin`` is then the window's start. ``codec``
     is each bot's ``Join.codec``: ``compact`` (poses quantised in the server's
     volume, to 0.25 mm and 0.034 deg) or ``raw`` (the recorded floats exactly);
-    ``object_patience``: see the module docstring (shared objects)."""
+    ``object_patience``: see the module docstring (shared objects). ``spawn``: a
+    layout of :mod:`scenarios.spawn` the users are moved onto
+    (:func:`recorder.replay.spawn_plan`; ``none``: as recorded)."""
     if not max_send_rate > 0:
         raise ValueError("max_send_rate must be positive")
     # Reading the recording is file I/O: not on the event loop.
     plan = await asyncio.to_thread(plan_replay, path, room)
     if start_s or duration_s is not None or users is not None:
         plan = select_plan(plan, start_s, duration_s, users)
+    plan = spawn_plan(plan, spawn)
     if not plan.users:
         raise ValueError(f"{path}: no pose updates to replay")
     factor = _replay_factor(plan, speed, max_send_rate)

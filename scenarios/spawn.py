@@ -37,6 +37,7 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -117,7 +118,7 @@ class Placement:
         z = -s * self.x + c * self.z + other.z
         return Placement(self.yaw_deg + other.yaw_deg, x, z)
 
-    def apply(self, poses: F64) -> F64:
+    def apply(self, poses: NDArray[Any]) -> F64:
         """Poses ``(..., 7)`` moved by the map (a new array)."""
         poses = np.asarray(poses, dtype=np.float64)
         c, s = _cos_sin(self.yaw_deg)

@@ -110,6 +110,13 @@ def replay(
             "before it requests or releases it (then it asks anyway)."
         ),
     ] = 1.0,
+    spawn: Annotated[
+        str,
+        typer.Option(
+            help="Live: move recorded user i onto spawn point i of circle, circle:R, grid, "
+            "grid:S or a JSON file (see posecast bots --spawn); none: as recorded."
+        ),
+    ] = "none",
 ) -> None:
     """Replay a recording into a live server, or reconstruct it offline with QoE."""
     _recording(file)
@@ -139,7 +146,7 @@ def replay(
         assert url is not None
         span = (start, duration, chosen)
         report = _replay_passes(
-            file, url, _speed(speed), room, token_, span, loop, (codec, object_patience)
+            file, url, _speed(speed), room, token_, span, loop, (codec, object_patience, spawn)
         )
         _print_live(report)
     if json_out is not None:
@@ -213,7 +220,7 @@ def _replay_passes(
     token: str | None,
     window: tuple[float, float | None, list[str] | None],
     loop: bool,
-    options: tuple[str, float] = ("compact", 1.0),
+    options: tuple[str, float, str] = ("compact", 1.0, "none"),
 ) -> dict[str, Any]:
     """Replay live once, or (``--loop``) again and again until Ctrl-C; the last report."""
     from websockets.exceptions import InvalidURI, WebSocketException
@@ -221,7 +228,7 @@ def _replay_passes(
     from posecast.client.replay import replay_live
 
     start, duration, users = window
-    codec, patience = options
+    codec, patience, spawn = options
     passes = 0
     try:
         while True:
@@ -238,6 +245,7 @@ def _replay_passes(
                         users=users,
                         codec=codec,
                         object_patience=patience,
+                        spawn=spawn,
                     )
                 )
             passes += 1

@@ -208,3 +208,29 @@ def test_the_cli_refuses_a_bad_layout_in_one_line(args: list[str], message: str)
 
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 2 and message in res.output, res.output
+
+
+def test_a_replay_plan_moves_each_user_with_its_ground_truth(tmp_path: Path) -> None:
+    """``replay --spawn``: each recorded user's poses go to its spawn point, and its
+    label's ground truth moves with them (what a live receiver scores against)."""
+    from posecast.recorder.plan import plan_replay
+    from posecast.recorder.replay import spawn_plan, synthesize_recording
+
+    rec = synthesize_recording(tmp_path, users=3, rate=30.0, duration=3.0)
+    plan = plan_replay(rec)
+    moved = spawn_plan(plan, "circle:2.5")
+    points = layout_points("circle:2.5", 3)
+    assert points is not None and spawn_plan(plan, "none") is plan
+    for up, point in zip(moved.users, points, strict=True):
+        head = next(k for k, name in up.streams.items() if name == "head")
+        caps, poses = [], []
+        for ids, c, p in up.updates:
+            for i in np.flatnonzero(ids == head):
+                caps.append(c[i])
+                poses.append(p[i])
+        first = int(np.argmin(caps))
+        assert np.allclose(poses[first][[0, 2]], [point.x, point.z], atol=1e-3)
+        truth = MotionSpec.parse(up.label or "").truth(until=max(caps) + 1.0)
+        j = truth.streams.index("head")
+        idx = np.abs(truth.times[None, :] - np.array(caps)[:, None]).argmin(axis=1)
+        assert np.allclose(truth.poses[idx, j, :3], np.array(poses)[:, :3], atol=1e-4)
