@@ -11,12 +11,14 @@ from typing import TYPE_CHECKING, Literal
 
 from posecast.protocol.codec import DEFAULT_VOLUME, Volume
 from posecast.server.link import LinkTier
-from posecast.server.room import DEFAULT_EVENT_QUEUE
 
 if TYPE_CHECKING:
     from pathlib import Path
 
-__all__ = ["ServerConfig"]
+__all__ = ["DEFAULT_EVENT_QUEUE", "ServerConfig"]
+
+#: Control messages (events, peer notices, pongs) a connection may have queued.
+DEFAULT_EVENT_QUEUE = 256
 
 
 @dataclass(frozen=True)

@@ -19,16 +19,15 @@ from __future__ import annotations
 import heapq
 import struct
 import unicodedata
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sized
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 from posecast.protocol import UPDATE_DTYPE, UPDATE_VELOCITY_DTYPE, PoseUpdate
 from posecast.protocol.codec import Volume
 
 if TYPE_CHECKING:
     from posecast.server.config import ServerConfig
-    from posecast.server.room import Room
 
 __all__ = [
     "MAX_ROOM_NAME_BYTES",
@@ -36,6 +35,7 @@ __all__ = [
     "Budget",
     "Deadlines",
     "Refusal",
+    "RoomSize",
     "normalise_room",
     "room_refusal",
     "update_refusal",
@@ -198,7 +198,17 @@ class Admission:
                 self.by_address[address] = left
 
 
-def room_refusal(cfg: ServerConfig, rooms: Mapping[str, Room], name: str) -> str | None:
+class RoomSize(Protocol):
+    """What :func:`room_refusal` reads of a room (``server.room.Room`` is one)."""
+
+    @property
+    def members(self) -> Sized: ...
+
+    @property
+    def recorded(self) -> bool: ...
+
+
+def room_refusal(cfg: ServerConfig, rooms: Mapping[str, RoomSize], name: str) -> str | None:
     """Why a join of room ``name`` is refused (``room-full``) now; None: it is not."""
     room = rooms.get(name)
     if room is not None:

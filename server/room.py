@@ -53,6 +53,7 @@ from posecast.protocol.codec import DEFAULT_VOLUME, Volume, quantise
 from posecast.protocol.codec_relay import GroupSnapshot, RelayEntry, encode_group
 from posecast.server import objects
 from posecast.server.actions import Action, PollRecording, Record, RecordPose
+from posecast.server.config import DEFAULT_EVENT_QUEUE
 from posecast.server.objects import RoomObject
 
 __all__ = [
@@ -67,8 +68,6 @@ __all__ = [
     "room_phase",
 ]
 
-#: Control messages (events, peer notices, pongs) a connection may have queued.
-DEFAULT_EVENT_QUEUE = 256
 #: A compact subscriber gets a key snapshot at least this often (s).
 KEY_INTERVAL = 2.0
 #: Coded versions kept per stream as baselines of compact subscribers' deltas.

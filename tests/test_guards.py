@@ -25,9 +25,7 @@ PACKAGES = ("posecast", "server", "client", "protocol", "interp", "recorder", "s
 ALLOWED_CYCLES: tuple[frozenset[str], ...] = (
     frozenset(
         {
-            "posecast.server.config",
             "posecast.server.core",
-            "posecast.server.limits",
             "posecast.server.objects",
             "posecast.server.peer",
             "posecast.server.resume",
