@@ -225,6 +225,9 @@ export class PosecastClient extends Emitter<ClientEvents> {
   async connect(): Promise<Joined> {
     if (this.state !== "idle" && this.state !== "closed") throw new UsageError("unexpected-message", `connect() while ${this.state}`);
     this.state = "connecting";
+    this.closing = false;
+    this.rekey = false;
+    this.receiver.reset(); // a new session: nobody from an earlier one
     let first: Error | null = null;
     for (let i = 0; i < this.urls.length; i++) {
       try {

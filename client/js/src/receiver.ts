@@ -99,9 +99,7 @@ export class Receiver {
 
   /** A new snapshot rate (set_rate, rejoin): the delay's interval follows it. */
   setRate(rate: number): void {
-    const old = this.delay;
     this.delay = new RoomPlayoutDelay(1 / rate);
-    void old;
   }
 
   /** Forget everyone (a rejoin as a new member: ids from before mean nothing). */
@@ -113,9 +111,17 @@ export class Receiver {
     this.floor = -Infinity;
   }
 
+  /** A member is in the room. Announced again (after this client resumed, the relay
+   * repeats every member) with the same streams, its buffers stay; with other
+   * streams it is another member under a reused id, and starts afresh. Keyframes
+   * that came before the announcement are kept and named now. */
   peerJoined(ev: PeerJoined): void {
-    if (this.peers.has(ev.user) || [...this.streams.values()].some((s) => s.user === ev.user)) this.forget(ev.user);
+    const known = this.peers.get(ev.user);
+    if (known && JSON.stringify(known.streams) !== JSON.stringify(ev.streams)) this.forget(ev.user);
     this.peers.set(ev.user, { user: ev.user, label: ev.label, streams: ev.streams, velocities: ev.velocities, stalled: false });
+    for (const rs of this.streams.values()) {
+      if (rs.user === ev.user) [rs.name, rs.label] = this.names(rs.user, rs.stream);
+    }
   }
 
   peerLeft(user: number): void {

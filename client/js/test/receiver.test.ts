@@ -106,3 +106,18 @@ test("a key snapshot's resend of an unchanged keyframe is no new keyframe", () =
   assert.equal(r.posesReceived, 1);
   assert.equal([...r.streams.values()][0]!.buffer.length, 1);
 });
+
+test("a peer announced again with the same streams keeps its buffers; a reused id starts afresh", () => {
+  const r = new Receiver({ rate: 10 });
+  const p: Pose = [0, 1, 0, 1, 0, 0, 0];
+  // A snapshot before the announcement: kept, named once announced.
+  r.snapshot({ type: "snapshot", tick: 1, time: 5, entries: [{ user: 3, stream: 0, capture: 5.0, pose: p }] }, 5);
+  assert.equal([...r.streams.values()][0]!.name, "stream0");
+  r.peerJoined({ type: "peer_joined", user: 3, streams: { head: 0 }, label: "a", velocities: false });
+  assert.equal([...r.streams.values()][0]!.name, "head");
+  r.snapshot({ type: "snapshot", tick: 2, time: 5.1, entries: [{ user: 3, stream: 0, capture: 5.1, pose: p }] }, 5.1);
+  r.peerJoined({ type: "peer_joined", user: 3, streams: { head: 0 }, label: "a", velocities: false }); // after a resume
+  assert.equal([...r.streams.values()][0]!.buffer.length, 2);
+  r.peerJoined({ type: "peer_joined", user: 3, streams: { head: 4 }, label: "b", velocities: false }); // another member
+  assert.equal(r.streams.size, 0);
+});
