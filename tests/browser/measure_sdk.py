@@ -44,7 +44,11 @@ BENCH_JS = """async (vectors) => {
       let calls = 0;
       const start = performance.now();
       let el = 0;
-      while (el < 300) { for (let i = 0; i < 200; i++) fn(n++); calls += 200; el = performance.now() - start; }
+      while (el < 300) {
+        for (let i = 0; i < 200; i++) fn(n++);
+        calls += 200;
+        el = performance.now() - start;
+      }
       runs.push((el * 1000) / (calls * perCall));
     }
     runs.sort((a, b) => a - b);
@@ -66,7 +70,8 @@ BENCH_JS = """async (vectors) => {
   const enc = new sdk.CompactSession(VOL, false);
   const frames = [];
   for (let i = 0; i < 64; i++) {
-    frames.push(enc.encodeUpdate(i + 1, 100 + i / 30, poses(100 + i / 30, 3).map((e) => ({ ...e, user: -1 }))));
+    const t = 100 + i / 30;
+    frames.push(enc.encodeUpdate(i + 1, t, poses(t, 3).map((e) => ({ ...e, user: -1 }))));
   }
   const volume = new sdk.Volume(VOL);
   const relay = new Map();
