@@ -33,11 +33,12 @@ for (let k = 1; k <= 12; k++) {
 }
 await sleep(0.2);
 const throwAt = catcher.serverNow();
-thrower.release(info.stream, [1.0, 3.0, 0.0], [0, 0, 2.0]);
+thrower.release(info.stream, [1.0, 5.0, 0.0], [0, 0, 2.0]);
 
-// Watch the flight for 0.5 s (the relay's keyframes, rendered at the playout time), then catch it.
+// Watch the flight for 0.4 s of its 1.2 s (the relay's keyframes, rendered at the
+// playout time), then catch it in the air.
 const rendered = [];
-const until = catcher.clock() + 0.5;
+const until = catcher.clock() + 0.4;
 while (catcher.clock() < until) {
   await sleep(1 / 60);
   const ball = catcher.render("soa").poses.find((p) => p.user === ROOM_USER && p.stream === info.stream);
