@@ -1,14 +1,17 @@
 """``posecast demo``: a relay and N bots in one process on loopback.
 
 The server runs on an ephemeral port; the bots join one room, publish their
-motions and render everyone else's with every interpolator; a rich progress bar
-shows the session; the result is the swarm report of :mod:`client.swarm`. With
-``--nodes N`` the relay is a local cluster instead (``posecast.cluster_local``).
+motions and render everyone else's with every interpolator; a progress bar (plain
+lines when piped) shows the session; the result is the swarm report of
+:mod:`client.swarm`. With ``--nodes N`` the relay is a local cluster instead
+(``posecast.cluster_local``). Setting ``stop`` (Ctrl-C) ends the session early:
+the report covers the time run.
 """
 
 from __future__ import annotations
 
 import asyncio
+import logging
 import statistics
 import tempfile
 import time
@@ -22,6 +25,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from posecast.client.bot import BotConfig
 from posecast.client.swarm import run_bots, swarm_report
 from posecast.cluster_local import LocalCluster, local_cluster
+from posecast.progress import PlainProgress, progress
 from posecast.server.app import RelayServer, ServerConfig, serving
 
 __all__ = ["run_demo"]
@@ -42,6 +46,7 @@ async def run_demo(
     nodes: int = 1,
     kill: tuple[str, float] | None = None,
     spawn: str = "none",
+    stop: asyncio.Event | None = None,
 ) -> dict[str, Any]:
     """Run the demo; with ``view_port``, a live viewer of its room is served there too.
 
@@ -61,8 +66,7 @@ async def run_demo(
             cluster = await stack.enter_async_context(local_cluster(nodes, store, record_dir))
             urls = cluster.urls
         else:
-            relay = RelayServer(ServerConfig(host="127.0.0.1", port=0, record_dir=record_dir))
-            server = await stack.enter_async_context(serving(relay))
+            server = await stack.enter_async_context(serving(_local_relay(record_dir)))
             urls = [f"ws://127.0.0.1:{server.port}"]
         tg = await stack.enter_async_context(asyncio.TaskGroup())
         viewer = (
@@ -72,14 +76,14 @@ async def run_demo(
                          send_rate=send_rate, methods=methods, motion=motion,
                          duration=duration, name="bot", codec=codec)  # fmt: skip
         seen: dict[str, dict[str, float]] = {}
-        with _progress(console) as progress:
-            watcher = tg.create_task(_watch(progress, duration, server, cluster, seen))
+        with _progress(console) as bar:
+            watcher = tg.create_task(_watch(bar, duration, server, cluster, seen))
             killed: dict[str, Any] = {}
             killer = None
             if kill is not None and cluster is not None:
                 killer = tg.create_task(_kill_later(cluster, seen, kill, killed, console))
             try:
-                reports = await run_bots(base, bots, spawn=spawn)
+                reports = await run_bots(base, bots, spawn=spawn, stop=stop)
             finally:
                 watcher.cancel()
                 if killer is not None:
@@ -110,19 +114,44 @@ def _newest_recording(record_dir: Path | None) -> str | None:
     return str(max(files, key=lambda p: p.name)) if files else None  # NAME-<start time>
 
 
-def _progress(console: Console | None) -> Progress:
-    return Progress(
+def _local_relay(record_dir: Path | None) -> RelayServer:
+    """The demo's relay: open (no secret, on loopback: no warning about it), no
+    keepalive pings (bots and relay share one loop, which a busy machine makes
+    answer late), and time to load the motions before joining (longer than a
+    public relay's 5 s join timeout)."""
+    _quiet_open_relay()
+    return RelayServer(
+        ServerConfig(host="127.0.0.1", port=0, record_dir=record_dir,
+                     join_timeout=60.0, ping_interval=0.0)
+    )  # fmt: skip
+
+
+def _quiet_open_relay() -> None:
+    """The demo's relay is on loopback with no secret on purpose: no warning about it."""
+    logger = logging.getLogger("posecast.server")
+    if not any(isinstance(f, _NoOpenWarning) for f in logger.filters):
+        logger.addFilter(_NoOpenWarning())
+
+
+class _NoOpenWarning(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "no --secret" not in str(record.msg)
+
+
+def _progress(console: Console | None) -> Progress | PlainProgress:
+    columns = (
         TextColumn("[bold]session[/]"),
         BarColumn(),
         TextColumn("{task.description}"),
         TimeRemainingColumn(),
-        console=console,
-        transient=True,
     )
+    if console is None:
+        return Progress(*columns, transient=True)
+    return progress(console, *columns, unit="s", name="session")
 
 
 async def _watch(
-    progress: Progress,
+    bar: Progress | PlainProgress,
     duration: float,
     server: RelayServer | None,
     cluster: LocalCluster | None,
@@ -130,7 +159,7 @@ async def _watch(
 ) -> None:
     """The progress bar; a cluster's figures (rooms owned, members forwarded) into
     ``seen`` by node, as last read during the session."""
-    task = progress.add_task("", total=duration)
+    task = bar.add_task("", total=duration)
     loop = asyncio.get_running_loop()
     start = loop.time()
     while True:
@@ -159,7 +188,7 @@ async def _watch(
                 f"{len(cluster.relays)} nodes, room on {', '.join(owner) or '?'}, "
                 f"{forwarded:g} bots through other nodes"
             )
-        progress.update(task, completed=min(duration, loop.time() - start), description=desc)
+        bar.update(task, completed=min(duration, loop.time() - start), description=desc)
 
 
 async def _kill_later(

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
+from rich import box
 from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
@@ -224,6 +225,35 @@ def _user_error(exc: BaseException) -> tuple[str, int] | None:
     return None
 
 
+def connect_error(url: str, exc: BaseException) -> str:
+    """``cannot connect to URL: why``, with a reason even when ``exc`` has no text.
+
+    A ``wss://`` handshake against a plain ``ws://`` server ends in a reset (or an
+    SSL record error) that says nothing: the line names the likely cause.
+    """
+    import ssl
+
+    why = str(exc).strip()
+    tls_failed = isinstance(exc, ssl.SSLError | ConnectionResetError | EOFError) or (
+        "record layer" in why or "WRONG_VERSION_NUMBER" in why
+    )
+    if url.startswith("wss://") and tls_failed:
+        plain_url = "ws://" + url.removeprefix("wss://")
+        why = (
+            "the TLS handshake failed"
+            + (f" ({why})" if why else "")
+            + f"; is it a plain server? Try {plain_url}"
+        )
+    elif not why:
+        reasons: dict[type[BaseException], str] = {
+            ConnectionResetError: "the server reset the connection",
+            ConnectionRefusedError: "connection refused",
+            TimeoutError: "timed out",
+        }
+        why = reasons.get(type(exc), type(exc).__name__)
+    return f"cannot connect to {url}: {why}"
+
+
 def _first_leaf(exc: BaseException) -> BaseException:
     """The first exception in a (nested) exception group, or ``exc`` itself."""
     while isinstance(exc, BaseExceptionGroup) and exc.exceptions:
@@ -281,24 +311,37 @@ def _fmt(x: float, digits: int = 1) -> str:
     return "-" if x != x else f"{x:.{digits}f}"
 
 
+# Name, statistic, unit: three short header lines keep the table inside 80 columns.
 _QOE_COLUMNS = (
-    "pos p50 mm",
-    "pos p95 mm",
-    "rot p50 deg",
-    "rot p95 deg",
-    "tip p50 mm",
-    "tip p95 mm",
-    "stall %",
+    "pos\np50\nmm",
+    "pos\np95\nmm",
+    "rot\np50\ndeg",
+    "rot\np95\ndeg",
+    "tip\np50\nmm",
+    "tip\np95\nmm",
+    "stall\n\n%",
 )
+
+
+def small_table(title: str) -> Table:
+    """A table without vertical rules, one space between columns: fits 80 columns."""
+    return Table(
+        title=title, title_justify="left", box=box.SIMPLE_HEAD, padding=(0, 0), show_edge=False
+    )
+
+
+def plain(text: str) -> None:
+    """Print ``text`` as it is (no markup, no highlighting), wrapped to the terminal."""
+    console.print(text, markup=False, highlight=False)
 
 
 def _qoe_table(title: str, keys: tuple[str, ...]) -> Table:
     """A table with ``keys`` columns then the DESIGN.md QoE columns."""
-    table = Table(title=title, title_justify="left")
+    table = small_table(title)
     for col in keys:
-        table.add_column(col)
+        table.add_column(col, no_wrap=True)
     for col in _QOE_COLUMNS:
-        table.add_column(col, justify="right")
+        table.add_column(col, justify="right", no_wrap=True, min_width=6)
     return table
 
 

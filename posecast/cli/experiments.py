@@ -132,26 +132,44 @@ def table1(
         raise _fail("--transport must be datagram or stream")
     f_rates = None if frontier_rates is None else [int(r) for r in _parse_rates(frontier_rates)]
     live_plan = _plan_live(traces, tiers, method_list, live_duration, live_bots) if live else None
-    report = _run_offline(
-        traces,
-        rate_list,
-        method_list,
-        tiers,
-        out,
-        seed=seed,
-        transport=transport,
-        link=link,
-        bench=bench,
-        plots=plots,
-        frontier=frontier,
-        frontier_rates=f_rates,
-        codecs=[c.strip() for c in codecs.split(",") if c.strip()],
-    )
-    live_report = None if live_plan is None else _run_live_tiers(traces, *live_plan, out)
+    done: dict[str, tuple[int, int]] = {}  # stage -> (done, total), for Ctrl-C's line
+    try:
+        report = _run_offline(
+            traces,
+            rate_list,
+            method_list,
+            tiers,
+            out,
+            seed=seed,
+            transport=transport,
+            link=link,
+            bench=bench,
+            plots=plots,
+            frontier=frontier,
+            frontier_rates=f_rates,
+            codecs=[c.strip() for c in codecs.split(",") if c.strip()],
+            done=done,
+        )
+    except KeyboardInterrupt:
+        raise _interrupted_offline(done) from None
+    live_report, interrupted = None, False
+    if live_plan is not None:
+        try:
+            live_report = _run_live_tiers(traces, *live_plan, out)
+        except KeyboardInterrupt:
+            interrupted = True
     _print_table1(report, method_list)
     if live_report is not None:
         _print_live(live_report)
     console.print(f"wrote {out}/table1.md, table1.json" + (" and plots" if plots else ""))
+    if interrupted:
+        err_console.print(
+            "interrupted during --live: the offline Table 1 above is whole; the live "
+            "comparison was not finished and is not in table1.md",
+            markup=False,
+            highlight=False,
+        )
+        raise typer.Exit(130)
     if live_report is not None and not live_report["pass"]:
         bad = [r["tier"] for r in live_report["tiers"] if not r["agreement"]["pass"]]
         err_console.print(
@@ -159,6 +177,20 @@ def table1(
             f"see {out}/table1.md"
         )
         raise typer.Exit(1)
+
+
+def _interrupted_offline(done: dict[str, tuple[int, int]]) -> typer.Exit:
+    """Ctrl-C during the offline sweep: which stage it reached, that nothing was
+    written, and a shorter run; the Exit (130) to raise."""
+    stages = ", ".join(f"{k} {d}/{t}" for k, (d, t) in done.items()) or "starting"
+    err_console.print(
+        f"interrupted during the offline sweep ({stages}): Table 1 needs the whole "
+        "sweep, so nothing was written; a shorter one: --rates 5,10,15,20,30 "
+        "--no-link --no-frontier --no-bench",
+        markup=False,
+        highlight=False,
+    )
+    return typer.Exit(130)
 
 
 def _plan_live(
@@ -198,29 +230,33 @@ def _run_offline(
     method_list: list[str],
     tiers: Path | None,
     out: Path,
+    done: dict[str, tuple[int, int]] | None = None,
     **options: Any,
 ) -> dict[str, Any]:
-    """The offline Table 1 sweep (``options``: run_table1's keywords) under a progress bar."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+    """The offline Table 1 sweep (``options``: run_table1's keywords) under a progress bar
+    (plain lines when piped); ``done``: each stage's progress, kept up to date."""
+    from rich.progress import BarColumn, TextColumn, TimeElapsedColumn
 
+    from posecast.progress import progress as progress_bar
     from posecast.scenarios.table1 import run_table1
     from posecast.scenarios.traces import TraceError
 
     command = "posecast table1 " + " ".join(sys.argv[2:])
-    bar = Progress(
+    bar = progress_bar(
+        console,
         TextColumn("{task.description:<24}"),
         BarColumn(),
         TextColumn("{task.completed}/{task.total}"),
         TimeElapsedColumn(),
-        console=console,
-        transient=True,
     )
     tasks: dict[str, Any] = {}
+    seen = {} if done is None else done
 
-    def progress(stage: str, done: int, total: int) -> None:
+    def progress(stage: str, count: int, total: int) -> None:
+        seen[stage] = (count, total)
         if stage not in tasks:
             tasks[stage] = bar.add_task(stage, total=total)
-        bar.update(tasks[stage], completed=done, total=total)
+        bar.update(tasks[stage], completed=count, total=total)
 
     try:
         with bar:

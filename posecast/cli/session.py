@@ -10,24 +10,23 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
-from rich.table import Table
 
 if TYPE_CHECKING:
     pass
 
-from posecast.cli.cluster import KillOption, NodesOption, kill_drill, print_cluster
+from posecast.cli.cluster import KillOption, NodesOption, kill_drill
 from posecast.cli.common import (
     DEFAULT_METHODS,
     _fail,
     _first_leaf,
-    _fmt,
     _parse_methods,
-    _qoe_cells,
-    _qoe_table,
     _run_async,
     _tier,
+    connect_error,
     console,
+    plain,
 )
+from posecast.cli.report import demo_next_steps, print_swarm, verdict
 from posecast.cli.serve_checks import (
     SERVE_LIMITS,
     AllowOriginOption,
@@ -40,82 +39,7 @@ from posecast.cli.serve_checks import (
 from posecast.cli.serve_checks import (
     check_serve_args as _check_serve_args,
 )
-
-
-def print_swarm(report: dict[str, Any], title: str) -> None:
-    """The demo/bots result: QoE per method and class, then bots and wire figures."""
-    table = _qoe_table(title, ("method", "class"))
-    for method, classes in report["methods"].items():
-        for cls, st in classes.items():
-            table.add_row(method, cls, *_qoe_cells(st))
-        table.add_section()
-    console.print(table)
-    _print_objects(report)
-    bots = Table(title="bots", title_justify="left")
-    cluster = report.get("cluster")
-    cols: tuple[str, ...] = ("id", "name", "keyframes/s", "delay D ms", "render ms/frame")
-    cols += ("clock rtt ms", "age ms", *(("gap s",) if cluster else ()))
-    for col in (*cols, *(("node",) if cluster else ())):
-        bots.add_column(col, justify="right")
-    for b in report["bots"]:
-        bots.add_row(
-            str(b["id"]),
-            b["name"],
-            _fmt(b["rate_hz"]),
-            _fmt(b["delay_ms"]),
-            _fmt(b["render_cpu_ms_per_frame"], 2),
-            _fmt(b["clock_rtt_ms"], 2),
-            _fmt(b["snapshot_age_ms_p50"], 2),
-            *((_fmt(b["snapshot_gap_s"], 2),) if cluster else ()),
-            *((str(b.get("node")) + (" (owner)" if b.get("node") == cluster["owner"] else ""),)
-              if cluster else ()),
-        )  # fmt: skip
-    console.print(bots)
-    if cluster:
-        print_cluster(cluster)
-    wire = report["wire"]
-    console.print(
-        f"wire: {wire['bytes_per_pose']:.1f} bytes per remote pose, "
-        f"{wire['bytes_per_s'] / 1000:.1f} kB/s per bot downstream"
-        + (" (velocity keyframes, 12 B a pose included)" if wire.get("velocity_keyframes") else "")
-    )
-
-
-def _print_objects(report: dict[str, Any]) -> None:
-    """The shared object's smoothness (velocity error of its tip), its tip error as
-    each receiving bot saw it, and its handovers."""
-    rows = [
-        (method, cls, st)
-        for method, classes in report["methods"].items()
-        for cls, st in classes.items()
-        if cls.startswith("object")
-    ]
-    if not rows:
-        return
-    seen = [b for b in report["bots"] if b.get("object")]
-    table = Table(title="object: tip velocity error, and tip error per bot", title_justify="left")
-    for col in ("method", "class"):
-        table.add_column(col)
-    for col in (
-        "vel p50 m/s",
-        "vel p95 m/s",
-        *(f"tip p95 mm {b['role'] or b['name']}" for b in seen),
-    ):
-        table.add_column(col, justify="right")
-    for method, cls, st in rows:
-        per_bot = [b["object"].get(method, {}).get(cls, {}).get("tip_p95_mm") for b in seen]
-        table.add_row(
-            method,
-            cls,
-            _fmt(st["vel_p50_mps"], 2),
-            _fmt(st["vel_p95_mps"], 2),
-            *(_fmt(x) if x is not None else "-" for x in per_bot),
-        )
-    console.print(table)
-    counts = report.get("objects", {}).get("handovers")
-    if counts:
-        told = ", ".join(f"{n} {reason}" for reason, n in counts.items())
-        console.print(f"object handovers: {told}")
+from posecast.progress import stop_on_ctrl_c
 
 
 class Scene(StrEnum):
@@ -631,6 +555,8 @@ def bots(
     print_swarm(report, f"{n} bots at {rate:g} Hz for {duration:g} s ({motion})")
     _print_ending(report)
     _write_json(report, json_out)
+    if report["interrupted"]:
+        raise typer.Exit(130)
     if report["ending"]["exit_code"]:  # the connection was lost (or closed for an error)
         raise typer.Exit(report["ending"]["exit_code"])
 
@@ -676,16 +602,41 @@ def _run_swarm(base: Any, n: int, token_for: Any, spawn: str = "none") -> dict[s
     from posecast.client.swarm import run_bots, swarm_report
     from posecast.scenarios.traces import TraceError
 
+    async def run() -> tuple[Any, bool]:
+        stop = stop_on_ctrl_c(console)
+        reports = await run_bots(base, n, token_for=token_for, spawn=spawn, stop=stop)
+        return reports, stop.is_set()
+
+    doing = f"{n} bots in room {base.room!r} for {base.duration:g} s (Ctrl-C ends early) ..."
     try:
-        with console.status(f"{n} bots in room {base.room!r} for {base.duration:g} s ..."):
-            reports = _run_async(run_bots(base, n, token_for=token_for, spawn=spawn))
+        if console.is_terminal:
+            with console.status(doing):
+                reports, interrupted = _run_async(run())
+        else:  # piped: a live status would show nothing
+            plain(doing)
+            reports, interrupted = _run_async(run())
     except* (OSError, InvalidURI, WebSocketException) as eg:
         where = ", ".join(base.relays)
-        raise _fail(f"cannot connect to {where}: {eg.exceptions[0]}") from None
+        raise _fail(connect_error(where, _first_leaf(eg))) from None
     except* TraceError as eg:  # e.g. a spawn point that puts a bot outside the volume
         raise _fail(str(eg.exceptions[0])) from None
     report: dict[str, Any] = swarm_report(reports)
+    report["interrupted"] = interrupted
     return report
+
+
+def _run_interruptible(run: Any, **kwargs: Any) -> dict[str, Any]:
+    """``run(**kwargs, stop=EVENT)`` to its end; the first Ctrl-C sets the event (the
+    run ends early and reports the time run): the report's ``interrupted`` says so."""
+
+    async def main() -> dict[str, Any]:
+        stop = stop_on_ctrl_c(console)
+        report: dict[str, Any] = await run(**kwargs, stop=stop)
+        report["interrupted"] = stop.is_set()
+        return report
+
+    result: dict[str, Any] = _run_async(main())
+    return result
 
 
 def _print_ending(report: dict[str, Any]) -> None:
@@ -756,30 +707,33 @@ def demo(
             f"--rate {rate:g} Hz is outside the demo server's range of "
             f"{server_cfg.min_rate:g}-{server_cfg.max_rate:g} Hz"
         )
-    report = _run_async(
-        run_demo(
-            bots=bots,
-            rate=rate,
-            duration=duration,
-            methods=methods,
-            motion=motion,
-            console=console,
-            record_dir=None if no_record else record,
-            codec=codec.value,
-            view_port=view_port if view else None,
-            nodes=nodes,
-            kill=kill_drill(kill, nodes, duration),
-            spawn=spawn,
-        )
+
+    if not console.is_terminal:  # piped: the progress comes as plain lines
+        plain(f"posecast demo: {bots} bots for {duration:g} s on loopback (Ctrl-C ends early)")
+    report = _run_interruptible(
+        run_demo,
+        bots=bots,
+        rate=rate,
+        duration=duration,
+        methods=methods,
+        motion=motion,
+        console=console,
+        record_dir=None if no_record else record,
+        codec=codec.value,
+        view_port=view_port if view else None,
+        nodes=nodes,
+        kill=kill_drill(kill, nodes, duration),
+        spawn=spawn,
     )
-    print_swarm(
-        report,
-        f"posecast demo: {bots} bots at {rate:g} Hz for {duration:g} s on loopback ({motion}); "
-        "errors vs the senders' own samples",
-    )
+    print_swarm(report, f"posecast demo: {bots} bots at {rate:g} Hz for {duration:g} s ({motion})")
     _print_ending(report)
     if report.get("recording"):
-        console.print(f"recorded to {report['recording']} (see `posecast info`)")
+        plain(f"recorded to {report['recording']} (see `posecast info`)")
     _write_json(report, json_out)
+    plain(verdict(report["methods"], rate, motion, report["starvation"]["starved"]))
+    for line in demo_next_steps(report.get("recording"), motion):
+        plain(line)
+    if report["interrupted"]:
+        raise typer.Exit(130)
     if report["ending"]["exit_code"]:
         raise typer.Exit(report["ending"]["exit_code"])

@@ -8,6 +8,15 @@ the report of the time run, says it was interrupted, and exits 130.
 from __future__ import annotations
 
 import asyncio
+import os
+import selectors
+import signal
+import subprocess
+import sys
+import time
+import urllib.request
+from collections.abc import Callable
+from pathlib import Path
 
 from support import poll_until, running_server
 
@@ -33,3 +42,122 @@ async def test_setting_stop_ends_every_bot_and_reports_the_time_run() -> None:
     assert report["ending"]["exit_code"] == 0
     assert report["ending"]["lines"][0].startswith("session ended early: interrupted after")
     assert report["methods"]["soa"]["hands"]["tip_p95_mm"] >= 0
+
+
+# -- SIGINT to the real executable ---------------------------------------------------
+
+_EXE = Path(sys.executable).with_name("posecast")
+_COMMAND = [str(_EXE)] if _EXE.exists() else [sys.executable, "-m", "posecast.cli"]
+
+
+def _start(*args: str, cwd: Path) -> subprocess.Popen[str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("POSECAST_")}
+    return subprocess.Popen(
+        [*_COMMAND, *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=cwd,
+        env=env,
+    )
+
+
+def _read_until(proc: subprocess.Popen[str], needle: str, limit: float = 120.0) -> str:
+    """Stdout lines up to and including the first holding ``needle`` (``limit``: hang guard)."""
+    assert proc.stdout is not None
+    seen = ""
+    with selectors.DefaultSelector() as sel:
+        sel.register(proc.stdout, selectors.EVENT_READ)
+        while needle not in seen:
+            assert sel.select(timeout=limit), f"no {needle!r} in {seen!r}"
+            line = proc.stdout.readline()
+            assert line, f"exited ({proc.wait()}) before {needle!r}: {seen!r}"
+            seen += line
+    return seen
+
+
+def _interrupt(proc: subprocess.Popen[str]) -> tuple[int, str, str]:
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)  # a hang guard, not a timing check
+    return proc.returncode, out, err
+
+
+def test_ctrl_c_in_demo_prints_the_report_of_the_time_run(tmp_path: Path) -> None:
+    """SIGINT mid-session: the QoE table, 'interrupted after', the verdict; exit 130."""
+    proc = _start("demo", "--bots", "2", "--duration", "600", "--motion", "synthetic",
+                  "--no-record", cwd=tmp_path)  # fmt: skip
+    try:
+        before = _read_until(proc, "poses relayed")  # a plain progress line: the session runs
+        code, out, err = _interrupt(proc)
+    finally:
+        proc.kill()
+    assert "Traceback" not in err, err
+    assert code == 130, (code, err)
+    assert "session: " in before
+    assert "interrupted after" in out and "the report covers that time" in out, out
+    rows = [line.split() for line in out.splitlines()]
+    assert any(r[:2] == ["soa", "hands"] for r in rows if len(r) > 2), out
+    assert "verdict: at 15 Hz on this motion (synthetic motion" in out, out
+    assert "interrupted: ending the run" in out
+
+
+def test_ctrl_c_in_bots_prints_the_report_of_the_time_run(tmp_path: Path) -> None:
+    """SIGINT once the bots are in the room: their table and 'interrupted after'; exit 130."""
+    serve = _start("serve", "--port", "0", cwd=tmp_path)
+    try:
+        url = _read_until(serve, "listening on").split()[3]
+        bots = _start("bots", "--url", url, "--n", "2", "--duration", "600",
+                      "--motion", "synthetic", cwd=tmp_path)  # fmt: skip
+        try:
+            metrics = f"http://{url.removeprefix('ws://')}/metrics"
+            _poll(lambda: 'posecast_room_members{room="lobby"} 2' in _get(metrics))
+            _poll(lambda: _relayed(_get(metrics)) > 200)
+            code, out, err = _interrupt(bots)
+        finally:
+            bots.kill()
+    finally:
+        serve.send_signal(signal.SIGINT)
+        serve.communicate(timeout=60)
+    assert "Traceback" not in err, err
+    assert code == 130, (code, err)
+    assert "session ended early: interrupted after" in out, out
+    rows = [line.split() for line in out.splitlines()]
+    assert any(r[:2] == ["motor-lerp", "hands"] for r in rows if len(r) > 2), out
+
+
+def _get(url: str) -> str:
+    with urllib.request.urlopen(url, timeout=30) as resp:
+        return str(resp.read().decode())
+
+
+def _relayed(metrics: str) -> float:
+    """Poses the relay has sent in snapshots, over its rooms."""
+    return sum(
+        float(line.rsplit(" ", 1)[1])
+        for line in metrics.splitlines()
+        if line.startswith("posecast_room_poses_out_total{")
+    )
+
+
+def _poll(condition: Callable[[], bool], limit: float = 120.0) -> None:
+    """Poll every 0.2 s until ``condition`` holds; ``limit`` is a hang guard."""
+    deadline = time.monotonic() + limit
+    while not condition():
+        assert time.monotonic() < deadline, "condition never held"
+        time.sleep(0.2)
+
+
+def test_ctrl_c_in_table1_says_where_it_stopped(tmp_path: Path) -> None:
+    """SIGINT during the offline sweep: the stage reached, that nothing was written, and a
+    shorter run to try; exit 130, no traceback."""
+    proc = _start("table1", "--traces", "traces:sample", "--out", "t1", cwd=tmp_path)
+    try:
+        _read_until(proc, "ideal: ")  # a plain progress line: the sweep runs
+        code, _out, err = _interrupt(proc)
+    finally:
+        proc.kill()
+    assert "Traceback" not in err, err
+    assert code == 130, (code, err)
+    assert "interrupted during the offline sweep (ideal " in err, err
+    assert "nothing was written" in err and "--rates 5,10,15,20,30" in err
+    assert not (tmp_path / "t1").exists()
