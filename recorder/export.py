@@ -15,6 +15,16 @@
   frame ``world``), so the session plays in Foxglove Studio's 3D panel. The
   world frame is the recording's (OpenXR: +y up, +z backward).
 
+Times and frame (:func:`export`'s ``times`` and ``z_up``): keyframe, arrival and
+ownership times are the server clock as recorded (``server``; on a single relay a
+monotonic clock that starts near 0, so Foxglove would show 1970), seconds since
+the recording started (``relative``) or UNIX wall-clock time (``wall``, from the
+start times in the recording's header). With ``z_up`` the world is turned +90 deg
+about x so that +z is up (x right, +y forward: ROS and Foxglove's convention),
+poses, velocities and throw velocities alike, and the frame is named
+``world_z_up`` (Foxglove parent frame; ``frame`` in ``streams.json`` and the NPZ
+index; ``posecast.export`` metadata of the Foxglove MCAP).
+
 Shared objects (``recorder.objects``) are exported as streams named by the
 object, not by a user: ``object_<name>.csv``, NPZ ``object.<name>.*``, Foxglove
 topic ``/objects/<name>`` (child frame ``objects/<name>``), with the keyframes
@@ -54,6 +64,14 @@ from numpy.typing import NDArray
 
 from posecast.recorder.check import EXPORT_LIBRARY_PREFIX
 from posecast.recorder.compact import expand_group, is_group
+from posecast.recorder.export_frame import (
+    TIME_BASES,
+    Y_UP_FRAME,
+    Z_UP_FRAME,
+    TimeBase,
+    as_exported,
+    export_description,
+)
 from posecast.recorder.format import (
     EVENTS_TOPIC,
     POSES_TOPIC,
@@ -76,9 +94,13 @@ from posecast.recorder.reader import (
 __all__ = [
     "FRAME_TRANSFORM_SCHEMA",
     "POSE_COLUMNS",
+    "TIME_BASES",
     "VELOCITY_COLUMNS",
+    "Y_UP_FRAME",
+    "Z_UP_FRAME",
     "ExportFormat",
     "SessionArrays",
+    "TimeBase",
     "csv_bytes",
     "export",
     "read_session",
@@ -87,7 +109,6 @@ __all__ = [
 ]
 
 ExportFormat = Literal["csv", "npz", "foxglove"]
-
 #: The 7 pose columns of every CSV posecast writes.
 POSE_COLUMNS = ("px", "py", "pz", "qw", "qx", "qy", "qz")
 #: Extra CSV columns of a stream whose updates carried velocities (world frame).
@@ -494,7 +515,11 @@ def sorted_streams(path: str | os.PathLike[str]) -> list[StreamData]:
     return read_session(path).streams
 
 
-def _index(streams: Sequence[StreamData], files: Sequence[str] | None = None) -> list[Any]:
+def _index(
+    streams: Sequence[StreamData],
+    files: Sequence[str] | None = None,
+    how: dict[str, str] | None = None,
+) -> list[Any]:
     return [
         {
             "user": s.user,
@@ -503,13 +528,17 @@ def _index(streams: Sequence[StreamData], files: Sequence[str] | None = None) ->
             "name": s.name,
             "keyframes": len(s),
             **({} if files is None else {"file": files[i]}),
+            **(how or {}),
         }
         for i, s in enumerate(streams)
     ]
 
 
 def _export_csv(
-    streams: Sequence[StreamData], out: Path, tracks: Sequence[ObjectTrack] = ()
+    streams: Sequence[StreamData],
+    out: Path,
+    tracks: Sequence[ObjectTrack] = (),
+    how: dict[str, str] | None = None,
 ) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     files = []
@@ -533,7 +562,7 @@ def _export_csv(
             names, digits = (*names, *VELOCITY_COLUMNS), (*digits, *(7,) * 6)
         (out / name).write_bytes(csv_bytes(names, cols, digits))
         files.append(name)
-    (out / "streams.json").write_text(json.dumps(_index(streams, files), indent=1) + "\n")
+    (out / "streams.json").write_text(json.dumps(_index(streams, files, how), indent=1) + "\n")
     if tracks:
         (out / "ownership.csv").write_bytes(_ownership_csv(tracks))
     return out
@@ -551,7 +580,10 @@ def _ownership_json(tracks: Sequence[ObjectTrack]) -> list[dict[str, Any]]:
 
 
 def _export_npz(
-    streams: Sequence[StreamData], out: Path, tracks: Sequence[ObjectTrack] = ()
+    streams: Sequence[StreamData],
+    out: Path,
+    tracks: Sequence[ObjectTrack] = (),
+    how: dict[str, str] | None = None,
 ) -> Path:
     if out.suffix != ".npz":
         out = out.with_name(out.name + ".npz")
@@ -568,7 +600,7 @@ def _export_npz(
         publisher = publishers.get((s.user, s.stream, s.name))
         if publisher is not None:
             arrays[f"{label}.publisher"] = publisher
-    arrays["streams"] = np.array(json.dumps(_index(streams)))
+    arrays["streams"] = np.array(json.dumps(_index(streams, None, how)))
     if tracks:
         arrays["ownership"] = np.array(json.dumps(_ownership_json(tracks)))
     with out.open("wb") as fh:
@@ -576,12 +608,14 @@ def _export_npz(
     return out
 
 
-def _transform_message(t: float, child: str, pose: NDArray[np.float32]) -> bytes:
+def _transform_message(
+    t: float, child: str, pose: NDArray[np.float32], parent: str = Y_UP_FRAME
+) -> bytes:
     ns = to_ns(t)
     px, py, pz, qw, qx, qy, qz = pose.tolist()
     msg = {
         "timestamp": {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000},
-        "parent_frame_id": "world",
+        "parent_frame_id": parent,
         "child_frame_id": child,
         "translation": {"x": px, "y": py, "z": pz},
         "rotation": {"x": qx, "y": qy, "z": qz, "w": qw},
@@ -594,7 +628,9 @@ def _export_foxglove(
     out: Path,
     session: dict[str, str],
     tracks: Sequence[ObjectTrack] = (),
+    how: dict[str, str] | None = None,
 ) -> Path:
+    parent = (how or {}).get("frame", Y_UP_FRAME)
     if out.suffix != ".mcap":
         out = out.with_name(out.name + ".mcap")
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -613,6 +649,8 @@ def _export_foxglove(
         writer.start(profile="", library=f"{EXPORT_LIBRARY_PREFIX}{posecast_version()}")
         if session:
             writer.add_metadata("posecast.session", session)
+        if how:
+            writer.add_metadata("posecast.export", how)
         schema_id = writer.register_schema(
             "foxglove.FrameTransform",
             "jsonschema",
@@ -637,7 +675,7 @@ def _export_foxglove(
             t = float(s.times[j])
             ns = to_ns(t)
             writer.add_message(
-                channel_ids[i], ns, _transform_message(t, children[i], s.poses[j]), ns, seq
+                channel_ids[i], ns, _transform_message(t, children[i], s.poses[j], parent), ns, seq
             )
         if tracks:
             _ownership_channel(writer, tracks, len(order))
@@ -664,19 +702,32 @@ def _ownership_channel(writer: Writer, tracks: Sequence[ObjectTrack], seq: int) 
         writer.add_message(channel, ns, json.dumps(change).encode(), ns, seq + k)
 
 
-def export(path: str | os.PathLike[str], to: ExportFormat, out: str | os.PathLike[str]) -> Path:
+def export(
+    path: str | os.PathLike[str],
+    to: ExportFormat,
+    out: str | os.PathLike[str],
+    *,
+    times: TimeBase = "server",
+    z_up: bool = False,
+) -> Path:
     """Export every stream of the recording at ``path``; returns what was written.
 
     ``to="csv"`` writes a directory ``out`` (one CSV per stream and
     ``streams.json``); ``"npz"`` one ``.npz`` file; ``"foxglove"`` one ``.mcap``
-    file (the suffix is added to ``out`` if missing).
+    file (the suffix is added to ``out`` if missing). ``times``: ``server``
+    (as recorded), ``relative`` or ``wall``; ``z_up``: turn the world z-up (see
+    the module docstring). The files say which time base and frame they use.
     """
     if to not in ("csv", "npz", "foxglove"):
         raise ValueError(f"unknown export format {to!r}; expected csv, npz or foxglove")
-    data = read_session(path)
+    if times not in TIME_BASES:
+        raise ValueError(f"unknown time base {times!r}; expected {', '.join(TIME_BASES)}")
+    raw = read_session(path)
+    data = as_exported(raw, times, z_up)
+    how = export_description(times, z_up, raw.session)
     target = Path(out)
     if to == "csv":
-        return _export_csv(data.streams, target, data.objects)
+        return _export_csv(data.streams, target, data.objects, how)
     if to == "npz":
-        return _export_npz(data.streams, target, data.objects)
-    return _export_foxglove(data.streams, target, data.session, data.objects)
+        return _export_npz(data.streams, target, data.objects, how)
+    return _export_foxglove(data.streams, target, data.session, data.objects, how)

@@ -11,8 +11,10 @@ import typer
 from posecast.cli.common import (
     DEFAULT_METHODS,
     _fail,
+    _first_leaf,
     _parse_methods,
     _run_async,
+    connect_error,
     console,
     print_comparison,
 )
@@ -128,6 +130,7 @@ def replay(
         methods = _parse_methods(interp_)
         if rate <= 0:
             raise _fail("--rate must be positive")
+        _check_offline_rate(file, rate)
         try:
             with console.status(f"reconstructing {file.name} at {rate:g} Hz ..."):
                 report = replay_offline(
@@ -152,6 +155,25 @@ def replay(
     if json_out is not None:
         json_out.write_text(json.dumps(report, indent=2, default=str))
         console.print(f"wrote {json_out}")
+
+
+def _check_offline_rate(file: Path, rate: float) -> None:
+    """Refuse an offline --rate at or above the recording's own keyframe rate: every
+    recorded pose would be a keyframe, nothing interpolated, and every error 0."""
+    from statistics import median
+
+    from posecast.recorder import info as recording_info
+
+    rates = [s["rate"] for s in recording_info(file)["streams"] if s.get("rate")]
+    if not rates:
+        return
+    recorded = median(rates)
+    if rate >= 0.99 * recorded:
+        raise _fail(
+            f"--rate {rate:g} Hz is not below {file.name}'s own {recorded:.0f} Hz: every "
+            "recorded pose would be a keyframe and every error 0; give a lower --rate "
+            f"(e.g. {max(1, round(recorded / 3)):g}) to see what interpolation hides"
+        )
 
 
 def _print_objects(report: dict[str, Any]) -> None:
@@ -255,29 +277,59 @@ def _replay_passes(
     except* ValueError as eg:
         raise _fail(f"{file}: {eg.exceptions[0]}") from None
     except* (OSError, InvalidURI, WebSocketException) as eg:
-        raise _fail(f"cannot connect to {url}: {eg.exceptions[0]}") from None
+        raise _fail(connect_error(url, _first_leaf(eg))) from None
 
 
 def export(
     file: Annotated[Path, typer.Argument(help="A session recording (.mcap).")],
     to: Annotated[str, typer.Option(help="csv, npz or foxglove.")],
     out: Annotated[Path | None, typer.Option(help="Output path (default beside FILE).")] = None,
+    time: Annotated[
+        str | None,
+        typer.Option(
+            "--time",
+            help="Times as: relative (s since the recording started), wall (UNIX time, "
+            "from the start time in the recording's header) or server (the server clock "
+            "as recorded). [default: wall for foxglove, relative for csv and npz]",
+            show_default=False,
+        ),
+    ] = None,
+    z_up: Annotated[
+        bool | None,
+        typer.Option(
+            "--z-up/--y-up",
+            help="Turn the world z-up (+z up, +y forward: ROS and Foxglove), frame "
+            "world_z_up; or keep the recording's y-up (OpenXR), frame world. "
+            "[default: z-up for foxglove, y-up for csv and npz]",
+            show_default=False,
+        ),
+    ] = None,
 ) -> None:
-    """Export a recording as CSV, NPZ, or MCAP with Foxglove frame transforms."""
+    """Export a recording as CSV, NPZ, or MCAP with Foxglove frame transforms.
+
+    The files name their time base and world frame (streams.json, the NPZ index,
+    the MCAP's posecast.export metadata).
+    """
+    from posecast.recorder.export import TIME_BASES
     from posecast.recorder.export import export as export_file
 
     if to not in ("csv", "npz", "foxglove"):
         raise _fail("--to takes csv, npz or foxglove")
+    if time is not None and time not in TIME_BASES:
+        raise _fail(f"--time takes relative, wall or server, not {time!r}")
+    times = time or ("wall" if to == "foxglove" else "relative")
+    turn = (to == "foxglove") if z_up is None else z_up
     _recording(file)
     stem = file.name.removesuffix(".part").removesuffix(".mcap")
     target = out or file.with_name(
         {"csv": f"{stem}-csv", "npz": f"{stem}.npz", "foxglove": f"{stem}-foxglove.mcap"}[to]
     )
     try:
-        path = export_file(file, to, target)  # type: ignore[arg-type]
+        path = export_file(file, to, target, times=times, z_up=turn)  # type: ignore[arg-type]
     except (OSError, ValueError) as exc:
         raise _fail(f"{file}: {exc}") from None
-    console.print(f"wrote {path}")
+    frame = "z-up (world_z_up)" if turn else "y-up (world)"
+    console.print(f"wrote {path} ({times} times, {frame})")
 
 
 def analyze(

@@ -7,7 +7,14 @@ from typing import Annotated, Any
 
 import typer
 
-from posecast.cli.common import _fail, _parse_methods, _run_async, console
+from posecast.cli.common import (
+    _fail,
+    _first_leaf,
+    _parse_methods,
+    _run_async,
+    connect_error,
+    console,
+)
 
 __all__ = ["VIEW_METHODS", "view"]
 
@@ -72,14 +79,15 @@ def view(
     if duration is not None and duration <= 0:
         raise _fail("--duration must be positive")
     if file is not None:
+        from posecast.cli.recordings import _recording
         from posecast.view.replay import ReplayView
 
-        if not file.is_file():
-            raise _fail(f"{file}: no such recording")
+        _recording(file)  # what is not a posecast recording is named as such, once
         try:
             rv = ReplayView(file, methods, rate=rate, host=host, port=port, fps=fps, spread=spread)
         except (OSError, ValueError) as exc:
-            raise _fail(f"{file}: {exc}") from None
+            why = str(exc)
+            raise _fail(why if why.startswith(str(file)) else f"{file}: {why}") from None
         rv.set_playing(True)
         _run_async(_serve(rv, rv.run(duration), f"replay of {file.name}"))
         return
@@ -108,4 +116,4 @@ def view(
     try:
         _run_async(live())
     except* (OSError, TimeoutError, InvalidURI, WebSocketException) as eg:
-        raise _fail(f"cannot watch {url}: {eg.exceptions[0]}", 1) from None
+        raise _fail(connect_error(url, _first_leaf(eg)).replace("connect to", "watch"), 1) from None

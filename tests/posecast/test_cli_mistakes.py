@@ -443,3 +443,42 @@ def test_version_names_package_protocol_and_codec_path() -> None:
     assert lines[0] == f"posecast {version('posecast')}"
     assert lines[1] == f"protocol version {PROTOCOL_VERSION}"
     assert lines[2] == "codec: pure Python (numpy)"
+
+
+# -- issue 30's list -----------------------------------------------------------------
+
+
+def test_view_names_a_junk_file_once(tmp_path: Path) -> None:
+    """view junk.mcap: the path once and the real reason (not an MCAP file)."""
+    junk = tmp_path / "junk.mcap"
+    junk.write_text("junk\n")
+    line = assert_one_line(posecast("view", junk), 2, "is not a posecast recording")
+    assert line.count("junk.mcap") == 1, line
+
+
+def test_offline_replay_at_or_above_the_recorded_rate_says_why(recording: Path) -> None:
+    """--rate 100 (or 30) on a 30 Hz recording would print zeros: refused, saying why."""
+    for rate in ("100", "30"):
+        res = posecast("replay", "--offline", "--rate", rate, "--interp", "soa", recording)
+        assert_one_line(res, 2, f"--rate {rate} Hz", "own 30 Hz", "every error 0", "lower --rate")
+    assert posecast("replay", "--offline", "--rate", "10", "--interp", "soa", recording).code == 0
+
+
+def test_wss_against_a_plain_server_gives_the_reason(relay: str) -> None:
+    """wss:// to a ws:// relay: the TLS handshake failed, and the ws:// URL to try."""
+    tls_url = relay.replace("ws://", "wss://")
+    res = posecast("bots", "--url", tls_url, "--n", "1", "--duration", "1",
+                   "--motion", "synthetic", "--insecure")  # fmt: skip
+    line = assert_one_line(res, 2, f"cannot connect to {tls_url}", "TLS handshake failed")
+    assert line.endswith(f"Try {relay}"), line
+
+
+def test_a_lone_bot_demo_prints_no_nan_and_no_open_server_warning(tmp_path: Path) -> None:
+    """demo --bots 1: no 'nan bytes per remote pose', no '--secret' warning (demo has none)."""
+    res = posecast("demo", "--bots", "1", "--duration", "2", "--motion", "synthetic",
+                   "--no-record", cwd=tmp_path)  # fmt: skip
+    assert res.code == 0, res.stderr
+    assert "nan" not in res.stdout, res.stdout
+    assert "no remote poses received (a lone bot)" in res.stdout
+    assert "verdict: none" in res.stdout and "run 2 or more bots" in res.stdout
+    assert "--secret" not in res.stderr + res.stdout, res.stderr
