@@ -11,13 +11,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-
-if TYPE_CHECKING:
-    from posecast.recorder.export import SessionArrays
 
 __all__ = [
     "TIME_BASES",
@@ -88,10 +85,9 @@ def _time_shift(session: dict[str, str], times: TimeBase) -> float:
     return wall - start
 
 
-def as_exported(
-    data: SessionArrays, times: TimeBase = "server", z_up: bool = False
-) -> SessionArrays:
-    """``data`` with times in the base ``times`` and, with ``z_up``, the world turned z-up."""
+def as_exported(data: Any, times: TimeBase = "server", z_up: bool = False) -> Any:
+    """``data`` (a ``recorder.export.SessionArrays``) with times in the base ``times``
+    and, with ``z_up``, the world turned z-up."""
     shift = _time_shift(data.session, times)
     if shift == 0.0 and not z_up:
         return data
