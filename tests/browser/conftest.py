@@ -14,7 +14,7 @@ from collections.abc import AsyncIterator, Iterator
 
 import pytest
 import pytest_asyncio
-from playwright.async_api import Browser, async_playwright
+from playwright.async_api import Browser, BrowserContext, async_playwright
 
 from posecast.cli.web import ensure_built, page_server
 
@@ -50,11 +50,23 @@ def web_port(chromium_path: str) -> Iterator[int]:
         yield port
 
 
-@pytest_asyncio.fixture
-async def browser(chromium_path: str) -> AsyncIterator[Browser]:
+@pytest_asyncio.fixture(scope="module", loop_scope="module")
+async def chromium(chromium_path: str) -> AsyncIterator[Browser]:
+    """One headless Chromium for a test module (its tests run on the module's loop)."""
     async with async_playwright() as p:
         b = await p.chromium.launch(executable_path=chromium_path, args=CHROMIUM_ARGS)
         try:
             yield b
         finally:
             await b.close()
+
+
+@pytest_asyncio.fixture(loop_scope="module")
+async def browser(chromium: Browser) -> AsyncIterator[BrowserContext]:
+    """A fresh browser context per test; its pages are closed after the test (a page
+    left open would keep rendering and reconnecting)."""
+    context = await chromium.new_context(viewport={"width": 640, "height": 480})
+    try:
+        yield context
+    finally:
+        await context.close()

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from playwright.async_api import Browser, Page
+from playwright.async_api import BrowserContext, Page
 from scipy.spatial.transform import Rotation
 from support import running_server
 
@@ -26,6 +26,9 @@ from posecast.client.connection import ClientConnection
 from posecast.interp import get as interpolator
 from posecast.protocol import PeerLeft, PeerResumed, PeerStalled, PoseUpdate, Snapshot
 from posecast.server.app import RelayServer, ServerConfig
+
+#: One Chromium for the module: its tests share the module's event loop.
+pytestmark = pytest.mark.asyncio(loop_scope="module")
 
 STREAMS = ("head", "left", "right")
 #: What each codec guarantees for a pose (docs/protocol.md), plus float32 rounding of
@@ -132,11 +135,11 @@ async def relay_and_bots(
 
 
 async def open_page(
-    browser: Browser, web_port: int, relay: RelayServer, room: str, **query: str
+    browser: BrowserContext, web_port: int, relay: RelayServer, room: str, **query: str
 ) -> Page:
     """The example page joined to ``room`` in an emulated Quest 3 session, publishing."""
     host = query.pop("host", "127.0.0.1")
-    page = await browser.new_page(viewport={"width": 640, "height": 480})
+    page = await browser.new_page()
     errors: list[str] = []
     page.on("pageerror", lambda e: errors.append(str(e)))
     page.errors = errors  # type: ignore[attr-defined]
@@ -222,7 +225,7 @@ def scripted_motion(k: int) -> list[np.ndarray]:
 
 @pytest.mark.parametrize("codec", ["raw", "compact"])
 async def test_bots_receive_the_headset_and_controllers_as_scripted(
-    browser: Browser, web_port: int, codec: str
+    browser: BrowserContext, web_port: int, codec: str
 ) -> None:
     """The emulated headset and controllers, moved step by step, reach a Python bot equal
     to the set poses (controllers: their grip poses) within the codec's bound."""
@@ -270,7 +273,7 @@ RENDERED_JS = """() => {
 
 
 async def test_the_page_shows_each_bot_interpolated_between_its_keyframes(
-    browser: Browser, web_port: int
+    browser: BrowserContext, web_port: int
 ) -> None:
     """Each bot's head and hands, as the page's three.js objects show them, equal the
     method's interpolation between the two keyframes the page received around the
@@ -306,7 +309,9 @@ async def test_the_page_shows_each_bot_interpolated_between_its_keyframes(
             assert checked >= 6, (method, len(rendered))
 
 
-async def test_the_page_resumes_after_its_socket_is_cut(browser: Browser, web_port: int) -> None:
+async def test_the_page_resumes_after_its_socket_is_cut(
+    browser: BrowserContext, web_port: int
+) -> None:
     """The relay's side of the page's TCP connection is aborted: the SDK resumes with its
     token; the bot sees peer_stalled then peer_resumed (never peer_left), the same user
     publishing again."""
@@ -327,7 +332,7 @@ async def test_the_page_resumes_after_its_socket_is_cut(browser: Browser, web_po
 
 
 async def test_a_frozen_page_is_reported_stalled_to_the_bots(
-    browser: Browser, web_port: int
+    browser: BrowserContext, web_port: int
 ) -> None:
     """The page's JavaScript blocks for 2 s (a frozen tab: the browser still answers
     pings): the bot hears peer_stalled, then peer_resumed once the page runs again."""
@@ -347,7 +352,9 @@ async def test_a_frozen_page_is_reported_stalled_to_the_bots(
         assert relay.core.silence.stalls >= 1
 
 
-async def test_a_page_from_a_refused_origin_is_closed(browser: Browser, web_port: int) -> None:
+async def test_a_page_from_a_refused_origin_is_closed(
+    browser: BrowserContext, web_port: int
+) -> None:
     """With --allow-origin naming the page's 127.0.0.1 origin, the same page opened as
     localhost (another origin) cannot join: its socket is refused (403), and it says so."""
     allowed = f"http://127.0.0.1:{web_port}"
