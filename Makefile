@@ -20,8 +20,11 @@ $(VENV)/.installed-test: pyproject.toml | $(BIN)/python
 demo: $(VENV)/.installed-run
 	$(BIN)/posecast demo
 
+# Two workers (pytest-xdist): most tests wait on sockets and timers, not the CPU, so
+# two halve the wall time on a 2-core machine. Tests that build or drive the JS
+# bundle and Chromium share a group (tests/conftest.py): one worker runs them in turn.
 test: $(VENV)/.installed-test
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadgroup
 
 # mypy reads modules from files, not through the install's folder mapping: it checks
 # a tree of links laid out as the installed package (posecast/server -> server/, ...).

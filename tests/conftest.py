@@ -42,3 +42,15 @@ def sample_dir() -> Path:
 def dev_trace_path(sample_dir: Path) -> Path:
     """S02 (Rift S, Expert+): the first 60 s of the dev recording, bit for bit."""
     return sample_dir / "S02_riftS_expertplus.csv.gz"
+
+
+#: Fixtures of tests that build client/js (npm ci, esbuild into its folders) or run
+#: Chromium: under pytest-xdist (``make test``) they share one worker, so no two
+#: builds write the same node_modules and no two browsers compete for the CPU.
+_ONE_WORKER = frozenset({"node", "web_port", "browser", "chromium_path", "page"})
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if _ONE_WORKER & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.xdist_group("node-and-chromium"))
