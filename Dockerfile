@@ -10,7 +10,8 @@ COPY protocol ./protocol
 COPY interp ./interp
 COPY recorder ./recorder
 # scenarios/ carries its data: tiers, the synthetic suite and scenarios/data/traces,
-# the bundled excerpt of real traces behind `traces:sample` (package data).
+# the bundled real traces behind `traces:sample`, `traces:dev` and `traces:eval`
+# (package data).
 COPY scenarios ./scenarios
 COPY client ./client
 COPY server ./server
@@ -23,8 +24,9 @@ RUN pip install . \
     && useradd --create-home posecast
 
 USER posecast
-# The full trace sets (traces:dev, traces:eval) are read from here when mounted
-# (docker-compose.yml does, optionally); traces:sample and synthetic motion need nothing.
+# Another copy of the full trace sets (traces:dev, traces:eval) is read from here
+# when mounted (docker-compose.yml does, optionally); a split it lacks is read from
+# the sets bundled in the package.
 ENV POSECAST_TRACES=/data/vr-traces
 EXPOSE 8765
 ENTRYPOINT ["posecast"]
