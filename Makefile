@@ -44,7 +44,7 @@ bench: $(VENV)/.installed-test
 
 # Regenerate every published result (docs/results/, the tables of docs/lab/results.md and
 # docs/lab/results-recording.md) with the current code; prints which outputs changed.
-# Needs the full trace sets (POSECAST_TRACES); 12-20 minutes. Not part of `test`.
+# Uses the full trace sets bundled in the package; 12-20 minutes. Not part of `test`.
 results: $(VENV)/.installed-run
 	nice -n 5 $(BIN)/python -m posecast.results
 

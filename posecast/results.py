@@ -13,7 +13,7 @@ the outputs, and the runner prints which files changed (JSON compared without
 its timings, which change on every run).
 
 Not part of ``make test``: the whole run takes 12-20 minutes on a shared 2-core
-machine. It needs the full trace sets (``POSECAST_TRACES``). Live
+machine. It reads the full trace sets (bundled; ``POSECAST_TRACES`` for another copy). Live
 measurements (``table1 --live``, the recorded demo session, the relay and
 recorder benchmarks) depend on the host and are not re-run; the pages say
 where they came from.
