@@ -194,5 +194,5 @@ def demo_next_steps(recording: str | None, motion: str) -> list[str]:
     if recording:
         steps.append((f"posecast replay --offline {recording}", "score the recording again"))
     steps.append(("posecast table1 --traces traces:sample --out t1", "the paper's Table 1"))
-    width = min(40, max(len(cmd) for cmd, _ in steps))
+    width = min(34, max(len(cmd) for cmd, _ in steps))  # a line fits 80 columns
     return ["next:", *(f"  {cmd:<{width}}  # {what}" for cmd, what in steps)]

@@ -68,6 +68,7 @@ def test_next_steps_are_commands(motion: str) -> None:
     assert lines[0] == "next:"
     assert all(line.startswith("  posecast ") and "  # " in line for line in lines[1:])
     assert any("replay --offline recordings/demo.mcap" in line for line in lines)
+    assert all(len(line) <= 80 for line in lines), lines
     assert motion_note(motion)
 
 
