@@ -10,10 +10,19 @@ from __future__ import annotations
 import asyncio
 
 import numpy as np
-from support import running_server
+from support import poll_until, running_server
 
 from posecast.client.bot import BotConfig, _Bot
 from posecast.protocol import PeerLeft, PeerResumed, PeerStalled
+
+
+def _shown(peer: _Bot, bot: _Bot) -> bool:
+    """``peer`` has received keyframes of each of ``bot``'s three streams."""
+    if bot.conn is None or bot.conn.welcome is None:
+        return False
+    user = bot.conn.user
+    mine = [rs for (u, _sid), rs in peer.remote.items() if u == user]
+    return len(mine) == 3 and all(len(rs.arrival_local) > 0 for rs in mine)
 
 
 async def _session() -> tuple[_Bot, _Bot, list[type]]:
@@ -35,7 +44,8 @@ async def _session() -> tuple[_Bot, _Bot, list[type]]:
         peer._on_event = spy  # type: ignore[method-assign]
         async with asyncio.TaskGroup() as tg:
             tasks = [tg.create_task(cut.run()), tg.create_task(peer.run())]
-            await asyncio.sleep(2.5)
+            # Cut it once the peer shows its poses (all three streams): a live session.
+            await poll_until(lambda: _shown(peer, cut), limit=30.0)
             assert cut.conn is not None
             first = cut.conn
             first.ws.transport.abort()  # the network drops it
