@@ -18,7 +18,7 @@ __all__ = [
 ]
 
 #: Where the verdict sends a reader for what the figures mean and what else was measured.
-DEMO_DOC = "docs/results.md"
+DEMO_DOC = "docs/concepts/qoe.md"
 
 QOE_LEGEND = (
     "pos/rot: how far each remote head and hand is shown from where its sender "

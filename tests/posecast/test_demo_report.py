@@ -26,7 +26,7 @@ def test_a_method_beating_soa_is_named_with_the_margin() -> None:
     assert line == (
         "verdict: at 15 Hz on this motion (Beat Saber, a worst case for hands), motor-lerp "
         "beats soa by 30.4 mm p95 on the hands (190.0 vs 220.4 mm tip error); "
-        "see docs/results.md"
+        "see docs/concepts/qoe.md"
     )
 
 
@@ -102,3 +102,10 @@ def test_the_tables_fit_80_columns(monkeypatch: pytest.MonkeyPatch, method: str,
     assert "…" not in text, text
     assert max(len(line) for line in text.splitlines()) <= 80, text
     assert method in text and "dq-slerp" in text and "1805.6" in text and "bot12" in text
+
+
+def test_the_verdict_points_to_a_page_that_exists() -> None:
+    """The page the verdict names is in the repository (a moved page fails here)."""
+    from pathlib import Path
+
+    assert (Path(__file__).resolve().parents[2] / report.DEMO_DOC).is_file()
