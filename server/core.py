@@ -182,7 +182,7 @@ class RelayCore:
         #: Counters of connections that have ended, so that totals never go down.
         self.totals = dict.fromkeys(COUNTERS, 0)
         #: The rooms and their ticks (``server.rooms``); ``rooms`` is its dict of them.
-        self.table = RoomTable(self.config, self.volume, self.emit)
+        self.table = RoomTable(self.config, self.volume, self.emit, objects.fly)
         self.rooms: dict[str, Room] = self.table.rooms
         cfg = self.config
         self.admission = Admission(cfg.max_connections, cfg.max_connections_per_address)

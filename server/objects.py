@@ -59,9 +59,6 @@ otherwise have its first keyframes dropped as stale.
 
 from __future__ import annotations
 
-import math
-import struct
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -77,6 +74,16 @@ from posecast.protocol import (
     Release,
     RequestOwnership,
 )
+from posecast.server.shared import (
+    GRAVITY,
+    POSE_STRUCT,
+    RESTED,
+    VELOCITY_STRUCT,
+    Flight,
+    RoomObject,
+    Vec3,
+    pose_bytes,
+)
 
 if TYPE_CHECKING:
     from posecast.server.core import RelayCore
@@ -85,103 +92,10 @@ if TYPE_CHECKING:
 
 __all__ = ["GRAVITY", "Flight", "RoomObject", "handle", "introduce", "owner_left", "restore"]
 
-GRAVITY = 9.81
-#: An object's first keyframe after a change of owner comes at least this much
-#: after its last one (s).
-MIN_STEP = 1e-3
-#: A thrown object's last keyframe older than this (s) at the release: it lay still
-#: until the release, and flies from then.
-RESTED = 0.1
-_POSE = struct.Struct("<7f")
-_VELOCITY = struct.Struct("<6e")
-
-Vec3 = tuple[float, float, float]
-
-
-def _quat_mul(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, float, float, float]:
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    )
-
-
-@dataclass(frozen=True)
-class Flight:
-    """A thrown object's motion from its release keyframe until it rests on the floor."""
-
-    t0: float
-    pose: tuple[float, ...]
-    """[px, py, pz, qw, qx, qy, qz] at ``t0``."""
-    velocity: Vec3
-    angular: Vec3
-    floor: float
-
-    def landing(self) -> float:
-        """Time after ``t0`` at which it reaches the floor (0 if it starts on or below it)."""
-        y, vy = max(self.pose[1] - self.floor, 0.0), self.velocity[1]
-        return (vy + math.sqrt(vy * vy + 2.0 * GRAVITY * y)) / GRAVITY
-
-    def at(self, t: float) -> tuple[tuple[float, ...], tuple[float, ...], bool]:
-        """(pose, velocity [vx, vy, vz, wx, wy, wz], landed) at time ``t``."""
-        land = self.landing()
-        dt = min(max(t - self.t0, 0.0), land)
-        px, py, pz = self.pose[:3]
-        vx, vy, vz = self.velocity
-        position = (px + vx * dt, py + vy * dt - 0.5 * GRAVITY * dt * dt, pz + vz * dt)
-        wx, wy, wz = self.angular
-        rate = math.sqrt(wx * wx + wy * wy + wz * wz)
-        q = self.pose[3:]
-        if rate > 0.0:
-            half = 0.5 * rate * dt
-            s = math.sin(half) / rate
-            q = _quat_mul((math.cos(half), wx * s, wy * s, wz * s), q)
-        landed = t - self.t0 >= land
-        if landed:
-            return (position[0], max(position[1], self.floor), position[2], *q), (0.0,) * 6, True
-        return (*position, *q), (vx, vy - GRAVITY * dt, vz, wx, wy, wz), False
-
-
-@dataclass
-class RoomObject:
-    """One shared object of a room, as the relay keeps it."""
-
-    name: str
-    stream: int
-    creator: int
-    keep: bool = True
-    steal: bool = False
-    owner: int | None = None
-    locked: bool = False
-    flight: Flight | None = None
-    #: Added to the current owner's capture times (see "Clocks at a handover").
-    offset: float = 0.0
-    #: The owner changed and its first keyframe has not come yet.
-    fresh: bool = False
-
-    def rebase(self, capture: float, last: float | None) -> float:
-        """The stored time of the owner's keyframe captured at ``capture``."""
-        if self.fresh:
-            self.fresh = False
-            self.offset = 0.0 if last is None else max(0.0, last + MIN_STEP - capture)
-        return capture + self.offset
-
-    def give(self, owner: int | None) -> None:
-        self.owner, self.flight, self.fresh, self.offset = owner, None, True, 0.0
-        if owner is None:
-            self.locked = False
-
-
-def pose_bytes(pose: tuple[float, ...]) -> bytes:
-    return _POSE.pack(*pose)
-
 
 def _info(room: Room, obj: RoomObject) -> ObjectInfo:
     capture, raw = room.stream_pose(obj.stream)
-    pose = _POSE.unpack(raw)
+    pose = POSE_STRUCT.unpack(raw)
     # float32 on the wire of snapshots; the message carries the same values.
     return ObjectInfo(
         name=obj.name,
@@ -330,7 +244,7 @@ def _release(
         start = capture if now - capture < RESTED else now
         floor = max(0.0, core.volume.lo[1])
         obj.flight = Flight(
-            start, _POSE.unpack(raw), event.velocity, event.angular or (0.0, 0.0, 0.0), floor
+            start, POSE_STRUCT.unpack(raw), event.velocity, event.angular or (0.0, 0.0, 0.0), floor
         )
         spin = event.angular
         _announce(core, room, obj, None, user, "throw", now, velocity=event.velocity, angular=spin)
@@ -446,7 +360,7 @@ def fly(room: Room, now: float) -> None:
         if flight is None or now <= room.stream_pose(obj.stream)[0]:
             continue
         pose, velocity, landed = flight.at(now)
-        pose_raw, vel_raw = pose_bytes(pose), _VELOCITY.pack(*velocity)
+        pose_raw, vel_raw = pose_bytes(pose), VELOCITY_STRUCT.pack(*velocity)
         room.store(obj.stream, ROOM_USER, now, pose_raw, vel_raw)
         if landed:
             obj.flight = None

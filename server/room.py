@@ -51,10 +51,9 @@ from posecast.protocol import (
 )
 from posecast.protocol.codec import DEFAULT_VOLUME, Volume, quantise
 from posecast.protocol.codec_relay import GroupSnapshot, RelayEntry, encode_group
-from posecast.server import objects
 from posecast.server.actions import Action, PollRecording, Record, RecordPose
 from posecast.server.config import DEFAULT_EVENT_QUEUE
-from posecast.server.objects import RoomObject
+from posecast.server.shared import RoomObject
 
 __all__ = [
     "DEFAULT_EVENT_QUEUE",
@@ -336,6 +335,8 @@ class Room:
     volume: Volume = DEFAULT_VOLUME
     #: Shared objects by stream id (``server.objects``).
     objects: dict[int, RoomObject] = field(default_factory=dict)
+    #: Moves its thrown objects at each tick (``server.objects.fly``, set by the core).
+    fly: Callable[[Room, float], None] | None = None
     #: Sequence numbers of the recorded flight keyframes.
     flight_seq: int = 0
     #: The server's tick lag histogram, which every due member's tick goes into.
@@ -545,8 +546,8 @@ class Room:
         groups: dict[tuple[int, bool], GroupSnapshot | None] = {}
         offered = 0
         self._due = None  # due members move on to their next grid point
-        if self.objects:
-            objects.fly(self, now)
+        if self.objects and self.fly is not None:
+            self.fly(self, now)
         for member in self.members.values():
             if member.next_due > now + 1e-9:
                 continue

@@ -32,10 +32,18 @@ log = logging.getLogger("posecast.server")
 class RoomTable:
     """The rooms of one relay and their tick schedule."""
 
-    def __init__(self, config: ServerConfig, volume: Volume, emit: Callable[[Action], None]):
+    def __init__(
+        self,
+        config: ServerConfig,
+        volume: Volume,
+        emit: Callable[[Action], None],
+        fly: Callable[[Room, float], None] | None = None,
+    ):
         self.config = config
         self.volume = volume
         self.emit = emit
+        #: What moves a room's thrown objects at its tick (``server.objects.fly``).
+        self.fly = fly
         self.rooms: dict[str, Room] = {}
         #: (due, seq, room) of every room with members (see the module docstring).
         self._dues: list[tuple[float, int, Room]] = []
@@ -72,6 +80,7 @@ class RoomTable:
                 volume=self.volume,
                 lags=self.tick_lags,
                 emit=self.emit,
+                fly=self.fly,
             )
             log.info("room %r created", name)
         return room

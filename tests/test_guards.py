@@ -29,8 +29,6 @@ ALLOWED_CYCLES: tuple[frozenset[str], ...] = (
             "posecast.server.objects",
             "posecast.server.peer",
             "posecast.server.resume",
-            "posecast.server.room",
-            "posecast.server.rooms",
             "posecast.server.tokens",
         }
     ),

@@ -124,6 +124,7 @@ def test_server_holds_only_the_relay() -> None:
         "link.py",
         "room.py",
         "rooms.py",
+        "shared.py",
         "recordings.py",
         "auth.py",
         "logs.py",
@@ -176,6 +177,7 @@ RELAY_CORE = (
     "resume",
     "room",
     "rooms",
+    "shared",
     "tokens",
 )
 
