@@ -2,8 +2,9 @@
 
     .venv/bin/python tests/browser/measure_sdk.py
 
-Prints figures only (microseconds per pose, the median of 5 runs of ~0.3 s each, wall
-time in the page: a browser has no CPU-time clock), with the same workloads as
+Prints figures only: microseconds of the page's main-thread CPU time per pose (Chrome's
+``ThreadTime`` metric over DevTools; the median of 5 runs of at least 0.2 s CPU each,
+the page not rendering meanwhile), with the same workloads as
 ``client/js/scripts/bench.mjs`` in Node: raw update encode / decode (3 poses), raw
 snapshot decode (24 poses), compact update encode / decode (3 poses, deltas), compact
 key and delta snapshots decoded against their baselines (the golden vectors).
@@ -15,14 +16,14 @@ import asyncio
 import json
 from pathlib import Path
 
-from playwright.async_api import async_playwright
+from playwright.async_api import CDPSession, Page, async_playwright
 
 from posecast.cli.web import ensure_built, page_server
 
 ROOT = Path(__file__).resolve().parents[2]
 CHROMIUM_ARGS = ["--use-gl=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"]
 
-BENCH_JS = """async (vectors) => {
+SETUP_JS = """async (vectors) => {
   const sdk = window.posecastPage.sdk;
   // Nothing else on the page's thread meanwhile: no rendering.
   window.posecastPage.renderer.setAnimationLoop(null);
@@ -36,37 +37,19 @@ BENCH_JS = """async (vectors) => {
     }
     return out;
   }
-  function time(fn, perCall) {
-    for (let i = 0; i < 2000; i++) fn(i);
-    const runs = [];
-    let n = 0;
-    for (let r = 0; r < 5; r++) {
-      let calls = 0;
-      const start = performance.now();
-      let el = 0;
-      while (el < 300) {
-        for (let i = 0; i < 200; i++) fn(n++);
-        calls += 200;
-        el = performance.now() - start;
-      }
-      runs.push((el * 1000) / (calls * perCall));
-    }
-    runs.sort((a, b) => a - b);
-    return runs[2];
-  }
-  const report = {};
+  const w = {};  // name -> [function of the call number, poses per call]
   const upd = poses(100, 3).map((e) => ({ ...e, user: -1 }));
-  report.raw_update_encode_us = time((i) => sdk.encodeUpdate(i, 100 + i / 30, upd), 3);
+  w.raw_update_encode = [(i) => sdk.encodeUpdate(i, 100 + i / 30, upd), 3];
   const rawUpdate = sdk.encodeUpdate(1, 100, upd);
-  report.raw_update_decode_us = time(() => sdk.decodeMessage(rawUpdate), 3);
+  w.raw_update_decode = [() => sdk.decodeMessage(rawUpdate), 3];
   const snap = sdk.encodeSnapshot(1, 100, poses(100, 24));
-  report.raw_snapshot_decode_us = time(() => sdk.decodeMessage(snap), 24);
+  w.raw_snapshot_decode = [() => sdk.decodeMessage(snap), 24];
   const up = new sdk.CompactSession(VOL, false);
   let seq = 0;
-  report.compact_update_encode_us = time((i) => {
+  w.compact_update_encode = [(i) => {
     const t = 100 + i / 30;
     return up.encodeUpdate(++seq, t, poses(t, 3).map((e) => ({ ...e, user: -1 })));
-  }, 3);
+  }, 3];
   const enc = new sdk.CompactSession(VOL, false);
   const frames = [];
   for (let i = 0; i < 64; i++) {
@@ -76,27 +59,57 @@ BENCH_JS = """async (vectors) => {
   const volume = new sdk.Volume(VOL);
   const relay = new Map();
   let prev = null;
-  report.compact_update_decode_us = time((i) => {
+  w.compact_update_decode = [(i) => {
     const k = i % 64;
     if (k === 0) { relay.clear(); prev = null; }
     const f = sdk.decodeUpdateFrame(frames[k], volume, relay, prev);
     for (const e of f.entries) relay.set(e.stream, e.codes);
     prev = { number: f.number, baseUs: f.baseUs };
     return f;
-  }, 3);
+  }, 3];
   for (const v of vectors) {
     const data = new Uint8Array(v.hex.match(/../g).map((h) => parseInt(h, 16)));
     const base = new Map(v.baselines_before.map((b) => [b.user * 65536 + b.stream, b.codes]));
     const down = new sdk.CompactSession(v.volume, false);
-    report[`compact_${v.name.replace("-", "_")}_decode_us`] = time(() => {
+    w[`compact_${v.name.replace("-", "_")}_decode`] = [() => {
       down.down.clear();
       for (const [k, c] of base) down.down.set(k, c);
       return down.decodeSnapshot(data);
-    }, v.pose_frame.entries.length);
+    }, v.pose_frame.entries.length];
   }
-  report.user_agent = navigator.userAgent;
-  return report;
+  window.__bench = w;
+  return Object.fromEntries(Object.entries(w).map(([k, v]) => [k, v[1]]));
 }"""
+
+#: Run ``calls`` calls of one workload (its call numbers go on from run to run).
+RUN_JS = """([name, calls]) => {
+  const [fn] = window.__bench[name];
+  const counts = (window.__benchN ??= {});
+  let n = counts[name] ?? 0;
+  for (let i = 0; i < calls; i++) fn(n++);
+  counts[name] = n;
+}"""
+
+
+async def thread_time(cdp: CDPSession) -> float:
+    """CPU time (s) of the page's main thread so far (Chrome's ``ThreadTime`` metric)."""
+    metrics = await cdp.send("Performance.getMetrics")
+    return float(next(m["value"] for m in metrics["metrics"] if m["name"] == "ThreadTime"))
+
+
+async def measure(page: Page, cdp: CDPSession, name: str, per_call: int) -> float:
+    """Microseconds of main-thread CPU per pose: the median of 5 runs of ~0.2 s CPU."""
+    await page.evaluate(RUN_JS, [name, 2000])  # warm up
+    calls, runs = 2000, []
+    while len(runs) < 5:
+        before = await thread_time(cdp)
+        await page.evaluate(RUN_JS, [name, calls])
+        spent = await thread_time(cdp) - before
+        if spent < 0.2:
+            calls = int(calls * min(10.0, 0.25 / max(spent, 1e-3)))
+            continue
+        runs.append(spent * 1e6 / (calls * per_call))
+    return sorted(runs)[2]
 
 
 async def main() -> None:
@@ -115,10 +128,14 @@ async def main() -> None:
             await page.wait_for_function(
                 "() => window.posecastPage && window.posecastPage.renderer"
             )
-            report = await page.evaluate(BENCH_JS, vectors)
+            cdp = await page.context.new_cdp_session(page)
+            await cdp.send("Performance.enable")
+            workloads = await page.evaluate(SETUP_JS, vectors)
+            print(await page.evaluate("() => navigator.userAgent"))
+            for name, per_call in workloads.items():
+                us = await measure(page, cdp, name, per_call)
+                print(f"{name:36s} {us:8.3f} us/pose  ({per_call} poses a call)")
             await browser.close()
-    for key, value in report.items():
-        print(f"{key:40s} {value:.3f}" if isinstance(value, float) else f"{key:40s} {value}")
 
 
 if __name__ == "__main__":
