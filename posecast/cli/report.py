@@ -51,7 +51,12 @@ def print_swarm(report: dict[str, Any], title: str) -> None:
         console.print(table)
         plain(QOE_LEGEND)
     else:
-        plain(f"{title}: no QoE: a lone bot has nobody to watch (run 2 or more bots)")
+        why = (
+            "a lone bot has nobody to watch (run 2 or more bots)"
+            if len(report["bots"]) == 1
+            else "no bot received another's poses before the run ended"
+        )
+        plain(f"{title}: no QoE: {why}")
     _print_objects(report)
     _print_bots(report)
     wire = report["wire"]
@@ -68,7 +73,7 @@ def print_swarm(report: dict[str, Any], title: str) -> None:
         )
         plain(_WIRE_LEGEND)
     else:
-        plain("wire: no remote poses received (a lone bot), so no bytes per pose")
+        plain("wire: no remote poses received, so no bytes per pose")  # not "nan"
 
 
 def _print_bots(report: dict[str, Any]) -> None:
@@ -154,6 +159,7 @@ def verdict(
     motion: str,
     starved: bool = False,
     doc: str = DEMO_DOC,
+    lone: bool = False,
 ) -> str:
     """One line from the run's own numbers: which method shows the hands closest to
     the truth at p95 (tip error), by how much against ``soa`` (what engines do today,
@@ -167,7 +173,8 @@ def verdict(
     tail = "; this machine starved the session: rerun on an idle one" if starved else ""
     tail += f"; see {doc}"
     if not hands:
-        return f"verdict: none {where}: no hands were received (run 2 or more bots){tail}"
+        why = "a lone bot sees nobody (run 2 or more bots)" if lone else "no hands were received"
+        return f"verdict: none {where}: {why}{tail}"
     ranked = sorted(hands, key=lambda m: hands[m])
     best = ranked[0]
     if len(ranked) == 1:

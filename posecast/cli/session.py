@@ -730,7 +730,8 @@ def demo(
     if report.get("recording"):
         plain(f"recorded to {report['recording']} (see `posecast info`)")
     _write_json(report, json_out)
-    plain(verdict(report["methods"], rate, motion, report["starvation"]["starved"]))
+    starved, lone = report["starvation"]["starved"], len(report["bots"]) == 1
+    plain(verdict(report["methods"], rate, motion, starved, lone=lone))
     for line in demo_next_steps(report.get("recording"), motion):
         plain(line)
     if report["interrupted"]:

@@ -479,6 +479,7 @@ def test_a_lone_bot_demo_prints_no_nan_and_no_open_server_warning(tmp_path: Path
                    "--no-record", cwd=tmp_path)  # fmt: skip
     assert res.code == 0, res.stderr
     assert "nan" not in res.stdout, res.stdout
-    assert "no remote poses received (a lone bot)" in res.stdout
-    assert "verdict: none" in res.stdout and "run 2 or more bots" in res.stdout
+    assert "no remote poses received, so no bytes per pose" in res.stdout
+    assert "a lone bot has nobody to watch (run 2 or more bots)" in res.stdout
+    assert "verdict: none" in res.stdout and "a lone bot sees nobody" in res.stdout
     assert "--secret" not in res.stderr + res.stdout, res.stderr

@@ -51,6 +51,7 @@ def test_a_starved_run_says_rerun_and_a_lone_bot_has_no_verdict() -> None:
     line = verdict(_methods(soa=10.0, **{"motor-lerp": 5.0}), 15, "x/y/trace.csv", starved=True)
     assert "(the trace trace.csv)" in line and "rerun on an idle one" in line
     assert verdict({"soa": {}}, 15, "traces:sample").startswith("verdict: none at 15 Hz")
+    assert "a lone bot sees nobody" in verdict({"soa": {}}, 15, "synthetic", lone=True)
     nan = float("nan")
     assert "verdict: none" in verdict(_methods(soa=nan), 15, "traces:sample")
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import re
 import selectors
 import signal
 import subprocess
@@ -87,7 +88,9 @@ def test_ctrl_c_in_demo_prints_the_report_of_the_time_run(tmp_path: Path) -> Non
     proc = _start("demo", "--bots", "2", "--duration", "600", "--motion", "synthetic",
                   "--no-record", cwd=tmp_path)  # fmt: skip
     try:
-        before = _read_until(proc, "poses relayed")  # a plain progress line: the session runs
+        before = ""
+        while _relayed_in(before) < 300:  # plain progress lines: the session runs
+            before = _read_until(proc, "poses relayed")
         code, out, err = _interrupt(proc)
     finally:
         proc.kill()
@@ -123,6 +126,12 @@ def test_ctrl_c_in_bots_prints_the_report_of_the_time_run(tmp_path: Path) -> Non
     assert "session ended early: interrupted after" in out, out
     rows = [line.split() for line in out.splitlines()]
     assert any(r[:2] == ["motor-lerp", "hands"] for r in rows if len(r) > 2), out
+
+
+def _relayed_in(progress: str) -> int:
+    """The poses relayed of the last progress line ("session: 6/600 s, 2 bots, N poses ...")."""
+    found = re.findall(r"(\d+) poses relayed", progress)
+    return int(found[-1]) if found else 0
 
 
 def _get(url: str) -> str:
