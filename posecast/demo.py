@@ -285,10 +285,10 @@ def _cluster_report(
 def _start_view(
     tg: asyncio.TaskGroup, url: str, methods: tuple[str, ...], port: int, console: Console | None
 ) -> asyncio.Task[None]:
-    """``demo --view``: a spectator of the demo's room, served on ``port`` (users 1 m apart)."""
+    """``demo --view``: a spectator of the demo's room, served on ``port``."""
     from posecast.view.live import LiveConfig, run_live_view
 
-    cfg = LiveConfig(url=url, room="demo", methods=methods, port=port, spread=1.0)
+    cfg = LiveConfig(url=url, room="demo", methods=methods, port=port)
 
     def ready(view: Any) -> None:
         if console is not None:

@@ -21,14 +21,14 @@ __all__ = ["VIEW_METHODS", "view"]
 VIEW_METHODS = "soa,dq-slerp,motor-hermite"
 
 
-def _check_view_args(port: int, fps: float, rate: float, spread: float) -> None:
+def _check_view_args(port: int, fps: float, rate: float, spread: float | None) -> None:
     if not 0 <= port <= 65535:
         raise _fail(f"--port {port} is not a TCP port (0-65535; 0: any free port)")
     if not fps > 0:
         raise _fail("--fps must be positive")
     if not rate > 0:
         raise _fail("--rate must be positive")
-    if spread < 0:
+    if spread is not None and spread < 0:
         raise _fail("--spread must be 0 or more (metres)")
 
 
@@ -62,8 +62,13 @@ def view(
     ] = 10.0,
     fps: Annotated[float, typer.Option(help="Poses pushed to the page per second.")] = 60.0,
     spread: Annotated[
-        float, typer.Option(help="Draw users this many metres apart along x (0: as they are).")
-    ] = 0.0,
+        float | None,
+        typer.Option(
+            help="Draw users this many metres apart along x (0: where they are). Default: "
+            "where they are, but a user standing on another (a recording made without "
+            "spawn points) is drawn 1.5 m over."
+        ),
+    ] = None,
     duration: Annotated[
         float | None, typer.Option(help="Stop after this many seconds (default: Ctrl-C).")
     ] = None,

@@ -8,14 +8,17 @@ scoring. Its show loop renders every remote stream at ``server_now - D`` with
 :func:`scenarios.receiver.render_buffers` (one batched call per method, as the
 bots' render loop) at ``fps`` frames a second and poses the avatars of an
 :class:`~posecast.view.scene.AvatarScene`: the first method solid, the others
-as ghosts. The browser draws the scene at its own frame rate. An overlay shows
-per remote user its keyframe rate, D, bytes/s and stalls.
+as ghosts. The browser draws the scene at its own frame rate. The panel's table
+shows per remote user its keyframe rate, D, kB/s and recent stalls, under a
+warning when the receiver is starving (:func:`starving`); ``view from`` puts the
+camera in a user's eyes, and the camera frames the room as users join.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import html
 import time
 from collections import deque
 from collections.abc import Callable
@@ -31,14 +34,19 @@ from posecast.client.connection import ClientConnection
 from posecast.protocol import ROOM_USER, Join, Joined, PeerLeft, Snapshot
 from posecast.protocol.codec import DEFAULT_VOLUME
 from posecast.scenarios.receiver import render_buffers
-from posecast.view.scene import AvatarScene
+from posecast.view.scene import AvatarScene, user_colour
 
-__all__ = ["LiveConfig", "LiveView", "UserStats", "run_live_view"]
+__all__ = ["STARVED_STALLS", "LiveConfig", "LiveView", "UserStats", "run_live_view", "starving"]
 
 #: The received logs a bot keeps for scoring are cut to this many keyframes a stream.
 _KEEP = 256
 #: Window of the overlay's rates (s).
 _STATS_WINDOW = 2.0
+#: Window of the overlay's stall share (s).
+_STALL_WINDOW = 5.0
+#: The overlay warns of starvation above this share of stalled frames.
+STARVED_STALLS = 0.05
+_CELL = "padding:2px 5px;text-align:right;white-space:nowrap;font-variant-numeric:tabular-nums"
 
 
 @dataclass(frozen=True)
@@ -58,8 +66,9 @@ class LiveConfig:
     token: str | None = None
     #: Stop after this many seconds (None: until cancelled).
     duration: float | None = None
-    #: Draw users this far apart along x (m; 0: where they are, see ``AvatarScene``).
-    spread: float = 0.0
+    #: Draw users this far apart along x (m; 0: where they are; None: where they are
+    #: unless crowded, see ``AvatarScene``).
+    spread: float | None = None
 
 
 @dataclass
@@ -71,6 +80,8 @@ class UserStats:
     recent: deque[tuple[float, float, float]] = field(default_factory=lambda: deque(maxlen=4096))
     stalls: int = 0
     frames: int = 0
+    #: (time, frames, stalls) at each overlay refresh, for the recent stall share.
+    marks: deque[tuple[float, int, int]] = field(default_factory=lambda: deque(maxlen=64))
 
     def rates(self, now: float) -> tuple[float, float]:
         """Keyframes/s (per stream) and bytes/s over the last window."""
@@ -80,12 +91,38 @@ class UserStats:
         size = sum(r[2] for r in self.recent)
         return keys / _STATS_WINDOW, size / _STATS_WINDOW
 
+    def recent_stalls(self, now: float) -> float:
+        """Share of frames stalled over the last :data:`_STALL_WINDOW` s (all frames
+        until that long has passed)."""
+        self.marks.append((now, self.frames, self.stalls))
+        while len(self.marks) > 1 and self.marks[1][0] <= now - _STALL_WINDOW:
+            self.marks.popleft()
+        _, f0, s0 = self.marks[0] if len(self.marks) > 1 else (now, 0, 0)
+        return (self.stalls - s0) / max(1, self.frames - f0)
+
+
+def starving(d: float, interval: float, stalls: float, kps: float, rate: float) -> str | None:
+    """Why this receiver is starving (one line), or None: D above twice its nominal
+    value (one interval plus 100 ms), over :data:`STARVED_STALLS` of the frames stalled,
+    or keyframes short of 80 % of the asked rate."""
+    why = []
+    nominal = interval + 0.1
+    if d > 2 * nominal:
+        why.append(f"D {1000 * d:.0f} ms (about {1000 * nominal:.0f} ms when fed)")
+    if stalls > STARVED_STALLS:
+        why.append(f"{100 * stalls:.0f} % of frames stalled")
+    if 0 < kps < 0.8 * rate:
+        why.append(f"{kps:.1f} keyframes/s of {rate:g} asked")
+    return ", ".join(why) or None
+
 
 def display_name(user: int, label: str | None) -> str:
-    """``u3 walk01`` from a motion label (``trace:.../walk01.csv|t0=...``), else ``u3``."""
+    """``u3 walk01`` from a motion label (``trace:.../walk01.csv|t0=...``; ``u3 orbit``
+    from ``synthetic:orbit|...``), else ``u3``."""
     if not label:
         return f"u{user}"
-    source = label.split("|", 1)[0].rsplit("/", 1)[-1].removesuffix(".gz").removesuffix(".csv")
+    source = label.split("|", 1)[0].split(":", 1)[-1].rsplit("/", 1)[-1]
+    source = source.removesuffix(".gz").removesuffix(".csv")
     return f"u{user} {source[:14]}"
 
 
@@ -172,7 +209,7 @@ class LiveView:
         self.cfg = cfg
         self.clock = clock
         self.server = viser.ViserServer(host=cfg.host, port=cfg.port, verbose=False)
-        self.server.gui.configure_theme(show_logo=False)
+        self.server.gui.configure_theme(show_logo=False, control_width="large")
         self.server.gui.main_panel.dock_right()
         self.scene = AvatarScene(self.server, cfg.methods, DEFAULT_VOLUME, cfg.spread)
         self.stats: dict[int, UserStats] = {}
@@ -184,6 +221,8 @@ class LiveView:
         #: The last frame shown: (playout time, D, {(user, stream id): {method: pose}}).
         self.last_frame: tuple[float, float, dict[tuple[int, int], dict[str, NDArray[np.float64]]]]
         self.last_frame = (0.0, 0.0, {})
+        #: Why the receiver is starving, as the overlay last found (None: it is fed).
+        self.starving: str | None = None
         gui = self.server.gui
         gui.add_markdown(f"**posecast** room `{cfg.room}` at {cfg.url}")
         pause = gui.add_checkbox("pause", False)
@@ -191,7 +230,15 @@ class LiveView:
         self._ghosts = {m: gui.add_checkbox(f"show {m}", True) for m in cfg.methods}
         for m, box in self._ghosts.items():
             box.on_update(self.scene.layer_toggle(m))
-        self._overlay = gui.add_markdown("waiting for users ...")
+        self.eyes = gui.add_dropdown("view from", ["room"], initial_value="room")
+        self.eyes.on_update(lambda _: self._set_eyes(str(self.eyes.value)))
+        reframe = gui.add_button("frame the room")
+        reframe.on_click(lambda _: self.scene.frame_users())
+        self._warning = gui.add_html("")
+        self._overlay = gui.add_html("waiting for users ...")
+        self._framed: set[int] = set()
+        #: Users who left while the page was paused.
+        self._left: set[int] = set()
         self.bot = _Spectator(
             BotConfig(
                 url=cfg.url,
@@ -221,8 +268,25 @@ class LiveView:
         return st
 
     def user_left(self, user: int) -> None:
+        """Forget a user who left (while paused: once unpaused, the frozen frame keeps it)."""
+        if self.paused:
+            self._left.add(user)
+            return
         self.stats.pop(user, None)
         self.scene.remove_user(user)
+        self._framed.discard(user)
+        self._eye_options()
+
+    def _set_eyes(self, name: str) -> None:
+        """``view from``: the room camera, or a user's eyes (``u3 ...``)."""
+        user = None if name == "room" else int(name.split()[0][1:])
+        self.scene.set_first_person(user if user in self.scene.avatars else None)
+
+    def _eye_options(self) -> None:
+        names = {u: av.name for u, av in self.scene.avatars.items() if u != ROOM_USER}
+        options = ("room", *(names[u] for u in sorted(names)))
+        if tuple(self.eyes.options) != options:
+            self.eyes.options = options
 
     def _names(self, bot: _Bot) -> dict[int, str]:
         names = {u: display_name(u, label) for u, (_, label) in bot.peers.items()}
@@ -259,24 +323,62 @@ class LiveView:
                     st.stalls += int(frame.stalled[j])
         self.last_frame = (t_play, d, shown)
         self.frames += 1
+        users = {k[0] for k in keys if k[0] != ROOM_USER}
+        if users - self._framed:  # someone new: the room grew, frame it again
+            self._framed |= users
+            self.scene.frame_users()
+            self._eye_options()
 
     def overlay_text(self, bot: _Bot, now_local: float) -> str:
-        """The overlay: one row per remote user."""
-        d_ms = 1000.0 * self.last_frame[1]
+        """The overlay: a table with one row per remote user (HTML, aligned columns)."""
+        d = self.last_frame[1]
         names = self._names(bot)
+        head = "".join(
+            f'<th style="{_CELL}">{h}</th>' for h in ("keyframes/s", "D (ms)", "kB/s", "stalls (%)")
+        )
         rows = [
-            "| user | keyframes/s | D ms | B/s | stalls |",
-            "|---|---:|---:|---:|---:|",
+            '<table style="border-collapse:collapse;font-size:12px;width:100%">',
+            f'<tr><th style="text-align:left;padding:2px 6px">user</th>{head}</tr>',
         ]
+        worst: tuple[float, str] | None = None
         for user in sorted(self.stats):
             st = self.stats[user]
             kps, bps = st.rates(now_local)
-            share = st.stalls / max(1, st.frames)
-            rows.append(
-                f"| {names.get(user, st.name)} | {kps:.1f} | {d_ms:.0f} | {bps:.0f} "
-                f"| {100 * share:.1f} % |"
+            share = st.recent_stalls(now_local)
+            r, g, b = user_colour(user)
+            swatch = f'<span style="color:rgb({r},{g},{b})">&#9679;</span>'
+            cells = "".join(
+                f'<td style="{_CELL}">{v}</td>'
+                for v in (
+                    f"{kps:.1f}",
+                    f"{1000 * d:.0f}",
+                    f"{bps / 1000:.1f}",
+                    f"{100 * share:.1f}",
+                )
             )
+            name = html.escape(names.get(user, st.name))
+            rows.append(
+                f'<tr><td style="padding:2px 6px;white-space:nowrap">{swatch} {name}</td>'
+                f"{cells}</tr>"
+            )
+            why = starving(d, bot.delay.interval, share, kps, self.cfg.rate)
+            if why is not None and (worst is None or share > worst[0]):
+                worst = (share, why)
+        rows.append("</table>")
+        self.starving = None if worst is None else worst[1]
         return "\n".join(rows) if self.stats else "waiting for users ..."
+
+    def warning_text(self) -> str:
+        """The starvation warning (empty while the receiver is fed)."""
+        if self.starving is None:
+            return ""
+        return (
+            '<div style="background:#fde8e8;border-left:4px solid #d33;padding:6px 8px;'
+            'font-size:13px"><b>receiver starving</b>: '
+            f"{html.escape(self.starving)}. What you see lags and stutters: this machine "
+            "(or the link) is not keeping up; close other work, lower --fps, or ask a "
+            "lower --rate.</div>"
+        )
 
     async def show_loop(self, bot: _Bot, stop: float | None) -> None:
         period = 1.0 / self.cfg.fps
@@ -285,10 +387,13 @@ class LiveView:
         while bot.ending is None and (stop is None or self.clock() < stop):
             local = self.clock()
             if not self.paused:
+                while self._left:
+                    self.user_left(self._left.pop())
                 self.last_local = local
                 self.show_frame(bot, local + bot.est.offset)
             if local >= next_overlay:
                 self._overlay.content = self.overlay_text(bot, local)
+                self._warning.content = self.warning_text()
                 next_overlay = local + 0.5
             nxt += period
             if nxt < local:  # fell behind: resume on the grid, never burst

@@ -27,12 +27,14 @@ import numpy as np
 import viser
 import viser.uplot
 
-from posecast.view.scene import AvatarScene
+from posecast.view.scene import AvatarScene, method_colour, user_colour
 from posecast.view.timeline import TRUTH, ReplayModel
 
-__all__ = ["MAX_SPEED", "MIN_SPEED", "ReplayView"]
+__all__ = ["MAX_SPEED", "MIN_SPEED", "TRAIL_SECONDS", "ReplayView"]
 
 MIN_SPEED, MAX_SPEED = 0.1, 10.0
+#: Seconds of hand motion a trail shows.
+TRAIL_SECONDS = 1.0
 
 
 class ReplayView:
@@ -48,8 +50,9 @@ class ReplayView:
         port: int = 8080,
         fps: float = 60.0,
         loop: bool = True,
-        spread: float = 0.0,
+        spread: float | None = None,
         model: ReplayModel | None = None,
+        trail: float = TRAIL_SECONDS,
     ) -> None:
         self.model = model or ReplayModel(path, methods, rate)
         self.fps = fps
@@ -57,9 +60,18 @@ class ReplayView:
         self.server.gui.configure_theme(show_logo=False)
         self.server.gui.main_panel.dock_right()
         self.scene = AvatarScene(self.server, (TRUTH, *self.model.methods), spread=spread)
+        firsts = []
         for user in self.model.users:  # users keep their recorded order across the page
-            self.scene.offset(user)
-        self.scene.aim(len(self.model.users))
+            head = self.model.first_head(user)
+            if head is not None:
+                self.scene.anchor(user, head)
+                firsts.append(head[:3] + np.array([self.scene.offset(user), 0.0, 0.0]))
+            else:
+                self.scene.offset(user)
+        if firsts:
+            self.scene.frame(np.array(firsts))
+        #: Seconds of hand motion drawn behind each controller (0: no trails).
+        self.trail = trail
         self.lock = threading.Lock()
         self.t = self.model.start
         self.playing = False
@@ -94,6 +106,11 @@ class ReplayView:
                 box.on_update(self.scene.layer_toggle(meth))
             self.error_method = gui.add_dropdown("tip error of", m.methods)
             self.error_method.on_update(lambda _: self._update_strip())
+            self.trail_box = gui.add_checkbox("hand trails", self.trail > 0)
+            self.trail_box.on_update(lambda _: self.show(self.t))
+        names = ("room", *(f"u{u}" for u in m.users))
+        self.eyes = gui.add_dropdown("view from", names, initial_value="room")
+        self.eyes.on_update(lambda _: self._set_eyes(str(self.eyes.value)))
         with gui.add_folder("users and streams"):
             for user in m.users:
                 name = next(tr.user_name for tr in m.tracks if tr.user == user)
@@ -152,6 +169,11 @@ class ReplayView:
         self._update_strip()
         self.show(self.t)
 
+    def _set_eyes(self, name: str) -> None:
+        """``view from``: the room camera, or a user's eyes (``u3``)."""
+        with self.lock:
+            self.scene.set_first_person(None if name == "room" else int(name[1:]))
+
     def _select_user(self, user: int, event: viser.GuiEvent[Any]) -> None:
         on = bool(event.target.value)
         (self.model.selected_users.add if on else self.model.selected_users.discard)(user)
@@ -178,8 +200,38 @@ class ReplayView:
                 for (user, stream), poses in state.items():
                     if user in self.model.selected_users:
                         self.scene.show(user, f"u{user} {names[user]}", stream, poses)
+                self._draw_trails(t)
                 self.time_slider.value = round(t - self.model.start, 2)  # type: ignore[misc]
             self.frames += 1
+
+    def _draw_trails(self, t: float) -> None:
+        """The hands' last ``trail`` seconds: the truth in the user's colour, the
+        ``tip error of`` method in its own (where it strays is its error)."""
+        scene = self.server.scene
+        method = str(self.error_method.value)
+        on = self.trail > 0 and bool(self.trail_box.value)
+        for layer, colour_of in (
+            (TRUTH, user_colour),
+            (method, lambda _u: method_colour(method)),
+        ):
+            segs, cols = [], []
+            for tr, path in self.model.trails(t, self.trail, layer) if on else []:
+                if len(path) < 2:
+                    continue
+                path = path + np.array([self.scene.offset(tr.user), 0.0, 0.0])
+                segs.append(np.stack([path[:-1], path[1:]], axis=1))
+                cols.append(np.broadcast_to(colour_of(tr.user), (len(path) - 1, 2, 3)))
+            name = f"/trails/{'truth' if layer == TRUTH else 'method'}"
+            if segs:
+                scene.add_line_segments(
+                    name,
+                    np.concatenate(segs),
+                    np.concatenate(cols).astype(np.uint8),
+                    thickness=4.0,
+                    thickness_units="screen",
+                )
+            else:
+                scene.remove_by_name(name)
 
     def advance(self, dt: float) -> None:
         """Move time on by ``dt`` wall seconds at the current speed (loop or stop at the end)."""

@@ -7,8 +7,18 @@ first interpolator live) is solid in the user's colour; every further layer is
 a translucent ghost in its method's colour, so the same user drawn by several
 interpolators can be told apart. A stream node is a frame posed with
 ``[px, py, pz, qw, qx, qy, qz]`` (viser takes ``wxyz`` too: no conversion),
-with its geometry as children: a head box with a nose along -z (the view
-direction), a controller box, or a sphere for a held object (``object:*``).
+with its geometry as children: a head (a sphere with a dark visor on its -z
+side, where an OpenXR head looks), a controller (a grip and a tracking ring), or
+a sphere for a held object (``object:*``). The first layer's head also stands on
+a translucent body down to the floor, so users read as people standing in a room.
+
+Where users are drawn: where they are (bots and replays stand users on spawn
+points, ``scenarios.spawn``), except that a user whose head first shows up
+within :data:`CROWDED` m of another user's is drawn shifted along +x (by
+:data:`AUTO_STEP` m steps) until it stands clear, so recordings made before
+spawn points (every user near the origin) stay readable. ``spread`` > 0 draws the
+n-th user seen n * spread m along +x instead; ``spread`` 0 draws everyone where
+they are, crowded or not. :meth:`AvatarScene.frame` points the camera at the room.
 """
 
 from __future__ import annotations
@@ -24,7 +34,15 @@ from numpy.typing import NDArray
 
 from posecast.protocol.codec import DEFAULT_VOLUME, Volume
 
-__all__ = ["GHOST_OPACITY", "METHOD_COLOURS", "AvatarScene", "user_colour"]
+__all__ = [
+    "AUTO_STEP",
+    "CROWDED",
+    "GHOST_OPACITY",
+    "METHOD_COLOURS",
+    "AvatarScene",
+    "method_colour",
+    "user_colour",
+]
 
 #: Ghost colours by interpolator (others get a colour from their name's hash).
 METHOD_COLOURS: dict[str, tuple[int, int, int]] = {
@@ -37,11 +55,25 @@ METHOD_COLOURS: dict[str, tuple[int, int, int]] = {
     "soa-hermite": (200, 180, 40),
 }
 GHOST_OPACITY = 0.5
+#: Ghosts are drawn this much smaller than the solid layer.
+GHOST_SCALE = 0.85
 
-_HEAD = (0.18, 0.22, 0.2)
-_NOSE = (0.04, 0.04, 0.14)
-_HAND = (0.05, 0.05, 0.14)
+#: Geometry (m): the head sphere, the visor (width, height, depth) in front of it, the
+#: controller grip (w, h, d) and ring (radius, thickness), the body under the head.
+_HEAD_RADIUS = 0.11
+_VISOR = (0.19, 0.075, 0.06)
+_GRIP = (0.035, 0.035, 0.12)
+_RING = (0.05, 0.014)
+_BODY_RADIUS = 0.09
+_VISOR_COLOUR = (30, 30, 40)
 _OBJECT_RADIUS = 0.06
+#: A user whose head first shows up this close (m, on the floor) to another's is moved.
+CROWDED = 0.6
+#: How far along +x a crowded user is moved at a time (m).
+AUTO_STEP = 1.5
+#: The initial camera's elevation above the room (degrees) and vertical field of view.
+_ELEVATION_DEG = 32.0
+_FOV_DEG = 50.0
 
 
 def user_colour(user: int) -> tuple[int, int, int]:
@@ -65,6 +97,15 @@ class _Avatar:
     label: Any
     #: (layer, stream name) -> frame handle
     nodes: dict[tuple[str, str], Any] = field(default_factory=dict)
+    body: Any = None
+
+
+def _forward(wxyz: NDArray[np.float64]) -> NDArray[np.float64]:
+    """-z (where an OpenXR device points) rotated by a unit quaternion (w first)."""
+    w, x, y, z = (float(v) for v in wxyz)
+    return np.array(
+        [-2.0 * (x * z + w * y), -2.0 * (y * z - w * x), -(1.0 - 2.0 * (x * x + y * y))]
+    )
 
 
 class AvatarScene:
@@ -79,27 +120,40 @@ class AvatarScene:
         server: viser.ViserServer,
         layers: Sequence[str],
         volume: Volume = DEFAULT_VOLUME,
-        spread: float = 0.0,
+        spread: float | None = None,
     ) -> None:
         self.server = server
         self.layers = tuple(layers)
-        #: Draw the n-th user seen ``n * spread`` m along +x (0: where they are). Users
-        #: recorded in rooms of their own all stand near the origin; this sets them apart.
+        #: None: draw users where they are unless crowded (see the module docstring);
+        #: > 0: the n-th user seen n * spread m along +x; 0: where they are.
         self.spread = spread
-        self._slots: dict[int, int] = {}
+        self._offsets: dict[int, float] = {}
+        #: Where each user's head was first drawn (x, z), for the crowd rule.
+        self._first: dict[int, tuple[float, float]] = {}
         self.avatars: dict[int, _Avatar] = {}
         self.hidden_layers: set[str] = set()
+        #: The user whose eyes the camera follows (None: the room camera).
+        self.first_person: int | None = None
         #: What was last shown: (user, stream name) -> {layer: pose (7,)}.
         self.shown: dict[tuple[int, str], dict[str, NDArray[np.float64]]] = {}
         scene = server.scene
         cam = server.initial_camera
         cam.up = (0.0, 1.0, 0.0)
-        cam.position = (0.6, 2.4, 3.2)
-        cam.look_at = (0.0, 1.2, 0.0)
+        cam.fov = np.radians(_FOV_DEG)
+        self.frame(np.array([[-1.5, 1.6, -1.5], [1.5, 1.6, 1.5]]))
         scene.set_up_direction("+y")
         scene.world_axes.visible = False
-        scene.add_grid("/floor", width=8.0, height=8.0, plane="xz", cell_size=0.5)
+        # No environment map: viser keeps the canvas nearly transparent until one is
+        # loaded, which takes minutes in software WebGL on a busy machine. A sky light
+        # and the default lights do instead.
+        scene.configure_environment_map(None)
+        scene.configure_default_lights(True, cast_shadow=False)
+        scene.add_light_hemisphere(
+            "/sky", sky_color=(255, 255, 255), ground_color=(120, 120, 130), intensity=1.6
+        )
         lo, hi = np.asarray(volume.lo), np.asarray(volume.hi)
+        size = float(min(hi[0] - lo[0], hi[2] - lo[2], 16.0))
+        scene.add_grid("/floor", width=size, height=size, plane="xz", cell_size=0.5)
         scene.add_box(
             "/volume",
             color=(150, 150, 150),
@@ -131,23 +185,57 @@ class AvatarScene:
         scene = self.server.scene
         path = f"/users/u{av.user}/{layer}/{stream.replace(':', '_')}"
         node = scene.add_frame(path, show_axes=False)
+        # A ghost is a little smaller than the solid: where they agree the solid shows
+        # in the user's colour; where a method strays, its ghost shows.
+        size = GHOST_SCALE if ghost else 1.0
         if stream == "head":
-            scene.add_box(f"{path}/box", color=colour, dimensions=_HEAD, opacity=opacity)
-            # The nose points along -z: the view direction of an OpenXR head.
-            scene.add_box(
-                f"{path}/nose",
+            scene.add_icosphere(
+                f"{path}/head",
+                radius=_HEAD_RADIUS * size,
                 color=colour,
-                dimensions=_NOSE,
-                position=(0.0, -0.02, -0.15),
+                opacity=opacity,
+                subdivisions=2,
+            )
+            # The visor faces -z: the view direction of an OpenXR head.
+            scene.add_box(
+                f"{path}/visor",
+                color=_VISOR_COLOUR if not ghost else colour,
+                dimensions=size * np.array(_VISOR),
+                position=(0.0, 0.01, -0.085 * size),
                 opacity=opacity,
             )
+            if not ghost:
+                av.body = scene.add_cylinder(
+                    f"/users/u{av.user}/body",
+                    radius=_BODY_RADIUS,
+                    height=1.0,
+                    color=colour,
+                    opacity=0.25,
+                    cast_shadow=False,
+                    radial_segments=16,
+                    wxyz=(np.sqrt(0.5), np.sqrt(0.5), 0.0, 0.0),  # its axis (z) upright
+                )
         elif stream.startswith("object:"):
             scene.add_icosphere(
                 f"{path}/ball", radius=_OBJECT_RADIUS, color=colour, opacity=opacity
             )
         else:
-            scene.add_box(f"{path}/box", color=colour, dimensions=_HAND, opacity=opacity)
-        node.visible = layer not in self.hidden_layers
+            # A controller: the grip along -z (where it points) and the ring above it.
+            grip = size * np.array(_GRIP)
+            scene.add_box(f"{path}/grip", color=colour, dimensions=grip, opacity=opacity)
+            scene.add_cylinder(
+                f"{path}/ring",
+                radius=_RING[0] * size,
+                height=_RING[1] * size,
+                color=colour,
+                opacity=opacity,
+                radial_segments=16,
+                position=(0.0, 0.03, -0.06),
+                wxyz=(np.cos(0.35), np.sin(0.35), 0.0, 0.0),
+            )
+        node.visible = layer not in self.hidden_layers and not (
+            stream == "head" and av.user == self.first_person
+        )
         av.nodes[(layer, stream)] = node
         return node
 
@@ -160,6 +248,8 @@ class AvatarScene:
     ) -> None:
         """Pose one stream of ``user`` in each layer given (``poses[layer]``: (7,))."""
         av = self._ensure(user, name)
+        if stream == "head" and user not in self._first and poses:
+            self.anchor(user, next(iter(poses.values())))
         dx = self.offset(user)
         for layer, pose in poses.items():
             node = self._node(av, layer, stream)
@@ -168,21 +258,97 @@ class AvatarScene:
         self.shown[(user, stream)] = poses
         if stream == "head" and self.layers[0] in poses:
             p = poses[self.layers[0]]
-            av.label.position = (float(p[0]) + dx, float(p[1]) + 0.25, float(p[2]))
+            x, y, z = float(p[0]) + dx, float(p[1]), float(p[2])
+            av.label.position = (x, y + 0.3, z)
+            if av.body is not None:
+                tall = max(0.2, y - 0.25)
+                av.body.position = (x, tall / 2, z)
+                av.body.scale = (1.0, 1.0, tall)
+            if user == self.first_person:
+                self._look_from(p, dx)
 
-    def aim(self, users: int) -> None:
-        """Point the initial camera at the middle of ``users`` users drawn ``spread`` apart."""
-        mid = (users - 1) * self.spread / 2
-        cam = self.server.initial_camera
-        cam.look_at = (mid, 1.2, 0.0)
-        cam.position = (mid + 0.6, 2.4, 3.2 + 0.8 * mid)
+    def anchor(self, user: int, head: NDArray[np.float64]) -> None:
+        """Fix where ``user`` is drawn from its first head pose (the crowd rule)."""
+        x, z = float(head[0]), float(head[2])
+        dx = 0.0
+        if self.spread is None:
+            taken = [(fx + self._offsets.get(u, 0.0), fz) for u, (fx, fz) in self._first.items()]
+            while any(np.hypot(x + dx - tx, z - tz) < CROWDED for tx, tz in taken):
+                dx += AUTO_STEP
+            self._offsets[user] = dx
+        self._first[user] = (x, z)
 
     def offset(self, user: int) -> float:
-        """How far along +x ``user`` is drawn from where it is (see ``spread``)."""
+        """How far along +x ``user`` is drawn from where it is (see the module docstring)."""
+        if self.spread is None:
+            return self._offsets.get(user, 0.0)
         if not self.spread:
             return 0.0
-        slot = self._slots.setdefault(user, len(self._slots))
-        return slot * self.spread
+        if user not in self._offsets:
+            self._offsets[user] = len(self._offsets) * self.spread
+        return self._offsets[user]
+
+    # -- the camera ------------------------------------------------------------------
+
+    def frame(self, points: NDArray[np.float64]) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """Point the camera (the initial one, and every open page's) at a room holding
+        ``points`` (N, 3): from behind them (+z) and above, far enough to see all; the
+        (position, look-at) it chose."""
+        pts = np.atleast_2d(np.asarray(points, dtype=np.float64))
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        centre = (lo + hi) / 2
+        half = max(1.2, float(np.hypot(hi[0] - lo[0], hi[2] - lo[2])) / 2 + 0.6)
+        dist = 1.1 * half / np.tan(np.radians(_FOV_DEG) / 2)
+        el = np.radians(_ELEVATION_DEG)
+        look = (float(centre[0]), 1.0, float(centre[2]))
+        pos = (look[0], 1.0 + dist * float(np.sin(el)), look[2] + dist * float(np.cos(el)))
+        init = self.server.initial_camera
+        init.up = (0.0, 1.0, 0.0)
+        init.position, init.look_at = pos, look
+        for client in self.server.get_clients().values():
+            client.camera.up_direction = (0.0, 1.0, 0.0)
+            client.camera.position, client.camera.look_at = pos, look
+        return pos, look
+
+    def frame_users(self) -> None:
+        """:meth:`frame` the heads shown now (nothing shown: leave the camera)."""
+        heads = [
+            poses[self.layers[0]][:3] + np.array([self.offset(u), 0.0, 0.0])
+            for (u, s), poses in self.shown.items()
+            if s == "head" and self.layers[0] in poses
+        ]
+        if heads and self.first_person is None:
+            self.frame(np.array(heads))
+
+    def aim(self, users: int) -> None:
+        """Point the camera at ``users`` users drawn ``spread`` apart (before any shows)."""
+        step = self.spread or AUTO_STEP
+        self.frame(np.array([[0.0, 1.6, -0.5], [(users - 1) * step, 1.6, 0.5]]))
+
+    def set_first_person(self, user: int | None) -> None:
+        """Look through ``user``'s eyes (their head hidden), or back at the room (None)."""
+        old, self.first_person = self.first_person, user
+        for u in (old, user):
+            av = self.avatars.get(u) if u is not None else None
+            if av is not None:
+                for (layer, s), node in av.nodes.items():
+                    if s == "head":
+                        node.visible = u != user and layer not in self.hidden_layers
+        if user is None:
+            self.frame_users()
+        elif (user, "head") in self.shown:
+            poses = self.shown[(user, "head")]
+            self._look_from(next(iter(poses.values())), self.offset(user))
+
+    def _look_from(self, head: NDArray[np.float64], dx: float) -> None:
+        eye = np.array([float(head[0]) + dx, float(head[1]), float(head[2])])
+        fwd = _forward(head[3:7])
+        for client in self.server.get_clients().values():
+            cam = client.camera
+            cam.up_direction = (0.0, 1.0, 0.0)
+            cam.position, cam.look_at = eye, eye + fwd
+
+    # -- layers, users, streams ------------------------------------------------------
 
     def set_layer_visible(self, layer: str, visible: bool) -> None:
         """Show or hide one layer (a ghost method) on every avatar."""
@@ -208,6 +374,8 @@ class AvatarScene:
         for (_, s), node in av.nodes.items():
             if s == stream:
                 node.visible = False
+        if stream == "head" and av.body is not None:
+            av.body.visible = False
         self.shown.pop((user, stream), None)
 
     def unhide_stream(self, user: int, stream: str) -> None:
@@ -217,11 +385,15 @@ class AvatarScene:
         for (layer, s), node in av.nodes.items():
             if s == stream:
                 node.visible = layer not in self.hidden_layers
+        if stream == "head" and av.body is not None:
+            av.body.visible = True
 
     def set_user_visible(self, user: int, visible: bool) -> None:
         av = self.avatars.get(user)
         if av is not None:
             av.label.visible = visible
+            if av.body is not None:
+                av.body.visible = visible
             for (layer, _), node in av.nodes.items():
                 node.visible = visible and layer not in self.hidden_layers
 
@@ -233,3 +405,5 @@ class AvatarScene:
         self.server.scene.remove_by_name(f"/users/u{user}")
         for key in [k for k in self.shown if k[0] == user]:
             del self.shown[key]
+        if self.first_person == user:
+            self.set_first_person(None)

@@ -142,6 +142,27 @@ class ReplayModel:
             }
         return out
 
+    def first_head(self, user: int) -> F64 | None:
+        """``user``'s first recorded head pose (7,), None without a head stream."""
+        for tr in self.tracks:
+            if tr.user == user and tr.name == "head":
+                first: F64 = tr.truth[0]
+                return first
+        return None
+
+    def trails(self, t: float, seconds: float, layer: str) -> list[tuple[Track, F64]]:
+        """Per selected hand stream (``left``, ``right``): its positions (K, 3) in
+        ``layer`` over the recorded samples in ``(t - seconds, t]``."""
+        out = []
+        for tr in self.selected():
+            if tr.name not in ("left", "right"):
+                continue
+            lo = int(np.searchsorted(tr.times, t - seconds, side="right"))
+            hi = tr.index_at(t) + 1
+            poses = tr.truth if layer == TRUTH else tr.rendered[layer]
+            out.append((tr, poses[lo:hi, :3]))
+        return out
+
     def step(self, t: float, direction: int) -> float:
         """The next (``direction`` > 0) or previous recorded sample time of the selected
         streams after (before) ``t``; ``t`` itself at either end."""

@@ -41,6 +41,20 @@ FPS_JS = """() => new Promise(done => {
 })"""
 
 
+SCENE_READY_JS = """() => {
+  const c = Array.from(document.querySelectorAll('canvas')).sort(
+    (a, b) => b.width * b.height - a.width * a.height)[0];
+  return c !== undefined && c.width > 100 && getComputedStyle(c).opacity === '1';
+}"""
+
+
+async def scene_ready(page: Page, limit: float = 300.0) -> None:
+    """Wait until viser's 3D canvas is drawn at full opacity: it is kept at 5 % until
+    its environment map is loaded, which takes a minute in software WebGL on a busy
+    machine (a screenshot before then is nearly white)."""
+    await page.wait_for_function(SCENE_READY_JS, timeout=limit * 1000)
+
+
 async def until(condition: Callable[[], bool], limit: float = 30.0) -> None:
     """Wait (polling, no fixed sleep) until ``condition()`` holds; fail after ``limit`` s."""
     deadline = time.monotonic() + limit

@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 
 import numpy as np
-from pagekit import canvas_rgb, project, saturated_near, until
+from pagekit import canvas_rgb, project, saturated_near, scene_ready, until
 from playwright.async_api import Page
 from support import running_server
 
@@ -65,6 +65,7 @@ async def test_live_view_shows_every_remote_user(page: Page) -> None:
                 ]
                 watcher = tg.create_task(view.run())
                 await page.goto(view.url)
+                await scene_ready(page)
                 await until(lambda: len(view.scene.avatars) == 2 and view.frames > 30)
                 await page.wait_for_selector("text=keyframes/s", timeout=30_000)
                 # Freeze the page on one frame, let it arrive, then read the page back.
@@ -106,3 +107,28 @@ async def test_live_view_shows_every_remote_user(page: Page) -> None:
         assert saturated_near(img, xy) > 0.05, xy
     # Control: the sky above the scene holds no avatar (the same test fails there).
     assert saturated_near(img, np.array([w / 2, 40.0]), radius=20) == 0.0
+
+
+def test_starvation_is_named_with_its_reasons() -> None:
+    """A fed receiver gets no warning; a long D, many stalls or too few keyframes each
+    give one, with the figures (as the issue saw: D 415 ms, 15 % stalls at 10 Hz)."""
+    from posecast.view.live import starving
+
+    assert starving(0.18, 0.1, 0.01, 10.0, 10.0) is None
+    why = starving(0.415, 0.1, 0.15, 9.8, 10.0)
+    assert why is not None and "D 415 ms" in why and "15 % of frames stalled" in why
+    short = starving(0.2, 0.1, 0.0, 6.0, 10.0)
+    assert short is not None and "6.0 keyframes/s of 10 asked" in short
+
+
+def test_recent_stalls_forget_the_old_frames() -> None:
+    """The table's stall share covers the last 5 s: a bad start stops counting."""
+    from posecast.view.live import UserStats
+
+    st = UserStats("u1")
+    st.frames, st.stalls = 100, 50
+    assert st.recent_stalls(0.0) == 0.5
+    for k in range(1, 30):  # 100 good frames every 0.5 s from now on
+        st.frames += 100
+        share = st.recent_stalls(0.5 * k)
+    assert share == 0.0

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from pagekit import canvas_rgb, project, saturated_near, until
+from pagekit import canvas_rgb, project, saturated_near, scene_ready, until
 from playwright.async_api import Page
 
 from posecast.recorder.reader import SessionReader
@@ -100,6 +100,7 @@ async def test_dragging_the_timeline_shows_that_time(recording: Path, page: Page
     try:
         runner = asyncio.create_task(view.run())
         await page.goto(view.url)
+        await scene_ready(page)
         thumb = page.locator('[role="slider"]').first
         await thumb.wait_for(timeout=30_000)
         track = await page.locator(".mantine-Slider-root").first.bounding_box()
@@ -134,6 +135,20 @@ async def test_dragging_the_timeline_shows_that_time(recording: Path, page: Page
             w,
             h,
         )
+        # View from the first user: the page's camera goes to its eyes and looks its
+        # way; its own head is hidden; back to the room, it shows again.
+        first = view.model.users[0]
+        view.eyes.value = f"u{first}"
+        await until(lambda: bool(np.allclose(cam.position, heads[first], atol=1e-3)))
+        w_, x_, y_, z_ = view.scene.shown[(first, "head")][TRUTH][3:]
+        forward = -np.array(
+            [2 * (x_ * z_ + w_ * y_), 2 * (y_ * z_ - w_ * x_), 1 - 2 * (x_**2 + y_**2)]
+        )
+        assert np.allclose(cam.look_at - cam.position, forward, atol=1e-3)
+        assert not view.scene.avatars[first].nodes[(TRUTH, "head")].visible
+        view.eyes.value = "room"
+        await until(lambda: view.scene.first_person is None)
+        assert view.scene.avatars[first].nodes[(TRUTH, "head")].visible
         runner.cancel()
     finally:
         view.close()

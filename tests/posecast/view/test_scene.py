@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import viser
 
-from posecast.view.scene import AvatarScene, user_colour
+from posecast.view.scene import AUTO_STEP, CROWDED, AvatarScene, user_colour
 
 POSE = np.array([0.1, 1.6, -0.2, 1.0, 0.0, 0.0, 0.0])
 
@@ -52,3 +52,54 @@ def test_layers_hide_and_users_go(server: viser.ViserServer) -> None:
         assert nodes[("soa", "head")].visible and not nodes[("dq-slerp", "head")].visible
     scene.remove_user(1)
     assert 1 not in scene.avatars and (1, "head") not in scene.shown
+
+
+def test_crowded_users_are_drawn_clear_of_each_other(server: viser.ViserServer) -> None:
+    """By default users are drawn where they are; one whose head first shows up on
+    another's is moved along +x in AUTO_STEP steps until it stands clear."""
+    scene = AvatarScene(server, ("soa",))
+    apart = POSE + np.array([3.0, 0, 0, 0, 0, 0, 0])
+    for user, pose in ((1, POSE), (2, apart), (3, POSE), (4, POSE)):
+        scene.show(user, f"u{user}", "head", {"soa": pose})
+    assert [scene.offset(u) for u in (1, 2, 3, 4)] == [0.0, 0.0, AUTO_STEP, 3 * AUTO_STEP]
+    drawn = np.array([scene.avatars[u].nodes[("soa", "head")].position for u in (1, 2, 3, 4)])
+    gaps = np.linalg.norm(drawn[:, None, [0, 2]] - drawn[None, :, [0, 2]], axis=-1)
+    assert gaps[np.triu_indices(4, 1)].min() >= CROWDED
+    # spread 0: where they are, crowded or not.
+    flat = AvatarScene(server, ("soa",), spread=0.0)
+    for user in (1, 2):
+        flat.show(user, f"u{user}", "head", {"soa": POSE})
+    assert flat.offset(2) == 0.0
+
+
+def test_frame_puts_the_room_in_view(server: viser.ViserServer) -> None:
+    """The camera framed on a room sees every given point inside its field of view,
+    from behind (+z) and above, looking at the room's middle."""
+    scene = AvatarScene(server, ("soa",))
+    pts = np.array([[-4.0, 1.6, -3.0], [4.0, 1.6, 3.0], [0.0, 0.2, 0.0]])
+    pos, look = scene.frame(pts)
+    p, c = np.array(pos), np.array(look)
+    assert p[1] > 2.0 and p[2] > 3.0 and np.allclose(c[[0, 2]], 0.0)
+    fwd = (c - p) / np.linalg.norm(c - p)
+    fov = float(server.initial_camera.fov)
+    for q in pts:
+        d = (q - p) / np.linalg.norm(q - p)
+        assert np.degrees(np.arccos(d @ fwd)) < np.degrees(fov / 2) * 1.3  # wide page
+
+
+def test_first_person_hides_the_own_head(server: viser.ViserServer) -> None:
+    """Looking through a user's eyes hides that user's head (not its hands, not others');
+    back to the room shows it again; a user who leaves gives the room camera back."""
+    scene = AvatarScene(server, ("soa", "dq-slerp"))
+    for user in (1, 2):
+        for stream in ("head", "left"):
+            scene.show(user, f"u{user}", stream, {"soa": POSE, "dq-slerp": POSE})
+    scene.set_first_person(1)
+    nodes = scene.avatars[1].nodes
+    assert not nodes[("soa", "head")].visible and not nodes[("dq-slerp", "head")].visible
+    assert nodes[("soa", "left")].visible and scene.avatars[2].nodes[("soa", "head")].visible
+    scene.set_first_person(None)
+    assert nodes[("soa", "head")].visible
+    scene.set_first_person(2)
+    scene.remove_user(2)
+    assert scene.first_person is None
