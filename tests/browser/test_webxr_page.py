@@ -314,21 +314,27 @@ async def test_the_page_resumes_after_its_socket_is_cut(
 ) -> None:
     """The relay's side of the page's TCP connection is aborted: the SDK resumes with its
     token; the bot sees peer_stalled then peer_resumed (never peer_left), the same user
-    publishing again."""
-    async with relay_and_bots(None, "cut", 1) as (relay, (bot,)):
+    publishing again. (Silence is not announced here: on a loaded machine a starved
+    page could be announced stalled for it, which is the next test's subject.)"""
+    cfg = ServerConfig(host="127.0.0.1", port=0, stall_after=0.0)
+    async with relay_and_bots(cfg, "cut", 1) as (relay, (bot,)):
         page = await open_page(browser, web_port, relay, "cut")
         user = await wait_publishing(page)
         relay.connection_of(user).abort()
+
+        async def page_resumed() -> bool:
+            notices = await page.evaluate("() => window.posecastPage.notices")
+            return ["resumed", user] in notices
+
+        await until(page_resumed)
         await until(lambda: ("peer_resumed", user) in bot.notices)
         assert [n for n in bot.notices if n[1] == user] == [
             ("peer_stalled", user),
             ("peer_resumed", user),
         ]
-        notices = await page.evaluate("() => window.posecastPage.notices")
-        assert ["resumed", user] in notices
         head = int(await page.evaluate("() => window.posecastPage.client.streams.head"))
-        before = len(bot.keyframes[(user, head)])
-        await until(lambda: len(bot.keyframes[(user, head)]) > before + 3)
+        before = len(bot.keyframes.get((user, head), []))
+        await until(lambda: len(bot.keyframes.get((user, head), [])) > before + 3)
 
 
 async def test_a_frozen_page_is_reported_stalled_to_the_bots(
@@ -340,15 +346,18 @@ async def test_a_frozen_page_is_reported_stalled_to_the_bots(
     async with relay_and_bots(cfg, "frozen", 1) as (relay, (bot,)):
         page = await open_page(browser, web_port, relay, "frozen")
         user = await wait_publishing(page)
+        before = len(bot.notices)
         await page.evaluate(
             "() => { setTimeout(() => { const end = performance.now() + 2000; "
             "while (performance.now() < end) {} }, 0); }"
         )
-        await until(lambda: ("peer_resumed", user) in bot.notices)
-        assert [n for n in bot.notices if n[1] == user] == [
+        await until(lambda: ("peer_resumed", user) in bot.notices[before:])
+        # (A page starved by a loaded machine may be announced again after.)
+        assert [n for n in bot.notices[before:] if n[1] == user][:2] == [
             ("peer_stalled", user),
             ("peer_resumed", user),
         ]
+        assert ("peer_left", user) not in bot.notices
         assert relay.core.silence.stalls >= 1
 
 
