@@ -43,10 +43,15 @@ async def test_live_view_shows_every_remote_user(page: Page) -> None:
     async with running_server() as srv:
         url = f"ws://127.0.0.1:{srv.port}"
         view = LiveView(
-            LiveConfig(url=url, room="r", methods=METHODS, port=0, rate=15.0, spread=1.5)
+            LiveConfig(url=url, room="r", methods=METHODS, port=0, rate=15.0, spread=1.5, fps=20.0)
         )
         try:
             async with asyncio.TaskGroup() as tg:
+                watcher = tg.create_task(view.run())
+                # The page first, then the bots: a page drawn in software on a busy
+                # machine loads slowly while poses stream in.
+                await page.goto(view.url)
+                await scene_ready(page)
                 bots = [
                     tg.create_task(
                         run_bot(
@@ -63,11 +68,8 @@ async def test_live_view_shows_every_remote_user(page: Page) -> None:
                     )
                     for i in range(2)
                 ]
-                watcher = tg.create_task(view.run())
-                await page.goto(view.url)
-                await scene_ready(page)
-                await until(lambda: len(view.scene.avatars) == 2 and view.frames > 30)
-                await page.wait_for_selector("text=keyframes/s", timeout=30_000)
+                await until(lambda: len(view.scene.avatars) == 2 and view.frames > 30, 60)
+                await page.wait_for_selector("text=keyframes/s", timeout=60_000)
                 # Freeze the page on one frame, let it arrive, then read the page back.
                 view.paused = True
                 t_play, _, shown = view.last_frame
