@@ -83,8 +83,14 @@ from posecast.protocol import (
 from posecast.protocol.errors import ErrorCode
 from posecast.protocol.objects import pose_tuple
 from posecast.recorder.objects import ObjectAction
-from posecast.recorder.plan import ReplayPlan, UserPlan, merge_updates, plan_replay, select_plan
-from posecast.recorder.replay import spawn_plan
+from posecast.recorder.plan import (
+    ReplayPlan,
+    UserPlan,
+    merge_updates,
+    plan_replay,
+    select_plan,
+    spawn_plan,
+)
 from posecast.scenarios.motion import MotionSpec
 from posecast.scenarios.receiver import ClockEstimator
 from posecast.scenarios.traces import TraceError
@@ -542,6 +548,24 @@ def _report(
     }
 
 
+def _plan(
+    path: str | os.PathLike[str],
+    room: str | None,
+    window: tuple[float, float | None, Sequence[str] | None],
+    spawn: str,
+) -> ReplayPlan:
+    """The recording's replay plan: read, cut to the ``(start, duration, users)``
+    window, moved onto the ``spawn`` layout; a plan with no users is refused."""
+    plan = plan_replay(path, room)
+    start_s, duration_s, users = window
+    if start_s or duration_s is not None or users is not None:
+        plan = select_plan(plan, start_s, duration_s, users)
+    plan = spawn_plan(plan, spawn)
+    if not plan.users:
+        raise ValueError(f"{path}: no pose updates to replay")
+    return plan
+
+
 async def replay_live(
     path: str | os.PathLike[str],
     url: str,
@@ -587,16 +611,11 @@ async def replay_live(
     volume, to 0.25 mm and 0.034 deg) or ``raw`` (the recorded floats exactly);
     ``object_patience``: see the module docstring (shared objects). ``spawn``: a
     layout of :mod:`scenarios.spawn` the users are moved onto
-    (:func:`recorder.replay.spawn_plan`; ``none``: as recorded)."""
+    (:func:`recorder.plan.spawn_plan`; ``none``: as recorded)."""
     if not max_send_rate > 0:
         raise ValueError("max_send_rate must be positive")
     # Reading the recording is file I/O: not on the event loop.
-    plan = await asyncio.to_thread(plan_replay, path, room)
-    if start_s or duration_s is not None or users is not None:
-        plan = select_plan(plan, start_s, duration_s, users)
-    plan = spawn_plan(plan, spawn)
-    if not plan.users:
-        raise ValueError(f"{path}: no pose updates to replay")
+    plan = await asyncio.to_thread(_plan, path, room, (start_s, duration_s, users), spawn)
     factor = _replay_factor(plan, speed, max_send_rate)
     est = ClockEstimator()
     bots: list[_ReplayBot] = []

@@ -34,7 +34,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -56,7 +56,7 @@ from posecast.scenarios.qoe import (
     summarize,
     window_depth,
 )
-from posecast.scenarios.spawn import Placement, layout_points, place, placement_for
+from posecast.scenarios.spawn import layout_points, place, placement_for
 from posecast.scenarios.traces import DEVICE_NAMES, Trace, find_traces, load_trace
 
 __all__ = [
@@ -64,12 +64,8 @@ __all__ = [
     "bench_replay",
     "recording_stem",
     "replay_offline",
-    "spawn_plan",
     "synthesize_recording",
 ]
-
-if TYPE_CHECKING:  # recorder.plan imports this module
-    from posecast.recorder.plan import ReplayPlan
 
 F64 = NDArray[np.float64]
 
@@ -541,58 +537,6 @@ def _record_updates(rec: SessionRecorder, per_user: list[_SynthUpdates], start: 
             None if vel is None else vel[r],
         )
     return float(arrivals.max()) if arrivals.size else start
-
-
-def spawn_plan(plan: ReplayPlan, layout: str) -> ReplayPlan:
-    """``plan`` with user ``i`` moved onto spawn point ``i`` of ``layout``
-    (:mod:`scenarios.spawn`; ``none``: ``plan`` itself). Each user's every pose and
-    velocity goes through the rigid map that puts its first recorded head pose on
-    the point, facing the point's way; a motion label gains that map (after any it
-    had), so live receivers score against the moved ground truth. A user without a
-    ``head`` stream stays where it is. Object actions are not moved."""
-    points = layout_points(layout, max(1, len(plan.users)))
-    if points is None or not plan.users:
-        return plan
-    users = []
-    for up, point in zip(plan.users, points, strict=False):
-        head = [k for k, name in up.streams.items() if name == "head"]
-        rows = [(c[i], p[i]) for ids, c, p in up.updates for i in np.flatnonzero(ids == head[:1])]
-        if not rows:
-            users.append(up)
-            continue
-        times = np.array([r[0] for r in rows], dtype=np.float64)
-        order = np.argsort(times, kind="stable")
-        poses = np.array([r[1] for r in rows], dtype=np.float64)[order][:, None, :]
-        at = placement_for(Trace(up.name, times[order], poses, ("head",)), point)
-        updates = [(ids, c, at.apply(p).astype(np.float32)) for ids, c, p in up.updates]
-        vels = None
-        if up.velocities is not None:  # world-frame linear and angular: both turn
-            turn = replace(at, x=0.0, z=0.0)
-            vels = [
-                np.concatenate([_turned(turn, v[:, :3]), _turned(turn, v[:, 3:])], axis=1).astype(
-                    np.float32
-                )
-                for v in up.velocities
-            ]
-        label = up.label
-        try:
-            spec = MotionSpec.parse(label) if label else None
-        except ValueError:
-            spec = None
-        if spec is not None:
-            label = replace(
-                spec, placement=at if spec.placement is None else spec.placement.then(at)
-            ).label()
-        users.append(replace(up, updates=updates, velocities=vels, label=label))
-    return replace(plan, users=users)
-
-
-def _turned(turn: Placement, v: NDArray[np.float32]) -> F64:
-    """Vectors (n, 3) turned by a placement's rotation (no shift)."""
-    pose = np.zeros((v.shape[0], 7))
-    pose[:, :3], pose[:, 3] = v, 1.0
-    out: F64 = turn.apply(pose)[:, :3]
-    return out
 
 
 def synthesize_recording(

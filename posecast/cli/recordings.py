@@ -125,26 +125,7 @@ def replay(
     _check_replay_args(offline, url, (start, duration, users, loop), codec, object_patience)
     chosen = None if users is None else [u for u in users.split(",") if u.strip()]
     if offline:
-        from posecast.recorder.replay import replay_offline
-
-        methods = _parse_methods(interp_)
-        if rate <= 0:
-            raise _fail("--rate must be positive")
-        _check_offline_rate(file, rate)
-        try:
-            with console.status(f"reconstructing {file.name} at {rate:g} Hz ..."):
-                report = replay_offline(
-                    file, methods, rate, out, start=start, duration=duration, users=chosen
-                )
-        except (OSError, ValueError) as exc:
-            raise _fail(f"{file}: {exc}") from None
-        print_comparison(
-            f"{file.name}: keyframes at {rate:g} Hz, rendered at 90 Hz, vs the recorded streams",
-            {rate: report["qoe"]},
-        )
-        _print_objects(report)
-        if out is not None:
-            console.print(f"rendered poses written to {out}")
+        report = _replay_offline(file, interp_, rate, out, (start, duration, chosen))
     else:
         assert url is not None
         span = (start, duration, chosen)
@@ -155,6 +136,38 @@ def replay(
     if json_out is not None:
         json_out.write_text(json.dumps(report, indent=2, default=str))
         console.print(f"wrote {json_out}")
+
+
+def _replay_offline(
+    file: Path,
+    interp_: str,
+    rate: float,
+    out: Path | None,
+    span: tuple[float, float | None, list[str] | None],
+) -> dict[str, Any]:
+    """``replay --offline``: reconstruct ``file`` at ``rate`` Hz, print its QoE table."""
+    from posecast.recorder.replay import replay_offline
+
+    methods = _parse_methods(interp_)
+    if rate <= 0:
+        raise _fail("--rate must be positive")
+    _check_offline_rate(file, rate)
+    start, duration, chosen = span
+    try:
+        with console.status(f"reconstructing {file.name} at {rate:g} Hz ..."):
+            report = replay_offline(
+                file, methods, rate, out, start=start, duration=duration, users=chosen
+            )
+    except (OSError, ValueError) as exc:
+        raise _fail(f"{file}: {exc}") from None
+    print_comparison(
+        f"{file.name}: keyframes at {rate:g} Hz, rendered at 90 Hz, vs the recorded streams",
+        {rate: report["qoe"]},
+    )
+    _print_objects(report)
+    if out is not None:
+        console.print(f"rendered poses written to {out}")
+    return report
 
 
 def _check_offline_rate(file: Path, rate: float) -> None:

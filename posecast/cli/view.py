@@ -21,7 +21,11 @@ __all__ = ["VIEW_METHODS", "view"]
 VIEW_METHODS = "soa,dq-slerp,motor-hermite"
 
 
-def _check_view_args(port: int, fps: float, rate: float, spread: float | None) -> None:
+def _check_view_args(
+    port: int, fps: float, rate: float, spread: float | None, duration: float | None
+) -> None:
+    if duration is not None and duration <= 0:
+        raise _fail("--duration must be positive")
     if not 0 <= port <= 65535:
         raise _fail(f"--port {port} is not a TCP port (0-65535; 0: any free port)")
     if not fps > 0:
@@ -80,9 +84,7 @@ def view(
     if url is not None and not url.startswith(("ws://", "wss://")):
         raise _fail(f"--url {url!r} is not a websocket URL (ws://HOST:PORT)")
     methods = tuple(_parse_methods(interp_))
-    _check_view_args(port, fps, rate, spread)
-    if duration is not None and duration <= 0:
-        raise _fail("--duration must be positive")
+    _check_view_args(port, fps, rate, spread, duration)
     if file is not None:
         from posecast.cli.recordings import _recording
         from posecast.view.replay import ReplayView

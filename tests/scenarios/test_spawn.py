@@ -213,8 +213,8 @@ def test_the_cli_refuses_a_bad_layout_in_one_line(args: list[str], message: str)
 def test_a_replay_plan_moves_each_user_with_its_ground_truth(tmp_path: Path) -> None:
     """``replay --spawn``: each recorded user's poses go to its spawn point, and its
     label's ground truth moves with them (what a live receiver scores against)."""
-    from posecast.recorder.plan import plan_replay
-    from posecast.recorder.replay import spawn_plan, synthesize_recording
+    from posecast.recorder.plan import plan_replay, spawn_plan
+    from posecast.recorder.replay import synthesize_recording
 
     rec = synthesize_recording(tmp_path, users=3, rate=30.0, duration=3.0)
     plan = plan_replay(rec)
