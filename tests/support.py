@@ -3,12 +3,37 @@
 from __future__ import annotations
 
 import asyncio
+import os
+import shutil
 from collections.abc import Callable
 from contextlib import AbstractAsyncContextManager
 
 from posecast.server.app import RelayServer, ServerConfig, serving
 
-__all__ = ["import_root", "poll_until", "relayed", "running_server"]
+__all__ = [
+    "CHROMIUM_ARGS",
+    "find_chromium",
+    "import_root",
+    "poll_until",
+    "relayed",
+    "running_server",
+]
+
+#: Software WebGL (SwiftShader): what a machine without a GPU (CI, this one) renders with.
+CHROMIUM_ARGS = ["--use-gl=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"]
+
+
+def find_chromium() -> str | None:
+    """``POSECAST_CHROMIUM``, else ``chromium`` or ``chromium-browser`` on PATH."""
+    env = os.environ.get("POSECAST_CHROMIUM")
+    if env:
+        return env if os.path.exists(env) else None
+    for name in ("chromium", "chromium-browser"):
+        found = shutil.which(name)
+        if found:
+            return found
+    return None
+
 
 #: The repository's folders, each installed as ``posecast.<folder>``.
 FOLDERS = frozenset({"server", "client", "protocol", "interp", "recorder", "scenarios"})

@@ -8,30 +8,14 @@ when Chromium is missing (PATH, ``POSECAST_CHROMIUM``).
 
 from __future__ import annotations
 
-import os
-import shutil
 from collections.abc import AsyncIterator, Iterator
 
 import pytest
 import pytest_asyncio
 from playwright.async_api import Browser, BrowserContext, async_playwright
+from support import CHROMIUM_ARGS, find_chromium
 
 from posecast.cli.web import ensure_built, page_server
-
-#: Software WebGL (SwiftShader): what a machine without a GPU renders with.
-CHROMIUM_ARGS = ["--use-gl=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"]
-
-
-def find_chromium() -> str | None:
-    """``POSECAST_CHROMIUM``, else ``chromium`` or ``chromium-browser`` on PATH."""
-    env = os.environ.get("POSECAST_CHROMIUM")
-    if env:
-        return env if os.path.exists(env) else None
-    for name in ("chromium", "chromium-browser"):
-        found = shutil.which(name)
-        if found:
-            return found
-    return None
 
 
 @pytest.fixture(scope="session")

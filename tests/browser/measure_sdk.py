@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import sys
 from pathlib import Path
 
 from playwright.async_api import CDPSession, Page, async_playwright
@@ -21,7 +22,9 @@ from playwright.async_api import CDPSession, Page, async_playwright
 from posecast.cli.web import ensure_built, page_server
 
 ROOT = Path(__file__).resolve().parents[2]
-CHROMIUM_ARGS = ["--use-gl=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"]
+sys.path.insert(0, str(ROOT / "tests"))
+
+from support import CHROMIUM_ARGS, find_chromium  # noqa: E402
 
 SETUP_JS = """async (vectors) => {
   const sdk = window.posecastPage.sdk;
@@ -120,7 +123,7 @@ async def main() -> None:
     with page_server({}, "127.0.0.1", 0, ensure_built()) as port:
         async with async_playwright() as p:
             browser = await p.chromium.launch(
-                executable_path="/usr/bin/chromium", args=CHROMIUM_ARGS
+                executable_path=find_chromium() or "/usr/bin/chromium", args=CHROMIUM_ARGS
             )
             page = await browser.new_page()
             # No relay: the page's connection fails, its SDK is there all the same.

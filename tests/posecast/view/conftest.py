@@ -15,8 +15,8 @@ from collections.abc import AsyncIterator
 
 import pytest
 import pytest_asyncio
-from pagekit import CHROMIUM_ARGS, find_chromium
 from playwright.async_api import Browser, Page, async_playwright
+from support import CHROMIUM_ARGS, find_chromium
 
 
 def _install_chromium() -> str | None:

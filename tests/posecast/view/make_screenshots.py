@@ -30,8 +30,12 @@ from playwright.async_api import Browser, Page, async_playwright
 _HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(_HERE.parents[2]), str(_HERE.parents[1]), str(_HERE)]
 
-from pagekit import CHROMIUM_ARGS, find_chromium, scene_ready, until  # noqa: E402
-from support import running_server  # noqa: E402
+from pagekit import scene_ready, until  # noqa: E402
+from support import (  # noqa: E402
+    CHROMIUM_ARGS,
+    find_chromium,
+    running_server,
+)
 
 from posecast.client.bot import BotConfig, motion_for_bot, run_bot  # noqa: E402
 from posecast.client.swarm import run_bots  # noqa: E402

@@ -25,9 +25,10 @@ from pathlib import Path
 from playwright.async_api import async_playwright
 
 _HERE = Path(__file__).resolve().parent
-sys.path[:0] = [str(_HERE.parents[2]), str(_HERE)]
+sys.path[:0] = [str(_HERE.parents[2]), str(_HERE.parents[1]), str(_HERE)]
 
-from pagekit import CHROMIUM_ARGS, FPS_JS, find_chromium  # noqa: E402
+from pagekit import FPS_JS  # noqa: E402
+from support import CHROMIUM_ARGS, find_chromium  # noqa: E402
 
 POSECAST = [sys.executable, "-m", "posecast.cli"]
 

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import io
-import os
-import shutil
 import time
 from collections.abc import Callable
 
@@ -13,22 +11,6 @@ import numpy as np
 from matplotlib import image as mpimg
 from numpy.typing import NDArray
 from playwright.async_api import Page
-
-#: Software WebGL: what a machine without a GPU (CI, this one) renders with.
-CHROMIUM_ARGS = ["--use-gl=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"]
-
-
-def find_chromium() -> str | None:
-    """``POSECAST_CHROMIUM``, else ``chromium`` or ``chromium-browser`` on PATH."""
-    env = os.environ.get("POSECAST_CHROMIUM")
-    if env:
-        return env if os.path.exists(env) else None
-    for name in ("chromium", "chromium-browser"):
-        found = shutil.which(name)
-        if found:
-            return found
-    return None
-
 
 FPS_JS = """() => new Promise(done => {
   let n = 0; const t0 = performance.now();
