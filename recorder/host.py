@@ -97,7 +97,7 @@ _F_SETPIPE_SZ: Final = getattr(fcntl, "F_SETPIPE_SZ", 1031)
 _PIPE_BYTES: Final = 1 << 20
 #: Blobs per writev (Linux's IOV_MAX is 1024).
 _WRITEV_MAX: Final = 512
-_CHILD_BOOT: Final = "import sys; from recorder.writerproc import main; sys.exit(main())"
+_CHILD_BOOT: Final = "import sys; from posecast.recorder.writerproc import main; sys.exit(main())"
 #: Records a room hands over at a time unless its options say otherwise.
 _BATCH_SIZE: Final = 256
 
@@ -177,15 +177,10 @@ class RecorderHost:
     @classmethod
     def start(cls) -> RecorderHost:
         """Start the writer process (a fraction of a second: its Python start-up)."""
-        env = dict(os.environ)
-        # The child imports this package the way the parent did.
-        root = str(Path(__file__).resolve().parent.parent)
-        env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
+        # The child runs the parent's interpreter, so it imports the same installed
+        # posecast (a wheel, or an editable install's folder mapping).
         proc = subprocess.Popen(
-            [sys.executable, "-c", _CHILD_BOOT],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            env=env,
+            [sys.executable, "-c", _CHILD_BOOT], stdin=subprocess.PIPE, stdout=subprocess.PIPE
         )
         return cls(proc)
 

@@ -1,6 +1,6 @@
 """The writer process of a :class:`~recorder.host.RecorderHost`: :func:`main` is its entry.
 
-Started by :meth:`RecorderHost.start` (``python -c "... recorder.writerproc
+Started by :meth:`RecorderHost.start` (``python -c "... posecast.recorder.writerproc
 import main ..."``), it reads the pipe (layout in :mod:`recorder.pipe`) from its
 standard input, encodes each room's updates in groups of the same shape (a
 compact session's updates go to the writer thread as codes, for layout 2) and

@@ -445,7 +445,7 @@ def throughput_at(batch: int, seed: int = 12345) -> dict[str, float]:
 
 #: The notebook path: a fresh interpreter that imports ``interp`` (and numpy) only and
 #: times the pair methods as :func:`_best_seconds` does. Argument: the batch size.
-_IMPORT_INTERP = """import json, math, sys, time; import numpy as np; import interp
+_IMPORT_INTERP = """import json, math, sys, time; import numpy as np; from posecast import interp
 n, rng, rates = int(sys.argv[1]), np.random.default_rng(12345), {}
 q = rng.normal(size=(2 * n, 4)); q /= np.linalg.norm(q, axis=1, keepdims=True)
 p = np.concatenate([rng.uniform(-3.0, 3.0, (2 * n, 3)), q], axis=1)
@@ -577,7 +577,7 @@ def _entry_paths(
     return {
         entry: here,
         "python -m posecast.scenarios.bench_interp (allocator as it comes)": plain,
-        "python -c 'import interp' (as a notebook)": notebook,
+        "python -c 'from posecast import interp' (as a notebook)": notebook,
     }
 
 
