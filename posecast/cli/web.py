@@ -96,9 +96,14 @@ def ensure_built(page: Path = PAGE_DIR) -> Path:
         steps.append([*npm, "ci", "--no-audit", "--no-fund"])
     steps.append([node, "build.mjs"])
     for cmd in steps:
-        done = subprocess.run(
-            cmd, cwd=page, env=env, capture_output=True, text=True, timeout=900, check=False
-        )
+        # esbuild's install script may run its binary while the file is still being
+        # written (ETXTBSY): the step is tried again then.
+        for _ in range(3):
+            done = subprocess.run(
+                cmd, cwd=page, env=env, capture_output=True, text=True, timeout=900, check=False
+            )
+            if done.returncode == 0 or "ETXTBSY" not in done.stdout + done.stderr:
+                break
         if done.returncode != 0:
             tail = (done.stderr or done.stdout).strip().splitlines()[-1:] or ["(no output)"]
             raise PageBuildError(f"building the page failed ({' '.join(cmd[-2:])}): {tail[0]}")

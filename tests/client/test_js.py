@@ -87,7 +87,12 @@ def node() -> Node:
     found = _find_node()
     lock, installed = JS / "package-lock.json", JS / "node_modules" / ".package-lock.json"
     if not installed.exists() or installed.stat().st_mtime < lock.stat().st_mtime:
-        done = _npm(found, "ci", "--no-audit", "--no-fund")
+        # esbuild's install script may run its binary while the file is still being
+        # written (ETXTBSY): a second npm ci finds it whole.
+        for _ in range(3):
+            done = _npm(found, "ci", "--no-audit", "--no-fund")
+            if done.returncode == 0 or "ETXTBSY" not in done.stdout + done.stderr:
+                break
         assert done.returncode == 0, f"npm ci failed:\n{done.stdout}\n{done.stderr}"
     # The bundle only (npm test typechecks and builds everything itself).
     done = subprocess.run(
