@@ -27,7 +27,7 @@ import enum
 import posixpath
 import re
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path, PurePosixPath
 from typing import Any
 
@@ -184,16 +184,18 @@ def cli_settings() -> dict[str, list[tuple[str, Any]]]:
 
 def settings_in_code() -> set[str]:
     """Every ``POSECAST_*`` name written as a whole string literal in the sources."""
+    return _literals(_source_files(), r"POSECAST_[A-Z0-9_]+")
+
+
+def _literals(files: Iterable[Path], pattern: str) -> set[str]:
+    """Every string literal in ``files`` that matches ``pattern`` whole."""
     names: set[str] = set()
-    for f in _source_files():
-        text = f.read_text(encoding="utf-8")
-        if "POSECAST_" not in text:
-            continue
-        for node in ast.walk(ast.parse(text)):
+    for f in files:
+        for node in ast.walk(ast.parse(f.read_text(encoding="utf-8"))):
             if (
                 isinstance(node, ast.Constant)
                 and isinstance(node.value, str)
-                and re.fullmatch(r"POSECAST_[A-Z0-9_]+", node.value)
+                and re.fullmatch(pattern, node.value)
             ):
                 names.add(node.value)
     return names
@@ -264,16 +266,7 @@ def cluster_metrics() -> list[tuple[str, str, str]]:
 
 def metric_names_in_server() -> set[str]:
     """Every whole ``posecast_*`` metric name written as a literal in ``server/``."""
-    names: set[str] = set()
-    for f in sorted((ROOT / "server").rglob("*.py")):
-        for node in ast.walk(ast.parse(f.read_text(encoding="utf-8"))):
-            if (
-                isinstance(node, ast.Constant)
-                and isinstance(node.value, str)
-                and re.fullmatch(r"posecast_[a-z0-9_]+", node.value)
-            ):
-                names.add(node.value)
-    return names
+    return _literals(sorted((ROOT / "server").rglob("*.py")), r"posecast_[a-z0-9_]+")
 
 
 def metrics_page() -> str:
