@@ -6,7 +6,7 @@ tasks under one ``TaskGroup``: publisher (its motion at the send rate, capture
 times in server time), receiver (snapshots into per-stream jitter buffers and
 an arrival log), renderer (every remote stream at ``server_now - D`` in one
 batched call per interpolator) and pinger. D is the room's
-(:class:`scenarios.receiver.RoomPlayoutDelay`): a peer whose keyframes arrive
+(:class:`client.playout.RoomPlayoutDelay`): a peer whose keyframes arrive
 persistently late (its clock is off, its path is slow) does not raise it, and
 is shown late alone, at its own D, in the same batched call. At the end it
 scores what it received with :mod:`scenarios.qoe`, exactly as DESIGN.md
@@ -62,8 +62,11 @@ from numpy.typing import NDArray
 from websockets.exceptions import ConnectionClosed
 
 import posecast.client.remote as scoring
+from posecast.client.buffers import RoomBuffers
 from posecast.client.connection import ClientConnection, SessionEnd, Tls, connect_any, connect_first
+from posecast.client.playout import ClockEstimator, RoomPlayoutDelay
 from posecast.client.remote import RemoteStream, evaluate_remote, remote_log, stream_delays
+from posecast.client.render import render_buffers
 from posecast.client.scene import OwnerChange, ThrowCatchActor
 from posecast.interp import info as interp_info
 from posecast.protocol import (
@@ -81,12 +84,6 @@ from posecast.protocol import (
 )
 from posecast.scenarios.motion import MotionSpec, SpawnPoint, sample_at
 from posecast.scenarios.qoe import ErrorSamples
-from posecast.scenarios.receiver import (
-    ClockEstimator,
-    RoomBuffers,
-    RoomPlayoutDelay,
-    render_buffers,
-)
 from posecast.scenarios.throw_catch import SCENE, role_motion, scene_epoch, scene_role
 from posecast.scenarios.traces import (
     CAUSAL_SAMPLES,

@@ -2,7 +2,7 @@
 
 :class:`RemoteStream` holds a remote stream's render buffer row and its arrival
 log; :func:`evaluate_remote` scores every stream a bot received against its
-sender's motion (:func:`scenarios.receiver.score_received`). A shared room
+sender's motion (:func:`score_received`). A shared room
 object (user :data:`~protocol.ROOM_USER`) whose label is the live throw-catch
 scene's drill is scored in the ``object`` classes instead
 (:func:`scenarios.throw_catch.score_drill`: all of it, in flight, at the catch);
@@ -11,7 +11,7 @@ other room objects are rendered but not scored (nobody knows their truth).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from functools import partial
 from typing import cast
@@ -19,25 +19,23 @@ from typing import cast
 import numpy as np
 from numpy.typing import NDArray
 
+from posecast.client.buffers import StreamBuffer
+from posecast.client.render import rendered_method
 from posecast.protocol import ROOM_USER
 from posecast.scenarios.motion import MotionSpec
-from posecast.scenarios.qoe import ErrorSamples, KeyframeLog
-from posecast.scenarios.receiver import (
-    ReceivedStream,
-    StreamBuffer,
-    rendered_method,
-    score_received,
-)
+from posecast.scenarios.qoe import ErrorSamples, KeyframeLog, evaluate_group
 from posecast.scenarios.throw_catch import DRILL, scene_role, scene_script, score_drill
-from posecast.scenarios.traces import TraceError
+from posecast.scenarios.traces import Trace, TraceError
 
 __all__ = [
+    "ReceivedStream",
     "RemoteStream",
     "evaluate_remote",
     "longest_gap",
     "p50_p99_ms",
     "remote_log",
     "score_object",
+    "score_received",
     "stream_delays",
 ]
 
@@ -183,3 +181,88 @@ def p50_p99_ms(values: list[float]) -> tuple[float, float]:
 def longest_gap(times: list[float]) -> float:
     """The longest interval between consecutive ``times`` (s; NaN if fewer than two)."""
     return float(np.max(np.diff(np.asarray(times)))) if len(times) > 1 else float("nan")
+
+
+@dataclass(frozen=True)
+class ReceivedStream:
+    """A remote stream as a receiver saw it, for :func:`score_received`.
+
+    ``label`` is the sender's motion spec (None: unknown, not scored); ``log``
+    builds its arrival log, and is only called for a stream that is scored.
+    """
+
+    label: str | None
+    name: str
+    log: Callable[[], KeyframeLog]
+    #: The D it was rendered with at each render, when not the room's (shown late).
+    delays: F64 | None = None
+
+
+def score_received(
+    streams: Iterable[ReceivedStream],
+    play_t: F64,
+    play_d: F64,
+    methods: Sequence[str],
+    *,
+    delays: Sequence[float | None] = (None,),
+    until_sender_left: bool = False,
+    as_rendered: bool = True,
+    truths: dict[str, Trace] | None = None,
+    windows: dict[str, dict[str, tuple[float, float]]] | None = None,
+) -> list[dict[str, dict[str, ErrorSamples]]]:
+    """QoE of what one receiver got, against each sender's motion, one result per delay.
+
+    ``play_t``, ``play_d`` (non-empty): the render loop's playout times and the
+    delay D in effect at each (a stream's own ``delays`` instead, if it has them:
+    its playout times are then ``play_t + play_d - delays``). Each entry of
+    ``delays`` is a fixed D in seconds, or None for the D the render loop used at
+    each tau. A stream is scored over its first keyframe (or the first render) to
+    its last render, or, with
+    ``until_sender_left``, to its last keyframe where that is earlier (streams
+    with nothing in that window are skipped). With ``as_rendered`` a velocity
+    method is scored as what the render loop showed on a stream without
+    velocities (:func:`rendered_method`). ``truths`` caches the motions by
+    label; ``windows`` collects ``{label: {name: window}}`` of scored streams.
+    Returns ``[{method: {device_class: ErrorSamples}}]``, one per delay.
+    """
+    pt = np.asarray(play_t)
+    pd = np.asarray(play_d)
+
+    out: list[dict[str, dict[str, ErrorSamples]]] = [{m: {} for m in methods} for _ in delays]
+    truths = {} if truths is None else truths
+    for rs in streams:
+        if rs.label is None:
+            continue
+        if rs.label not in truths:
+            try:
+                truths[rs.label] = MotionSpec.parse(rs.label).truth(until=float(pt[-1]) + 1.0)
+            except TraceError:
+                continue
+        truth = truths[rs.label]
+        if rs.name not in truth.streams:
+            continue
+        log = rs.log()
+        st, sd = pt, pd
+        if rs.delays is not None:  # its own playout times (kept monotonic for interp)
+            sd = np.asarray(rs.delays)
+            st = np.maximum.accumulate(pt + pd - sd)
+        end = float(st[-1])
+        if until_sender_left:
+            end = min(end, float(log.capture[-1]))
+        window = (max(float(log.capture[0]), float(st[0])), end)
+        if until_sender_left and window[1] <= window[0]:
+            continue
+        if windows is not None:
+            windows.setdefault(rs.label, {})[rs.name] = window
+        # What the render loop showed: velocity methods fall back on streams without.
+        has_velocities = log.velocities is not None
+        shown = {m: rendered_method(m, has_velocities) if as_rendered else m for m in methods}
+        unique = list(dict.fromkeys(shown.values()))
+        one = truth.select([rs.name])
+        for into, fixed in zip(out, delays, strict=True):
+            at = cast(Callable[[F64], F64], partial(np.interp, xp=st, fp=sd))
+            res = evaluate_group(one, log, at if fixed is None else fixed, unique, window)
+            for m in methods:
+                for cls, samples in res[shown[m]].items():
+                    into[m].setdefault(cls, ErrorSamples()).merge(samples)
+    return out

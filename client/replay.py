@@ -66,6 +66,7 @@ from numpy.typing import NDArray
 from websockets.exceptions import ConnectionClosed
 
 from posecast.client.connection import ClientConnection
+from posecast.client.playout import ClockEstimator
 from posecast.protocol import (
     MAX_TEXT_LENGTH,
     ErrorMessage,
@@ -92,7 +93,6 @@ from posecast.recorder.plan import (
     spawn_plan,
 )
 from posecast.scenarios.motion import MotionSpec
-from posecast.scenarios.receiver import ClockEstimator
 from posecast.scenarios.traces import TraceError
 
 __all__ = [

@@ -36,6 +36,7 @@ from numpy.typing import NDArray
 
 from posecast import interp
 from posecast.client.bot import BotConfig, BotReport, remote_log, run_bot
+from posecast.client.remote import ReceivedStream, score_received
 from posecast.protocol import frame_size
 from posecast.scenarios.live_agreement import (
     AMPLE_DELAY_S,
@@ -49,7 +50,6 @@ from posecast.scenarios.live_agreement import (
 from posecast.scenarios.motion import MotionSpec
 from posecast.scenarios.network import Tier, websocket_header_bytes
 from posecast.scenarios.qoe import ErrorSamples, summarize
-from posecast.scenarios.receiver import ReceivedStream, score_received
 from posecast.scenarios.traces import DEVICE_NAMES, Trace, TraceError, find_traces
 from posecast.server.app import RelayServer, ServerConfig
 from posecast.server.room import room_phase
@@ -228,7 +228,7 @@ def _score(
 
     Blocking (loads traces, scores): run it off the event loop. The live QoE is
     scored from the bot's own arrival log and playout delays with
-    :func:`scenarios.receiver.score_received`, exactly as the bot scores itself, over
+    :func:`client.remote.score_received`, exactly as the bot scores itself, over
     the windows where its sender was still publishing (a bot that left early
     leaves no keyframes to bracket the rest of the receiver's session: those
     samples would count as stalls that no network caused).

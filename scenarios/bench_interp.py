@@ -18,8 +18,8 @@ long enough to measure. Everything timed is single-threaded numpy/scipy code
 
 - the receiver's render frame: 100 remote streams of real motion (slices of the
   bundled sample traces, keyframes at 15 Hz) in one
-  :class:`~scenarios.receiver.RoomBuffers`, rendered at successive 90 Hz playout
-  times through :func:`scenarios.receiver.render_buffers` (the bot's path:
+  :class:`~client.buffers.RoomBuffers`, rendered at successive 90 Hz playout
+  times through :func:`client.render.render_buffers` (the bot's path:
   bracket every stream, gather, one kernel call per method), per frame in
   microseconds, for each pair method and the bot's default three; beside it
   each row kernel alone on 100 poses;
@@ -58,7 +58,8 @@ from rich.console import Console
 from rich.table import Table
 
 from posecast import interp
-from posecast.scenarios.receiver import RoomBuffers, render_buffers
+from posecast.client.buffers import RoomBuffers
+from posecast.client.render import render_buffers
 from posecast.scenarios.traces import find_traces, load_trace
 
 __all__ = ["TARGETS", "frame_room", "run_interp_bench", "throughput_at"]

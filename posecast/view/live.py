@@ -5,7 +5,7 @@ nothing and nobody is told about it) and receives snapshots exactly as a bot
 does: it *is* a bot's receive path (:class:`client.bot._Bot`: clock sync,
 per-stream jitter buffers, adaptive playout delay D), minus publishing and
 scoring. Its show loop renders every remote stream at ``server_now - D`` with
-:func:`scenarios.receiver.render_buffers` (one batched call per method, as the
+:func:`client.render.render_buffers` (one batched call per method, as the
 bots' render loop) at ``fps`` frames a second and poses the avatars of an
 :class:`~posecast.view.scene.AvatarScene`: the first method solid, the others
 as ghosts. The browser draws the scene at its own frame rate. The panel's table
@@ -31,9 +31,9 @@ from websockets.exceptions import ConnectionClosed
 
 from posecast.client.bot import BotConfig, _Bot
 from posecast.client.connection import ClientConnection
+from posecast.client.render import render_buffers
 from posecast.protocol import ROOM_USER, Join, Joined, PeerLeft, Snapshot
 from posecast.protocol.codec import DEFAULT_VOLUME
-from posecast.scenarios.receiver import render_buffers
 from posecast.view.scene import AvatarScene, user_colour
 
 __all__ = ["STARVED_STALLS", "LiveConfig", "LiveView", "UserStats", "run_live_view", "starving"]

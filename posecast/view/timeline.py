@@ -23,12 +23,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from posecast.client.render import rendered_method
 from posecast.interp import evaluate_track
 from posecast.interp import info as interp_info
 from posecast.interp.metrics import tip_error_mm
 from posecast.recorder.export import read_session
 from posecast.scenarios.qoe import sample_keyframes
-from posecast.scenarios.receiver import rendered_method
 
 __all__ = ["TRUTH", "ReplayModel", "Track"]
 

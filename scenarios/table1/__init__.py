@@ -19,7 +19,7 @@ and 16.5 % less running time. :func:`run_table1` measures this on traces:
     (latency, jitter, loss, bandwidth cap) with a **fixed** playout delay per
     run, ``D = 1/r + p95(keyframe age)`` where age = arrival - capture over the
     run's delivered keyframes (the steady state the live receiver's adaptive
-    :class:`~scenarios.receiver.PlayoutDelay` converges to). Stalls and delay
+    :class:`~client.playout.PlayoutDelay` converges to). Stalls and delay
     show up there. Through a link the equal-QoE rate is searched only up to
     the tier's rate (the tier allows no more). Every method sees the same link
     realisation at a given rate (one seed per tier, trace and rate).

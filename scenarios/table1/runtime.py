@@ -17,9 +17,10 @@ from typing import Any
 import numpy as np
 
 from posecast import interp
+from posecast.client.buffers import StreamBuffer
+from posecast.client.render import render_buffers
 from posecast.protocol import decode_message, encode_snapshot
 from posecast.protocol.poses import Snapshot
-from posecast.scenarios.receiver import StreamBuffer, render_buffers
 from posecast.scenarios.table1.common import (
     DEFAULT_ROOM_POSES,
     Progress,
@@ -135,9 +136,9 @@ def receiver_cpu_times(
     Replays what the live client does, on the real code paths: every snapshot
     (``streams`` poses, encoded beforehand with ``protocol.encode_snapshot``)
     is decoded with ``protocol.decode_message`` as it arrives and its poses are
-    pushed into one :class:`~scenarios.receiver.StreamBuffer` per stream; every
+    pushed into one :class:`~client.buffers.StreamBuffer` per stream; every
     render frame interpolates all streams with the method in one batched call
-    (:func:`~scenarios.receiver.render_buffers`). Velocity methods
+    (:func:`~client.render.render_buffers`). Velocity methods
     (``needs_velocity``) get the velocity variant of the snapshots (12 B more a
     pose; the source's :func:`keyframe_velocities`) and their buffers keep the
     decoded velocities. The number of rendered frames depends only on

@@ -21,6 +21,8 @@ from posecast.client.bot import (
     remote_log,
     run_bot,
 )
+from posecast.client.buffers import StreamBuffer
+from posecast.client.render import VELOCITY_FALLBACK, render_buffers, rendered_method
 from posecast.client.swarm import swarm_report
 from posecast.interp import interpolate_brackets
 from posecast.protocol import VELOCITY_BYTES, VELOCITY_MAX, frame_size
@@ -37,12 +39,6 @@ from posecast.scenarios.qoe import (
     evaluate_group,
     playout_brackets,
     summarize,
-)
-from posecast.scenarios.receiver import (
-    VELOCITY_FALLBACK,
-    StreamBuffer,
-    render_buffers,
-    rendered_method,
 )
 from posecast.scenarios.traces import DEVICE_NAMES
 

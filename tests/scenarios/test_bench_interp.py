@@ -15,7 +15,7 @@ import pytest
 from rich.console import Console
 
 import posecast.scenarios.bench_interp as bench
-from posecast.scenarios.receiver import render_buffers
+from posecast.client.render import render_buffers
 
 
 def test_frame_room_holds_100_streams_of_real_motion() -> None:

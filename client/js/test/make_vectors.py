@@ -2,9 +2,10 @@
 
 - test/interp-vectors.json: pose pairs, fractions and what ``interp`` (soa,
   dq-slerp, motor-lerp) returns for them;
-- test/receiver-vectors.json: a scripted run of ``scenarios.receiver``'s
-  ``RoomPlayoutDelay`` (keyframe ages of three users, one of them late) and of a
-  ``StreamBuffer`` (pushes, some duplicate or stale, and brackets).
+- test/receiver-vectors.json: a scripted run of the client core's
+  ``RoomPlayoutDelay`` (``client.playout``; keyframe ages of three users, one of
+  them late) and of a ``StreamBuffer`` (``client.buffers``; pushes, some duplicate
+  or stale, and brackets).
 
 Run from the repository root: ``.venv/bin/python client/js/test/make_vectors.py``.
 Seeded: the same files every run.
@@ -19,8 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
+from posecast.client.buffers import StreamBuffer
+from posecast.client.playout import RoomPlayoutDelay
 from posecast.interp import dq_slerp, motor_lerp, soa
-from posecast.scenarios.receiver import RoomPlayoutDelay, StreamBuffer
 
 OUT = Path(__file__).with_name("interp-vectors.json")
 RECEIVER_OUT = Path(__file__).with_name("receiver-vectors.json")

@@ -1,6 +1,6 @@
 """What a render frame keeps from one frame to the next, and what it must not.
 
-:func:`scenarios.receiver.render_buffers` keeps, per thread, the rows it gathers
+:func:`client.render.render_buffers` keeps, per thread, the rows it gathers
 the bracketing keyframes into, the views of a room's arrays (until rows are
 added), and each method set's plan (until the interpolator registry changes),
 so that a frame of 100 streams costs a few dozen numpy calls. None of that may
@@ -19,8 +19,9 @@ from numpy.typing import ArrayLike, NDArray
 from test_receiver_room import former_render, trace_room
 
 from posecast import interp
+from posecast.client.buffers import RoomBuffers
+from posecast.client.render import render_buffers
 from posecast.interp import registry
-from posecast.scenarios.receiver import RoomBuffers, render_buffers
 
 F64 = NDArray[np.float64]
 PAIRS = ["soa", "dq-slerp", "motor-lerp"]

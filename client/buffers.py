@@ -7,7 +7,7 @@
   (a row of a room), each with the velocity it came with (zeros without one);
   duplicates and stale frames dropped; bounded (oldest evicted).
 
-:mod:`scenarios.receiver` renders them (``render_buffers``) and re-exports both.
+:mod:`client.render` renders them (``render_buffers``).
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """One preallocated array per room: RoomBuffers, and the vectorised render frame.
 
-:class:`scenarios.receiver.RoomBuffers` keeps every remote stream's keyframes
-in one row of a few arrays; each :class:`~scenarios.receiver.StreamBuffer`'s
-lists mirror its row. :func:`~scenarios.receiver.render_buffers` brackets every
+:class:`client.buffers.RoomBuffers` keeps every remote stream's keyframes
+in one row of a few arrays; each :class:`~client.buffers.StreamBuffer`'s
+lists mirror its row. :func:`~client.render.render_buffers` brackets every
 row at once and gathers with one ``take`` per side. The render frame must show
 exactly what the former per-buffer path showed (a Python loop: bisect each
 buffer, gather lists, one ``interp.interpolate_brackets`` per method, kept
@@ -20,13 +20,9 @@ import pytest
 from numpy.typing import NDArray
 
 from posecast import interp
+from posecast.client.buffers import RoomBuffers, StreamBuffer
+from posecast.client.render import render_buffers, rendered_method
 from posecast.scenarios.qoe import window_depth
-from posecast.scenarios.receiver import (
-    RoomBuffers,
-    StreamBuffer,
-    render_buffers,
-    rendered_method,
-)
 from posecast.scenarios.traces import find_traces, load_trace
 
 F64 = NDArray[np.float64]

@@ -1,6 +1,6 @@
 """Per-user playout delay: a late user is shown late alone and does not move the room's D.
 
-:class:`~scenarios.receiver.RoomPlayoutDelay` judges each remote user by the
+:class:`~client.playout.RoomPlayoutDelay` judges each remote user by the
 median of its keyframe ages against the majority's; :func:`render_buffers` takes
 one playout time per row; :func:`score_received` scores a stream with the D it
 was rendered with.
@@ -11,16 +11,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from posecast.client.buffers import RoomBuffers
+from posecast.client.playout import PlayoutDelay, RoomPlayoutDelay
+from posecast.client.remote import ReceivedStream, score_received
+from posecast.client.render import render_buffers
 from posecast.scenarios.motion import MotionSpec
 from posecast.scenarios.qoe import KeyframeLog
-from posecast.scenarios.receiver import (
-    PlayoutDelay,
-    ReceivedStream,
-    RoomBuffers,
-    RoomPlayoutDelay,
-    render_buffers,
-    score_received,
-)
 
 INTERVAL = 1.0 / 15.0
 HONEST = (0, 1, 2)

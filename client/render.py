@@ -1,241 +1,37 @@
-"""The receiver model: clock offset, jitter buffers, adaptive playout delay.
+"""Render every remote stream at its playout time: one batched call per method.
 
-Shared by the live bots and the offline simulator; nothing here reads a clock
-(every method takes the time it needs).
-
-- :class:`ClockEstimator`: NTP-style offset to the server clock from ping/pong
-  samples, keeping the lowest round trip of a sliding window.
-- :class:`RoomBuffers`: every remote stream's keyframes in one preallocated
-  array per room (a row per stream), validated once on arrival;
-  :class:`StreamBuffer`: one stream's row (both live in :mod:`scenarios.buffers`
-  and are re-exported here).
-- :class:`PlayoutDelay`: delay D that starts at one interval plus the measured
-  arrival jitter and follows the observed keyframe age (Mirror-style dynamic
-  buffer: ``D = interval + p95(age)``), slewing smoothly, never jumping.
-- :class:`RoomPlayoutDelay`: a :class:`PlayoutDelay` per remote user, the room's
-  D from the users whose ages are not outliers (median + MAD); a late user is
-  shown late alone, at its own D.
 - :func:`render_buffers`: every buffer at its playout time: one vectorised
   bracket of all streams, one gather, one batched interpolator call per
   method (a pair method's allocation-free row kernel), window and velocity
-  methods alike.
+  methods alike. The buffers are :class:`client.buffers.RoomBuffers` rows.
+- :func:`rendered_method`: the method that actually renders a stream (a velocity
+  method falls back to :data:`VELOCITY_FALLBACK` on a stream without velocities).
+
+Sans I/O: nothing here reads a clock, a file or a socket.
 """
 
 from __future__ import annotations
 
 import threading
-from collections import deque
-from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
-from functools import partial
-from typing import NamedTuple, cast
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
+from posecast.client.buffers import RoomBuffers, StreamBuffer
 from posecast.interp import InterpolatorInfo, interpolate_brackets
 from posecast.interp import info as interp_info
 from posecast.interp.kernels import SHARES_PRODUCTS, share_rows
 from posecast.interp.registry import generation as registry_generation
-from posecast.scenarios.buffers import DEFAULT_BUFFER_CAPACITY, RoomBuffers, StreamBuffer
-from posecast.scenarios.motion import MotionSpec
-from posecast.scenarios.qoe import ErrorSamples, KeyframeLog, evaluate_group, window_depth
-from posecast.scenarios.traces import Trace, TraceError
+from posecast.scenarios.qoe import window_depth
 
-__all__ = [
-    "DEFAULT_BUFFER_CAPACITY",
-    "VELOCITY_FALLBACK",
-    "ClockEstimator",
-    "PlayoutDelay",
-    "ReceivedStream",
-    "RenderFrame",
-    "RoomBuffers",
-    "RoomPlayoutDelay",
-    "StreamBuffer",
-    "render_buffers",
-    "rendered_method",
-    "score_received",
-]
+__all__ = ["VELOCITY_FALLBACK", "RenderFrame", "render_buffers", "rendered_method"]
 
 F64 = NDArray[np.float64]
 
 _count = np.count_nonzero
-
-
-@dataclass
-class ClockEstimator:
-    """Server-minus-client clock offset from the lowest-RTT recent ping sample."""
-
-    window: int = 16
-    _samples: deque[tuple[float, float]] = field(default_factory=deque)
-
-    def add(self, offset: float, rtt: float) -> None:
-        self._samples.append((rtt, offset))
-        while len(self._samples) > self.window:
-            self._samples.popleft()
-
-    @property
-    def ready(self) -> bool:
-        return bool(self._samples)
-
-    @property
-    def offset(self) -> float:
-        return min(self._samples)[1] if self._samples else 0.0
-
-    @property
-    def rtt(self) -> float:
-        return min(self._samples)[0] if self._samples else float("nan")
-
-
-@dataclass
-class PlayoutDelay:
-    """Adaptive playout delay D (seconds) from the ages of arriving keyframes."""
-
-    interval: float
-    #: Share of keyframe ages the delay covers.
-    percentile: float = 95.0
-    #: Time constant of the slew towards the target (s).
-    tau: float = 1.0
-    window: int = 256
-    margin: float = 0.002
-    value: float = field(init=False)
-    _ages: deque[float] = field(init=False)
-    _last: float | None = None
-
-    def __post_init__(self) -> None:
-        self.value = self.interval + self.margin
-        self._ages = deque(maxlen=self.window)
-
-    def observe(self, age: float) -> None:
-        """One keyframe's age on arrival (arrival minus capture, server clock)."""
-        self._ages.append(age)
-
-    @property
-    def target(self) -> float:
-        if not self._ages:
-            return self.interval + self.margin
-        return self.interval + float(np.percentile(self._ages, self.percentile)) + self.margin
-
-    def update(self, now: float, target: float | None = None) -> float:
-        """Slew towards its target (or ``target``); the first one sets D directly."""
-        given = target is not None
-        target = self.target if target is None else target
-        if self._last is None:
-            if self._ages or given:
-                self.value = target
-                self._last = now
-            return self.value
-        dt = max(0.0, now - self._last)
-        self._last = now
-        self.value += (target - self.value) * min(1.0, dt / self.tau)
-        return self.value
-
-
-@dataclass
-class RoomPlayoutDelay:
-    """Playout delay per remote user: one late user cannot raise D for the others.
-
-    Ages (arrival minus capture, server clock) are kept per user (its streams share
-    its clock and path), each in a :class:`PlayoutDelay`. A user is *late* when its
-    median age exceeds the reference (the lower median of the users' medians) by
-    over ``tolerance`` s, or ``spread`` robust deviations (1.4826 MAD) of the
-    medians if larger, until its ``percentile`` age is back under that. The room's
-    D covers the ``percentile`` of the pooled ages of users not late; it is set,
-    not slewed, when none of the users it shows was shown with it before. A late
-    user is shown late alone at its own D (``own``), slewing from where it was
-    shown to ``max(room's target, its own)``; no longer late, it slews back and
-    rejoins the room's D within 1 ms. Users with under ``min_samples`` ages are
-    not judged.
-    """
-
-    interval: float
-    percentile: float = 95.0
-    tau: float = 1.0
-    window: int = 256
-    margin: float = 0.002
-    tolerance: float = 0.1
-    spread: float = 3.0
-    min_samples: int = 3
-    room: PlayoutDelay = field(init=False)
-    #: Users shown late alone (or slewing back to the room's D): their own D (s).
-    own: dict[int, float] = field(default_factory=dict)
-    late: set[int] = field(default_factory=set)
-    _users: dict[int, PlayoutDelay] = field(default_factory=dict)
-    _dirty: bool = False
-    _target: float | None = None
-    #: Late users' own targets; users shown at the room's D (now, and before).
-    _own: dict[int, float] = field(default_factory=dict)
-    _seated: set[int] = field(default_factory=set)
-    _was: set[int] = field(default_factory=set)
-
-    def __post_init__(self) -> None:
-        self.room = self._new()
-
-    def _new(self) -> PlayoutDelay:
-        return PlayoutDelay(self.interval, self.percentile, self.tau, self.window, self.margin)
-
-    def observe(self, user: int, age: float) -> None:
-        """One keyframe of ``user``'s, its age on arrival (server clock)."""
-        (self._users.get(user) or self._users.setdefault(user, self._new())).observe(age)
-        self._dirty = True
-
-    def forget(self, user: int) -> None:
-        """A user left: its ages no longer count."""
-        self._users.pop(user, None)
-        self.own.pop(user, None)
-        self.late.discard(user)
-        self._dirty = True
-
-    def delay(self, user: int) -> float:
-        """The D ``user``'s streams are rendered with."""
-        return self.own.get(user, self.room.value)
-
-    def _classify(self) -> float | None:
-        """Judge every user with enough ages; the room's target (None: no ages)."""
-        judged = {u: d for u, d in self._users.items() if len(d._ages) >= self.min_samples}
-        if judged:
-            med = {u: float(np.median(d._ages)) for u, d in judged.items()}
-            ranked = sorted(med.values())
-            ref = ranked[(len(ranked) - 1) // 2]
-            mad = float(np.median(np.abs(np.array(ranked) - ref))) if len(ranked) > 2 else 0.0
-            bound = max(self.tolerance, self.spread * 1.4826 * mad)
-            for u, m in med.items():
-                if m > ref + bound:
-                    self.late.add(u)
-                elif u in self.late and judged[u].target < self.interval + ref + bound:
-                    self.late.discard(u)  # the late ages have left its window
-        self._own = {u: self._users[u].target for u in self.late}
-        seated = {u for u in judged if u not in self.late}
-        if seated and not seated & self._seated:
-            self.room._last = None  # nobody shown at the room's D stays: set it
-        self._was, self._seated = self._seated, seated
-        pool = [d._ages for u, d in judged.items() if u in seated] or [
-            d._ages for d in self._users.values() if d._ages
-        ]
-        if not pool:
-            return None
-        ages = np.concatenate([np.fromiter(a, float, len(a)) for a in pool])
-        return self.interval + float(np.percentile(ages, self.percentile)) + self.margin
-
-    def update(self, now: float) -> float:
-        """Slew the room's D and every late user's own D; returns the room's."""
-        before = self.room.value
-        if self._dirty:
-            self._target, self._dirty = self._classify(), False
-        target = self._target
-        room = self.room.update(now, target)
-        for u in self.late - self.own.keys():  # newly late: from where it was shown
-            d = self._users[u]
-            d.value, d._last = before, (now if u in self._was else None)
-        for u in list(self.own.keys() | self.late):
-            d = self._users[u]
-            if u in self.late:
-                self.own[u] = d.update(now, max(self._own[u], target or room))
-            elif abs(d.update(now, room) - room) < 1e-3:
-                del self.own[u]  # back in step with the room
-            else:
-                self.own[u] = d.value
-        return room
 
 
 #: What a velocity method renders a stream with when its sender reports no
@@ -550,88 +346,3 @@ def _render_windows(
         )[0]
         for name in names
     }
-
-
-@dataclass(frozen=True)
-class ReceivedStream:
-    """A remote stream as a receiver saw it, for :func:`score_received`.
-
-    ``label`` is the sender's motion spec (None: unknown, not scored); ``log``
-    builds its arrival log, and is only called for a stream that is scored.
-    """
-
-    label: str | None
-    name: str
-    log: Callable[[], KeyframeLog]
-    #: The D it was rendered with at each render, when not the room's (shown late).
-    delays: F64 | None = None
-
-
-def score_received(
-    streams: Iterable[ReceivedStream],
-    play_t: F64,
-    play_d: F64,
-    methods: Sequence[str],
-    *,
-    delays: Sequence[float | None] = (None,),
-    until_sender_left: bool = False,
-    as_rendered: bool = True,
-    truths: dict[str, Trace] | None = None,
-    windows: dict[str, dict[str, tuple[float, float]]] | None = None,
-) -> list[dict[str, dict[str, ErrorSamples]]]:
-    """QoE of what one receiver got, against each sender's motion, one result per delay.
-
-    ``play_t``, ``play_d`` (non-empty): the render loop's playout times and the
-    delay D in effect at each (a stream's own ``delays`` instead, if it has them:
-    its playout times are then ``play_t + play_d - delays``). Each entry of
-    ``delays`` is a fixed D in seconds, or None for the D the render loop used at
-    each tau. A stream is scored over its first keyframe (or the first render) to
-    its last render, or, with
-    ``until_sender_left``, to its last keyframe where that is earlier (streams
-    with nothing in that window are skipped). With ``as_rendered`` a velocity
-    method is scored as what the render loop showed on a stream without
-    velocities (:func:`rendered_method`). ``truths`` caches the motions by
-    label; ``windows`` collects ``{label: {name: window}}`` of scored streams.
-    Returns ``[{method: {device_class: ErrorSamples}}]``, one per delay.
-    """
-    pt = np.asarray(play_t)
-    pd = np.asarray(play_d)
-
-    out: list[dict[str, dict[str, ErrorSamples]]] = [{m: {} for m in methods} for _ in delays]
-    truths = {} if truths is None else truths
-    for rs in streams:
-        if rs.label is None:
-            continue
-        if rs.label not in truths:
-            try:
-                truths[rs.label] = MotionSpec.parse(rs.label).truth(until=float(pt[-1]) + 1.0)
-            except TraceError:
-                continue
-        truth = truths[rs.label]
-        if rs.name not in truth.streams:
-            continue
-        log = rs.log()
-        st, sd = pt, pd
-        if rs.delays is not None:  # its own playout times (kept monotonic for interp)
-            sd = np.asarray(rs.delays)
-            st = np.maximum.accumulate(pt + pd - sd)
-        end = float(st[-1])
-        if until_sender_left:
-            end = min(end, float(log.capture[-1]))
-        window = (max(float(log.capture[0]), float(st[0])), end)
-        if until_sender_left and window[1] <= window[0]:
-            continue
-        if windows is not None:
-            windows.setdefault(rs.label, {})[rs.name] = window
-        # What the render loop showed: velocity methods fall back on streams without.
-        has_velocities = log.velocities is not None
-        shown = {m: rendered_method(m, has_velocities) if as_rendered else m for m in methods}
-        unique = list(dict.fromkeys(shown.values()))
-        one = truth.select([rs.name])
-        for into, fixed in zip(out, delays, strict=True):
-            at = cast(Callable[[F64], F64], partial(np.interp, xp=st, fp=sd))
-            res = evaluate_group(one, log, at if fixed is None else fixed, unique, window)
-            for m in methods:
-                for cls, samples in res[shown[m]].items():
-                    into[m].setdefault(cls, ErrorSamples()).merge(samples)
-    return out

@@ -1,6 +1,6 @@
 """The live receiver's render path with window interpolators of any size.
 
-:func:`scenarios.receiver.render_buffers` gathers each buffer's window (the
+:func:`client.render.render_buffers` gathers each buffer's window (the
 widest among the methods) and makes one batched call per method; a direct
 per-buffer loop applying the registry's rule for missing neighbours (buffer
 ends; everything after a stalled, held bracket) says what it must return.
@@ -13,7 +13,8 @@ from numpy.typing import NDArray
 from window_probe import Probe, expected, probes  # noqa: F401
 
 from posecast import interp
-from posecast.scenarios.receiver import StreamBuffer, render_buffers
+from posecast.client.buffers import StreamBuffer
+from posecast.client.render import render_buffers
 
 F64 = NDArray[np.float64]
 

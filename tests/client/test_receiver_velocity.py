@@ -15,13 +15,9 @@ import pytest
 from numpy.typing import NDArray
 
 from posecast import interp
+from posecast.client.buffers import StreamBuffer
+from posecast.client.render import VELOCITY_FALLBACK, render_buffers, rendered_method
 from posecast.scenarios.qoe import KeyframeLog, evaluate_group, playout_brackets, render_playout
-from posecast.scenarios.receiver import (
-    VELOCITY_FALLBACK,
-    StreamBuffer,
-    render_buffers,
-    rendered_method,
-)
 from posecast.scenarios.traces import DEVICE_NAMES, Trace, load_trace
 
 F64 = NDArray[np.float64]

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from posecast.client.buffers import StreamBuffer
+from posecast.client.playout import ClockEstimator, PlayoutDelay
+from posecast.client.render import render_buffers
 from posecast.interp import soa
-from posecast.scenarios.receiver import ClockEstimator, PlayoutDelay, StreamBuffer, render_buffers
 
 
 def _pose(x: float) -> np.ndarray:

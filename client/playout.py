@@ -1,0 +1,198 @@
+"""The receiver's timing, sans I/O: clock offset and adaptive playout delay.
+
+Nothing here reads a clock: every method takes the time it needs.
+
+- :class:`ClockEstimator`: NTP-style offset to the server clock from ping/pong
+  samples, keeping the lowest round trip of a sliding window.
+- :class:`PlayoutDelay`: delay D that starts at one interval plus the measured
+  arrival jitter and follows the observed keyframe age (Mirror-style dynamic
+  buffer: ``D = interval + p95(age)``), slewing smoothly, never jumping.
+- :class:`RoomPlayoutDelay`: a :class:`PlayoutDelay` per remote user, the room's
+  D from the users whose ages are not outliers (median + MAD); a late user is
+  shown late alone, at its own D.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["ClockEstimator", "PlayoutDelay", "RoomPlayoutDelay"]
+
+
+@dataclass
+class ClockEstimator:
+    """Server-minus-client clock offset from the lowest-RTT recent ping sample."""
+
+    window: int = 16
+    _samples: deque[tuple[float, float]] = field(default_factory=deque)
+
+    def add(self, offset: float, rtt: float) -> None:
+        self._samples.append((rtt, offset))
+        while len(self._samples) > self.window:
+            self._samples.popleft()
+
+    @property
+    def ready(self) -> bool:
+        return bool(self._samples)
+
+    @property
+    def offset(self) -> float:
+        return min(self._samples)[1] if self._samples else 0.0
+
+    @property
+    def rtt(self) -> float:
+        return min(self._samples)[0] if self._samples else float("nan")
+
+
+@dataclass
+class PlayoutDelay:
+    """Adaptive playout delay D (seconds) from the ages of arriving keyframes."""
+
+    interval: float
+    #: Share of keyframe ages the delay covers.
+    percentile: float = 95.0
+    #: Time constant of the slew towards the target (s).
+    tau: float = 1.0
+    window: int = 256
+    margin: float = 0.002
+    value: float = field(init=False)
+    _ages: deque[float] = field(init=False)
+    _last: float | None = None
+
+    def __post_init__(self) -> None:
+        self.value = self.interval + self.margin
+        self._ages = deque(maxlen=self.window)
+
+    def observe(self, age: float) -> None:
+        """One keyframe's age on arrival (arrival minus capture, server clock)."""
+        self._ages.append(age)
+
+    @property
+    def target(self) -> float:
+        if not self._ages:
+            return self.interval + self.margin
+        return self.interval + float(np.percentile(self._ages, self.percentile)) + self.margin
+
+    def update(self, now: float, target: float | None = None) -> float:
+        """Slew towards its target (or ``target``); the first one sets D directly."""
+        given = target is not None
+        target = self.target if target is None else target
+        if self._last is None:
+            if self._ages or given:
+                self.value = target
+                self._last = now
+            return self.value
+        dt = max(0.0, now - self._last)
+        self._last = now
+        self.value += (target - self.value) * min(1.0, dt / self.tau)
+        return self.value
+
+
+@dataclass
+class RoomPlayoutDelay:
+    """Playout delay per remote user: one late user cannot raise D for the others.
+
+    Ages (arrival minus capture, server clock) are kept per user (its streams share
+    its clock and path), each in a :class:`PlayoutDelay`. A user is *late* when its
+    median age exceeds the reference (the lower median of the users' medians) by
+    over ``tolerance`` s, or ``spread`` robust deviations (1.4826 MAD) of the
+    medians if larger, until its ``percentile`` age is back under that. The room's
+    D covers the ``percentile`` of the pooled ages of users not late; it is set,
+    not slewed, when none of the users it shows was shown with it before. A late
+    user is shown late alone at its own D (``own``), slewing from where it was
+    shown to ``max(room's target, its own)``; no longer late, it slews back and
+    rejoins the room's D within 1 ms. Users with under ``min_samples`` ages are
+    not judged.
+    """
+
+    interval: float
+    percentile: float = 95.0
+    tau: float = 1.0
+    window: int = 256
+    margin: float = 0.002
+    tolerance: float = 0.1
+    spread: float = 3.0
+    min_samples: int = 3
+    room: PlayoutDelay = field(init=False)
+    #: Users shown late alone (or slewing back to the room's D): their own D (s).
+    own: dict[int, float] = field(default_factory=dict)
+    late: set[int] = field(default_factory=set)
+    _users: dict[int, PlayoutDelay] = field(default_factory=dict)
+    _dirty: bool = False
+    _target: float | None = None
+    #: Late users' own targets; users shown at the room's D (now, and before).
+    _own: dict[int, float] = field(default_factory=dict)
+    _seated: set[int] = field(default_factory=set)
+    _was: set[int] = field(default_factory=set)
+
+    def __post_init__(self) -> None:
+        self.room = self._new()
+
+    def _new(self) -> PlayoutDelay:
+        return PlayoutDelay(self.interval, self.percentile, self.tau, self.window, self.margin)
+
+    def observe(self, user: int, age: float) -> None:
+        """One keyframe of ``user``'s, its age on arrival (server clock)."""
+        (self._users.get(user) or self._users.setdefault(user, self._new())).observe(age)
+        self._dirty = True
+
+    def forget(self, user: int) -> None:
+        """A user left: its ages no longer count."""
+        self._users.pop(user, None)
+        self.own.pop(user, None)
+        self.late.discard(user)
+        self._dirty = True
+
+    def delay(self, user: int) -> float:
+        """The D ``user``'s streams are rendered with."""
+        return self.own.get(user, self.room.value)
+
+    def _classify(self) -> float | None:
+        """Judge every user with enough ages; the room's target (None: no ages)."""
+        judged = {u: d for u, d in self._users.items() if len(d._ages) >= self.min_samples}
+        if judged:
+            med = {u: float(np.median(d._ages)) for u, d in judged.items()}
+            ranked = sorted(med.values())
+            ref = ranked[(len(ranked) - 1) // 2]
+            mad = float(np.median(np.abs(np.array(ranked) - ref))) if len(ranked) > 2 else 0.0
+            bound = max(self.tolerance, self.spread * 1.4826 * mad)
+            for u, m in med.items():
+                if m > ref + bound:
+                    self.late.add(u)
+                elif u in self.late and judged[u].target < self.interval + ref + bound:
+                    self.late.discard(u)  # the late ages have left its window
+        self._own = {u: self._users[u].target for u in self.late}
+        seated = {u for u in judged if u not in self.late}
+        if seated and not seated & self._seated:
+            self.room._last = None  # nobody shown at the room's D stays: set it
+        self._was, self._seated = self._seated, seated
+        pool = [d._ages for u, d in judged.items() if u in seated] or [
+            d._ages for d in self._users.values() if d._ages
+        ]
+        if not pool:
+            return None
+        ages = np.concatenate([np.fromiter(a, float, len(a)) for a in pool])
+        return self.interval + float(np.percentile(ages, self.percentile)) + self.margin
+
+    def update(self, now: float) -> float:
+        """Slew the room's D and every late user's own D; returns the room's."""
+        before = self.room.value
+        if self._dirty:
+            self._target, self._dirty = self._classify(), False
+        target = self._target
+        room = self.room.update(now, target)
+        for u in self.late - self.own.keys():  # newly late: from where it was shown
+            d = self._users[u]
+            d.value, d._last = before, (now if u in self._was else None)
+        for u in list(self.own.keys() | self.late):
+            d = self._users[u]
+            if u in self.late:
+                self.own[u] = d.update(now, max(self._own[u], target or room))
+            elif abs(d.update(now, room) - room) < 1e-3:
+                del self.own[u]  # back in step with the room
+            else:
+                self.own[u] = d.value
+        return room
