@@ -125,6 +125,9 @@ def table1(
     --live, every tier also runs through the real relay and bots, beside its
     offline counterpart ("Live vs offline" in table1.md, key "live" in the JSON);
     the command exits 1 if they disagree beyond the stated tolerance.
+    Ctrl-C prints what was measured by then (Table 1 on the ideal network once
+    that sweep is done, else the error at each finished rate), writes nothing,
+    and exits 130.
     """
     rate_list = [int(r) for r in _parse_rates(rates)]
     method_list = _parse_methods(methods)
@@ -150,8 +153,8 @@ def table1(
             codecs=[c.strip() for c in codecs.split(",") if c.strip()],
             done=done,
         )
-    except KeyboardInterrupt:
-        raise _interrupted_offline(done) from None
+    except KeyboardInterrupt as exc:
+        raise _interrupted_offline(done, exc, method_list) from None
     live_report, interrupted = None, False
     if live_plan is not None:
         try:
@@ -179,18 +182,49 @@ def table1(
         raise typer.Exit(1)
 
 
-def _interrupted_offline(done: dict[str, tuple[int, int]]) -> typer.Exit:
-    """Ctrl-C during the offline sweep: which stage it reached, that nothing was
-    written, and a shorter run; the Exit (130) to raise."""
-    stages = ", ".join(f"{k} {d}/{t}" for k, (d, t) in done.items()) or "starting"
+def _interrupted_offline(
+    done: dict[str, tuple[int, int]], exc: KeyboardInterrupt, method_list: list[str]
+) -> typer.Exit:
+    """Ctrl-C during the offline sweep: what was measured by then (Table 1 itself once
+    the ideal sweep was done, else the error at each finished rate), which stage it
+    reached, that nothing was written, and a shorter run; the Exit (130) to raise."""
+    from posecast.scenarios.table1 import Table1Interrupted
+
+    covered = "nothing was measured yet"
+    if isinstance(exc, Table1Interrupted) and exc.tiers is not None:
+        _print_table1({"config": {"rates": exc.rates}, "tiers": exc.tiers}, method_list)
+        covered = "the table above is Table 1 on the ideal network, without running times"
+    elif isinstance(exc, Table1Interrupted) and exc.curves:
+        _print_curves(exc.curves)
+        covered = f"the table above covers {len(exc.curves)} of {len(exc.rates)} rates"
+    # Progress counts steps over the whole run: the last stage and the run's count.
+    where = "starting"
+    if done:
+        stage, (d, t) = list(done.items())[-1]
+        where = f"in {stage}, step {d} of {t}"
     err_console.print(
-        f"interrupted during the offline sweep ({stages}): Table 1 needs the whole "
-        "sweep, so nothing was written; a shorter one: --rates 5,10,15,20,30 "
+        f"interrupted during the offline sweep ({where}): {covered}; Table 1 needs the "
+        "whole sweep, so nothing was written; a shorter one: --rates 5,10,15,20,30 "
         "--no-link --no-frontier --no-bench",
         markup=False,
         highlight=False,
     )
     return typer.Exit(130)
+
+
+def _print_curves(curves: dict[int, Any]) -> None:
+    """An interrupted sweep's finished rates: hands p95 tip error (mm) per method."""
+    methods = list(next(iter(curves.values())))
+    table = Table(
+        title="ideal network, hands p95 tip error (mm), rates finished", title_justify="left"
+    )
+    table.add_column("rate Hz", justify="right")
+    for m in methods:
+        table.add_column(m, justify="right")
+    for rate in sorted(curves):
+        cells = [curves[rate][m].get("hands", {}).get("tip_p95_mm", float("nan")) for m in methods]
+        table.add_row(str(rate), *(f"{c:.1f}" for c in cells))
+    console.print(table)
 
 
 def _plan_live(

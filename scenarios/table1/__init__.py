@@ -84,7 +84,7 @@ from posecast.scenarios.table1.frontier import _refine as _refine
 from posecast.scenarios.table1.frontier import _same_bracket as _same_bracket
 from posecast.scenarios.table1.frontier import cheapest_point, pareto_frontier
 from posecast.scenarios.table1.report import SNAPPED_RATE, SNAPPED_SAVING
-from posecast.scenarios.table1.run import run_table1
+from posecast.scenarios.table1.run import Table1Interrupted, run_table1
 from posecast.scenarios.table1.runtime import _prepare_receiver as _prepare_receiver
 from posecast.scenarios.table1.runtime import receiver_cpu_time, receiver_cpu_times
 from posecast.scenarios.table1.sweep import _ideal_log as _ideal_log
@@ -106,6 +106,7 @@ __all__ = [
     "VELOCITY_SOURCE",
     "Progress",
     "Stats",
+    "Table1Interrupted",
     "cheapest_point",
     "describe_rates",
     "equal_qoe_rate",

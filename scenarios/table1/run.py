@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +25,7 @@ from posecast.scenarios.table1.common import (
     FRONTIER_FRACTIONS,
     PAPER,
     Progress,
+    Stats,
     _as_traces,
     tier_rate,
 )
@@ -126,10 +127,46 @@ def run_table1(
     if unknown:
         raise ValueError(f"unknown codec(s) {unknown}; known: {', '.join(CODECS)}")
     p = _plan(traces, rates, methods, tiers, room_poses)
-    report, ideal, link_sweeps = _measure(p, opts, clock, progress)
+    partial = _Partial()
+    try:
+        report, ideal, link_sweeps = _measure(p, opts, clock, progress, partial)
+    except KeyboardInterrupt as exc:
+        raise partial.interrupted(p) from exc
     if out_dir is not None:
         _write(Path(out_dir), report, p, ideal, link_sweeps, plots)
     return report
+
+
+class Table1Interrupted(KeyboardInterrupt):
+    """Ctrl-C during :func:`run_table1`, with what the run had measured (nothing is
+    written). ``curves``: ``{rate: {method: {class: stats}}}`` on the ideal network,
+    for the rates finished (of ``rates``); ``tiers``: Table 1's rows (equal-QoE
+    rates on the ideal network, no running time) once the whole ideal sweep was
+    done, else None."""
+
+    def __init__(
+        self,
+        curves: dict[int, Stats],
+        rates: list[int],
+        tiers: list[dict[str, Any]] | None,
+    ) -> None:
+        super().__init__("Table 1 interrupted")
+        self.curves, self.rates, self.tiers = curves, rates, tiers
+
+
+@dataclass
+class _Partial:
+    """What an interrupted run keeps: each finished rate of the ideal sweep, and the
+    whole ideal sweep once it is done."""
+
+    finished: dict[int, Stats] = field(default_factory=dict)
+    ideal: _Sweep | None = None
+
+    def interrupted(self, p: _Plan) -> Table1Interrupted:
+        tiers = None
+        if self.ideal is not None:
+            tiers = ideal_tier_rows(p.tiers, p.soa_rates, self.ideal, p.meths, p.rate_list, p.wire)
+        return Table1Interrupted(dict(self.finished), list(p.all_rates), tiers)
 
 
 @dataclass(frozen=True)
@@ -155,16 +192,25 @@ class _Options:
 
 
 def _measure(
-    p: _Plan, o: _Options, clock: _Clock, progress: Progress | None
+    p: _Plan, o: _Options, clock: _Clock, progress: Progress | None, partial: _Partial
 ) -> tuple[dict[str, Any], _Sweep, dict[str, _Sweep]]:
-    """Stages (a)-(d) and the report: ``(report, ideal sweep, link sweeps)``."""
+    """Stages (a)-(d) and the report: ``(report, ideal sweep, link sweeps)``; ``partial``
+    follows stage (a) as it goes."""
     f_nets = _frontier_nets(p, o)
     ticks = _Ticks(_total_ticks(p, o.link, f_nets), progress)
 
     # (a) ideal-network curves
     ideal = _sweep(
-        p.trs, p.all_rates, p.meths, _ideal_log, ticks.stage("ideal"), p.wire, keep_samples=o.plots
+        p.trs,
+        p.all_rates,
+        p.meths,
+        _ideal_log,
+        ticks.stage("ideal"),
+        p.wire,
+        keep_samples=o.plots,
+        finished=partial.finished,
     )
+    partial.ideal = ideal
     clock.lap("ideal_sweep")
 
     # (b) equal-QoE rates, savings, running time

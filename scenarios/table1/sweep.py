@@ -190,8 +190,11 @@ def _sweep(
     wire: _Wire,
     per_trace_stats: bool = True,
     keep_samples: bool = False,
+    finished: dict[int, Stats] | None = None,
 ) -> _Sweep:
-    """Every method at every rate: one log per wire variant, one D per look-ahead."""
+    """Every method at every rate: one log per wire variant, one D per look-ahead.
+    ``finished`` gets each rate's pooled statistics as soon as that rate is done
+    (what an interrupted run can still report)."""
     pooled: dict[int, Stats] = {}
     per_trace: dict[str, dict[int, Stats]] = {tr.name: {} for tr in traces}
     network: dict[int, dict[str, float]] = {}
@@ -217,6 +220,8 @@ def _sweep(
                 per_trace[tr.name][rate] = summarize([g])
             tick()
         pooled[rate] = summarize(groups)
+        if finished is not None:
+            finished[rate] = pooled[rate]
         by_method[rate] = {m: nets[m].summary() for m in methods}
         network[rate] = by_method[rate][methods[0]]
         if keep_samples:

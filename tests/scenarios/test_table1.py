@@ -15,6 +15,7 @@ from posecast.scenarios.network import Tier, builtin_tiers, wire_bytes
 from posecast.scenarios.synthetic import synthetic_motion
 from posecast.scenarios.table1 import (
     PAPER,
+    Table1Interrupted,
     describe_rates,
     equal_qoe_rate,
     receiver_cpu_time,
@@ -355,3 +356,35 @@ def test_posecast_table1_prints_readable_lines_not_json(tmp_path: Path) -> None:
     assert "16.5 % less running time" in res.output
     assert "and plots" not in res.output  # --no-plots: none written
     assert "1 Hz steps" not in (tmp_path / "table1.md").read_text()
+
+
+@pytest.mark.parametrize("stop_at", ["ideal 2", "link"])
+def test_an_interrupted_run_keeps_what_it_measured(stop_at: str, tmp_path: Path) -> None:
+    """Ctrl-C (a KeyboardInterrupt from the progress callback) mid ideal sweep keeps
+    the finished rates' curves; after the ideal sweep, Table 1's rows too; no files."""
+    rates = [10, 15, 20, 30]
+
+    def progress(stage: str, done: int, total: int) -> None:
+        if stop_at == f"{stage} {done}" or (stop_at == "link" and stage.startswith("link")):
+            raise KeyboardInterrupt
+
+    motion = [synthetic_motion("reach-grasp", 0, duration_s=6.0)]
+    with pytest.raises(KeyboardInterrupt) as caught:
+        run_table1(motion, rates, ["dq-slerp"], out_dir=tmp_path, progress=progress,
+                   bench=False, plots=False, frontier=False)  # fmt: skip
+    exc = caught.value
+    assert isinstance(exc, Table1Interrupted)
+    # The rates swept: those asked for and each tier's SoA rate.
+    assert set(rates) <= set(exc.rates) and list(tmp_path.iterdir()) == []
+    full = run_table1(motion, rates, ["dq-slerp"], link=False, bench=False, plots=False,
+                      frontier=False)  # fmt: skip
+    if stop_at == "ideal 2":  # one trace: each rate is one tick, the 2nd not pooled yet
+        assert sorted(exc.curves) == exc.rates[:1] and exc.tiers is None
+    else:
+        assert sorted(exc.curves) == exc.rates and exc.tiers is not None
+        assert [r["equal_qoe_rate"] for r in exc.tiers] == [
+            r["equal_qoe_rate"] for r in full["tiers"]
+        ]
+    for rate in exc.curves:
+        got = exc.curves[rate]["dq-slerp"]["hands"]["tip_p95_mm"]
+        assert got == pytest.approx(full["curves"]["dq-slerp"][str(rate)]["hands"]["tip_p95_mm"])
