@@ -27,6 +27,7 @@ import struct
 import numpy as np
 from numpy.typing import NDArray
 
+from posecast.protocol.bits import unzz, zz
 from posecast.protocol.codec import (
     BaselineMismatch,
     PoseFrame,
@@ -53,40 +54,32 @@ F_RELATIVE = 8
 def _header_fields(data: bytes) -> tuple[int, int, int]:
     """(number, zigzagged base time, offset of what follows) of a codec frame."""
     number, pos = _read_uvarint(data, 2)
-    zz, pos = _read_uvarint(data, pos)
-    return number, zz, pos
-
-
-def _unzz(z: int) -> int:
-    return (z >> 1) ^ -(z & 1)
-
-
-def _zz(v: int) -> int:
-    return v * 2 if v >= 0 else -v * 2 - 1
+    z, pos = _read_uvarint(data, pos)
+    return number, z, pos
 
 
 def relative(data: bytes, previous: tuple[int, int] | None) -> tuple[bytes, tuple[int, int]]:
     """``data`` (an absolute frame) with a relative header against ``previous``
     (number, base us), and its own (number, base us)."""
-    number, zz, pos = _header_fields(data)
-    here = (number, _unzz(zz))
+    number, z, pos = _header_fields(data)
+    here = (number, unzz(z))
     if previous is None:
         return data, here
     head = bytes([data[0], data[1] | F_RELATIVE])
-    fields = _uvarint(_zz(number - previous[0])) + _svarint(here[1] - previous[1])
+    fields = _uvarint(zz(number - previous[0])) + _svarint(here[1] - previous[1])
     return head + fields + data[pos:], here
 
 
 def absolute(data: bytes, previous: tuple[int, int] | None) -> tuple[bytes, tuple[int, int]]:
     """The absolute frame of ``data`` (relative or not), and its (number, base us);
     raises ``RemoteProtocolError``."""
-    d, zz, pos = _header_fields(data)
+    d, z, pos = _header_fields(data)
     if not data[1] & F_RELATIVE:
-        return data, (d, _unzz(zz))
+        return data, (d, unzz(z))
     if previous is None:
         raise BaselineMismatch("a relative update header with no update before it")
-    number = previous[0] + _unzz(d)
-    base = previous[1] + _unzz(zz)
+    number = previous[0] + unzz(d)
+    base = previous[1] + unzz(z)
     if not (0 <= number < 1 << 63 and abs(base) < 1 << 62):
         raise BaselineMismatch("relative update header out of range")
     head = bytes([data[0], data[1] & ~F_RELATIVE])
@@ -189,16 +182,16 @@ class UpstreamDecoder:
             return None
         try:
             d, pos = read_varint(data, 2)
-            zz, pos = read_varint(data, pos)
+            z, pos = read_varint(data, pos)
         except (RemoteProtocolError, IndexError):
             return None
         if flags & F_RELATIVE:
             if self._previous is None:
                 return None
-            number = self._previous[0] + _unzz(d)
-            base_us = self._previous[1] + _unzz(zz)
+            number = self._previous[0] + unzz(d)
+            base_us = self._previous[1] + unzz(z)
         else:
-            number, base_us = d, _unzz(zz)
+            number, base_us = d, unzz(z)
         if not (0 <= number < 1 << 63 and abs(base_us) < 1 << 62):
             return None
         got = decode_update_rows(data, pos, flags, self._geometry, self.baselines)

@@ -1,17 +1,26 @@
-"""Vectorised bit packing for the compact pose codec: fixed-width and Exp-Golomb columns.
+"""Bit packing, Exp-Golomb and zigzag: the one module every compact layout codes bits with.
 
-A bitstream is written MSB first. Values are written a *column* at a time (one
-field of every entry), so that a reader can unpack a whole column with a few
-numpy operations instead of a Python loop per value.
+Sections, in order:
 
-Exp-Golomb of order ``k`` (``v >= 0``): let ``q = v >> k`` and ``L`` its bit
-length (0 for ``q == 0``); the code is ``L`` zeros and a one (the *prefix*),
-then the ``L - 1`` bits of ``q`` below its leading one and the ``k`` low bits
-of ``v`` (the *suffix*): ``L + 1 + max(L - 1, 0) + k`` bits. In a column every
-prefix comes first, then every suffix, so a reader finds all the prefix lengths
-with one ``flatnonzero`` and then gathers the suffixes at known offsets.
+- **zigzag**: signed to unsigned (0, -1, 1, -2, ... -> 0, 1, 2, 3, ...), for Python
+  ints (:func:`zz`, :func:`unzz`) and int64 arrays (:func:`zigzag`, :func:`unzigzag`).
+- **Exp-Golomb**: the code, its tables, and the choice of its order ``k``.
+- **Python-int streams**: :class:`IntWriter` and :class:`IntReader`, a bitstream as
+  one Python int, for frames of a few dozen entries (every relay update and
+  snapshot): ``codec_fast``, ``codec_small`` and ``codec_relay`` write and read with them.
+- **numpy streams**: :class:`BitWriter` and :class:`BitReader`, columns of any
+  length (``codec_frame``'s reference path).
 
-Signed values travel zigzagged (0, -1, 1, -2, ... -> 0, 1, 2, 3, ...).
+A bitstream is written MSB first. Exp-Golomb of order ``k`` (``v >= 0``): let
+``q = v >> k`` and ``L`` its bit length (0 for ``q == 0``); the code is ``L``
+zeros and a one (the *prefix*), then the ``L - 1`` bits of ``q`` below its
+leading one and the ``k`` low bits of ``v`` (the *suffix*):
+``L + 1 + max(L - 1, 0) + k`` bits. Written whole, the code of ``v >= 2**k`` is
+``v`` itself in ``2 w - k + 2`` bits (``w``: bit length of ``v`` minus one), and
+that of ``v < 2**k`` is ``2**k + v`` in ``k + 1`` bits. The layouts write codes
+either whole, one after another (``codec_relay``), or by *column*: every prefix
+of a column first, then every suffix, so that a reader finds all the prefix
+lengths at once (one ``flatnonzero``, or one ``str.find`` per code).
 
 Readers raise only ``RemoteProtocolError(BAD_FRAME)`` (truncated or overlong
 codes) and never allocate more than a small multiple of the stream's size.
@@ -19,23 +28,33 @@ codes) and never allocate more than a small multiple of the stream's size.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from numpy.typing import NDArray
 
 from posecast.protocol.errors import ErrorCode, RemoteProtocolError
 
 __all__ = [
+    "EG_TABLES",
     "MAX_EG_BITS",
     "MAX_K",
     "SMALL",
     "BitReader",
     "BitWriter",
+    "IntReader",
+    "IntWriter",
     "best_k",
+    "best_k_small",
     "bit_length",
+    "eg_code",
     "eg_cost",
+    "eg_pack",
     "k_of_histogram",
     "unzigzag",
+    "unzz",
     "zigzag",
+    "zz",
 ]
 
 I64 = NDArray[np.int64]
@@ -45,15 +64,68 @@ MAX_K = 15
 #: Longest value an Exp-Golomb code may carry, in bits (prefix length + k).
 MAX_EG_BITS = 48
 
+# --------------------------------------------------------------------------- zigzag
+
+
+def zz(v: int) -> int:
+    """Signed to unsigned: 0, -1, 1, -2 -> 0, 1, 2, 3."""
+    return v * 2 if v >= 0 else -2 * v - 1
+
+
+def unzz(z: int) -> int:
+    """Inverse of :func:`zz`."""
+    return (z >> 1) ^ -(z & 1)
+
 
 def zigzag(v: I64) -> I64:
-    """Signed to unsigned: 0, -1, 1, -2 -> 0, 1, 2, 3."""
+    """:func:`zz` of each value of an int64 array."""
     return (v << 1) ^ (v >> 63)
 
 
 def unzigzag(z: I64) -> I64:
     """Inverse of :func:`zigzag`."""
     return (z >> 1) ^ -(z & 1)
+
+
+# --------------------------------------------------------------------------- Exp-Golomb
+
+
+def eg_code(v: int, k: int) -> tuple[int, int]:
+    """(codeword, length) of ``v >= 0`` in Exp-Golomb of order k, written whole."""
+    if v >> k == 0:
+        return (1 << k) | v, k + 1
+    w = v.bit_length() - 1
+    return v, 2 * w - k + 2
+
+
+#: Values below this have their codes in :data:`EG_TABLES`.
+_TABLE_SIZE = 1024
+#: ``EG_TABLES[k][v]``: :func:`eg_code` ``(v, k)`` for every v below _TABLE_SIZE.
+EG_TABLES = [[eg_code(v, k) for v in range(_TABLE_SIZE)] for k in range(MAX_K + 1)]
+#: How far a prefix may run, by order k: at most MAX_EG_BITS - k zeros and a one.
+_REACH = [MAX_EG_BITS - k + 1 for k in range(MAX_K + 1)]
+_MASK = [(1 << w) - 1 for w in range(MAX_EG_BITS + MAX_K + 1)]
+#: By order k and prefix length L: the suffix's (width, leading one, mask). The value
+#: is the suffix with the leading one set (L > 0), or the suffix alone (L = 0).
+_SUFFIX = [
+    [(L - 1 + k, 1 << (L - 1 + k), _MASK[L - 1 + k]) if L else (k, 0, _MASK[k]) for L in range(r)]
+    for k, r in enumerate(_REACH)
+]
+
+
+def eg_pack(values: Sequence[int], orders: Sequence[int]) -> tuple[int, int]:
+    """(bits, bit count) of the whole codes of ``values[i]`` of order ``orders[i]``,
+    one after another (as many values as orders)."""
+    tables = EG_TABLES
+    acc = nbits = 0
+    for v, k in zip(values, orders, strict=True):
+        if v < _TABLE_SIZE:
+            c, w = tables[k][v]
+        else:
+            c, w = eg_code(v, k)
+        acc = (acc << w) | c
+        nbits += w
+    return acc, nbits
 
 
 def bit_length(v: I64) -> I64:
@@ -77,7 +149,7 @@ SMALL = 256
 
 def k_of_histogram(hist: list[int]) -> int:
     """The order coding values with these bit-length counts (``hist[b]``: how many
-    have bit length b) in the fewest bits: see :func:`_best_k_small`."""
+    have bit length b) in the fewest bits: see :func:`best_k_small`."""
     n = sum(hist)
     below = 0  # #(b <= k)
     k = 0
@@ -89,8 +161,8 @@ def k_of_histogram(hist: list[int]) -> int:
     return k
 
 
-def _best_k_small(values: list[int]) -> tuple[int, int]:
-    """:func:`best_k` of a short column, from a histogram of the bit lengths.
+def best_k_small(values: Sequence[int]) -> tuple[int, int]:
+    """:func:`best_k` of a short column of Python ints, from a histogram of bit lengths.
 
     With ``b`` a value's bit length, its code costs ``2 max(b - k, 0) + [b <= k] + k``
     bits, so ``cost(k + 1) - cost(k) = #(b <= k) - #(b > k + 1)``: non-decreasing in
@@ -114,11 +186,185 @@ def best_k(v: I64) -> tuple[int, int]:
     if v.size == 0:
         return 0, 0
     if v.size <= SMALL:
-        return _best_k_small(v.tolist())
+        return best_k_small(v.tolist())
     lengths = bit_length(v[None, :] >> _KS[:, None])
     costs = (2 * lengths + (lengths == 0)).sum(axis=1) + _KS * v.size
     k = int(np.argmin(costs))
     return k, int(costs[k])
+
+
+#: The name it had before ``best_k_small`` was public.
+_best_k_small = best_k_small
+
+# --------------------------------------------------------------------------- Python-int streams
+
+
+class IntWriter:
+    """A bitstream as one Python int: fields and whole codes one at a time, or
+    columns (see the module docstring) with the bits each entry ("owner") cost.
+
+    Shifting one growing int costs a copy per field: right for the few hundred
+    bits of a relay frame; long frames go through :class:`BitWriter`.
+    """
+
+    __slots__ = ("acc", "owned", "total")
+
+    def __init__(self, n: int = 0) -> None:
+        self.acc = 0
+        self.total = 0
+        #: Bits written for each of the entries 0..n-1 (by the column methods).
+        self.owned = [0] * n
+
+    def put(self, value: int, width: int) -> None:
+        """One field of ``width`` bits (the value must fit)."""
+        self.acc = (self.acc << width) | value
+        self.total += width
+
+    def eg(self, v: int, k: int) -> None:
+        """The whole Exp-Golomb code of order k of ``v``."""
+        code, width = eg_code(v, k)
+        self.acc = (self.acc << width) | code
+        self.total += width
+
+    def fixed(self, values: list[int], width: int, owners: list[int]) -> None:
+        """A column: each value in ``width`` bits; ``owners``: the entry of each."""
+        col = 0
+        for v in values:
+            col = (col << width) | v
+        self.acc = (self.acc << (width * len(values))) | col
+        self.total += width * len(values)
+        owned = self.owned
+        for o in owners:
+            owned[o] += width
+
+    def eg_column(self, values: list[int], k: int, owners: list[int]) -> None:
+        """A column of Exp-Golomb codes of order k: every prefix, then every suffix."""
+        pre = npre = suf = nsuf = 0
+        owned = self.owned
+        for v, o in zip(values, owners, strict=True):
+            if v >> k:
+                # Prefix: L zeros and a one (L = bit length of v >> k); suffix: v
+                # without its leading one (w = L - 1 + k bits).
+                w = v.bit_length() - 1
+                lead = w - k + 2
+                pre = (pre << lead) | 1
+                suf = (suf << w) | (v ^ (1 << w))
+                npre += lead
+                nsuf += w
+                owned[o] += lead + w
+            else:
+                pre = (pre << 1) | 1
+                suf = (suf << k) | v
+                npre += 1
+                nsuf += k
+                owned[o] += 1 + k
+        self.acc = (((self.acc << npre) | pre) << nsuf) | suf
+        self.total += npre + nsuf
+
+    def getvalue(self) -> bytes:
+        """The bits, zero-padded to whole bytes."""
+        pad = -self.total % 8
+        return (self.acc << pad).to_bytes((self.total + pad) // 8, "big")
+
+
+def _frame_truncated(what: str = "pose frame truncated") -> RemoteProtocolError:
+    return RemoteProtocolError(ErrorCode.BAD_FRAME, what)
+
+
+class IntReader:
+    """Reads a bitstream held twice: as one Python int (a field is a shift and a mask)
+    and as a string of "0"/"1" (``str.find`` finds the end of a prefix in C).
+
+    Every failure is ``RemoteProtocolError(BAD_FRAME)``: a code or field past the
+    end, a prefix longer than ``MAX_EG_BITS - k`` zeros, trailing bits.
+    """
+
+    __slots__ = ("pos", "size", "text", "x")
+
+    def __init__(self, body: bytes) -> None:
+        self.x = int.from_bytes(body, "big")
+        self.size = 8 * len(body)
+        self.text = format(self.x, f"0{self.size}b") if body else ""
+        self.pos = 0
+
+    @property
+    def remaining(self) -> int:
+        """Bits not read yet."""
+        return self.size - self.pos
+
+    def field(self, width: int) -> int:
+        """The next ``width`` bits."""
+        end = self.pos + width
+        if end > self.size:
+            raise _frame_truncated()
+        self.pos = end
+        return (self.x >> (self.size - end)) & ((1 << width) - 1)
+
+    def fixed(self, n: int, width: int) -> list[int]:
+        """A column of ``n`` fields of ``width`` bits."""
+        if not n:
+            return []
+        end = self.pos + n * width
+        if end > self.size:
+            raise _frame_truncated()
+        self.pos = end
+        x, size, mask = self.x, self.size, (1 << width) - 1
+        return [(x >> (size - p)) & mask for p in range(end - (n - 1) * width, end + 1, width)]
+
+    def eg(self, k: int) -> int:
+        """One whole Exp-Golomb code of order k."""
+        pos = self.pos
+        j = self.text.find("1", pos, pos + _REACH[k])
+        if j < 0:
+            raise _frame_truncated("pose frame truncated or code too long")
+        width, lead, mask = _SUFFIX[k][j - pos]
+        end = j + 1 + width
+        if end > self.size:
+            raise _frame_truncated()
+        self.pos = end
+        return ((self.x >> (self.size - end)) & mask) | lead
+
+    def eg_column(self, n: int, k: int) -> list[int]:
+        """``n`` Exp-Golomb codes of order k: every prefix, then every suffix."""
+        find, pos = self.text.find, self.pos
+        reach, suffix = _REACH[k], _SUFFIX[k]
+        parts = []
+        for _ in range(n):
+            j = find("1", pos, pos + reach)
+            if j < 0:
+                raise _frame_truncated("pose frame truncated or code too long")
+            parts.append(suffix[j - pos])
+            pos = j + 1
+        x, size = self.x, self.size
+        out = []
+        try:
+            for width, lead, mask in parts:
+                pos += width
+                out.append(((x >> (size - pos)) & mask) | lead)
+        except ValueError:  # a suffix past the end: a negative shift
+            raise _frame_truncated() from None
+        self.pos = pos
+        return out
+
+    def add_columns(self, jobs: list[tuple[list[list[int]], int, int]]) -> None:
+        """For each (rows, c, k), in order: add one signed (zigzag) Exp-Golomb column
+        of order k to column c of the rows (one code a row)."""
+        for rows, c, k in jobs:
+            for row, z in zip(rows, self.eg_column(len(rows), k), strict=True):
+                row[c] += (z >> 1) ^ -(z & 1)
+
+    def rest_is_padding(self) -> bool:
+        """Whether only zero padding (fewer than 8 bits) is left."""
+        rest = self.size - self.pos
+        return rest < 8 and not self.x & ((1 << rest) - 1)
+
+    def finish(self) -> None:
+        """Raise unless only zero padding (fewer than 8 bits) is left."""
+        if not self.rest_is_padding():
+            raise RemoteProtocolError(ErrorCode.BAD_FRAME, "trailing bits in pose frame")
+
+
+# --------------------------------------------------------------------------- numpy streams
 
 
 class BitWriter:

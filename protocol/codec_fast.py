@@ -16,7 +16,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from posecast.protocol.bits import MAX_EG_BITS, _best_k_small
+from posecast.protocol.bits import IntReader, IntWriter, best_k_small, unzz, zz
 from posecast.protocol.codec_frame import (
     CODEC_MAGIC,
     CODEC_VERSION,
@@ -41,13 +41,9 @@ from posecast.protocol.codec_quant import (
 from posecast.protocol.codec_small import (
     SMALL_FRAME,
     Fallback,
-    Reader,
-    Writer,
     baseline_list,
     crc_rows,
     predict_row,
-    unzz,
-    zz,
 )
 from posecast.protocol.errors import RemoteProtocolError
 
@@ -68,7 +64,7 @@ Rows = list[list[int]]
 
 
 def _ids_times(
-    w: Writer, users: list[int], streams: list[int], off: list[int], sel: list[int], update: bool
+    w: IntWriter, users: list[int], streams: list[int], off: list[int], sel: list[int], update: bool
 ) -> int:
     """The ug, sg, t_first and t_same columns of a section; the t_first order."""
     ug, sg, first, first_own, same, same_own = [], [], [], [], [], []
@@ -87,30 +83,30 @@ def _ids_times(
             same_own.append(i)
         pu, ps, po = u, s, o
     if not update:
-        w.eg(ug, 0, sel)
-    w.eg(sg, 0, sel)
-    k = _best_k_small(first)[0]
-    w.eg(first, k, first_own)
-    w.eg(same, 0, same_own)
+        w.eg_column(ug, 0, sel)
+    w.eg_column(sg, 0, sel)
+    k = best_k_small(first)[0]
+    w.eg_column(first, k, first_own)
+    w.eg_column(same, 0, same_own)
     return k
 
 
-def _classed(w: Writer, z: Rows, cls: list[int], sel: list[int]) -> list[int]:
+def _classed(w: IntWriter, z: Rows, cls: list[int], sel: list[int]) -> list[int]:
     """Zigzagged differences (3 a row), class 0 entries then class 1 per column."""
     parts = []
     for want in (0, 1):
         own = [i for i, c in zip(sel, cls, strict=True) if c == want]
         rows = [row for row, c in zip(z, cls, strict=True) if c == want]
-        parts.append((own, rows, _best_k_small([v for row in rows for v in row])[0]))
+        parts.append((own, rows, best_k_small([v for row in rows for v in row])[0]))
     for j in range(3):
         for own, rows, k in parts:
             if own:
-                w.eg([row[j] for row in rows], k, own)
+                w.eg_column([row[j] for row in rows], k, own)
     return [parts[0][2], parts[1][2]]
 
 
 def _key_section(
-    w: Writer,
+    w: IntWriter,
     cols: tuple[list[int], list[int], list[int], Rows],
     sel: list[int],
     update: bool,
@@ -127,15 +123,15 @@ def _key_section(
     if rows and len(rows[0]) == 13:
         for lo in (7, 10):
             z = [[zz(v) for v in r[lo : lo + 3]] for r in rows]
-            k = _best_k_small([v for r in z for v in r])[0]
+            k = best_k_small([v for r in z for v in r])[0]
             nib.append(k)
             for j in range(3):
-                w.eg([r[j] for r in z], k, sel)
+                w.eg_column([r[j] for r in z], k, sel)
     return nib
 
 
 def _delta_section(
-    w: Writer,
+    w: IntWriter,
     cols: tuple[list[int], list[int], list[int], Rows],
     sel: list[int],
     base: Rows,
@@ -146,7 +142,7 @@ def _delta_section(
     nib = [_ids_times(w, users, streams, off, sel, update)]
     rows = [codes[i] for i in sel]
     cls = [int(split and streams[i] != 0) for i in sel]
-    w.eg([(r[0] - b[0]) & 3 for r, b in zip(rows, base, strict=True)], 0, sel)
+    w.eg_column([(r[0] - b[0]) & 3 for r, b in zip(rows, base, strict=True)], 0, sel)
     z = []
     for r, b in zip(rows, base, strict=True):
         p = predict_row(b, r[0])
@@ -217,7 +213,7 @@ def encode_small(
         is_delta = [name in baselines for name in names] if baselines else [False] * n
         kd = [i for i in range(n) if not is_delta[i]]
         dd = [i for i in range(n) if is_delta[i]]
-        w = Writer(n)
+        w = IntWriter(n)
         nib: list[int] = []
         check = b""
         if kd:
@@ -259,15 +255,15 @@ def encode_small(
 
 
 def _read_ids_times(
-    r: Reader, n: int, k: int, update: bool
+    r: IntReader, n: int, k: int, update: bool
 ) -> tuple[list[int], list[int], list[int]]:
-    ug = [0] * n if update else r.eg(n, 0)
-    sg = r.eg(n, 0)
+    ug = [0] * n if update else r.eg_column(n, 0)
+    sg = r.eg_column(n, 0)
     new = [g > 0 for g in ug]
     new[0] = True
     n_first = sum(new)
-    first = [unzz(z) for z in r.eg(n_first, k)]
-    same = [unzz(z) for z in r.eg(n - n_first, 0)]
+    first = [unzz(z) for z in r.eg_column(n_first, k)]
+    same = [unzz(z) for z in r.eg_column(n - n_first, 0)]
     users, streams, off = [], [], []
     u, s, o = 0, -1, 0
     fi = si = 0
@@ -294,16 +290,16 @@ def _read_ids_times(
     return users, streams, off
 
 
-def _read_classed(r: Reader, cls: list[int], ks: list[int], out: Rows, lo: int) -> None:
+def _read_classed(r: IntReader, cls: list[int], ks: list[int], out: Rows, lo: int) -> None:
     for j in range(3):
         for want in (0, 1):
             idx = [i for i, c in enumerate(cls) if c == want]
-            for i, z in zip(idx, r.eg(len(idx), ks[want]), strict=True):
+            for i, z in zip(idx, r.eg_column(len(idx), ks[want]), strict=True):
                 out[i][lo + j] += unzz(z)
 
 
 def _read_sections(
-    r: Reader, h: Any, volume: Volume, baselines: Mapping[Any, I64]
+    r: IntReader, h: Any, volume: Volume, baselines: Mapping[Any, I64]
 ) -> tuple[list[int], list[int], list[int], Rows]:
     nib = iter(h.nibbles)
     users: list[int] = []
@@ -317,7 +313,7 @@ def _read_sections(
         cols += [r.fixed(n, bits) for bits in volume.bits]
         for _ in range(7, h.width, 3):
             k = next(nib)
-            cols += [[unzz(z) for z in r.eg(n, k)] for _ in range(3)]
+            cols += [[unzz(z) for z in r.eg_column(n, k)] for _ in range(3)]
         users, streams, off = u, s, o
         rows = [list(t) for t in zip(*cols, strict=True)]
     if h.n_delta:
@@ -330,9 +326,8 @@ def _read_sections(
         if crc_rows(base, 2 if h.update else 4) != h.check:
             raise Fallback
         cls = [int(h.split and x != 0) for x in s]
-        out = [
-            [(b[0] + d) & 3] + [0] * (h.width - 1) for b, d in zip(base, r.eg(n, 0), strict=True)
-        ]
+        steps = r.eg_column(n, 0)
+        out = [[(b[0] + d) & 3] + [0] * (h.width - 1) for b, d in zip(base, steps, strict=True)]
         for row, b in zip(out, base, strict=True):
             row[1:4] = predict_row(b, row[0])
             row[4:] = b[4:]
@@ -355,10 +350,10 @@ def decode_small(
     if not 0 < n <= SMALL_FRAME:
         return None
     try:
-        r = Reader(data[h.size :])
+        r = IntReader(data[h.size :])
         users, streams, off, rows = _read_sections(r, h, volume, baselines or {})
         r.finish()
-    except Fallback:
+    except (Fallback, RemoteProtocolError):
         return None
     if codes_problem_rows(rows, volume) is not None:
         return None
@@ -391,19 +386,9 @@ def decode_small(
 # its error. Checks that cannot fail for a baseline are left out: the decoder
 # stores only rows this path or the reference path validated.
 #
-# The bitstream is held twice: as a string of "0"/"1" (``str.find`` finds the
-# end of an Exp-Golomb prefix in C) and as one int (a suffix is a shift and a
-# mask). Each column is read by one loop over its entries, inline.
+# The bitstream is read with ``bits.IntReader`` (a prefix's end is a ``str.find``,
+# a suffix a shift and a mask).
 
-#: How far a prefix may run, by order k: at most MAX_EG_BITS - k zeros and a one.
-_REACH = [MAX_EG_BITS - k + 1 for k in range(16)]
-_MASK = [(1 << w) - 1 for w in range(MAX_EG_BITS + 16)]
-#: By order k and prefix length L: the suffix's (width, leading one, mask). The value
-#: is the suffix with the leading one set (L > 0), or the suffix alone (L = 0).
-_SUFFIX = [
-    [(L - 1 + k, 1 << (L - 1 + k), _MASK[L - 1 + k]) if L else (k, 0, _MASK[k]) for L in range(r)]
-    for k, r in enumerate(_REACH)
-]
 _CHECK_ROW = {7: struct.Struct("<7i"), 13: struct.Struct("<13i")}
 UpdateRows = tuple[list[int], list[int], Rows]
 
@@ -421,73 +406,11 @@ class UpdateGeometry:
         self.delta_bits = {v: _min_entry_bits(True, v, volume)[1] for v in (False, True)}
 
 
-class _Bits:
-    """A bitstream as a string (prefix search) and as an int (suffixes), and a cursor."""
-
-    __slots__ = ("pos", "size", "text", "x")
-
-    def __init__(self, body: bytes) -> None:
-        self.x = int.from_bytes(body, "big")
-        self.size = 8 * len(body)
-        self.text = format(self.x, f"0{self.size}b") if body else ""
-        self.pos = 0
-
-    def eg(self, n: int, k: int) -> list[int]:
-        """``n`` Exp-Golomb codes of order k: every prefix, then every suffix."""
-        find, x, size, pos = self.text.find, self.x, self.size, self.pos
-        reach, suffix = _REACH[k], _SUFFIX[k]
-        parts = []
-        for _ in range(n):
-            j = find("1", pos, pos + reach)
-            if j < 0:
-                raise Fallback
-            parts.append(suffix[j - pos])
-            pos = j + 1
-        out = []
-        for width, lead, mask in parts:
-            pos += width
-            # Past the end, the shift is negative: ValueError (the caller's Fallback).
-            out.append(((x >> (size - pos)) & mask) | lead)
-        self.pos = pos
-        return out
-
-    def add_columns(self, jobs: list[tuple[Rows, int, int]]) -> None:
-        """For each (rows, c, k), in order: add one signed (zigzag) Exp-Golomb code of
-        order k to column c of each row (a column: every prefix, then every suffix)."""
-        find, x, size, pos = self.text.find, self.x, self.size, self.pos
-        for rows, c, k in jobs:
-            reach, suffix = _REACH[k], _SUFFIX[k]
-            parts = []
-            for _ in rows:
-                j = find("1", pos, pos + reach)
-                if j < 0:
-                    raise Fallback
-                parts.append(suffix[j - pos])
-                pos = j + 1
-            for row, (width, lead, mask) in zip(rows, parts, strict=True):
-                pos += width
-                z = ((x >> (size - pos)) & mask) | lead  # past the end: ValueError
-                row[c] += (z >> 1) ^ -(z & 1)
-        self.pos = pos
-
-    def fixed(self, n: int, width: int) -> list[int]:
-        end = self.pos + n * width
-        if end > self.size:
-            raise Fallback
-        self.pos = end
-        x, size, mask = self.x, self.size, _MASK[width]
-        return [(x >> (size - p)) & mask for p in range(end - (n - 1) * width, end + 1, width)]
-
-    def rest_is_padding(self) -> bool:
-        rest = self.size - self.pos
-        return rest < 8 and not self.x & _MASK[rest]
-
-
-def _update_ids(r: _Bits, n: int, k: int) -> tuple[list[int], list[int]]:
+def _update_ids(r: IntReader, n: int, k: int) -> tuple[list[int], list[int]]:
     """Streams and ms offsets of an update section (no user column: every user is 0)."""
-    sg = r.eg(n, 0)
-    z = r.eg(1, k)[0]
-    same = r.eg(n - 1, 0)
+    sg = r.eg_column(n, 0)
+    z = r.eg_column(1, k)[0]
+    same = r.eg_column(n - 1, 0)
     s = sg[0]
     o = (z >> 1) ^ -(z & 1)
     if s > _ID_MAX or abs(o) >= _TIME_MS_LIMIT:
@@ -506,7 +429,7 @@ def _update_ids(r: _Bits, n: int, k: int) -> tuple[list[int], list[int]]:
     return streams, off
 
 
-def _update_keys(r: _Bits, n: int, width: int, nib: list[int], g: UpdateGeometry) -> Rows:
+def _update_keys(r: IntReader, n: int, width: int, nib: list[int], g: UpdateGeometry) -> Rows:
     """The code rows of an update's key section (after its ids and times)."""
     cols = [r.fixed(n, 2)]
     for _ in range(3):
@@ -522,11 +445,11 @@ def _update_keys(r: _Bits, n: int, width: int, nib: list[int], g: UpdateGeometry
 
 
 def _update_deltas(
-    r: _Bits, streams: list[int], width: int, nib: list[int], base: Rows, split: bool
+    r: IntReader, streams: list[int], width: int, nib: list[int], base: Rows, split: bool
 ) -> Rows:
     """The code rows of an update's delta section (after its ids and times)."""
     out = []
-    for b, d in zip(base, r.eg(len(streams), 0), strict=True):
+    for b, d in zip(base, r.eg_column(len(streams), 0), strict=True):
         idx = (b[0] + d) & 3
         # A baseline is a valid row: the same idx predicts its own components.
         row = b[:] if idx == b[0] else [idx, *predict_row(b, idx), *b[4:]]
@@ -619,7 +542,7 @@ def decode_update_rows(
         need = nk * geometry.key_bits[velocity] + nd * geometry.delta_bits[velocity]
         if not 0 < n <= SMALL_FRAME or need > 8 * (len(data) - pos):
             return None
-        r = _Bits(data[pos:])
+        r = IntReader(data[pos:])
         streams: list[int] = []
         off: list[int] = []
         rows: Rows = []

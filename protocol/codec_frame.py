@@ -17,7 +17,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from posecast.protocol.bits import BitReader, BitWriter, best_k, unzigzag, zigzag
+from posecast.protocol.bits import BitReader, BitWriter, best_k, unzigzag, zigzag, zz
 from posecast.protocol.codec_quant import (
     ROTATION_BITS,
     M,
@@ -136,7 +136,7 @@ def _uvarint(value: int) -> bytes:
 
 
 def _svarint(value: int) -> bytes:
-    return _uvarint(value * 2 if value >= 0 else -value * 2 - 1)
+    return _uvarint(zz(value))
 
 
 def _read_uvarint(data: bytes, pos: int) -> tuple[int, int]:

@@ -57,7 +57,17 @@ from operator import itemgetter
 import numpy as np
 from numpy.typing import NDArray
 
-from posecast.protocol.bits import MAX_EG_BITS, MAX_K, _best_k_small, k_of_histogram
+from posecast.protocol.bits import (
+    MAX_EG_BITS,
+    IntReader,
+    IntWriter,
+    best_k_small,
+    eg_code,
+    eg_pack,
+    k_of_histogram,
+    unzz,
+    zz,
+)
 from posecast.protocol.codec_frame import (
     CODEC_MAGIC,
     F_UPDATE,
@@ -103,22 +113,6 @@ Row = list[int]
 RelayEntry = tuple[int, int, float, Row, Row | None]
 
 
-def _zz(v: int) -> int:
-    return v * 2 if v >= 0 else -2 * v - 1
-
-
-def _unzz(z: int) -> int:
-    return (z >> 1) ^ -(z & 1)
-
-
-def _eg_bits(v: int, k: int) -> tuple[int, int]:
-    """(codeword, length) of ``v`` in Exp-Golomb of order k."""
-    if v >> k == 0:
-        return (1 << k) | v, k + 1
-    w = v.bit_length() - 1
-    return v, 2 * w - k + 2
-
-
 _CHECKS = {7: struct.Struct("<HH7i"), 13: struct.Struct("<HH13i")}
 
 
@@ -139,27 +133,6 @@ class _Block:
     check: int
 
 
-class _Bits:
-    __slots__ = ("acc", "n")
-
-    def __init__(self) -> None:
-        self.acc = 0
-        self.n = 0
-
-    def put(self, value: int, width: int) -> None:
-        self.acc = (self.acc << width) | value
-        self.n += width
-
-    def eg(self, v: int, k: int) -> None:
-        if v >> k == 0:
-            self.acc = (self.acc << (k + 1)) | (1 << k) | v
-            self.n += k + 1
-        else:
-            width = 2 * (v.bit_length() - 1) - k + 2
-            self.acc = (self.acc << width) | v
-            self.n += width
-
-
 class _Spliced:
     """One section's blocks joined with their user gaps, with the joins of every prefix
     and suffix, so that the section without one user's block is a few big-int shifts
@@ -174,7 +147,7 @@ class _Spliced:
         self.prefix = [(0, 0)]
         acc = nbits = n = check = prev = 0
         for b in blocks:
-            code, width = _eg_bits(b.user - prev, 0)
+            code, width = eg_code(b.user - prev, 0)
             acc = (((acc << width) | code) << b.nbits) | b.bits
             nbits += width + b.nbits
             self.prefix.append((acc, nbits))
@@ -186,7 +159,7 @@ class _Spliced:
         acc = nbits = 0
         for j in range(len(blocks) - 1, -1, -1):
             b = blocks[j]
-            code, width = _eg_bits(b.user - (blocks[j - 1].user if j else 0), 0)
+            code, width = eg_code(b.user - (blocks[j - 1].user if j else 0), 0)
             acc |= ((code << b.nbits) | b.bits) << nbits
             nbits += width + b.nbits
             self.suffix[j] = (acc, nbits)
@@ -201,7 +174,7 @@ class _Spliced:
         acc, nbits = self.prefix[j]
         if j + 1 < len(blocks):
             b = blocks[j + 1]
-            code, width = _eg_bits(b.user - (blocks[j - 1].user if j else 0), 0)
+            code, width = eg_code(b.user - (blocks[j - 1].user if j else 0), 0)
             rest, rest_bits = self.suffix[j + 2]
             acc = (((((acc << width) | code) << b.nbits) | b.bits) << rest_bits) | rest
             nbits += width + b.nbits + rest_bits
@@ -269,7 +242,7 @@ class GroupSnapshot:
             for b in blocks:
                 if b.user == exclude:
                     continue
-                code, width = _eg_bits(b.user - prev, 0)
+                code, width = eg_code(b.user - prev, 0)
                 acc = (((acc << width) | code) << b.nbits) | b.bits
                 nbits += width + b.nbits
                 counts[section] += b.n
@@ -330,22 +303,11 @@ def _time_fields(
     firsts = []
     for g in groups:
         i0 = g[0]
-        fields[i0] = (entries[i0][1], _zz(off[i0]))
+        fields[i0] = (entries[i0][1], zz(off[i0]))
         firsts.append(fields[i0][1])
         for a, b in pairwise(g):
-            fields[b] = (entries[b][1] - entries[a][1] - 1, _zz(off[b] - off[a]))
-    return _best_k_small(firsts)[0], fields
-
-
-_TABLE_SIZE = 1024
-
-
-def _eg_table(k: int) -> list[tuple[int, int]]:
-    """(codeword, length) of Exp-Golomb order ``k`` for every value below _TABLE_SIZE."""
-    return [_eg_bits(v, k) for v in range(_TABLE_SIZE)]
-
-
-_EG_TABLES = [_eg_table(k) for k in range(MAX_K + 1)]
+            fields[b] = (entries[b][1] - entries[a][1] - 1, zz(off[b] - off[a]))
+    return best_k_small(firsts)[0], fields
 
 
 def _key_blocks(
@@ -359,14 +321,14 @@ def _key_blocks(
     nib = [kt]
     kv = (0, 0)
     if velocity:
-        lin = [_zz(v) for e in entries for v in e[3][7:10]]
-        ang = [_zz(v) for e in entries for v in e[3][10:13]]
-        kv = (_best_k_small(lin)[0], _best_k_small(ang)[0])
+        lin = [zz(v) for e in entries for v in e[3][7:10]]
+        ang = [zz(v) for e in entries for v in e[3][10:13]]
+        kv = (best_k_small(lin)[0], best_k_small(ang)[0])
         nib += list(kv)
     bx, by, bz = volume.bits
     blocks = []
     for g in groups:
-        w = _Bits()
+        w = IntWriter()
         for j, i in enumerate(g):
             sg, tz = fields[i]
             if j:
@@ -394,8 +356,8 @@ def _key_blocks(
             )
             if velocity:
                 for c in range(7, 13):
-                    w.eg(_zz(r[c]), kv[0] if c < 10 else kv[1])
-        blocks.append(_Block(entries[g[0]][0], len(g), w.acc, w.n, 0))
+                    w.eg(zz(r[c]), kv[0] if c < 10 else kv[1])
+        blocks.append(_Block(entries[g[0]][0], len(g), w.acc, w.total, 0))
     return blocks, nib
 
 
@@ -471,20 +433,12 @@ def _delta_blocks(
     first = (0, kt, 0, *(ks[f // 3][0] for f in range(width - 1)))
     other = (0, 0, 0, 0, *(ks[f // 3][1] for f in range(width - 1)))
     orders: dict[int, tuple[int, ...]] = {}
-    tables = _EG_TABLES
     blocks = []
     for g, vals, check in zip(groups, values, checks, strict=True):
         order = orders.get(len(g))
         if order is None:
             order = orders[len(g)] = first + other * (len(g) - 1)
-        acc = nbits = 0
-        for v, k in zip(vals, order, strict=True):
-            if v < _TABLE_SIZE:
-                c, w = tables[k][v]
-            else:
-                c, w = _eg_bits(v, k)
-            acc = (acc << w) | c
-            nbits += w
+        acc, nbits = eg_pack(vals, order)
         blocks.append(_Block(entries[g[0]][0], len(g), acc, nbits, check))
     return blocks, nib
 
@@ -562,46 +516,8 @@ class RelaySnapshot:
             baselines[(u, s)] = row
 
 
-class _Reader:
-    __slots__ = ("bits", "pos")
-
-    def __init__(self, data: bytes) -> None:
-        self.bits = format(int.from_bytes(data, "big"), f"0{8 * len(data)}b") if data else ""
-        self.pos = 0
-
-    def fixed(self, width: int) -> int:
-        pos = self.pos
-        if pos + width > len(self.bits):
-            raise remote_error(ErrorCode.BAD_FRAME, "pose frame truncated")
-        self.pos = pos + width
-        return int(self.bits[pos : pos + width], 2)
-
-    def eg(self, k: int) -> int:
-        pos = self.pos
-        bits = self.bits
-        j = bits.find("1", pos, pos + MAX_EG_BITS + 2)
-        if j < 0:
-            raise remote_error(ErrorCode.BAD_FRAME, "pose frame truncated or code too long")
-        if j == pos:
-            end = j + 1 + k
-            if end > len(bits):
-                raise remote_error(ErrorCode.BAD_FRAME, "pose frame truncated")
-            self.pos = end
-            return int(bits[j + 1 : end], 2) if k else 0
-        end = j + (j - pos) + k
-        if end > len(bits):
-            raise remote_error(ErrorCode.BAD_FRAME, "pose frame truncated")
-        self.pos = end
-        return int(bits[j:end], 2)
-
-    def finish(self) -> None:
-        rest = self.bits[self.pos :]
-        if len(rest) >= 8 or "1" in rest:
-            raise remote_error(ErrorCode.BAD_FRAME, "trailing bits in pose frame")
-
-
 def _read_section(
-    r: _Reader,
+    r: IntReader,
     n: int,
     nib: list[int],
     delta: bool,
@@ -622,11 +538,11 @@ def _read_section(
         user += gap
         sg = r.eg(0)
         stream = sg if new else stream + sg + 1
-        off = _unzz(r.eg(kt)) if new else off + _unzz(r.eg(0))
+        off = unzz(r.eg(kt)) if new else off + unzz(r.eg(0))
         if user > _ID_MAX or stream > _ID_MAX or abs(off) >= _TIME_MS_LIMIT:
             raise remote_error(ErrorCode.BAD_MESSAGE, "id or time out of range in pose frame")
         if not delta:
-            v = r.fixed(2 + 3 * ROTATION_BITS + bx + by + bz)
+            v = r.field(2 + 3 * ROTATION_BITS + bx + by + bz)
             pz, v = v & ((1 << bz) - 1), v >> bz
             py, v = v & ((1 << by) - 1), v >> by
             px, v = v & ((1 << bx) - 1), v >> bx
@@ -635,7 +551,7 @@ def _read_section(
             a, idx = (v & 0x1FFF) - M, v >> 13
             row = [idx, a, b, c, px, py, pz]
             if width == 13:
-                row += [_unzz(r.eg(nib[1] if j < 3 else nib[2])) for j in range(6)]
+                row += [unzz(r.eg(nib[1] if j < 3 else nib[2])) for j in range(6)]
         else:
             base = baselines.get((user, stream))
             if base is None or len(base) != width:
@@ -648,13 +564,13 @@ def _read_section(
             cls = 0 if new else 1
             p = predict_row(base, idx)
             k = nib[1 + cls]
-            row = [idx] + [p[j] + _unzz(r.eg(k)) for j in range(3)]
+            row = [idx] + [p[j] + unzz(r.eg(k)) for j in range(3)]
             k = nib[3 + cls]
-            row += [base[c] + _unzz(r.eg(k)) for c in range(4, 7)]
+            row += [base[c] + unzz(r.eg(k)) for c in range(4, 7)]
             if width == 13:
                 for lo, at in ((7, 5), (10, 7)):
                     k = nib[at + cls]
-                    row += [base[c] + _unzz(r.eg(k)) for c in range(lo, lo + 3)]
+                    row += [base[c] + unzz(r.eg(k)) for c in range(lo, lo + 3)]
         users.append(user)
         streams.append(stream)
         offs.append(off)
@@ -669,7 +585,7 @@ def snapshot_counts(data: bytes) -> tuple[int, int, int, int]:
     z, pos = _read_uvarint(data, pos)
     nk, pos = _read_uvarint(data, pos)
     nd, _ = _read_uvarint(data, pos)
-    return tick, _unzz(z), nk, nd
+    return tick, unzz(z), nk, nd
 
 
 def decode_relay_snapshot(
@@ -695,7 +611,7 @@ def decode_relay_snapshot(
     if tick >= 1 << 63:
         raise remote_error(ErrorCode.BAD_MESSAGE, "tick over 2**63")
     z, pos = _read_uvarint(data, pos)
-    base_us = _unzz(z)
+    base_us = unzz(z)
     if abs(base_us) >= _US_LIMIT:
         raise remote_error(ErrorCode.BAD_MESSAGE, "base time out of range")
     nk, pos = _read_uvarint(data, pos)
@@ -714,7 +630,7 @@ def decode_relay_snapshot(
     key_bits, delta_bits = _min_entry_bits(False, velocity, volume)
     if nk * key_bits + nd * delta_bits > 8 * (len(data) - pos):
         raise remote_error(ErrorCode.BAD_FRAME, "more entries than the frame can hold")
-    r = _Reader(data[pos:])
+    r = IntReader(data[pos:])
     out: tuple[list[int], list[int], list[int], list[Row]] = ([], [], [], [])
     held = baselines or {}
     if nk:
