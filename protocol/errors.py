@@ -74,6 +74,9 @@ bad-room            no     --     (server decision) a room name that is empty on
                                   stripped, over 64 bytes, or holds control or bidi
                                   override characters
 too-slow            yes    1008   (server decision) a peer's event queue overflowed
+server-full         yes    1013   (server decision) the relay is at its measured
+                                  capacity: a hello or join refused at once, with
+                                  ``retry_after`` (s); try later or another relay
 internal-error      yes    1011   (server decision) a bug on the server
 ==================  =====  =====  =====================================================
 
@@ -125,6 +128,7 @@ class ErrorCode(StrEnum):
     OBJECT_NOT_OWNED = "object-not-owned"
     BAD_ROOM = "bad-room"
     TOO_SLOW = "too-slow"
+    SERVER_FULL = "server-full"
     INTERNAL_ERROR = "internal-error"
 
     @property
@@ -138,7 +142,8 @@ class ErrorCode(StrEnum):
         return _CLOSE_CODES[self]
 
 
-# 1002 protocol error, 1008 policy violation, 1009 message too big, 1011 server bug.
+# 1002 protocol error, 1008 policy violation, 1009 message too big, 1011 server bug,
+# 1013 try again later.
 _CLOSE_CODES: dict[ErrorCode, int | None] = {
     ErrorCode.BAD_FRAME: 1002,
     ErrorCode.FRAME_TOO_LARGE: 1009,
@@ -162,6 +167,7 @@ _CLOSE_CODES: dict[ErrorCode, int | None] = {
     ErrorCode.OBJECT_NOT_OWNED: None,
     ErrorCode.BAD_ROOM: None,
     ErrorCode.TOO_SLOW: 1008,
+    ErrorCode.SERVER_FULL: 1013,
     ErrorCode.INTERNAL_ERROR: 1011,
 }
 

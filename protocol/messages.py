@@ -491,7 +491,8 @@ class ErrorMessage(ControlMessage):
 
     ``in_reply_to`` names the type of the message refused ("join", "update", ...);
     a non-fatal error in reply to "join" means the join was refused and the
-    client may join again.
+    client may join again. ``retry_after`` (s, ``server-full``): when to try this
+    relay again at the earliest.
     """
 
     TYPE: ClassVar[str] = "error"
@@ -499,19 +500,35 @@ class ErrorMessage(ControlMessage):
     message: str
     fatal: bool = False
     in_reply_to: str | None = None
+    retry_after: float | None = _omitted(None)
 
     def __post_init__(self) -> None:
         check_text("error.code", self.code, max_length=_MAX_CODE_LENGTH, empty=False)
         check_text("error.message", self.message)
         check_bool("error.fatal", self.fatal)
         check_optional_text("error.in_reply_to", self.in_reply_to)
+        retry = check_optional_float("error.retry_after", self.retry_after)
+        if retry is not None and retry < 0:
+            raise bad("error.retry_after", "must not be negative")
+        _set(self, "retry_after", retry)
 
     @classmethod
     def from_code(
-        cls, code: ErrorCode, message: str, *, in_reply_to: str | None = None
+        cls,
+        code: ErrorCode,
+        message: str,
+        *,
+        in_reply_to: str | None = None,
+        retry_after: float | None = None,
     ) -> ErrorMessage:
         """An error message whose fatality follows the code table."""
-        return cls(code=str(code), message=message, fatal=code.fatal, in_reply_to=in_reply_to)
+        return cls(
+            code=str(code),
+            message=message,
+            fatal=code.fatal,
+            in_reply_to=in_reply_to,
+            retry_after=retry_after,
+        )
 
 
 @_register

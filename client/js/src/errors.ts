@@ -34,6 +34,7 @@ export const ERROR_CODES: Readonly<Record<string, number | null>> = {
   "object-not-owned": null,
   "bad-room": null,
   "too-slow": 1008,
+  "server-full": 1013,
   "internal-error": 1011,
 };
 

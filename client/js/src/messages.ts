@@ -113,6 +113,7 @@ export const SCHEMAS: Readonly<Record<string, readonly FieldSpec[]>> = {
     f("message", "str"),
     f("fatal", "bool", { def: false }),
     f("in_reply_to", "str", OPT_NULL),
+    f("retry_after", "float", OMIT_NULL),
   ],
   bye: [f("reason", "str", { def: "" })],
   object_create: [
@@ -173,7 +174,7 @@ export interface UserEvent {
   type: "event"; kind: "grab" | "release" | "button" | "scene_step" | string; stream?: number | null;
   user?: number | null; time?: number | null; payload?: Record<string, unknown>;
 }
-export interface ErrorMessage { type: "error"; code: string; message: string; fatal: boolean; in_reply_to: string | null }
+export interface ErrorMessage { type: "error"; code: string; message: string; fatal: boolean; in_reply_to: string | null; retry_after?: number | null }
 export interface Bye { type: "bye"; reason?: string }
 export interface ObjectCreate {
   type: "object_create"; name: string; pose: Pose; keep?: boolean; steal?: boolean; hold?: boolean; time?: number | null;
