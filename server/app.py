@@ -21,8 +21,11 @@ then starts the closing handshake, bounded by ``close_timeout``, then aborts.
 
 One timer ticks the rooms: each due room is ticked at its own reading of the
 clock (``RelayCore.tick(now, limit=1)``), so its lag and snapshot time are its
-own. One task sleeps until :meth:`RelayCore.next_expiry` and closes the
-connections that have not joined in time. Recordings open and close off the
+own; each tick's lag, and twice a second the process's CPU time and the bytes
+unsent over all connections, go to the core's capacity (``server/capacity.py``),
+which refuses members over its budget. One task sleeps until
+:meth:`RelayCore.next_expiry` and closes the connections that have not joined in
+time. Recordings open and close off the
 event loop (a connection whose join opens a recorded room stops reading until
 the room is open). ``GET /healthz`` and ``GET /metrics`` are answered on the
 websocket port (``server/http.py``); a browser page from an origin not in
@@ -85,6 +88,8 @@ OPEN_TIMEOUT = 10.0
 #: A forwarded client (its room is another cluster node's) with more than this
 #: unsent is closed as too slow: the owner node cannot see its socket's buffer.
 FORWARDED_BUFFER = 1 << 20
+#: Seconds between the capacity's readings of CPU time and unsent bytes.
+MEASURE_EVERY = 0.5
 
 
 class _Connection(WebSocketConnection):
@@ -419,6 +424,7 @@ class RelayServer:
         self._new_connection = asyncio.Event()
         self._tick_timer: asyncio.TimerHandle | None = None
         self._tick_at = 0.0
+        self._measure_at = 0.0
         #: Frame once, write many: the last payload framed, and its frame.
         self._framed_src: bytes | None = None
         self._framed = b""
@@ -525,15 +531,29 @@ class RelayServer:
         # At most one pass over the rooms per callback: other callbacks (reads) get the
         # loop between passes even when every room is overdue.
         budget = len(core.rooms) + 1
+        now = clock()
         try:
             while budget > 0 and (due := core.next_deadline()) is not None:
                 now = clock()
                 if due > now + 1e-9:
                     break
                 budget -= 1
+                core.capacity.tick_lag(now, now - due)
                 self.apply(core.tick(now, limit=1))
         finally:
+            if now >= self._measure_at:
+                self._measure(now)
             self._arm_ticks()
+
+    def _measure(self, now: float) -> None:
+        """Give the capacity (``server.capacity``) the process's CPU time and the bytes
+        unsent over every connection, twice a second (the ticks call this)."""
+        self._measure_at = now + MEASURE_EVERY
+        backlog = 0
+        for conn in self._conns.values():
+            backlog += conn._buffered()
+        members = sum(len(room.members) for room in self.core.rooms.values())
+        self.core.capacity.sample(now, time.process_time(), backlog, members)
 
     async def _expiry_loop(self) -> None:
         """Close connections that have not joined in time (``join_timeout``), or whose

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
 from posecast.protocol.codec import DEFAULT_VOLUME, Volume
+from posecast.server.capacity import CapacityBudget
 from posecast.server.link import LinkTier
 
 if TYPE_CHECKING:
@@ -89,6 +90,12 @@ class ServerConfig:
     max_objects: int = 64
     #: Rooms recorded at once (``--record``); a join opening one more is refused.
     max_recorded_rooms: int = 32
+    #: The relay's capacity budget (``server.capacity``, docs/guides/deployment.md): over
+    #: it a hello or join is refused ``server-full`` (1013). Share of one core its process
+    #: may use; p99 tick lag (s); bytes unsent over all connections. 0 turns one off.
+    capacity_cpu: float = 0.8
+    capacity_lag: float = 0.025
+    capacity_backlog: int = 32 << 20
     #: Join the cluster of relays sharing this NATS (``nats://HOST:PORT``; None: alone).
     cluster: str | None = None
     #: This node's name in the cluster (unique among live nodes; None: the host name).
@@ -99,6 +106,11 @@ class ServerConfig:
     #: ``server.http``); others get HTTP 403. None: any origin. Handshakes
     #: without an Origin header (non-browser clients) are never refused for it.
     allow_origins: tuple[str, ...] | None = None
+
+    @property
+    def capacity_budget(self) -> CapacityBudget:
+        """The capacity budget of ``capacity_cpu``, ``capacity_lag``, ``capacity_backlog``."""
+        return CapacityBudget(self.capacity_cpu, self.capacity_lag, self.capacity_backlog)
 
     @property
     def room_volume(self) -> Volume:

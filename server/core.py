@@ -37,16 +37,17 @@ a connection ...    the relay ...
 opens               over ``max_connections`` (or per source address): close
                     1013; not joined within ``join_timeout``: close 1008
                     (:meth:`~RelayCore.expire`, at :meth:`~RelayCore.next_expiry`)
-says hello          takes a user id (u16, reused oldest-freed first), welcomes
+says hello          takes a user id (u16, oldest-freed first), welcomes; over
+                    its capacity (``server.capacity``; join too): ``server-full``
 joins a room        normalises the name (NFC, stripped; empty, over 64 bytes,
                     control or bidi characters -> ``bad-room``), checks the
                     token (``secret`` set: HMAC, room, expiry; refused ->
                     ``unauthorized``, close 1008), refuses over ``max_rooms``,
                     ``max_members`` or ``max_recorded_rooms`` (``room-full``),
-                    creates the room
-                    on first join, allocates one stream id per stream name,
-                    answers ``joined``, tells it every member (``peer_joined``)
-                    and every member about it, schedules it on its rate grid
+                    creates the room on first join, allocates a stream id per
+                    stream name, answers ``joined``, tells it every member
+                    (``peer_joined``) and every member about it, schedules it
+                    on its rate grid
 publishes poses     admits at most ``max_update_rate`` updates and events a
                     second (a one-second token bucket; excess dropped and
                     counted, over ten seconds' worth closes 1008), keeps the
@@ -111,7 +112,7 @@ from posecast.protocol import (
     encode_message,
 )
 from posecast.protocol.events import Event, Message
-from posecast.server import objects, resume, tokens
+from posecast.server import capacity, objects, resume, tokens
 from posecast.server.actions import (
     Action,
     Close,
@@ -193,6 +194,7 @@ class RelayCore:
         self.cluster: ClusterView | None = None
         #: Members of dropped resumable connections, kept for ``resume_window``.
         self.parking = resume.Parking(cfg.resume_window)
+        self.capacity = capacity.Capacity(cfg.capacity_budget)  # sheds joins over budget
         #: Members whose updates stopped (``stall_after``): peers hear peer_stalled.
         self.silence = resume.Silence(cfg.stall_after)
         self.token_expiries = 0
@@ -610,6 +612,8 @@ class RelayCore:
         if isinstance(event, PoseUpdate | UserEvent) and peer.user in self._spectators:
             what = "event" if isinstance(event, UserEvent) else "update"
             event = ProtocolError(ErrorCode.STREAM_NOT_OWNED, "spectators publish nothing", what)
+        if isinstance(event, Hello | Join) and capacity.shed(self, peer, event, now):
+            return
         if isinstance(event, PoseUpdate):
             self._on_update(peer, event, now)
         elif isinstance(event, Ping):
@@ -650,11 +654,9 @@ class RelayCore:
         assert peer.user is not None  # the state table puts hello before join
         if resume.resume_join(self, peer, join, name, now):
             return
-        refused = self.table.refusal(name)
-        if refused is not None:
-            self.send(
-                peer, ErrorMessage.from_code(ErrorCode.ROOM_FULL, refused, in_reply_to="join")
-            )
+        if (refused := self.table.refusal(name)) is not None:
+            self.capacity.count(ErrorCode.ROOM_FULL)
+            self.refuse(peer, ErrorCode.ROOM_FULL, refused, "join", now, charge=False)
             return
         room = self.room_for(name)
         streams = room.allocate_streams(join.streams)
@@ -750,16 +752,15 @@ class RelayCore:
         room, user = peer.room, peer.user
         if self.admit_update(peer, now) and room is not None and user is not None:
             cfg = self.config
-            refused = update_refusal(
-                update, now, cfg.max_capture_age, cfg.max_capture_ahead, self.volume
-            )
+            age = cfg.max_capture_age + self.capacity.late  # the relay's own lag is no age
+            refused = update_refusal(update, now, age, cfg.max_capture_ahead, self.volume)
             if refused is not None:
                 peer.count_refused(refused.kind)
                 room.note_drop(refused.kind, user)
-                # A stale capture may be the relay's own lag (its loop behind), not the
-                # client's doing: refused and counted, never charged to its budget.
-                charge = refused.kind != "stale-capture"
-                self.refuse(peer, ErrorCode.BAD_POSE, refused.message, "update", now, charge)
+                # Stale despite that: maybe a clock; never charged, one error a second.
+                aged = refused.kind == "stale-capture"
+                if not aged or capacity.stale_error_due(peer, now):
+                    self.refuse(peer, ErrorCode.BAD_POSE, refused.message, "update", now, not aged)
                 return
             stale = room.ingest(user, update, peer.session.compact_codes())
             if peer.member is not None:

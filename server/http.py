@@ -187,6 +187,7 @@ def metrics_text(core: RelayCore, now: float | None = None) -> str:
     _tick_lag_histogram(core, lines)
     if now is not None:
         _overdue_metric(core, metric, now)
+        _capacity_metric(core, metric, now)
     return "\n".join(lines) + "\n"
 
 
@@ -233,6 +234,17 @@ def _tick_lag_histogram(core: RelayCore, lines: list[str]) -> None:
     lines.append(f"{name}_count {cumulative}")
 
 
+def _capacity_metric(core: RelayCore, metric: Metric, now: float) -> None:
+    members = sum(len(r.members) for r in core.rooms.values())
+    metric(
+        "posecast_capacity_used_ratio",
+        "gauge",
+        "Each capacity signal with one more member, as a share of its budget (over 1: new"
+        " members are refused server-full): cpu, lag (ticks over budget), backlog.",
+        [(f'{{signal="{k}"}}', v) for k, v in core.capacity.usage(members, now).items()],
+    )
+
+
 def _overdue_metric(core: RelayCore, metric: Metric, now: float) -> None:
     due = core.next_deadline()
     metric(
@@ -264,6 +276,14 @@ def _limit_metrics(
         "counter",
         "Connections closed at once (1013) for exceeding a connection limit.",
         [("", core.refused_connections)],
+    )
+    refused = core.capacity.joins_refused
+    metric(
+        "posecast_joins_refused_total",
+        "counter",
+        "Hellos and joins refused: server-full (the relay at its measured capacity, close"
+        " 1013), room-full (over max_rooms, max_members or max_recorded_rooms).",
+        [(f'{{code="{code}"}}', refused.get(code, 0)) for code in ("server-full", "room-full")],
     )
     metric(
         "posecast_join_timeouts_total",

@@ -110,6 +110,8 @@ class Peer:
         self.frames_in = self.bytes_in = self.frames_out = self.bytes_out = 0
         self.event_drops = self.flood_drops = self.protocol_errors = 0
         self.stale_captures = self.future_captures = self.out_of_bounds = 0
+        #: When its last stale-capture error went out (``server.capacity.stale_error_due``).
+        self.stale_error_at = float("-inf")
         #: Each refused frame or update costs a token; none left: closed 1008.
         self.budget = Budget(cfg.misbehaviour_burst, cfg.misbehaviour_refill, now)
         #: The emulated downlink (``ServerConfig.link``), set at join.

@@ -16,6 +16,9 @@ if TYPE_CHECKING:
 __all__ = [
     "SERVE_LIMITS",
     "AllowOriginOption",
+    "CapacityBacklogOption",
+    "CapacityCpuOption",
+    "CapacityLagOption",
     "StallAfterOption",
     "allowed_origins",
     "check_serve_args",
@@ -42,6 +45,9 @@ SERVE_LIMITS = (
     "max_recorded_rooms",
     "max_objects",
     "stall_after",
+    "capacity_cpu",
+    "capacity_lag",
+    "capacity_backlog",
 )
 
 StallAfterOption = Annotated[
@@ -50,6 +56,31 @@ StallAfterOption = Annotated[
         help="Tell a member's peers it stalled (peer_stalled) when its updates stop this "
         "long (s) while its connection stays up, e.g. a frozen browser tab; 0: off.",
         envvar="POSECAST_STALL_AFTER",
+    ),
+]
+# The capacity budget (server/capacity.py, docs/guides/deployment.md): over it, a
+# hello or join is refused server-full (close 1013).
+CapacityCpuOption = Annotated[
+    float,
+    typer.Option(
+        help="Refuse new members (server-full, close 1013) when one more would make the "
+        "relay use over this share of one CPU core, as measured; 0: off.",
+        envvar="POSECAST_CAPACITY_CPU",
+    ),
+]
+CapacityLagOption = Annotated[
+    float,
+    typer.Option(
+        help="... or while over 1 % of its room ticks run later than this (s) and it uses "
+        "at least 0.2 of a core; 0: off.",
+        envvar="POSECAST_CAPACITY_LAG",
+    ),
+]
+CapacityBacklogOption = Annotated[
+    int,
+    typer.Option(
+        help="... or while more than this many bytes wait unsent, over all connections; 0: off.",
+        envvar="POSECAST_CAPACITY_BACKLOG",
     ),
 ]
 AllowOriginOption = Annotated[

@@ -30,6 +30,9 @@ from posecast.cli.report import demo_next_steps, print_swarm, verdict
 from posecast.cli.serve_checks import (
     SERVE_LIMITS,
     AllowOriginOption,
+    CapacityBacklogOption,
+    CapacityCpuOption,
+    CapacityLagOption,
     StallAfterOption,
     allowed_origins,
     check_tls_files,
@@ -301,6 +304,9 @@ def serve(
     node: NodeOption = None,
     allow_origin: AllowOriginOption = None,
     stall_after: StallAfterOption = 1.0,
+    capacity_cpu: CapacityCpuOption = 0.8,
+    capacity_lag: CapacityLagOption = 0.025,
+    capacity_backlog: CapacityBacklogOption = 32 << 20,
 ) -> None:
     """Run the relay server until SIGINT/SIGTERM (then close all with 1001, exit 0).
 

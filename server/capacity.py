@@ -1,0 +1,231 @@
+"""The relay's capacity, from what it measures: may one more member come in? Sans I/O.
+
+A relay past its capacity does not slow down evenly: every tick runs late, the
+updates it reads have waited in its sockets, and each new member makes every
+admitted member's session worse. :class:`Capacity` turns three measurements the
+adapter (``server/app.py``) feeds it into one answer, :meth:`Capacity.refusal`:
+
+==============  ===========================================================  ==========
+signal          measured as                                                  budget
+==============  ===========================================================  ==========
+CPU             the relay process's CPU time (``time.process_time``) per     ``cpu``,
+                second of wall time over the last complete window (1 s),     0.8 of a
+                scaled to one more member: ``cpu * (members + 1) /           core
+                members then`` (members admitted since the window are
+                counted: a ramp cannot overshoot by a window's joins)
+tick lag        the share of room ticks more than ``lag`` late in the last   ``lag``,
+                complete window (or the current one): over 1 % (the p99     25 ms
+                is over budget) refuses, while the relay is busy (at least
+                ``LAG_CPU_FLOOR`` of a core: below that the lag is the
+                machine's, and refusing members would not cure it)
+backlog         bytes written but not yet taken by the kernel, summed over   ``backlog``,
+                every connection, at the last sample                         32 MiB
+==============  ===========================================================  ==========
+
+Over any budget, the join (or the hello before it) is refused with the fatal
+error ``server-full`` and close 1013 "try again later", with a ``retry_after``
+hint (:data:`RETRY_AFTER`); members already in are untouched (a member resuming
+its dropped connection is one of them). A budget of 0 turns its signal off.
+
+:meth:`Capacity.lateness` is how late the relay itself runs (the largest tick
+lag of the recent windows): an update read that much later than it arrived is
+not its sender's fault, so the capture-age limit is widened by it
+(``server.core``).
+
+Every measurement comes with its time, on the server's clock: tests drive this
+with made-up readings, never with a real clock.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+from posecast.protocol import ErrorCode, ErrorMessage, Hello, Join
+
+if TYPE_CHECKING:
+    from posecast.server.core import RelayCore
+    from posecast.server.peer import Peer
+
+__all__ = [
+    "LAG_CPU_FLOOR",
+    "RETRY_AFTER",
+    "STALE_ERROR_INTERVAL",
+    "Capacity",
+    "CapacityBudget",
+    "shed",
+    "stale_error_due",
+]
+
+#: Seconds a refused client is told to wait before it tries this relay again.
+RETRY_AFTER = 5.0
+#: Tick lag counts against the budget only while the relay uses at least this share
+#: of a core: an idle relay that ticks late is late because its machine is busy.
+LAG_CPU_FLOOR = 0.2
+#: Share of a window's ticks that may be later than the lag budget (1 %: the p99).
+LAG_SHARE = 0.01
+#: A connection whose updates are stale gets one ``bad-pose`` error per this many seconds.
+STALE_ERROR_INTERVAL = 1.0
+#: A CPU reading older than this many windows is not used (no ticks ran to sample).
+STALE_WINDOWS = 5
+
+
+@dataclass(frozen=True, slots=True)
+class CapacityBudget:
+    """What the relay may spend before it refuses members (0 turns a signal off)."""
+
+    #: Share of one core the relay process may use (CPU seconds per second).
+    cpu: float = 0.8
+    #: Tick lag (s) that at most 1 % of a window's room ticks may exceed.
+    lag: float = 0.025
+    #: Bytes unsent, over every connection together.
+    backlog: int = 32 << 20
+    #: Seconds per measuring window.
+    window: float = 1.0
+
+
+@dataclass
+class _Window:
+    """Room ticks of one window: how many, how many over the lag budget, the largest lag."""
+
+    start: float
+    ticks: int = 0
+    late: int = 0
+    worst: float = 0.0
+
+
+@dataclass
+class Capacity:
+    """The relay's measurements and its budget; :meth:`refusal` decides."""
+
+    budget: CapacityBudget = field(default_factory=CapacityBudget)
+    #: CPU seconds per second over the last complete window, and members then.
+    cpu: float = 0.0
+    cpu_members: int = 0
+    backlog: int = 0
+    #: Joins refused, by error code (``posecast_joins_refused_total``).
+    joins_refused: dict[str, int] = field(default_factory=dict)
+    #: How late the relay runs (s): the largest tick lag of the recent windows.
+    late: float = 0.0
+    _sampled: float | None = None
+    _cpu_at: tuple[float, float] | None = None
+    _current: _Window | None = None
+    _previous: _Window | None = None
+
+    # -- measurements (the adapter) ----------------------------------------------------
+
+    def sample(self, now: float, cpu_seconds: float, backlog: int, members: int) -> None:
+        """The process's CPU time so far, the bytes unsent and the members, at ``now``.
+
+        Called often (each tick is fine): a CPU figure is taken once a window has passed.
+        """
+        self.backlog = backlog
+        if self._cpu_at is None:
+            self._cpu_at = (now, cpu_seconds)
+            return
+        t0, c0 = self._cpu_at
+        if now - t0 >= self.budget.window:
+            self.cpu = max(0.0, cpu_seconds - c0) / (now - t0)
+            self.cpu_members = members
+            self._cpu_at = (now, cpu_seconds)
+            self._sampled = now
+
+    def tick_lag(self, now: float, lag: float) -> None:
+        """One room tick ran ``lag`` seconds after it was due."""
+        w = self._roll(now)
+        w.ticks += 1
+        if lag > self.budget.lag:
+            w.late += 1
+        if lag > w.worst:
+            w.worst = lag
+            self.late = max(self.late, lag)
+
+    def _roll(self, now: float) -> _Window:
+        w = self._current
+        if w is None or now - w.start >= self.budget.window:
+            # A gap of more than one window leaves no previous window: it was idle.
+            gap = w is None or now - w.start >= 2 * self.budget.window
+            self._previous = None if gap else w
+            w = self._current = _Window(now)
+            self.late = 0.0 if self._previous is None else self._previous.worst
+        return w
+
+    # -- answers -------------------------------------------------------------------------
+
+    def _windows(self, now: float) -> list[_Window]:
+        """The windows that are recent at ``now`` (the current one and the one before)."""
+        w = self._current
+        if w is None or now - w.start >= 2 * self.budget.window:
+            return []
+        if now - w.start >= self.budget.window:
+            return [w]
+        return [x for x in (self._previous, w) if x is not None]
+
+    def lateness(self, now: float) -> float:
+        """How late the relay runs at ``now`` (s): the largest tick lag of the recent
+        windows (:attr:`late` is the same as of the last tick, for the hot path)."""
+        return max((w.worst for w in self._windows(now)), default=0.0)
+
+    def usage(self, members: int, now: float) -> dict[str, float]:
+        """Each signal as a share of its budget with one more member (over 1: refused)."""
+        b = self.budget
+        out = {"cpu": 0.0, "lag": 0.0, "backlog": 0.0}
+        fresh = self._sampled is not None and now - self._sampled <= STALE_WINDOWS * b.window
+        if b.cpu > 0 and fresh and self.cpu_members > 0:
+            out["cpu"] = self.cpu * (members + 1) / self.cpu_members / b.cpu
+        if b.lag > 0 and fresh and self.cpu >= LAG_CPU_FLOOR:
+            share = max((w.late / w.ticks for w in self._windows(now) if w.ticks), default=0.0)
+            out["lag"] = share / LAG_SHARE
+        if b.backlog > 0:
+            out["backlog"] = self.backlog / b.backlog
+        return out
+
+    def refusal(self, members: int, now: float) -> str | None:
+        """Why one more member (beside ``members``) is refused now; None: it fits."""
+        use = self.usage(members, now)
+        b = self.budget
+        if use["cpu"] > 1.0:
+            return (
+                f"the relay is full: {members + 1} members would use {use['cpu'] * b.cpu:.2f}"
+                f" of a core, over its budget of {b.cpu:g}"
+            )
+        if use["lag"] > 1.0:
+            return f"the relay is full: over 1 % of its ticks run over {1e3 * b.lag:g} ms late"
+        if use["backlog"] > 1.0:
+            return f"the relay is full: {self.backlog >> 20} MiB unsent, over {b.backlog >> 20} MiB"
+        return None
+
+    def count(self, code: ErrorCode) -> None:
+        """One join refused with ``code``."""
+        self.joins_refused[code] = self.joins_refused.get(code, 0) + 1
+
+
+def shed(core: RelayCore, peer: Peer, event: Hello | Join, now: float) -> bool:
+    """Refuse ``event`` with ``server-full`` (close 1013) if one more member is over the
+    budget; True if it was refused. A hello resuming a member (and its join), or one a
+    cluster node forwarded (that node admitted it), is never refused here."""
+    if isinstance(event, Hello) and (event.resume or peer.preset_user is not None):
+        return False
+    if isinstance(event, Join) and peer.parked is not None:
+        return False  # (its parked member is re-bound, unless the join asks otherwise)
+    members = sum(len(room.members) for room in core.rooms.values())
+    why = core.capacity.refusal(members, now)
+    if why is None:
+        return False
+    core.capacity.count(ErrorCode.SERVER_FULL)
+    what = "hello" if isinstance(event, Hello) else "join"
+    error = ErrorMessage.from_code(
+        ErrorCode.SERVER_FULL, why, in_reply_to=what, retry_after=RETRY_AFTER
+    )
+    core.send(peer, error)
+    core.close_peer(peer, ErrorCode.SERVER_FULL.close_code or 1013, f"try again later: {why}")
+    return True
+
+
+def stale_error_due(peer: Peer, now: float) -> bool:
+    """Whether ``peer``'s stale update is answered with an error (one a second at most:
+    each error is work for a relay that may be late already); True notes it sent."""
+    if now - peer.stale_error_at < STALE_ERROR_INTERVAL:
+        return False
+    peer.stale_error_at = now
+    return True

@@ -1,0 +1,317 @@
+"""The relay sheds load instead of collapsing: its capacity from its own measurements.
+
+The decision (``server.capacity``) is tested with made-up measurements and times,
+never a real clock; the core's refusals with protocol bytes and fake times; then a
+real relay on loopback refuses a real client (``server-full``, close 1013) once its
+own measurements say it is full, and a bot given two relays goes to the second.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+
+import pytest
+from support import poll_until, running_server
+from test_core import Client, connect
+from websockets.asyncio.client import connect as ws_connect
+from websockets.exceptions import ConnectionClosed
+
+from posecast.client.bot import BotConfig, run_bot
+from posecast.protocol import ClientSession, ErrorMessage, Hello, Join, Joined, PeerJoined, Welcome
+from posecast.server.capacity import (
+    LAG_CPU_FLOOR,
+    RETRY_AFTER,
+    Capacity,
+    CapacityBudget,
+    stale_error_due,
+)
+from posecast.server.core import Close, RelayCore, ServerConfig
+
+# -- the decision, from injected measurements -----------------------------------------------
+
+
+def measured(cpu: float, members: int, budget: CapacityBudget | None = None) -> Capacity:
+    """A capacity that measured ``cpu`` of a core over the window [0, 1] with ``members``."""
+    cap = Capacity(budget or CapacityBudget())
+    cap.sample(0.0, 100.0, 0, members)
+    cap.sample(1.0, 100.0 + cpu, 0, members)
+    return cap
+
+
+def test_cpu_alone_admits_until_one_more_member_is_over_budget() -> None:
+    """0.5 of a core for 50 members: a 51st..79th fits under 0.8, an 80th does not."""
+    cap = measured(0.5, 50)
+    assert cap.cpu == pytest.approx(0.5) and cap.cpu_members == 50
+    assert cap.refusal(50, 1.2) is None
+    assert cap.refusal(78, 1.2) is None  # 79 * 0.01 = 0.79
+    why = cap.refusal(79, 1.2)  # 80 * 0.01 = 0.80 ... and the 81st
+    assert why is None or "0.80" in why
+    why = cap.refusal(80, 1.2)
+    assert why is not None and "81 members would use 0.81 of a core" in why
+
+
+def test_members_admitted_since_the_window_count() -> None:
+    """A ramp cannot overshoot by a window's joins: the reading scales to members now."""
+    cap = measured(0.4, 40)
+    assert cap.usage(40, 1.5)["cpu"] == pytest.approx(0.4 * 41 / 40 / 0.8)
+    assert cap.usage(90, 1.5)["cpu"] == pytest.approx(0.4 * 91 / 40 / 0.8)
+
+
+def test_an_empty_or_unmeasured_relay_admits() -> None:
+    """No reading yet, no members when measured, or a reading too old: no CPU verdict."""
+    assert Capacity().refusal(1000, 5.0) is None
+    assert measured(0.9, 0).refusal(10, 1.5) is None
+    cap = measured(0.9, 10)
+    assert cap.refusal(10, 1.5) is not None
+    assert cap.refusal(10, 1.0 + 6 * cap.budget.window) is None
+
+
+def test_tick_lag_refuses_only_a_busy_relay() -> None:
+    """Over 1 % of a window's ticks later than the budget: full, if the relay uses at
+    least LAG_CPU_FLOOR of a core; an idle relay's lag is its machine's."""
+    busy = measured(LAG_CPU_FLOOR + 0.05, 100)
+    idle = measured(LAG_CPU_FLOOR - 0.05, 100)
+    for cap in (busy, idle):
+        for i in range(200):
+            cap.tick_lag(1.0 + i * 0.001, 0.100 if i < 3 else 0.001)  # 1.5 % late
+    why = busy.refusal(100, 1.3)
+    assert why is not None and "ticks run over 25 ms late" in why
+    assert idle.refusal(100, 1.3) is None
+    assert busy.usage(100, 1.3)["lag"] == pytest.approx(1.5)
+
+
+def test_one_late_tick_in_a_hundred_is_within_budget() -> None:
+    cap = measured(0.5, 100)
+    for i in range(100):
+        cap.tick_lag(1.0 + i * 0.001, 0.5 if i == 0 else 0.0)
+    assert cap.usage(100, 1.2)["lag"] == pytest.approx(1.0)
+    assert cap.refusal(100, 1.2) is None
+
+
+def test_lag_is_forgotten_two_windows_later() -> None:
+    """The current window and the one before count; after that, the lag is gone."""
+    cap = measured(0.5, 100)
+    for i in range(10):
+        cap.tick_lag(1.0 + i * 0.01, 0.2)
+    assert cap.refusal(100, 1.5) is not None
+    assert cap.lateness(1.5) == pytest.approx(0.2) and cap.late == pytest.approx(0.2)
+    cap.tick_lag(2.05, 0.0)  # a new window: the late one is the previous
+    assert cap.refusal(100, 2.1) is not None and cap.late == pytest.approx(0.2)
+    cap.tick_lag(3.1, 0.0)  # and now it is gone
+    assert cap.refusal(100, 3.2) is None
+    assert cap.lateness(3.2) == 0.0 and cap.late == 0.0
+    assert cap.lateness(10.0) == 0.0  # idle since: nothing recent
+
+
+def test_backlog_over_budget_refuses() -> None:
+    cap = Capacity(CapacityBudget(backlog=1 << 20))
+    cap.sample(0.0, 0.0, 2 << 20, 10)
+    why = cap.refusal(10, 0.5)
+    assert why is not None and "2 MiB unsent" in why
+
+
+def test_a_zero_budget_turns_its_signal_off() -> None:
+    cap = measured(5.0, 10, CapacityBudget(cpu=0.0, lag=0.0, backlog=0))
+    for i in range(100):
+        cap.tick_lag(1.0 + i * 0.001, 10.0)
+    cap.sample(1.5, 200.0, 1 << 40, 10)
+    assert cap.refusal(1000, 1.6) is None
+    assert cap.usage(1000, 1.6) == {"cpu": 0.0, "lag": 0.0, "backlog": 0.0}
+
+
+# -- the core's refusals -----------------------------------------------------------------------
+
+
+def full_core(members: int = 1) -> tuple[RelayCore, list[Client]]:
+    """A core with ``members`` members whose capacity measured 0.9 of a core for them."""
+    core = RelayCore()
+    clients = [connect(core, 0.5) for _ in range(members)]
+    core.capacity.sample(0.0, 0.0, 0, members)
+    core.capacity.sample(1.0, 0.9, 0, members)
+    return core, clients
+
+
+def test_a_hello_over_capacity_is_refused_server_full_1013() -> None:
+    """At once, fatal, with retry_after; close 1013; the members hear nothing of it."""
+    core, (a,) = full_core()
+    a.read(1.0)
+    c = Client(core, core.connect(1.5))
+    actions = c.send(Hello(agent="late"), 1.5)
+    (err,) = c.read(1.5)
+    assert isinstance(err, ErrorMessage)
+    assert (err.code, err.fatal, err.in_reply_to, err.retry_after) == (
+        "server-full",
+        True,
+        "hello",
+        RETRY_AFTER,
+    )
+    assert "2 members would use 1.80 of a core" in err.message
+    (close,) = [x for x in actions if isinstance(x, Close)]
+    assert close.code == 1013 and close.reason.startswith("try again later: the relay is full")
+    assert a.read(1.5) == [] and len(core.rooms["lobby"].members) == 1
+    assert core.capacity.joins_refused == {"server-full": 1}
+    core.disconnect(c.conn, 1.6)
+    assert core.users.take() is not None  # (no user id was taken by the refused hello)
+
+
+def test_a_join_over_capacity_is_refused_too() -> None:
+    """A hello welcomed while there was room, a join when there is none: server-full."""
+    core = RelayCore()
+    a = connect(core, 0.5)
+    c = Client(core, core.connect(0.6))
+    c.send(Hello(agent="c"), 0.6)
+    assert isinstance(c.read(0.6)[0], Welcome)
+    core.capacity.sample(0.0, 0.0, 0, 1)
+    core.capacity.sample(1.0, 0.9, 0, 1)
+    actions = c.send(Join(room="lobby", streams=("head",), rate=10.0), 1.5)
+    (err,) = [e for e in c.read(1.5) if isinstance(e, ErrorMessage)]
+    assert (err.code, err.in_reply_to, err.fatal) == ("server-full", "join", True)
+    assert [x.code for x in actions if isinstance(x, Close)] == [1013]
+    assert not [e for e in a.read(1.5) if isinstance(e, PeerJoined)]
+
+
+def test_a_member_resuming_its_dropped_connection_is_never_shed() -> None:
+    """Its hello (with its resume token) and its join come back in, full or not."""
+    core = RelayCore()
+    a = Client(core, core.connect(0.5))
+    a.send(Hello(agent="a", resumable=True), 0.5)
+    (welcome,) = a.read(0.5)
+    assert isinstance(welcome, Welcome) and welcome.resume
+    a.send(Join(room="lobby", streams=("head",), rate=10.0), 0.5)
+    a.read(0.5)
+    core.disconnect(a.conn, 0.8)  # dropped: parked
+    core.capacity.sample(0.0, 0.0, 0, 1)
+    core.capacity.sample(1.0, 0.9, 0, 1)
+    b = Client(core, core.connect(1.2))
+    b.send(Hello(agent="a", resumable=True, resume=welcome.resume), 1.2)
+    (again,) = b.read(1.2)
+    assert isinstance(again, Welcome) and again.resumed
+    b.send(Join(room="lobby", streams=("head",), rate=10.0), 1.2)
+    assert any(isinstance(e, Joined) for e in b.read(1.2))
+    assert core.capacity.joins_refused == {}
+
+
+def test_room_full_refusals_are_counted_by_code() -> None:
+    core = RelayCore(ServerConfig(max_members=1))
+    connect(core, 0.5)
+    c = Client(core, core.connect(0.6))
+    c.send(Hello(agent="c"), 0.6)
+    c.read(0.6)
+    c.send(Join(room="lobby", streams=("head",), rate=10.0), 0.6)
+    assert [e.code for e in c.read(0.6) if isinstance(e, ErrorMessage)] == ["room-full"]
+    assert core.capacity.joins_refused == {"room-full": 1}
+
+
+# -- a late relay does not blame its clients -----------------------------------------------------
+
+
+def test_a_late_relay_widens_the_capture_age_by_its_own_lateness() -> None:
+    """An update read 1.5 s after its capture while the relay's ticks run 0.8 s late is
+    the relay's doing: kept. Without the relay's lag it is stale (max_capture_age 1 s)."""
+    for lag, kept in ((0.0, False), (0.8, True)):
+        core = RelayCore()
+        a = connect(core, 10.0)
+        core.capacity.tick_lag(10.0, lag)
+        a.publish(10.2, capture=8.7)
+        stats = core.peer(a.conn).statistics()
+        assert (stats.stale_captures == 0) == kept, lag
+        errors = [e for e in a.read(10.2) if isinstance(e, ErrorMessage)]
+        assert len(errors) == (0 if kept else 1)
+
+
+def test_stale_updates_get_one_error_a_second_not_one_each() -> None:
+    """Each stale update is refused and counted; errors go out once a second at most."""
+    core = RelayCore(ServerConfig(max_update_rate=1000.0))
+    a = connect(core, 10.0)
+    for i in range(300):
+        a.publish(10.0 + 0.01 * i, capture=1.0)  # 3 s of 100 updates/s, all stale
+    stats = core.peer(a.conn).statistics()
+    assert stats.stale_captures == 300
+    errors = [e for e in a.read(13.0) if isinstance(e, ErrorMessage)]
+    assert [e.code for e in errors] == ["bad-pose"] * 3
+    assert core.peer(a.conn).close_request is None
+
+
+def test_stale_error_due_once_per_interval() -> None:
+    class P:
+        stale_error_at = -math.inf
+
+    p = P()
+    assert stale_error_due(p, 5.0)  # type: ignore[arg-type]
+    assert not stale_error_due(p, 5.9)  # type: ignore[arg-type]
+    assert stale_error_due(p, 6.0)  # type: ignore[arg-type]
+
+
+# -- a real relay on loopback ------------------------------------------------------------------
+
+
+async def _member(url: str, room: str) -> tuple[object, ClientSession]:
+    """A real websocket client that said hello and joined ``room`` (kept open)."""
+    ws = await ws_connect(url)
+    session = ClientSession()
+    await ws.send(session.send(Hello(agent="holder")))
+    session.receive_data(await ws.recv())
+    await ws.send(session.send(Join(room=room, streams=("head",), rate=10.0)))
+    while not any(isinstance(e, Joined) for e in session.receive_data(await ws.recv())):
+        pass
+    return ws, session
+
+
+# A budget no relay with a member meets: its first CPU reading makes it full.
+TINY = ServerConfig(host="127.0.0.1", port=0, capacity_cpu=1e-9)
+
+
+async def _full_relay_refuses() -> None:
+    async with running_server(TINY) as server:
+        url = f"ws://127.0.0.1:{server.port}"
+        holder, _ = await _member(url, "r")
+        cap = server.core.capacity
+        await poll_until(lambda: cap.cpu_members > 0 and cap.cpu > 0)
+        ws = await ws_connect(url)
+        session = ClientSession()
+        await ws.send(session.send(Hello(agent="late")))
+        events = session.receive_data(await ws.recv())
+        with pytest.raises(ConnectionClosed):
+            await ws.recv()
+        assert ws.close_code == 1013 and "the relay is full" in (ws.close_reason or "")
+        (err,) = events
+        assert isinstance(err, ErrorMessage) and err.code == "server-full"
+        assert err.retry_after == RETRY_AFTER
+        assert len(server.rooms["r"].members) == 1
+        metrics = server.metrics_text()
+        assert 'posecast_joins_refused_total{code="server-full"} 1' in metrics
+        assert 'posecast_capacity_used_ratio{signal="cpu"}' in metrics
+        await holder.close()  # type: ignore[attr-defined]
+
+
+def test_a_real_relay_over_its_measured_budget_refuses_server_full() -> None:
+    """Its own CPU reading (budget set tiny) makes it full: a real client's hello gets
+    server-full with retry_after, close 1013; its member stays; /metrics counts it."""
+    asyncio.run(_full_relay_refuses())
+
+
+async def _bot_moves_on() -> tuple[str, str, str, int]:
+    async with running_server(TINY) as full, running_server() as free:
+        url_full, url_free = (f"ws://127.0.0.1:{s.port}" for s in (full, free))
+        holder, _ = await _member(url_full, "r")
+        cap = full.core.capacity
+        await poll_until(lambda: cap.cpu_members > 0 and cap.cpu > 0)
+        cfg = BotConfig(
+            urls=(url_full, url_free),
+            room="r",
+            rate=20,
+            duration=1.0,
+            methods=("soa",),
+            motion="synthetic:orbit",
+        )
+        report = await run_bot(cfg)
+        await holder.close()  # type: ignore[attr-defined]
+        refused = full.core.capacity.joins_refused.get("server-full", 0)
+        return report.relay, url_free, report.ending.kind, refused
+
+
+def test_a_bot_given_two_relays_gets_onto_the_second_when_the_first_is_full() -> None:
+    """The full relay refuses its hello (server-full); its URL list moves on."""
+    relay, url_free, ending, refused = asyncio.run(_bot_moves_on())
+    assert relay == url_free and ending == "complete" and refused == 1
