@@ -126,6 +126,7 @@ from posecast.server.config import ServerConfig
 from posecast.server.limits import (
     Admission,
     Deadlines,
+    error_message,
     normalise_room,
     update_refusal,
 )
@@ -587,7 +588,7 @@ class RelayCore:
     def _protocol_error(self, peer: Peer, err: ProtocolError, now: float) -> None:
         peer.protocol_errors += 1
         self._log_peer(peer, now, "user %s: %s (%s)", peer.user, err.message, err.code)
-        self.send(peer, err.to_message())
+        self.send(peer, error_message(err))
         if err.fatal:
             self.close_peer(peer, err.close_code or 1002, err.close_reason)
         self._misbehaved(peer, now)
@@ -604,7 +605,7 @@ class RelayCore:
     ) -> None:
         """Answer a refused ``what`` (join, update) with a non-fatal error; charge the budget."""
         self._log_peer(peer, now, "user %s: %s refused: %s (%s)", peer.user, what, message, code)
-        self.send(peer, ErrorMessage.from_code(code, message, in_reply_to=what))
+        self.send(peer, error_message(code, message, what))
         if charge:
             self._misbehaved(peer, now)
 

@@ -12,6 +12,9 @@
 - :class:`Budget`: the misbehaviour budget of one connection (a token bucket
   each refused frame or update costs a token of).
 - :class:`Admission`: connections in total and per source address.
+- :func:`bounded_text`, :func:`error_message`: every text the relay derives from
+  what a peer sent (a refusal, a log line) is cut to ``MAX_TEXT_LENGTH``
+  characters, so that no input can make a refusal invalid (and the relay raise).
 """
 
 from __future__ import annotations
@@ -23,7 +26,15 @@ from collections.abc import Callable, Mapping, Sized
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Protocol
 
-from posecast.protocol import UPDATE_DTYPE, UPDATE_VELOCITY_DTYPE, PoseUpdate
+from posecast.protocol import (
+    MAX_TEXT_LENGTH,
+    UPDATE_DTYPE,
+    UPDATE_VELOCITY_DTYPE,
+    ErrorCode,
+    ErrorMessage,
+    PoseUpdate,
+    ProtocolError,
+)
 from posecast.protocol.codec import Volume
 
 if TYPE_CHECKING:
@@ -36,6 +47,8 @@ __all__ = [
     "Deadlines",
     "Refusal",
     "RoomSize",
+    "bounded_text",
+    "error_message",
     "normalise_room",
     "room_refusal",
     "update_refusal",
@@ -61,6 +74,28 @@ def normalise_room(name: str) -> str:
     if size > MAX_ROOM_NAME_BYTES:
         raise ValueError(f"room name is {size} bytes, over {MAX_ROOM_NAME_BYTES}")
     return norm
+
+
+def bounded_text(text: str, limit: int = MAX_TEXT_LENGTH) -> str:
+    """``text`` cut to at most ``limit`` characters (an ellipsis marks a cut)."""
+    return text if len(text) <= limit else text[: limit - 1] + "\u2026"
+
+
+def error_message(
+    code: ErrorCode | ProtocolError, message: str = "", what: str | None = None
+) -> ErrorMessage:
+    """The ``error`` message of a refusal (or of a :class:`ProtocolError`), its texts bounded:
+    a message built from a peer's input (a name, a number) is always a valid one."""
+    if isinstance(code, ProtocolError):
+        return error_message(code.code, code.message, code.in_reply_to)
+    reply = None if what is None else bounded_text(what)
+    return ErrorMessage.from_code(code, bounded_text(message), in_reply_to=reply)
+
+
+def _number(value: float, digits: int = 3) -> str:
+    """A number for a refusal text: ``digits`` decimals, and short for any float a peer
+    sends (``f"{1e300:.3f}"`` has 305 characters, more than an error message may hold)."""
+    return f"{value:.{digits}f}" if abs(value) < 1e9 else f"{value:.3g}"
 
 
 @dataclass(frozen=True, slots=True)
@@ -91,12 +126,12 @@ def update_refusal(
     newest = update.base_time + float(dt.max())
     if oldest < now - max_age:
         return Refusal(
-            "stale-capture", f"capture time {now - oldest:.3f} s old, over {max_age:g} s"
+            "stale-capture", f"capture time {_number(now - oldest)} s old, over {max_age:g} s"
         )
     if newest > now + max_ahead:
         return Refusal(
             "future-capture",
-            f"capture time {newest - now:.3f} s ahead of the server, over {max_ahead:g} s",
+            f"capture time {_number(newest - now)} s ahead of the server, over {max_ahead:g} s",
         )
     xyz = entries["pose"][:, :3]
     low, high = xyz.min(axis=0), xyz.max(axis=0)
@@ -106,7 +141,7 @@ def update_refusal(
             bad = float(low[axis]) if not float(low[axis]) >= lo else float(high[axis])
             return Refusal(
                 "out-of-bounds",
-                f"position {name}={bad:.2f} m outside the room volume [{lo:g}, {hi:g}]",
+                f"position {name}={_number(bad, 2)} m outside the room volume [{lo:g}, {hi:g}]",
             )
     return None
 

@@ -12,10 +12,10 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from posecast.protocol import ErrorCode, ErrorMessage, Join, Renew
+from posecast.protocol import ErrorCode, Join, Renew
 from posecast.protocol.events import Event
 from posecast.server.auth import TokenClaims, TokenError, token_permits, verify_token
-from posecast.server.limits import normalise_room
+from posecast.server.limits import error_message, normalise_room
 
 if TYPE_CHECKING:
     from posecast.server.core import RelayCore
@@ -38,7 +38,7 @@ def joinable_room(event: Event, secret: str | None, wall: float) -> str | None:
 
 
 def _unauthorized(core: RelayCore, peer: Peer, exc: TokenError, what: str) -> None:
-    core.send(peer, ErrorMessage.from_code(ErrorCode.UNAUTHORIZED, str(exc), in_reply_to=what))
+    core.send(peer, error_message(ErrorCode.UNAUTHORIZED, str(exc), what))
     core.close_peer(peer, 1008, str(exc))
 
 

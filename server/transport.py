@@ -24,6 +24,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import struct
+import time
 from collections.abc import Sequence
 from typing import Any, cast
 
@@ -33,6 +34,8 @@ from websockets.http11 import Request, Response
 from websockets.protocol import State
 from websockets.server import ServerProtocol
 from websockets.typing import Subprotocol
+
+from posecast.server.logs import LogLimiter
 
 __all__ = ["SUBPROTOCOL", "WRITE_HIGH_WATER", "WebSocketConnection", "frame_binary"]
 
@@ -45,6 +48,11 @@ WRITE_HIGH_WATER = 32 * 1024
 _HEAD16 = struct.Struct("!BBH")
 _HEAD64 = struct.Struct("!BBQ")
 _PING = struct.Struct("!I")
+
+#: A failed read (a relay bug some input reaches) logs its traceback at most this
+#: often, whatever the peers send: a fuzzer must not be able to fill the disk.
+BUG_LOG_INTERVAL = 60.0
+_bug_log = LogLimiter(BUG_LOG_INTERVAL, time.monotonic)
 
 #: The websocket subprotocol of this wire format (selected when offered, not required).
 SUBPROTOCOL = "posecast.v1"
@@ -183,7 +191,10 @@ class WebSocketConnection(asyncio.Protocol):
                 self.on_messages(messages)
             except Exception:
                 # A bug, not the peer's doing: this connection ends (1011), the others go on.
-                log.exception("handling a read failed; closing the connection")
+                held = _bug_log.admit()
+                if held is not None:
+                    log.exception("handling a read failed; closing the connection%s",
+                                  _bug_log.note(held))  # fmt: skip
                 if protocol.state is State.OPEN:
                     protocol.fail(1011, "internal-error")
                     self._send_pending()
