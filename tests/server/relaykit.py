@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import bisect
 import contextlib
+import itertools
 import json
 import os
 import socket
@@ -21,12 +22,21 @@ from typing import TypeVar
 
 import msgpack
 import numpy as np
+from support import Pacer, poll_until
 from websockets.asyncio.client import ClientConnection as WsConnection
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
 from posecast.client.connection import ClientConnection
-from posecast.protocol import ErrorMessage, PoseUpdate, Snapshot, decode_message, encode_update
+from posecast.protocol import (
+    ErrorMessage,
+    Ping,
+    Pong,
+    PoseUpdate,
+    Snapshot,
+    decode_message,
+    encode_update,
+)
 from posecast.server.app import RelayServer
 
 T = TypeVar("T")
@@ -36,11 +46,7 @@ StreamKey = tuple[int, int]  # (user, stream)
 
 async def settle(condition: Callable[[], bool], limit: float = 10.0) -> None:
     """Poll until ``condition()`` holds; ``limit`` seconds is a hang guard, not a timing check."""
-    async with asyncio.timeout(limit):
-        while True:
-            if condition():
-                return
-            await asyncio.sleep(0.01)
+    await poll_until(condition, limit=limit, every=0.01)
 
 
 def random_poses(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -107,8 +113,7 @@ class Bot:
     async def _publish(self) -> None:
         rng = np.random.default_rng(self.seed)
         ids = self.stream_ids
-        period = 1.0 / self.publish_rate
-        start = self.clock()
+        pacer = Pacer(1.0 / self.publish_rate, self.clock)
         seq = 0
         while True:
             now = self.clock()
@@ -120,8 +125,7 @@ class Bot:
                 s.captures.append(float(cap))
                 s.poses.append(np.array(p))
             await self.conn.send(update)
-            seq += 1
-            await asyncio.sleep(max(0.0, start + seq * period - self.clock()))
+            seq = await pacer.next()
 
     async def _record(self) -> None:
         try:
@@ -156,6 +160,72 @@ class Bot:
     def of_type(self, kind: type[T]) -> list[T]:
         """Everything but snapshots it received, of one message class, in order."""
         return [e for e in self.others if isinstance(e, kind)]
+
+
+def keyframes_since(bot: Bot, t0: float) -> dict[StreamKey, int]:
+    """New keyframes per remote stream among the snapshots ``bot`` got from ``t0`` on."""
+    newest: dict[StreamKey, float] = {}
+    counts: dict[StreamKey, int] = {}
+    for arrival, snap in bot.snapshots:
+        users, streams = snap.users.tolist(), snap.streams.tolist()
+        caps = snap.capture_times.tolist()
+        for key, cap in zip(zip(users, streams, strict=True), caps, strict=True):
+            if cap > newest.get(key, -np.inf):
+                newest[key] = cap
+                if arrival >= t0:
+                    counts[key] = counts.get(key, 0) + 1
+    return counts
+
+
+def window_full(bots: list[Bot], t0: float, seconds: float) -> bool:
+    """Every bot got at least ``seconds`` of its granted rate in new keyframes of each
+    other bot's streams since ``t0``."""
+    for bot in bots:
+        got = keyframes_since(bot, t0)
+        need = seconds * bot.rate
+        remote = [(b.user, s) for b in bots if b is not bot for s in b.stream_ids]
+        if any(got.get(key, 0) < need for key in remote):
+            return False
+    return True
+
+
+async def keyframe_window(
+    bots: list[Bot], seconds: float, clock: Clock, limit: float = 60.0
+) -> tuple[float, float]:
+    """A window [t0, t1) of ``clock`` in which :func:`window_full` came to hold: waited
+    for (polled), so a starved machine makes it longer, never short of keyframes."""
+    t0 = clock()
+    await poll_until(lambda: window_full(bots, t0, seconds), limit=limit, every=0.1)
+    return t0, clock()
+
+
+async def flowing(
+    bots: list[Bot], publishers: list[Bot] | None = None, limit: float = 60.0
+) -> None:
+    """Wait until every bot has had a keyframe of each stream of the ``publishers``
+    (default: all the bots) but its own."""
+    pubs = bots if publishers is None else publishers
+
+    def seen_all(bot: Bot) -> bool:
+        seen = {
+            (u, s)
+            for _, snap in bot.snapshots
+            for u, s in zip(snap.users.tolist(), snap.streams.tolist(), strict=True)
+        }
+        return all((b.user, s) in seen for b in pubs if b is not bot for s in b.stream_ids)
+
+    await poll_until(lambda: all(seen_all(bot) for bot in bots), limit=limit, every=0.05)
+
+
+async def barrier(bot: Bot) -> None:
+    """A ping round trip on ``bot``'s connection: every reliable message the relay queued
+    for it before it read the ping has arrived once the pong has (one ordered queue)."""
+    seq = next(_PINGS)
+    await bot.conn.send(Ping(seq=seq, time=bot.clock()))
+    await settle(lambda: any(isinstance(e, Pong) and e.seq == seq for e in bot.others))
+
+
+_PINGS = itertools.count(1_000_000)
 
 
 def keyframe_rates(
@@ -341,7 +411,8 @@ EXPECTED_CLOSE: dict[str, int | None] = {
 
 
 async def attack_rounds(url: str, room: str, victim: int, seconds: float) -> list[list[object]]:
-    """Attack ``room`` for ``seconds``: [name, close code] of each attack, in order.
+    """Attack ``room`` until stdin closes, in at least two rounds of each attack
+    (``seconds`` is a hang guard): [name, close code] of each attack, in order.
 
     Each round: one fatal attack (cycling through FATAL), a spoof of stream
     ``victim``, NaN and off-unit poses, a burst of updates beyond the rate limit
@@ -349,11 +420,13 @@ async def attack_rounds(url: str, room: str, victim: int, seconds: float) -> lis
     """
     loop = asyncio.get_running_loop()
     end = loop.time() + seconds
+    stop = asyncio.Event()
+    loop.add_reader(sys.stdin.fileno(), stop.set)  # readable: EOF, the test is done
     log: list[list[object]] = []
     kinds = list(FATAL.items())
     bad = [[float("nan"), 0.0, 0.0, 1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.1, 0.0, 0.0, 0.0]]
     i = 0
-    while loop.time() < end:
+    while (i < 2 * len(kinds) or not stop.is_set()) and loop.time() < end:
         name, (attack, _, _) = kinds[i % len(kinds)]
         i += 1
         ws, _, ids = await joined_raw(url, room)
@@ -380,7 +453,8 @@ async def attack_rounds(url: str, room: str, victim: int, seconds: float) -> lis
 
 
 def main(argv: list[str]) -> None:
-    """``python relaykit.py URL ROOM VICTIM SECONDS``: attack, then print the log as JSON.
+    """``python relaykit.py URL ROOM VICTIM SECONDS``: attack until stdin closes (at most
+    SECONDS), then print the log as JSON.
 
     Attackers are other programs in real life; running them in their own
     process keeps their CPU out of the server's event loop under test.

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 from conftest import needs_nats
+from support import poll_until
 
 from posecast.server.cluster import ClusterError, Directory
 
@@ -20,13 +21,15 @@ pytestmark = needs_nats
 
 
 async def _until(check, limit: float = 10.0):  # type: ignore[no-untyped-def]
-    """Poll ``check()`` (a coroutine function) until it returns a truthy value."""
-    for _ in range(int(limit / 0.05)):
-        result = await check()
-        if result:
-            return result
-        await asyncio.sleep(0.05)
-    raise AssertionError(f"not within {limit} s")
+    """Poll ``check()`` (a coroutine function) until it returns a truthy value; that value."""
+    got = []
+
+    async def holds() -> bool:
+        got.append(await check())
+        return bool(got[-1])
+
+    await poll_until(holds, limit=limit, every=0.05)
+    return got[-1]
 
 
 async def test_nodes_get_distinct_indexes_and_user_blocks(nats_url: str) -> None:
@@ -66,9 +69,14 @@ async def test_renewed_leases_outlive_their_ttl(nats_url: str) -> None:
         assert await a.claim("r") == "a"
         async with asyncio.timeout(60), asyncio.TaskGroup() as tg:
             keeper = tg.create_task(a.keep_alive())
-            for _ in range(12):  # three lease times, renewed every third of one
-                await asyncio.sleep(0.5)
-                assert await b.claim("r") == "a"
+            loop = asyncio.get_running_loop()
+            end = loop.time() + 3 * 2.0  # three lease times, renewed every third of one
+
+            async def still_a_after_three_leases() -> bool:
+                assert await b.claim("r") == "a"  # b asks all along: never granted
+                return loop.time() > end
+
+            await poll_until(still_a_after_three_leases, every=0.25)
             keeper.cancel()
     finally:
         await a.close()

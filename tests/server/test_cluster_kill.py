@@ -17,12 +17,14 @@ from pathlib import Path
 import numpy as np
 from conftest import needs_nats
 from relaykit import settle
+from support import Pacer, poll_until
 from websockets.exceptions import ConnectionClosed
 
 from posecast.client.connection import ClientConnection
 from posecast.cluster_local import RelayProcess, start_relay
 from posecast.protocol import PeerLeft, PeerResumed, PoseUpdate, Snapshot
 from posecast.recorder import find_leftovers, info, load_streams, recover
+from posecast.server.cluster import Directory, member_key
 from posecast.server.node import MOVED
 
 pytestmark = needs_nats
@@ -61,27 +63,47 @@ async def _publish_and_watch(
     async with asyncio.TaskGroup() as tg:
         reader = tg.create_task(read())
         seq = 0
+        pacer = Pacer(0.05)
         with suppress(ConnectionClosed):
             while not stop.is_set() and not reader.done():
                 seq += 1
                 t = cluster_time()
                 await conn.send(PoseUpdate.from_arrays(seq, ids, np.full(3, t), POSE))
-                await asyncio.sleep(0.05)
+                await pacer.next()
         reader.cancel()
 
 
 async def _resume(urls: list[str], token: str, streams: dict[str, int]) -> ClientConnection:
     """What a bot does after a drop: try each node with its token until resumed."""
-    async with asyncio.timeout(20):
-        while True:
-            for url in urls:
-                with suppress(OSError, ConnectionClosed, TimeoutError):
-                    conn = await ClientConnection.connect(url, resume=token, clock=cluster_time)
-                    assert conn.welcome is not None and conn.welcome.resumed, conn.welcome
-                    joined = await conn.join(room="lab", streams=STREAMS, rate=20)
-                    assert joined.streams == streams
-                    return conn
-            await asyncio.sleep(0.2)
+    resumed: list[ClientConnection] = []
+
+    async def attempt() -> bool:
+        for url in urls:
+            with suppress(OSError, ConnectionClosed, TimeoutError):
+                conn = await ClientConnection.connect(url, resume=token, clock=cluster_time)
+                assert conn.welcome is not None and conn.welcome.resumed, conn.welcome
+                joined = await conn.join(room="lab", streams=STREAMS, rate=20)
+                assert joined.streams == streams
+                resumed.append(conn)
+                return True
+        return False
+
+    await poll_until(attempt, limit=20.0, every=0.2)
+    return resumed[0]
+
+
+async def _recorded(nats_url: str, tokens: list[str]) -> None:
+    """Wait until NATS holds the member records of ``tokens`` in room lab."""
+    probe = await Directory.open(nats_url, "probe")
+    try:
+
+        async def there() -> bool:
+            keys = await probe.values(member_key("lab"))
+            return all(member_key("lab", t) in keys for t in tokens)
+
+        await poll_until(there, limit=30.0, every=0.1)
+    finally:
+        await probe.close()
 
 
 async def test_members_of_a_killed_owner_resume_on_a_live_node(
@@ -107,7 +129,8 @@ async def test_members_of_a_killed_owner_resume_on_a_live_node(
         async with asyncio.TaskGroup() as tg:
             tg.create_task(_publish_and_watch(y, stop, before))
             tg.create_task(_publish_and_watch(x, stop, []))
-            await asyncio.sleep(1.5)  # the owner's member records reach NATS (every 0.25 s)
+            # The owner's member records reach NATS (every 0.25 s): seen there.
+            await _recorded(nats_url, [x.welcome.resume, y.welcome.resume])
             killed_at, killed_time = time.monotonic(), cluster_time()
             owner.kill()
             await owner.proc.wait()

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from conftest import needs_nats
 from relaykit import HELLO, Bot, errors, frame, raw_connect, raw_join, settle, until_closed
-from support import running_server
+from support import poll_until, running_server
 
 from posecast.bench.procs import _scrape
 from posecast.client.bot import BotConfig, run_bot
@@ -75,8 +75,9 @@ def sees(bot: Bot, user: int) -> bool:
     return any(p.user == user for p in bot.of_type(PeerJoined))
 
 
-def got_poses_of(bot: Bot, user: int) -> bool:
-    return any(user in set(s.users.tolist()) for _, s in bot.snapshots)
+def got_poses_of(bot: Bot, user: int, n: int = 1) -> bool:
+    """``bot`` got ``n`` snapshots or more carrying poses of ``user``."""
+    return sum(user in set(s.users.tolist()) for _, s in bot.snapshots) >= n
 
 
 async def test_a_room_split_over_two_nodes_is_one_room(nats_url: str) -> None:
@@ -94,7 +95,9 @@ async def test_a_room_split_over_two_nodes_is_one_room(nats_url: str) -> None:
             await settle(partial(sees, far, here.user))
             await settle(partial(got_poses_of, here, far.user))
             await settle(partial(got_poses_of, far, here.user))
-            await asyncio.sleep(0.5)
+            # Ten snapshots or more each way (at 10 and 20 Hz: a second's worth).
+            await settle(partial(got_poses_of, here, far.user, 10), limit=60.0)
+            await settle(partial(got_poses_of, far, here.user, 10), limit=60.0)
             # Poses through the other node arrive bit-exact, at the rate each asked.
             checked = 0
             for bot, other in ((here, far), (far, here)):
@@ -281,10 +284,12 @@ async def test_a_dropped_member_resumes_through_any_node(nats_url: str, back_thr
         x.ws.transport.abort()  # the network drops it
         await settle(lambda: any(m.parked for m in a.rooms["lab"].members.values()))
         # The owner keeps the member's record in NATS, for a resume through any node.
-        for _ in range(100):
-            if await b.cluster.lookup(token) is not None:
-                break
-            await asyncio.sleep(0.1)
+        cluster = b.cluster
+
+        async def recorded() -> bool:
+            return await cluster.lookup(token) is not None
+
+        await poll_until(recorded, limit=30.0, every=0.1)
         url = url_of(b) if back_through == "same node" else url_of(a)
         back = await _resume_at(url, token, joined.streams, clock)
         assert back.welcome is not None and back.welcome.user == x.welcome.user

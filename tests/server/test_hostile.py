@@ -7,8 +7,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import os
 import sys
 from collections.abc import AsyncIterator, Callable
+from pathlib import Path
 from typing import Any
 
 import msgpack
@@ -21,18 +23,23 @@ from relaykit import (
     GOOD,
     HELLO,
     Bot,
+    barrier,
     close_reason,
     errors,
+    flowing,
     frame,
     join_frame,
     joined_raw,
     keyframe_rates,
+    keyframe_window,
     never_reader,
     raw_connect,
     settle,
     until_closed,
     update_bytes,
+    window_full,
 )
+from support import poll_until
 from websockets.asyncio.client import ClientConnection as WsConnection
 from websockets.exceptions import ConnectionClosed
 
@@ -232,7 +239,7 @@ async def test_event_flood_is_rate_limited(server_factory: ServerFactory) -> Non
         _, close_code = await until_closed(ws)
         elapsed = srv.clock() - start
         assert close_code == 1008
-        await asyncio.sleep(0.2)
+        await barrier(bot)  # every event the relay passed on has arrived
         assert 0 < len(bot.of_type(UserEvent)) <= 60.0 * (1.0 + elapsed)
         assert bot.closed is None
 
@@ -257,21 +264,25 @@ async def test_never_reading_client_bounded_and_harmless(server_factory: ServerF
         async with contextlib.AsyncExitStack() as stack:
             for bot in pubs:
                 await stack.enter_async_context(bot.running())
-            await asyncio.sleep(0.3)
-            t0 = clock()
-            await asyncio.sleep(2.0)
-            t1 = clock()
+            await flowing(pubs)
+            t0, t1 = await keyframe_window(pubs, 2.0, clock)
             ws, user = await never_reader(srv, "r")
             conn = srv.connection_of(user)
             await settle(lambda: conn.outbox.skips >= 5)
-            t2 = clock()
             peak_buffer = 0
-            while clock() - t2 < 2.0:
+            queued: list[int] = []
+
+            def sample() -> None:
                 # Latest wins: at most one snapshot waits, the queue stays bounded.
-                assert len(conn.outbox.events) <= cfg.max_event_queue
+                nonlocal peak_buffer
+                queued.append(len(conn.outbox.events))
                 peak_buffer = max(peak_buffer, conn.ws.transport.get_write_buffer_size())
-                await asyncio.sleep(0.05)
+
+            # Sampled all along a window of two seconds of keyframes while it is stuck.
+            t2 = clock()
+            await poll_until(lambda: sample() or window_full(pubs, t2, 2.0), every=0.05)
             t3 = clock()
+            assert queued and max(queued) <= cfg.max_event_queue
             skips = conn.outbox.skips
             assert skips > 10
             assert metric(srv, "posecast_snapshot_skips_total") >= skips
@@ -310,25 +321,22 @@ async def test_rates_unaffected_by_attackers(server_factory: ServerFactory) -> N
         async with contextlib.AsyncExitStack() as stack:
             for bot in bots:
                 await stack.enter_async_context(bot.running())
-            await asyncio.sleep(0.3)
-            t0 = clock()
-            await asyncio.sleep(2.5)
-            t1 = clock()
+            await flowing(bots)
+            t0, t1 = await keyframe_window(bots, 2.5, clock)
             stuck, _ = await never_reader(srv, "r")
             await settle(lambda: metric(srv, "posecast_snapshot_skips_total") > 0)
             victim = str(bots[0].stream_ids[0])
             proc = await asyncio.create_subprocess_exec(
-                sys.executable, relaykit.__file__, url, "r", victim, "3.5",
-                stdout=asyncio.subprocess.PIPE,
+                sys.executable, relaykit.__file__, url, "r", victim, "120",
+                stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE,
+                env={**os.environ, "PYTHONPATH": str(Path(__file__).parent.parent)},
             )  # fmt: skip
-            assert proc.stdout is not None
+            assert proc.stdout is not None and proc.stdin is not None
             async with asyncio.timeout(30):
                 assert await proc.stdout.readline() == b"attacking\n"
-            await asyncio.sleep(0.3)
-            t2 = clock()
-            await asyncio.sleep(2.5)
-            t3 = clock()
-            async with asyncio.timeout(30):
+            t2, t3 = await keyframe_window(bots, 2.5, clock)
+            proc.stdin.close()  # the attacks stop after this round
+            async with asyncio.timeout(60):
                 out, _ = await proc.communicate()
             stuck.transport.abort()
         assert proc.returncode == 0

@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 
 import numpy as np
-from support import running_server
+from support import Pacer, poll_until, running_server
 
 from posecast.client.connection import ClientConnection
 from posecast.protocol import Snapshot, encode_update
@@ -18,14 +18,12 @@ POSE = np.tile(np.array([0.0, 1.6, 0.0, 1.0, 0.0, 0.0, 0.0], dtype=np.float32), 
 async def _publish(conn: ClientConnection, clock: object, seconds: float) -> None:
     assert conn.joined is not None
     ids = np.array(list(conn.joined.streams.values()))
-    loop = asyncio.get_running_loop()
-    end = loop.time() + seconds
+    pacer = Pacer(1 / 30)
     seq = 0
-    while loop.time() < end:
-        seq += 1
+    while seq < seconds * 30:
         now = clock()  # type: ignore[operator]
-        await conn.send_bytes(encode_update(seq, ids, np.full(3, now), POSE))
-        await asyncio.sleep(1 / 30)
+        await conn.send_bytes(encode_update(seq + 1, ids, np.full(3, now), POSE))
+        seq = await pacer.next()
 
 
 async def test_link_holds_its_cap_applies_delay_and_reports_the_rate() -> None:
@@ -90,10 +88,12 @@ async def test_the_rate_the_link_chooses_reaches_the_tick_loop_at_once() -> None
         sub = await ClientConnection.open(url, room="l", streams=("head",), rate=30)
         member = srv.rooms["l"].members[sub.user]
         ids = np.array(list(pub.joined.streams.values()))  # type: ignore[union-attr]
-        async with asyncio.timeout(10):
-            while member.rate >= 30.0:
-                await pub.send_bytes(encode_update(1, ids, np.full(3, srv.clock()), POSE))
-                await asyncio.sleep(0.01)
+
+        async def adapted() -> bool:
+            await pub.send_bytes(encode_update(1, ids, np.full(3, srv.clock()), POSE))
+            return member.rate < 30.0
+
+        await poll_until(adapted, limit=10.0, every=0.01)
         assert srv.core.pending() == []
         for c in (pub, sub):
             await c.close()

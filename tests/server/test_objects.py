@@ -10,11 +10,12 @@ from __future__ import annotations
 import asyncio
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from support import running_server
+from support import poll_until, running_server
 from test_core import Client, connect
 
 from posecast.client.connection import ClientConnection
@@ -296,7 +297,8 @@ async def test_throw_and_catch_over_a_real_relay_is_seen_and_recorded(tmp_path: 
             poses = np.array([[0, 1.6, 0, 1, 0, 0, 0], [0, 1.0 + 0.05 * k, 0, 1, 0, 0, 0]])
             ids = [a.joined.streams["head"], sid.stream]  # type: ignore[union-attr]
             await a.send(PoseUpdate.from_arrays(k + 1, ids, [now, now], poses))
-            await asyncio.sleep(0.02)
+            handled = partial(lambda n: srv.rooms["r"].statistics().updates_in >= n, k + 1)
+            await poll_until(handled, every=0.005)  # taken in before the next
         await a.send(Release(stream=sid.stream, velocity=(0.5, 3.0, 0.0)))
         heights: list[tuple[float, float]] = []
 

@@ -9,11 +9,12 @@ import signal
 import subprocess
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 import pytest
-from support import running_server
+from support import poll_until, running_server, wait_until
 
 from posecast.client.bot import BotConfig, BotReport, run_bot
 from posecast.client.connection import ClientConnection
@@ -124,7 +125,7 @@ import numpy as np
 from posecast.client.connection import ClientConnection
 from posecast.protocol import Snapshot, encode_update
 
-async def echo(conn):
+async def echo(conn, back):
     # The relay sends a subscriber its own streams too: seeing an update come back
     # proves the server ingested it (and handed it to the recorder).
     while True:
@@ -132,18 +133,21 @@ async def echo(conn):
         if isinstance(ev, Snapshot) and len(ev):
             seq = round(float(ev.poses[:, 0].max()) * 1000)
             print("relayed", seq, time.monotonic(), flush=True)
+            back.set()
 
 async def main(url):
     conn = await ClientConnection.open(url, room="crash", streams=("head",), rate=20)
     sid = np.array([conn.joined.streams["head"]])
+    back = asyncio.Event()
     async with asyncio.TaskGroup() as tg:
-        tg.create_task(echo(conn))
+        tg.create_task(echo(conn, back))
         seq = 0
-        while True:
+        while True:  # the next update once the last came back: one per relay tick
             seq += 1
             pose = np.array([[seq * 1e-3, 0, 0, 1, 0, 0, 0]], dtype=np.float32)
+            back.clear()
             await conn.send_bytes(encode_update(seq, sid, np.array([time.monotonic()]), pose))
-            await asyncio.sleep(0.02)
+            await back.wait()
 
 asyncio.run(main(sys.argv[1]))
 """
@@ -254,10 +258,8 @@ async def _paused_session(
                 pose = np.array([[seq * 1e-3, 0, 0, 1, 0, 0, 0]], dtype=np.float32)
                 await conn.send_bytes(encode_update(seq, sid, np.array([time.monotonic()]), pose))
             # The relay has handled every update sent so far before the state changes.
-            for _ in range(1000):
-                if room.statistics().updates_in >= seq:
-                    break
-                await asyncio.sleep(0.01)
+            handled = partial(lambda n: room.statistics().updates_in >= n, seq)
+            await poll_until(handled, limit=10.0, every=0.01)
             assert room.statistics().updates_in == seq
         await conn.close()
     (path,) = server.recordings
@@ -327,10 +329,7 @@ def test_sigusr1_pauses_and_sigusr2_resumes_a_recording_server(tmp_path: Path) -
             return float(re.search(r"^posecast_recording_paused (\S+)$", text, re.M).group(1))  # type: ignore[union-attr]
 
         def wait_for(value: float) -> None:
-            deadline = time.monotonic() + 60  # a hang guard, not a timing check
-            while paused() != value and time.monotonic() < deadline:
-                time.sleep(0.05)
-            assert paused() == value
+            wait_until(lambda: paused() == value, every=0.05)  # 60 s: a hang guard
 
         wait_for(0.0)
         server.send_signal(signal.SIGUSR1)
@@ -362,6 +361,14 @@ async def _snapshot_from(conn: ClientConnection, user: int) -> None:
                 return
 
 
+async def _ingested(server: RelayServer, rooms: list[str], n: int) -> None:
+    """Wait until each of ``rooms`` has taken in ``n`` updates (one after another, as
+    a publisher at its rate would send them)."""
+    await poll_until(
+        lambda: all(server.rooms[r].statistics().updates_in >= n for r in rooms), every=0.005
+    )
+
+
 async def _rooms_share_one_writer(tmp: Path) -> tuple[RelayServer, list[Path], set[int]]:
     config = ServerConfig(host="127.0.0.1", port=0, record_dir=tmp)
     async with running_server(config) as server:
@@ -380,14 +387,11 @@ async def _rooms_share_one_writer(tmp: Path) -> tuple[RelayServer, list[Path], s
         for seq in range(1, 11):
             for conn in conns:
                 await _publish(conn, seq)
-            await asyncio.sleep(0.02)
+            await _ingested(server, [f"r{i}" for i in range(3)], 2 * seq)
         # The writer process dies: the recordings fail, the relay goes on.
         os.kill(first.pid, signal.SIGKILL)
-        for _ in range(1200):  # the host's reader sees the pipe close at once (a hang guard)
-            if all(rec is not None and rec.failed for rec in recorders):
-                break
-            await asyncio.sleep(0.05)
-        assert all(rec is not None and rec.failed for rec in recorders)
+        # The host's reader sees the pipe close at once (60 s: a hang guard).
+        await poll_until(lambda: all(rec is not None and rec.failed for rec in recorders))
         await _publish(conns[0], 11)
         await _snapshot_from(conns[1], conns[0].user)
         # A room opened now records through a new writer process.
@@ -400,7 +404,7 @@ async def _rooms_share_one_writer(tmp: Path) -> tuple[RelayServer, list[Path], s
         for seq in range(1, 21):
             for conn in late:
                 await _publish(conn, seq)
-            await asyncio.sleep(0.02)
+            await _ingested(server, ["late"], 2 * seq)
         await _snapshot_from(late[1], late[0].user)
         for conn in conns + late:
             await conn.close()

@@ -17,7 +17,16 @@ from typing import Any
 
 import numpy as np
 import pytest
-from relaykit import Bot, StreamKey, frame, keyframe_rates, rate_of, settle
+from relaykit import (
+    Bot,
+    StreamKey,
+    barrier,
+    flowing,
+    frame,
+    keyframe_rates,
+    rate_of,
+    settle,
+)
 
 from posecast.client.connection import ClientConnection
 from posecast.protocol import ErrorMessage, PeerJoined, PeerLeft, Ping, Pong, SetRate, UserEvent
@@ -75,8 +84,8 @@ async def test_presence_is_announced_to_the_room_only(server_factory: ServerFact
             for bot in rooms["alpha"]:
                 await settle(partial(saw_leave, bot))
                 assert [p.user for p in bot.of_type(PeerLeft)] == [leaver.user]
-            await asyncio.sleep(0.2)
             for bot in rooms["beta"]:
+                await barrier(bot)  # a leave wrongly sent to it would be in by now
                 assert bot.of_type(PeerLeft) == []
                 assert {p.user for p in bot.of_type(PeerJoined)} <= {b.user for b in rooms["beta"]}
             for bot in [*rooms["alpha"], *rooms["beta"]]:
@@ -100,7 +109,8 @@ async def test_two_rooms_rates_isolation_and_fidelity(server_factory: ServerFact
             for bots in rooms.values():
                 for bot in bots:
                     await stack.enter_async_context(bot.running())
-            await asyncio.sleep(0.5)
+            for bots in rooms.values():
+                await flowing(bots)
             t0 = clock()
             # A window of a second or more of each subscriber's own grid (polled:
             # a starved machine takes longer, it does not fail).
@@ -178,18 +188,18 @@ async def test_set_rate_changes_subscriber_rate(server_factory: ServerFactory) -
         remote = own_pairs([pub])
         async with pub.running(), sub.running(publish=False):
             # Each stage lasts until the subscriber has a second of its grid (polled).
-            await asyncio.sleep(0.3)
+            await flowing([pub, sub], publishers=[pub])
             t0 = clock()
             await settle(lambda: sent_since(sub, t0) >= 10, limit=60.0)
             t1 = clock()
             await sub.conn.send(SetRate(rate=20.0))
-            await asyncio.sleep(0.2)
+            await settle(lambda: srv.rooms["r"].members[sub.user].rate == 20.0)
             t2 = clock()
             await settle(lambda: sent_since(sub, t2) >= 20, limit=60.0)
             t3 = clock()
             # Out of [min_rate, max_rate]: refused, never clamped, rate unchanged.
             await sub.conn.send_bytes(frame("set_rate", rate=45.0))
-            await asyncio.sleep(0.2)
+            await settle(lambda: bool(sub.of_type(ErrorMessage)))  # refused
             t4 = clock()
             await settle(lambda: sent_since(sub, t4) >= 20, limit=60.0)
             t5 = clock()
@@ -223,7 +233,8 @@ async def test_events_relayed_to_room_with_sender_stamped(server_factory: Server
                     UserEvent(kind="button", stream=a.stream_ids[1], payload={"button": k})
                 )
             await settle(lambda: len(b.of_type(UserEvent)) == 5)
-            await asyncio.sleep(0.2)
+            for bot in (a, b, c):
+                await barrier(bot)  # an event wrongly sent to it would be in by now
         got = b.of_type(UserEvent)
         assert [e.payload["button"] for e in got] == [0, 1, 2, 3, 4]  # reliable and ordered
         assert {(e.user, e.stream, e.kind) for e in got} == {(a.user, a.stream_ids[1], "button")}

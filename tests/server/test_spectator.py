@@ -11,7 +11,7 @@ import contextlib
 import time
 
 import numpy as np
-from support import running_server
+from support import Pacer, poll_until, running_server
 from test_core import Client, connect
 from websockets.exceptions import ConnectionClosed
 
@@ -22,6 +22,8 @@ from posecast.protocol import (
     Join,
     PeerJoined,
     PeerLeft,
+    Ping,
+    Pong,
     PoseUpdate,
     Snapshot,
     UserEvent,
@@ -140,12 +142,13 @@ async def test_spectator_over_a_real_relay() -> None:
 
         async def publish() -> None:
             # The relay runs on this process's monotonic clock: capture times are "now".
+            pacer = Pacer(0.02)
             for seq in range(1, 10_000):
                 pose = POSE.copy()
                 pose[0, 0] = seq / 1000
                 now = time.monotonic()
                 await pub.send(PoseUpdate.from_arrays(seq, [sid], [now], pose, base_time=now))
-                await asyncio.sleep(0.02)
+                await pacer.next()
 
         async def listen() -> None:
             with contextlib.suppress(ConnectionClosed):
@@ -156,7 +159,10 @@ async def test_spectator_over_a_real_relay() -> None:
             tasks = [tg.create_task(publish()), tg.create_task(listen())]
             await asyncio.wait_for(watch(), 20)
             await spec.close()
-            await asyncio.sleep(0.3)  # a peer_left would have arrived by now
+            await poll_until(lambda: srv.closed_connections == 1)  # the relay saw it go
+            # A ping round trip: a peer_left queued for pub at the close is in by now.
+            await pub.send(Ping(seq=1, time=time.monotonic()))
+            await poll_until(lambda: any(isinstance(e, Pong) for e in heard))
             for t in tasks:
                 t.cancel()
         await pub.close()
