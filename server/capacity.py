@@ -15,9 +15,12 @@ CPU             the relay process's CPU time (``time.process_time``) per     ``c
                 counted: a ramp cannot overshoot by a window's joins)
 tick lag        the share of room ticks more than ``lag`` late in the last   ``lag``,
                 complete window (or the current one): over 1 % (the p99     25 ms
-                is over budget) refuses, while the relay is busy (at least
-                ``LAG_CPU_FLOOR`` of a core: below that the lag is the
-                machine's, and refusing members would not cure it)
+                is over budget) refuses, while the relay is loaded: it
+                uses ``LAG_CPU_FLOOR`` of a core or holds
+                ``LAG_MIN_MEMBERS`` (a near-idle relay lags because its
+                machine is busy, and refusing would not cure that; a relay
+                starved of CPU by other work uses little but lags with
+                many members, and that counts)
 backlog         bytes written but not yet taken by the kernel, summed over   ``backlog``,
                 every connection, at the last sample                         32 MiB
 ==============  ===========================================================  ==========
@@ -49,6 +52,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "LAG_CPU_FLOOR",
+    "LAG_MIN_MEMBERS",
     "RETRY_AFTER",
     "STALE_ERROR_INTERVAL",
     "Capacity",
@@ -62,6 +66,8 @@ RETRY_AFTER = 5.0
 #: Tick lag counts against the budget only while the relay uses at least this share
 #: of a core: an idle relay that ticks late is late because its machine is busy.
 LAG_CPU_FLOOR = 0.2
+#: ... or while it holds at least this many members (a starved relay uses little CPU).
+LAG_MIN_MEMBERS = 32
 #: Share of a window's ticks that may be later than the lag budget (1 %: the p99).
 LAG_SHARE = 0.01
 #: A connection whose updates are stale gets one ``bad-pose`` error per this many seconds.
@@ -173,7 +179,8 @@ class Capacity:
         fresh = self._sampled is not None and now - self._sampled <= STALE_WINDOWS * b.window
         if b.cpu > 0 and fresh and self.cpu_members > 0:
             out["cpu"] = self.cpu * (members + 1) / self.cpu_members / b.cpu
-        if b.lag > 0 and fresh and self.cpu >= LAG_CPU_FLOOR:
+        loaded = (fresh and self.cpu >= LAG_CPU_FLOOR) or members >= LAG_MIN_MEMBERS
+        if b.lag > 0 and loaded:
             share = max((w.late / w.ticks for w in self._windows(now) if w.ticks), default=0.0)
             out["lag"] = share / LAG_SHARE
         if b.backlog > 0:

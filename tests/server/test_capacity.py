@@ -21,6 +21,7 @@ from posecast.client.bot import BotConfig, run_bot
 from posecast.protocol import ClientSession, ErrorMessage, Hello, Join, Joined, PeerJoined, Welcome
 from posecast.server.capacity import (
     LAG_CPU_FLOOR,
+    LAG_MIN_MEMBERS,
     RETRY_AFTER,
     Capacity,
     CapacityBudget,
@@ -67,18 +68,22 @@ def test_an_empty_or_unmeasured_relay_admits() -> None:
     assert cap.refusal(10, 1.0 + 6 * cap.budget.window) is None
 
 
-def test_tick_lag_refuses_only_a_busy_relay() -> None:
+def test_tick_lag_refuses_only_a_loaded_relay() -> None:
     """Over 1 % of a window's ticks later than the budget: full, if the relay uses at
-    least LAG_CPU_FLOOR of a core; an idle relay's lag is its machine's."""
-    busy = measured(LAG_CPU_FLOOR + 0.05, 100)
-    idle = measured(LAG_CPU_FLOOR - 0.05, 100)
+    least LAG_CPU_FLOOR of a core, or holds LAG_MIN_MEMBERS (starved of CPU by other
+    work, it uses little); a near-idle relay's lag is its machine's."""
+    few = LAG_MIN_MEMBERS - 2
+    busy = measured(LAG_CPU_FLOOR + 0.05, few)
+    idle = measured(LAG_CPU_FLOOR - 0.05, few)
     for cap in (busy, idle):
         for i in range(200):
             cap.tick_lag(1.0 + i * 0.001, 0.100 if i < 3 else 0.001)  # 1.5 % late
-    why = busy.refusal(100, 1.3)
+    why = busy.refusal(few, 1.3)
     assert why is not None and "ticks run over 25 ms late" in why
-    assert idle.refusal(100, 1.3) is None
-    assert busy.usage(100, 1.3)["lag"] == pytest.approx(1.5)
+    assert idle.refusal(few, 1.3) is None
+    assert busy.usage(few, 1.3)["lag"] == pytest.approx(1.5)
+    starved = idle.refusal(LAG_MIN_MEMBERS, 1.3)  # the same idle CPU, many members
+    assert starved is not None and "ticks run over" in starved
 
 
 def test_one_late_tick_in_a_hundred_is_within_budget() -> None:
