@@ -49,7 +49,14 @@ from rich.console import Console
 from rich.table import Table
 
 from posecast.bench.common import _LISTENING, DEFAULT_MOTION, Motion, _pct, _raise_nofile
-from posecast.bench.fleet import LoadFleet, load_samples, merge_parts, sample_percentiles
+from posecast.bench.fleet import (
+    LoadFleet,
+    join_figures,
+    load_samples,
+    merge_parts,
+    merge_ramped,
+    sample_percentiles,
+)
 from posecast.bench.procs import _Child, _machine_cpu, _proc_cpu, _scrape, _sleep_until
 from posecast.bench.relay import (
     CODECS,
@@ -381,9 +388,7 @@ def _ramp_fleets(
         fleets.append(LoadFleet(cfg, per_node, report["seed"]))
         joined.append(fleets[-1].ramped(timeout=ramp_s + 60.0))
     report["procs"] = sum(len(f.children) for f in fleets)
-    report["clients_joined"] = sum(int(j["joined"]) for j in joined)
-    report["clients_failed"] = sum(int(j["failed"]) for j in joined)
-    report["join_errors"] = [e for j in joined for e in j["errors"]][:5]
+    report.update(join_figures(merge_ramped(joined)))
     report["ramp_s"] = sum(float(j["ramp_s"]) for j in joined)
     report["clients_per_node"] = [int(j["joined"]) for j in joined]
 

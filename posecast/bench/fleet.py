@@ -41,6 +41,7 @@ _SUMMED = (
     "codec_own_echo",
     "clients_closed",
     "load_clients",
+    "clients_measured",
 )
 
 
@@ -83,16 +84,10 @@ class LoadFleet:
     def ramped(self, timeout: float) -> dict[str, Any]:
         """Wait for every process to have joined its clients; their figures, added up."""
         parts = [child.wait_json("ramped", timeout=timeout) for child in self.children]
-        joined = sum(int(p["joined"]) for p in parts)
-        if joined == 0:
-            errors = [e for p in parts for e in p["errors"]]
-            raise self.children[0].fail(f"no client could join: {errors[:5]}")
-        return {
-            "joined": joined,
-            "failed": sum(int(p["failed"]) for p in parts),
-            "errors": [e for p in parts for e in p["errors"]][:5],
-            "ramp_s": max(float(p["ramp_s"]) for p in parts),
-        }
+        merged = merge_ramped(parts)
+        if merged["joined"] == 0:
+            raise self.children[0].fail(f"no client could join: {merged['errors']}")
+        return merged
 
     def tell(self, message: dict[str, Any]) -> None:
         for child in self.children:
@@ -119,15 +114,57 @@ class LoadFleet:
         return self.children[0].fail(what)
 
 
+def merge_ramped(parts: list[dict[str, Any]]) -> dict[str, Any]:
+    """Load processes' ``ramped`` messages as one: joins by outcome, their times (s)."""
+    codes: dict[str, int] = {}
+    for p in parts:
+        for code, n in p.get("codes", {}).items():
+            codes[code] = codes.get(code, 0) + int(n)
+    return {
+        "joined": sum(int(p["joined"]) for p in parts),
+        "failed": sum(int(p["failed"]) for p in parts),
+        "errors": [e for p in parts for e in p["errors"]][:5],
+        "codes": codes,
+        "hung": sum(int(p.get("hung", 0)) for p in parts),
+        "join_s": [t for p in parts for t in p.get("join_s", [])],
+        "refused_s": [t for p in parts for t in p.get("refused_s", [])],
+        "ramp_s": max(float(p["ramp_s"]) for p in parts),
+    }
+
+
+def join_figures(ramped: dict[str, Any]) -> dict[str, Any]:
+    """The report's join accounting from a (merged) ``ramped`` message: admitted,
+    refused by the server's error code, hung (no answer within the open timeout), and
+    how long joins and refusals took from each client's first byte (ms)."""
+    codes = dict(ramped.get("codes", {}))
+    hung = int(codes.pop("hung", 0))
+    refused = np.asarray(ramped.get("refused_s", []), dtype=np.float64) * 1e3
+    joins = np.asarray(ramped.get("join_s", []), dtype=np.float64) * 1e3
+    return {
+        "clients_joined": int(ramped["joined"]),
+        "clients_failed": int(ramped["failed"]),
+        "clients_refused": sum(n for code, n in codes.items() if code != "unreachable"),
+        "clients_hung": hung,
+        "join_errors": codes,
+        "join_error_examples": ramped["errors"],
+        "join_p50_ms": _pct(joins, 50),
+        "join_p99_ms": _pct(joins, 99),
+        "refusal_p50_ms": _pct(refused, 50),
+        "refusal_p99_ms": _pct(refused, 99),
+        "refusal_max_ms": float(refused.max()) if len(refused) else math.nan,
+    }
+
+
 def merge_parts(parts: list[dict[str, Any]]) -> dict[str, Any]:
     """Load processes' ``result`` messages as one: sums and extremes (no percentiles)."""
     merged: dict[str, Any] = {key: sum(p.get(key, 0) for p in parts) for key in _SUMMED}
     merged["window_s"] = max(float(p["window_s"]) for p in parts)
-    merged["snapshots_per_client_s"] = merged.pop("snapshots_per_client_s_sum") / max(
-        1, merged["load_clients"]
-    )
-    merged["snapshots_per_client_s_min"] = min(p["snapshots_per_client_s_min"] for p in parts)
-    merged["snapshots_per_client_s_max"] = max(p["snapshots_per_client_s_max"] for p in parts)
+    # Per joined client: a client the relay refused is not one that got no snapshots.
+    measured = merged["clients_measured"] or merged["load_clients"]
+    merged["snapshots_per_client_s"] = merged.pop("snapshots_per_client_s_sum") / max(1, measured)
+    some = [p for p in parts if p.get("clients_measured", 1)] or parts
+    merged["snapshots_per_client_s_min"] = min(p["snapshots_per_client_s_min"] for p in some)
+    merged["snapshots_per_client_s_max"] = max(p["snapshots_per_client_s_max"] for p in some)
     merged["close_reasons"] = sorted({r for p in parts for r in p["close_reasons"]})[:5]
     errors: dict[str, int] = {}
     for p in parts:

@@ -204,18 +204,23 @@ class _LoadStats:
             "send_lag": np.frombuffer(self.send_lag, dtype=np.float64) * 1e3,
         }
 
-    def counts(self) -> dict[str, Any]:
+    def counts(self, joined: list[int] | None = None) -> dict[str, Any]:
+        """The window's counts; per-client figures over the clients that ``joined``
+        (indices; None: all of them): a refused client is not one without snapshots."""
         window = self.t1 - self.t0
-        got = np.asarray(self.snapshots, dtype=np.float64)
+        idx = range(len(self.snapshots)) if joined is None else joined
+        got = np.asarray([self.snapshots[i] for i in idx], dtype=np.float64)
+        ever = [self.snapshots_total[i] for i in idx]
         per_client = got / window if window > 0 else got * 0.0
         return {
             "window_s": window,
-            "snapshots": int(got.sum()),
+            "clients_measured": len(got),
+            "snapshots": int(sum(self.snapshots)),
             "snapshots_per_client_s_sum": float(per_client.sum()),
             "snapshots_per_client_s_min": float(per_client.min()) if len(per_client) else 0.0,
             "snapshots_per_client_s_max": float(per_client.max()) if len(per_client) else 0.0,
-            "clients_without_snapshots": self.snapshots_total.count(0),
-            "clients_without_snapshots_in_window": self.snapshots.count(0),
+            "clients_without_snapshots": ever.count(0),
+            "clients_without_snapshots_in_window": int((got == 0).sum()),
             "poses_delivered": self.poses_remote,
             "poses_delivered_incl_own": self.poses_all,
             "payload_bytes": self.payload_bytes,
@@ -235,7 +240,16 @@ class _LoadStats:
 
 
 class _Refused(RuntimeError):
-    pass
+    """The handshake ended without a join: ``code`` is the server's error code, or
+    ``closed`` (a close with no error before it)."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(f"{code}: {message}")
+        self.code = code
+
+
+#: What became of a client's join (besides an error code of the server's).
+JOINED, HUNG, CLOSED, UNREACHABLE = "joined", "hung", "closed", "unreachable"
 
 
 class _BenchClient:
@@ -261,6 +275,11 @@ class _BenchClient:
         self.stats = stats
         self.codec = codec
         self.error: str | None = None
+        #: How its join ended (:data:`JOINED`, a server error code such as
+        #: ``server-full``, :data:`HUNG`, :data:`CLOSED`, :data:`UNREACHABLE`) and how
+        #: long that took from its first byte (s).
+        self.outcome = ""
+        self.join_s = math.nan
         self.conn: FrameConnection | None = None
         self.session = ClientSession()
         self.user = -1
@@ -277,7 +296,11 @@ class _BenchClient:
         self._count_codec = index % SAMPLE_EVERY != 0
 
     async def open(self, url: str, within: float) -> None:
-        """Connect, hello, join, each step ``within`` s; on failure ``error`` says why."""
+        """Connect, hello, join, each step ``within`` s; on failure ``error`` says why.
+
+        ``outcome`` says how it ended: joined, refused (the server's error code), hung
+        (no answer to a step within ``within``), closed or unreachable."""
+        start = time.monotonic()
         try:
             conn, _ = await open_connection(url, time.monotonic, within)
             self.conn = conn
@@ -286,11 +309,20 @@ class _BenchClient:
             join = Join(room=self.room, streams=STREAMS, rate=self.rate, codec=self.codec)
             joined = await self._ask(join, within)
         except Exception as exc:  # whatever it was, this client did not join: say why
+            self.join_s = time.monotonic() - start
             self.error = f"{type(exc).__name__}: {exc}"
+            if isinstance(exc, _Refused):
+                self.outcome = exc.code
+            elif isinstance(exc, TimeoutError):
+                self.outcome = HUNG
+            else:
+                self.outcome = UNREACHABLE
             if self.conn is not None:
                 self.conn.abort()
             self.conn = None
             return
+        self.join_s = time.monotonic() - start
+        self.outcome = JOINED
         assert isinstance(welcome, Welcome) and isinstance(joined, Joined)
         self.user = welcome.user
         ids = [joined.streams[name] for name in STREAMS]
@@ -311,7 +343,7 @@ class _BenchClient:
 
         def closed(done: asyncio.Future[str]) -> None:
             if not waiting.done():
-                waiting.set_exception(_Refused(f"closed during the handshake: {done.result()}"))
+                waiting.set_exception(_Refused(CLOSED, f"during the handshake: {done.result()}"))
 
         conn.closed.add_done_callback(closed)
         conn.write(client_frame(self.session.send(message)))
@@ -328,7 +360,7 @@ class _BenchClient:
             if isinstance(ev, Welcome | Joined):
                 waiting.set_result(ev)
             elif isinstance(ev, ErrorMessage | ProtocolError):
-                waiting.set_exception(_Refused(f"{ev.code}: {ev.message}"))
+                waiting.set_exception(_Refused(str(ev.code), ev.message))
 
     def publish(self, now: float) -> bool:
         """Send the next update; False if the socket is backed up (skipped)."""
@@ -515,13 +547,25 @@ async def _ramp(
             if delay > 0:
                 await asyncio.sleep(delay)
             tg.create_task(open_one(client))
+    return {"event": "ramped", **join_outcomes(clients), "ramp_s": time.monotonic() - start}
+
+
+def join_outcomes(clients: list[_BenchClient]) -> dict[str, Any]:
+    """How the joins ended: joined, failed (refused by code, hung, ...), and how long
+    each refusal and each join took (s), for the controller to add up."""
     errors = [c.error for c in clients if c.error]
+    codes: dict[str, int] = {}
+    for c in clients:
+        if c.outcome and c.outcome != JOINED:
+            codes[c.outcome] = codes.get(c.outcome, 0) + 1
     return {
-        "event": "ramped",
         "joined": sum(1 for c in clients if c.conn is not None),
         "failed": len(errors),
         "errors": errors[:5],
-        "ramp_s": time.monotonic() - start,
+        "codes": codes,
+        "hung": codes.get(HUNG, 0),
+        "join_s": [c.join_s for c in clients if c.outcome == JOINED],
+        "refused_s": [c.join_s for c in clients if c.outcome not in ("", JOINED, HUNG)],
     }
 
 
@@ -587,7 +631,7 @@ async def _measure(
         return
     stats.t0, stats.t1 = (float(x) for x in order["window"])
     await asyncio.sleep(max(0.0, stats.t1 - time.monotonic()) + 0.05)
-    summary = stats.counts()
+    summary = stats.counts([c.index for c in clients if c.outcome == JOINED])
     closed = [c.conn.closed.result() for c in clients if c.conn and c.conn.closed.done()]
     summary["clients_closed"] = len(closed)
     summary["close_reasons"] = sorted(set(closed))[:5]

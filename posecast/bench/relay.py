@@ -22,7 +22,7 @@ from posecast.bench.common import (
     Motion,
     _raise_nofile,
 )
-from posecast.bench.fleet import LoadFleet
+from posecast.bench.fleet import LoadFleet, join_figures
 from posecast.bench.procs import (
     _Child,
     _children_run_time,
@@ -70,8 +70,14 @@ def run_relay_bench(
     codec: str = "raw",
     server: str = "relay",
     motion: str = DEFAULT_MOTION,
+    shed: bool = False,
 ) -> dict[str, Any]:
     """Run the relay benchmark; print and return its report (figures, never pass/fail).
+
+    Like the connection and room limits, the relay's capacity budget is lifted (the
+    relay admits every client it is asked to) unless ``shed``: then it runs with its
+    default budget and refuses what it cannot hold (``server-full``); the report
+    counts admitted, refused (by code) and hung clients either way.
 
     The load runs in ``procs`` processes, its clients' updates coded as
     ``codec`` (``raw`` or ``compact``) and carrying ``motion`` (``static`` or a
@@ -103,6 +109,7 @@ def run_relay_bench(
         "codec": codec,
         "server": server,
         "motion": motion,
+        "shed": shed,
     }
     Motion(motion, rate if rate > 0 else 1.0)  # a bad trace set: one ValueError, here
     if procs < 1:
@@ -244,6 +251,7 @@ def _run_once(
     codec: str = "raw",
     server: str = "relay",
     motion: str = DEFAULT_MOTION,
+    shed: bool = False,
 ) -> dict[str, Any]:
     """One measured run; ``record_dir`` turns the server's recorder on.
 
@@ -273,11 +281,12 @@ def _run_once(
         "procs": procs,
         "codec": codec,
         "motion": motion,
+        "shed": shed,
     }
     if server == "baseline":
         server_argv = [sys.executable, "-c", _BASELINE_BOOT, "--rate", f"{rate:g}"]
     else:
-        server_argv = _server_argv(rate, record_dir, record_writer)
+        server_argv = _server_argv(rate, record_dir, record_writer, shed)
     result, start, end = _run_children(
         report,
         server_argv,
@@ -290,7 +299,9 @@ def _run_once(
     return report
 
 
-def _server_argv(rate: float, record_dir: Path | None, record_writer: str) -> list[str]:
+def _server_argv(
+    rate: float, record_dir: Path | None, record_writer: str, shed: bool = False
+) -> list[str]:
     """The command line of the relay under test: ``posecast serve`` on a free port."""
     return [
         sys.executable,
@@ -319,6 +330,8 @@ def _server_argv(rate: float, record_dir: Path | None, record_writer: str) -> li
         "0",
         "--max-recorded-rooms",
         "0",
+        # ... and the capacity budget, unless the run is about shedding load.
+        *([] if shed else [f"--capacity-{k}=0" for k in ("cpu", "lag", "backlog")]),
         *(
             ["--record", str(record_dir), "--record-writer", record_writer]
             if record_dir is not None
@@ -401,9 +414,7 @@ def _run_children(
 def _ramp(load: LoadFleet, report: dict[str, Any], timeout: float) -> None:
     """Wait for the load to have joined every client it could; into ``report``."""
     ramped = load.ramped(timeout=timeout)
-    report["clients_joined"] = int(ramped["joined"])
-    report["clients_failed"] = int(ramped["failed"])
-    report["join_errors"] = ramped["errors"]
+    report.update(join_figures(ramped))
     report["ramp_s"] = float(ramped["ramp_s"])
 
 

@@ -100,10 +100,33 @@ def print_relay_report(report: dict[str, Any], console: Console) -> None:
         console.print(f"saturated by: {r['saturated_by']}" + (f" ({notes})" if notes else ""))
 
 
+def _join_rows(r: dict[str, Any]) -> list[_Row]:
+    """Who joined, who was refused (by the server's error code) and whose join hung."""
+    codes = r.get("join_errors") or {}
+    refused = ", ".join(f"{n} {code}" for code, n in sorted(codes.items())) or "none"
+    rows: list[_Row] = [
+        (
+            "clients joined / refused / hung",
+            f"{r['clients_joined']} / {r.get('clients_refused', 0)} / {r.get('clients_hung', 0)}",
+            f"refused: {refused}; hung: no answer to a handshake step in 15 s",
+        )
+    ]
+    if codes:
+        rows.append(
+            (
+                "refusal after p50 / p99 / max",
+                f"{_f(r['refusal_p50_ms'])} / {_f(r['refusal_p99_ms'])} / "
+                f"{_f(r['refusal_max_ms'])} ms",
+                "from the client's first byte to the refusal (error or close)",
+            )
+        )
+    return rows
+
+
 def _cpu_rows(r: dict[str, Any]) -> list[_Row]:
     """Who joined, and the CPU the server, the load and the rest of the machine used."""
     return [
-        ("clients joined / failed", f"{r['clients_joined']} / {r['clients_failed']}", ""),
+        *_join_rows(r),
         (
             "server CPU",
             f"{_f(r['server_cpu_pct'])} %",

@@ -105,6 +105,7 @@ def run_relay_curve(
     warmup: float = 5.0,
     ramp_rate: float = 50.0,
     seed: int = 0,
+    shed: bool = False,
 ) -> dict[str, Any]:
     """One relay run per count (and a baseline run after each); the curve and every report.
 
@@ -126,7 +127,15 @@ def run_relay_curve(
     bases: list[dict[str, Any]] = []
     for n in counts:
         relay = run_relay_bench(
-            n, room_size, rate, duration, procs=procs, codec=codec, console=console, **opts
+            n,
+            room_size,
+            rate,
+            duration,
+            procs=procs,
+            codec=codec,
+            console=console,
+            shed=shed,
+            **opts,
         )
         relays.append(relay)
         bare = None

@@ -92,6 +92,16 @@ NodesOption = Annotated[
     ),
 ]
 
+ShedOption = Annotated[
+    bool,
+    typer.Option(
+        "--shed",
+        help="Run the relay with its capacity budget (serve's defaults) instead of lifting "
+        "it: it refuses what it cannot hold (server-full). The report counts admitted, "
+        "refused and hung clients either way.",
+    ),
+]
+
 
 def bench_relay(
     clients: ClientsOption = "500",
@@ -132,6 +142,7 @@ def bench_relay(
     json_out: Annotated[
         Path | None, typer.Option("--json", help="Also write the report as JSON here.")
     ] = None,
+    shed: ShedOption = False,
 ) -> None:
     """Relay throughput: server CPU per pose, latency p50/p99, skips, tick lag."""
     from posecast.bench import parse_counts
@@ -146,14 +157,7 @@ def bench_relay(
         raise _fail("--procs must be at least 1")
     if codec not in ("raw", "compact"):
         raise _fail(f"--codec must be raw or compact, not {codec!r}")
-    if record and (baseline or len(counts) > 1):
-        raise _fail("--record takes one --clients count and no --baseline")
-    if repeat < 1:
-        raise _fail("--repeat must be at least 1")
-    if interleave and not record:
-        raise _fail("--interleave needs --record")
-    if record_writer not in ("process", "thread", "both"):
-        raise _fail(f"--record-writer must be process, thread or both, not {record_writer!r}")
+    _check_record_args(record, record_writer, repeat, interleave, baseline or len(counts) > 1)
     if nodes != 1:
         _bench_nodes_run(counts, room_size, rate, duration, json_out, nodes=nodes, procs=procs,
                          codec=codec, motion=motion, others=record or baseline)  # fmt: skip
@@ -172,7 +176,22 @@ def bench_relay(
         codec=codec,
         motion=motion,
         baseline=baseline,
+        shed=shed,
     )
+
+
+def _check_record_args(
+    record: bool, record_writer: str, repeat: int, interleave: float, several: bool
+) -> None:
+    """The recorder options of ``bench relay`` (``several``: a curve or --baseline)."""
+    if record and several:
+        raise _fail("--record takes one --clients count and no --baseline")
+    if repeat < 1:
+        raise _fail("--repeat must be at least 1")
+    if interleave and not record:
+        raise _fail("--interleave needs --record")
+    if record_writer not in ("process", "thread", "both"):
+        raise _fail(f"--record-writer must be process, thread or both, not {record_writer!r}")
 
 
 def _bench_nodes_run(
@@ -223,6 +242,7 @@ def _bench_relay_run(
     codec: str,
     motion: str,
     baseline: bool,
+    shed: bool = False,
 ) -> None:
     """One run, or the curve (several counts, or --baseline); the JSON if asked."""
     from posecast.bench import run_relay_bench, run_relay_curve
@@ -240,6 +260,7 @@ def _bench_relay_run(
                 codec=codec,
                 motion=motion,
                 console=console,
+                shed=shed,
             )
         else:
             report = run_relay_bench(
@@ -255,6 +276,7 @@ def _bench_relay_run(
                 procs=procs,
                 codec=codec,
                 motion=motion,
+                shed=shed,
             )
     except (ValueError, RuntimeError) as exc:
         raise _fail(str(exc)) from None

@@ -1,0 +1,101 @@
+"""``bench relay`` accounts for every join: admitted, refused by code, hung, unreachable.
+
+The load's own client (``posecast.bench.load``) against real sockets: a relay with
+room, a relay whose measured budget is spent (``server-full``), a listener that
+never answers (hung), and a port nobody listens on; then the controller's merge
+and the report's figures.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import socket
+from typing import Any
+
+from support import poll_until, running_server
+
+from posecast.bench.fleet import join_figures, merge_parts, merge_ramped
+from posecast.bench.load import HUNG, JOINED, UNREACHABLE, _BenchClient, _LoadStats, join_outcomes
+from posecast.server.app import ServerConfig
+
+TINY = ServerConfig(host="127.0.0.1", port=0, capacity_cpu=1e-9)
+
+
+async def _outcomes() -> dict[str, Any]:
+    stats = _LoadStats(5)
+
+    def client(i: int) -> _BenchClient:
+        return _BenchClient(i, "r", 20.0, stats, "compact")
+
+    clients = [client(i) for i in range(5)]
+    async with running_server() as free, running_server(TINY) as full:
+        await clients[0].open(f"ws://127.0.0.1:{free.port}", 5.0)
+        holder = client(4)  # the full relay's one member (not counted below)
+        await holder.open(f"ws://127.0.0.1:{full.port}", 5.0)
+        cap = full.core.capacity
+        await poll_until(lambda: cap.cpu_members > 0 and cap.cpu > 0)
+        await clients[1].open(f"ws://127.0.0.1:{full.port}", 5.0)
+        # A listener that takes the connection and never answers its handshake.
+        taken: list[asyncio.StreamWriter] = []
+
+        async def take(_r: asyncio.StreamReader, w: asyncio.StreamWriter) -> None:
+            taken.append(w)
+
+        mute = await asyncio.start_server(take, "127.0.0.1", 0)
+        mute_port = mute.sockets[0].getsockname()[1]
+        await clients[2].open(f"ws://127.0.0.1:{mute_port}", 0.3)
+        for w in taken:
+            w.close()
+        mute.close()
+        await mute.wait_closed()
+        with socket.socket() as s:  # a port nobody listens on (bound, never listening)
+            s.bind(("127.0.0.1", 0))
+            await clients[3].open(f"ws://127.0.0.1:{s.getsockname()[1]}", 2.0)
+        ramped = join_outcomes(clients[:4])
+        for c in (clients[0], holder):
+            assert c.conn is not None
+            c.conn.abort()
+    return ramped
+
+
+def test_every_join_is_accounted_for() -> None:
+    """joined, server-full (with its time), hung and unreachable, and the report's keys."""
+    ramped = asyncio.run(_outcomes())
+    assert ramped["joined"] == 1 and ramped["failed"] == 3
+    assert ramped["codes"] == {"server-full": 1, HUNG: 1, UNREACHABLE: 1}
+    assert ramped["hung"] == 1
+    assert len(ramped["join_s"]) == 1 and len(ramped["refused_s"]) == 2
+    assert all(t >= 0 for t in ramped["join_s"] + ramped["refused_s"])
+    two = merge_ramped([{**ramped, "ramp_s": 1.0}, {**ramped, "ramp_s": 2.0}])
+    assert two["codes"] == {"server-full": 2, HUNG: 2, UNREACHABLE: 2} and two["hung"] == 2
+    figures = join_figures(two)
+    assert figures["clients_joined"] == 2 and figures["clients_failed"] == 6
+    assert figures["join_errors"] == {"server-full": 2, UNREACHABLE: 2}
+    assert figures["clients_hung"] == 2 and figures["clients_refused"] == 2
+    assert math.isfinite(figures["refusal_p99_ms"]) and math.isfinite(figures["join_p99_ms"])
+    assert any("server-full" in e for e in figures["join_error_examples"])
+
+
+def test_refused_clients_are_not_counted_as_clients_without_snapshots() -> None:
+    """Per-client snapshot figures are over the clients that joined."""
+    stats = _LoadStats(4)
+    stats.t0, stats.t1 = 0.0, 2.0
+    for i in (0, 1):
+        for k in range(40):
+            stats.snapshot(i, 0.05 * k, 0.05 * k, 0.05 * k, 100, 3, 0)
+    counts = stats.counts([0, 1])
+    assert counts["clients_measured"] == 2 and counts["clients_without_snapshots"] == 0
+    assert counts["snapshots_per_client_s_min"] == 20.0
+    everyone = stats.counts()
+    assert everyone["clients_without_snapshots"] == 2
+    part = {
+        **counts,
+        "load_clients": 4,
+        "close_reasons": [],
+        "server_errors": {},
+        "server_error_examples": {},
+    }
+    merged = merge_parts([part])
+    assert merged["snapshots_per_client_s"] == 20.0
+    assert JOINED == "joined"
