@@ -758,8 +758,7 @@ class RelayCore:
             if refused is not None:
                 peer.count_refused(refused.kind)
                 room.note_drop(refused.kind, user)
-                # Stale despite that: maybe a clock; never charged, one error a second.
-                aged = refused.kind == "stale-capture"
+                aged = refused.kind == "stale-capture"  # never charged; one error a second
                 if not aged or capacity.stale_error_due(peer, now):
                     self.refuse(peer, ErrorCode.BAD_POSE, refused.message, "update", now, not aged)
                 return
