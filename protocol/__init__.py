@@ -48,6 +48,7 @@ from posecast.protocol.limits import (
     Limits,
 )
 from posecast.protocol.messages import (
+    AUTO_RATE,
     CODECS,
     DEVICE_NAMES,
     EVENT_KINDS,
@@ -64,6 +65,7 @@ from posecast.protocol.messages import (
     PeerStalled,
     Ping,
     Pong,
+    RateNotice,
     Renew,
     SetRate,
     UserEvent,
@@ -109,6 +111,7 @@ from posecast.protocol.session import ClientSession, ServerSession, SessionStati
 from posecast.protocol.wire import MESSAGE_TYPES, decode_message, encode_message
 
 __all__ = [
+    "AUTO_RATE",
     "CODECS",
     "DEFAULT_LIMITS",
     "DEFAULT_VOLUME",
@@ -168,6 +171,7 @@ __all__ = [
     "PosecastError",
     "ProtocolError",
     "ProtocolViolation",
+    "RateNotice",
     "Release",
     "RemoteProtocolError",
     "Renew",

@@ -13,7 +13,8 @@ Both sides of a connection walk the same states; a message moves both of them
 4. Pose traffic only once joined: ``update``, ``set_rate`` and ``renew`` (a fresh
    access token) from the client;
    ``snapshot``, ``peer_joined``, ``peer_left``, ``peer_stalled`` and
-   ``peer_resumed`` from the server; ``event``
+   ``peer_resumed`` (and ``rate``, the rate the server chose for a client that
+   joined with ``rate="auto"``) from the server; ``event``
    either way; the shared objects' ``object_create``, ``request_ownership`` and
    ``release`` from the client, ``object``, ``owner`` and ``object_removed`` from
    the server (``protocol.objects``).
@@ -106,6 +107,7 @@ TRANSITIONS: dict[State, dict[tuple[Role, str], State]] = {
         ((_S,), "peer_left"),
         ((_S,), "peer_stalled"),
         ((_S,), "peer_resumed"),
+        ((_S,), "rate"),
         (_EITHER, "event"),
         ((_C,), "object_create"),
         ((_C,), "request_ownership"),

@@ -24,6 +24,7 @@ from posecast.protocol.messages import (
     PeerStalled,
     Ping,
     Pong,
+    RateNotice,
     Renew,
     SetRate,
     UserEvent,
@@ -53,6 +54,7 @@ Message = (
     | Ping
     | Pong
     | SetRate
+    | RateNotice
     | Renew
     | UserEvent
     | ErrorMessage

@@ -27,6 +27,7 @@ from posecast.protocol.messages import (
     PeerStalled,
     Ping,
     Pong,
+    RateNotice,
     Renew,
     SetRate,
     UserEvent,
@@ -266,6 +267,7 @@ _CONTROL_CASES: list[tuple[str, str, Message, str]] = [
         _BOTH,
     ),
     ("set-rate", "change the snapshot rate", SetRate(rate=15.0), _C2S),
+    ("rate", "the rate the relay chose for an auto-rate client", RateNotice(rate=12.0), _S2C),
     ("renew", "a fresh access token", Renew(token="v1.eyJyb29tIjoibG9iYnkifQ.c2ln"), _C2S),
     (
         "event-client",

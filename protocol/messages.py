@@ -47,6 +47,7 @@ from posecast.protocol.limits import (
 )
 
 __all__ = [
+    "AUTO_RATE",
     "CODECS",
     "DEVICE_NAMES",
     "EVENT_KINDS",
@@ -63,6 +64,7 @@ __all__ = [
     "PeerStalled",
     "Ping",
     "Pong",
+    "RateNotice",
     "Renew",
     "SetRate",
     "UserEvent",
@@ -81,6 +83,9 @@ _STREAM_NAME = re.compile(r"[a-z][a-z0-9_]*|object:[A-Za-z0-9_.\-]+")
 
 EVENT_KINDS = frozenset({"grab", "release", "button", "scene_step"})
 """Values of ``UserEvent.kind``."""
+
+AUTO_RATE = "auto"
+"""``Join.rate`` of a client that lets the server choose its rate (``RateNotice``)."""
 
 CODECS = ("raw", "compact")
 """Values of ``Join.codec``: how the client's updates are coded (``protocol.poses``
@@ -258,8 +263,11 @@ class Join(ControlMessage):
     room: str
     streams: tuple[str, ...]
     """Stream names: devices ``head``, ``left``, ``right``; objects ``object:NAME``."""
-    rate: float
-    """Requested update rate in Hz, for the snapshots this user receives."""
+    rate: float | str
+    """Requested update rate in Hz, for the snapshots this user receives; or
+    ``AUTO_RATE`` ("auto"): the server chooses it, within [``min_rate``,
+    ``max_rate``], from what the client's link delivers, and tells it each
+    choice with a ``rate`` message (``RateNotice``)."""
     token: str | None = None
     label: str | None = None
     """Name of the motion being played (ground truth for evaluation), if any."""
@@ -283,6 +291,14 @@ class Join(ControlMessage):
     """Watch only: the server refuses this client's updates (``stream-not-owned``),
     announces it to nobody (no ``peer_joined`` / ``peer_left`` about it) and sends
     it snapshots and events like any member. Its ``streams`` are nominal."""
+    max_rate: float | None = _omitted(None)
+    """With ``rate="auto"``: the highest rate the server may choose, Hz (None: the
+    server's ``max_rate``). Not sent while None; only allowed with an auto rate."""
+
+    @property
+    def auto_rate(self) -> bool:
+        """Whether the server chooses this client's rate (``rate="auto"``)."""
+        return self.rate == AUTO_RATE
 
     def __post_init__(self) -> None:
         check_text("join.room", self.room)  # empty: the server says bad-room
@@ -297,7 +313,11 @@ class Join(ControlMessage):
         for name in self.streams:
             check_text("join.streams", name, empty=False)
         _set(self, "streams", tuple(self.streams))
-        _set(self, "rate", check_float("join.rate", self.rate))
+        if self.rate != AUTO_RATE:
+            _set(self, "rate", check_float("join.rate", self.rate))
+        _set(self, "max_rate", check_optional_float("join.max_rate", self.max_rate))
+        if self.max_rate is not None and self.rate != AUTO_RATE:
+            raise bad("join.max_rate", 'is only allowed with rate "auto"')
         check_optional_text("join.token", self.token)
         check_optional_text("join.label", self.label)
 
@@ -355,6 +375,19 @@ class PeerLeft(ControlMessage):
     def __post_init__(self) -> None:
         check_int("peer_left.user", self.user, 0, U16_MAX)
         check_text("peer_left.reason", self.reason)
+
+
+@_register
+@dataclass(frozen=True, slots=True)
+class RateNotice(ControlMessage):
+    """Server -> client that joined with ``rate="auto"``: the snapshot rate the server
+    chose for it now (Hz). Sent when the choice changes; its playout delay follows."""
+
+    TYPE: ClassVar[str] = "rate"
+    rate: float
+
+    def __post_init__(self) -> None:
+        _set(self, "rate", check_float("rate.rate", self.rate))
 
 
 @_register

@@ -10,8 +10,8 @@ The state table is in ``protocol._state``. On top of it, sessions check what
 depends on limits and on what was agreed earlier:
 
 - hello/welcome: same ``PROTOCOL_VERSION``;
-- join: at most ``max_streams`` valid, distinct names, rate in
-  [min_rate, max_rate] (the client checks against the limits its welcome
+- join: at most ``max_streams`` valid, distinct names, rate (or an auto
+  rate's ``max_rate``) in [min_rate, max_rate] (the client checks against the limits its welcome
   announced, the server against its own ``Limits``);
 - joined: the stream ids the server assigns become the user's own; the names
   must be those of the join;
@@ -78,6 +78,7 @@ from posecast.protocol.messages import (
     Joined,
     PeerJoined,
     PeerLeft,
+    RateNotice,
     SetRate,
     UserEvent,
     Welcome,
@@ -377,6 +378,14 @@ class _Session:
                 ErrorCode.BAD_RATE, f"rate {rate:g} hz outside [{lo:g}, {hi:g}]"
             )
 
+    @classmethod
+    def _check_join_rate(cls, join: Join, lo: float, hi: float) -> None:
+        """A join's rate in range; an auto rate's ``max_rate``, if given, too."""
+        if not join.auto_rate:
+            cls._check_rate(float(join.rate), lo, hi)
+        elif join.max_rate is not None:
+            cls._check_rate(join.max_rate, lo, hi)
+
     def _accept_joined(self, joined: Joined) -> None:
         join = self._pending_join
         if join is None or joined.room != join.room or set(joined.streams) != set(join.streams):
@@ -478,7 +487,7 @@ class ServerSession(_Session):
                 raise ProtocolViolation(ErrorCode.BAD_POSE, f"object_create: {problem}")
         elif isinstance(message, Join):
             self._check_names(message.streams, self.limits.max_streams)
-            self._check_rate(message.rate, self.limits.min_rate, self.limits.max_rate)
+            self._check_join_rate(message, self.limits.min_rate, self.limits.max_rate)
             self._pending_join = message
         elif isinstance(message, SetRate):
             self._check_rate(message.rate, self.limits.min_rate, self.limits.max_rate)
@@ -507,6 +516,8 @@ class ServerSession(_Session):
             self._agree_join()
             if self.codec == "compact":
                 self._upstream = UpstreamDecoder(self.volume)
+        elif isinstance(message, RateNotice):
+            self.rate = message.rate
 
 
 class ClientSession(_Session):
@@ -562,6 +573,8 @@ class ClientSession(_Session):
             if self.codec == "compact":
                 self._upstream = UpstreamEncoder(self.volume)
                 self._snapshots = SnapshotDecoder(self.volume)
+        elif isinstance(message, RateNotice):
+            self.rate = message.rate
         elif isinstance(message, PeerJoined):
             self.peers[message.user] = dict(message.streams)
         elif isinstance(message, ObjectInfo):
@@ -595,7 +608,7 @@ class ClientSession(_Session):
             welcome = self.welcome
             assert welcome is not None  # the state table only allows join after welcome
             self._check_names(message.streams, min(welcome.max_streams, self.limits.max_streams))
-            self._check_rate(message.rate, welcome.min_rate, welcome.max_rate)
+            self._check_join_rate(message, welcome.min_rate, welcome.max_rate)
         elif isinstance(message, SetRate):
             welcome = self.welcome
             assert welcome is not None

@@ -91,15 +91,16 @@ class BaselineServer:
         welcome = Welcome(user=user, server_time=time.monotonic(), min_rate=lo, max_rate=hi)
         await ws.send(encode_message(welcome))
         join = decode_message(await asyncio.wait_for(ws.recv(), 10.0))
-        if not isinstance(join, Join) or join.codec != "raw":
-            why = "the baseline takes raw updates only" if isinstance(join, Join) else "join next"
+        if not isinstance(join, Join) or join.codec != "raw" or join.auto_rate:
+            why = "the baseline takes raw updates at a fixed rate only"
+            why = why if isinstance(join, Join) else "join next"
             await ws.send(encode_message(ErrorMessage(code="bad-message", message=why)))
             await ws.close(1008, why)
             return
-        room = self._room(join.room, join.rate)
+        room = self._room(join.room, float(join.rate))
         ids = {name: room.next_stream + k for k, name in enumerate(join.streams)}
         room.next_stream += len(ids)
-        await ws.send(encode_message(Joined(room=room.name, streams=ids, rate=join.rate)))
+        await ws.send(encode_message(Joined(room=room.name, streams=ids, rate=float(join.rate))))
         room.members[ws] = user
         if len(room.members) == 1:
             self._schedule(room, room.grid_after(time.monotonic()))

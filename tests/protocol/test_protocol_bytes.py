@@ -25,6 +25,7 @@ from posecast.protocol import (
     Ping,
     Pong,
     PoseUpdate,
+    RateNotice,
     Release,
     RemoteProtocolError,
     Renew,
@@ -103,6 +104,15 @@ PINNED: list[tuple[Message, bytes]] = [
     (
         Renew(token="t"),
         b"\x82\xa4type\xa5renew\xa5token\xa1t",
+    ),
+    (
+        RateNotice(rate=12.0),
+        b"\x82\xa4type\xa4rate\xa4rate" + f64(12.0),
+    ),
+    (
+        Join(room="r", streams=("head",), rate="auto", max_rate=20.0),
+        b"\x87\xa4type\xa4join\xa4room\xa1r\xa7streams\x91\xa4head\xa4rate\xa4auto"
+        b"\xa5token\xc0\xa5label\xc0\xa8max_rate" + f64(20.0),
     ),
     (
         PeerStalled(user=3),

@@ -100,6 +100,7 @@ export const SCHEMAS: Readonly<Record<string, readonly FieldSpec[]>> = {
   ping: [f("seq", "int"), f("time", "float")],
   pong: [f("seq", "int"), f("ping_time", "float"), f("recv_time", "float"), f("send_time", "float")],
   set_rate: [f("rate", "float")],
+  rate: [f("rate", "float")],
   renew: [f("token", "str")],
   event: [
     f("kind", "str"),
@@ -169,6 +170,8 @@ export interface PeerResumed { type: "peer_resumed"; user: number }
 export interface Ping { type: "ping"; seq: number; time: number }
 export interface Pong { type: "pong"; seq: number; ping_time: number; recv_time: number; send_time: number }
 export interface SetRate { type: "set_rate"; rate: number }
+/** The rate the relay chose for a client that joined with rate "auto" (this SDK asks numbers). */
+export interface RateNotice { type: "rate"; rate: number }
 export interface Renew { type: "renew"; token: string }
 export interface UserEvent {
   type: "event"; kind: "grab" | "release" | "button" | "scene_step" | string; stream?: number | null;
@@ -193,7 +196,7 @@ export interface ObjectRemoved { type: "object_removed"; stream: number; reason:
 
 export type ControlMessage =
   | Hello | Welcome | Join | Joined | PeerJoined | PeerLeft | PeerStalled | PeerResumed | Ping
-  | Pong | SetRate | Renew | UserEvent | ErrorMessage | Bye | ObjectCreate | RequestOwnership
+  | Pong | SetRate | RateNotice | Renew | UserEvent | ErrorMessage | Bye | ObjectCreate | RequestOwnership
   | Release | ObjectInfo | Owner | ObjectRemoved;
 
 /** One pose of a pose frame: who, which stream, when (server clock) and where. */
