@@ -85,6 +85,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from functools import partial
 from typing import Protocol
 
 from posecast.protocol import (
@@ -112,7 +113,7 @@ from posecast.protocol import (
     encode_message,
 )
 from posecast.protocol.events import Event, Message
-from posecast.server import capacity, objects, resume, tokens
+from posecast.server import capacity, objects, rates, resume, tokens
 from posecast.server.actions import (
     Action,
     Close,
@@ -186,6 +187,7 @@ class RelayCore:
         #: The rooms and their ticks (``server.rooms``); ``rooms`` is its dict of them.
         self.table = RoomTable(self.config, self.volume, self.emit, objects.fly)
         self.rooms: dict[str, Room] = self.table.rooms
+        self.table.adapt = partial(rates.adapt, self)  # auto rates decide after each tick
         cfg = self.config
         self.admission = Admission(cfg.max_connections, cfg.max_connections_per_address)
         self._join_deadlines = Deadlines(self._unjoined)
@@ -661,13 +663,13 @@ class RelayCore:
             return
         room = self.room_for(name)
         streams = room.allocate_streams(join.streams)
-        shared = objects.joined_objects(room)
-        self.send(peer, Joined(room=join.room, streams=streams, rate=join.rate, objects=shared))
+        shared, rate = objects.joined_objects(room), rates.granted(self.config.max_rate, join)
+        self.send(peer, Joined(room=join.room, streams=streams, rate=rate, objects=shared))
         member = Member(
             peer.user,
             peer.name,
             streams,
-            join.rate,
+            rate,
             peer.outbox,
             label=join.label,
             velocities=join.wants_velocities,
@@ -675,9 +677,7 @@ class RelayCore:
             compact=join.codec == "compact",
             echo=join.echo,
         )
-        member.asked_rate = join.rate
-        if self.config.link is not None:
-            peer.downlink = Downlink(self.config.link, peer.user, self.config.link_max_in_flight)
+        rates.attach(self.config, peer, member, join)  # its link emulation, its auto rate
         if join.spectator:
             self._spectators.add(peer.user)
         self._introduce(peer, member, room)
@@ -694,7 +694,7 @@ class RelayCore:
                     "name": peer.name,
                     "label": join.label,
                     "streams": streams,
-                    "rate": join.rate,
+                    "rate": rate,
                 },
                 now,
             )
@@ -713,8 +713,8 @@ class RelayCore:
         room, user = peer.room, peer.user
         if room is None or user is None:
             return
-        if peer.member is not None:
-            peer.member.asked_rate = event.rate
+        if peer.member is not None:  # a rate asked is no auto rate any more
+            peer.member.asked_rate, peer.member.link_rate = event.rate, None
         rate = event.rate if peer.downlink is None else peer.downlink.rate_for(event.rate)
         room.set_rate(user, max(self.config.min_rate, rate), now)
         self.rescheduled(room)
@@ -777,7 +777,7 @@ class RelayCore:
         """Put a snapshot on the emulated link; adopt the rate its cap allows."""
         downlink.send(now, data)
         room, member = peer.room, peer.member
-        if room is not None and member is not None:
+        if room is not None and member is not None and member.link_rate is None:
             rate = max(self.config.min_rate, downlink.rate_for(member.asked_rate))
             if abs(rate - member.rate) > 0.25:
                 room.set_rate(member.user, rate, now)

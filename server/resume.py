@@ -41,7 +41,7 @@ from posecast.protocol import (
     UserEvent,
     decode_message,
 )
-from posecast.server import objects
+from posecast.server import objects, rates
 from posecast.server.limits import Deadlines
 from posecast.server.room import Member, Room
 
@@ -226,12 +226,13 @@ def resume_join(core: RelayCore, peer: Peer, join: Join, name: str, now: float) 
     member.outbox, member.parked = peer.outbox, False
     member.compact, member.echo = join.codec == "compact", join.echo
     member.velocities, member.sends_velocities = join.wants_velocities, join.sends_velocities
-    member.asked_rate = join.rate
+    member.rate = rate = rates.granted(core.config.max_rate, join)
+    rates.attach(core.config, peer, member, join)  # its link emulation, its auto rate
     member.last_version = member.delivered_version = 0
-    room.set_rate(member.user, join.rate, now)  # a key snapshot on its next tick
+    room.set_rate(member.user, rate, now)  # a key snapshot on its next tick
     peer.room, peer.member = room, member
     shared = objects.joined_objects(room)
-    core.send(peer, Joined(room=join.room, streams=member.streams, rate=join.rate, objects=shared))
+    core.send(peer, Joined(room=join.room, streams=member.streams, rate=rate, objects=shared))
     for other in list(room.members.values()):
         if other.user == member.user or core.is_spectator(other.user):
             continue

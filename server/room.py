@@ -36,7 +36,7 @@ from bisect import bisect_left
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
@@ -54,6 +54,9 @@ from posecast.protocol.codec_relay import GroupSnapshot, RelayEntry, encode_grou
 from posecast.server.actions import Action, PollRecording, Record, RecordPose
 from posecast.server.config import DEFAULT_EVENT_QUEUE
 from posecast.server.shared import RoomObject
+
+if TYPE_CHECKING:
+    from posecast.server.rates import LinkRate
 
 __all__ = [
     "DEFAULT_EVENT_QUEUE",
@@ -240,6 +243,8 @@ class Member:
     last_update: float | None = None
     silent: bool = False
     watched: bool = False
+    #: Its rate controller, if it joined with ``rate="auto"`` (``server.rates``).
+    link_rate: LinkRate | None = None
 
 
 @dataclass(frozen=True, slots=True)

@@ -54,6 +54,8 @@ class RoomTable:
         self.recording_paused = False
         #: Every room's member ticks by lag (``posecast_tick_lag_seconds``).
         self.tick_lags = LagHistogram()
+        #: Run after each room's tick: auto rates decide (``server.rates.adapt``).
+        self.adapt: Callable[[Room, float], None] | None = None
 
     def refusal(self, name: str) -> str | None:
         """Why a join of room ``name`` is refused (``room-full``) now; None: it is not."""
@@ -121,6 +123,8 @@ class RoomTable:
             try:
                 room.tick(now)
                 room.flush_drops(now)
+                if self.adapt is not None:
+                    self.adapt(room, now)
             except Exception:
                 log.exception("room %r failed", room.name)
                 if self.rooms.get(room.name) is room:

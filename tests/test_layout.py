@@ -143,6 +143,7 @@ def test_server_holds_only_the_relay() -> None:
         "peer.py",
         "limits.py",
         "link.py",
+        "rates.py",
         "room.py",
         "rooms.py",
         "shared.py",

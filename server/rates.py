@@ -1,0 +1,250 @@
+"""Link-aware snapshot rates (``join.rate = "auto"``): each subscriber's rate from its link.
+
+A subscriber that joins with ``rate="auto"`` (and optionally ``max_rate``) lets the
+relay choose its snapshot rate within ``[min_rate, max_rate]``. A :class:`LinkRate`
+per such subscriber watches what its link takes and chooses the rate that fits,
+sans I/O: at each decision the relay hands it the subscriber's cumulative egress
+counters (:class:`Egress`) and the time, and it answers with a new rate or None.
+
+What it watches (all of it the relay's own view of its egress, no client report):
+
+- **skips**: member ticks whose snapshot did not go, because the previous one still
+  waited unsent (latest wins), the socket's write buffer was over its congestion
+  bound, or an emulated link's cap (``serve --link``) refused it;
+- **drained bytes**: what left the relay (written to the socket less what still
+  waits in its buffer; on an emulated link, what got through its cap);
+- **backlog**: the bytes waiting in the socket's write buffer now.
+
+The rule, evaluated once per ``window`` (0.5 s):
+
+- *congested* (a skip in the window, or a backlog of more than ``backlog_frames``
+  snapshots): **down fast**, at once, to the rate the measured drain carries with
+  ``headroom`` to spare (``headroom x drained bytes/s / bytes per snapshot``), and
+  at least ``down_factor`` below the rate that failed; that rate is remembered as
+  the link's *ceiling*;
+- *clear* for ``up_after`` (2 s) since the last congestion and ``up_every`` (1 s)
+  since the last change: **up slowly**, by ``up_step`` of the rate (at least 1 Hz),
+  but not to the ceiling until the ceiling is ``ceiling_hold`` (10 s) old: the
+  probe of a known limit is rare, so the rate does not oscillate around it; a step
+  up that fails at once (within ``2 up_every``) goes back to the rate before it.
+
+Rates are whole Hz: subscribers at one rate tick in step and share one encoded
+snapshot per tick (``server.room``), and each change costs a compact subscriber a
+key snapshot. Off by default: a subscriber that asks a number gets that number,
+as before. :func:`adapt` is the glue the relay runs after each room tick.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Protocol
+
+from posecast.protocol import Join, RateNotice
+from posecast.server.link import Downlink
+
+if TYPE_CHECKING:
+    from posecast.server.config import ServerConfig
+    from posecast.server.peer import Peer
+    from posecast.server.room import Member, Room
+
+__all__ = ["RATE_BUCKETS", "Egress", "LinkRate", "RateHistogram", "adapt", "attach", "granted"]
+
+#: Upper bounds (Hz) of the chosen-rate histogram's buckets (``posecast_auto_rate_hz``).
+RATE_BUCKETS = (5.0, 7.5, 10.0, 12.5, 15.0, 20.0, 25.0, 30.0, 45.0, 60.0)
+
+
+@dataclass(frozen=True, slots=True)
+class Egress:
+    """One subscriber's egress counters (cumulative, except ``backlog``)."""
+
+    #: Member ticks that came due with something to send (offered or skipped).
+    ticks: int
+    #: Of those, the snapshots that did not go (see the module docstring).
+    skips: int
+    #: Bytes that left the relay towards it.
+    drained: int
+    #: Bytes waiting in its socket's write buffer now.
+    backlog: int = 0
+
+
+@dataclass
+class LinkRate:
+    """One subscriber's rate controller (see the module docstring); time is passed in."""
+
+    lo: float
+    hi: float
+    #: The rate it starts at (None: ``hi``, then down fast if the link is narrower).
+    start: float | None = None
+    window: float = 0.5
+    headroom: float = 0.9
+    down_factor: float = 0.85
+    backlog_frames: float = 4.0
+    up_after: float = 2.0
+    up_every: float = 1.0
+    up_step: float = 0.1
+    ceiling_hold: float = 10.0
+    rate: float = field(init=False)
+    #: The rate that last failed and when (inf: none known).
+    ceiling: float = field(init=False, default=math.inf)
+    ceiling_at: float = field(init=False, default=-math.inf)
+    #: Bytes per delivered snapshot (EMA; None: none delivered yet).
+    frame_bytes: float | None = field(init=False, default=None)
+    changes: int = field(init=False, default=0)
+    congestions: int = field(init=False, default=0)
+    _last: tuple[float, Egress] | None = field(init=False, default=None)
+    _changed_at: float = field(init=False, default=-math.inf)
+    _down_at: float = field(init=False, default=-math.inf)
+    #: The rate before the last step up (None: the last change was no step up).
+    _probe: float | None = field(init=False, default=None)
+
+    def __post_init__(self) -> None:
+        if not 0 < self.lo <= self.hi:
+            raise ValueError(f"LinkRate needs 0 < lo <= hi, got [{self.lo:g}, {self.hi:g}]")
+        self.rate = self._whole(self.hi if self.start is None else self.start)
+
+    def _whole(self, rate: float) -> float:
+        """``rate`` in whole Hz, within [lo, hi] (lo and hi themselves are kept as given)."""
+        return min(self.hi, max(self.lo, float(math.floor(rate + 1e-9))))
+
+    def update(self, now: float, egress: Egress) -> float | None:
+        """The new rate if it changes now (None: it stays)."""
+        last = self._last
+        if last is None or egress.ticks < last[1].ticks:  # first call, or counters reset
+            self._last = (now, egress)
+            return None
+        t0, e0 = last
+        dt = now - t0
+        if dt < self.window:
+            return None
+        self._last = (now, egress)
+        ticks, skips = egress.ticks - e0.ticks, egress.skips - e0.skips
+        drained = max(0, egress.drained - e0.drained)
+        delivered = ticks - skips
+        if delivered > 0 and drained > 0:
+            sample = drained / delivered
+            old = self.frame_bytes
+            self.frame_bytes = sample if old is None else 0.7 * old + 0.3 * sample
+        size = self.frame_bytes
+        backlogged = size is not None and egress.backlog > self.backlog_frames * size
+        if skips > 0 or backlogged:
+            if now - self._down_at < 2.0 * self.window:
+                return None  # what queued before the last step down is still draining
+            return self._down(now, drained / dt)
+        return self._up(now)
+
+    def _down(self, now: float, drain: float) -> float | None:
+        self.congestions += 1
+        failed = self.rate
+        self.ceiling, self.ceiling_at = failed, now
+        self._down_at = now
+        if self._probe is not None and now - self._changed_at <= 2.0 * self.up_every:
+            # A step up failed at once: back to the rate that was fine before it.
+            return self._set(now, self._probe)
+        target = failed * self.down_factor
+        if self.frame_bytes:
+            target = min(target, self.headroom * drain / self.frame_bytes)
+        return self._set(now, self._whole(target))
+
+    def _up(self, now: float) -> float | None:
+        if now - self.ceiling_at < self.up_after or now - self._changed_at < self.up_every:
+            return None
+        if self.rate >= self.hi:
+            return None
+        if now - self.ceiling_at >= self.ceiling_hold:
+            self.ceiling = math.inf  # an old limit: the link may have widened
+        step = max(1.0, math.floor(self.rate * self.up_step))
+        target = self._whole(self.rate + step)
+        if target >= self.ceiling:
+            target = self._whole(self.ceiling - 1.0)
+        if target <= self.rate:
+            return None
+        was = self.rate
+        self._set(now, target)
+        self._probe = was
+        return target
+
+    def _set(self, now: float, rate: float) -> float | None:
+        self._probe = None
+        if rate == self.rate:
+            return None
+        self.rate, self._changed_at = rate, now
+        self.changes += 1
+        return rate
+
+
+@dataclass
+class RateHistogram:
+    """Auto-rate subscribers by their chosen rate now (``RATE_BUCKETS``, then +Inf;
+    not cumulative), their sum (Hz), and the rate changes so far."""
+
+    counts: list[int] = field(default_factory=lambda: [0] * (len(RATE_BUCKETS) + 1))
+    total: float = 0.0
+    changes: int = 0
+
+    @classmethod
+    def of(cls, controllers: Iterable[LinkRate], changes: int = 0) -> RateHistogram:
+        hist = cls(changes=changes)
+        for ctl in controllers:
+            i = next((i for i, b in enumerate(RATE_BUCKETS) if ctl.rate <= b), len(RATE_BUCKETS))
+            hist.counts[i] += 1
+            hist.total += ctl.rate
+            hist.changes += ctl.changes
+        return hist
+
+
+def granted(max_rate: float, join: Join) -> float:
+    """The rate a join is granted at first: its own, or an auto rate's start (its
+    ``max_rate``, else the server's ``max_rate``: it comes down fast if need be)."""
+    if not join.auto_rate:
+        return float(join.rate)
+    return join.max_rate if join.max_rate is not None else max_rate
+
+
+def attach(config: ServerConfig, peer: Peer, member: Member, join: Join) -> None:
+    """Give a joining member its rate controls: the emulated link (``serve --link``)
+    and, for ``rate="auto"``, a :class:`LinkRate` from the server's min to its ceiling."""
+    member.asked_rate = member.rate
+    if config.link is not None:
+        assert peer.user is not None
+        peer.downlink = Downlink(config.link, peer.user, config.link_max_in_flight)
+    member.link_rate = (
+        LinkRate(config.min_rate, member.rate, start=member.rate) if join.auto_rate else None
+    )
+
+
+def egress(peer: Peer, member: Member) -> Egress:
+    """``member``'s egress counters as its connection ``peer`` has them."""
+    outbox, downlink = peer.outbox, peer.downlink
+    ticks = outbox.snapshots_offered + member.congestion_skips
+    skips = outbox.skips + member.congestion_skips
+    if downlink is not None:  # the emulated link is the bottleneck: what passed its cap
+        link = downlink.link
+        return Egress(ticks, skips + link.cap_skips, link.bytes)
+    backlog = outbox.buffered()
+    return Egress(ticks, skips, peer.bytes_out - backlog, backlog)
+
+
+class RelayView(Protocol):
+    """What :func:`adapt` needs of the relay core (``server.core.RelayCore``)."""
+
+    def connected(self, user: int) -> Peer | None: ...
+
+    def send(self, peer: Peer, message: RateNotice) -> None: ...
+
+
+def adapt(core: RelayView, room: Room, now: float) -> None:
+    """After ``room``'s tick: let each auto-rate member's controller decide, move the
+    member to its new rate (the caller schedules the room after) and tell the client."""
+    for member in room.members.values():
+        ctl = member.link_rate
+        if ctl is None or member.parked:
+            continue
+        peer = core.connected(member.user)
+        if peer is None:
+            continue
+        rate = ctl.update(now, egress(peer, member))
+        if rate is not None and rate != member.rate:
+            room.set_rate(member.user, rate, now)
+            core.send(peer, RateNotice(rate=rate))

@@ -1,0 +1,164 @@
+"""server.rates: the auto rate controller against simulated links, time injected."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import pytest
+
+from posecast.protocol import Join
+from posecast.server.rates import Egress, LinkRate, RateHistogram, granted
+
+
+class CappedLink:
+    """A subscriber's egress through a byte-rate cap (a deficit token bucket, as
+    ``server.link.EgressLink``): latest-wins, a frame that finds the bucket in deficit
+    is skipped. Cumulative counters as the relay keeps them."""
+
+    def __init__(self, bytes_per_s: float, frame: int = 1000) -> None:
+        self.cap, self.frame = bytes_per_s, frame
+        self.tokens, self.t = 0.05 * bytes_per_s, 0.0
+        self.ticks = self.skips = self.drained = 0
+
+    def offer(self, now: float) -> None:
+        self.tokens = min(0.05 * self.cap, self.tokens + (now - self.t) * self.cap)
+        self.t = now
+        self.ticks += 1
+        if self.tokens < 0:
+            self.skips += 1
+            return
+        self.tokens -= self.frame
+        self.drained += self.frame
+
+    def egress(self) -> Egress:
+        return Egress(self.ticks, self.skips, self.drained)
+
+
+def run(ctl: LinkRate, link: CappedLink, start: float, until: float) -> list[tuple[float, float]]:
+    """Tick the subscriber on its own grid until ``until``, the controller deciding after
+    every tick as the relay does; returns (time, rate) of each change."""
+    changes: list[tuple[float, float]] = []
+    t = start
+    while t < until:
+        link.offer(t)
+        new = ctl.update(t, link.egress())
+        if new is not None:
+            changes.append((t, new))
+        t += 1.0 / ctl.rate
+    return changes
+
+
+def test_a_wide_link_keeps_the_ceiling_without_a_change() -> None:
+    """A link that carries max_rate: the controller starts there and never moves."""
+    ctl = LinkRate(5.0, 30.0)
+    link = CappedLink(100_000)  # 100 kB/s for 30 kB/s of snapshots
+    assert run(ctl, link, 0.0, 60.0) == []
+    assert ctl.rate == 30.0 and link.skips == 0
+
+
+def test_a_narrow_link_brings_the_rate_down_within_a_window() -> None:
+    """At 30 Hz through 15 kB/s of 1 kB frames, the first window with skips brings the
+    rate down at once to what the drain carries with headroom (<= 0.9 x 15 Hz)."""
+    ctl = LinkRate(5.0, 30.0)
+    link = CappedLink(15_000)
+    changes = run(ctl, link, 0.0, 2.0)
+    assert changes, "no step down"
+    t, rate = changes[0]
+    assert t <= 2 * ctl.window + 1e-9
+    assert 5.0 <= rate <= 0.9 * 15 + 1e-9
+
+
+def test_on_a_steady_link_it_settles_at_the_cap_and_probes_rarely() -> None:
+    """Over two minutes on a 15 kB/s link (15 Hz of 1 kB frames), after settling, it
+    delivers over 90 % of what the link carries, skips under 2 % of its ticks, and
+    probes above the rate that fits about once per ceiling_hold (back at once)."""
+    ctl = LinkRate(5.0, 30.0)
+    link = CappedLink(15_000)
+    changes = run(ctl, link, 0.0, 20.0)
+    ticks0, skips0 = link.ticks, link.skips
+    later = run(ctl, link, 20.0, 140.0)
+    delivered = (link.ticks - link.skips) - (ticks0 - skips0)
+    assert delivered / 120.0 > 0.9 * 15.0
+    assert (link.skips - skips0) / (link.ticks - ticks0) < 0.02
+    probes = [r for _, r in later if r > 15.0]
+    assert 1 <= len(probes) <= 120.0 / ctl.ceiling_hold + 1
+    assert changes[0][1] < 15.0 and 14.0 <= ctl.rate <= 16.0
+
+
+def test_up_slowly_when_the_link_widens() -> None:
+    """The link widens from 8 to 40 kB/s: the rate climbs back to 30 Hz, never by more
+    than ~10 % (>= 1 Hz) a step and at least up_every apart."""
+    ctl = LinkRate(5.0, 30.0)
+    link = CappedLink(8_000)
+    run(ctl, link, 0.0, 15.0)
+    assert ctl.rate <= 8.0
+    link.cap = 40_000
+    ups = run(ctl, link, 15.0, 60.0)
+    assert ctl.rate == 30.0
+    rates = [r for _, r in ups]
+    assert rates == sorted(rates)
+    prev = None
+    for (t0, r0), (t1, r1) in itertools.pairwise(ups):
+        assert r1 - r0 <= max(1.0, math.floor(0.1 * r0)) + 1e-9
+        assert t1 - t0 >= ctl.up_every - 1e-9
+        prev = r1
+    assert prev == 30.0
+
+
+def test_down_fast_when_the_link_narrows() -> None:
+    """From 30 Hz at 40 kB/s to a 6 kB/s link: under 1.5 s later the rate fits (<= 6 Hz)."""
+    ctl = LinkRate(5.0, 30.0)
+    link = CappedLink(40_000)
+    run(ctl, link, 0.0, 10.0)
+    link.cap = 6_000
+    changes = run(ctl, link, 10.0, 11.5)
+    assert changes and ctl.rate <= 6.0
+
+
+def test_a_backlog_is_congestion_without_skips() -> None:
+    """A socket whose write buffer holds more than backlog_frames snapshots is congested
+    even before a snapshot is skipped: the drain decides the new rate."""
+    ctl = LinkRate(5.0, 30.0)
+    assert ctl.update(0.0, Egress(0, 0, 0)) is None
+    assert ctl.update(0.5, Egress(15, 0, 15_000, backlog=0)) is None  # 1 kB frames
+    new = ctl.update(1.0, Egress(30, 0, 20_000, backlog=10_000))  # 10 kB/s drained
+    assert new is not None and new <= 0.9 * 10_000 / ctl.frame_bytes  # type: ignore[operator]
+
+
+def test_rates_stay_whole_and_within_the_range() -> None:
+    """Every rate chosen is whole Hz in [lo, hi], even on a link that carries nothing."""
+    ctl = LinkRate(5.0, 24.0)
+    link = CappedLink(500)
+    for _, rate in run(ctl, link, 0.0, 30.0):
+        assert 5.0 <= rate <= 24.0 and rate == math.floor(rate)
+    assert ctl.rate == 5.0
+
+
+def test_counters_that_restart_are_a_new_baseline() -> None:
+    """Counters that went down (a resumed connection's) start a new window, no decision."""
+    ctl = LinkRate(5.0, 30.0)
+    ctl.update(0.0, Egress(100, 0, 100_000))
+    assert ctl.update(1.0, Egress(3, 3, 0)) is None
+    assert ctl.rate == 30.0
+
+
+def test_bad_range_is_refused() -> None:
+    """lo must be positive and not above hi."""
+    with pytest.raises(ValueError, match="0 < lo <= hi"):
+        LinkRate(10.0, 5.0)
+
+
+def test_granted_rate_of_a_join() -> None:
+    """A fixed join gets its rate; an auto join starts at its max_rate, else the server's."""
+    fixed = Join(room="r", streams=("head",), rate=12.0)
+    assert granted(30.0, fixed) == 12.0
+    assert granted(30.0, Join(room="r", streams=("head",), rate="auto")) == 30.0
+    assert granted(30.0, Join(room="r", streams=("head",), rate="auto", max_rate=20.0)) == 20.0
+
+
+def test_histogram_of_chosen_rates() -> None:
+    """Controllers land in the bucket of their rate; the sum and changes add up."""
+    a, b = LinkRate(5.0, 30.0), LinkRate(5.0, 12.0)
+    hist = RateHistogram.of([a, b], changes=3)
+    assert sum(hist.counts) == 2 and hist.total == 42.0 and hist.changes == 3
