@@ -149,6 +149,7 @@ class BotConfig:
     #: Relays to fail over to (the nodes of a cluster, or spares): see :attr:`relays`.
     urls: tuple[str, ...] = ()
     spawn: SpawnPoint | None = None  # its motion moved there (scenarios.spawn); None: not
+    auto_rate: bool = False  # join rate "auto": the relay chooses it, up to ``rate``
 
     @property
     def relays(self) -> tuple[str, ...]:
@@ -192,7 +193,7 @@ class BotReport:
     poses_sent: int = 0
     #: Render frames that started over one render period after their scheduled time.
     frames_late: int = 0
-    #: Snapshot rate asked and granted (Hz), and the rate it published at (Hz).
+    #: Snapshot rate asked and granted (Hz; an auto rate's last), and the rate it published at.
     asked_hz: float = 0.0
     granted_hz: float = 0.0
     send_hz: float = 0.0
@@ -276,7 +277,7 @@ class _Bot:
         self.send_velocities: _CausalVelocities | None = None
         # A window method waits for the keyframe after the bracket: one more interval.
         lookahead = max(interp_info(m).lookahead for m in cfg.methods)
-        self.delay = RoomPlayoutDelay(interval=(1.0 + lookahead) / cfg.rate)
+        self.delay = RoomPlayoutDelay(interval=(1.0 + lookahead) / cfg.rate, rate=cfg.rate)
         self.remote: dict[tuple[int, int], RemoteStream] = {}
         #: Each remote user's streams (their rows share the user's D).
         self.user_streams: dict[int, list[RemoteStream]] = {}
@@ -588,8 +589,7 @@ class _Bot:
         self.relay, conn = await connect_any(
             cfg.relays, clock=self.clock, agent=cfg.name, tls=self.tls, resumable=cfg.resume
         )
-        self.conn = conn
-        self.started_local = self.clock()
+        self.conn, self.started_local = conn, self.clock()
         start = self.server_now()
         try:
             await self._session(conn)
@@ -610,8 +610,7 @@ class _Bot:
         """Sync, join and run the session; returns at its end or when the connection ends."""
         cfg = self.cfg
         await self._sync(conn, cfg.initial_pings)
-        self.started_local = self.clock()
-        start = self.server_now()
+        self.started_local, start = self.clock(), self.server_now()
         source, seed = cfg.motion, cfg.seed
         role = scene_role(source.partition(":")[2])
         if role is not None:  # one script on server time: every bot's t0 on its grid
@@ -641,10 +640,12 @@ class _Bot:
 
     async def _join(self, conn: ClientConnection, label: str | None) -> Joined:
         cfg, streams = self.cfg, self.trace.streams if self.trace is not None else ()
+        conn.on_rate = self.delay.retime  # the relay chose another rate (``auto_rate``)
         return await conn.join(
             room=cfg.room,
             streams=streams,
             rate=cfg.rate,
+            auto_rate=cfg.auto_rate,
             token=cfg.token,
             label=label,
             sends_velocities=self.velocities,
@@ -740,8 +741,7 @@ class _Bot:
         return out
 
     def _report(self, start: float) -> BotReport:
-        cfg = self.cfg
-        qoe = self._score()
+        cfg, qoe = self.cfg, self._score()
         end = self.play_t[-1] + self.play_d[-1] if self.play_t else start
         span = max(1e-9, end - start)
         # Per stream: new keyframes per second over the span it was received.
@@ -774,7 +774,7 @@ class _Bot:
             poses_sent=self.poses_sent,
             frames_late=self.frames_late,
             asked_hz=cfg.rate,
-            granted_hz=self.conn.joined.rate if self.conn.joined is not None else cfg.rate,
+            granted_hz=self.conn.session.rate or cfg.rate,  # an auto rate's last choice
             send_hz=cfg.send_rate,
             ending=self.ending or SessionEnd("complete", max(0.0, end - start)),
             late_delay_ms={

@@ -28,6 +28,7 @@ from websockets.asyncio.client import ClientConnection as WsConnection
 from websockets.asyncio.client import connect
 
 from posecast.protocol import (
+    AUTO_RATE,
     ClientSession,
     ErrorMessage,
     Hello,
@@ -37,6 +38,7 @@ from posecast.protocol import (
     PeerJoined,
     PosecastError,
     ProtocolError,
+    RateNotice,
     Release,
     RequestOwnership,
     Welcome,
@@ -182,6 +184,8 @@ class ClientConnection:
         self.session = ClientSession()
         self.welcome: Welcome | None = None
         self.joined: Joined | None = None
+        #: Called with each rate the relay chose for an auto-rate join (``RateNotice``).
+        self.on_rate: Callable[[float], None] | None = None
         #: Peers announced before the handshake finished.
         self.early_peers: list[PeerJoined] = []
         self.bytes_in = 0
@@ -237,13 +241,16 @@ class ClientConnection:
         sends_velocities: bool = False,
         wants_velocities: bool = False,
         codec: str = "raw",
+        auto_rate: bool = False,
     ) -> Joined:
         """Join ``room``; :class:`JoinRefused` if the server refuses.
 
         ``sends_velocities``: this client's updates will be of the velocity
         variant; ``wants_velocities``: send it velocity snapshots; ``codec``:
         ``compact`` codes the updates sent through :meth:`send` with the
-        compact codec (``protocol.codec``), ``raw`` as float records.
+        compact codec (``protocol.codec``), ``raw`` as float records. ``auto_rate``:
+        the relay chooses the rate, up to ``rate`` (``join.rate = "auto"``), and tells
+        each change (``rate``), which :attr:`on_rate` hears.
         """
         welcome = self.welcome
         if welcome is not None and not welcome.min_rate <= rate <= welcome.max_rate:
@@ -254,12 +261,13 @@ class ClientConnection:
             Join(
                 room=room,
                 streams=streams,
-                rate=rate,
+                rate=AUTO_RATE if auto_rate else rate,
                 token=token,
                 label=label,
                 sends_velocities=sends_velocities,
                 wants_velocities=wants_velocities,
                 codec=codec,
+                max_rate=rate if auto_rate else None,
             )
         )
         joined = await self._expect(Joined)
@@ -284,6 +292,7 @@ class ClientConnection:
         wants_velocities: bool = False,
         codec: str = "raw",
         tls: Tls | None = None,
+        auto_rate: bool = False,
     ) -> ClientConnection:
         """Connect, say hello and join ``room``; :class:`JoinRefused` if refused."""
         conn = await cls.connect(url, agent=agent, clock=clock, open_timeout=open_timeout, tls=tls)
@@ -297,6 +306,7 @@ class ClientConnection:
                 sends_velocities=sends_velocities,
                 wants_velocities=wants_velocities,
                 codec=codec,
+                auto_rate=auto_rate,
             )
         except BaseException:
             await conn.ws.close()
@@ -390,9 +400,10 @@ class ClientConnection:
             raw = data.encode() if isinstance(data, str) else data
             self.frames_in += 1
             self.bytes_in += len(raw)
-            self._pending.extend(
-                Received(ev, arrival, len(raw)) for ev in self.session.receive_data(raw)
-            )
+            for ev in self.session.receive_data(raw):
+                if isinstance(ev, RateNotice) and self.on_rate is not None:
+                    self.on_rate(ev.rate)
+                self._pending.append(Received(ev, arrival, len(raw)))
         return self._pending.popleft()
 
     async def close(self, reason: str = "bye") -> None:

@@ -116,6 +116,8 @@ class RoomPlayoutDelay:
     tolerance: float = 0.1
     spread: float = 3.0
     min_samples: int = 3
+    #: The snapshot rate ``interval`` is for (Hz; None: not given, :meth:`retime` does nothing).
+    rate: float | None = None
     room: PlayoutDelay = field(init=False)
     #: Users shown late alone (or slewing back to the room's D): their own D (s).
     own: dict[int, float] = field(default_factory=dict)
@@ -133,6 +135,16 @@ class RoomPlayoutDelay:
 
     def _new(self) -> PlayoutDelay:
         return PlayoutDelay(self.interval, self.percentile, self.tau, self.window, self.margin)
+
+    def retime(self, rate: float) -> None:
+        """The snapshots now come at ``rate`` (Hz): every interval D covers scales with it."""
+        if self.rate is None or rate <= 0:
+            return
+        scale, self.rate = self.rate / rate, rate
+        self.interval *= scale
+        for d in (self.room, *self._users.values()):
+            d.interval *= scale
+        self._dirty = True
 
     def observe(self, user: int, age: float) -> None:
         """One keyframe of ``user``'s, its age on arrival (server clock)."""
