@@ -36,6 +36,7 @@ async def run_demo(
     bots: int,
     rate: float,
     duration: float,
+    auto_rate: bool = False,
     methods: tuple[str, ...],
     motion: str,
     send_rate: float = 30.0,
@@ -74,7 +75,8 @@ async def run_demo(
         )
         base = BotConfig(url=urls[0], urls=tuple(urls), room="demo", rate=rate,
                          send_rate=send_rate, methods=methods, motion=motion,
-                         duration=duration, name="bot", codec=codec)  # fmt: skip
+                         duration=duration, name="bot", codec=codec,
+                         auto_rate=auto_rate)  # fmt: skip
         seen: dict[str, dict[str, float]] = {}
         with _progress(console) as bar:
             watcher = tg.create_task(_watch(bar, duration, server, cluster, seen))
@@ -91,7 +93,8 @@ async def run_demo(
                 if viewer is not None:
                     viewer.cancel()
         report = swarm_report(reports)
-        report["server"] = {"url": ",".join(urls), "rate_hz": rate, "send_rate_hz": send_rate,
+        report["server"] = {"url": ",".join(urls), "rate_hz": rate, "auto_rate": auto_rate,
+                            "send_rate_hz": send_rate,
                             "duration_s": duration, "motion": motion, "codec": codec}  # fmt: skip
         if cluster is not None:
             report["cluster"] = _cluster_report(cluster, report["bots"], seen)

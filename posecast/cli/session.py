@@ -413,6 +413,11 @@ def _given(ctx: typer.Context, name: str) -> bool:
     return getattr(source, "name", "DEFAULT") not in ("DEFAULT", "DEFAULT_MAP")
 
 
+def _rate_text(rate: float, auto: bool) -> str:
+    """How a title names the rate the bots asked for."""
+    return f"an auto rate (up to {rate:g} Hz)" if auto else f"{rate:g} Hz"
+
+
 def _check_bot_args(
     rate: float, n: int, duration: float, interp_text: str, motion: str
 ) -> tuple[str, ...]:
@@ -448,7 +453,29 @@ UrlOption = Annotated[
 ]
 BotCountOption = Annotated[int, typer.Option(help="Number of bots.")]
 RoomOption = Annotated[str, typer.Option(help="Room to join.")]
-AskRateOption = Annotated[float, typer.Option(help="Snapshot rate each bot asks for (Hz).")]
+AskRateOption = Annotated[
+    str,
+    typer.Option(
+        help="Snapshot rate each bot asks for (Hz), or auto (auto:MAX, MAX default 30): "
+        "the relay chooses each bot's rate from what its link delivers, up to MAX.",
+    ),
+]
+
+
+def _ask_rate(text: str, command: str) -> tuple[float, bool]:
+    """``--rate``: (Hz, False) for a number, (the ceiling, True) for auto[:MAX]."""
+    head, _, tail = text.strip().partition(":")
+    auto = head.lower() == "auto"
+    try:
+        rate = float((tail or "30") if auto else text)
+    except ValueError:
+        raise _fail(
+            f"posecast {command}: invalid value for '--rate': {text!r} is not a number (Hz) "
+            f"nor auto (auto:MAX); see posecast {command} --help"
+        ) from None
+    return rate, auto
+
+
 SendRateOption = Annotated[float, typer.Option(help="Rate each bot publishes at (Hz).")]
 InterpOption = Annotated[str, typer.Option("--interp", help="Interpolators rendered side by side.")]
 MotionOption = Annotated[str, typer.Option(help=_MOTION_HELP)]
@@ -508,7 +535,7 @@ def bots(
     url: UrlOption,
     n: BotCountOption = 8,
     room: RoomOption = "lobby",
-    rate: AskRateOption = 10.0,
+    rate: AskRateOption = "10",
     send_rate: SendRateOption = 30.0,
     interp_: InterpOption = DEFAULT_METHODS,
     motion: MotionOption = "traces:sample",
@@ -534,7 +561,8 @@ def bots(
         urls = relay_urls(url)
     except ValueError as exc:
         raise _fail(f"--url: {exc}") from None
-    methods = _check_bot_args(rate, n, duration, interp_, motion)
+    rate_hz, auto = _ask_rate(rate, "bots")
+    methods = _check_bot_args(rate_hz, n, duration, interp_, motion)
     _check_spawn(spawn, n)
     key = _bot_secret(ctx, token_, secret, secret_file)
     if token_ is not None and n > 1:
@@ -546,7 +574,8 @@ def bots(
         url=urls[0],
         urls=urls if len(urls) > 1 else (),
         room=room,
-        rate=rate,
+        rate=rate_hz,
+        auto_rate=auto,
         send_rate=send_rate,
         methods=methods,
         motion=motion,
@@ -558,7 +587,7 @@ def bots(
         insecure=insecure,
     )
     report = _run_swarm(base, n, _token_minter(key, room, duration), spawn)
-    print_swarm(report, f"{n} bots at {rate:g} Hz for {duration:g} s ({motion})")
+    print_swarm(report, f"{n} bots at {_rate_text(rate_hz, auto)} for {duration:g} s ({motion})")
     _print_ending(report)
     _write_json(report, json_out)
     if report["interrupted"]:
@@ -664,10 +693,24 @@ RecordFolderOption = Annotated[Path, typer.Option(help="Folder for the session r
 NoRecordOption = Annotated[bool, typer.Option("--no-record", help="Do not record.")]
 
 
+def _demo_rate(text: str) -> tuple[float, bool]:
+    """The demo's ``--rate`` (see :func:`_ask_rate`), within its own server's range."""
+    from posecast.server.app import ServerConfig
+
+    rate, auto = _ask_rate(text, "demo")
+    server_cfg = ServerConfig()  # what run_demo's own server allows
+    if not server_cfg.min_rate <= rate <= server_cfg.max_rate:
+        raise _fail(
+            f"--rate {rate:g} Hz is outside the demo server's range of "
+            f"{server_cfg.min_rate:g}-{server_cfg.max_rate:g} Hz"
+        )
+    return rate, auto
+
+
 def demo(
     ctx: typer.Context,
     bots: BotCountOption = 6,
-    rate: AskRateOption = 15.0,
+    rate: AskRateOption = "15",
     duration: DurationOption = 20.0,
     motion: MotionOption = "traces:sample",
     interp_: InterpOption = DEFAULT_METHODS,
@@ -695,7 +738,6 @@ def demo(
 ) -> None:
     """The main job: a server and N bots on loopback, then QoE per interpolator."""
     from posecast.demo import run_demo
-    from posecast.server.app import ServerConfig
 
     if scene is not None:
         if _given(ctx, "motion"):
@@ -703,23 +745,19 @@ def demo(
         motion = scene.value
         if not _given(ctx, "bots"):
             bots = 3
-    methods = _check_bot_args(rate, bots, duration, interp_, motion)
+    rate_hz, auto = _demo_rate(rate)
+    methods = _check_bot_args(rate_hz, bots, duration, interp_, motion)
     _check_spawn(spawn, bots)
     if view and not 0 <= view_port <= 65535:
         raise _fail(f"--view-port {view_port} is not a TCP port (0-65535)")
-    server_cfg = ServerConfig()  # what run_demo's own server allows
-    if not server_cfg.min_rate <= rate <= server_cfg.max_rate:
-        raise _fail(
-            f"--rate {rate:g} Hz is outside the demo server's range of "
-            f"{server_cfg.min_rate:g}-{server_cfg.max_rate:g} Hz"
-        )
 
     if not console.is_terminal:  # piped: the progress comes as plain lines
         plain(f"posecast demo: {bots} bots for {duration:g} s on loopback (Ctrl-C ends early)")
     report = _run_interruptible(
         run_demo,
         bots=bots,
-        rate=rate,
+        rate=rate_hz,
+        auto_rate=auto,
         duration=duration,
         methods=methods,
         motion=motion,
@@ -731,13 +769,14 @@ def demo(
         kill=kill_drill(kill, nodes, duration),
         spawn=spawn,
     )
-    print_swarm(report, f"posecast demo: {bots} bots at {rate:g} Hz for {duration:g} s ({motion})")
+    title = f"{bots} bots at {_rate_text(rate_hz, auto)} for {duration:g} s ({motion})"
+    print_swarm(report, f"posecast demo: {title}")
     _print_ending(report)
     if report.get("recording"):
         plain(f"recorded to {report['recording']} (see `posecast info`)")
     _write_json(report, json_out)
     starved, lone = report["starvation"]["starved"], len(report["bots"]) == 1
-    plain(verdict(report["methods"], rate, motion, starved, lone=lone))
+    plain(verdict(report["methods"], rate_hz, motion, starved, lone=lone))
     for line in demo_next_steps(report.get("recording"), motion):
         plain(line)
     if report["interrupted"]:
