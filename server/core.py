@@ -85,7 +85,6 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from functools import partial
 from typing import Protocol
 
 from posecast.protocol import (
@@ -187,7 +186,7 @@ class RelayCore:
         #: The rooms and their ticks (``server.rooms``); ``rooms`` is its dict of them.
         self.table = RoomTable(self.config, self.volume, self.emit, objects.fly)
         self.rooms: dict[str, Room] = self.table.rooms
-        self.table.adapt = partial(rates.adapt, self)  # auto rates decide after each tick
+        self.table.adapt = rates.adapter(self)  # auto rates decide after each room's tick
         cfg = self.config
         self.admission = Admission(cfg.max_connections, cfg.max_connections_per_address)
         self._join_deadlines = Deadlines(self._unjoined)

@@ -37,8 +37,9 @@ as before. :func:`adapt` is the glue the relay runs after each room tick.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from functools import partial
 from typing import TYPE_CHECKING, Protocol
 
 from posecast.protocol import Join, RateNotice
@@ -49,7 +50,16 @@ if TYPE_CHECKING:
     from posecast.server.peer import Peer
     from posecast.server.room import Member, Room
 
-__all__ = ["RATE_BUCKETS", "Egress", "LinkRate", "RateHistogram", "adapt", "attach", "granted"]
+__all__ = [
+    "RATE_BUCKETS",
+    "Egress",
+    "LinkRate",
+    "RateHistogram",
+    "adapt",
+    "adapter",
+    "attach",
+    "granted",
+]
 
 #: Upper bounds (Hz) of the chosen-rate histogram's buckets (``posecast_auto_rate_hz``).
 RATE_BUCKETS = (5.0, 7.5, 10.0, 12.5, 15.0, 20.0, 25.0, 30.0, 45.0, 60.0)
@@ -232,6 +242,11 @@ class RelayView(Protocol):
     def connected(self, user: int) -> Peer | None: ...
 
     def send(self, peer: Peer, message: RateNotice) -> None: ...
+
+
+def adapter(core: RelayView) -> Callable[[Room, float], None]:
+    """:func:`adapt` for ``core``'s rooms (``server.rooms.RoomTable.adapt``)."""
+    return partial(adapt, core)
 
 
 def adapt(core: RelayView, room: Room, now: float) -> None:
