@@ -41,6 +41,7 @@ from typing import Any
 from websockets.http11 import Request, Response
 from websockets.server import ServerProtocol
 
+from posecast.server import rates
 from posecast.server.core import TICK_LAG_BUCKETS, RelayCore
 
 __all__ = [
@@ -185,6 +186,8 @@ def metrics_text(core: RelayCore, now: float | None = None) -> str:
     _limit_metrics(core, metric, total)
     _room_metrics(core, metric)
     _tick_lag_histogram(core, lines)
+    if isinstance(core.table.adapt, rates.AutoRates):
+        lines += core.table.adapt.metric_lines(core.rooms.values())
     if now is not None:
         _overdue_metric(core, metric, now)
         _capacity_metric(core, metric, now)

@@ -31,15 +31,15 @@ The rule, evaluated once per ``window`` (0.5 s):
 Rates are whole Hz: subscribers at one rate tick in step and share one encoded
 snapshot per tick (``server.room``), and each change costs a compact subscriber a
 key snapshot. Off by default: a subscriber that asks a number gets that number,
-as before. :func:`adapt` is the glue the relay runs after each room tick.
+as before. :class:`AutoRates` is the glue the relay runs after each room tick;
+``/metrics`` shows the chosen rates (``posecast_auto_rate_hz``).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import dataclass, field
-from functools import partial
 from typing import TYPE_CHECKING, Protocol
 
 from posecast.protocol import Join, RateNotice
@@ -52,16 +52,16 @@ if TYPE_CHECKING:
 
 __all__ = [
     "RATE_BUCKETS",
+    "AutoRates",
     "Egress",
     "LinkRate",
     "RateHistogram",
-    "adapt",
     "adapter",
     "attach",
     "granted",
 ]
 
-#: Upper bounds (Hz) of the chosen-rate histogram's buckets (``posecast_auto_rate_hz``).
+#: Upper bounds (Hz) of the chosen-rate histogram's buckets (``RateHistogram``).
 RATE_BUCKETS = (5.0, 7.5, 10.0, 12.5, 15.0, 20.0, 25.0, 30.0, 45.0, 60.0)
 
 
@@ -103,6 +103,8 @@ class LinkRate:
     frame_bytes: float | None = field(init=False, default=None)
     changes: int = field(init=False, default=0)
     congestions: int = field(init=False, default=0)
+    #: Decision windows closed so far (each one an observation of ``posecast_auto_rate_hz``).
+    windows: int = field(init=False, default=0)
     _last: tuple[float, Egress] | None = field(init=False, default=None)
     _changed_at: float = field(init=False, default=-math.inf)
     _down_at: float = field(init=False, default=-math.inf)
@@ -129,6 +131,7 @@ class LinkRate:
         if dt < self.window:
             return None
         self._last = (now, egress)
+        self.windows += 1
         ticks, skips = egress.ticks - e0.ticks, egress.skips - e0.skips
         drained = max(0, egress.drained - e0.drained)
         delivered = ticks - skips
@@ -186,22 +189,43 @@ class LinkRate:
 
 @dataclass
 class RateHistogram:
-    """Auto-rate subscribers by their chosen rate now (``RATE_BUCKETS``, then +Inf;
-    not cumulative), their sum (Hz), and the rate changes so far."""
+    """The rates auto-rate subscribers were served at: one observation per subscriber
+    per decision window (so the distribution is over subscriber time), per bucket of
+    ``RATE_BUCKETS`` then +Inf (not cumulative), their sum (Hz), and rate changes."""
 
     counts: list[int] = field(default_factory=lambda: [0] * (len(RATE_BUCKETS) + 1))
     total: float = 0.0
     changes: int = 0
 
-    @classmethod
-    def of(cls, controllers: Iterable[LinkRate], changes: int = 0) -> RateHistogram:
-        hist = cls(changes=changes)
-        for ctl in controllers:
-            i = next((i for i, b in enumerate(RATE_BUCKETS) if ctl.rate <= b), len(RATE_BUCKETS))
-            hist.counts[i] += 1
-            hist.total += ctl.rate
-            hist.changes += ctl.changes
-        return hist
+    def observe(self, rate: float) -> None:
+        i = next((i for i, b in enumerate(RATE_BUCKETS) if rate <= b), len(RATE_BUCKETS))
+        self.counts[i] += 1
+        self.total += rate
+
+    def metric_lines(self, members: int) -> list[str]:
+        """Prometheus text: the histogram, the changes counter, the members gauge."""
+        name = "posecast_auto_rate_hz"
+        lines = [
+            f"# HELP {name} Snapshot rate the relay chose for each auto-rate subscriber "
+            '(join rate "auto"), observed once per subscriber per 0.5 s decision window.',
+            f"# TYPE {name} histogram",
+        ]
+        cumulative = 0
+        for bound, count in zip((*RATE_BUCKETS, math.inf), self.counts, strict=True):
+            cumulative += count
+            le = "+Inf" if math.isinf(bound) else f"{bound:g}"
+            lines.append(f'{name}_bucket{{le="{le}"}} {cumulative}')
+        lines += [f"{name}_sum {self.total:g}", f"{name}_count {cumulative}"]
+        lines += [
+            "# HELP posecast_auto_rate_changes_total Rate changes the relay told auto-rate "
+            "subscribers (rate messages).",
+            "# TYPE posecast_auto_rate_changes_total counter",
+            f"posecast_auto_rate_changes_total {self.changes}",
+            "# HELP posecast_auto_rate_members Members whose rate the relay chooses now.",
+            "# TYPE posecast_auto_rate_members gauge",
+            f"posecast_auto_rate_members {members}",
+        ]
+        return lines
 
 
 def granted(max_rate: float, join: Join) -> float:
@@ -244,22 +268,39 @@ class RelayView(Protocol):
     def send(self, peer: Peer, message: RateNotice) -> None: ...
 
 
-def adapter(core: RelayView) -> Callable[[Room, float], None]:
-    """:func:`adapt` for ``core``'s rooms (``server.rooms.RoomTable.adapt``)."""
-    return partial(adapt, core)
+class AutoRates:
+    """What the relay runs after each room's tick (``server.rooms.RoomTable.adapt``):
+    each auto-rate member's controller decides; a new rate moves the member (the
+    caller schedules the room after) and is told to the client. Keeps the rates'
+    histogram for ``/metrics``."""
+
+    def __init__(self, core: RelayView) -> None:
+        self.core = core
+        self.histogram = RateHistogram()
+
+    def __call__(self, room: Room, now: float) -> None:
+        core, hist = self.core, self.histogram
+        for member in room.members.values():
+            ctl = member.link_rate
+            if ctl is None or member.parked:
+                continue
+            peer = core.connected(member.user)
+            if peer is None:
+                continue
+            windows, served = ctl.windows, ctl.rate
+            rate = ctl.update(now, egress(peer, member))
+            if ctl.windows != windows:
+                hist.observe(served)
+            if rate is not None and rate != member.rate:
+                hist.changes += 1
+                room.set_rate(member.user, rate, now)
+                core.send(peer, RateNotice(rate=rate))
+
+    def metric_lines(self, rooms: Iterable[Room]) -> list[str]:
+        members = sum(m.link_rate is not None for r in rooms for m in r.members.values())
+        return self.histogram.metric_lines(members)
 
 
-def adapt(core: RelayView, room: Room, now: float) -> None:
-    """After ``room``'s tick: let each auto-rate member's controller decide, move the
-    member to its new rate (the caller schedules the room after) and tell the client."""
-    for member in room.members.values():
-        ctl = member.link_rate
-        if ctl is None or member.parked:
-            continue
-        peer = core.connected(member.user)
-        if peer is None:
-            continue
-        rate = ctl.update(now, egress(peer, member))
-        if rate is not None and rate != member.rate:
-            room.set_rate(member.user, rate, now)
-            core.send(peer, RateNotice(rate=rate))
+def adapter(core: RelayView) -> AutoRates:
+    """The :class:`AutoRates` of ``core``'s rooms."""
+    return AutoRates(core)

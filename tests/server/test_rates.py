@@ -158,7 +158,12 @@ def test_granted_rate_of_a_join() -> None:
 
 
 def test_histogram_of_chosen_rates() -> None:
-    """Controllers land in the bucket of their rate; the sum and changes add up."""
-    a, b = LinkRate(5.0, 30.0), LinkRate(5.0, 12.0)
-    hist = RateHistogram.of([a, b], changes=3)
-    assert sum(hist.counts) == 2 and hist.total == 42.0 and hist.changes == 3
+    """Observations land in the bucket of their rate; the text is cumulative."""
+    hist = RateHistogram()
+    for rate in (5.0, 12.0, 30.0, 30.0):
+        hist.observe(rate)
+    text = "\n".join(hist.metric_lines(members=2))
+    assert 'posecast_auto_rate_hz_bucket{le="5"} 1' in text
+    assert 'posecast_auto_rate_hz_bucket{le="12.5"} 2' in text
+    assert 'posecast_auto_rate_hz_bucket{le="+Inf"} 4' in text
+    assert "posecast_auto_rate_hz_sum 77" in text and "posecast_auto_rate_members 2" in text

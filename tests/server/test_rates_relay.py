@@ -13,6 +13,7 @@ from posecast.client.connection import ClientConnection
 from posecast.protocol import RateNotice, SetRate, Snapshot, encode_update
 from posecast.scenarios.network import Tier
 from posecast.server.app import RelayServer, ServerConfig
+from posecast.server.http import metrics_text
 from posecast.server.room import Member
 
 POSE = np.tile(np.array([0.0, 1.6, 0.0, 1.0, 0.0, 0.0, 0.0], dtype=np.float32), (3, 1))
@@ -82,6 +83,11 @@ async def test_a_narrow_link_brings_an_auto_rate_down_and_the_client_hears_it() 
         assert notices[-1] == member.rate == sub.session.rate == member.link_rate.rate
         assert srv.config.min_rate <= member.rate < 20.0
         assert any(isinstance(m, Snapshot) for m in got)
+        text = metrics_text(srv.core, srv.clock())
+        assert "posecast_auto_rate_members 1" in text
+        assert f"posecast_auto_rate_changes_total {len(notices)}" in text
+        count = [ln for ln in text.splitlines() if ln.startswith("posecast_auto_rate_hz_count")]
+        assert count and int(count[0].split()[1]) >= 1
         await sub.close()
 
 
