@@ -11,8 +11,8 @@ signal          measured as                                                  bud
 CPU             the relay process's CPU time (``time.process_time``) per     ``cpu``,
                 second of wall time over the last complete window (1 s),     0.8 of a
                 scaled to one more member: ``cpu * (members + 1) /           core
-                members then`` (members admitted since the window are
-                counted: a ramp cannot overshoot by a window's joins)
+                members then`` (the mean over the window; members admitted
+                since are counted: a ramp cannot overshoot by its joins)
 tick lag        the share of room ticks more than ``lag`` late in the last   ``lag``,
                 complete window (or the current one): over 1 % (the p99     25 ms
                 is over budget) refuses, while the relay is loaded: it
@@ -105,7 +105,8 @@ class Capacity:
     """The relay's measurements and its budget; :meth:`refusal` decides."""
 
     budget: CapacityBudget = field(default_factory=CapacityBudget)
-    #: CPU seconds per second over the last complete window, and members then.
+    #: CPU seconds per second over the last complete window, and the members it served
+    #: (the mean of its first and last reading).
     cpu: float = 0.0
     cpu_members: int = 0
     backlog: int = 0
@@ -114,7 +115,7 @@ class Capacity:
     #: How late the relay runs (s): the largest tick lag of the recent windows.
     late: float = 0.0
     _sampled: float | None = None
-    _cpu_at: tuple[float, float] | None = None
+    _cpu_at: tuple[float, float, int] | None = None
     _current: _Window | None = None
     _previous: _Window | None = None
 
@@ -127,13 +128,14 @@ class Capacity:
         """
         self.backlog = backlog
         if self._cpu_at is None:
-            self._cpu_at = (now, cpu_seconds)
+            self._cpu_at = (now, cpu_seconds, members)
             return
-        t0, c0 = self._cpu_at
+        t0, c0, m0 = self._cpu_at
         if now - t0 >= self.budget.window:
             self.cpu = max(0.0, cpu_seconds - c0) / (now - t0)
-            self.cpu_members = members
-            self._cpu_at = (now, cpu_seconds)
+            # The members the window's CPU served: a ramp's members joined during it.
+            self.cpu_members = round((m0 + members) / 2)
+            self._cpu_at = (now, cpu_seconds, members)
             self._sampled = now
 
     def tick_lag(self, now: float, lag: float) -> None:

@@ -59,6 +59,15 @@ def test_members_admitted_since_the_window_count() -> None:
     assert cap.usage(90, 1.5)["cpu"] == pytest.approx(0.4 * 91 / 40 / 0.8)
 
 
+def test_a_window_serves_the_mean_of_its_members() -> None:
+    """Members that joined during the window cost only part of it: 20 then 60 -> 40."""
+    cap = Capacity()
+    cap.sample(0.0, 10.0, 0, 20)
+    cap.sample(0.5, 10.1, 0, 40)  # (not a window yet)
+    cap.sample(1.0, 10.4, 0, 60)
+    assert cap.cpu == pytest.approx(0.4) and cap.cpu_members == 40
+
+
 def test_an_empty_or_unmeasured_relay_admits() -> None:
     """No reading yet, no members when measured, or a reading too old: no CPU verdict."""
     assert Capacity().refusal(1000, 5.0) is None
