@@ -67,7 +67,7 @@ RETRY_AFTER = 5.0
 #: of a core: an idle relay that ticks late is late because its machine is busy.
 LAG_CPU_FLOOR = 0.2
 #: ... or while it holds at least this many members (a starved relay uses little CPU).
-LAG_MIN_MEMBERS = 32
+LAG_MIN_MEMBERS = 16
 #: Share of a window's ticks that may be later than the lag budget (1 %: the p99).
 LAG_SHARE = 0.01
 #: A connection whose updates are stale gets one ``bad-pose`` error per this many seconds.

@@ -72,7 +72,7 @@ CapacityLagOption = Annotated[
     float,
     typer.Option(
         help="... or while over 1 % of its room ticks run later than this (s) and it uses "
-        "at least 0.2 of a core or holds 32 members; 0: off.",
+        "at least 0.2 of a core or holds 16 members; 0: off.",
         envvar="POSECAST_CAPACITY_LAG",
     ),
 ]
