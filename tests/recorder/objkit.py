@@ -12,8 +12,11 @@ a) and an ``object:cup`` of b's that dies with it (``keep=False``):
 
 Every client publishes its head at 30 Hz all along, and the drill in the same
 updates while it holds it; b's captures run 100 ms behind (``SKEW_B``). Each
-step waits for the relay's ``owner`` message (no sleeps standing in for
-ordering). What the clients saw is returned beside
+step waits for the relay's ``owner`` message, a hold lasts until the other
+client has seen so many of the holder's drill keyframes, a catch comes after a
+few flight keyframes, a pick-up after the relay has landed the drill (no
+sleeps standing in for ordering or for time passing). What the clients saw is
+returned beside
 the recording, so tests compare the file against the session, not against
 numbers written here.
 """
@@ -29,7 +32,7 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
-from support import poll_until, running_server
+from support import Pacer, poll_until, running_server
 from websockets.exceptions import ConnectionClosed
 
 from posecast.client.connection import ClientConnection
@@ -44,6 +47,7 @@ from posecast.protocol import (
 )
 from posecast.protocol.objects import RequestOwnership
 from posecast.server.app import ServerConfig
+from posecast.server.room import Room
 
 __all__ = ["ROOM", "Actor", "Session", "drill_pose", "record_handover_session"]
 
@@ -112,6 +116,7 @@ class Actor:
         assert self.conn.joined is not None
         head = self.conn.joined.streams["head"]
         seq = 0
+        pacer = Pacer(1.0 / RATE)
         while not stop.is_set():
             now = time.monotonic() + self.skew
             ids, poses = [head], [(0.0, 1.6, 0.5 * self.user, 1.0, 0.0, 0.0, 0.0)]
@@ -126,7 +131,7 @@ class Actor:
             update = PoseUpdate.from_arrays(seq, ids, [now] * len(ids), np.array(poses))
             with contextlib.suppress(ConnectionClosed):
                 await self.conn.send(update)
-            await asyncio.sleep(1.0 / RATE)
+            await pacer.next()
 
     def take(self) -> None:
         """Start moving the drill from where this client last saw it."""
@@ -148,7 +153,7 @@ class Session:
 
 
 #: Poll for a condition; ``limit`` is a hang guard, not a timing check.
-_until = partial(poll_until, limit=10.0, every=0.005)
+_until = partial(poll_until, limit=60.0, every=0.005)
 
 
 async def _owned(actor: Actor, n: int) -> Owner:
@@ -157,7 +162,14 @@ async def _owned(actor: Actor, n: int) -> Owner:
     return actor.owners[n - 1]
 
 
-async def _scene(a: Actor, b: Actor) -> tuple[int, int]:
+async def _held(watcher: Actor, keyframes: int) -> None:
+    """Wait until ``watcher`` has seen ``keyframes`` more of the drill's keyframes (the
+    holder's at 30 Hz, or the relay's while it flies)."""
+    start = len(watcher.drill_times)
+    await _until(lambda: len(watcher.drill_times) >= start + keyframes)
+
+
+async def _scene(a: Actor, b: Actor, room: Room) -> tuple[int, int]:
     await a.conn.send(ObjectCreate(name="object:drill", pose=DRILL, steal=True, hold=True))
     await _until(lambda: any(i.name == "object:drill" for i in b.infos))
     drill = next(i.stream for i in a.infos if i.name == "object:drill")
@@ -167,40 +179,43 @@ async def _scene(a: Actor, b: Actor) -> tuple[int, int]:
     await b.conn.send(ObjectCreate(name="object:cup", pose=CUP, keep=False))
     await _until(lambda: any(i.name == "object:cup" for i in a.infos))
     cup = next(i.stream for i in b.infos if i.name == "object:cup")
-    await asyncio.sleep(0.4)
+    await _held(b, 12)  # about 0.4 s of a's keyframes
     a.holding = None
     await a.conn.send(Release(stream=drill, velocity=(1.0, 2.5, 0.0), angular=(0.0, 3.0, 0.0)))
     await _owned(b, 2)  # throw
-    await asyncio.sleep(0.25)
+    await _held(b, 4)  # a few ticks of flight (it flies about 0.8 s)
+    assert room.objects[drill].flight is not None, "landed before the catch"
     await b.conn.send(RequestOwnership(stream=drill))
     await _owned(b, 3)  # catch
     b.take()
-    await asyncio.sleep(0.4)
+    await _held(a, 12)
     b.holding = None
     await b.conn.send(Release(stream=drill))
     await _owned(a, 4)  # release
     await a.conn.send(RequestOwnership(stream=drill))
     await _owned(b, 5)  # request
     a.take()
-    await asyncio.sleep(0.3)
+    await _held(b, 9)  # about 0.3 s
     await b.conn.send(RequestOwnership(stream=drill, steal=True))
     await _owned(a, 6)  # steal
     a.holding = None
     b.take()
-    await asyncio.sleep(0.3)
+    await _held(a, 9)
     b.holding = None
     await b.conn.send(Release(stream=drill, velocity=(0.5, 1.0, 0.0)))
     await _owned(a, 7)  # throw
-    await asyncio.sleep(1.0)  # it lands (about 0.6 s from 1.2 m)
+    await _until(lambda: room.objects[drill].flight is None)  # it lands (0.6 s from 1.2 m)
     await a.conn.send(RequestOwnership(stream=drill, lock=True))
     await _owned(b, 8)  # request (it rests: no catch)
     a.take()
-    await asyncio.sleep(0.3)
+    await _held(b, 9)
     return drill, cup
 
 
 async def _run(tmp: Path) -> Session:
-    config = ServerConfig(host="127.0.0.1", port=0, record_dir=tmp)
+    # A join waits for the room's recorder (its process starting: seconds on a loaded
+    # machine), and the relay's keepalive does not count that wait as an answer.
+    config = ServerConfig(host="127.0.0.1", port=0, record_dir=tmp, ping_timeout=30.0)
     async with running_server(config) as server:
         url = f"ws://127.0.0.1:{server.port}"
         a = Actor(await ClientConnection.open(url, room=ROOM, streams=("head",), rate=RATE))
@@ -213,7 +228,7 @@ async def _run(tmp: Path) -> Session:
                 tg.create_task(actor.receive())
                 tg.create_task(actor.publish(stop))
             try:
-                drill, cup = await _scene(a, b)
+                drill, cup = await _scene(a, b, server.rooms[ROOM])
                 stop_a.set()
                 await a.conn.close()  # leaves holding the drill: owner-left
                 await _owned(b, 9)

@@ -36,9 +36,17 @@ def session(tmp_path_factory: pytest.TempPathFactory) -> Session:
     return record_handover_session(tmp_path_factory.mktemp("recorded"))
 
 
+def _recording(out: Path) -> ServerConfig:
+    """A recording relay. A join waits for its room's recorder (a process starting:
+    seconds on a loaded machine), which the keepalive does not count as an answer."""
+    return ServerConfig(host="127.0.0.1", port=0, record_dir=out, ping_timeout=30.0)
+
+
 async def _replay(path: Path, out: Path, codec: str) -> tuple[dict[str, Any], Path]:
     """Replay ``path`` into a recording relay; its report and the replayed room's file."""
-    async with running_server(ServerConfig(host="127.0.0.1", port=0, record_dir=out)) as server:
+    async with running_server(
+        ServerConfig(host="127.0.0.1", port=0, record_dir=out, ping_timeout=30.0)
+    ) as server:
         url = f"ws://127.0.0.1:{server.port}"
         # Someone elsewhere first: the replay's users get other ids than the recorded ones.
         other = await ClientConnection.open(url, room="elsewhere", streams=("head",), rate=10)
@@ -193,7 +201,7 @@ async def test_cli_replays_the_handovers_twice_into_one_room(
 ) -> None:
     """`posecast replay --url` reproduces the changes; a second pass finds the kept drill
     in the room (as --loop does) and takes it instead of creating it."""
-    config = ServerConfig(host="127.0.0.1", port=0, record_dir=tmp_path)
+    config = _recording(tmp_path)
     outputs = []
     async with running_server(config) as server:
         url = f"ws://127.0.0.1:{server.port}"
@@ -250,7 +258,9 @@ def test_a_window_creates_its_objects_and_gives_them_to_their_holders(
 
 
 async def _replay_window(path: Path, out: Path, start: float) -> tuple[dict[str, Any], Path]:
-    async with running_server(ServerConfig(host="127.0.0.1", port=0, record_dir=out)) as server:
+    async with running_server(
+        ServerConfig(host="127.0.0.1", port=0, record_dir=out, ping_timeout=30.0)
+    ) as server:
         url = f"ws://127.0.0.1:{server.port}"
         report = await replay_live(path, url, codec="raw", linger=0.2, start_s=start)
     (replayed,) = server.recordings

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import os
 import signal
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 from reckit import T0, make_updates
+from support import wait_until
 
 from posecast.protocol import PoseUpdate, decode_message, encode_message
 from posecast.recorder import (
@@ -113,8 +113,7 @@ def test_a_full_queue_loses_batches_counts_them_and_records_the_loss(tmp_path: P
     assert stats.queue_drop_poses == sum(len(f[2].entries) for f in lost)
     rec.release()
     for k in (40, 44, 48):
-        while rec.statistics().queue_depth:
-            time.sleep(0.001)
+        wait_until(lambda: not rec.statistics().queue_depth, every=0.001)
         for user, arrival, update in frames[k : k + 4]:  # one batch each
             rec.record_pose_update(user, arrival, update)
     path = rec.close()
@@ -160,12 +159,14 @@ def test_a_dead_writer_process_fails_the_recorder_not_the_relay(tmp_path: Path) 
     _feed(rec, frames[:20])
     os.kill(rec._proc.pid, signal.SIGKILL)
     rec._proc.wait(10)
-    deadline = time.monotonic() + 10
-    while not rec.failed and time.monotonic() < deadline:
+
+    def failed() -> bool:
         for user, arrival, update in frames[20:40]:
             rec.record_pose_update(user, arrival, update)  # never raises, never blocks
         rec.poll()
-        time.sleep(0.01)
+        return rec.failed
+
+    wait_until(failed, limit=10.0, every=0.01)
     assert rec.failed and "recorder process" in (rec.statistics().error or "")
     assert not rec.record_pose_update(*frames[50])
     with pytest.raises(RecorderError, match="partial file kept"):
@@ -255,9 +256,7 @@ def test_a_room_that_cannot_open_or_goes_bad_leaves_the_other_rooms_alone(
         bad._batch.records += 1
         bad._handoff()
         _feed(good, frames)
-        deadline = time.monotonic() + 20
-        while not bad.failed and time.monotonic() < deadline:
-            time.sleep(0.01)
+        wait_until(lambda: bad.failed, limit=20.0, every=0.01)
         assert bad.failed and "unknown message kind 99" in (bad.statistics().error or "")
         assert not bad.record_pose_update(*frames[0])
         with pytest.raises(RecorderError, match="partial file kept"):

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from reckit import T0, Update, make_updates
+from support import wait_until
 
 from posecast.recorder import (
     DropRecord,
@@ -39,8 +40,7 @@ def test_queue_overflow_is_counted_and_recorded(tmp_path: Path) -> None:
     lost_poses = sum(len(u.streams) for u in updates[4:10])
     assert stats.queue_drop_poses == lost_poses
     rec.release()
-    while rec.statistics().queue_depth:
-        time.sleep(0.001)
+    wait_until(lambda: not rec.statistics().queue_depth, every=0.001)
     assert _offer(rec, updates[10:12]) == [True, True]
     path = rec.close()
     assert rec.statistics().loss_records == 1
@@ -136,10 +136,7 @@ def test_writer_failure_keeps_the_part_file(tmp_path: Path) -> None:
     rec._file.close()  # the disk goes away under the writer
     rec.release()
     rec.record_event({"kind": "x"})
-    deadline = time.monotonic() + 10
-    while not rec.failed and time.monotonic() < deadline:
-        time.sleep(0.005)
-    assert rec.failed
+    wait_until(lambda: rec.failed, limit=10.0, every=0.005)
     assert not rec.record_event({"kind": "after"})
     with pytest.raises(RecorderError):
         rec.close()
