@@ -7,6 +7,10 @@
   (a row of a room), each with the velocity it came with (zeros without one);
   duplicates and stale frames dropped; bounded (oldest evicted).
 
+A stream that ends (its peer left) gives its row back (:meth:`RoomBuffers.release`):
+the last row moves into its place, so a render frame touches only the rows of the
+streams present, however many came and went.
+
 :mod:`client.render` renders them (``render_buffers``).
 """
 
@@ -77,6 +81,8 @@ class RoomBuffers:
         self.base: NDArray[np.intp]
         self.newest: NDArray[np.intp]
         self._whole: _WholeRoom | None = None
+        #: The buffer of each row in use, in row order.
+        self._rows: list[StreamBuffer] = []
         self._allocate(max(1, streams))
 
     def _allocate(self, rows: int) -> None:
@@ -118,17 +124,58 @@ class RoomBuffers:
             )
         return v
 
-    def stream(self, capacity: int | None = None, *, has_velocities: bool = True) -> StreamBuffer:
-        """A new stream's buffer, backed by the next row."""
-        return StreamBuffer(capacity, has_velocities=has_velocities, room=self)
+    def stream(
+        self,
+        capacity: int | None = None,
+        *,
+        has_velocities: bool = True,
+        key: tuple[int, int] | None = None,
+    ) -> StreamBuffer:
+        """A new stream's buffer, backed by the next row (``key``: what the caller
+        knows it by, e.g. ``(user, stream id)``; see :meth:`shown_keys`)."""
+        return StreamBuffer(capacity, has_velocities=has_velocities, room=self, key=key)
 
-    def _add_row(self, has_velocities: bool) -> int:
+    def _add_row(self, buffer: StreamBuffer, has_velocities: bool) -> int:
         if self.n == self.counts.shape[0]:
             self._allocate(2 * self.n)
         row = self.n
         self.n += 1
         self.has_velocities[row] = has_velocities
+        self._rows.append(buffer)
         return row
+
+    def release(self, buffer: StreamBuffer) -> None:
+        """Give ``buffer``'s row back: the last row moves into it (its buffer's ``row``
+        follows), the last one is cleared, and ``buffer`` is detached (empty, no row)."""
+        row, last = buffer.row, self.n - 1
+        if row < 0 or self._rows[row] is not buffer:
+            return  # released before
+        if row != last:
+            moved = self._rows[last]
+            self.times[row] = self.times[last]
+            self.poses[:, row] = self.poses[:, last]
+            self.velocities[row] = self.velocities[last]
+            self.counts[row] = self.counts[last]
+            self.has_velocities[row] = self.has_velocities[last]
+            self.newest[row] = self.base[row] + self.counts[row] - 1
+            self._rows[row] = moved
+            moved.row = row
+        self.times[last] = np.inf
+        self.counts[last] = 0
+        self.has_velocities[last] = True
+        self.newest[last] = self.base[last] - 1
+        self._rows.pop()
+        self.n = last
+        buffer.detach()
+
+    def buffers(self) -> list[StreamBuffer]:
+        """The buffer of each row in use, in row order (a copy)."""
+        return list(self._rows)
+
+    def shown_keys(self) -> list[tuple[int, int] | None]:
+        """The ``key`` of each non-empty row, in row order: the streams of a render
+        frame (:func:`client.render.render_buffers`), column by column."""
+        return [b.key for b in self._rows if b.times]
 
     def __len__(self) -> int:
         """Streams (rows) in use, empty ones included."""
@@ -203,6 +250,7 @@ class StreamBuffer:
         *,
         has_velocities: bool = True,
         room: RoomBuffers | None = None,
+        key: tuple[int, int] | None = None,
     ) -> None:
         if room is None:
             room = RoomBuffers(DEFAULT_BUFFER_CAPACITY if capacity is None else capacity, 1)
@@ -211,7 +259,8 @@ class StreamBuffer:
             raise ValueError(f"capacity must be in 1..{room.capacity}, got {capacity}")
         self.capacity = capacity
         self.room = room
-        self.row = room._add_row(has_velocities)
+        self.key = key
+        self.row = room._add_row(self, has_velocities)
         self.times: list[float] = []
         self.poses: list[NDArray[np.float32]] = []
         self.velocities: list[NDArray[np.float64]] = []
@@ -222,11 +271,19 @@ class StreamBuffer:
 
     @property
     def has_velocities(self) -> bool:
-        return bool(self.room.has_velocities[self.row])
+        return self.row >= 0 and bool(self.room.has_velocities[self.row])
 
     @has_velocities.setter
     def has_velocities(self, value: bool) -> None:
-        self.room.has_velocities[self.row] = value
+        if self.row >= 0:
+            self.room.has_velocities[self.row] = value
+
+    def detach(self) -> None:
+        """Its row was given back (:meth:`RoomBuffers.release`): empty, takes nothing."""
+        self.row = -1
+        self.times.clear()
+        self.poses.clear()
+        self.velocities.clear()
 
     def push(
         self,
@@ -236,6 +293,8 @@ class StreamBuffer:
         velocity: NDArray[np.float64] | None = None,
     ) -> bool:
         times = self.times
+        if self.row < 0:
+            raise ValueError("the buffer's row was released")
         i = bisect.bisect_left(times, capture)
         if i < len(times) and times[i] == capture:
             self.duplicates += 1

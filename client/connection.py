@@ -21,12 +21,17 @@ import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Literal
 from urllib.parse import urlsplit
 
 from websockets.asyncio.client import ClientConnection as WsConnection
 from websockets.asyncio.client import connect
 
+from posecast.client.reconnect import (
+    GRACEFUL_CLOSE_CODES,
+    KEEPALIVE_INTERVAL,
+    KEEPALIVE_TIMEOUT,
+    SessionEnd,
+)
 from posecast.protocol import (
     AUTO_RATE,
     ClientSession,
@@ -57,46 +62,6 @@ __all__ = [
     "connect_first",
     "relay_urls",
 ]
-
-#: Close codes of a server that ended the session on purpose (normal, going away).
-GRACEFUL_CLOSE_CODES = frozenset({1000, 1001})
-
-
-@dataclass(frozen=True)
-class SessionEnd:
-    """How a bot's session ended, and after how many seconds of it.
-
-    ``kind``: ``complete`` (ran its duration), ``closed`` (the server sent a close
-    frame: ``code`` and ``reason`` are its), ``lost`` (no close frame: the
-    connection broke) or ``interrupted`` (its runner stopped it early, e.g. on
-    Ctrl-C: ``run_bot(stop=...)``). ``after_s`` counts from the start of the session (clock
-    synced, before joining) on the bot's clock.
-    """
-
-    kind: Literal["complete", "closed", "lost", "interrupted"] = "complete"
-    after_s: float = 0.0
-    code: int | None = None
-    reason: str = ""
-
-    @property
-    def graceful(self) -> bool:
-        """Ran its duration (or as long as its runner wanted), or the server ended it
-        on purpose (1000/1001)."""
-        return self.kind in ("complete", "interrupted") or (
-            self.kind == "closed" and self.code in GRACEFUL_CLOSE_CODES
-        )
-
-    def describe(self) -> str:
-        """``complete``, ``server closed: going away (1001) after 2.0 s``,
-        ``connection lost after 12.3 s``."""
-        if self.kind == "complete":
-            return "complete"
-        if self.kind == "closed":
-            why = self.reason or "no reason given"
-            return f"server closed: {why} ({self.code}) after {self.after_s:.1f} s"
-        if self.kind == "interrupted":
-            return f"interrupted after {self.after_s:.1f} s"
-        return f"connection lost after {self.after_s:.1f} s"
 
 
 def relay_urls(text: str) -> tuple[str, ...]:
@@ -215,6 +180,10 @@ class ClientConnection:
         ws = await connect(
             url,
             open_timeout=open_timeout,
+            # Shorter than the library's 20 s + 20 s: a dead path is noticed inside the
+            # resume window (client.reconnect), as the relay notices it.
+            ping_interval=KEEPALIVE_INTERVAL,
+            ping_timeout=KEEPALIVE_TIMEOUT,
             max_size=2**20,
             compression=None,
             ssl=(tls or Tls()).context(url),
@@ -242,6 +211,7 @@ class ClientConnection:
         wants_velocities: bool = False,
         codec: str = "raw",
         auto_rate: bool = False,
+        spectator: bool = False,
     ) -> Joined:
         """Join ``room``; :class:`JoinRefused` if the server refuses.
 
@@ -250,7 +220,8 @@ class ClientConnection:
         ``compact`` codes the updates sent through :meth:`send` with the
         compact codec (``protocol.codec``), ``raw`` as float records. ``auto_rate``:
         the relay chooses the rate, up to ``rate`` (``join.rate = "auto"``), and tells
-        each change (``rate``), which :attr:`on_rate` hears.
+        each change (``rate``), which :attr:`on_rate` hears. ``spectator``: watch
+        only (publish nothing, nobody is told).
         """
         welcome = self.welcome
         if welcome is not None and not welcome.min_rate <= rate <= welcome.max_rate:
@@ -268,6 +239,7 @@ class ClientConnection:
                 wants_velocities=wants_velocities,
                 codec=codec,
                 max_rate=rate if auto_rate else None,
+                spectator=spectator,
             )
         )
         joined = await self._expect(Joined)

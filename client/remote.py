@@ -1,8 +1,8 @@
 """What a bot keeps of each remote stream, and how it scores it (DESIGN.md's QoE).
 
-:class:`RemoteStream` holds a remote stream's render buffer row and its arrival
-log; :func:`evaluate_remote` scores every stream a bot received against its
-sender's motion (:func:`score_received`). A shared room
+:class:`RemoteStream` holds a remote stream's arrival log; :func:`evaluate_remote`
+scores every stream a bot received against its sender's motion
+(:func:`score_received`). A shared room
 object (user :data:`~protocol.ROOM_USER`) whose label is the live throw-catch
 scene's drill is scored in the ``object`` classes instead
 (:func:`scenarios.throw_catch.score_drill`: all of it, in flight, at the catch);
@@ -19,7 +19,6 @@ from typing import cast
 import numpy as np
 from numpy.typing import NDArray
 
-from posecast.client.buffers import StreamBuffer
 from posecast.client.render import rendered_method
 from posecast.protocol import ROOM_USER
 from posecast.scenarios.motion import MotionSpec
@@ -42,19 +41,15 @@ __all__ = [
 F64 = NDArray[np.float64]
 
 
-#: A relay codec snapshot codes capture times to 1 ms against its own base time.
-REPEAT_TIME = 1e-3 + 1e-9
-
-
 @dataclass
 class RemoteStream:
-    """One remote stream: buffer for rendering, log for the QoE evaluation."""
+    """One remote stream as a receiver logged it, for the QoE evaluation (its render
+    buffer is the client core's: :class:`client.core.ClientCore`)."""
 
     user: int
     stream: int
     name: str
     label: str | None
-    buffer: StreamBuffer = field(default_factory=StreamBuffer)
     capture: list[float] = field(default_factory=list)
     #: Arrival times in server time (with the clock offset known on arrival).
     arrival: list[float] = field(default_factory=list)
@@ -72,20 +67,6 @@ class RemoteStream:
     #: (render frame index, D) of every frame that showed it late alone, at its
     #: sender's own D instead of the room's (see :func:`stream_delays`).
     own_delays: list[tuple[int, float]] = field(default_factory=list)
-
-    def __post_init__(self) -> None:
-        self.buffer.has_velocities = self.sends_velocities
-
-    def repeats(self, capture: float, pose: NDArray[np.float32]) -> bool:
-        """Whether a received keyframe is the last one again: a key snapshot resends a
-        stream that did not change (a shared object at rest), its capture time coded
-        anew against the snapshot's own base, so within the codec's 1 ms of the
-        first; the same pose bits say it is no new keyframe."""
-        return (
-            bool(self.capture)
-            and abs(capture - self.capture[-1]) <= REPEAT_TIME
-            and np.array_equal(pose, self.poses[-1])
-        )
 
 
 def remote_log(rs: RemoteStream) -> KeyframeLog:

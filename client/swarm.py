@@ -28,8 +28,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
-from posecast.client.bot import BotConfig, BotReport, _Bot, motion_for_bot, run_bot
-from posecast.client.connection import SessionEnd
+from posecast.client.bot import Bot, BotConfig, BotReport, motion_for_bot, run_bot
 from posecast.scenarios.qoe import summarize
 from posecast.scenarios.spawn import layout_points
 
@@ -87,7 +86,7 @@ async def run_bots(
         await asyncio.sleep(i * stagger)  # avoid a thundering herd of handshakes
         if stop is None:
             return await run_bot(cfg)
-        bot = _Bot(cfg, time.monotonic)
+        bot = Bot(cfg, time.monotonic)
         async with asyncio.TaskGroup() as tg:
             watcher = tg.create_task(_interrupt(bot, stop))
             report = await bot.run()
@@ -99,13 +98,11 @@ async def run_bots(
     return [t.result() for t in tasks]
 
 
-async def _interrupt(bot: _Bot, stop: asyncio.Event) -> None:
+async def _interrupt(bot: Bot, stop: asyncio.Event) -> None:
     """When ``stop`` is set, end ``bot``'s session as ``interrupted``: its render loop
     ends at its next frame, and it reports the time it ran."""
     await stop.wait()
-    if bot.ending is None:
-        after = bot.clock() - bot.started_local if bot.started_local else 0.0
-        bot.ending = SessionEnd("interrupted", max(0.0, after))
+    bot.stop()
 
 
 @dataclass(frozen=True)
@@ -186,9 +183,11 @@ def session_ending(reports: Sequence[BotReport]) -> tuple[list[str], int]:
     """Lines that say how the session ended (none if every bot completed), and the exit code.
 
     One line per way of ending, e.g. ``session ended early: server closed: going
-    away (1001) after 2.0 s (3 of 3 bots); the report covers that time``. Exit
-    code 0 if every bot completed or was closed on purpose by the server (1000,
-    1001), else 1 (a lost connection, or a close for an error).
+    away (1001) after 2.0 s (3 of 3 bots); the report covers that time``, or
+    ``session stalled: no fresh poses for 14.6 s of 20.0 s (1 of 4 bots)`` for bots
+    that ran their duration mostly without fresh poses. Exit code 0 if every bot
+    completed or was closed on purpose by the server (1000, 1001), else 1 (a lost
+    connection, a close for an error, a stalled session).
     """
     early = [r for r in reports if r.ending.kind != "complete"]
     lines = []
@@ -198,6 +197,9 @@ def session_ending(reports: Sequence[BotReport]) -> tuple[list[str], int]:
     for group in groups.values():
         # The bot that lasted longest tells how much of the session there is.
         last = max(group, key=lambda r: r.ending.after_s)
+        if last.ending.kind == "stalled":
+            lines.append(f"session {last.ending.describe()} ({len(group)} of {len(reports)} bots)")
+            continue
         lines.append(
             f"session ended early: {last.ending.describe()} "
             f"({len(group)} of {len(reports)} bots); the report covers that time"
@@ -290,6 +292,8 @@ def swarm_report(reports: Sequence[BotReport]) -> dict[str, Any]:
                 "codec": r.codec,
                 "up_bytes_per_pose": r.update_bytes / r.poses_sent if r.poses_sent else None,
                 "ended": r.ending.describe(),
+                # Render time with no fresh pose of anyone (every remote stream held).
+                "stale_s": r.stale_s,
                 "resumed": r.resumed,
                 "rejoined": r.rejoined,
                 "relay": r.relay,

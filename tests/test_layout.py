@@ -295,3 +295,59 @@ def test_the_private_reach_check_finds_one(tmp_path: Path) -> None:
         "    def f(self, other):\n        return other._own\n"
     )
     assert private_reaches(tmp_path) == [("b.py", 5, "a._x")]
+
+
+# -- the client's parts (client/) --------------------------------------------------------
+
+
+#: What the client core may not import: the relay core's list, less ``threading``
+#: (the render keeps per-thread scratch rows, as ``interp`` does: no I/O), plus the
+#: client's own adapters.
+CLIENT_CORE_FORBIDS = IO_MODULES - {"threading"}
+CLIENT_ADAPTERS = ("client.connection", "client.bot", "client.receiver", "client.swarm")
+
+
+def test_the_client_core_touches_no_clock_file_or_socket() -> None:
+    """The client core's modules import nothing that reads a clock or does I/O: the
+    bot, the viewer's spectator and the replay bots carry out what they decide."""
+    bad = [
+        (module, name)
+        for module in CLIENT_CORE
+        for name in _runtime_imports(
+            ast.parse((ROOT / "client" / f"{module.split('.')[1]}.py").read_text())
+        )
+        if name.split(".")[0] in CLIENT_CORE_FORBIDS or name.startswith(CLIENT_ADAPTERS)
+    ]
+    assert not bad, bad
+
+
+def private_imports(paths: list[Path], package: str) -> list[tuple[str, int, str]]:
+    """Every ``from <package>.x import _name`` in ``paths``: a private class or
+    function of a module used (or subclassed) by another."""
+    out = []
+    for path in paths:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not (isinstance(node, ast.ImportFrom) and node.level == 0 and node.module):
+                continue
+            if not folder_name(node.module).startswith(package):
+                continue
+            for alias in node.names:
+                if alias.name.startswith("_") and not alias.name.startswith("__"):
+                    out.append((path.name, node.lineno, alias.name))
+    return out
+
+
+def test_no_part_of_the_client_reads_another_parts_private_names() -> None:
+    """client/'s modules, and what composes them (posecast/), use each other's public
+    names only: no ``x._name`` of another module, no private class imported or
+    subclassed (the viewer's spectator is an adapter over the core, not a ``_Bot``)."""
+    assert private_reaches(ROOT / "client") == []
+    users = sorted((ROOT / "client").glob("*.py")) + sorted((ROOT / "posecast").rglob("*.py"))
+    assert private_imports(users, "client") == []
+
+
+def test_the_private_import_check_finds_one(tmp_path: Path) -> None:
+    """The checker sees a private name imported from the client package."""
+    probe = tmp_path / "probe.py"
+    probe.write_text("from posecast.client.bot import _Bot, Bot\nfrom os import _exit\n")
+    assert private_imports([probe], "client") == [("probe.py", 1, "_Bot")]

@@ -2,10 +2,11 @@
 
 :class:`LiveView` joins a room as a spectator (``Join.spectator``: it publishes
 nothing and nobody is told about it) and receives snapshots exactly as a bot
-does: it *is* a bot's receive path (:class:`client.bot._Bot`: clock sync,
-per-stream jitter buffers, adaptive playout delay D), minus publishing and
-scoring. Its show loop renders every remote stream at ``server_now - D`` with
-:func:`client.render.render_buffers` (one batched call per method, as the
+does: it is an adapter over the client core (:class:`client.core.ClientCore`:
+clock sync, per-stream jitter buffers, adaptive playout delay D; fed by a
+:class:`client.receiver.Receiver`, as a bot is), minus publishing and scoring. Its
+show loop renders every remote stream at ``server_now - D`` with
+:meth:`client.core.ClientCore.render` (one batched call per method, as the
 bots' render loop) at ``fps`` frames a second and poses the avatars of an
 :class:`~posecast.view.scene.AvatarScene`: the first method solid, the others
 as ghosts. The browser draws the scene at its own frame rate. The panel's table
@@ -21,18 +22,22 @@ import contextlib
 import html
 import time
 from collections import deque
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import viser
 from numpy.typing import NDArray
 from websockets.exceptions import ConnectionClosed
 
-from posecast.client.bot import BotConfig, _Bot
+from posecast.client.bot import BotConfig
 from posecast.client.connection import ClientConnection
-from posecast.client.render import render_buffers
-from posecast.protocol import ROOM_USER, Join, Joined, PeerLeft, Snapshot
+from posecast.client.core import ClientCore, Observer
+from posecast.client.receiver import Receiver
+from posecast.client.reconnect import Reconnect, SessionEnd
+from posecast.client.remote import RemoteStream
+from posecast.interp import info as interp_info
+from posecast.protocol import ROOM_USER
 from posecast.protocol.codec import DEFAULT_VOLUME
 from posecast.view.scene import AvatarScene, user_colour
 
@@ -126,77 +131,116 @@ def display_name(user: int, label: str | None) -> str:
     return f"u{user} {source[:14]}"
 
 
-class _Spectator(_Bot):
-    """A bot that only watches: the bot's receive path, its buffers and its delay."""
+class _ViewLog(Observer):
+    """What the viewer keeps of the core's reports: a short keyframe log per stream
+    (nothing is scored) and the overlay's per-user rates; users who left go."""
+
+    def __init__(self, view: LiveView) -> None:
+        self.view = view
+        self.core: ClientCore | None = None
+        self.remote: dict[tuple[int, int], RemoteStream] = {}
+
+    def stream_added(
+        self, key: tuple[int, int], name: str, label: str | None, velocities: bool
+    ) -> None:
+        self.remote[key] = RemoteStream(key[0], key[1], name, label, sends_velocities=velocities)
+
+    def keyframe(
+        self,
+        key: tuple[int, int],
+        capture: float,
+        arrival: float,
+        arrival_local: float,
+        sent: float,
+        pose: NDArray[np.float32],
+        velocity: NDArray[np.float64] | None,
+    ) -> None:
+        rs = self.remote[key]
+        rs.capture.append(capture)
+        rs.arrival.append(arrival)
+        rs.arrival_local.append(arrival_local)
+        rs.sent.append(sent)
+        rs.poses.append(pose)
+        if len(rs.capture) > 2 * _KEEP:  # nothing is scored: keep the logs short
+            for log in (rs.capture, rs.arrival, rs.arrival_local, rs.sent, rs.poses):
+                del log[:-_KEEP]
+
+    def snapshot(
+        self,
+        arrival: float,
+        arrival_local: float,
+        sent: float,
+        size: int,
+        users: Mapping[int, tuple[int, int]],
+    ) -> None:
+        """Keyframes per stream (as the bots' report counts them) and a share of bytes."""
+        n = max(1, sum(seen for seen, _ in users.values()))
+        core = self.core
+        for user, (seen, new) in users.items():
+            streams = len(core.streams_of(user)) if core is not None else 1
+            self.view.stats_for(user).recent.append(
+                (arrival_local, new / max(1, streams), size * seen / n)
+            )
+
+    def peer_left(self, users: Sequence[int]) -> None:
+        gone = set(users)
+        for key in [k for k in self.remote if k[0] in gone]:
+            del self.remote[key]
+        for user in users:
+            self.view.user_left(user)
+
+
+class _Spectator:
+    """The viewer's receive side: a :class:`~client.receiver.Receiver` over a
+    :class:`~client.core.ClientCore`, joined as a spectator (it publishes nothing)."""
 
     def __init__(
         self, cfg: BotConfig, view: LiveView, clock: Callable[[], float] = time.monotonic
     ) -> None:
-        super().__init__(cfg, clock)
+        self.cfg = cfg
         self.view = view
+        self.clock = clock
+        velocities = any(interp_info(m).needs_velocity for m in cfg.methods)
+        self.log = _ViewLog(view)
+        self.core = ClientCore(cfg.methods, cfg.rate, velocities=velocities, observer=self.log)
+        self.log.core = self.core
+        self.policy = Reconnect((cfg.url,), enabled=False)
+        self.receiver = Receiver(self.core, self.policy, clock, ping_interval=cfg.ping_interval)
 
-    def _on_snapshot(self, snap: Snapshot, arrival: float, size: int) -> None:
-        before = {k: len(rs.capture) for k, rs in self.remote.items()}
-        super()._on_snapshot(snap, arrival, size)
-        me = self.conn.user if self.conn else -1
-        users = snap.users
-        n = max(1, len(snap))
-        per_user: dict[int, int] = {}
-        for u in users.tolist():
-            if u != me:
-                per_user[u] = per_user.get(u, 0) + 1
-        for user, count in per_user.items():
-            mine = [(k, rs) for k, rs in self.remote.items() if k[0] == user]
-            new = sum(len(rs.capture) - before.get(k, 0) for k, rs in mine)
-            # Keyframes per stream (as the bots' report counts them) and a share of bytes.
-            self.view.stats_for(user).recent.append(
-                (arrival, new / max(1, len(mine)), size * count / n)
-            )
-        for rs in self.remote.values():  # nothing is scored: keep the logs short
-            if len(rs.capture) > 2 * _KEEP:
-                for log in (rs.capture, rs.arrival, rs.arrival_local, rs.sent, rs.poses):
-                    del log[:-_KEEP]
-                if rs.velocities:
-                    del rs.velocities[:-_KEEP]
+    @property
+    def remote(self) -> dict[tuple[int, int], RemoteStream]:
+        """The received keyframes of each remote stream (the recent ones)."""
+        return self.log.remote
 
-    def _on_event(self, ev: object, arrival: float, size: int) -> None:
-        super()._on_event(ev, arrival, size)
-        if isinstance(ev, PeerLeft):
-            for key in [k for k in self.remote if k[0] == ev.user]:
-                del self.remote[key]
-            self.view.user_left(ev.user)
+    @property
+    def ending(self) -> SessionEnd | None:
+        return self.policy.ending
 
     async def watch(self, stop: float | None) -> None:
-        cfg = self.cfg
+        cfg, receiver = self.cfg, self.receiver
         conn = await ClientConnection.connect(cfg.url, agent=cfg.name, clock=self.clock)
-        self.conn = conn
+        receiver.attach(conn)
         try:
-            await self._sync(conn, cfg.initial_pings)
-            await conn.send(
-                Join(
-                    room=cfg.room,
-                    streams=("head",),  # nominal: a spectator owns nothing it may publish
-                    rate=cfg.rate,
-                    token=cfg.token,
-                    wants_velocities=self.velocities,
-                    spectator=True,
-                )
+            await receiver.sync(conn, cfg.initial_pings)
+            await conn.join(
+                room=cfg.room,
+                streams=("head",),  # nominal: a spectator owns nothing it may publish
+                rate=cfg.rate,
+                token=cfg.token,
+                wants_velocities=self.core.velocities,
+                spectator=True,
             )
-            joined = await conn._expect(Joined)
-            assert isinstance(joined, Joined)
-            conn.joined = joined
-            for ev in conn.early_peers:
-                self._add_peer(ev)
+            receiver.attach(conn)
             async with asyncio.TaskGroup() as tg:
                 tasks = [
-                    tg.create_task(self._receive(conn)),
-                    tg.create_task(self._pinger(conn, np.inf)),
+                    tg.create_task(receiver.receive(conn)),
+                    tg.create_task(receiver.ping(conn, np.inf)),
                 ]
                 await self.view.show_loop(self, stop)
                 for task in tasks:
                     task.cancel()
         except ConnectionClosed as exc:
-            self._note_closed(exc)
+            receiver.closed(exc)
         finally:
             with contextlib.suppress(ConnectionClosed):
                 await conn.close()
@@ -288,34 +332,25 @@ class LiveView:
         if tuple(self.eyes.options) != options:
             self.eyes.options = options
 
-    def _names(self, bot: _Bot) -> dict[int, str]:
-        names = {u: display_name(u, label) for u, (_, label) in bot.peers.items()}
+    def _names(self, core: ClientCore) -> dict[int, str]:
+        names = {u: display_name(u, peer.label) for u, peer in core.peers.items()}
         names[ROOM_USER] = "shared objects"
         return names
 
-    @staticmethod
-    def _stream_name(bot: _Bot, key: tuple[int, int], name: str) -> str:
-        """A shared object's stream by its object name (``object`` messages), others as is."""
-        if key[0] == ROOM_USER and bot.conn is not None:
-            for obj, sid in bot.conn.session.objects.items():
-                if sid == key[1]:
-                    return obj
-        return name
-
-    def show_frame(self, bot: _Bot, now_srv: float) -> None:
-        """Render every remote stream at ``now_srv - D`` and pose the avatars."""
-        d = bot.delay.update(now_srv)
-        t_play = now_srv - d
-        keys = [k for k, rs in bot.remote.items() if len(rs.buffer)]
-        frame = render_buffers([bot.remote[k].buffer for k in keys], t_play, self.cfg.methods)
-        names = self._names(bot)
+    def show_frame(self, core: ClientCore, local: float) -> None:
+        """Render every remote stream at ``server_now - D`` (the room's D for all, as
+        a spectator shows them) and pose the avatars."""
+        playout = replace(core.playout(local), own={})
+        t_play, d = playout.time, playout.delay
+        keys = core.shown()
+        frame = core.render(playout).frame
+        names = self._names(core)
         shown: dict[tuple[int, int], dict[str, NDArray[np.float64]]] = {}
         with self.server.atomic():
             for j, key in enumerate(keys):
-                rs = bot.remote[key]
                 poses = {m: frame.poses[m][j] for m in self.cfg.methods}
                 shown[key] = poses
-                stream = self._stream_name(bot, key, rs.name)
+                stream = core.stream_name(key)
                 self.scene.show(key[0], names.get(key[0], f"user {key[0]}"), stream, poses)
                 st = self.stats.get(key[0])
                 if st is not None:
@@ -329,10 +364,10 @@ class LiveView:
             self.scene.frame_users()
             self._eye_options()
 
-    def overlay_text(self, bot: _Bot, now_local: float) -> str:
+    def overlay_text(self, core: ClientCore, now_local: float) -> str:
         """The overlay: a table with one row per remote user (HTML, aligned columns)."""
         d = self.last_frame[1]
-        names = self._names(bot)
+        names = self._names(core)
         head = "".join(
             f'<th style="{_CELL}">{h}</th>' for h in ("keyframes/s", "D (ms)", "kB/s", "stalls (%)")
         )
@@ -361,7 +396,7 @@ class LiveView:
                 f'<tr><td style="padding:2px 6px;white-space:nowrap">{swatch} {name}</td>'
                 f"{cells}</tr>"
             )
-            why = starving(d, bot.delay.interval, share, kps, self.cfg.rate)
+            why = starving(d, core.delay.interval, share, kps, self.cfg.rate)
             if why is not None and (worst is None or share > worst[0]):
                 worst = (share, why)
         rows.append("</table>")
@@ -380,7 +415,7 @@ class LiveView:
             "lower --rate.</div>"
         )
 
-    async def show_loop(self, bot: _Bot, stop: float | None) -> None:
+    async def show_loop(self, bot: _Spectator, stop: float | None) -> None:
         period = 1.0 / self.cfg.fps
         nxt = self.clock()
         next_overlay = nxt
@@ -390,9 +425,9 @@ class LiveView:
                 while self._left:
                     self.user_left(self._left.pop())
                 self.last_local = local
-                self.show_frame(bot, local + bot.est.offset)
+                self.show_frame(bot.core, local)
             if local >= next_overlay:
-                self._overlay.content = self.overlay_text(bot, local)
+                self._overlay.content = self.overlay_text(bot.core, local)
                 self._warning.content = self.warning_text()
                 next_overlay = local + 0.5
             nxt += period

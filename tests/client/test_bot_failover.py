@@ -22,7 +22,7 @@ from dataclasses import replace
 import pytest
 from support import poll_until, relayed, running_server
 
-from posecast.client.bot import BotConfig, BotReport, _Bot, run_bot
+from posecast.client.bot import Bot, BotConfig, BotReport, run_bot
 from posecast.client.connection import relay_urls
 from posecast.client.remote import evaluate_remote
 from posecast.client.swarm import reconnections, run_bots, swarm_report
@@ -140,13 +140,13 @@ def test_a_rejoined_bot_scores_the_peers_it_left_until_it_left(
         assert scored[cls].stalls < to_the_end[cls].stalls
 
 
-async def _restart() -> list[_Bot]:
+async def _restart() -> list[Bot]:
     """Two bots with one URL; their relay dies and a new one starts on the same port."""
     async with contextlib.AsyncExitStack() as stack:
         first = await stack.enter_async_context(running_server())
         url = f"ws://127.0.0.1:{first.port}"
         bots = [
-            _Bot(
+            Bot(
                 BotConfig(url=url, room="r", rate=20, duration=DURATION, methods=("soa",), seed=i),
                 first.clock,
             )

@@ -12,11 +12,11 @@ import asyncio
 import numpy as np
 from support import poll_until, running_server
 
-from posecast.client.bot import BotConfig, _Bot
+from posecast.client.bot import Bot, BotConfig
 from posecast.protocol import PeerLeft, PeerResumed, PeerStalled
 
 
-def _shown(peer: _Bot, bot: _Bot) -> bool:
+def _shown(peer: Bot, bot: Bot) -> bool:
     """``peer`` has received keyframes of each of ``bot``'s three streams."""
     if bot.conn is None or bot.conn.welcome is None:
         return False
@@ -25,23 +25,21 @@ def _shown(peer: _Bot, bot: _Bot) -> bool:
     return len(mine) == 3 and all(len(rs.arrival_local) > 0 for rs in mine)
 
 
-async def _session() -> tuple[_Bot, _Bot, list[type]]:
+async def _session() -> tuple[Bot, Bot, list[type]]:
     async with running_server() as srv:
         url = f"ws://127.0.0.1:{srv.port}"
         cfgs = [
             BotConfig(url=url, room="r", rate=20, duration=6.0, methods=("soa",), name=n, seed=i)
             for i, n in enumerate(("cut", "peer"))
         ]
-        cut, peer = (_Bot(c, srv.clock) for c in cfgs)
+        cut, peer = (Bot(c, srv.clock) for c in cfgs)
         notices: list[type] = []
-        on_event = peer._on_event
 
         def spy(ev: object, arrival: float, size: int) -> None:
             if isinstance(ev, PeerStalled | PeerResumed | PeerLeft):
                 notices.append(type(ev))
-            on_event(ev, arrival, size)
 
-        peer._on_event = spy  # type: ignore[method-assign]
+        peer.listen(spy)
         async with asyncio.TaskGroup() as tg:
             tasks = [tg.create_task(cut.run()), tg.create_task(peer.run())]
             # Cut it once the peer shows its poses (all three streams): a live session.

@@ -298,13 +298,13 @@ def test_demo_command_renders_motor_hermite_live(tmp_path: Path) -> None:
 
 def test_bot_velocity_table_equals_the_whole_trace_estimate(dev_trace_path: Path) -> None:
     """The bot's chunked causal velocities are exactly Trace.causal_velocities()."""
-    from posecast.client.bot import _CausalVelocities
+    from posecast.client.publish import CausalVelocities
     from posecast.scenarios.traces import load_trace
 
     trace = load_trace(dev_trace_path).select(DEVICE_NAMES).window(0.0, 12.0)
     full = trace.causal_velocities()
-    table = _CausalVelocities(trace)
+    table = CausalVelocities(trace)
     n = len(trace.times)
-    assert n > 2 * _CausalVelocities.CHUNK
+    assert n > 2 * CausalVelocities.CHUNK
     for i in [n - 1, 0, 1, 2, 3, 255, 256, 257, 511, 512, 700, *range(0, n, 37)]:
         np.testing.assert_array_equal(table[i], full[i])
