@@ -17,10 +17,17 @@ COPY client ./client
 COPY server ./server
 # posecast/: the CLI and what composes server, client and experiments.
 COPY posecast ./posecast
+COPY setup.py ./
 # The check runs from / so that it imports the installed package, not /app: the
-# image is not built if the wheel left the bundled traces out.
-RUN pip install . \
+# image is not built if the wheel left the bundled traces out. gcc is there for the
+# build only: it compiles the codec's C accelerator (protocol/_speedups.c; without
+# it the relay runs the pure-Python codec, at several times the CPU per pose) and
+# is removed in the same layer.
+RUN apt-get update && apt-get install -y --no-install-recommends gcc libc6-dev \
+    && pip install . \
+    && apt-get purge -y --auto-remove gcc libc6-dev && rm -rf /var/lib/apt/lists/* \
     && cd / && python -c "from posecast.scenarios.traces import find_traces; print(len(find_traces('traces:sample')), 'sample traces')" \
+    && python -c "from posecast.protocol import codec; print('codec:', codec.IMPLEMENTATION)" \
     && useradd --create-home posecast
 
 USER posecast

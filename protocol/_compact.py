@@ -27,6 +27,7 @@ import struct
 import numpy as np
 from numpy.typing import NDArray
 
+from posecast.protocol import _accel
 from posecast.protocol.bits import unzz, zz
 from posecast.protocol.codec import (
     BaselineMismatch,
@@ -223,6 +224,11 @@ def _update_of_rows(
     rounded to float32 (float16 for velocities) once, by ``struct``, as numpy does."""
     base = base_us / 1e6
     lo, step = volume.lo, volume.step
+    fast = _accel.speedups
+    if fast is not None:
+        records = fast.update_records(base_us, streams, off, rows, lo, step)
+        dtype = UPDATE_VELOCITY_DTYPE if len(rows[0]) == 13 else UPDATE_DTYPE
+        return PoseUpdate._trusted(number, base, np.frombuffer(records, dtype))
     parts = []
     if len(rows[0]) == 13:
         pack = _VELOCITY_RECORD.pack

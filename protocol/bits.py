@@ -33,6 +33,7 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from posecast.protocol import _accel
 from posecast.protocol.errors import ErrorCode, RemoteProtocolError
 
 __all__ = [
@@ -116,6 +117,11 @@ _SUFFIX = [
 def eg_pack(values: Sequence[int], orders: Sequence[int]) -> tuple[int, int]:
     """(bits, bit count) of the whole codes of ``values[i]`` of order ``orders[i]``,
     one after another (as many values as orders)."""
+    fast = _accel.speedups
+    if fast is not None:
+        got: tuple[int, int] | None = fast.eg_pack(values, orders)
+        if got is not None:
+            return got
     tables = EG_TABLES
     acc = nbits = 0
     for v, k in zip(values, orders, strict=True):

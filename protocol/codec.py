@@ -77,6 +77,7 @@ from collections.abc import Mapping
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from posecast.protocol import _accel
 from posecast.protocol.codec_fast import decode_small, encode_small
 from posecast.protocol.codec_frame import (
     CODEC_MAGIC,
@@ -107,6 +108,7 @@ __all__ = [
     "CODEC_MAGIC",
     "CODEC_VERSION",
     "DEFAULT_VOLUME",
+    "IMPLEMENTATION",  # noqa: F822 (the module __getattr__ below)
     "POSITION_STEP_MAX",
     "ROTATION_BITS",
     "ROTATION_ERROR_MAX_DEG",
@@ -126,6 +128,14 @@ __all__ = [
 ]
 
 I64 = NDArray[np.int64]
+
+
+def __getattr__(name: str) -> str:
+    # IMPLEMENTATION: what runs the hot paths, "compiled (C accelerator)" or "pure
+    # Python (...)" (``protocol._accel``); read at each access, as tests switch it.
+    if name == "IMPLEMENTATION":
+        return _accel.IMPLEMENTATION
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _ids(value: ArrayLike, n: int, name: str) -> I64:

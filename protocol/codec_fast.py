@@ -16,6 +16,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from posecast.protocol import _accel
 from posecast.protocol.bits import IntReader, IntWriter, best_k_small, unzz, zz
 from posecast.protocol.codec_frame import (
     CODEC_MAGIC,
@@ -396,7 +397,7 @@ UpdateRows = tuple[list[int], list[int], Rows]
 class UpdateGeometry:
     """What the update path needs of a volume, computed once per decoder."""
 
-    __slots__ = ("delta_bits", "key_bits", "top", "volume", "widths")
+    __slots__ = ("delta_bits", "key_bits", "packed", "top", "volume", "widths")
 
     def __init__(self, volume: Volume) -> None:
         self.volume = volume
@@ -404,6 +405,13 @@ class UpdateGeometry:
         self.top = tuple((1 << b) - 1 for b in volume.bits)
         self.key_bits = {v: _min_entry_bits(True, v, volume)[0] for v in (False, True)}
         self.delta_bits = {v: _min_entry_bits(True, v, volume)[1] for v in (False, True)}
+        #: All of it as one tuple of ints, for the compiled path.
+        self.packed = (
+            *self.widths,
+            *self.top,
+            *(self.key_bits[v] for v in (False, True)),
+            *(self.delta_bits[v] for v in (False, True)),
+        )
 
 
 def _update_ids(r: IntReader, n: int, k: int) -> tuple[list[int], list[int]]:
@@ -533,7 +541,14 @@ def decode_update_rows(
     checked by the caller); None for anything else (take the reference path).
 
     ``baselines``: stream -> code row (Python ints) that the caller validated.
+    The compiled accelerator (``protocol._accel``) does the same when it runs.
     """
+    fast = _accel.speedups
+    if fast is not None and type(baselines) is dict:
+        got: UpdateRows | None = fast.decode_update_rows(
+            data, pos, flags, geometry.packed, baselines
+        )
+        return got
     velocity = bool(flags & F_VELOCITY)
     width = 13 if velocity else 7
     try:

@@ -53,10 +53,12 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from itertools import pairwise
 from operator import itemgetter
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
+from posecast.protocol import _accel
 from posecast.protocol.bits import (
     MAX_EG_BITS,
     IntReader,
@@ -122,8 +124,7 @@ def baseline_check(user: int, stream: int, baseline: Row) -> int:
     return zlib.crc32(_CHECKS[len(baseline)].pack(user, stream, *baseline))
 
 
-@dataclass(frozen=True, slots=True)
-class _Block:
+class _Block(NamedTuple):
     """One user's entries in one section, without the leading user gap."""
 
     user: int
@@ -225,6 +226,16 @@ class GroupSnapshot:
     def frame(self, exclude: int | None = None) -> tuple[bytes, int]:
         """The bytes for a subscriber that does not receive ``exclude``'s streams,
         and how many entries they hold (0: nothing to send, and ``b""``)."""
+        fast = _accel.speedups
+        if fast is not None:
+            got: tuple[bytes, int] = fast.splice(
+                self._head,
+                self._key,
+                self._delta,
+                *self._nibbles,
+                -1 if exclude is None else exclude,
+            )
+            return got
         spliced = self._spliced
         if spliced is None:
             self._spliced = (_Spliced(self._key), _Spliced(self._delta))
@@ -421,6 +432,11 @@ def _delta_blocks(
 ) -> tuple[list[_Block], list[int]]:
     if not entries:
         return [], []
+    fast = _accel.speedups
+    if fast is not None:
+        got = fast.delta_blocks(entries, base, velocity)
+        if got is not None:
+            return [_Block(*b) for b in got[0]], got[1]
     off = _offsets(entries, base)
     groups = _by_user(entries)
     kt, fields = _time_fields(entries, off, groups)

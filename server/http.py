@@ -41,6 +41,7 @@ from typing import Any
 from websockets.http11 import Request, Response
 from websockets.server import ServerProtocol
 
+from posecast.protocol import codec
 from posecast.server import rates
 from posecast.server.core import TICK_LAG_BUCKETS, RelayCore
 
@@ -154,6 +155,13 @@ def metrics_text(core: RelayCore, now: float | None = None) -> str:
         "gauge",
         "1 while the recording of pose updates is paused (SIGUSR1; SIGUSR2 resumes).",
         [("", int(core.recording_paused))],
+    )
+    metric(
+        "posecast_codec_info",
+        "gauge",
+        "Always 1; the label says what runs the compact codec: the compiled C accelerator"
+        " or its pure-Python twin.",
+        [(f'{{implementation="{_label(codec.IMPLEMENTATION)}"}}', 1)],
     )
     metric("posecast_frames_in_total", "counter", "Frames received.", total("frames_in"))
     metric("posecast_bytes_in_total", "counter", "Bytes received.", total("bytes_in"))

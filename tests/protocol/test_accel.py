@@ -1,0 +1,264 @@
+"""The codec's compiled accelerator and its pure-Python twin give the same bytes and values.
+
+Each test runs a path on both implementations (``protocol._accel.use``) and
+compares: group encodes of relay snapshots (every subscriber's splice), upstream
+update decodes (every record and code, or the same error), Exp-Golomb packing.
+The golden vectors and the fast-path tests run on both as well (tests/protocol/
+conftest.py). A process without the accelerator, or told ``POSECAST_PURE=1``,
+runs pure Python and says which.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from posecast.protocol import _accel, bits, codec
+from posecast.protocol._compact import UpstreamDecoder, UpstreamEncoder
+from posecast.protocol.codec_quant import (
+    _ANG_CODE_MAX,
+    _LIN_CODE_MAX,
+    DEFAULT_VOLUME,
+    ROTATION_BITS,
+    M,
+    quantise,
+)
+from posecast.protocol.codec_relay import RelayEntry, encode_group
+from posecast.protocol.codec_small import SMALL_FRAME
+from posecast.protocol.errors import ProtocolViolation
+from posecast.protocol.poses import PoseUpdate
+
+T = TypeVar("T")
+
+needs_compiled = pytest.mark.skipif(
+    _accel.compiled() is None, reason=f"accelerator not built: {_accel.IMPLEMENTATION}"
+)
+
+
+def both(run: Callable[[], T]) -> tuple[T | str, T | str]:
+    """``run()`` on the compiled path, then on the pure one (an error as its text)."""
+    out: list[T | str] = []
+    was_pure = _accel.speedups is None
+    try:
+        for pure in (False, True):
+            _accel.use(pure)
+            try:
+                out.append(run())
+            except ProtocolViolation as exc:
+                out.append(f"{type(exc).__name__}: {exc.code} {exc.message}")
+    finally:
+        _accel.use(was_pure)
+    return out[0], out[1]
+
+
+def _poses(rng: np.random.Generator, n: int, spread: float = 1.0) -> np.ndarray:
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    p = rng.uniform(-7.9 * spread, 7.9 * spread, size=(n, 3))
+    p[:, 1] = rng.uniform(-1.9, 3.9, size=n)
+    return np.concatenate([p, q], axis=1)
+
+
+def _velocities(rng: np.random.Generator, n: int) -> np.ndarray:
+    return rng.normal(scale=2.0, size=(n, 6))
+
+
+def _entries(seed: int, users: int, velocity: bool, delta_share: float) -> list[RelayEntry]:
+    """A room's entries: each user 1-4 streams, key or delta, times a few ms apart."""
+    rng = np.random.default_rng(seed)
+    out: list[RelayEntry] = []
+    for user in rng.choice(np.arange(1, 400), size=users, replace=False).tolist():
+        streams = sorted(rng.choice(np.arange(0, 40), size=int(rng.integers(1, 5)), replace=False))
+        n = len(streams)
+        poses = _poses(rng, n)
+        vel = _velocities(rng, n) if velocity else None
+        now = quantise(poses, DEFAULT_VOLUME, vel).tolist()
+        moved = poses + np.concatenate([rng.normal(scale=0.02, size=(n, 3)), np.zeros((n, 4))], 1)
+        moved[:, 3:] = _poses(rng, n)[:, 3:] if rng.random() < 0.3 else poses[:, 3:]
+        moved[:, :3] = moved[:, :3].clip(-7.9, 3.9)
+        before = quantise(moved, DEFAULT_VOLUME, vel).tolist()
+        for s, row, base in zip(streams, now, before, strict=True):
+            capture = 100.0 - float(rng.uniform(0.0, 0.4))
+            out.append((user, int(s), capture, row, base if rng.random() < delta_share else None))
+    return out
+
+
+def _group_frames(entries: list[RelayEntry], velocity: bool) -> list[Any]:
+    group = encode_group(7, 100.0, entries, DEFAULT_VOLUME, velocity, trusted=True)
+    users = sorted({e[0] for e in entries})
+    return [group.frame(None), *(group.frame(u) for u in users)]
+
+
+@needs_compiled
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    users=st.integers(1, 24),
+    velocity=st.booleans(),
+    delta_share=st.sampled_from([0.0, 0.5, 1.0]),
+)
+def test_group_encode_gives_the_same_bytes(
+    seed: int, users: int, velocity: bool, delta_share: float
+) -> None:
+    """A relay group's snapshot, and every subscriber's splice of it, are the same bytes."""
+    entries = _entries(seed, users, velocity, delta_share)
+    compiled, pure = both(lambda: _group_frames(entries, velocity))
+    assert compiled == pure
+
+
+@needs_compiled
+def test_group_encode_refuses_alike() -> None:
+    """An entry the relay must refuse (capture time NaN, far from the base) fails the same."""
+    entries = _entries(3, 5, False, 1.0)
+    for bad_time in (float("nan"), 100.0 - 2e6):
+        u, s, _, row, base = entries[2]
+        broken = [*entries[:2], (u, s, bad_time, row, base), *entries[3:]]
+        compiled, pure = both(lambda b=broken: _group_frames(b, False))  # type: ignore[misc]
+        assert isinstance(compiled, str) and compiled == pure
+
+
+def _updates(seed: int, frames: int, velocity: bool) -> list[bytes]:
+    """A client's compact update frames: 1-3 streams a frame, some jumps, some new streams."""
+    rng = np.random.default_rng(seed)
+    enc = UpstreamEncoder(DEFAULT_VOLUME)
+    poses = _poses(rng, 8)
+    out = []
+    for number in range(1, frames + 1):
+        streams = np.sort(rng.choice(8, size=int(rng.integers(1, 4)), replace=False))
+        poses[:, :3] = (poses[:, :3] + rng.normal(scale=0.01, size=(8, 3))).clip(-7.9, 3.9)
+        if rng.random() < 0.2:
+            poses[:, 3:] = _poses(rng, 8)[:, 3:]
+        t = 10.0 + number / 20
+        update = PoseUpdate.from_arrays(
+            number,
+            streams,
+            t - rng.uniform(0, 0.05, size=streams.size),
+            poses[streams],
+            base_time=t,
+            velocities=_velocities(rng, streams.size) if velocity else None,
+        )
+        out.append(enc.encode(update))
+        enc.commit()
+    return out
+
+
+def _decode_all(frames: list[bytes], mutate: int | None = None) -> list[Any]:
+    dec = UpstreamDecoder(DEFAULT_VOLUME)
+    got: list[Any] = []
+    for i, data in enumerate(frames):
+        if mutate is not None and i == len(frames) - 1:
+            data = bytearray(data)
+            data[mutate % len(data)] ^= 1 << (mutate % 7)
+            data = bytes(data)
+        try:
+            u = dec.decode(data)
+            got.append((u.entries.tobytes(), u.seq, u.base_time, sorted(dec.last_codes.items())))
+        except ProtocolViolation as exc:
+            got.append((exc.code, exc.message))
+            break
+    return got
+
+
+@needs_compiled
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    frames=st.integers(1, 12),
+    velocity=st.booleans(),
+    mutate=st.none() | st.integers(0, 10_000),
+)
+def test_update_decode_gives_the_same_values(
+    seed: int, frames: int, velocity: bool, mutate: int | None
+) -> None:
+    """The relay's decode of a client's updates gives the same records, codes and
+    baselines, or the same error for a frame with one bit flipped."""
+    stream = _updates(seed, frames, velocity)
+    compiled, pure = both(lambda: _decode_all(stream, mutate))
+    assert compiled == pure
+
+
+@needs_compiled
+@settings(max_examples=200, deadline=None)
+@given(
+    values=st.lists(
+        st.one_of(st.integers(0, 3000), st.integers(0, 2**62)), min_size=0, max_size=40
+    ),
+    k=st.integers(0, bits.MAX_K),
+)
+def test_eg_pack_gives_the_same_bits(values: list[int], k: int) -> None:
+    """Exp-Golomb packing gives the same bits for short and long values, every order."""
+    orders = [(k + i) % (bits.MAX_K + 1) for i in range(len(values))]
+    compiled, pure = both(lambda: bits.eg_pack(values, orders))
+    assert compiled == pure
+
+
+@needs_compiled
+def test_compiled_constants_are_the_codecs() -> None:
+    """The constants compiled into the accelerator are the codec's."""
+    compiled = _accel.compiled()
+    assert compiled is not None
+    assert compiled.CONSTANTS == {
+        "MAX_EG_BITS": bits.MAX_EG_BITS,
+        "MAX_K": bits.MAX_K,
+        "SMALL_FRAME": SMALL_FRAME,
+        "M": M,
+        "ROTATION_BITS": ROTATION_BITS,
+        "LIN_CODE_MAX": _LIN_CODE_MAX,
+        "ANG_CODE_MAX": _ANG_CODE_MAX,
+    }
+
+
+def test_use_switches_what_runs() -> None:
+    """``use`` switches the running path, and codec.IMPLEMENTATION follows it."""
+    was_pure = _accel.speedups is None
+    try:
+        assert _accel.use(True) == codec.IMPLEMENTATION == "pure Python (POSECAST_PURE=1)"
+        assert _accel.speedups is None
+        now = _accel.use(False)
+        assert now == codec.IMPLEMENTATION
+        assert (now == _accel.COMPILED) == (_accel.compiled() is not None)
+    finally:
+        _accel.use(was_pure)
+
+
+def _python(code: str, **env: str) -> subprocess.CompletedProcess[str]:
+    environment = {k: v for k, v in os.environ.items() if k != _accel.PURE_ENV} | env
+    return subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=environment, timeout=60
+    )
+
+
+def test_pure_env_runs_pure_python() -> None:
+    """POSECAST_PURE=1 runs the pure twin, silently, and --version's codec line says so."""
+    code = (
+        "from posecast.cli.common import version_lines; from posecast.protocol import _accel;"
+        "print(_accel.speedups is None); print(version_lines()[2])"
+    )
+    got = _python(code, POSECAST_PURE="1")
+    assert got.returncode == 0, got.stderr
+    assert got.stdout.splitlines() == ["True", "codec: pure Python (POSECAST_PURE=1)"]
+    assert got.stderr == ""
+
+
+def test_without_the_extension_it_falls_back_and_says_so_once() -> None:
+    """With the extension missing (no compiler at install), the codec runs pure Python
+    and one line on stderr says so: no traceback, however many modules import it."""
+    code = (
+        "import sys; sys.modules['posecast.protocol._speedups'] = None\n"
+        "from posecast.protocol import codec, codec_relay, _compact, bits\n"
+        "from posecast.protocol import _accel\n"
+        "print(codec.IMPLEMENTATION, _accel.speedups is None)"
+    )
+    got = _python(code)
+    assert got.returncode == 0, got.stderr
+    assert got.stdout.strip() == "pure Python (accelerator not built) True"
+    lines = got.stderr.splitlines()
+    assert len(lines) == 1 and "not built" in lines[0], got.stderr
