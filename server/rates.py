@@ -22,11 +22,12 @@ The rule, evaluated once per ``window`` (0.5 s):
   ``headroom`` to spare (``headroom x drained bytes/s / bytes per snapshot``), and
   at least ``down_factor`` below the rate that failed; that rate is remembered as
   the link's *ceiling*;
-- *clear* for ``up_after`` (2 s) since the last congestion and ``up_every`` (1 s)
-  since the last change: **up slowly**, by ``up_step`` of the rate (at least 1 Hz),
+- *clear* for ``up_after`` (1 s) since the last congestion and ``up_every`` (0.5 s)
+  since the last change: **up slowly**, by ``up_step`` (25 %) of the rate (at least 1 Hz),
   but not to the ceiling until the ceiling is ``ceiling_hold`` (10 s) old: the
   probe of a known limit is rare, so the rate does not oscillate around it; a step
-  up that fails at once (within ``2 up_every``) goes back to the rate before it.
+  up that fails at once (within ``2 up_every``) goes back to the rate before it
+  (and the next step up stops below the rate that failed).
 
 Rates are whole Hz: subscribers at one rate tick in step and share one encoded
 snapshot per tick (``server.room``), and each change costs a compact subscriber a
@@ -88,12 +89,12 @@ class LinkRate:
     #: The rate it starts at (None: ``hi``, then down fast if the link is narrower).
     start: float | None = None
     window: float = 0.5
-    headroom: float = 0.9
+    headroom: float = 0.95
     down_factor: float = 0.85
     backlog_frames: float = 4.0
-    up_after: float = 2.0
-    up_every: float = 1.0
-    up_step: float = 0.1
+    up_after: float = 1.0
+    up_every: float = 0.5
+    up_step: float = 0.25
     ceiling_hold: float = 10.0
     rate: float = field(init=False)
     #: The rate that last failed and when (inf: none known).
