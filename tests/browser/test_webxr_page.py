@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from playwright.async_api import BrowserContext, Page
 from scipy.spatial.transform import Rotation
-from support import running_server
+from support import poll_until, running_server
 
 from posecast.client.connection import ClientConnection
 from posecast.interp import get as interpolator
@@ -163,14 +163,7 @@ async def wait_publishing(page: Page) -> int:
 
 async def until(condition: Any, limit: float = 30.0) -> None:
     """Poll ``condition()`` (sync or async) every 50 ms; ``limit`` is a hang guard."""
-    async with asyncio.timeout(limit):
-        while True:
-            got = condition()
-            if asyncio.iscoroutine(got):
-                got = await got
-            if got:
-                return
-            await asyncio.sleep(0.05)
+    await poll_until(condition, limit=limit, every=0.05)
 
 
 def angle_deg(q1: np.ndarray, q2: np.ndarray) -> float:

@@ -21,6 +21,7 @@ import urllib.request
 from pathlib import Path
 
 import pytest
+from support import poll_until
 
 from posecast.server.cluster import LocalNats, find_nats_server
 
@@ -73,10 +74,12 @@ async def _session(tmp: Path) -> tuple[int, str, dict[str, object], str, str]:
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT, env=_ENV,
         )  # fmt: skip
         procs.append(bots)
-        async with asyncio.timeout(60):  # a hang guard: both bots' poses flow through a
-            while await asyncio.to_thread(_frames_out, url_a) < 100:
-                assert bots.returncode is None
-                await asyncio.sleep(0.1)
+
+        async def flowing() -> bool:  # both bots' poses flow through a
+            assert bots.returncode is None
+            return await asyncio.to_thread(_frames_out, url_a) >= 100
+
+        await poll_until(flowing, every=0.1)  # 60 s: a hang guard
         a.send_signal(signal.SIGKILL)
         await a.wait()
         out, _ = await asyncio.wait_for(bots.communicate(), 120)

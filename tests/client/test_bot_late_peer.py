@@ -16,7 +16,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from support import running_server
+from support import poll_until, relayed, running_server
 
 from posecast.client.bot import (
     BotConfig,
@@ -31,12 +31,15 @@ from posecast.interp import get
 from posecast.scenarios.qoe import playout_brackets
 
 LATE_BY = 0.8
-DURATION = 9.0
-#: When the late member starts (s after the honest bots), and how long it stays.
-LATE_JOIN = 4.0
-LATE_STAYS = DURATION - LATE_JOIN + 1.0  # it outlasts them
+DURATION = 10.0
 #: D settles within about 2 s of a start (tau = 1 s): left out of the comparison.
 SETTLE = 2.0
+#: The late member joins once the relay has sent the honest bots this many seconds of
+#: each other's poses (so at about 4 s on a quiet machine, later on a busy one: their D
+#: has settled either way), and stays until after they end.
+LATE_JOIN = SETTLE + 2.0
+LATE_STAYS = DURATION
+HONEST, RATE, STREAMS = 3, 15, 3
 
 
 async def _room() -> tuple[list[BotReport], BotReport]:
@@ -47,7 +50,7 @@ async def _room() -> tuple[list[BotReport], BotReport]:
             return BotConfig(
                 url=url,
                 room="late",
-                rate=15,
+                rate=RATE,
                 seed=seed,
                 duration=DURATION,
                 methods=("soa",),
@@ -56,14 +59,18 @@ async def _room() -> tuple[list[BotReport], BotReport]:
             )
 
         async def late_member() -> BotReport:
-            await asyncio.sleep(LATE_JOIN)
+            # Each honest bot gets the others' streams at its rate: poses out per second.
+            per_s = HONEST * RATE * (HONEST - 1) * STREAMS
+            t0 = server.clock()
+            await poll_until(lambda: relayed(server, "late") >= per_s * LATE_JOIN, every=0.05)
+            print(f"the late member joins {server.clock() - t0:.1f} s after the honest bots")
             # Raw snapshots: what it receives plays no part here (and a compact
             # subscriber joining a running room can get a delta before its baseline).
             late = replace(cfg(9), clock_error=-LATE_BY, duration=LATE_STAYS, codec="raw")
             return await run_bot(late)
 
         async with asyncio.TaskGroup() as tg:
-            honest = [tg.create_task(run_bot(cfg(s))) for s in range(3)]
+            honest = [tg.create_task(run_bot(cfg(s))) for s in range(HONEST)]
             late = tg.create_task(late_member())
     return [t.result() for t in honest], late.result()
 

@@ -13,12 +13,11 @@ import re
 import signal
 import subprocess
 import sys
-import time
 import urllib.request
 from pathlib import Path
 
 import pytest
-from support import poll_until, relayed, running_server
+from support import poll_until, relayed, running_server, wait_until
 
 from posecast.client.bot import BotConfig, BotReport, SessionEnd, run_bot
 from posecast.client.swarm import session_ending, swarm_report
@@ -197,10 +196,12 @@ def _bots_until_the_server(sig: signal.Signals, tmp: Path) -> tuple[int, str]:
             text=True,
             env={**os.environ, "PYTHONUNBUFFERED": "1", "COLUMNS": "200"},
         )
-        deadline = time.monotonic() + 60  # a hang guard
-        while _metric(port, "posecast_frames_out_total") < 100:
-            assert time.monotonic() < deadline and bots.poll() is None
-            time.sleep(0.05)
+
+        def flowing() -> bool:
+            assert bots.poll() is None
+            return _metric(port, "posecast_frames_out_total") >= 100
+
+        wait_until(flowing, every=0.05)  # 60 s: a hang guard
         server.send_signal(sig)
         server.wait(30)
         out, _ = bots.communicate(timeout=120)

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from support import poll_until, running_server
+from support import poll_until, relayed, running_server
 
 from posecast.cli.web import find_node, npm_ci, one_build_at_a_time
 from posecast.client.bot import BotConfig, BotReport, run_bot
@@ -272,6 +272,11 @@ class _Cutter:
         self.writers.clear()
 
 
+def _members(server: RelayServer, room: str) -> int:
+    r = server.rooms.get(room)
+    return 0 if r is None else len(r.members)
+
+
 async def _cut_session(node: Node) -> tuple[dict[str, object], BotReport, float]:
     async with running_server() as server:
         cutter = _Cutter(server.port)
@@ -299,7 +304,8 @@ async def _cut_session(node: Node) -> tuple[dict[str, object], BotReport, float]
             js = tg.create_task(proc.communicate())
             await poll_until(lambda: _updates_in(server, room) > 0 or js.done())
             py = tg.create_task(run_bot(cfg))
-            await asyncio.sleep(1.5)
+            # Cut once the peer is in the room and the JS bot's poses reach it.
+            await poll_until(lambda: _members(server, room) == 2 and relayed(server, room) > 30)
             cut_at = time.monotonic()
             cutter.cut()
         proxy.close()

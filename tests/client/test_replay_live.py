@@ -10,12 +10,12 @@ from typing import Any, Literal
 
 import numpy as np
 import pytest
-from support import running_server
+from support import poll_until, running_server
 from websockets.exceptions import ConnectionClosed
 
 from posecast.client.connection import ClientConnection
 from posecast.client.replay import DEFAULT_MAX_SEND_RATE, plan_replay, replay_live
-from posecast.protocol import PeerJoined, Snapshot
+from posecast.protocol import PeerJoined, PeerLeft, Snapshot
 from posecast.protocol.codec import DEFAULT_VOLUME, dequantise, quantise
 from posecast.recorder.export import read_session
 from posecast.recorder.replay import synthesize_recording
@@ -32,6 +32,8 @@ class Viewer:
     conn: ClientConnection
     seen: dict[tuple[int, int], list[tuple[float, float, np.ndarray]]] = field(default_factory=dict)
     labels: dict[int, str | None] = field(default_factory=dict)
+    #: Users whose peer_left it got.
+    left: set[int] = field(default_factory=set)
     #: With velocity snapshots: (user, stream) -> the float16 velocity of each new keyframe.
     velocities: dict[tuple[int, int], list[np.ndarray]] = field(default_factory=dict)
 
@@ -43,6 +45,8 @@ class Viewer:
                 snap = rec.event
                 if isinstance(snap, PeerJoined):
                     self.labels[snap.user] = snap.label
+                elif isinstance(snap, PeerLeft):
+                    self.left.add(snap.user)
                 if not isinstance(snap, Snapshot):
                     continue
                 caps = snap.capture_times
@@ -89,7 +93,10 @@ async def _replay_and_watch(
             report = await replay_live(
                 path, url, speed=speed, room=room, linger=2 * TICK, codec=codec
             )
-            await asyncio.sleep(3 * TICK)  # the last snapshot's way to the viewer
+            # Each bot's leave comes after every snapshot the relay sent with its poses
+            # (one socket, in order): then the viewer has them all.
+            bots = {int(b["user"]) for b in report["bots"]}
+            await poll_until(lambda: bots <= viewer.left)
         finally:
             await conn.close()
             await task

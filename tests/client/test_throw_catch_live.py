@@ -15,16 +15,18 @@ from __future__ import annotations
 
 import asyncio
 import math
+from functools import partial
 
 import numpy as np
 import pytest
-from support import running_server
+from support import poll_until, running_server
 
 from posecast.client.bot import BotConfig, BotReport, run_bot
 from posecast.client.swarm import handovers, swarm_report
 from posecast.protocol import ROOM_USER
 from posecast.scenarios.motion import MotionSpec
 from posecast.scenarios.throw_catch import DRILL, PERIOD, scene_script
+from posecast.server.app import RelayServer
 
 RATE = 10.0
 GRAVITY = 9.81
@@ -32,6 +34,11 @@ GRAVITY = 9.81
 QUANT_MM = 1.0
 #: Rounding of a capture time in the relay's compact snapshots (whole ms).
 TIME_Q = 0.5e-3
+
+
+def _members(server: RelayServer, room: str, n: int) -> bool:
+    r = server.rooms.get(room)
+    return r is not None and len(r.members) >= n
 
 
 async def _scene(n: int, duration: float) -> list[BotReport]:
@@ -54,7 +61,8 @@ async def _scene(n: int, duration: float) -> list[BotReport]:
                     **{**base.__dict__, "motion": f"synthetic:throw-catch.{role}", "name": role}
                 )
                 tasks.append(tg.create_task(run_bot(cfg)))
-                await asyncio.sleep(0.05)
+                # Joined in role order (the thrower first: it creates the drill).
+                await poll_until(partial(_members, server, "tc", i + 1))
     return [t.result() for t in tasks]
 
 

@@ -14,12 +14,11 @@ import selectors
 import signal
 import subprocess
 import sys
-import time
 import urllib.request
 from collections.abc import Callable
 from pathlib import Path
 
-from support import poll_until, running_server
+from support import poll_until, running_server, wait_until
 
 from posecast.client.bot import BotConfig
 from posecast.client.swarm import run_bots, swarm_report
@@ -150,10 +149,7 @@ def _relayed(metrics: str) -> float:
 
 def _poll(condition: Callable[[], bool], limit: float = 120.0) -> None:
     """Poll every 0.2 s until ``condition`` holds; ``limit`` is a hang guard."""
-    deadline = time.monotonic() + limit
-    while not condition():
-        assert time.monotonic() < deadline, "condition never held"
-        time.sleep(0.2)
+    wait_until(condition, limit=limit, every=0.2)
 
 
 def test_ctrl_c_in_table1_prints_what_was_measured(tmp_path: Path) -> None:

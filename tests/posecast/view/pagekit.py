@@ -2,15 +2,14 @@
 
 from __future__ import annotations
 
-import asyncio
 import io
-import time
 from collections.abc import Callable
 
 import numpy as np
 from matplotlib import image as mpimg
 from numpy.typing import NDArray
 from playwright.async_api import Page
+from support import poll_until
 
 FPS_JS = """() => new Promise(done => {
   let n = 0; const t0 = performance.now();
@@ -39,11 +38,7 @@ async def scene_ready(page: Page, limit: float = 300.0) -> None:
 
 async def until(condition: Callable[[], bool], limit: float = 30.0) -> None:
     """Wait (polling, no fixed sleep) until ``condition()`` holds; fail after ``limit`` s."""
-    deadline = time.monotonic() + limit
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        await asyncio.sleep(0.05)
+    await poll_until(condition, limit=limit, every=0.05)
 
 
 def project(
@@ -73,6 +68,19 @@ async def canvas_rgb(page: Page) -> NDArray[np.float64]:
     png = await page.locator("canvas").first.screenshot()
     img = mpimg.imread(io.BytesIO(png), format="png")
     return np.asarray(img[..., :3], dtype=np.float64)
+
+
+async def settled_canvas(page: Page, limit: float = 60.0) -> NDArray[np.float64]:
+    """The 3D canvas once it stopped changing: two reads in a row alike (what a paused
+    view's page shows once its last frame arrived and was drawn)."""
+    reads = [await canvas_rgb(page)]
+
+    async def alike() -> bool:
+        reads.append(await canvas_rgb(page))
+        return bool(np.array_equal(reads[-2], reads[-1]))
+
+    await poll_until(alike, limit=limit, every=0.2)
+    return reads[-1]
 
 
 def saturated_near(img: NDArray[np.float64], xy: NDArray[np.float64], radius: int = 8) -> float:

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import io
 import re
 
 from pagekit import until
 from playwright.async_api import Page
 from rich.console import Console
+from support import poll_until
 
 from posecast.demo import run_demo
 
@@ -34,11 +36,14 @@ async def test_demo_view_serves_the_demo_room(page: Page) -> None:
     await page.goto(found.group(1))
     await page.wait_for_selector("text=keyframes/s", timeout=30_000)
     users: set[str] = set()
-    for _ in range(40):  # the second bot may join a moment later
+
+    async def both_shown() -> bool:  # the second bot may join a moment later
+        nonlocal users
         users = set(re.findall(r"\bu(\d+)\s", await page.inner_text("body")))
-        if len(users) == 2:
-            break
-        await asyncio.sleep(0.25)
+        return len(users) == 2
+
+    with contextlib.suppress(TimeoutError):  # asserted below, with the report
+        await poll_until(both_shown, limit=10.0, every=0.25)
     report = await asyncio.wait_for(demo, 60)
     assert page.errors == []  # type: ignore[attr-defined]
     assert len(users) == 2

@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 
 import numpy as np
-from pagekit import canvas_rgb, project, saturated_near, scene_ready, until
+from pagekit import project, saturated_near, scene_ready, settled_canvas, until
 from playwright.async_api import Page
 from support import running_server
 
@@ -73,8 +73,7 @@ async def test_live_view_shows_every_remote_user(page: Page) -> None:
                 # Freeze the page on one frame, let it arrive, then read the page back.
                 view.paused = True
                 t_play, _, shown = view.last_frame
-                await asyncio.sleep(2.0)
-                img = await canvas_rgb(page)
+                img = await settled_canvas(page)
                 client = next(iter(view.server.get_clients().values()))
                 cam = client.camera
                 h, w = img.shape[:2]

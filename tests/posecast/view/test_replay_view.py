@@ -7,8 +7,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from pagekit import canvas_rgb, project, saturated_near, scene_ready, until
+from pagekit import project, saturated_near, scene_ready, settled_canvas, until
 from playwright.async_api import Page
+from support import poll_until
 
 from posecast.recorder.reader import SessionReader
 from posecast.recorder.replay import synthesize_recording
@@ -113,9 +114,12 @@ async def test_dragging_the_timeline_shows_that_time(recording: Path, page: Page
             await page.mouse.move(track["x"] + frac * track["width"], y, steps=4)
         await page.mouse.up()
         await until(lambda: view.t > view.model.start + 0.5)
-        await asyncio.sleep(1.0)  # the last drag event settles
-        shown_value = float(await thumb.get_attribute("aria-valuenow") or "nan")
-        assert abs(view.t - view.model.start - shown_value) < 0.011
+
+        async def slider_says_view_time() -> bool:  # once the last drag event settled
+            shown_value = float(await thumb.get_attribute("aria-valuenow") or "nan")
+            return abs(view.t - view.model.start - shown_value) < 0.011
+
+        await poll_until(slider_says_view_time, limit=30.0, every=0.1)
         t = view.t
         heads = {}
         for user in view.model.users:
@@ -123,8 +127,7 @@ async def test_dragging_the_timeline_shows_that_time(recording: Path, page: Page
             got = view.scene.shown[(user, "head")][TRUTH]
             assert np.allclose(got, want, atol=1e-7)
             heads[user] = want[:3] + np.array([view.scene.offset(user), 0.0, 0.0])
-        await asyncio.sleep(1.5)
-        img = await canvas_rgb(page)
+        img = await settled_canvas(page)
         cam = next(iter(view.server.get_clients().values())).camera
         h, w = img.shape[:2]
         pix = project(
