@@ -9,11 +9,14 @@ The cycles that exist today are listed in :data:`ALLOWED_CYCLES`, each by its
 modules. The list only shrinks: a new cycle, or a module joining a listed one,
 fails; a listed cycle that got smaller or went away fails too, until its entry
 is cut to what is left (so the list always says what remains to untie).
+
+And the tests themselves: real sleeps stay within :data:`SLEEP_BUDGET`.
 """
 
 from __future__ import annotations
 
 import ast
+import re
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 
@@ -156,3 +159,76 @@ def test_the_graph_covers_every_package() -> None:
     assert "posecast.protocol" in graph["posecast.server.core"] or any(
         t.startswith("posecast.protocol.") for t in graph["posecast.server.core"]
     )
+
+
+# -- real sleeps in the tests ----------------------------------------------------------------
+
+#: At most this many real sleeps in the suite (issue 27). A real sleep is a call to
+#: ``asyncio.sleep`` or ``time.sleep`` whose argument is not a literal 0 (a bare yield
+#: to the loop); each place in the source counts once, also inside a child process's
+#: script held in a string. A test that needs "later" waits for an observable
+#: condition through support.poll_until / wait_until, or paces a source with
+#: support.Pacer, or takes an injected clock.
+SLEEP_BUDGET = 10
+#: No literal sleep longer than this (seconds).
+LONGEST_SLEEP = 0.5
+#: Stand-alone tools kept beside the tests they feed, which pytest never runs (their
+#: use is in docs/guides/viewer.md): not part of the suite's budget.
+TOOLS = frozenset({"make_screenshots.py", "measure_view.py"})
+SLEEP = re.compile(r"\b(?:asyncio|time)\.sleep\(")
+
+
+def real_sleeps(text: str) -> list[tuple[int, str]]:
+    """(line, argument) of each real sleep in ``text``; comment lines do not count."""
+    found = []
+    for n, line in enumerate(text.splitlines(), 1):
+        if line.lstrip().startswith("#"):
+            continue
+        for m in SLEEP.finditer(line):
+            depth, end = 1, m.end()
+            while end < len(line) and depth:
+                depth += {"(": 1, ")": -1}.get(line[end], 0)
+                end += 1
+            arg = line[m.end() : end - 1].strip()
+            if not re.fullmatch(r"0(?:\.0*)?", arg):
+                found.append((n, arg))
+    return found
+
+
+def suite_sleeps() -> list[tuple[str, int, str]]:
+    here = Path(__file__).resolve().parent
+    return [
+        (str(path.relative_to(here)), n, arg)
+        for path in sorted(here.rglob("*.py"))
+        if path.name not in TOOLS
+        for n, arg in real_sleeps(path.read_text())
+    ]
+
+
+def test_real_sleeps_within_budget() -> None:
+    """The suite sleeps for real in at most SLEEP_BUDGET places, none over LONGEST_SLEEP."""
+    sleeps = suite_sleeps()
+    where = "\n".join(f"{p}:{n}: sleep({a})" for p, n, a in sleeps)
+    assert len(sleeps) <= SLEEP_BUDGET, f"{len(sleeps)} real sleeps:\n{where}"
+    long = [s for s in sleeps if re.fullmatch(r"[\d.]+", s[2]) and float(s[2]) > LONGEST_SLEEP]
+    assert not long, f"sleeps over {LONGEST_SLEEP} s: {long}"
+
+
+def test_the_sleep_counter_sees_sleeps() -> None:
+    """Literal, computed and in-string sleeps count; sleep(0) and comments do not."""
+    lines = [
+        "await asyncio.nap(0)",
+        "await asyncio.nap(0.0)",
+        "await asyncio.nap(0.25)",
+        "time.nap(max(0.0, due - clock()))",
+        "# time.nap(3)",
+        'SCRIPT = "time.nap(0.01)"',
+        "await asyncio.nap(every)",
+    ]
+    text = "\n".join(lines).replace(".nap(", ".sleep(")  # not counted in this file
+    assert real_sleeps(text) == [
+        (3, "0.25"),
+        (4, "max(0.0, due - clock())"),
+        (6, "0.01"),
+        (7, "every"),
+    ]
