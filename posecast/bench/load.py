@@ -550,6 +550,17 @@ async def _ramp(
     return {"event": "ramped", **join_outcomes(clients), "ramp_s": time.monotonic() - start}
 
 
+def measured_clients(clients: list[_BenchClient]) -> list[int]:
+    """The clients whose snapshot rate is measured: those that joined a room another
+    client joined too (a relay that refuses some joins leaves members alone in their
+    room, and a lone member is sent nothing: no stream of others changes)."""
+    rooms: dict[str, int] = {}
+    for c in clients:
+        if c.outcome == JOINED:
+            rooms[c.room] = rooms.get(c.room, 0) + 1
+    return [c.index for c in clients if c.outcome == JOINED and rooms[c.room] > 1]
+
+
 def join_outcomes(clients: list[_BenchClient]) -> dict[str, Any]:
     """How the joins ended: joined, failed (refused by code, hung, ...), and how long
     each refusal and each join took (s), for the controller to add up."""
@@ -631,7 +642,7 @@ async def _measure(
         return
     stats.t0, stats.t1 = (float(x) for x in order["window"])
     await asyncio.sleep(max(0.0, stats.t1 - time.monotonic()) + 0.05)
-    summary = stats.counts([c.index for c in clients if c.outcome == JOINED])
+    summary = stats.counts(measured_clients(clients))
     closed = [c.conn.closed.result() for c in clients if c.conn and c.conn.closed.done()]
     summary["clients_closed"] = len(closed)
     summary["close_reasons"] = sorted(set(closed))[:5]

@@ -16,7 +16,15 @@ from typing import Any
 from support import poll_until, running_server
 
 from posecast.bench.fleet import join_figures, merge_parts, merge_ramped
-from posecast.bench.load import HUNG, JOINED, UNREACHABLE, _BenchClient, _LoadStats, join_outcomes
+from posecast.bench.load import (
+    HUNG,
+    JOINED,
+    UNREACHABLE,
+    _BenchClient,
+    _LoadStats,
+    join_outcomes,
+    measured_clients,
+)
 from posecast.server.app import ServerConfig
 
 TINY = ServerConfig(host="127.0.0.1", port=0, capacity_cpu=1e-9)
@@ -98,4 +106,13 @@ def test_refused_clients_are_not_counted_as_clients_without_snapshots() -> None:
     }
     merged = merge_parts([part])
     assert merged["snapshots_per_client_s"] == 20.0
-    assert JOINED == "joined"
+
+
+def test_a_member_alone_in_its_room_is_not_measured() -> None:
+    """Refusals can leave a member alone in its room: it is sent nothing, so the
+    snapshot rate is measured over members that have a room mate."""
+    stats = _LoadStats(5)
+    clients = [_BenchClient(i, f"room-{i // 3}", 20.0, stats, "compact") for i in range(5)]
+    for c, outcome in zip(clients, [JOINED, JOINED, "server-full", JOINED, HUNG], strict=True):
+        c.outcome = outcome
+    assert measured_clients(clients) == [0, 1]
