@@ -23,6 +23,12 @@ tick lag        the share of room ticks more than ``lag`` late in the last   ``l
                 many members, and that counts)
 backlog         bytes written but not yet taken by the kernel, summed over   ``backlog``,
                 every connection, at the last sample                         32 MiB
+growth          members admitted since the last CPU reading: at most half    with
+                the members it measured, at least ``GROWTH_MIN`` (a slow     ``cpu``
+                start: the readings must see new members before more come;
+                on a machine shared with other work the relay gets less
+                than the core its CPU budget assumes, and only its lag
+                says so, a window late)
 ==============  ===========================================================  ==========
 
 Over any budget, the join (or the hello before it) is refused with the fatal
@@ -51,6 +57,8 @@ if TYPE_CHECKING:
     from posecast.server.peer import Peer
 
 __all__ = [
+    "GROWTH",
+    "GROWTH_MIN",
     "LAG_CPU_FLOOR",
     "LAG_MIN_MEMBERS",
     "RETRY_AFTER",
@@ -70,6 +78,10 @@ LAG_CPU_FLOOR = 0.2
 LAG_MIN_MEMBERS = 16
 #: Share of a window's ticks that may be later than the lag budget (1 %: the p99).
 LAG_SHARE = 0.01
+#: Members admitted per CPU reading: at most this share of the members it measured ...
+GROWTH = 0.5
+#: ... and at least this many.
+GROWTH_MIN = 16
 #: A connection whose updates are stale gets one ``bad-pose`` error per this many seconds.
 STALE_ERROR_INTERVAL = 1.0
 #: A CPU reading older than this many windows is not used (no ticks ran to sample).
@@ -109,6 +121,8 @@ class Capacity:
     #: (the mean of its first and last reading).
     cpu: float = 0.0
     cpu_members: int = 0
+    #: Members at the last CPU reading (those admitted since are the growth).
+    read_members: int = 0
     backlog: int = 0
     #: Joins refused, by error code (``posecast_joins_refused_total``).
     joins_refused: dict[str, int] = field(default_factory=dict)
@@ -135,6 +149,7 @@ class Capacity:
             self.cpu = max(0.0, cpu_seconds - c0) / (now - t0)
             # The members the window's CPU served: a ramp's members joined during it.
             self.cpu_members = round((m0 + members) / 2)
+            self.read_members = members
             self._cpu_at = (now, cpu_seconds, members)
             self._sampled = now
 
@@ -177,10 +192,13 @@ class Capacity:
     def usage(self, members: int, now: float) -> dict[str, float]:
         """Each signal as a share of its budget with one more member (over 1: refused)."""
         b = self.budget
-        out = {"cpu": 0.0, "lag": 0.0, "backlog": 0.0}
+        out = {"cpu": 0.0, "lag": 0.0, "backlog": 0.0, "growth": 0.0}
         fresh = self._sampled is not None and now - self._sampled <= STALE_WINDOWS * b.window
         if b.cpu > 0 and fresh and self.cpu_members > 0:
             out["cpu"] = self.cpu * (members + 1) / self.cpu_members / b.cpu
+        if b.cpu > 0 and fresh:  # (no reading yet: nothing to grow from)
+            since = self.read_members
+            out["growth"] = (members + 1 - since) / max(GROWTH_MIN, GROWTH * since)
         loaded = (fresh and self.cpu >= LAG_CPU_FLOOR) or members >= LAG_MIN_MEMBERS
         if b.lag > 0 and loaded:
             share = max((w.late / w.ticks for w in self._windows(now) if w.ticks), default=0.0)
@@ -200,6 +218,8 @@ class Capacity:
             )
         if use["lag"] > 1.0:
             return f"the relay is full: over 1 % of its ticks run over {1e3 * b.lag:g} ms late"
+        if use["growth"] > 1.0:
+            return f"the relay is full for now: {members} members, measuring the last ones"
         if use["backlog"] > 1.0:
             return f"the relay is full: {self.backlog >> 20} MiB unsent, over {b.backlog >> 20} MiB"
         return None

@@ -251,7 +251,8 @@ def _capacity_metric(core: RelayCore, metric: Metric, now: float) -> None:
         "posecast_capacity_used_ratio",
         "gauge",
         "Each capacity signal with one more member, as a share of its budget (over 1: new"
-        " members are refused server-full): cpu, lag (ticks over budget), backlog.",
+        " members are refused server-full): cpu, lag (ticks over budget), backlog, growth"
+        " (members admitted since the last CPU reading).",
         [(f'{{signal="{k}"}}', v) for k, v in core.capacity.usage(members, now).items()],
     )
 

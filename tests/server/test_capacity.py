@@ -20,6 +20,7 @@ from websockets.exceptions import ConnectionClosed
 from posecast.client.bot import BotConfig, run_bot
 from posecast.protocol import ClientSession, ErrorMessage, Hello, Join, Joined, PeerJoined, Welcome
 from posecast.server.capacity import (
+    GROWTH_MIN,
     LAG_CPU_FLOOR,
     LAG_MIN_MEMBERS,
     RETRY_AFTER,
@@ -40,16 +41,28 @@ def measured(cpu: float, members: int, budget: CapacityBudget | None = None) -> 
     return cap
 
 
-def test_cpu_alone_admits_until_one_more_member_is_over_budget() -> None:
-    """0.5 of a core for 50 members: a 51st..79th fits under 0.8, an 80th does not."""
-    cap = measured(0.5, 50)
-    assert cap.cpu == pytest.approx(0.5) and cap.cpu_members == 50
+def test_cpu_admits_until_one_more_member_is_over_budget() -> None:
+    """0.7 of a core for 50 members: a 57th fits under 0.8 (0.798), a 58th does not."""
+    cap = measured(0.7, 50)
+    assert cap.cpu == pytest.approx(0.7) and cap.cpu_members == 50
     assert cap.refusal(50, 1.2) is None
-    assert cap.refusal(78, 1.2) is None  # 79 * 0.01 = 0.79
-    why = cap.refusal(79, 1.2)  # 80 * 0.01 = 0.80 ... and the 81st
-    assert why is None or "0.80" in why
-    why = cap.refusal(80, 1.2)
-    assert why is not None and "81 members would use 0.81 of a core" in why
+    assert cap.refusal(56, 1.2) is None
+    why = cap.refusal(57, 1.2)
+    assert why is not None and "58 members would use 0.81 of a core" in why
+
+
+def test_growth_per_reading_is_bounded() -> None:
+    """Half the members of the last reading join before the next one (at least
+    GROWTH_MIN): a burst of joins cannot outrun the measurements."""
+    cap = measured(0.1, 50)  # room for far more, by CPU
+    assert cap.refusal(74, 1.2) is None  # the 25th since the reading
+    why = cap.refusal(75, 1.2)
+    assert why is not None and "full for now: 75 members" in why
+    small = measured(0.01, 2)
+    assert small.refusal(2 + GROWTH_MIN - 1, 1.2) is None
+    assert small.refusal(2 + GROWTH_MIN, 1.2) is not None
+    cap.sample(2.0, 100.2, 0, 75)  # the next reading: half of 75 more may come
+    assert cap.refusal(75 + 36, 2.2) is None and cap.refusal(75 + 37, 2.2) is not None
 
 
 def test_members_admitted_since_the_window_count() -> None:
@@ -131,7 +144,7 @@ def test_a_zero_budget_turns_its_signal_off() -> None:
         cap.tick_lag(1.0 + i * 0.001, 10.0)
     cap.sample(1.5, 200.0, 1 << 40, 10)
     assert cap.refusal(1000, 1.6) is None
-    assert cap.usage(1000, 1.6) == {"cpu": 0.0, "lag": 0.0, "backlog": 0.0}
+    assert cap.usage(1000, 1.6) == {"cpu": 0.0, "lag": 0.0, "backlog": 0.0, "growth": 0.0}
 
 
 # -- the core's refusals -----------------------------------------------------------------------
