@@ -166,6 +166,7 @@ class BotReport:
     delay_ms: float
     render_stall_fraction: float
     frames_rendered: int
+    #: CPU time of its render calls (the render thread's own, ``time.thread_time``).
     render_cpu_s: float
     snapshot_bytes: int
     poses_received: int
@@ -407,9 +408,12 @@ class Bot:
             if keep:
                 log.note_local(local)
                 log.note_shown(core.shown())
-            c0 = time.process_time()
-            core.render(playout)
-            self.render_cpu += time.process_time() - c0
+            # This thread's CPU only: the process's would count other threads' work
+            # (a bot that loads its motion or scores its session off the loop).
+            c0 = time.thread_time()
+            frame = core.render(playout, report=False)
+            self.render_cpu += time.thread_time() - c0
+            core.report(frame)
             nxt += period
             await asyncio.sleep(max(0.0, nxt - self.clock()))
 

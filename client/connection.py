@@ -27,6 +27,7 @@ from websockets.asyncio.client import ClientConnection as WsConnection
 from websockets.asyncio.client import connect
 
 from posecast.client.reconnect import (
+    CLOSE_TIMEOUT,
     GRACEFUL_CLOSE_CODES,
     KEEPALIVE_INTERVAL,
     KEEPALIVE_TIMEOUT,
@@ -184,6 +185,7 @@ class ClientConnection:
             # resume window (client.reconnect), as the relay notices it.
             ping_interval=KEEPALIVE_INTERVAL,
             ping_timeout=KEEPALIVE_TIMEOUT,
+            close_timeout=CLOSE_TIMEOUT,
             max_size=2**20,
             compression=None,
             ssl=(tls or Tls()).context(url),

@@ -305,14 +305,22 @@ class ClientCore:
         d = self.delay.update(now)
         return Playout(now, d, self.delay.own)
 
-    def render(self, playout: Playout) -> Rendered:
-        """Every remote stream at its playout time, one batched call per method."""
+    def render(self, playout: Playout, *, report: bool = True) -> Rendered:
+        """Every remote stream at its playout time, one batched call per method.
+
+        ``report``: tell the observer now; False leaves it to :meth:`report` (a caller
+        that times the render alone)."""
         frame = render_buffers(self.buffers, self._row_times(playout), self.methods)
         self._floor = playout.now - playout.delay
         out = Rendered(self.frames, playout, frame)
         self.frames += 1
-        self.observer.rendered(out)
+        if report:
+            self.observer.rendered(out)
         return out
+
+    def report(self, rendered: Rendered) -> None:
+        """Tell the observer of a frame rendered with ``report=False``."""
+        self.observer.rendered(rendered)
 
     def _row_times(self, p: Playout) -> float | F64:
         """The room's playout time, or one per row when a user is shown late alone."""

@@ -24,8 +24,9 @@ The window: a reconnecting client tries until ``min(stop, dropped + window)``
 
 Keepalive: the client pings its connection every :data:`KEEPALIVE_INTERVAL` s and
 drops it when no pong came within :data:`KEEPALIVE_TIMEOUT` s, as the relay does,
-so a silently dead path (socket open, bytes dropped) is noticed within 5 s, well
-inside the relay's 10 s resume window, and the client resumes.
+and closes it without waiting over :data:`CLOSE_TIMEOUT` s for a close frame that
+cannot come, so a silently dead path (socket open, bytes dropped) is noticed
+within 7.5 s, inside the relay's 10 s resume window, and the client resumes.
 
 :class:`SessionEnd` says how a session ended. ``complete`` means: the session ran
 its whole duration (resumes along the way allowed) and showed fresh poses for at
@@ -39,6 +40,7 @@ from dataclasses import dataclass, field, replace
 from typing import Literal
 
 __all__ = [
+    "CLOSE_TIMEOUT",
     "GRACEFUL_CLOSE_CODES",
     "KEEPALIVE_INTERVAL",
     "KEEPALIVE_TIMEOUT",
@@ -53,6 +55,11 @@ GRACEFUL_CLOSE_CODES = frozenset({1000, 1001})
 #: this late (s). The relay's defaults; their sum is under the resume window (10 s).
 KEEPALIVE_INTERVAL = 2.5
 KEEPALIVE_TIMEOUT = 2.5
+#: How long a closing connection waits for the other side's close frame (s): after a
+#: keepalive timeout the path is dead and none will come, so the drop is known
+#: ``KEEPALIVE_INTERVAL + KEEPALIVE_TIMEOUT + CLOSE_TIMEOUT`` (7.5 s) after the last
+#: byte at most, inside the resume window.
+CLOSE_TIMEOUT = 2.5
 #: A session that ran its duration is ``stalled`` when over this share of its render
 #: time showed no fresh pose of anyone (every remote stream held past its newest).
 STALE_SHARE = 0.5
