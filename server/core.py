@@ -301,12 +301,7 @@ class RelayCore:
                 self.peers[conn], 1008, f"no join within {self.config.join_timeout:g} s"
             )
         for conn in self._token_deadlines.pop_due(now):
-            self.token_expiries += 1
-            expired = ErrorMessage.from_code(
-                ErrorCode.UNAUTHORIZED, "access token expired; renew it"
-            )
-            self.send(self.peers[conn], expired)
-            self.close_peer(self.peers[conn], 1008, "access token expired")
+            tokens.expired(self, self.peers[conn])
         for parked in self.parking.expire(now):
             resume.gone(self, parked, now)
         self.silence.expire(self, now)
@@ -465,8 +460,8 @@ class RelayCore:
             resume.park(self, peer, now)
         else:
             self._leave(peer, now)
-        if peer.parked is not None:  # resumed, never joined again: it is gone now
-            resume.gone(self, peer.parked, now)
+        if peer.parked is not None:  # resumed, never joined again: parked again
+            resume.unclaim(self, peer.parked, now)
         if peer.admitted:
             self.admission.release(peer.address)
         if peer.user is not None:

@@ -309,6 +309,13 @@ def _limit_metrics(
         "Connections closed (1008) for exceeding their misbehaviour budget.",
         [("", core.misbehaviour_closes)],
     )
+    metric(
+        "posecast_resumes_refused_total",
+        "counter",
+        "Resumes refused (unauthorized, 1008): a resume token with the wrong secret, or a"
+        " resumed join with another user's access token; the parked member is untouched.",
+        [("", core.parking.refused)],
+    )
 
 
 def _number(value: float) -> str:

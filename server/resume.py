@@ -12,6 +12,14 @@ the queued events first, a key snapshot, ``peer_resumed`` to the peers and a
 one resume; the resumed connection gets a new one. When the window closes
 first, the member leaves as any other (``peer_left``, reason "gone").
 
+A resume token is a credential bound to the session it was given to: its first
+``ID_LENGTH`` characters name the parked member, the rest is a secret compared in
+constant time (``hmac.compare_digest``). A hello naming a parked member without
+its secret is refused (``unauthorized``, close 1008); on a relay with a secret the
+resumed connection's join must also carry an access token of the same user (else
+``unauthorized``, close 1008). Neither refusal disturbs the parked member: it
+stays parked under its token (:func:`unclaim`), so its own client still resumes.
+
 A member whose connection stays up but whose pose updates stop for
 ``stall_after`` seconds (a frozen browser tab: its network process still answers
 websocket pings, so keepalive never fires) is announced the same way: peers get
@@ -27,11 +35,13 @@ Sans-I/O like the core: the time is an argument.
 from __future__ import annotations
 
 import heapq
+import hmac
 import secrets
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 from posecast.protocol import (
+    ErrorCode,
     Hello,
     Join,
     Joined,
@@ -42,7 +52,7 @@ from posecast.protocol import (
     decode_message,
 )
 from posecast.server import objects, rates
-from posecast.server.limits import Deadlines
+from posecast.server.limits import Deadlines, error_message
 from posecast.server.room import Member, Room
 
 if TYPE_CHECKING:
@@ -51,6 +61,7 @@ if TYPE_CHECKING:
     from posecast.server.peer import Peer
 
 __all__ = [
+    "ID_LENGTH",
     "Parked",
     "Parking",
     "Silence",
@@ -60,7 +71,11 @@ __all__ = [
     "parkable",
     "restore",
     "resume_join",
+    "unclaim",
 ]
+
+#: Characters of a resume token that name its parked member (the rest is its secret).
+ID_LENGTH = 12
 
 
 @dataclass
@@ -82,42 +97,57 @@ class Parking:
 
     def __init__(self, window: float) -> None:
         self.window = window
-        #: token -> parked member (a token names one user; it is spent by a resume).
+        #: token id -> parked member (a token names one user; it is spent by a resume).
         self._parked: dict[str, Parked] = {}
         self._deadlines = Deadlines(self._still_parked)
         self._by_conn: dict[int, str] = {}
-        self.resumes = self.expired = 0
+        #: Resumes done, windows closed, and resumes refused (a wrong secret, another
+        #: user's access token: ``posecast_resumes_refused_total``).
+        self.resumes = self.expired = self.refused = 0
 
     @staticmethod
     def new_token() -> str:
-        return secrets.token_urlsafe(18)
+        """A token id and its secret (36 URL-safe characters: 72 + 144 random bits)."""
+        return secrets.token_urlsafe(ID_LENGTH * 3 // 4) + secrets.token_urlsafe(18)
 
     def _still_parked(self, conn: int, deadline: float) -> bool:
-        token = self._by_conn.get(conn)
-        parked = None if token is None else self._parked.get(token)
+        key = self._by_conn.get(conn)
+        parked = None if key is None else self._parked.get(key)
         return parked is not None and parked.deadline == deadline
 
     def park(self, conn: int, parked: Parked) -> None:
-        self._parked[parked.token] = parked
-        self._by_conn[conn] = parked.token
+        key = parked.token[:ID_LENGTH]
+        self._parked[key] = parked
+        self._by_conn[conn] = key
         self._deadlines.add(conn, parked.deadline)
+
+    def find(self, token: str, now: float) -> Parked | None:
+        """The member parked under ``token``'s id, window open (its secret unchecked)."""
+        parked = self._parked.get(token[:ID_LENGTH])
+        return None if parked is None or parked.deadline <= now else parked
+
+    @staticmethod
+    def matches(parked: Parked, token: str) -> bool:
+        """Whether ``token`` is ``parked``'s whole token (constant time in its secret)."""
+        return hmac.compare_digest(parked.token.encode(), token.encode())
 
     def claim(self, token: str | None, now: float) -> Parked | None:
         """The member parked under ``token`` if its window is still open (spent)."""
-        parked = None if token is None else self._parked.get(token)
-        if parked is None or parked.deadline <= now:
+        parked = None if token is None else self.find(token, now)
+        if parked is None or token is None or not self.matches(parked, token):
             return None
-        del self._parked[parked.token]
+        del self._parked[parked.token[:ID_LENGTH]]
         self._by_conn.pop(parked.conn, None)
         self.resumes += 1
         return parked
 
     def has(self, token: str) -> bool:
-        return token in self._parked
+        """Whether a member is parked under ``token``'s id (its secret unchecked)."""
+        return token[:ID_LENGTH] in self._parked
 
     def tokens(self) -> dict[int, str]:
         """Parked users and the tokens they resume with."""
-        return {p.user: token for token, p in self._parked.items()}
+        return {p.user: p.token for p in self._parked.values()}
 
     def holds(self, user: int) -> bool:
         """Whether ``user`` is parked (its id must not be given to anyone else)."""
@@ -130,8 +160,8 @@ class Parking:
         """The parked members whose window closed by ``now``, removed."""
         out = []
         for conn in self._deadlines.pop_due(now):
-            token = self._by_conn.pop(conn)
-            parked = self._parked.pop(token, None)
+            key = self._by_conn.pop(conn)
+            parked = self._parked.pop(key, None)
             if parked is not None:
                 self.expired += 1
                 out.append(parked)
@@ -142,8 +172,14 @@ class Parking:
 
 
 def hello(core: RelayCore, peer: Peer, event: Hello, now: float) -> None:
-    """Welcome ``peer``: a resumed user's id back, or a new one; a token if resumable."""
+    """Welcome ``peer``: a resumed user's id back, or a new one; a token if resumable.
+    A token naming a parked member without its secret is refused (1008)."""
     parking = core.parking
+    if event.resume:
+        found = parking.find(event.resume, now)
+        if found is not None and not parking.matches(found, event.resume):
+            refuse(core, peer, "hello", now)
+            return
     parked = parking.claim(event.resume, now) if event.resume else None
     if parked is not None:
         peer.user, peer.name, peer.parked = parked.user, parked.name, parked
@@ -157,6 +193,26 @@ def hello(core: RelayCore, peer: Peer, event: Hello, now: float) -> None:
         peer.resume_token = parking.new_token()
         welcome = replace(welcome, resume=peer.resume_token, resumed=parked is not None)
     core.send(peer, welcome)
+
+
+def refuse(core: RelayCore, peer: Peer, what: str, now: float) -> None:
+    """Refuse a resume (``unauthorized``, close 1008); the parked member is not touched."""
+    core.parking.refused += 1
+    reason = "resume refused: not this session's resume token or user"
+    core.send(peer, error_message(ErrorCode.UNAUTHORIZED, reason, what))
+    core.close_peer(peer, 1008, reason)
+
+
+def unclaim(core: RelayCore, parked: Parked, now: float) -> None:
+    """A resumed connection that ended before its join re-bound ``parked`` (refused, or
+    gone): the member is parked again under its token until its window closes."""
+    room = parked.room
+    if parked.deadline <= now or room.retired or room.members.get(parked.user) is not parked.member:
+        gone(core, parked, now)
+        return
+    core.parking.resumes -= 1
+    core.parking.park(parked.conn, parked)
+    core.emit_rearm()
 
 
 def parkable(core: RelayCore, peer: Peer) -> bool:

@@ -5,7 +5,8 @@ them to a connection of the relay core (``server/core.py``): a join of a server
 with a secret needs a token for that room (refused: ``unauthorized``, close
 1008), one connection per token user and room (``user-taken``), and the
 connection is closed when its token expires unless a ``renew`` moves the
-deadline.
+deadline. A resumed connection's join must carry a token of the parked member's
+user (else ``unauthorized``, and the member stays parked: ``server.resume``).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from typing import TYPE_CHECKING
 
 from posecast.protocol import ErrorCode, Join, Renew
 from posecast.protocol.events import Event
+from posecast.server import resume
 from posecast.server.auth import TokenClaims, TokenError, token_permits, verify_token
 from posecast.server.limits import error_message, normalise_room
 
@@ -21,7 +23,7 @@ if TYPE_CHECKING:
     from posecast.server.core import RelayCore
     from posecast.server.peer import Peer
 
-__all__ = ["admit_join", "joinable_room", "renew"]
+__all__ = ["admit_join", "expired", "joinable_room", "renew"]
 
 
 def joinable_room(event: Event, secret: str | None, wall: float) -> str | None:
@@ -53,7 +55,10 @@ def admit_join(core: RelayCore, peer: Peer, join: Join, name: str, now: float, w
     except TokenError as exc:
         _unauthorized(core, peer, exc, "join")
         return False
-    back = peer.parked is not None and peer.parked.name == claims.user
+    if peer.parked is not None and peer.parked.name != claims.user:
+        resume.refuse(core, peer, "join", now)  # (the parked member stays parked)
+        return False
+    back = peer.parked is not None
     room = core.rooms.get(name)
     if not back and room is not None and room.has_member_named(claims.user):
         core.refuse(
@@ -82,3 +87,10 @@ def renew(core: RelayCore, peer: Peer, event: Renew, now: float, wall: float) ->
         _unauthorized(core, peer, exc, "renew")
         return
     core.token_expires_at(peer, now + (claims.exp - wall))
+
+
+def expired(core: RelayCore, peer: Peer) -> None:
+    """``peer``'s access token expired without a renew: ``unauthorized``, close 1008."""
+    core.token_expiries += 1
+    core.send(peer, error_message(ErrorCode.UNAUTHORIZED, "access token expired; renew it"))
+    core.close_peer(peer, 1008, "access token expired")
