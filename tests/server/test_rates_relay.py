@@ -120,12 +120,13 @@ async def test_set_rate_turns_an_auto_rate_fixed() -> None:
 
 
 async def test_bots_with_an_auto_rate_follow_the_relays_choice() -> None:
-    """Two bots asking auto on a 500 B/s link: each ends on a rate the relay chose below
-    its ceiling (``BotReport.granted_hz``), and their sessions complete."""
+    """Two bots asking auto on a 2 kB/s link (about 14 Hz of their raw snapshots): each
+    ends on a rate the relay chose below its ceiling (``BotReport.granted_hz``), and
+    their sessions run to the end, fed."""
     from posecast.client.bot import BotConfig
     from posecast.client.swarm import run_bots
 
-    tiny = Tier("tiny", max_rate_hz=30.0, bandwidth_kbps=4.0, latency_ms=20.0, jitter_ms=2.0,
+    tiny = Tier("tiny", max_rate_hz=30.0, bandwidth_kbps=16.0, latency_ms=20.0, jitter_ms=2.0,
                 loss_pct=0.0)  # fmt: skip
     async with running_server(ServerConfig(host="127.0.0.1", port=0, link=tiny)) as srv:
         base = BotConfig(
@@ -142,3 +143,71 @@ async def test_bots_with_an_auto_rate_follow_the_relays_choice() -> None:
         reports = await run_bots(base, 2)
     assert [r.ending.kind for r in reports] == ["complete", "complete"]
     assert all(r.asked_hz == 30.0 and 5.0 <= r.granted_hz < 30.0 for r in reports)
+
+
+async def test_a_real_slow_reader_gets_a_lower_auto_rate() -> None:
+    """No link emulation: a subscriber whose socket stops reading (tiny receive buffer,
+    a client that takes nothing) fills the relay's write buffer; the relay lowers its
+    auto rate, and once the client reads again it finds the rate message waiting."""
+    import socket
+
+    from websockets.asyncio.client import connect
+
+    from posecast.protocol import ClientSession, Hello, Join, Joined
+
+    streams = tuple(f"s{i}" for i in range(16))
+    many = np.tile(POSE[0], (16, 1))
+    # No keepalive: a reader that takes nothing would be closed as dead in 5 s.
+    config = ServerConfig(host="127.0.0.1", port=0, ping_interval=0)
+    async with running_server(config) as srv:
+        url = f"ws://127.0.0.1:{srv.port}"
+        # 12 x 16 streams: ~7 kB snapshots, so the socket's buffers fill in seconds.
+        pubs = [await ClientConnection.open(url, room="slow", streams=streams, rate=5)
+                for _ in range(12)]  # fmt: skip
+        sock = socket.socket()
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        sock.setblocking(False)
+        await asyncio.get_running_loop().sock_connect(sock, ("127.0.0.1", srv.port))
+        session = ClientSession()
+        async with connect(url, sock=sock, max_queue=1, ping_interval=None) as ws:
+            await ws.send(session.send(Hello(agent="slow")))
+            session.receive_data(await ws.recv())
+            await ws.send(session.send(Join(room="slow", streams=("head",), rate="auto")))
+            got: list[object] = []
+            while not any(isinstance(m, Joined) for m in got):
+                got += session.receive_data(await ws.recv())
+            user = session.user
+            assert user is not None
+            stop = asyncio.Event()
+
+            async def publish(conn: ClientConnection) -> None:
+                assert conn.joined is not None
+                ids = np.array(list(conn.joined.streams.values()))
+                seq = 0
+                while not stop.is_set():
+                    seq += 1
+                    await conn.send_bytes(encode_update(seq, ids, np.full(16, srv.clock()), many))
+                    await asyncio.sleep(1 / 30)
+
+            async def drain(conn: ClientConnection) -> None:
+                while True:
+                    await conn.recv()
+
+            async with asyncio.TaskGroup() as tg:
+                tasks = [tg.create_task(publish(p)) for p in pubs]
+                tasks += [tg.create_task(drain(p)) for p in pubs]
+                member = _member(srv, user)
+                assert member is not None and member.link_rate is not None
+                await poll_until(lambda: member.rate < 30.0, limit=60.0)
+                stop.set()
+                for t in tasks:
+                    t.cancel()
+            assert member.link_rate.congestions >= 1
+            notices: list[RateNotice] = []
+            async with asyncio.timeout(60.0):
+                while not notices:
+                    notices += [m for m in session.receive_data(await ws.recv())
+                                if isinstance(m, RateNotice)]  # fmt: skip
+            assert notices[0].rate < 30.0
+        for p in pubs:
+            await p.close()
