@@ -20,9 +20,15 @@ from posecast.client.core import Key, Observer, Rendered
 from posecast.client.remote import RemoteStream, evaluate_remote
 from posecast.scenarios.qoe import ErrorSamples
 
-__all__ = ["RenderLogEntry", "SessionLog"]
+__all__ = ["STALE_STRETCH", "RenderLogEntry", "SessionLog"]
 
 F64 = NDArray[np.float64]
+
+#: Stretches of render time with no fresh pose of anyone shorter than this (s) are
+#: not counted as stale: a starved render loop that ran before the receive task
+#: took in the next snapshot holds everything for a frame or two, a dead path for
+#: seconds.
+STALE_STRETCH = 1.0
 
 #: (the room's playout time, the room's D, caller's clock at render,
 #: {stream key: (pose of the first method, stalled)}).
@@ -50,13 +56,21 @@ class SessionLog(Observer):
         self.play_t: list[float] = []
         self.play_d: list[float] = []
         self.render_stalls = self.render_samples = 0
-        #: Render time (server clock, s) during which every stream shown was held.
-        self.stale_s = 0.0
+        #: Render time (server clock, s) in stretches of over STALE_STRETCH during
+        #: which every stream shown was held (see :attr:`stale_s`).
+        self._stale = self._stretch = 0.0
         self.snapshot_bytes = self.poses_in = 0
         self.snapshot_times: list[tuple[float, float]] = []  # arrival, send: server clock
         self.render_log: list[RenderLogEntry] = []
         self._local = 0.0
         self._shown: list[Key] = []
+
+    @property
+    def stale_s(self) -> float:
+        """Render time (s) with no fresh pose of anyone: every stream shown held past
+        its newest keyframe, in stretches of at least :data:`STALE_STRETCH`."""
+        open_stretch = self._stretch if self._stretch >= STALE_STRETCH else 0.0
+        return self._stale + open_stretch
 
     # -- the core's reports -------------------------------------------------------
 
@@ -122,7 +136,11 @@ class SessionLog(Observer):
         stalled = frame.frame.stalled
         t_play = p.now - p.delay
         if self.play_t and stalled.size and bool(stalled.all()):
-            self.stale_s += max(0.0, t_play - self.play_t[-1])
+            self._stretch += max(0.0, t_play - self.play_t[-1])
+        elif self._stretch:
+            if self._stretch >= STALE_STRETCH:
+                self._stale += self._stretch
+            self._stretch = 0.0
         index = len(self.play_t)
         for user, d_own in p.own.items():
             for rs in self.user_streams.get(user, ()):

@@ -31,7 +31,8 @@ within 7.5 s, inside the relay's 10 s resume window, and the client resumes.
 :class:`SessionEnd` says how a session ended. ``complete`` means: the session ran
 its whole duration (resumes along the way allowed) and showed fresh poses for at
 least half of it; one that ran its duration but held every remote stream (no
-fresh pose) for more than :data:`STALE_SHARE` of its render time ended ``stalled``.
+fresh pose) for more than :data:`STALE_SHARE` of its render time (counting
+stretches of over 1 s: ``client.log.STALE_STRETCH``) ended ``stalled``.
 """
 
 from __future__ import annotations

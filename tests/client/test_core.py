@@ -143,6 +143,16 @@ def test_stale_time_counts_frames_with_every_stream_held() -> None:
         core.render(core.playout(local))
         local += 0.1
     assert log.stale_s == pytest.approx(5.0 - core.delay.room.value, abs=0.3)
+    # Fresh poses again: the stretch is kept; a short one later is not counted.
+    stale = log.stale_s
+    last = fed(core, [1], local, 20)
+    local = last + 0.03
+    core.render(core.playout(local))
+    for k in range(5):  # 0.5 s with nothing new: a starved loop's hiccup, not a dead path
+        core.render(core.playout(local + 0.1 * (k + 1)))
+    core.snapshot(snapshot([1], local + 0.6, 99), local + 0.63)
+    core.render(core.playout(local + 0.7))
+    assert log.stale_s == stale
 
 
 def test_rendered_reports_the_frame_index() -> None:
