@@ -189,6 +189,8 @@ class BotReport:
     #: Snapshot rate asked and granted (Hz; an auto rate's last), and the rate it published at.
     asked_hz: float = 0.0
     granted_hz: float = 0.0
+    #: It joined with rate "auto" (``asked_hz`` is its ceiling, ``granted_hz`` the last choice).
+    auto_rate: bool = False
     send_hz: float = 0.0
     #: How the session ended (see :class:`SessionEnd`).
     ending: SessionEnd = field(default_factory=SessionEnd)
@@ -527,6 +529,7 @@ class Bot:
             frames_late=self.frames_late,
             asked_hz=cfg.rate,
             granted_hz=conn.session.rate or cfg.rate,  # an auto rate's last choice
+            auto_rate=cfg.auto_rate,
             send_hz=cfg.send_rate,
             ending=ending,
             stale_s=log.stale_s,

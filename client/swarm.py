@@ -280,6 +280,10 @@ def swarm_report(reports: Sequence[BotReport]) -> dict[str, Any]:
                 "id": r.user,
                 "name": r.name,
                 "rate_hz": r.rate_hz,
+                # The snapshot rate asked (an auto rate's ceiling) and the last granted.
+                "asked_hz": r.asked_hz,
+                "granted_hz": r.granted_hz,
+                "auto_rate": r.auto_rate,
                 "delay_ms": r.delay_ms,
                 "render_stall_fraction": r.render_stall_fraction,
                 "frames_rendered": r.frames_rendered,

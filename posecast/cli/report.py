@@ -82,14 +82,17 @@ def _print_bots(report: dict[str, Any]) -> None:
 
     cluster = report.get("cluster")
     bots = small_table("bots")
-    cols: tuple[str, ...] = ("id", "name", "keyframes\n/s", "D\nms", "render\nms/frame")
-    cols += ("clock rtt\nms", "age\nms", *(("gap\ns",) if cluster else ()))
+    auto = any(b.get("auto_rate") for b in report["bots"])  # --rate auto: the relay's choice
+    cols: tuple[str, ...] = ("id", "name", *(("chosen\nHz",) if auto else ()), "keyframes\n/s")
+    cols += ("D\nms", "render\nms/frame", "clock rtt\nms", "age\nms")
+    cols += ("gap\ns",) if cluster else ()
     for col in (*cols, *(("node",) if cluster else ())):
         bots.add_column(col, justify="right")
     for b in report["bots"]:
         bots.add_row(
             str(b["id"]),
             b["name"],
+            *((_fmt(b["granted_hz"]),) if auto else ()),
             _fmt(b["rate_hz"]),
             _fmt(b["delay_ms"]),
             _fmt(b["render_cpu_ms_per_frame"], 2),
@@ -101,6 +104,8 @@ def _print_bots(report: dict[str, Any]) -> None:
         )  # fmt: skip
     console.print(bots)
     plain(_BOTS_LEGEND)
+    if auto:
+        plain("chosen: the snapshot rate the relay chose last for the bot (--rate auto).")
     if cluster:
         print_cluster(cluster)
 

@@ -124,7 +124,7 @@ async def test_bots_with_an_auto_rate_follow_the_relays_choice() -> None:
     ends on a rate the relay chose below its ceiling (``BotReport.granted_hz``), and
     their sessions run to the end, fed."""
     from posecast.client.bot import BotConfig
-    from posecast.client.swarm import run_bots
+    from posecast.client.swarm import run_bots, swarm_report
 
     tiny = Tier("tiny", max_rate_hz=30.0, bandwidth_kbps=16.0, latency_ms=20.0, jitter_ms=2.0,
                 loss_pct=0.0)  # fmt: skip
@@ -143,6 +143,8 @@ async def test_bots_with_an_auto_rate_follow_the_relays_choice() -> None:
         reports = await run_bots(base, 2)
     assert [r.ending.kind for r in reports] == ["complete", "complete"]
     assert all(r.asked_hz == 30.0 and 5.0 <= r.granted_hz < 30.0 for r in reports)
+    rows = swarm_report(reports)["bots"]
+    assert all(b["auto_rate"] and b["granted_hz"] < b["asked_hz"] for b in rows)
 
 
 async def test_a_real_slow_reader_gets_a_lower_auto_rate() -> None:
