@@ -75,8 +75,9 @@ bad-room            no     --     (server decision) a room name that is empty on
                                   override characters
 too-slow            yes    1008   (server decision) a peer's event queue overflowed
 server-full         yes    1013   (server decision) the relay is at its measured
-                                  capacity: a hello or join refused at once, with
-                                  ``retry_after`` (s); try later or another relay
+                                  capacity: a hello or join refused at once (when
+                                  to retry: in the message, and ``retry_after``
+                                  if the hello asked); try later or another relay
 internal-error      yes    1011   (server decision) a bug on the server
 ==================  =====  =====  =====================================================
 

@@ -201,12 +201,15 @@ class Hello(ControlMessage):
     resume: str | None = _omitted(None)
     """The ``welcome.resume`` token of a dropped connection: same user id, and the
     next join of the same room and streams gets the same stream ids back."""
+    wants_retry_after: bool = _capability()
+    """A ``server-full`` refusal of this client carries ``error.retry_after``."""
 
     def __post_init__(self) -> None:
         check_int("hello.version", self.version, 0, U16_MAX)
         check_text("hello.agent", self.agent)
         check_bool("hello.resumable", self.resumable)
         check_optional_text("hello.resume", self.resume)
+        check_bool("hello.wants_retry_after", self.wants_retry_after)
 
 
 @_register

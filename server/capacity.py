@@ -32,8 +32,9 @@ growth          members admitted since the last CPU reading: at most half    wit
 ==============  ===========================================================  ==========
 
 Over any budget, the join (or the hello before it) is refused with the fatal
-error ``server-full`` and close 1013 "try again later", with a ``retry_after``
-hint (:data:`RETRY_AFTER`); members already in are untouched (a member resuming
+error ``server-full`` and close 1013 "try again later", its message saying when
+to retry (:data:`RETRY_AFTER`), and ``error.retry_after`` too for a client whose
+hello asked (``wants_retry_after``); members already in are untouched (a member resuming
 its dropped connection is one of them). A budget of 0 turns its signal off.
 
 :meth:`Capacity.lateness` is how late the relay itself runs (the largest tick
@@ -233,8 +234,10 @@ def shed(core: RelayCore, peer: Peer, event: Hello | Join, now: float) -> bool:
     """Refuse ``event`` with ``server-full`` (close 1013) if one more member is over the
     budget; True if it was refused. A hello resuming a member (and its join), or one a
     cluster node forwarded (that node admitted it), is never refused here."""
-    if isinstance(event, Hello) and (event.resume or peer.preset_user is not None):
-        return False
+    if isinstance(event, Hello):
+        peer.wants_retry_after = event.wants_retry_after
+        if event.resume or peer.preset_user is not None:
+            return False
     if isinstance(event, Join) and peer.parked is not None:
         return False  # (its parked member is re-bound, unless the join asks otherwise)
     members = sum(len(room.members) for room in core.rooms.values())
@@ -243,9 +246,9 @@ def shed(core: RelayCore, peer: Peer, event: Hello | Join, now: float) -> bool:
         return False
     core.capacity.count(ErrorCode.SERVER_FULL)
     what = "hello" if isinstance(event, Hello) else "join"
-    error = ErrorMessage.from_code(
-        ErrorCode.SERVER_FULL, why, in_reply_to=what, retry_after=RETRY_AFTER
-    )
+    why += f"; retry in {RETRY_AFTER:g} s"
+    retry = RETRY_AFTER if peer.wants_retry_after else None  # (a field only if asked)
+    error = ErrorMessage.from_code(ErrorCode.SERVER_FULL, why, in_reply_to=what, retry_after=retry)
     core.send(peer, error)
     core.close_peer(peer, ErrorCode.SERVER_FULL.close_code or 1013, f"try again later: {why}")
     return True

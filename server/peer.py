@@ -112,6 +112,8 @@ class Peer:
         self.stale_captures = self.future_captures = self.out_of_bounds = 0
         #: When its last stale-capture error went out (``server.capacity.stale_error_due``).
         self.stale_error_at = float("-inf")
+        #: Its hello asked for ``error.retry_after`` (``server.capacity.shed``).
+        self.wants_retry_after = False
         #: Each refused frame or update costs a token; none left: closed 1008.
         self.budget = Budget(cfg.misbehaviour_burst, cfg.misbehaviour_refill, now)
         #: The emulated downlink (``ServerConfig.link``), set at join.

@@ -305,7 +305,8 @@ class _BenchClient:
             conn, _ = await open_connection(url, time.monotonic, within)
             self.conn = conn
             conn.on_message = self._handshake_message
-            welcome = await self._ask(Hello(agent="posecast-bench"), within)
+            hello = Hello(agent="posecast-bench", wants_retry_after=True)
+            welcome = await self._ask(hello, within)
             join = Join(room=self.room, streams=STREAMS, rate=self.rate, codec=self.codec)
             joined = await self._ask(join, within)
         except Exception as exc:  # whatever it was, this client did not join: say why

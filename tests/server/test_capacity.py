@@ -160,11 +160,11 @@ def full_core(members: int = 1) -> tuple[RelayCore, list[Client]]:
 
 
 def test_a_hello_over_capacity_is_refused_server_full_1013() -> None:
-    """At once, fatal, with retry_after; close 1013; the members hear nothing of it."""
+    """At once, fatal, with retry_after (asked); close 1013; the members hear nothing."""
     core, (a,) = full_core()
     a.read(1.0)
     c = Client(core, core.connect(1.5))
-    actions = c.send(Hello(agent="late"), 1.5)
+    actions = c.send(Hello(agent="late", wants_retry_after=True), 1.5)
     (err,) = c.read(1.5)
     assert isinstance(err, ErrorMessage)
     assert (err.code, err.fatal, err.in_reply_to, err.retry_after) == (
@@ -173,13 +173,25 @@ def test_a_hello_over_capacity_is_refused_server_full_1013() -> None:
         "hello",
         RETRY_AFTER,
     )
-    assert "2 members would use 1.80 of a core" in err.message
+    assert "2 members would use 1.80 of a core" in err.message and "retry in 5 s" in err.message
     (close,) = [x for x in actions if isinstance(x, Close)]
     assert close.code == 1013 and close.reason.startswith("try again later: the relay is full")
     assert a.read(1.5) == [] and len(core.rooms["lobby"].members) == 1
     assert core.capacity.joins_refused == {"server-full": 1}
     core.disconnect(c.conn, 1.6)
     assert core.users.take() is not None  # (no user id was taken by the refused hello)
+
+
+def test_retry_after_goes_only_to_a_client_that_asked() -> None:
+    """A new field is sent on request only (the compatibility policy): without
+    hello.wants_retry_after the same error, its message saying when to retry."""
+    core, _ = full_core()
+    c = Client(core, core.connect(1.5))
+    c.send(Hello(agent="old"), 1.5)
+    (err,) = c.read(1.5)
+    assert isinstance(err, ErrorMessage) and err.code == "server-full"
+    assert err.retry_after is None and "retry in 5 s" in err.message
+    assert "retry_after" not in err.to_wire()
 
 
 def test_a_join_over_capacity_is_refused_too() -> None:
@@ -297,7 +309,7 @@ async def _full_relay_refuses() -> None:
         await poll_until(lambda: cap.cpu_members > 0 and cap.cpu > 0)
         ws = await ws_connect(url)
         session = ClientSession()
-        await ws.send(session.send(Hello(agent="late")))
+        await ws.send(session.send(Hello(agent="late", wants_retry_after=True)))
         events = session.receive_data(await ws.recv())
         with pytest.raises(ConnectionClosed):
             await ws.recv()

@@ -58,6 +58,7 @@ export const SCHEMAS: Readonly<Record<string, readonly FieldSpec[]>> = {
     f("agent", "str", { def: "" }),
     f("resumable", "bool", OMIT_FALSE),
     f("resume", "str", OMIT_NULL),
+    f("wants_retry_after", "bool", OMIT_FALSE),
   ],
   welcome: [
     f("user", "int"),
@@ -152,7 +153,7 @@ export const SCHEMAS: Readonly<Record<string, readonly FieldSpec[]>> = {
 };
 
 // Typed views of the messages (snake_case keys, as on the wire).
-export interface Hello { type: "hello"; version?: number; agent?: string; resumable?: boolean; resume?: string | null }
+export interface Hello { type: "hello"; version?: number; agent?: string; resumable?: boolean; resume?: string | null; wants_retry_after?: boolean }
 export interface Welcome {
   type: "welcome"; user: number; server_time: number; version: number; min_rate: number;
   max_rate: number; max_streams: number; volume: number[]; resume: string | null; resumed: boolean;
