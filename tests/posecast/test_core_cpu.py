@@ -1,0 +1,25 @@
+"""``python -m posecast.bench.core_cpu``: the relay core's CPU per pose, in one process."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from posecast.bench.core_cpu import main, measure
+from posecast.scenarios.traces import find_traces, load_trace
+
+
+@pytest.mark.parametrize("codec", ["raw", "compact"])
+def test_measure_delivers_poses_and_gives_a_cost(codec: str) -> None:
+    """One room for one second: a finite, positive CPU figure per delivered pose."""
+    traces = [load_trace(p) for p in find_traces("traces:sample")]
+    got = measure(codec, rooms=1, seconds=1.0, traces=traces)
+    assert math.isfinite(got) and got > 0
+
+
+def test_main_prints_every_path(capsys: pytest.CaptureFixture[str]) -> None:
+    """The command prints a line per path (raw, compact compiled where built, compact pure)."""
+    main(["--rooms", "1", "--seconds", "0.5", "--rounds", "1"])
+    out = capsys.readouterr().out
+    assert "raw" in out and "compact pure" in out
