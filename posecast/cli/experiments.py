@@ -125,9 +125,7 @@ def table1(
     --live, every tier also runs through the real relay and bots, beside its
     offline counterpart ("Live vs offline" in table1.md, key "live" in the JSON);
     the command exits 1 if they disagree beyond the stated tolerance.
-    Ctrl-C prints what was measured by then (Table 1 on the ideal network once
-    that sweep is done, else the error at each finished rate), writes nothing,
-    and exits 130.
+    Ctrl-C prints what was measured by then, writes nothing, and exits 130.
     """
     rate_list = [int(r) for r in _parse_rates(rates)]
     method_list = _parse_methods(methods)

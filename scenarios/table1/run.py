@@ -127,11 +127,7 @@ def run_table1(
     if unknown:
         raise ValueError(f"unknown codec(s) {unknown}; known: {', '.join(CODECS)}")
     p = _plan(traces, rates, methods, tiers, room_poses)
-    partial = _Partial()
-    try:
-        report, ideal, link_sweeps = _measure(p, opts, clock, progress, partial)
-    except KeyboardInterrupt as exc:
-        raise partial.interrupted(p) from exc
+    report, ideal, link_sweeps = _measure_or_interrupted(p, opts, clock, progress)
     if out_dir is not None:
         _write(Path(out_dir), report, p, ideal, link_sweeps, plots)
     return report
@@ -189,6 +185,17 @@ class _Options:
     extrapolate_horizon: float
     correction_time: float
     codecs: tuple[str, ...]
+
+
+def _measure_or_interrupted(
+    p: _Plan, o: _Options, clock: _Clock, progress: Progress | None
+) -> tuple[dict[str, Any], _Sweep, dict[str, _Sweep]]:
+    """:func:`_measure`; Ctrl-C raises :class:`Table1Interrupted` with what it measured."""
+    partial = _Partial()
+    try:
+        return _measure(p, o, clock, progress, partial)
+    except KeyboardInterrupt as exc:
+        raise partial.interrupted(p) from exc
 
 
 def _measure(
