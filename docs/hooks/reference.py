@@ -42,6 +42,12 @@ OTHER_SETTINGS: dict[str, tuple[str, str]] = {
         "Folder holding the full trace sets `dev/` and `eval/` (`traces:dev`, "
         "`traces:eval`). Unset: the sets bundled in the package.",
     ),
+    "POSECAST_PURE": (
+        "unset (the compiled accelerator where it is built)",
+        "`1`: run the compact codec's pure-Python twin instead of its C accelerator "
+        "(same bytes, about twice the relay's CPU per pose). `posecast --version` and "
+        "the `posecast_codec_info` metric say which runs.",
+    ),
 }
 
 
