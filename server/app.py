@@ -65,6 +65,7 @@ from posecast.server.core import (
     ServerConfig,
     Wake,
 )
+from posecast.server.handshakes import Slot, fd_budget
 from posecast.server.http import OriginPolicy, QuietHttpLog, metrics_text, process_request
 from posecast.server.logs import LogLimiter
 from posecast.server.node import cluster_clock
@@ -83,8 +84,9 @@ Clock = Callable[[], float]
 
 #: How long a Close waits for a full write buffer to take the queued messages.
 DRAIN_BEFORE_CLOSE = 0.5
-#: An opening handshake not finished this long after the TCP connection is dropped.
-OPEN_TIMEOUT = 10.0
+#: An opening handshake not finished this long after the TCP connection is dropped
+#: (the default of ``ServerConfig.handshake_timeout``; it was 10 s).
+OPEN_TIMEOUT = 2.0
 #: A forwarded client (its room is another cluster node's) with more than this
 #: unsent is closed as too slow: the owner node cannot see its socket's buffer.
 FORWARDED_BUFFER = 1 << 20
@@ -102,7 +104,7 @@ class _Connection(WebSocketConnection):
             ping_interval=cfg.ping_interval or None,
             ping_timeout=cfg.ping_timeout or None,
             close_timeout=cfg.close_timeout,
-            open_timeout=OPEN_TIMEOUT,
+            open_timeout=cfg.handshake_timeout or OPEN_TIMEOUT,
             logger=server.ws_log,
         )
         self.server = server
@@ -116,6 +118,9 @@ class _Connection(WebSocketConnection):
         self._backlog: list[bytes | str] = []
         #: In a cluster: its room is another node's, its frames are forwarded there.
         self.forwarded = False
+        #: Its place before the handshake (``server/handshakes.py``; None: none held).
+        self._slot: Slot | None = None
+        self._address: str | None = None
 
     @property
     def outbox(self) -> Outbox:
@@ -137,11 +142,24 @@ class _Connection(WebSocketConnection):
         super().connection_made(transport)
         self.server._sockets.add(self)
         self.server._all_gone.clear()
+        peername = transport.get_extra_info("peername")
+        self._address = peername[0] if isinstance(peername, tuple) and peername else None
+        self._slot = self.server.core.handshakes.admit(self._address, self.server.clock())
+        if self._slot is None:
+            self.abort()  # over the caps and the spare places: not one byte read
+
+    def _release_slot(self) -> None:
+        if self._slot is not None:
+            self.server.core.handshakes.release(self._slot, self._address)
+            self._slot = None
 
     def connection_lost(self, exc: Exception | None) -> None:
         for timer in (self._drain_timer, self._link_timer):
             if timer is not None:
                 timer.cancel()
+        if self._slot is not None and self.handshake_expired:
+            self.server.core.handshakes.timeouts += 1
+        self._release_slot()
         try:
             super().connection_lost(exc)
         finally:
@@ -163,6 +181,8 @@ class _Connection(WebSocketConnection):
 
     def on_open(self) -> None:
         server, core = self.server, self.server.core
+        over = self._slot == "probe"  # a spare place: over a cap before its handshake
+        self._release_slot()  # counted by the core from now on
         peername = self.transport.get_extra_info("peername")
         address = peername[0] if isinstance(peername, tuple) and peername else None
         self.conn = core.connect(server.clock(), self._buffered, address)
@@ -170,6 +190,9 @@ class _Connection(WebSocketConnection):
         # Refused over a connection limit (a Close), or a join deadline to watch.
         server.apply(core.pending())
         server._new_connection.set()
+        if over and core.peer(self.conn).close_request is None:
+            core.refused_connections += 1
+            server.apply(core.close(self.conn, 1013, "try again later: too many connections"))
         if server._stop.is_set():
             # Its handshake finished after stop() had closed the others. Through the
             # core, which then handles nothing more it sends (no hello, no join).
@@ -634,6 +657,8 @@ class RelayServer:
 
     async def run(self) -> None:
         cfg = self.config
+        admission = self.core.admission
+        admission.max_total = fd_budget(admission.max_total)
         if cfg.secret is None:
             log.warning("no --secret: the server is open, anyone can join any room")
         if cfg.record_dir is not None:

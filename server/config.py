@@ -76,6 +76,9 @@ class ServerConfig:
     misbehaviour_refill: float = 5.0
     #: A connection that has not joined a room this long after it opened is closed.
     join_timeout: float = 5.0
+    #: A TCP connection whose websocket handshake (or plain HTTP request) is not done
+    #: this long after it was accepted is dropped (``server/handshakes.py``).
+    handshake_timeout: float = 2.0
     #: A resumable client's dropped connection keeps its place this long (s); 0: off.
     resume_window: float = 10.0
     #: A member whose updates stop this long (s) while its connection stays up (a

@@ -123,6 +123,7 @@ from posecast.server.actions import (
     Wake,
 )
 from posecast.server.config import ServerConfig
+from posecast.server.handshakes import Handshakes
 from posecast.server.limits import (
     Admission,
     Deadlines,
@@ -189,6 +190,7 @@ class RelayCore:
         self.table.adapt = rates.adapter(self)  # auto rates decide after each room's tick
         cfg = self.config
         self.admission = Admission(cfg.max_connections, cfg.max_connections_per_address)
+        self.handshakes = Handshakes(self.admission)  # the same caps before the handshake
         self._join_deadlines = Deadlines(self._unjoined)
         #: Access-token expiries (server clock) of joined connections; see Renew.
         self._token_deadlines = Deadlines(self._token_due)

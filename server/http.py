@@ -309,6 +309,22 @@ def _limit_metrics(
         "Connections closed (1008) for exceeding their misbehaviour budget.",
         [("", core.misbehaviour_closes)],
     )
+    shakes = core.handshakes
+    metric(
+        "posecast_handshakes_pending",
+        "gauge",
+        "TCP connections whose websocket handshake is under way (they count against"
+        " max_connections and max_connections_per_address), and those over a cap held on a"
+        " spare place that answers only /healthz and /metrics.",
+        [('{place="handshake"}', shakes.pending), ('{place="spare"}', shakes.probes)],
+    )
+    metric(
+        "posecast_handshakes_refused_total",
+        "counter",
+        "TCP connections dropped before their handshake: over a connection cap with no"
+        " spare place left, or not done within handshake_timeout.",
+        [('{reason="over-cap"}', shakes.refused), ('{reason="timeout"}', shakes.timeouts)],
+    )
     metric(
         "posecast_resumes_refused_total",
         "counter",

@@ -119,6 +119,8 @@ class WebSocketConnection(asyncio.Protocol):
         self._parts: list[bytes] | None = None
         self._text = False
         self._lost = False
+        #: The opening handshake did not end within ``open_timeout`` (dropped for it).
+        self.handshake_expired = False
 
     # -- hooks ---------------------------------------------------------------------------
 
@@ -287,6 +289,7 @@ class WebSocketConnection(asyncio.Protocol):
     def _open_expired(self) -> None:
         self._open_timer = None
         if not self.is_open:
+            self.handshake_expired = True
             self.abort()
 
     def _close_expired(self) -> None:

@@ -38,6 +38,7 @@ SERVE_LIMITS = (
     "misbehaviour_burst",
     "misbehaviour_refill",
     "join_timeout",
+    "handshake_timeout",
     "max_connections",
     "max_connections_per_address",
     "max_rooms",

@@ -195,6 +195,13 @@ JoinTimeoutOption = Annotated[
         help="Close connections not joined within this (s).", envvar="POSECAST_JOIN_TIMEOUT"
     ),
 ]
+HandshakeTimeoutOption = Annotated[
+    float,
+    typer.Option(
+        help="Drop TCP connections whose websocket handshake is not done within this (s).",
+        envvar="POSECAST_HANDSHAKE_TIMEOUT",
+    ),
+]
 MaxConnectionsOption = Annotated[
     int, typer.Option(help="Open connections at most.", envvar="POSECAST_MAX_CONNECTIONS")
 ]
@@ -294,6 +301,7 @@ def serve(
     misbehaviour_burst: MisbehaviourBurstOption = 20,
     misbehaviour_refill: MisbehaviourRefillOption = 5.0,
     join_timeout: JoinTimeoutOption = 5.0,
+    handshake_timeout: HandshakeTimeoutOption = 2.0,
     max_connections: MaxConnectionsOption = 1024,
     max_connections_per_address: MaxConnectionsPerAddressOption = 64,
     max_rooms: MaxRoomsOption = 256,

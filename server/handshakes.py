@@ -1,0 +1,124 @@
+"""Connections before their websocket handshake: counted, bounded, and never the last fd.
+
+A TCP connection costs a file descriptor and a parser from ``accept`` on, long
+before the core sees it (``RelayCore.connect`` runs once the handshake is done).
+3,000 slow upgrade requests (1 byte a second) held 3,018 fds and, under a
+``nofile`` limit of 1,024, locked every new user and ``/healthz`` out. So:
+
+- a connection is counted from ``accept`` (:meth:`Handshakes.admit`) until its
+  handshake ends (:meth:`Handshakes.release`): pending ones count against
+  ``max_connections`` and ``max_connections_per_address`` with the open ones;
+- over a cap, it gets one of ``HEALTH_RESERVE`` spare places, where
+  ``GET /healthz`` and ``GET /metrics`` are answered and a websocket is closed
+  1013 "try again later" right after its handshake (as over the caps of open
+  connections), or, with no spare place either, it is dropped at once;
+- its handshake must end within ``handshake_timeout`` (2 s by default; it was 10 s);
+- :func:`fd_budget` raises the process's ``nofile`` soft limit to its hard limit
+  and lowers the caps so that ``FD_RESERVE`` descriptors always stay free (for the
+  spare places, recordings, the cluster's NATS, the log).
+
+Refusals are counted (``posecast_handshakes_refused_total``) and logged at most
+once a second with a count of those not logged. Sans-I/O apart from
+:func:`fd_budget`: the adapter (``server/app.py``) passes the time.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Literal
+
+from posecast.server.limits import Admission
+from posecast.server.logs import LogLimiter
+
+__all__ = ["FD_RESERVE", "HEALTH_RESERVE", "Handshakes", "fd_budget"]
+
+log = logging.getLogger("posecast.server")
+
+#: Spare places over the connection caps where only /healthz and /metrics are answered.
+HEALTH_RESERVE = 16
+#: File descriptors kept free beyond every connection the caps allow.
+FD_RESERVE = 64
+
+Slot = Literal["handshake", "probe"]
+
+
+class Handshakes:
+    """TCP connections whose handshake is under way, in total and per address."""
+
+    def __init__(self, admission: Admission, reserve: int = HEALTH_RESERVE) -> None:
+        #: The core's open connections (its caps are the caps of both).
+        self.admission = admission
+        self.reserve = reserve
+        self.pending = 0
+        self.by_address: dict[str, int] = {}
+        #: Connections over a cap answered on a spare place (HTTP only).
+        self.probes = 0
+        #: Dropped at once (over a cap, no spare place), and dropped for not
+        #: finishing their handshake in time.
+        self.refused = self.timeouts = 0
+        self._log = LogLimiter(1.0)
+
+    def admit(self, address: str | None, now: float) -> Slot | None:
+        """Count a new TCP connection from ``address``: ``"handshake"`` (within the caps),
+        ``"probe"`` (over one: a spare place, plain HTTP only) or None (drop it now)."""
+        cap = self.admission
+        over = bool(cap.max_total) and self.pending + cap.total >= cap.max_total
+        if address is not None and cap.max_per_address and not over:
+            held = self.by_address.get(address, 0) + cap.by_address.get(address, 0)
+            over = held >= cap.max_per_address
+        if not over:
+            self.pending += 1
+            if address is not None:
+                self.by_address[address] = self.by_address.get(address, 0) + 1
+            return "handshake"
+        if self.probes < self.reserve:
+            self.probes += 1
+            return "probe"
+        self.refused += 1
+        quiet = self._log.admit(now)
+        if quiet is not None:
+            log.warning(
+                "connection from %s dropped before its handshake: %d pending, %d open, "
+                "caps %d in all and %d per address%s",
+                address, self.pending, cap.total, cap.max_total, cap.max_per_address,
+                self._log.note(quiet),
+            )  # fmt: skip
+        return None
+
+    def release(self, slot: Slot, address: str | None) -> None:
+        """A connection :meth:`admit` counted has finished its handshake, or ended."""
+        if slot == "probe":
+            self.probes -= 1
+            return
+        self.pending -= 1
+        if address is not None:
+            left = self.by_address.pop(address, 1) - 1
+            if left > 0:
+                self.by_address[address] = left
+
+
+def fd_budget(max_connections: int) -> int:
+    """The most connections this process can hold with ``FD_RESERVE`` + ``HEALTH_RESERVE``
+    descriptors to spare (its ``nofile`` soft limit raised to the hard one first);
+    ``max_connections`` if that fits, or if the limit cannot be read (not POSIX)."""
+    try:
+        import resource
+    except ImportError:  # pragma: no cover - Windows
+        return max_connections
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard == resource.RLIM_INFINITY or hard > soft:
+        target = 1 << 20 if hard == resource.RLIM_INFINITY else hard
+        try:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
+            soft = target
+        except (ValueError, OSError):
+            pass
+    budget = max(1, soft - FD_RESERVE - HEALTH_RESERVE)
+    if max_connections == 0 or max_connections > budget:
+        log.warning(
+            "nofile limit %d: at most %d connections (not %s), so that /healthz, "
+            "/metrics and the recordings always have descriptors",
+            soft, budget, max_connections or "unlimited",
+        )  # fmt: skip
+        return budget
+    return max_connections
