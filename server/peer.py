@@ -9,20 +9,35 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
-from posecast.protocol import ServerSession
-from posecast.server.actions import Wake
+from posecast.protocol import Limits, ServerSession, Volume
+from posecast.server.actions import Action, Wake
+from posecast.server.config import ServerConfig
 from posecast.server.limits import Budget
 from posecast.server.link import Downlink
 from posecast.server.logs import LogLimiter
+from posecast.server.parked import Parked
 from posecast.server.room import Member, Outbox, Room
 
-if TYPE_CHECKING:
-    from posecast.server.core import RelayCore
-    from posecast.server.resume import Parked
+__all__ = ["COUNTERS", "ConnectionStatistics", "Peer", "PeerHost"]
 
-__all__ = ["COUNTERS", "ConnectionStatistics", "Peer"]
+
+class PeerHost(Protocol):
+    """What a :class:`Peer` needs of the relay core that keeps it (``RelayCore`` is one):
+    its settings, and where to put the actions its outbox raises."""
+
+    @property
+    def config(self) -> ServerConfig: ...
+
+    @property
+    def limits(self) -> Limits: ...
+
+    @property
+    def volume(self) -> Volume: ...
+
+    def emit(self, action: Action) -> None: ...
+
 
 #: ConnectionStatistics fields that only ever grow, summed over ended connections.
 COUNTERS = (
@@ -76,7 +91,7 @@ class Peer:
     def __init__(
         self,
         conn: int,
-        core: RelayCore,
+        core: PeerHost,
         buffered: Callable[[], int],
         now: float,
         address: str | None = None,

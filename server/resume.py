@@ -37,7 +37,7 @@ from __future__ import annotations
 import heapq
 import hmac
 import secrets
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 from posecast.protocol import (
@@ -53,6 +53,7 @@ from posecast.protocol import (
 )
 from posecast.server import objects, rates
 from posecast.server.limits import Deadlines, error_message
+from posecast.server.parked import Parked
 from posecast.server.room import Member, Room
 
 if TYPE_CHECKING:
@@ -76,20 +77,6 @@ __all__ = [
 
 #: Characters of a resume token that name its parked member (the rest is its secret).
 ID_LENGTH = 12
-
-
-@dataclass
-class Parked:
-    """A member whose connection dropped, waiting for its client to come back."""
-
-    user: int
-    name: str
-    room: Room
-    member: Member
-    since: float
-    deadline: float
-    token: str
-    conn: int
 
 
 class Parking:
