@@ -771,8 +771,9 @@ class RelayCore:
 
     def _into_link(self, peer: Peer, downlink: Downlink, data: bytes, now: float) -> None:
         """Put a snapshot on the emulated link; adopt the rate its cap allows."""
-        downlink.send(now, data)
         room, member = peer.room, peer.member
+        if not downlink.send(now, data) and member is not None:
+            member.undelivered()  # the link lost or skipped it: never a baseline
         if room is not None and member is not None and member.link_rate is None:
             rate = max(self.config.min_rate, downlink.rate_for(member.asked_rate))
             if abs(rate - member.rate) > 0.25:

@@ -114,26 +114,39 @@ class EgressLink:
 class Downlink:
     """A subscriber's :class:`EgressLink` and the snapshots in flight on it."""
 
-    def __init__(self, tier: LinkTier, seed: int, max_in_flight: int) -> None:
+    def __init__(
+        self, tier: LinkTier, seed: int, max_in_flight: int, *, in_order: bool = False
+    ) -> None:
         self.link = EgressLink(tier, seed=seed)
         self.max_in_flight = max_in_flight
+        #: Frames arrive in the order sent, as on a websocket: a frame delayed more
+        #: than the next holds it back. Compact subscribers need it (each delta is
+        #: coded against the frame before); raw ones keep the tier's own delays.
+        self.in_order = in_order
+        self._last_arrival = -math.inf
         #: (arrival, sequence, frame) of the frames on their way.
         self._in_flight: list[tuple[float, int, bytes]] = []
         self._seq = 0
         #: Frames dropped because ``max_in_flight`` were on their way already.
         self.overflow = 0
 
-    def send(self, now: float, data: bytes) -> None:
-        """Put a snapshot on the link at ``now`` (it may be skipped or lost there)."""
+    def send(self, now: float, data: bytes) -> bool:
+        """Put a snapshot on the link at ``now``; False if it never arrives (skipped
+        or lost there, or, in order, refused while ``max_in_flight`` are on their way)."""
         arrival = self.link.offer(now, len(data) + WS_HEADER)
         if arrival is None:
-            return
+            return False
         in_flight = self._in_flight
         if len(in_flight) >= self.max_in_flight:
-            heapq.heappop(in_flight)
             self.overflow += 1
+            if self.in_order:  # the frames on their way are baselines: keep them
+                return False
+            heapq.heappop(in_flight)
+        if self.in_order:
+            arrival = self._last_arrival = max(arrival, self._last_arrival)
         self._seq += 1
         heapq.heappush(in_flight, (arrival, self._seq, data))
+        return True
 
     def arrived(self, now: float, out: list[bytes]) -> None:
         """Append to ``out`` the frames that have arrived by ``now``, in arrival order."""

@@ -243,7 +243,9 @@ def attach(config: ServerConfig, peer: Peer, member: Member, join: Join) -> None
     member.asked_rate = member.rate
     if config.link is not None:
         assert peer.user is not None
-        peer.downlink = Downlink(config.link, peer.user, config.link_max_in_flight)
+        peer.downlink = Downlink(
+            config.link, peer.user, config.link_max_in_flight, in_order=member.compact
+        )
     member.link_rate = (
         LinkRate(config.min_rate, member.rate, start=member.rate) if join.auto_rate else None
     )

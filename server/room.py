@@ -232,8 +232,10 @@ class Member:
     #: streams unless ``echo``.
     compact: bool = False
     echo: bool = False
-    #: The key grid slot of its last key snapshot (-1: due one now).
+    #: The key grid slot of its last key snapshot (-1: due one now), and whether
+    #: its newest snapshot was a key.
     key_slot: int = -1
+    key_sent: bool = False
     #: Its connection dropped and it waits to be resumed (``server.resume``): no
     #: snapshots meanwhile, its streams stay at their last pose.
     parked: bool = False
@@ -245,6 +247,13 @@ class Member:
     watched: bool = False
     #: Its rate controller, if it joined with ``rate="auto"`` (``server.rates``).
     link_rate: LinkRate | None = None
+
+    def undelivered(self) -> None:
+        """Its newest snapshot never reaches it (an emulated link lost or skipped
+        it): the next is coded against what it holds, and is a key if that was."""
+        self.last_version = self.delivered_version
+        if self.key_sent:
+            self.key_slot = -1
 
 
 @dataclass(frozen=True, slots=True)
@@ -630,6 +639,7 @@ class Room:
         since = -1 if member.key_slot != slot else member.delivered_version
         if since < 0:
             member.key_slot = slot
+        member.key_sent = since < 0
         key = (since, member.velocities)
         if key not in groups:
             groups[key] = self._encode_group(now, since, member.velocities)

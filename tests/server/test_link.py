@@ -9,20 +9,26 @@ from support import Pacer, poll_until, running_server
 
 from posecast.client.connection import ClientConnection
 from posecast.protocol import Snapshot, encode_update
+from posecast.protocol.events import ProtocolError
 from posecast.scenarios.network import Tier
 from posecast.server.app import ServerConfig
 
 POSE = np.tile(np.array([0.0, 1.6, 0.0, 1.0, 0.0, 0.0, 0.0], dtype=np.float32), (3, 1))
 
 
-async def _publish(conn: ClientConnection, clock: object, seconds: float) -> None:
+async def _publish(
+    conn: ClientConnection, clock: object, seconds: float, step_m: float = 0.0
+) -> None:
+    """30 Hz updates of POSE, moved ``step_m`` along x each frame."""
     assert conn.joined is not None
     ids = np.array(list(conn.joined.streams.values()))
     pacer = Pacer(1 / 30)
     seq = 0
     while seq < seconds * 30:
         now = clock()  # type: ignore[operator]
-        await conn.send_bytes(encode_update(seq + 1, ids, np.full(3, now), POSE))
+        pose = POSE.copy()
+        pose[:, 0] += np.float32(seq * step_m)
+        await conn.send_bytes(encode_update(seq + 1, ids, np.full(3, now), pose))
         seq = await pacer.next()
 
 
@@ -97,3 +103,49 @@ async def test_the_rate_the_link_chooses_reaches_the_tick_loop_at_once() -> None
         assert srv.core.pending() == []
         for c in (pub, sub):
             await c.close()
+
+
+async def test_a_lossy_jittery_link_keeps_compact_deltas_decodable() -> None:
+    """Compact snapshots through a link that loses and jitters frames: each frame the
+    link drops is never a baseline (the next is coded against what arrived), frames
+    arrive in order as on a websocket, so the subscriber decodes every one it gets."""
+    tier = Tier(
+        "lossy", max_rate_hz=30.0, bandwidth_kbps=2000.0, latency_ms=60.0, jitter_ms=30.0,
+        loss_pct=25.0,
+    )  # fmt: skip
+    config = ServerConfig(host="127.0.0.1", port=0, link=tier)
+    async with running_server(config) as srv:
+        url = f"ws://127.0.0.1:{srv.port}"
+        pub = await ClientConnection.open(url, room="l", streams=("head", "left", "right"), rate=30)
+        sub = await ClientConnection.open(
+            url, room="l", streams=("head",), rate=30, codec="compact"
+        )
+        got: list[Snapshot] = []
+        refused: list[object] = []
+
+        async def receive() -> None:
+            while True:
+                rec = await sub.recv()
+                if isinstance(rec.event, Snapshot):
+                    got.append(rec.event)
+                elif isinstance(rec.event, ProtocolError):
+                    refused.append(rec.event)
+
+        async def drain() -> None:
+            while True:
+                await pub.recv()
+
+        async with asyncio.TaskGroup() as tg:
+            readers = [tg.create_task(receive()), tg.create_task(drain())]
+            await _publish(pub, srv.clock, 3.0, step_m=0.001)
+            await poll_until(lambda: len(got) >= 40 or bool(refused))
+            for r in readers:
+                r.cancel()
+        await sub.close()
+        await pub.close()
+    assert not refused
+    sent = [s.send_time for s in got]
+    assert sent == sorted(sent)  # in order, as on a websocket
+    # The decoded positions are the published ones (x moves 1 mm a frame).
+    xs = np.concatenate([s.poses[:, 0] for s in got])
+    assert np.all(np.abs(xs - np.round(xs, 3)) < 6e-4)
