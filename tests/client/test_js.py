@@ -336,3 +336,49 @@ def test_js_tests_share_one_worker(node: Node, request: pytest.FixtureRequest) -
     if not getattr(request.config.option, "loadgroup", False):
         pytest.skip("not under pytest-xdist --dist loadgroup")
     assert request.node.nodeid.endswith("@node-and-chromium")
+
+
+async def _auto_session(node: Node) -> tuple[dict[str, object], BotReport]:
+    """The JS bot asks ``--rate auto`` on a relay whose emulated link carries 2 kB/s
+    (about a third of what 30 Hz of its raw snapshots need); a Python bot shares the
+    room so that there is something to send."""
+    from posecast.scenarios.network import Tier
+    from posecast.server.app import ServerConfig
+
+    tiny = Tier("tiny", max_rate_hz=30.0, bandwidth_kbps=16.0, latency_ms=20.0, jitter_ms=2.0,
+                loss_pct=0.0)  # fmt: skip
+    async with running_server(ServerConfig(host="127.0.0.1", port=0, link=tiny)) as server:
+        url = f"ws://127.0.0.1:{server.port}"
+        proc = await asyncio.create_subprocess_exec(
+            node.node,
+            str(BOT),
+            *("--url", url, "--room", "auto", "--seconds", "5", "--codec", "raw"),
+            *("--rate", "auto", "--max-rate", "30"),
+            env=node.env,
+            stdout=asyncio.subprocess.PIPE,
+            stderr=asyncio.subprocess.PIPE,
+        )
+        cfg = BotConfig(url=url, room="auto", rate=10, motion="synthetic:orbit", duration=3.0,
+                        methods=("soa",), name="py-auto", codec="raw")  # fmt: skip
+        async with asyncio.TaskGroup() as tg:
+            js = tg.create_task(proc.communicate())
+            await poll_until(lambda: _updates_in(server, "auto") > 0 or js.done())
+            py = tg.create_task(run_bot(cfg))
+        out, err = js.result()
+    assert proc.returncode == 0, err.decode()
+    report: dict[str, object] = json.loads(out.decode().strip().splitlines()[-1])
+    return report, py.result()
+
+
+def test_js_bot_asking_auto_hears_the_relays_rate(node: Node) -> None:
+    """``rate: "auto"`` from the SDK on a narrow link: joined at its max_rate, the relay
+    then chooses lower rates and says so; the SDK's current rate is the last one heard
+    and its playout delay bridges that rate's interval."""
+    js, _ = asyncio.run(_auto_session(node))
+    assert js["granted_rate"] == 30.0, js
+    rates = js["rates"]
+    assert isinstance(rates, list) and rates, f"no rate message reached the JS bot: {js}"
+    assert all(5.0 <= r <= 30.0 for r in rates) and min(rates) < 30.0, rates
+    assert js["current_rate"] == rates[-1]
+    assert js["playout_interval"] == pytest.approx(1.0 / rates[-1])
+    assert js["decode_errors"] == 0 and js["errors"] == [], js

@@ -5,7 +5,8 @@
 //   node examples/bot.mjs --url ws://127.0.0.1:8765 --room lab --seconds 5 [--codec compact|raw]
 //
 // Options: --url (several: comma-separated, tried in order), --room, --seconds,
-// --codec (default compact), --rate (snapshot rate asked, Hz, default 15),
+// --codec (default compact), --rate (snapshot rate asked, Hz, default 15; or
+// "auto": the relay chooses, --max-rate its ceiling),
 // --label (default "js-bot:sway"), --token, --keyframes (add every received
 // keyframe to the report).
 //
@@ -18,7 +19,8 @@
 // Poses are [px, py, pz, qw, qx, qy, qz]: metres, unit quaternion, w first.
 //
 // Report: {user, codec, seconds, peers: [{user, label, streams: {name: poses received}},
-// poses, keyframes?}], decode_errors, bytes_per_pose: {up, down}, poses_sent, ...}.
+// poses, keyframes?}], granted_rate, rates (each rate the relay chose, --rate auto),
+// current_rate, decode_errors, bytes_per_pose: {up, down}, poses_sent, ...}.
 import { spawnSync } from "node:child_process";
 import { existsSync } from "node:fs";
 import { fileURLToPath, pathToFileURL } from "node:url";
@@ -51,7 +53,11 @@ function parseArgs(argv) {
     else if (arg === "--room") opts.room = value();
     else if (arg === "--seconds") opts.seconds = Number(value());
     else if (arg === "--codec") opts.codec = value();
-    else if (arg === "--rate") opts.rate = Number(value());
+    else if (arg === "--rate") {
+      const v = value();
+      opts.rate = v === "auto" ? v : Number(v);
+    }
+    else if (arg === "--max-rate") opts.maxRate = Number(value());
     else if (arg === "--label") opts.label = value();
     else if (arg === "--token") opts.token = value();
     else if (arg === "--keyframes") opts.keyframes = true;
@@ -87,6 +93,7 @@ async function main() {
     urls: opts.url.split(",").map((u) => u.trim()),
     room: opts.room,
     rate: opts.rate,
+    ...(opts.maxRate !== undefined ? { maxRate: opts.maxRate } : {}),
     codec: opts.codec,
     label: opts.label,
     token: opts.token,
@@ -99,6 +106,8 @@ async function main() {
   const resumes = { resumed: 0, rejoined: 0 };
   client.on("resumed", () => resumes.resumed++);
   client.on("rejoined", () => resumes.rejoined++);
+  const rates = []; // each rate the relay chose (rate "auto")
+  client.on("rate", (hz) => rates.push(hz));
   try {
     await client.connect();
   } catch (err) {
@@ -161,6 +170,9 @@ async function main() {
     codec: opts.codec,
     seconds: client.clock() - start,
     granted_rate: client.grantedRate ?? null,
+    rates,
+    current_rate: client.currentRate ?? null,
+    playout_interval: client.receiver.delay.interval,
     peers: [...peers.values()],
     decode_errors: client.decodeErrors,
     errors,

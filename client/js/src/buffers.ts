@@ -158,7 +158,8 @@ export class PlayoutDelay {
   last: number | null = null;
 
   constructor(
-    readonly interval: number,
+    /** The snapshot interval D bridges (s); `RoomPlayoutDelay.retime` changes it. */
+    public interval: number,
     readonly pct = 95,
     readonly tau = 1,
     window = 256,
@@ -210,7 +211,8 @@ export class RoomPlayoutDelay {
   private was = new Set<number>();
 
   constructor(
-    readonly interval: number,
+    /** The snapshot interval (s), 1 / rate; `retime` changes it. */
+    public interval: number,
     readonly pct = 95,
     readonly tau = 1,
     readonly window = 256,
@@ -218,12 +220,28 @@ export class RoomPlayoutDelay {
     readonly tolerance = 0.1,
     readonly spread = 3,
     readonly minSamples = 3,
+    /** The snapshot rate `interval` is for (Hz; default 1 / interval). */
+    public rate = 1 / interval,
   ) {
     this.room = this.make();
   }
 
   private make(): PlayoutDelay {
     return new PlayoutDelay(this.interval, this.pct, this.tau, this.window, this.margin);
+  }
+
+  /** The snapshots now come at `rate` (Hz), as a relay's `rate` notice says: the
+   * interval every D covers scales by the old rate / the new one (1 / rate in
+   * `Receiver`). The ages measured so far are kept, and each D slews to its new
+   * target (time constant `tau`), never jumps: a playout time that jumped back
+   * would show poses again. As Python's `RoomPlayoutDelay.retime`. */
+  retime(rate: number): void {
+    if (!(rate > 0) || !Number.isFinite(rate)) return;
+    const scale = this.rate / rate;
+    this.rate = rate;
+    this.interval *= scale;
+    for (const d of [this.room, ...this.users.values()]) d.interval *= scale;
+    this.dirty = true;
   }
 
   observe(user: number, age: number): void {

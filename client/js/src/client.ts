@@ -28,6 +28,7 @@ import type {
   ControlMessage,
   ErrorMessage,
   Joined,
+  JoinRate,
   Message,
   ObjectInfo,
   Owner,
@@ -55,8 +56,11 @@ export interface ClientOptions {
   /** Stream names: devices `head`, `left`, `right`; objects `object:NAME`. Default the three devices. */
   streams?: string[];
   /** Snapshot rate asked of the server (Hz); must be within the welcome's range.
-   * Default: 30 Hz clamped to that range. */
-  rate?: number;
+   * Default: 30 Hz clamped to that range. Or "auto": the relay chooses the rate
+   * from what this client's link delivers, and says each choice (the `rate` event). */
+  rate?: JoinRate;
+  /** With `rate: "auto"` only: the highest rate the relay may choose (Hz; default the welcome's max_rate). */
+  maxRate?: number;
   token?: string | null;
   /** A free label peers see with this user (e.g. what it plays). */
   label?: string | null;
@@ -100,6 +104,8 @@ export interface ClientEvents {
   owner: (owner: Owner) => void;
   object_removed: (stream: number, reason: string) => void;
   snapshot: (snapshot: Snapshot, arrival: number) => void;
+  /** The relay chose another snapshot rate (Hz) for this client (it joined with rate "auto"). */
+  rate: (rate: number) => void;
   /** A non-fatal server error, or a frame that could not be decoded. */
   error: (error: PosecastError) => void;
   /** The connection dropped; it tries to resume. */
@@ -156,7 +162,8 @@ export class PosecastClient extends Emitter<ClientEvents> {
   private pingSeq = 0;
   private pinger: ReturnType<typeof setInterval> | null = null;
   private readonly streamNames: string[];
-  private rate: number | undefined;
+  private rate: JoinRate | undefined;
+  private currentRateHz: number | undefined;
   private readonly WebSocket: WebSocketLike;
   private compact: CompactSession | null = null;
   private unhook: (() => void) | null = null;
@@ -190,10 +197,15 @@ export class PosecastClient extends Emitter<ClientEvents> {
       throw new UsageError("bad-message", `codec must be raw or compact, got ${String(this.options.codec)}`);
     }
     this.streamNames = opts.streams ? [...opts.streams] : [...DEVICES];
+    if (opts.rate !== undefined && opts.rate !== "auto" && typeof opts.rate !== "number") {
+      throw new UsageError("bad-rate", `rate must be a number of Hz or "auto", got ${String(opts.rate)}`);
+    }
+    if (opts.maxRate !== undefined && opts.rate !== "auto") throw new UsageError("bad-message", 'maxRate is only allowed with rate "auto"');
     this.rate = opts.rate;
     this.clock = opts.clock ?? monotonicSeconds;
     this.WebSocket = opts.WebSocket ?? defaultWebSocket();
-    this.receiver = new Receiver({ rate: opts.rate ?? 30, capacity: opts.bufferCapacity ?? 64 });
+    const first = opts.rate === "auto" ? (opts.maxRate ?? 30) : (opts.rate ?? 30);
+    this.receiver = new Receiver({ rate: first, capacity: opts.bufferCapacity ?? 64 });
   }
 
   /** This user's id (from welcome); -1 before. */
@@ -214,6 +226,18 @@ export class PosecastClient extends Emitter<ClientEvents> {
   /** The snapshot rate the server granted (Hz). */
   get grantedRate(): number | undefined {
     return this.joined?.rate;
+  }
+
+  /** The rate snapshots come at now (Hz): the joined rate, then each rate the relay
+   * chose (rate "auto", the `rate` event) or `setRate` asked. Undefined before joining. */
+  get currentRate(): number | undefined {
+    return this.currentRateHz;
+  }
+
+  /** Whether the relay chooses this client's rate (it joined with rate "auto" and
+   * has not called `setRate` since). */
+  get autoRate(): boolean {
+    return this.rate === "auto";
   }
 
   /** The room's shared objects by stream id. */
@@ -295,8 +319,11 @@ export class PosecastClient extends Emitter<ClientEvents> {
   private async join(label: string | null): Promise<Joined> {
     const welcome = this.welcome!;
     const rate = this.rate ?? Math.min(welcome.max_rate, Math.max(welcome.min_rate, 30));
-    if (!(rate >= welcome.min_rate && rate <= welcome.max_rate)) {
-      const err = new JoinRefused("bad-rate", `rate ${rate} Hz is refused; the server allows ${welcome.min_rate}-${welcome.max_rate} Hz`, false, "join");
+    const auto = rate === "auto";
+    const asked = auto ? this.opts.maxRate : rate; // auto without maxRate: the welcome's max_rate
+    if (asked !== undefined && !(asked >= welcome.min_rate && asked <= welcome.max_rate)) {
+      const what = auto ? "max_rate" : "rate";
+      const err = new JoinRefused("bad-rate", `${what} ${asked} Hz is refused; the server allows ${welcome.min_rate}-${welcome.max_rate} Hz`, false, "join");
       err.rateRange = [welcome.min_rate, welcome.max_rate];
       throw err;
     }
@@ -312,6 +339,7 @@ export class PosecastClient extends Emitter<ClientEvents> {
       wants_velocities: false,
       codec: this.options.codec,
       spectator: this.options.spectator,
+      max_rate: auto ? (this.opts.maxRate ?? null) : null,
     });
     // The codec's baselines start afresh with each join.
     this.compact = compact ? new CompactSession(welcome.volume, this.options.velocities) : null;
@@ -320,6 +348,7 @@ export class PosecastClient extends Emitter<ClientEvents> {
     this.seq = 0;
     this.receiver.me = welcome.user;
     this.receiver.setRate(joined.rate);
+    this.currentRateHz = joined.rate;
     this.emit("joined", joined);
     return joined;
   }
@@ -479,6 +508,13 @@ export class PosecastClient extends Emitter<ClientEvents> {
       case "event":
         this.emit("event", m);
         return;
+      case "rate":
+        // The relay's choice for an auto-rate client (docs/protocol.md 5.5): the
+        // playout delay follows the new interval, keeping its measured ages.
+        this.currentRateHz = m.rate;
+        this.receiver.retime(m.rate);
+        this.emit("rate", m.rate);
+        return;
       case "error":
         this.serverError(m);
         return;
@@ -631,15 +667,16 @@ export class PosecastClient extends Emitter<ClientEvents> {
     return this.receiver.render(now, method);
   }
 
-  /** Ask for another snapshot rate (Hz), within the welcome's range. */
+  /** Ask for another snapshot rate (Hz), within the welcome's range (ends an auto rate). */
   setRate(rate: number): void {
     const w = this.welcome;
     if (w && !(rate >= w.min_rate && rate <= w.max_rate)) {
       throw new UsageError("bad-rate", `rate ${rate} Hz is refused; the server allows ${w.min_rate}-${w.max_rate} Hz`);
     }
-    this.rate = rate;
+    this.rate = rate; // ends an auto rate: the relay serves this number from now on
     this.send({ type: "set_rate", rate });
     this.receiver.setRate(rate);
+    this.currentRateHz = rate;
   }
 
   /** A fresh access token for the same room and user (before the old one expires). */

@@ -24,6 +24,7 @@ export const ROOM_USER = 65535;
 type Kind =
   | "int"
   | "float"
+  | "rate" // float, or the string "auto" (join.rate)
   | "str"
   | "bool"
   | "strs" // list of strings
@@ -74,7 +75,7 @@ export const SCHEMAS: Readonly<Record<string, readonly FieldSpec[]>> = {
   join: [
     f("room", "str"),
     f("streams", "strs"),
-    f("rate", "float"),
+    f("rate", "rate"),
     f("token", "str", OPT_NULL),
     f("label", "str", OPT_NULL),
     f("sends_velocities", "bool", OMIT_FALSE),
@@ -82,6 +83,7 @@ export const SCHEMAS: Readonly<Record<string, readonly FieldSpec[]>> = {
     f("codec", "str", { def: "raw", omit: true }),
     f("echo", "bool", OMIT_FALSE),
     f("spectator", "bool", OMIT_FALSE),
+    f("max_rate", "float", OMIT_NULL),
   ],
   joined: [
     f("room", "str"),
@@ -158,10 +160,14 @@ export interface Welcome {
   type: "welcome"; user: number; server_time: number; version: number; min_rate: number;
   max_rate: number; max_streams: number; volume: number[]; resume: string | null; resumed: boolean;
 }
+/** `join.rate`: a number of Hz, or "auto" (the relay chooses; section 5.5 of the spec). */
+export type JoinRate = number | "auto";
 export interface Join {
-  type: "join"; room: string; streams: string[]; rate: number; token?: string | null;
+  type: "join"; room: string; streams: string[]; rate: JoinRate; token?: string | null;
   label?: string | null; sends_velocities?: boolean; wants_velocities?: boolean;
   codec?: "raw" | "compact"; echo?: boolean; spectator?: boolean;
+  /** With rate "auto" only: the highest rate the relay may choose (Hz; null: the welcome's). */
+  max_rate?: number | null;
 }
 export interface Joined { type: "joined"; room: string; streams: Record<string, number>; rate: number; objects: Record<string, number> }
 export interface PeerJoined { type: "peer_joined"; user: number; streams: Record<string, number>; label: string | null; velocities: boolean }
@@ -171,7 +177,7 @@ export interface PeerResumed { type: "peer_resumed"; user: number }
 export interface Ping { type: "ping"; seq: number; time: number }
 export interface Pong { type: "pong"; seq: number; ping_time: number; recv_time: number; send_time: number }
 export interface SetRate { type: "set_rate"; rate: number }
-/** The rate the relay chose for a client that joined with rate "auto" (this SDK asks numbers). */
+/** The rate the relay chose now for a client that joined with rate "auto". */
 export interface RateNotice { type: "rate"; rate: number }
 export interface Renew { type: "renew"; token: string }
 export interface UserEvent {
@@ -238,6 +244,10 @@ function writeField(w: Writer, spec: FieldSpec, value: unknown): void {
       return;
     case "float":
       w.float(value as number);
+      return;
+    case "rate":
+      if (typeof value === "string") w.str(value);
+      else w.float(value as number);
       return;
     case "str":
       w.str(value as string);
@@ -333,6 +343,12 @@ function checkField(type: string, spec: FieldSpec, value: unknown): unknown {
     case "float": {
       const v = floatValue(value);
       if (v === undefined) throw bad(where, "must be a finite number");
+      return v;
+    }
+    case "rate": {
+      if (value === "auto") return value;
+      const v = floatValue(value);
+      if (v === undefined) throw bad(where, 'must be a finite number or "auto"');
       return v;
     }
     case "str":

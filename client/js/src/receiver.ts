@@ -102,6 +102,12 @@ export class Receiver {
     this.delay = new RoomPlayoutDelay(1 / rate);
   }
 
+  /** The relay chose another rate (a `rate` notice, auto rate): the delay keeps its
+   * measured ages and slews to the new interval. */
+  retime(rate: number): void {
+    this.delay.retime(rate);
+  }
+
   /** Forget everyone (a rejoin as a new member: ids from before mean nothing). */
   reset(): void {
     this.peers.clear();

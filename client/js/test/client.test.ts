@@ -259,3 +259,54 @@ test("an undecodable frame while joined: fatal error sent, closed with its code,
   await back;
   c.close();
 });
+
+/** A relay serving auto rates: joined at the join's max_rate (or the welcome's 30). */
+function autoRelay(): Handler {
+  const base = relay();
+  return (m, ws) => {
+    if (m.type === "join" && m.rate === "auto") ws.deliver({ ...JOINED, rate: m.max_rate ?? 30, streams: { ...JOINED.streams }, objects: {} });
+    else base(m, ws);
+  };
+}
+
+test('rate "auto": the join asks it with max_rate; each rate notice moves currentRate and the playout delay', async () => {
+  FakeSocket.handler = autoRelay();
+  const c = client({ rate: "auto", maxRate: 24 });
+  const joined = await c.connect();
+  const ws = FakeSocket.sockets[0]!;
+  const join = decodeMessage(ws.sent.find((b) => decodeMessage(b).type === "join")!);
+  assert.ok(join.type === "join" && join.rate === "auto" && join.max_rate === 24);
+  assert.equal(joined.rate, 24);
+  assert.equal(c.currentRate, 24);
+  assert.ok(c.autoRate);
+  assert.ok(Math.abs(c.receiver.delay.interval - 1 / 24) < 1e-12);
+  const heard: number[] = [];
+  c.on("rate", (r) => heard.push(r));
+  ws.deliver({ type: "rate", rate: 12 });
+  assert.deepEqual(heard, [12]);
+  assert.equal(c.currentRate, 12);
+  assert.ok(Math.abs(c.receiver.delay.interval - 1 / 12) < 1e-12, "D now bridges a 1/12 s interval");
+  // set_rate ends the auto rate: a number from now on.
+  c.setRate(15);
+  assert.equal(c.currentRate, 15);
+  assert.ok(!c.autoRate);
+  const setRate = decodeMessage(ws.sent.at(-1)!);
+  assert.ok(setRate.type === "set_rate" && setRate.rate === 15);
+  c.close();
+});
+
+test('rate "auto" without maxRate sends no max_rate; a maxRate out of range or without auto is refused', async () => {
+  FakeSocket.handler = autoRelay();
+  const c = client({ rate: "auto" });
+  await c.connect();
+  const bytes = FakeSocket.sockets[0]!.sent.find((b) => decodeMessage(b).type === "join")!;
+  const join = decodeMessage(bytes);
+  assert.ok(join.type === "join" && join.rate === "auto" && join.max_rate === null);
+  assert.ok(!Buffer.from(bytes).includes(Buffer.from("max_rate")), "max_rate is omitted at its default");
+  assert.equal(c.currentRate, 30);
+  c.close();
+  const high = client({ rate: "auto", maxRate: 45 });
+  await assert.rejects(high.connect(), (e: unknown) => e instanceof JoinRefused && e.code === "bad-rate" && /max_rate 45/.test(e.message));
+  assert.ok(!sentTypes(FakeSocket.sockets[0]!).includes("join"));
+  assert.throws(() => client({ rate: 20, maxRate: 25 }), /maxRate is only allowed with rate "auto"/);
+});

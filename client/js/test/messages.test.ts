@@ -101,3 +101,15 @@ test("float16 conversion rounds to nearest even and clamps finite values", () =>
   assert.equal(toFloat16(1 + 3 * 2 ** -11), 0x3c02);
   assert.ok(Number.isNaN(float16(toFloat16(NaN))));
 });
+
+test('a join asking rate "auto" encodes to the Python encoder\'s bytes (max_rate last, omitted while nil)', () => {
+  // posecast.protocol.encode_message(Join(room="lab", streams=("head",), rate="auto", max_rate=24.0)), and without max_rate.
+  const withMax = "87a474797065a46a6f696ea4726f6f6da36c6162a773747265616d7391a468656164a472617465a46175746fa5746f6b656ec0a56c6162656cc0a86d61785f72617465cb4038000000000000";
+  const without = "86a474797065a46a6f696ea4726f6f6da36c6162a773747265616d7391a468656164a472617465a46175746fa5746f6b656ec0a56c6162656cc0";
+  const hex = (b: Uint8Array) => Buffer.from(b).toString("hex");
+  assert.equal(hex(encodeControl({ type: "join", room: "lab", streams: ["head"], rate: "auto", max_rate: 24 })), withMax);
+  assert.equal(hex(encodeControl({ type: "join", room: "lab", streams: ["head"], rate: "auto" })), without);
+  const back = decodeMessage(Buffer.from(withMax, "hex"));
+  assert.ok(back.type === "join" && back.rate === "auto" && back.max_rate === 24);
+  assert.throws(() => decodeMessage(pack({ type: "join", room: "lab", streams: ["head"], rate: "fast" })), (e: unknown) => e instanceof DecodeError && e.code === "bad-message");
+});

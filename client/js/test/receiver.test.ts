@@ -121,3 +121,23 @@ test("a peer announced again with the same streams keeps its buffers; a reused i
   r.peerJoined({ type: "peer_joined", user: 3, streams: { head: 4 }, label: "b", velocities: false }); // another member
   assert.equal(r.streams.size, 0);
 });
+
+test("RoomPlayoutDelay.retime: the interval follows the rate, the ages stay, D slews to the new target", () => {
+  const d = new RoomPlayoutDelay(1 / 30);
+  for (let i = 0; i < 20; i++) {
+    d.observe(1, 0.01 + 0.001 * (i % 5));
+    d.observe(2, 0.012 + 0.001 * (i % 3));
+  }
+  let t = 0;
+  for (; t < 10; t += 0.1) d.update(t);
+  const before = d.room.value;
+  d.retime(10);
+  assert.ok(Math.abs(d.interval - 0.1) < 1e-15 && Math.abs(d.room.interval - 0.1) < 1e-15);
+  const target = before + (0.1 - 1 / 30); // same ages, a longer interval to bridge
+  const next = d.update(t + 0.1);
+  assert.ok(next > before && next < target - 1e-3, `slews (${before} -> ${next}), no jump to ${target}`);
+  for (let k = 1; k < 200; k++) d.update(t + 0.1 * (k + 1));
+  assert.ok(Math.abs(d.room.value - target) < 1e-6, `settles at ${target}: ${d.room.value}`);
+  d.retime(0); // not a rate: ignored
+  assert.ok(Math.abs(d.interval - 0.1) < 1e-15);
+});
