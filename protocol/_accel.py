@@ -12,23 +12,23 @@ another path, and the twin then decides.
 call, so :func:`use` switches a running process (the tests run both). Set
 ``POSECAST_PURE=1`` to run pure Python from the start. An extension built from
 other sources than the ones beside it (a stale in-place build) is not used.
+Importing says nothing (a CLI error must stay one line): :data:`NOTICE` is the
+one line the relay logs at start when the accelerator should run and does not.
 """
 
 from __future__ import annotations
 
 import hashlib
-import logging
 import os
 from pathlib import Path
 from types import ModuleType
 
-__all__ = ["IMPLEMENTATION", "PURE_ENV", "compiled", "speedups", "use"]
+__all__ = ["IMPLEMENTATION", "NOTICE", "PURE_ENV", "compiled", "speedups", "use"]
 
 #: Set to 1 (or anything but 0 and empty) to run the pure-Python codec.
 PURE_ENV = "POSECAST_PURE"
 COMPILED = "compiled (C accelerator)"
 _SOURCES = ("_speedups.c", "_speedups_update.h", "_speedups_relay.h")
-_log = logging.getLogger("posecast.protocol")
 
 
 def _source_hash() -> str | None:
@@ -41,35 +41,37 @@ def _source_hash() -> str | None:
     return hashlib.sha256(data).hexdigest()[:16]
 
 
-def _load(quiet: bool) -> tuple[ModuleType | None, str]:
-    """The compiled module (or None) and what runs, saying once why not compiled
-    (unless ``quiet``: pure Python was asked for)."""
+def _load() -> tuple[ModuleType | None, str, str]:
+    """The compiled module (or None), what runs, and why it is not compiled."""
     try:
         from posecast.protocol import _speedups
     except ImportError:
-        if not quiet:
-            _log.warning(
-                "posecast: the compact codec's C accelerator is not built "
-                "(no C compiler at install?); running its pure-Python twin"
-            )
-        return None, "pure Python (accelerator not built)"
+        return (
+            None,
+            "pure Python (accelerator not built)",
+            "the compact codec's C accelerator is not built (no C compiler at install?); "
+            "running its pure-Python twin",
+        )
     source = _source_hash()
     if source is not None and source != _speedups.SOURCE_HASH:
-        if not quiet:
-            _log.warning(
-                "posecast: the compact codec's C accelerator was built from older sources; "
-                "running pure Python (rebuild: pip install -e .)"
-            )
-        return None, "pure Python (accelerator out of date)"
-    return _speedups, COMPILED
+        return (
+            None,
+            "pure Python (accelerator out of date)",
+            "the compact codec's C accelerator was built from older sources; running "
+            "pure Python (rebuild: pip install -e .)",
+        )
+    return _speedups, COMPILED, ""
 
 
 _forced = os.environ.get(PURE_ENV, "") not in ("", "0")
-_compiled, _why = _load(quiet=_forced)
+_compiled, _why, _notice = _load()
 #: The compiled module while it runs, else None.
 speedups: ModuleType | None = None if _forced else _compiled
 #: What runs, for ``posecast --version`` and ``/metrics``.
 IMPLEMENTATION = f"pure Python ({PURE_ENV}=1)" if _forced else _why
+#: Why the accelerator does not run although it was not turned off ("": it runs, or
+#: ``POSECAST_PURE`` asked for pure Python): the relay logs it once at start.
+NOTICE = "" if _forced else _notice
 
 
 def compiled() -> ModuleType | None:

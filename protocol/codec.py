@@ -105,6 +105,7 @@ from posecast.protocol.codec_quant import (
 from posecast.protocol.errors import ErrorCode
 
 __all__ = [
+    "ACCELERATOR_NOTICE",  # noqa: F822 (the module __getattr__ below)
     "CODEC_MAGIC",
     "CODEC_VERSION",
     "DEFAULT_VOLUME",
@@ -135,6 +136,9 @@ def __getattr__(name: str) -> str:
     # Python (...)" (``protocol._accel``); read at each access, as tests switch it.
     if name == "IMPLEMENTATION":
         return _accel.IMPLEMENTATION
+    # ACCELERATOR_NOTICE: why the accelerator does not run though not turned off, or "".
+    if name == "ACCELERATOR_NOTICE":
+        return _accel.NOTICE
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 

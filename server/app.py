@@ -52,6 +52,7 @@ from typing import TYPE_CHECKING, Any
 from websockets.http11 import Request, Response
 from websockets.protocol import State as WsState
 
+from posecast.protocol import codec
 from posecast.protocol.events import Event
 from posecast.server.core import (
     Action,
@@ -661,6 +662,8 @@ class RelayServer:
         admission.max_total = fd_budget(admission.max_total)
         if cfg.secret is None:
             log.warning("no --secret: the server is open, anyone can join any room")
+        if codec.ACCELERATOR_NOTICE:
+            log.warning(codec.ACCELERATOR_NOTICE)
         if cfg.record_dir is not None:
             await self.recorders.start()
         if cfg.cluster is not None:

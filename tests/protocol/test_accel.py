@@ -248,14 +248,22 @@ def test_pure_env_runs_pure_python() -> None:
     assert got.stderr == ""
 
 
-def test_without_the_extension_it_falls_back_and_says_so_once() -> None:
-    """With the extension missing (no compiler at install), the codec runs pure Python
-    and one line on stderr says so: no traceback, however many modules import it."""
+def test_without_the_extension_it_falls_back_and_the_relay_says_so_once() -> None:
+    """With the extension missing (no compiler at install), the codec runs pure Python;
+    importing it prints nothing (a CLI error stays one line), and a relay starting
+    logs the one line that says so."""
     code = (
-        "import sys; sys.modules['posecast.protocol._speedups'] = None\n"
+        "import sys, asyncio, logging; sys.modules['posecast.protocol._speedups'] = None\n"
         "from posecast.protocol import codec, codec_relay, _compact, bits\n"
         "from posecast.protocol import _accel\n"
-        "print(codec.IMPLEMENTATION, _accel.speedups is None)"
+        "print(codec.IMPLEMENTATION, _accel.speedups is None, flush=True)\n"
+        "from posecast.server.app import RelayServer, ServerConfig, serving\n"
+        "logging.basicConfig(level=logging.WARNING, format='%(message)s')\n"
+        "async def main():\n"
+        "    server = RelayServer(ServerConfig(host='127.0.0.1', port=0, secret='s' * 32))\n"
+        "    async with serving(server):\n"
+        "        pass\n"
+        "asyncio.run(main())\n"
     )
     got = _python(code)
     assert got.returncode == 0, got.stderr
