@@ -54,6 +54,7 @@ from typing import TYPE_CHECKING
 from posecast.protocol import ErrorCode, ErrorMessage, Hello, Join
 
 if TYPE_CHECKING:
+    from posecast.server.config import ServerConfig
     from posecast.server.core import RelayCore
     from posecast.server.peer import Peer
 
@@ -66,6 +67,7 @@ __all__ = [
     "STALE_ERROR_INTERVAL",
     "Capacity",
     "CapacityBudget",
+    "budget_of",
     "shed",
     "stale_error_due",
 ]
@@ -101,6 +103,12 @@ class CapacityBudget:
     backlog: int = 32 << 20
     #: Seconds per measuring window.
     window: float = 1.0
+
+
+def budget_of(config: ServerConfig) -> CapacityBudget:
+    """The capacity budget of ``capacity_cpu``, ``capacity_lag``, ``capacity_backlog``
+    (here, not on ServerConfig: the settings import nothing of the relay's parts)."""
+    return CapacityBudget(config.capacity_cpu, config.capacity_lag, config.capacity_backlog)
 
 
 @dataclass

@@ -10,7 +10,6 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
 from posecast.protocol.codec import DEFAULT_VOLUME, Volume
-from posecast.server.capacity import CapacityBudget
 from posecast.server.link import LinkTier
 
 if TYPE_CHECKING:
@@ -109,11 +108,6 @@ class ServerConfig:
     #: ``server.http``); others get HTTP 403. None: any origin. Handshakes
     #: without an Origin header (non-browser clients) are never refused for it.
     allow_origins: tuple[str, ...] | None = None
-
-    @property
-    def capacity_budget(self) -> CapacityBudget:
-        """The capacity budget of ``capacity_cpu``, ``capacity_lag``, ``capacity_backlog``."""
-        return CapacityBudget(self.capacity_cpu, self.capacity_lag, self.capacity_backlog)
 
     @property
     def room_volume(self) -> Volume:

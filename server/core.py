@@ -198,7 +198,7 @@ class RelayCore:
         self.cluster: ClusterView | None = None
         #: Members of dropped resumable connections, kept for ``resume_window``.
         self.parking = resume.Parking(cfg.resume_window)
-        self.capacity = capacity.Capacity(cfg.capacity_budget)  # sheds joins over budget
+        self.capacity = capacity.Capacity(capacity.budget_of(cfg))  # sheds joins over budget
         #: Members whose updates stopped (``stall_after``): peers hear peer_stalled.
         self.silence = resume.Silence(cfg.stall_after)
         self.token_expiries = 0

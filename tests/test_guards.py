@@ -24,29 +24,25 @@ ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("posecast", "server", "client", "protocol", "interp", "recorder", "scenarios")
 
 #: The cycles of issue 27 still to untie, each as the set of modules it binds. The
-#: relay core and the parts that name it in their types (objects, resume, tokens,
-#: capacity: ``core: RelayCore``); with it, through type-only imports, everything on
-#: a path back to it: config -> capacity (ServerConfig.capacity_budget) pulls in
-#: config and what imports it (limits, handshakes, rooms), and room <-> rates (a
-#: member's LinkRate; rates' Member, Room, Peer) pulls in peer and parked. Cutting
-#: config -> capacity would leave two cycles: {core, capacity, objects, resume,
-#: tokens} and {room, rates, peer, parked}.
+#: relay core and the parts that name it in their types (``core: RelayCore``); and a
+#: room's member holding its LinkRate while rates' functions take Member, Room and
+#: Peer (room <-> rates, which peer and parked sit on). All type-only imports.
 ALLOWED_CYCLES: tuple[frozenset[str], ...] = (
     frozenset(
         {
             "posecast.server.capacity",
-            "posecast.server.config",
             "posecast.server.core",
-            "posecast.server.handshakes",
-            "posecast.server.limits",
             "posecast.server.objects",
+            "posecast.server.resume",
+            "posecast.server.tokens",
+        }
+    ),
+    frozenset(
+        {
             "posecast.server.parked",
             "posecast.server.peer",
             "posecast.server.rates",
-            "posecast.server.resume",
             "posecast.server.room",
-            "posecast.server.rooms",
-            "posecast.server.tokens",
         }
     ),
 )
