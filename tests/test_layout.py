@@ -141,6 +141,7 @@ def test_server_holds_only_the_relay() -> None:
         "forward.py",
         "actions.py",
         "peer.py",
+        "handshakes.py",
         "parked.py",
         "limits.py",
         "link.py",
