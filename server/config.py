@@ -78,6 +78,12 @@ class ServerConfig:
     #: A TCP connection whose websocket handshake (or plain HTTP request) is not done
     #: this long after it was accepted is dropped (``server/handshakes.py``).
     handshake_timeout: float = 2.0
+    #: Across connections, per source address (and per token user for joins and events):
+    #: connections, joins and events a second (bursts of 10 s worth); 0: off
+    #: (``server/guard.py``).
+    max_connect_rate: float = 100.0
+    max_join_rate: float = 60.0
+    max_event_rate: float = 1000.0
     #: A resumable client's dropped connection keeps its place this long (s); 0: off.
     resume_window: float = 10.0
     #: A member whose updates stop this long (s) while its connection stays up (a

@@ -123,6 +123,7 @@ from posecast.server.actions import (
     Wake,
 )
 from posecast.server.config import ServerConfig
+from posecast.server.guard import Guard
 from posecast.server.handshakes import Handshakes
 from posecast.server.limits import (
     Admission,
@@ -190,7 +191,7 @@ class RelayCore:
         self.table.adapt = rates.adapter(self)  # auto rates decide after each room's tick
         cfg = self.config
         self.admission = Admission(cfg.max_connections, cfg.max_connections_per_address)
-        self.handshakes = Handshakes(self.admission)  # the same caps before the handshake
+        self.handshakes = Handshakes(self.admission, guard=Guard.of(cfg))  # caps before handshake
         self._join_deadlines = Deadlines(self._unjoined)
         #: Access-token expiries (server clock) of joined connections; see Renew.
         self._token_deadlines = Deadlines(self._token_due)
@@ -718,7 +719,7 @@ class RelayCore:
 
     def _on_user_event(self, peer: Peer, event: UserEvent, now: float) -> None:
         room = peer.room
-        if room is None or not self.admit_update(peer, now):
+        if room is None or not tokens.admit_event(self, peer, now):
             return
         for m in list(room.members.values()):
             if m.user != peer.user:

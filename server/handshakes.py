@@ -27,6 +27,7 @@ from __future__ import annotations
 import logging
 from typing import Literal
 
+from posecast.server.guard import Guard
 from posecast.server.limits import Admission
 from posecast.server.logs import LogLimiter
 
@@ -45,7 +46,9 @@ Slot = Literal["handshake", "probe"]
 class Handshakes:
     """TCP connections whose handshake is under way, in total and per address."""
 
-    def __init__(self, admission: Admission, reserve: int = HEALTH_RESERVE) -> None:
+    def __init__(
+        self, admission: Admission, reserve: int = HEALTH_RESERVE, guard: Guard | None = None
+    ) -> None:
         #: The core's open connections (its caps are the caps of both).
         self.admission = admission
         self.reserve = reserve
@@ -57,12 +60,15 @@ class Handshakes:
         #: finishing their handshake in time.
         self.refused = self.timeouts = 0
         self._log = LogLimiter(1.0)
+        #: Rates across connections, per address and token user (``server/guard.py``).
+        self.guard = guard or Guard()
 
     def admit(self, address: str | None, now: float) -> Slot | None:
         """Count a new TCP connection from ``address``: ``"handshake"`` (within the caps),
         ``"probe"`` (over one: a spare place, plain HTTP only) or None (drop it now)."""
         cap = self.admission
         over = bool(cap.max_total) and self.pending + cap.total >= cap.max_total
+        over = over or not self.guard.connect(address, now)  # reconnecting too fast
         if address is not None and cap.max_per_address and not over:
             held = self.by_address.get(address, 0) + cap.by_address.get(address, 0)
             over = held >= cap.max_per_address

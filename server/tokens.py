@@ -23,7 +23,7 @@ if TYPE_CHECKING:
     from posecast.server.core import RelayCore
     from posecast.server.peer import Peer
 
-__all__ = ["admit_join", "expired", "joinable_room", "renew"]
+__all__ = ["admit_event", "admit_join", "expired", "joinable_room", "renew"]
 
 
 def joinable_room(event: Event, secret: str | None, wall: float) -> str | None:
@@ -49,11 +49,13 @@ def admit_join(core: RelayCore, peer: Peer, join: Join, name: str, now: float, w
     with a secret, the token's user becomes the peer's name and its expiry a deadline."""
     secret = core.config.secret
     if secret is None:
-        return True
+        return _join_rate(core, peer, None, now)
     try:
         claims: TokenClaims = verify_token(secret, join.token, name, wall)
     except TokenError as exc:
         _unauthorized(core, peer, exc, "join")
+        return False
+    if not _join_rate(core, peer, claims.user, now):
         return False
     if peer.parked is not None and peer.parked.name != claims.user:
         resume.refuse(core, peer, "join", now)  # (the parked member stays parked)
@@ -94,3 +96,30 @@ def expired(core: RelayCore, peer: Peer) -> None:
     core.token_expiries += 1
     core.send(peer, error_message(ErrorCode.UNAUTHORIZED, "access token expired; renew it"))
     core.close_peer(peer, 1008, "access token expired")
+
+
+def _join_rate(core: RelayCore, peer: Peer, user: str | None, now: float) -> bool:
+    """Whether a join is within its address's (and token user's) join rate, across
+    connections (``server/guard.py``); over it: ``room-full``, try later."""
+    if core.handshakes.guard.join(peer.address, user, now):
+        return True
+    rate = core.handshakes.guard.joins.rate
+    why = f"too many joins from this address or user (over {rate:g}/s); try later"
+    core.refuse(peer, ErrorCode.ROOM_FULL, why, "join", now)
+    return False
+
+
+def admit_event(core: RelayCore, peer: Peer, now: float) -> bool:
+    """Whether an event of ``peer`` is within its address's and token user's rate, across
+    connections (``server/guard.py``), and within its connection's update bucket
+    (``RelayCore.admit_update``); over the former, dropped (counted), closed 1008."""
+    if not core.admit_update(peer, now):
+        return False
+    user = peer.name if core.config.secret is not None else None
+    guard = core.handshakes.guard
+    if guard.event(peer.address, user, now):
+        return True
+    peer.flood_drops += 1
+    rate = guard.events.rate
+    core.close_peer(peer, 1008, f"event flood: over {rate:g} events/s from this address or user")
+    return False

@@ -132,6 +132,7 @@ def test_server_holds_only_the_relay() -> None:
     relay = {
         "__init__.py",
         "capacity.py",
+        "guard.py",
         "core.py",
         "config.py",
         "resume.py",

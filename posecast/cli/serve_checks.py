@@ -19,6 +19,10 @@ __all__ = [
     "CapacityBacklogOption",
     "CapacityCpuOption",
     "CapacityLagOption",
+    "HandshakeTimeoutOption",
+    "MaxConnectRateOption",
+    "MaxEventRateOption",
+    "MaxJoinRateOption",
     "StallAfterOption",
     "allowed_origins",
     "check_serve_args",
@@ -39,6 +43,9 @@ SERVE_LIMITS = (
     "misbehaviour_refill",
     "join_timeout",
     "handshake_timeout",
+    "max_connect_rate",
+    "max_join_rate",
+    "max_event_rate",
     "max_connections",
     "max_connections_per_address",
     "max_rooms",
@@ -51,6 +58,37 @@ SERVE_LIMITS = (
     "capacity_backlog",
 )
 
+HandshakeTimeoutOption = Annotated[
+    float,
+    typer.Option(
+        help="Drop TCP connections whose websocket handshake is not done within this (s).",
+        envvar="POSECAST_HANDSHAKE_TIMEOUT",
+    ),
+]
+MaxConnectRateOption = Annotated[
+    float,
+    typer.Option(
+        help="Connections a second from one address, across reconnects (bursts of 10 s "
+        "worth); over it: closed 1013. 0: off.",
+        envvar="POSECAST_MAX_CONNECT_RATE",
+    ),
+]
+MaxJoinRateOption = Annotated[
+    float,
+    typer.Option(
+        help="Joins a second from one address or token user, across reconnects (bursts of "
+        "10 s worth); over it: room-full. 0: off.",
+        envvar="POSECAST_MAX_JOIN_RATE",
+    ),
+]
+MaxEventRateOption = Annotated[
+    float,
+    typer.Option(
+        help="Events a second from one address or token user, across reconnects (bursts "
+        "of 10 s worth); over it: closed 1008. 0: off.",
+        envvar="POSECAST_MAX_EVENT_RATE",
+    ),
+]
 StallAfterOption = Annotated[
     float,
     typer.Option(

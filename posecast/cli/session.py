@@ -33,6 +33,10 @@ from posecast.cli.serve_checks import (
     CapacityBacklogOption,
     CapacityCpuOption,
     CapacityLagOption,
+    HandshakeTimeoutOption,
+    MaxConnectRateOption,
+    MaxEventRateOption,
+    MaxJoinRateOption,
     StallAfterOption,
     allowed_origins,
     check_tls_files,
@@ -195,13 +199,6 @@ JoinTimeoutOption = Annotated[
         help="Close connections not joined within this (s).", envvar="POSECAST_JOIN_TIMEOUT"
     ),
 ]
-HandshakeTimeoutOption = Annotated[
-    float,
-    typer.Option(
-        help="Drop TCP connections whose websocket handshake is not done within this (s).",
-        envvar="POSECAST_HANDSHAKE_TIMEOUT",
-    ),
-]
 MaxConnectionsOption = Annotated[
     int, typer.Option(help="Open connections at most.", envvar="POSECAST_MAX_CONNECTIONS")
 ]
@@ -302,6 +299,9 @@ def serve(
     misbehaviour_refill: MisbehaviourRefillOption = 5.0,
     join_timeout: JoinTimeoutOption = 5.0,
     handshake_timeout: HandshakeTimeoutOption = 2.0,
+    max_connect_rate: MaxConnectRateOption = 100.0,
+    max_join_rate: MaxJoinRateOption = 60.0,
+    max_event_rate: MaxEventRateOption = 1000.0,
     max_connections: MaxConnectionsOption = 1024,
     max_connections_per_address: MaxConnectionsPerAddressOption = 64,
     max_rooms: MaxRoomsOption = 256,
