@@ -31,12 +31,14 @@ allowed only if listed; ``*`` allows any origin (the default, said explicitly).
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import re
 from collections.abc import Callable
 from http import HTTPStatus
 from typing import Any
+from urllib.parse import parse_qs
 
 from websockets.http11 import Request, Response
 from websockets.server import ServerProtocol
@@ -77,6 +79,12 @@ def process_request(
             # Same headers as /healthz (Date, Connection: close), Prometheus' type.
             del response.headers["Content-Type"]
             response.headers["Content-Type"] = "text/plain; version=0.0.4; charset=utf-8"
+            return response
+        if path == "/rates":
+            room = parse_qs(request.path.partition("?")[2]).get("room", [""])[0]
+            response = protocol.reject(HTTPStatus.OK, rates_json(core, room) + "\n")
+            del response.headers["Content-Type"]
+            response.headers["Content-Type"] = "application/json"
             return response
         if "upgrade" not in request.headers.get("Connection", "").lower():
             # A browser or a probe, not a websocket client: answer plainly here
@@ -125,6 +133,18 @@ def _http_only(msg: Any, extra: Any) -> bool:
         return False
     # No response yet: the peer left during the handshake, it never was a websocket.
     return response is None or response.status_code != HTTPStatus.SWITCHING_PROTOCOLS
+
+
+def rates_json(core: RelayCore, room: str) -> str:
+    """``GET /rates?room=NAME``: the snapshot rate the relay sends each member of a room
+    now, ``{"room": NAME, "users": {"3": {"rate": 12.0, "asked_rate": 30.0, "auto": true}}}``
+    (no such room: no users). User ids and rates only, no labels or streams."""
+    found = core.rooms.get(room)
+    users = {
+        str(m.user): {"rate": m.rate, "asked_rate": m.asked_rate, "auto": m.link_rate is not None}
+        for m in (found.members.values() if found is not None else ())
+    }
+    return json.dumps({"room": room, "users": users}, separators=(",", ":"))
 
 
 def metrics_text(core: RelayCore, now: float | None = None) -> str:
