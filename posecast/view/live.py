@@ -39,6 +39,7 @@ from posecast.client.remote import RemoteStream
 from posecast.interp import info as interp_info
 from posecast.protocol import ROOM_USER
 from posecast.protocol.codec import DEFAULT_VOLUME
+from posecast.view.rates import fetch_rates, legend_html, rate_colour
 from posecast.view.scene import AvatarScene, user_colour
 
 __all__ = ["STARVED_STALLS", "LiveConfig", "LiveView", "UserStats", "run_live_view", "starving"]
@@ -87,6 +88,8 @@ class UserStats:
     frames: int = 0
     #: (time, frames, stalls) at each overlay refresh, for the recent stall share.
     marks: deque[tuple[float, int, int]] = field(default_factory=lambda: deque(maxlen=64))
+    #: The snapshot rate the relay sends this user now (Hz; None: not known).
+    rate: float | None = None
 
     def rates(self, now: float) -> tuple[float, float]:
         """Keyframes/s (per stream) and bytes/s over the last window."""
@@ -119,6 +122,14 @@ def starving(d: float, interval: float, stalls: float, kps: float, rate: float) 
     if 0 < kps < 0.8 * rate:
         why.append(f"{kps:.1f} keyframes/s of {rate:g} asked")
     return ", ".join(why) or None
+
+
+def _rate_cell(rate: float | None) -> str:
+    """The rate column's cell: the rate in its colour of the scale (``-``: not known)."""
+    if rate is None:
+        return f'<td style="{_CELL}">-</td>'
+    r, g, b = rate_colour(rate)
+    return f'<td style="{_CELL};color:rgb({r},{g},{b});font-weight:bold">{rate:g}</td>'
 
 
 def display_name(user: int, label: str | None) -> str:
@@ -334,6 +345,9 @@ class LiveView:
 
     def _names(self, core: ClientCore) -> dict[int, str]:
         names = {u: display_name(u, peer.label) for u, peer in core.peers.items()}
+        for u, st in self.stats.items():
+            if u in names and st.rate is not None:
+                names[u] += f" {st.rate:g} Hz"
         names[ROOM_USER] = "shared objects"
         return names
 
@@ -369,7 +383,8 @@ class LiveView:
         d = self.last_frame[1]
         names = self._names(core)
         head = "".join(
-            f'<th style="{_CELL}">{h}</th>' for h in ("keyframes/s", "D (ms)", "kB/s", "stalls (%)")
+            f'<th style="{_CELL}">{h}</th>'
+            for h in ("rate (Hz)", "keyframes/s", "D (ms)", "kB/s", "stalls (%)")
         )
         rows = [
             '<table style="border-collapse:collapse;font-size:12px;width:100%">',
@@ -382,7 +397,7 @@ class LiveView:
             share = st.recent_stalls(now_local)
             r, g, b = user_colour(user)
             swatch = f'<span style="color:rgb({r},{g},{b})">&#9679;</span>'
-            cells = "".join(
+            cells = _rate_cell(st.rate) + "".join(
                 f'<td style="{_CELL}">{v}</td>'
                 for v in (
                     f"{kps:.1f}",
@@ -399,7 +414,7 @@ class LiveView:
             why = starving(d, core.delay.interval, share, kps, self.cfg.rate)
             if why is not None and (worst is None or share > worst[0]):
                 worst = (share, why)
-        rows.append("</table>")
+        rows.append("</table>" + legend_html())
         self.starving = None if worst is None else worst[1]
         return "\n".join(rows) if self.stats else "waiting for users ..."
 
@@ -439,7 +454,20 @@ class LiveView:
         """Watch until ``duration`` (or until cancelled); the page stays up until :meth:`close`."""
         dur = self.cfg.duration
         stop = None if dur is None else self.clock() + dur
-        await self.bot.watch(stop)
+        async with asyncio.TaskGroup() as tg:
+            poll = tg.create_task(self.poll_rates())
+            await self.bot.watch(stop)
+            poll.cancel()
+
+    async def poll_rates(self, period: float = 1.0) -> None:
+        """Every ``period`` s, the rate the relay sends each user (``GET /rates``);
+        a relay that does not answer it leaves the rates unknown."""
+        while True:
+            with contextlib.suppress(OSError, TimeoutError, ValueError, KeyError):
+                for user, rate in (await fetch_rates(self.cfg.url, self.cfg.room)).items():
+                    if user in self.stats:
+                        self.stats[user].rate = rate
+            await asyncio.sleep(period)
 
     def close(self) -> None:
         self.server.stop()

@@ -70,6 +70,11 @@ async def test_live_view_shows_every_remote_user(page: Page) -> None:
                 ]
                 await until(lambda: len(view.scene.avatars) == 2 and view.frames > 30, 60)
                 await page.wait_for_selector("text=keyframes/s", timeout=60_000)
+                # Each user's rate, as the relay's /rates tells it, is in the table.
+                await until(lambda: all(st.rate is not None for st in view.stats.values()), 30)
+                await page.wait_for_selector("text=rate (Hz)", timeout=30_000)
+                relay_rates = {u: m.rate for u, m in srv.core.rooms["r"].members.items()}
+                rates = {u: st.rate for u, st in view.stats.items()}
                 # Freeze the page on one frame, let it arrive, then read the page back.
                 view.paused = True
                 t_play, _, shown = view.last_frame
@@ -82,6 +87,7 @@ async def test_live_view_shows_every_remote_user(page: Page) -> None:
         finally:
             view.close()
     assert page.errors == []  # type: ignore[attr-defined]
+    assert len(rates) == 2 and rates == {u: relay_rates[u] for u in rates}, rates
     users = {k[0] for k in shown}
     assert users == set(view.scene.avatars) and len(users) == 2
     # The spectator's poses are those of the keyframes it received.
