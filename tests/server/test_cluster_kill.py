@@ -128,9 +128,14 @@ async def test_members_of_a_killed_owner_resume_on_a_live_node(
         before: list[object] = []
         async with asyncio.TaskGroup() as tg:
             tg.create_task(_publish_and_watch(y, stop, before))
-            tg.create_task(_publish_and_watch(x, stop, []))
+            seen_by_x: list[object] = []
+            tg.create_task(_publish_and_watch(x, stop, seen_by_x))
             # The owner's member records reach NATS (every 0.25 s): seen there.
             await _recorded(nats_url, [x.welcome.resume, y.welcome.resume])
+            # Each member's poses went through the owner (its recorder) for over a
+            # second: what the lost node's file must keep (all but its last second).
+            await settle(lambda: _span(before, x.welcome.user) > 1.5, limit=60.0)
+            await settle(lambda: _span(seen_by_x, y.welcome.user) > 1.5, limit=60.0)
             killed_at, killed_time = time.monotonic(), cluster_time()
             owner.kill()
             await owner.proc.wait()
@@ -171,6 +176,18 @@ async def test_members_of_a_killed_owner_resume_on_a_live_node(
     last = max(float(s.times.max()) for s in streams.values())
     # (printed, not asserted: how much of the tail the kill took depends on the load)
     print(f"the lost node's recording ends {killed_time - last:.2f} s before the kill")
+
+
+def _span(seen: list[object], user: int) -> float:
+    """Seconds of ``user``'s capture times among the snapshots in ``seen``."""
+    caps = [
+        float(t)
+        for e in seen
+        if isinstance(e, Snapshot)
+        for u, t in zip(e.users.tolist(), e.capture_times.tolist(), strict=True)
+        if u == user
+    ]
+    return max(caps) - min(caps) if caps else 0.0
 
 
 def _carries(event: object, user: int) -> bool:
