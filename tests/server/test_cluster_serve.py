@@ -201,7 +201,11 @@ async def test_a_split_room_has_one_recording_on_its_owner(
     dirs = {name: tmp_path / name for name in ("a", "b")}
     async with contextlib.AsyncExitStack() as stack:
         servers = [
-            await stack.enter_async_context(running_server(node(nats_url, n, record_dir=d)))
+            # A join waits for its room's recorder process to start (seconds on a busy
+            # machine): a keepalive of 2.5 s closed the joining bots meanwhile (1011).
+            await stack.enter_async_context(
+                running_server(node(nats_url, n, record_dir=d, ping_timeout=30.0))
+            )
             for n, d in dirs.items()
         ]
         async with asyncio.TaskGroup() as tg:
