@@ -10,7 +10,9 @@ show loop renders every remote stream at ``server_now - D`` with
 bots' render loop) at ``fps`` frames a second and poses the avatars of an
 :class:`~posecast.view.scene.AvatarScene`: the first method solid, the others
 as ghosts. The browser draws the scene at its own frame rate. The panel's table
-shows per remote user its keyframe rate, D, kB/s and recent stalls, under a
+shows per remote user the rate the relay sends it (``GET /rates``, coloured on
+a 5-30 Hz scale, as is a ball above its head), its keyframe rate, D, kB/s and
+recent stalls, under a
 warning when the receiver is starving (:func:`starving`); ``view from`` puts the
 camera in a user's eyes, and the camera frames the room as users join.
 """
@@ -467,6 +469,7 @@ class LiveView:
                 for user, rate in (await fetch_rates(self.cfg.url, self.cfg.room)).items():
                     if user in self.stats:
                         self.stats[user].rate = rate
+                        self.scene.set_rate_colour(user, rate_colour(rate))
             await asyncio.sleep(period)
 
     def close(self) -> None:

@@ -98,6 +98,8 @@ class _Avatar:
     #: (layer, stream name) -> frame handle
     nodes: dict[tuple[str, str], Any] = field(default_factory=dict)
     body: Any = None
+    #: A ball above the label in the colour of the user's current rate (None: no rate yet).
+    rate: Any = None
 
 
 def _forward(wxyz: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -260,6 +262,8 @@ class AvatarScene:
             p = poses[self.layers[0]]
             x, y, z = float(p[0]) + dx, float(p[1]), float(p[2])
             av.label.position = (x, y + 0.3, z)
+            if av.rate is not None:
+                av.rate.position = (x, y + 0.25, z)
             if av.body is not None:
                 tall = max(0.2, y - 0.25)
                 av.body.position = (x, tall / 2, z)
@@ -388,10 +392,25 @@ class AvatarScene:
         if stream == "head" and av.body is not None:
             av.body.visible = True
 
+    def set_rate_colour(self, user: int, colour: tuple[int, int, int]) -> None:
+        """Colour ``user``'s rate ball (under its name label; made on first call)."""
+        av = self.avatars.get(user)
+        if av is None:
+            return
+        if av.rate is None:
+            x, y, z = av.label.position
+            av.rate = self.server.scene.add_icosphere(
+                f"/users/u{user}/rate", radius=0.05, color=colour, position=(x, y - 0.05, z)
+            )
+        elif tuple(av.rate.color) != colour:
+            av.rate.color = colour
+
     def set_user_visible(self, user: int, visible: bool) -> None:
         av = self.avatars.get(user)
         if av is not None:
             av.label.visible = visible
+            if av.rate is not None:
+                av.rate.visible = visible
             if av.body is not None:
                 av.body.visible = visible
             for (layer, _), node in av.nodes.items():

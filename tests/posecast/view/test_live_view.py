@@ -12,6 +12,7 @@ from support import running_server
 from posecast import interp
 from posecast.client.bot import BotConfig, run_bot
 from posecast.view.live import LiveConfig, LiveView
+from posecast.view.rates import rate_colour
 
 METHODS = ("soa", "dq-slerp")
 
@@ -35,6 +36,11 @@ def expected_pose(view: LiveView, key: tuple[int, int], t: float) -> np.ndarray:
     a, b = lo[-1], hi[0]
     s = (t - cap[a]) / (cap[b] - cap[a])
     return np.asarray(interp.get("soa")(poses[a], poses[b], s))
+
+
+def _rated(view: LiveView, user: int) -> bool:
+    av = view.scene.avatars.get(user)
+    return view.stats[user].rate is not None and av is not None and av.rate is not None
 
 
 async def test_live_view_shows_every_remote_user(page: Page) -> None:
@@ -71,10 +77,12 @@ async def test_live_view_shows_every_remote_user(page: Page) -> None:
                 await until(lambda: len(view.scene.avatars) == 2 and view.frames > 30, 60)
                 await page.wait_for_selector("text=keyframes/s", timeout=60_000)
                 # Each user's rate, as the relay's /rates tells it, is in the table.
-                await until(lambda: all(st.rate is not None for st in view.stats.values()), 30)
+                # (and its avatar's rate ball has that rate's colour).
+                await until(lambda: all(_rated(view, u) for u in view.stats), 30)
                 await page.wait_for_selector("text=rate (Hz)", timeout=30_000)
                 relay_rates = {u: m.rate for u, m in srv.core.rooms["r"].members.items()}
                 rates = {u: st.rate for u, st in view.stats.items()}
+                balls = {u: tuple(view.scene.avatars[u].rate.color) for u in rates}
                 # Freeze the page on one frame, let it arrive, then read the page back.
                 view.paused = True
                 t_play, _, shown = view.last_frame
@@ -88,6 +96,7 @@ async def test_live_view_shows_every_remote_user(page: Page) -> None:
             view.close()
     assert page.errors == []  # type: ignore[attr-defined]
     assert len(rates) == 2 and rates == {u: relay_rates[u] for u in rates}, rates
+    assert balls == {u: rate_colour(r) for u, r in rates.items() if r is not None}, balls
     users = {k[0] for k in shown}
     assert users == set(view.scene.avatars) and len(users) == 2
     # The spectator's poses are those of the keyframes it received.
