@@ -131,7 +131,7 @@ def _rate_cell(rate: float | None) -> str:
     if rate is None:
         return f'<td style="{_CELL}">-</td>'
     r, g, b = rate_colour(rate)
-    return f'<td style="{_CELL};color:rgb({r},{g},{b});font-weight:bold">{rate:g}</td>'
+    return f'<td style="{_CELL};color:rgb({r},{g},{b});font-weight:bold">{rate:.3g}</td>'
 
 
 def display_name(user: int, label: str | None) -> str:
@@ -347,9 +347,6 @@ class LiveView:
 
     def _names(self, core: ClientCore) -> dict[int, str]:
         names = {u: display_name(u, peer.label) for u, peer in core.peers.items()}
-        for u, st in self.stats.items():
-            if u in names and st.rate is not None:
-                names[u] += f" {st.rate:g} Hz"
         names[ROOM_USER] = "shared objects"
         return names
 
@@ -367,8 +364,11 @@ class LiveView:
                 poses = {m: frame.poses[m][j] for m in self.cfg.methods}
                 shown[key] = poses
                 stream = core.stream_name(key)
-                self.scene.show(key[0], names.get(key[0], f"user {key[0]}"), stream, poses)
                 st = self.stats.get(key[0])
+                label = names.get(key[0], f"user {key[0]}")
+                if st is not None and st.rate is not None:
+                    label += f" {st.rate:.3g} Hz"
+                self.scene.show(key[0], label, stream, poses)
                 if st is not None:
                     st.frames += 1
                     st.stalls += int(frame.stalled[j])
