@@ -691,7 +691,8 @@ class ProcessRecorder(RecordTap):
     def _fail_locked(self, message: str) -> None:
         if self._error is None:
             self._error = message
-            log.error("recorder for %s failed: %s; the .part file is kept", self.path, message)
+            # A warning: the room's owner (the relay) reports the failure once, at ERROR.
+            log.warning("recorder for %s failed: %s; the .part file is kept", self.path, message)
 
     # -- control -----------------------------------------------------------------------
 

@@ -382,8 +382,9 @@ class SessionRecorder(RecordTap):
             rec._sync()
             fsync_dir(folder)
         except BaseException:
-            stream.close()
-            part.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):  # a full disk fails the close's flush too
+                stream.close()
+            part.unlink(missing_ok=True)  # no empty .part left behind
             raise
         rec._thread.start()
         log.info("recording room %r to %s", room, part)
@@ -594,7 +595,12 @@ class SessionRecorder(RecordTap):
         except _Abandoned:
             with contextlib.suppress(Exception):
                 self._file.close()
-        except BaseException as exc:  # disk full, I/O error: keep the .part
+        except OSError as exc:  # disk full, I/O error: keep the .part; the owner reports it
+            self._error = exc
+            log.warning("recorder for %s stopped: %s; the .part file is kept", self.path.name, exc)
+            with contextlib.suppress(Exception):
+                self._file.close()
+        except BaseException as exc:
             self._error = exc
             log.exception("recorder for %s failed; the .part file is kept", self.path.name)
             with contextlib.suppress(Exception):

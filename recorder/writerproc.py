@@ -294,8 +294,13 @@ def _serve(fd: int) -> int:
             del buf[:at]
             for room_id in touched:
                 rooms[room_id].hand_off()
-        for rec in rooms.values():
-            rec.poll()
+        for room_id, rec in list(rooms.items()):
+            if rec.failed:  # disk full: tell the relay now, not when the room closes
+                _emit({"event": "error", "room": room_id, "error": rec.statistics().error})
+                del rooms[room_id]
+                failed = True
+            else:
+                rec.poll()
     if rooms:
         # The relay vanished (crash, SIGKILL): make what arrived durable, keep the .part files.
         for rec in rooms.values():

@@ -459,7 +459,12 @@ class RelayServer:
         self.ws_log = QuietHttpLog(logging.getLogger("websockets.server"), {})
         #: Recorders of the rooms (``--record``), opened and closed off the loop.
         self.recorders = Recordings(
-            self.config, clock, wall_clock, self.core.add_room, self._recording_metadata
+            self.config,
+            clock,
+            wall_clock,
+            self.core.add_room,
+            self._recording_metadata,
+            on_error=self._count_recording_error,
         )
         self._stop = asyncio.Event()
         #: Set once stop() has begun: handshakes from then on get a 503.
@@ -484,6 +489,9 @@ class RelayServer:
     @property
     def totals(self) -> dict[str, int]:
         return self.core.totals
+
+    def _count_recording_error(self) -> None:
+        self.core.recording_errors += 1
 
     @property
     def recording_paused(self) -> bool:

@@ -203,6 +203,8 @@ class RelayCore:
         #: Members whose updates stopped (``stall_after``): peers hear peer_stalled.
         self.silence = resume.Silence(cfg.stall_after)
         self.token_expiries = 0
+        #: Recordings that stopped writing (disk full, I/O error), counted by the adapter.
+        self.recording_errors = 0
         #: Connections refused (over a limit), closed for not joining in time, and
         #: closed for misbehaving (over their budget).
         self.refused_connections = self.join_timeouts = self.misbehaviour_closes = 0

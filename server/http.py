@@ -211,6 +211,12 @@ def metrics_text(core: RelayCore, now: float | None = None) -> str:
         "Protocol errors detected in what clients sent.",
         total("protocol_errors"),
     )
+    metric(
+        "posecast_recording_errors_total",
+        "counter",
+        "Room recordings that stopped writing (disk full, I/O error); the rooms keep serving.",
+        [("", core.recording_errors)],
+    )
     _limit_metrics(core, metric, total)
     _room_metrics(core, metric)
     _tick_lag_histogram(core, lines)

@@ -9,6 +9,10 @@ files at start, starts the one writer process every recorded room shares (and
 a new one for the next room after a crash of the previous), opens a room's
 recorder in a worker thread while the join that needs it waits, and closes it
 when the room is gone.
+
+A recording that stops writing (disk full, I/O error) costs one ERROR line and
+one ``posecast_recording_errors_total`` (``on_error``) as soon as the room's next
+tick sees it; the room keeps serving unrecorded and the ``.part`` file stays.
 """
 
 from __future__ import annotations
@@ -44,12 +48,17 @@ class Recordings:
         wall_clock: Callable[[], float],
         add_room: AddRoom,
         metadata: Callable[[str], dict[str, str] | None],
+        *,
+        on_error: Callable[[], None] = lambda: None,
     ) -> None:
         self.config = config
         self.clock = clock
         self.wall_clock = wall_clock
         self.add_room = add_room
         self.metadata = metadata
+        self.on_error = on_error
+        #: Rooms whose recording failed and was reported (once each).
+        self._failed: set[str] = set()
         self._opening: dict[str, asyncio.Task[None]] = {}
         #: The recorder of every recorded room, by room name.
         self.open: dict[str, RoomRecorder] = {}
@@ -88,7 +97,7 @@ class Recordings:
         await asyncio.shield(pending)
 
     async def _open_room(self, name: str) -> None:
-        from posecast.recorder import RecordOptions, SessionRecorder
+        from posecast.recorder import RecorderError, RecordOptions, SessionRecorder
 
         directory = self.config.record_dir
         assert directory is not None
@@ -106,6 +115,10 @@ class Recordings:
                 metadata=self.metadata(name),
             )
             rec: RoomRecorder | None = await asyncio.to_thread(opener, directory, name, options)
+        except (OSError, RecorderError) as exc:  # disk full: one line, no traceback
+            self.on_error()
+            log.error("cannot record room %r (%s); it runs unrecorded", name, exc)
+            rec = None
         except Exception:
             log.exception("cannot record room %r; it runs unrecorded", name)
             rec = None
@@ -169,6 +182,19 @@ class Recordings:
             rec = self.open.get(action.room)
             if rec is not None:
                 rec.poll()
+                if rec.failed and action.room not in self._failed:
+                    self._report(action.room, rec)
+
+    def _report(self, name: str, rec: RoomRecorder) -> None:
+        """Room ``name``'s recording stopped writing: count it and say so, once."""
+        self._failed.add(name)
+        self.on_error()
+        log.error(
+            "recording of room %r stopped (%s); the room keeps serving unrecorded, %s is kept",
+            name,
+            rec.statistics().error or "the writer failed",
+            rec.part_path,
+        )
 
     def take(self, name: str) -> RoomRecorder | None:
         """Room ``name``'s recorder, no longer written to (its room is gone)."""
@@ -176,9 +202,18 @@ class Recordings:
 
     async def finish(self, name: str, rec: RoomRecorder) -> None:
         """Close room ``name``'s recording (its room is gone)."""
+        from posecast.recorder import RecorderError
+
         try:
             path = await rec.aclose(self.clock())
             self.paths.append(path)
             log.info("room %r recorded to %s", name, path)
+        except RecorderError as exc:
+            if name in self._failed:  # already reported when it stopped
+                log.info("room %r closed; its recording had stopped: %s", name, exc)
+            else:
+                self._report(name, rec)
         except Exception:
             log.exception("recording of room %r did not finish cleanly", name)
+        finally:
+            self._failed.discard(name)
