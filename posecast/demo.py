@@ -120,12 +120,14 @@ def _newest_recording(record_dir: Path | None) -> str | None:
 def _local_relay(record_dir: Path | None) -> RelayServer:
     """The demo's relay: open (no secret, on loopback: no warning about it), no
     keepalive pings (bots and relay share one loop, which a busy machine makes
-    answer late), and time to load the motions before joining (longer than a
-    public relay's 5 s join timeout)."""
+    answer late), time to load the motions before joining (longer than a
+    public relay's 5 s join timeout), and no capacity budget (its CPU reading is
+    the whole process's, bots included: it would turn the demo's own bots away)."""
     _quiet_open_relay()
     return RelayServer(
         ServerConfig(host="127.0.0.1", port=0, record_dir=record_dir,
-                     join_timeout=60.0, ping_interval=0.0)
+                     join_timeout=60.0, ping_interval=0.0,
+                     capacity_cpu=0.0, capacity_lag=0.0)
     )  # fmt: skip
 
 

@@ -409,6 +409,9 @@ async def _session(
             min_rate=min(5.0, asked),
             max_rate=max(30.0, asked),
             link=tier,
+            # Bots and relay share this process: its CPU is not the relay's alone.
+            capacity_cpu=0.0,
+            capacity_lag=0.0,
         )
     )
     stage = f"live {tier.name}"
