@@ -8,8 +8,9 @@ Nothing here reads a clock: every method takes the time it needs.
   arrival jitter and follows the observed keyframe age (Mirror-style dynamic
   buffer: ``D = interval + p95(age)``), slewing smoothly, never jumping.
 - :class:`RoomPlayoutDelay`: a :class:`PlayoutDelay` per remote user, the room's
-  D from the users whose ages are not outliers (median + MAD); a late user is
-  shown late alone, at its own D.
+  D from the users whose ages are not outliers (the majority's median plus a
+  bound that follows the room's own jitter width, or the MAD of the medians); a
+  late user is shown late alone, at its own D.
 """
 
 from __future__ import annotations
@@ -96,16 +97,26 @@ class RoomPlayoutDelay:
     """Playout delay per remote user: one late user cannot raise D for the others.
 
     Ages (arrival minus capture, server clock) are kept per user (its streams share
-    its clock and path), each in a :class:`PlayoutDelay`. A user is *late* when its
-    median age exceeds the reference (the lower median of the users' medians) by
-    over ``tolerance`` s, or ``spread`` robust deviations (1.4826 MAD) of the
-    medians if larger, until its ``percentile`` age is back under that. The room's
-    D covers the ``percentile`` of the pooled ages of users not late; it is set,
-    not slewed, when none of the users it shows was shown with it before. A late
-    user is shown late alone at its own D (``own``), slewing from where it was
-    shown to ``max(room's target, its own)``; no longer late, it slews back and
-    rejoins the room's D within 1 ms. Users with under ``min_samples`` ages are
-    not judged.
+    its clock and path), each in a :class:`PlayoutDelay`. The late bound follows the
+    room's own spread of ages::
+
+        ref   = lower median of the users' median ages (the majority's)
+        width = lower median of the users' (percentile age - median age)
+        bound = max(tolerance, jitter * width, spread * 1.4826 * MAD(medians))
+
+    A user is *late* when its median age exceeds ``ref + bound + 3 * width / sqrt(n)``
+    (``n`` its ages, at least ``settle``: the median of few ages is uncertain, and
+    a user with fewer is late only beyond ``early``, 100 ms), so a lag of a fraction
+    of the room's jitter width is enough, while users on the same kind of path
+    (medians within a few standard errors) never are; a room whose paths differ
+    widely keeps one D (the MAD term). A late user stays late until its median is
+    back under that bound and its ``percentile`` age under the room's plus
+    ``bound`` (its late ages have left its window). The room's D covers the
+    ``percentile`` of the pooled ages of users not late; it is set, not slewed,
+    when none of the users it shows was shown with it before. A late user is shown
+    late alone at its own D (``own``), slewing from where it was shown to
+    ``max(room's target, its own)``; no longer late, it slews back and rejoins the
+    room's D within 1 ms. Users with under ``min_samples`` ages are not judged.
     """
 
     interval: float
@@ -113,9 +124,15 @@ class RoomPlayoutDelay:
     tau: float = 1.0
     window: int = 256
     margin: float = 0.002
-    tolerance: float = 0.1
+    #: Floor of the late bound (s), for rooms with almost no jitter.
+    tolerance: float = 0.005
+    #: Share of the room's jitter width (percentile minus median age) a lag may reach.
+    jitter: float = 0.3
     spread: float = 3.0
     min_samples: int = 3
+    #: Ages a user needs to be judged by the room's spread; before, by ``early`` (s).
+    settle: int = 20
+    early: float = 0.1
     #: The snapshot rate ``interval`` is for (Hz; None: not given, :meth:`retime` does nothing).
     rate: float | None = None
     room: PlayoutDelay = field(init=False)
@@ -166,28 +183,38 @@ class RoomPlayoutDelay:
         """Judge every user with enough ages; the room's target (None: no ages)."""
         judged = {u: d for u, d in self._users.items() if len(d._ages) >= self.min_samples}
         if judged:
-            med = {u: float(np.median(d._ages)) for u, d in judged.items()}
+            ages = {u: np.fromiter(d._ages, float, len(d._ages)) for u, d in judged.items()}
+            med = {u: float(np.median(a)) for u, a in ages.items()}
+            top = {u: float(np.percentile(a, self.percentile)) for u, a in ages.items()}
             ranked = sorted(med.values())
             ref = ranked[(len(ranked) - 1) // 2]
+            widths = sorted(top[u] - med[u] for u, a in ages.items() if len(a) >= self.settle)
+            width = widths[(len(widths) - 1) // 2] if widths else 0.0
             mad = float(np.median(np.abs(np.array(ranked) - ref))) if len(ranked) > 2 else 0.0
-            bound = max(self.tolerance, self.spread * 1.4826 * mad)
-            for u, m in med.items():
-                if m > ref + bound:
-                    self.late.add(u)
-                elif u in self.late and judged[u].target < self.interval + ref + bound:
+            bound = max(self.tolerance, self.jitter * width, self.spread * 1.4826 * mad)
+            over = {
+                u: med[u] - ref
+                > (bound + 3.0 * width / len(a) ** 0.5 if len(a) >= self.settle else self.early)
+                for u, a in ages.items()
+            }
+            self.late |= {u for u, o in over.items() if o}
+            seated = [ages[u] for u in judged if u not in self.late]
+            room = float(np.percentile(np.concatenate(seated), self.percentile)) if seated else ref
+            for u in self.late & judged.keys():
+                if not over[u] and top[u] < room + bound:
                     self.late.discard(u)  # the late ages have left its window
         self._own = {u: self._users[u].target for u in self.late}
-        seated = {u for u in judged if u not in self.late}
-        if seated and not seated & self._seated:
+        seated_users = {u for u in judged if u not in self.late}
+        if seated_users and not seated_users & self._seated:
             self.room._last = None  # nobody shown at the room's D stays: set it
-        self._was, self._seated = self._seated, seated
-        pool = [d._ages for u, d in judged.items() if u in seated] or [
+        self._was, self._seated = self._seated, seated_users
+        pool = [d._ages for u, d in judged.items() if u in seated_users] or [
             d._ages for d in self._users.values() if d._ages
         ]
         if not pool:
             return None
-        ages = np.concatenate([np.fromiter(a, float, len(a)) for a in pool])
-        return self.interval + float(np.percentile(ages, self.percentile)) + self.margin
+        pooled = np.concatenate([np.fromiter(a, float, len(a)) for a in pool])
+        return self.interval + float(np.percentile(pooled, self.percentile)) + self.margin
 
     def update(self, now: float) -> float:
         """Slew the room's D and every late user's own D; returns the room's."""
