@@ -6,7 +6,8 @@
  *   stale keyframes dropped; bounded (oldest evicted); `bracket(t)` for rendering.
  * - `PlayoutDelay`: D = interval + p95(keyframe age) + margin, slewing (tau 1 s).
  * - `RoomPlayoutDelay`: a PlayoutDelay per remote user; the room's D from users
- *   whose ages are not outliers (median + MAD); a late user is shown late alone.
+ *   whose ages are not outliers (the majority's median plus a bound that follows
+ *   the room's jitter width, or the MAD of the medians); a late user is shown late alone.
  */
 import type { Pose } from "./messages.js";
 
@@ -197,7 +198,9 @@ export class PlayoutDelay {
   }
 }
 
-/** Playout delay per remote user: one late user cannot raise D for the others. */
+/** Playout delay per remote user: one late user cannot raise D for the others. The
+ * late bound follows the room's own spread of ages, as Python's
+ * `client.playout.RoomPlayoutDelay` (its docstring states the rule). */
 export class RoomPlayoutDelay {
   readonly room: PlayoutDelay;
   /** Users shown late alone (or slewing back to the room's D): their own D (s). */
@@ -217,11 +220,17 @@ export class RoomPlayoutDelay {
     readonly tau = 1,
     readonly window = 256,
     readonly margin = 0.002,
-    readonly tolerance = 0.1,
+    /** Floor of the late bound (s). */
+    readonly tolerance = 0.005,
     readonly spread = 3,
     readonly minSamples = 3,
     /** The snapshot rate `interval` is for (Hz; default 1 / interval). */
     public rate = 1 / interval,
+    /** Share of the room's jitter width (percentile minus median age) a lag may reach. */
+    readonly jitter = 0.3,
+    /** Ages a user needs to be judged by the room's spread; before, by `early` (s). */
+    readonly settle = 20,
+    readonly early = 0.1,
   ) {
     this.room = this.make();
   }
@@ -268,14 +277,31 @@ export class RoomPlayoutDelay {
     for (const [u, d] of this.users) if (d.ages.length >= this.minSamples) judged.set(u, d);
     if (judged.size) {
       const med = new Map<number, number>();
-      for (const [u, d] of judged) med.set(u, median(d.ages.values));
+      const top = new Map<number, number>();
+      for (const [u, d] of judged) {
+        med.set(u, median(d.ages.values));
+        top.set(u, percentile(d.ages.values, this.pct));
+      }
       const ranked = [...med.values()].sort((a, b) => a - b);
       const ref = ranked[(ranked.length - 1) >> 1]!;
+      const widths = [...judged]
+        .filter(([, d]) => d.ages.length >= this.settle)
+        .map(([u]) => top.get(u)! - med.get(u)!)
+        .sort((a, b) => a - b);
+      const width = widths.length ? widths[(widths.length - 1) >> 1]! : 0;
       const mad = ranked.length > 2 ? median(ranked.map((m) => Math.abs(m - ref))) : 0;
-      const bound = Math.max(this.tolerance, this.spread * 1.4826 * mad);
-      for (const [u, m] of med) {
-        if (m > ref + bound) this.late.add(u);
-        else if (this.late.has(u) && judged.get(u)!.target < this.interval + ref + bound) this.late.delete(u);
+      const bound = Math.max(this.tolerance, this.jitter * width, this.spread * 1.4826 * mad);
+      const over = new Map<number, boolean>();
+      for (const [u, d] of judged) {
+        const n = d.ages.length;
+        const allowed = n >= this.settle ? bound + (3 * width) / Math.sqrt(n) : this.early;
+        over.set(u, med.get(u)! - ref > allowed);
+      }
+      for (const [u, o] of over) if (o) this.late.add(u);
+      const seatedAges = [...judged].filter(([u]) => !this.late.has(u)).map(([, d]) => d.ages.values);
+      const roomTop = seatedAges.length ? percentile(seatedAges.flat(), this.pct) : ref;
+      for (const u of [...this.late]) {
+        if (judged.has(u) && !over.get(u) && top.get(u)! < roomTop + bound) this.late.delete(u);
       }
     }
     this.ownTargets = new Map([...this.late].map((u) => [u, this.users.get(u)!.target]));
