@@ -102,16 +102,21 @@ class RoomPlayoutDelay:
 
         ref   = lower median of the users' median ages (the majority's)
         width = lower median of the users' (percentile age - median age)
-        bound = max(tolerance, jitter * width, spread * 1.4826 * MAD(medians))
+        phase = one snapshot interval (``phase``)
+        bound = max(tolerance, jitter * width) + phase
+                + spread * 1.4826 * max(0, MAD(medians) - phase / 2)
 
     A user is *late* when its median age exceeds ``ref + bound + 3 * width / sqrt(n)``
     (``n`` its ages, at least ``settle``: the median of few ages is uncertain, and
-    a user with fewer is late only beyond ``early``, 100 ms), so a lag of a fraction
-    of the room's jitter width is enough, while users on the same kind of path
-    (medians within a few standard errors) never are; a room whose paths differ
-    widely keeps one D (the MAD term). A late user stays late until its median is
-    back under that bound and its ``percentile`` age under the room's plus
-    ``bound`` (its late ages have left its window). The room's D covers the
+    a user with fewer is late only beyond ``early``, 100 ms). Honest medians differ
+    by up to one snapshot interval from the phase of each publisher against the
+    relay's ticks (measured on loopback: 4 and 32 ms at 15 Hz), so ``phase`` is
+    always allowed, and the MAD of the medians counts only beyond it: a room whose
+    paths differ widely keeps one D (the MAD term). A lag under about one interval
+    cannot be told from a later phase and is not judged late: it raises D by up to
+    the lag plus the phase gap, about one interval. A late user stays late until
+    its median is back under that bound and its ``percentile`` age under the room's
+    plus ``bound`` (its late ages have left its window). The room's D covers the
     ``percentile`` of the pooled ages of users not late; it is set, not slewed,
     when none of the users it shows was shown with it before. A late user is shown
     late alone at its own D (``own``), slewing from where it was shown to
@@ -130,6 +135,9 @@ class RoomPlayoutDelay:
     jitter: float = 0.3
     spread: float = 3.0
     min_samples: int = 3
+    #: Honest spread of median ages from the publishers' phases against the relay's
+    #: ticks (s); None: one snapshot interval (1 / ``rate``, else ``interval``).
+    phase: float | None = None
     #: Ages a user needs to be judged by the room's spread; before, by ``early`` (s).
     settle: int = 20
     early: float = 0.1
@@ -179,6 +187,9 @@ class RoomPlayoutDelay:
         """The D ``user``'s streams are rendered with."""
         return self.own.get(user, self.room.value)
 
+    def _interval(self) -> float:
+        return 1.0 / self.rate if self.rate else self.interval
+
     def _classify(self) -> float | None:
         """Judge every user with enough ages; the room's target (None: no ages)."""
         judged = {u: d for u, d in self._users.items() if len(d._ages) >= self.min_samples}
@@ -191,7 +202,9 @@ class RoomPlayoutDelay:
             widths = sorted(top[u] - med[u] for u, a in ages.items() if len(a) >= self.settle)
             width = widths[(len(widths) - 1) // 2] if widths else 0.0
             mad = float(np.median(np.abs(np.array(ranked) - ref))) if len(ranked) > 2 else 0.0
-            bound = max(self.tolerance, self.jitter * width, self.spread * 1.4826 * mad)
+            phase = self.phase if self.phase is not None else self._interval()
+            paths = self.spread * 1.4826 * max(0.0, mad - phase / 2)
+            bound = max(self.tolerance, self.jitter * width) + phase + paths
             over = {
                 u: med[u] - ref
                 > (bound + 3.0 * width / len(a) ** 0.5 if len(a) >= self.settle else self.early)

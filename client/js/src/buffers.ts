@@ -231,6 +231,8 @@ export class RoomPlayoutDelay {
     /** Ages a user needs to be judged by the room's spread; before, by `early` (s). */
     readonly settle = 20,
     readonly early = 0.1,
+    /** Honest spread of median ages from publish phases (s); null: one interval. */
+    readonly phase: number | null = null,
   ) {
     this.room = this.make();
   }
@@ -290,7 +292,9 @@ export class RoomPlayoutDelay {
         .sort((a, b) => a - b);
       const width = widths.length ? widths[(widths.length - 1) >> 1]! : 0;
       const mad = ranked.length > 2 ? median(ranked.map((m) => Math.abs(m - ref))) : 0;
-      const bound = Math.max(this.tolerance, this.jitter * width, this.spread * 1.4826 * mad);
+      const phase = this.phase ?? (this.rate > 0 ? 1 / this.rate : this.interval);
+      const paths = this.spread * 1.4826 * Math.max(0, mad - phase / 2);
+      const bound = Math.max(this.tolerance, this.jitter * width) + phase + paths;
       const over = new Map<number, boolean>();
       for (const [u, d] of judged) {
         const n = d.ages.length;

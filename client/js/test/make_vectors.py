@@ -94,7 +94,7 @@ def pairs() -> list[tuple[str, np.ndarray, np.ndarray]]:
 
 def playout_script() -> dict[str, object]:
     """Four users at 20 Hz; user 2's keyframes arrive 0.3 s late from t = 1 s to 6 s,
-    user 4's always 40 ms late (under the former fixed 100 ms bound)."""
+    user 4's always 90 ms late (under the former fixed 100 ms bound)."""
     rng = np.random.default_rng(7)
     delay = RoomPlayoutDelay(interval=1 / 20)
     steps: list[dict[str, object]] = []
@@ -104,7 +104,7 @@ def playout_script() -> dict[str, object]:
         obs = []
         for user in (1, 2, 3, 4):
             if rng.random() < 0.25:
-                lag = 0.3 if user == 2 and 1 < t < 6 else 0.04 if user == 4 else 0.0
+                lag = 0.3 if user == 2 and 1 < t < 6 else 0.09 if user == 4 else 0.0
                 age = float(0.02 + abs(rng.normal(0, 0.01)) + lag)
                 delay.observe(user, age)
                 obs.append([user, age])
