@@ -3,7 +3,7 @@
 :class:`ClientCore` is fed the protocol events a connection decoded, each with
 the time it arrived on the caller's clock, and renders when asked with the time
 of the frame; it reads no clock and touches no socket or file, so every rule it
-holds is tested with fake times (``tests/client/test_core.py``). The asyncio bot
+holds is tested with fake times (``tests/client/test_client_core.py``). The asyncio bot
 (:mod:`client.bot`), the viewer's spectator (``posecast.view.live``) and anything
 else that receives a room are adapters over it.
 

@@ -245,3 +245,13 @@ def test_the_sleep_counter_sees_sleeps() -> None:
         (6, "0.01"),
         (7, "every"),
     ]
+
+
+def test_test_file_names_are_unique() -> None:
+    """No two test files share a name: tests import their siblings by module name
+    (``from test_core import connect``), so a second ``test_core.py`` elsewhere
+    breaks the collection of every file that imports the first."""
+    names: dict[str, list[str]] = {}
+    for path in sorted(Path(__file__).parent.rglob("test_*.py")):
+        names.setdefault(path.name, []).append(str(path))
+    assert not {n: p for n, p in names.items() if len(p) > 1}
