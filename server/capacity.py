@@ -31,7 +31,9 @@ growth          members admitted since the last CPU reading: at most half    wit
                 says so, a window late)
 ==============  ===========================================================  ==========
 
-Over any budget, the join (or the hello before it) is refused with the fatal
+CPU and lag count from ``min_members`` members on (16): fewer cannot load a core by
+themselves, so a busy reading then is someone else's. Over any budget, the join (or
+the hello before it) is refused with the fatal
 error ``server-full`` and close 1013 "try again later", its message saying when
 to retry (:data:`RETRY_AFTER`), and ``error.retry_after`` too for a client whose
 hello asked (``wants_retry_after``); members already in are untouched (a member resuming
@@ -103,12 +105,21 @@ class CapacityBudget:
     backlog: int = 32 << 20
     #: Seconds per measuring window.
     window: float = 1.0
+    #: CPU and lag count from this many members on: fewer cannot load a core by
+    #: themselves (a member costs microseconds a tick), so a busy reading then is
+    #: someone else's (bots sharing the process, as in the demo and the tests).
+    min_members: int = 16
 
 
 def budget_of(config: ServerConfig) -> CapacityBudget:
     """The capacity budget of ``capacity_cpu``, ``capacity_lag``, ``capacity_backlog``
     (here, not on ServerConfig: the settings import nothing of the relay's parts)."""
-    return CapacityBudget(config.capacity_cpu, config.capacity_lag, config.capacity_backlog)
+    return CapacityBudget(
+        config.capacity_cpu,
+        config.capacity_lag,
+        config.capacity_backlog,
+        min_members=config.capacity_min_members,
+    )
 
 
 @dataclass
@@ -203,12 +214,13 @@ class Capacity:
         b = self.budget
         out = {"cpu": 0.0, "lag": 0.0, "backlog": 0.0, "growth": 0.0}
         fresh = self._sampled is not None and now - self._sampled <= STALE_WINDOWS * b.window
-        if b.cpu > 0 and fresh and self.cpu_members > 0:
+        few = members < b.min_members
+        if b.cpu > 0 and fresh and self.cpu_members > 0 and not few:
             out["cpu"] = self.cpu * (members + 1) / self.cpu_members / b.cpu
         if b.cpu > 0 and fresh:  # (no reading yet: nothing to grow from)
             since = self.read_members
             out["growth"] = (members + 1 - since) / max(GROWTH_MIN, GROWTH * since)
-        loaded = (fresh and self.cpu >= LAG_CPU_FLOOR) or members >= LAG_MIN_MEMBERS
+        loaded = not few and ((fresh and self.cpu >= LAG_CPU_FLOOR) or members >= LAG_MIN_MEMBERS)
         if b.lag > 0 and loaded:
             share = max((w.late / w.ticks for w in self._windows(now) if w.ticks), default=0.0)
             out["lag"] = share / LAG_SHARE

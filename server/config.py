@@ -104,6 +104,8 @@ class ServerConfig:
     capacity_cpu: float = 0.8
     capacity_lag: float = 0.025
     capacity_backlog: int = 32 << 20
+    #: Members from which CPU and lag count (fewer: only the backlog can refuse).
+    capacity_min_members: int = 16
     #: Join the cluster of relays sharing this NATS (``nats://HOST:PORT``; None: alone).
     cluster: str | None = None
     #: This node's name in the cluster (unique among live nodes; None: the host name).

@@ -27,7 +27,7 @@ from posecast.bench.load import (
 )
 from posecast.server.app import ServerConfig
 
-TINY = ServerConfig(host="127.0.0.1", port=0, capacity_cpu=1e-9)
+TINY = ServerConfig(host="127.0.0.1", port=0, capacity_cpu=1e-9, capacity_min_members=0)
 
 
 async def _outcomes() -> dict[str, Any]:

@@ -35,10 +35,23 @@ from posecast.server.core import Close, RelayCore, ServerConfig
 
 def measured(cpu: float, members: int, budget: CapacityBudget | None = None) -> Capacity:
     """A capacity that measured ``cpu`` of a core over the window [0, 1] with ``members``."""
-    cap = Capacity(budget or CapacityBudget())
+    cap = Capacity(budget or CapacityBudget(min_members=0))
     cap.sample(0.0, 100.0, 0, members)
     cap.sample(1.0, 100.0 + cpu, 0, members)
     return cap
+
+
+def test_few_members_are_never_refused_for_cpu_or_lag() -> None:
+    """Below ``min_members`` (16 by default) a busy process or a late tick is someone
+    else's (bots sharing the process, other programs): no refusal; from 16, it counts."""
+    cap = Capacity()
+    cap.sample(0.0, 100.0, 0, 5)
+    cap.sample(1.0, 100.9, 0, 5)  # 0.9 of a core "for" 5 members
+    for t in (1.1, 1.2, 1.3):
+        cap.tick_lag(t, 0.2)  # every tick 200 ms late
+    assert cap.refusal(5, 1.4) is None
+    assert cap.refusal(15, 1.4) is None
+    assert cap.refusal(16, 1.4) is not None
 
 
 def test_cpu_admits_until_one_more_member_is_over_budget() -> None:
@@ -149,10 +162,14 @@ def test_a_zero_budget_turns_its_signal_off() -> None:
 
 # -- the core's refusals -----------------------------------------------------------------------
 
+#: A relay whose CPU and lag count from its first member (by default from 16: fewer
+#: cannot load a core by themselves, see test_few_members_are_never_refused_for_cpu).
+SMALL = ServerConfig(capacity_min_members=0)
+
 
 def full_core(members: int = 1) -> tuple[RelayCore, list[Client]]:
     """A core with ``members`` members whose capacity measured 0.9 of a core for them."""
-    core = RelayCore()
+    core = RelayCore(SMALL)
     clients = [connect(core, 0.5) for _ in range(members)]
     core.capacity.sample(0.0, 0.0, 0, members)
     core.capacity.sample(1.0, 0.9, 0, members)
@@ -196,7 +213,7 @@ def test_retry_after_goes_only_to_a_client_that_asked() -> None:
 
 def test_a_join_over_capacity_is_refused_too() -> None:
     """A hello welcomed while there was room, a join when there is none: server-full."""
-    core = RelayCore()
+    core = RelayCore(SMALL)
     a = connect(core, 0.5)
     c = Client(core, core.connect(0.6))
     c.send(Hello(agent="c"), 0.6)
@@ -212,7 +229,7 @@ def test_a_join_over_capacity_is_refused_too() -> None:
 
 def test_a_member_resuming_its_dropped_connection_is_never_shed() -> None:
     """Its hello (with its resume token) and its join come back in, full or not."""
-    core = RelayCore()
+    core = RelayCore(SMALL)
     a = Client(core, core.connect(0.5))
     a.send(Hello(agent="a", resumable=True), 0.5)
     (welcome,) = a.read(0.5)
@@ -249,7 +266,7 @@ def test_a_late_relay_widens_the_capture_age_by_its_own_lateness() -> None:
     """An update read 1.5 s after its capture while the relay's ticks run 0.8 s late is
     the relay's doing: kept. Without the relay's lag it is stale (max_capture_age 1 s)."""
     for lag, kept in ((0.0, False), (0.8, True)):
-        core = RelayCore()
+        core = RelayCore(SMALL)
         a = connect(core, 10.0)
         core.capacity.tick_lag(10.0, lag)
         a.publish(10.2, capture=8.7)
@@ -298,7 +315,7 @@ async def _member(url: str, room: str) -> tuple[object, ClientSession]:
 
 
 # A budget no relay with a member meets: its first CPU reading makes it full.
-TINY = ServerConfig(host="127.0.0.1", port=0, capacity_cpu=1e-9)
+TINY = ServerConfig(host="127.0.0.1", port=0, capacity_cpu=1e-9, capacity_min_members=0)
 
 
 async def _full_relay_refuses() -> None:
