@@ -56,6 +56,18 @@ def _npm(node: Node, *args: str) -> subprocess.CompletedProcess[str]:
     )
 
 
+async def _node(node: Node, script: str, *args: str) -> asyncio.subprocess.Process:
+    """Run a Node ``script`` with ``args``, its output piped."""
+    return await asyncio.create_subprocess_exec(
+        node.node,
+        script,
+        *args,
+        env=node.env,
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.PIPE,
+    )
+
+
 @pytest.fixture(scope="module")
 def node() -> Node:
     """Node and npm, the packages of the lockfile installed, the SDK built."""
@@ -127,14 +139,11 @@ async def _room(codec: str, seconds: float, node: Node) -> tuple[dict[str, objec
             name=f"py-{codec}",
             codec=codec,
         )
-        proc = await asyncio.create_subprocess_exec(
-            node.node,
+        proc = await _node(
+            node,
             str(BOT),
             *("--url", url, "--room", room, "--seconds", str(seconds + 2)),
             *("--codec", codec, "--keyframes"),
-            env=node.env,
-            stdout=asyncio.subprocess.PIPE,
-            stderr=asyncio.subprocess.PIPE,
         )
         async with asyncio.TaskGroup() as tg:
             js = tg.create_task(proc.communicate())
@@ -206,13 +215,10 @@ def test_js_bot_and_python_bot_see_each_other(node: Node, codec: str) -> None:
 
 async def _objects(node: Node) -> dict[str, object]:
     async with running_server() as server:
-        proc = await asyncio.create_subprocess_exec(
-            node.node,
+        proc = await _node(
+            node,
             str(JS / "test" / "live" / "objects.mjs"),
             *("--url", f"ws://127.0.0.1:{server.port}", "--room", "js-objects"),
-            env=node.env,
-            stdout=asyncio.subprocess.PIPE,
-            stderr=asyncio.subprocess.PIPE,
         )
         out, err = await proc.communicate()
     assert proc.returncode == 0, err.decode()
@@ -283,14 +289,11 @@ async def _cut_session(node: Node) -> tuple[dict[str, object], BotReport, float]
         proxy = await asyncio.start_server(cutter.handle, "127.0.0.1", 0)
         proxy_port = proxy.sockets[0].getsockname()[1]
         room = "js-cut"
-        proc = await asyncio.create_subprocess_exec(
-            node.node,
+        proc = await _node(
+            node,
             str(BOT),
             *("--url", f"ws://127.0.0.1:{proxy_port}", "--room", room, "--seconds", "6"),
             *("--codec", "compact"),
-            env=node.env,
-            stdout=asyncio.subprocess.PIPE,
-            stderr=asyncio.subprocess.PIPE,
         )
         cfg = BotConfig(
             url=f"ws://127.0.0.1:{server.port}",
@@ -349,14 +352,11 @@ async def _auto_session(node: Node) -> tuple[dict[str, object], BotReport]:
                 loss_pct=0.0)  # fmt: skip
     async with running_server(ServerConfig(host="127.0.0.1", port=0, link=tiny)) as server:
         url = f"ws://127.0.0.1:{server.port}"
-        proc = await asyncio.create_subprocess_exec(
-            node.node,
+        proc = await _node(
+            node,
             str(BOT),
             *("--url", url, "--room", "auto", "--seconds", "5", "--codec", "raw"),
             *("--rate", "auto", "--max-rate", "30"),
-            env=node.env,
-            stdout=asyncio.subprocess.PIPE,
-            stderr=asyncio.subprocess.PIPE,
         )
         cfg = BotConfig(url=url, room="auto", rate=10, motion="synthetic:orbit", duration=3.0,
                         methods=("soa",), name="py-auto", codec="raw")  # fmt: skip
