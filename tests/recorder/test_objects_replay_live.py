@@ -119,8 +119,8 @@ def test_live_replay_reproduces_handovers_and_object_motion(
 
     assert report["objects"]["refused"] == [] and report["objects"]["impatient"] == 0
     rec, rep = _track(session.path, "object:drill"), _track(replayed, "object:drill")
-    assert [(c.owner, c.previous, c.reason, c.locked) for c in rep.changes] == [
-        (live(c.owner), live(c.previous), c.reason, c.locked) for c in rec.changes
+    assert [(c.owner, c.previous, _taken(c.reason), c.locked) for c in rep.changes] == [
+        (live(c.owner), live(c.previous), _taken(c.reason), c.locked) for c in rec.changes
     ]
     assert [c.velocity for c in rep.changes] == [c.velocity for c in rec.changes]
     assert (rep.creator, rep.keep) == (live(rec.creator), rec.keep)
@@ -182,6 +182,13 @@ def test_live_replay_reproduces_handovers_and_object_motion(
         assert (1.0 - dots).max() < 1e-6
 
 
+def _taken(reason: str) -> str:
+    """An unowned object taken: "catch" while it flies, "request" once it has landed.
+    Which one a replayed request gets depends on the relay's tick against the landing,
+    milliseconds apart on a busy machine, so the tests compare them as one."""
+    return "taken" if reason in ("catch", "request") else reason
+
+
 async def _posecast(*args: str) -> tuple[int, str]:
     proc = await asyncio.create_subprocess_exec(
         sys.executable,
@@ -217,10 +224,12 @@ async def test_cli_replays_the_handovers_twice_into_one_room(
             await keep.close()
     assert all("shared objects: 9 of 9 creates, requests and releases sent" in o for o in outputs)
     (path,) = server.recordings
-    changes = [(c.reason, c.previous is None) for c in _track(path, "object:drill").changes]
-    once = [(c.reason, c.previous is None) for c in _track(session.path, "object:drill").changes]
+    changes = [(_taken(c.reason), c.previous is None) for c in _track(path, "object:drill").changes]
+    once = [
+        (_taken(c.reason), c.previous is None) for c in _track(session.path, "object:drill").changes
+    ]
     # The second pass: the drill is there, unowned (its last owner left): a request.
-    assert changes == [*once, ("request", True), *once[1:]]
+    assert changes == [*once, ("taken", True), *once[1:]]
 
 
 def test_cli_refuses_a_negative_object_patience(session: Session) -> None:
@@ -252,9 +261,11 @@ def test_a_window_creates_its_objects_and_gives_them_to_their_holders(
     report, replayed = asyncio.run(_replay_window(session.path, tmp_path, lo - plan.origin))
     users = {x["recorded_user"]: x["user"] for x in report["bots"]}
     after = [c for c in rec.changes if c.time >= lo]
-    got = [(c.owner, c.previous, c.reason) for c in _track(replayed, "object:drill").changes]
-    mapped = [(_live(users, c.owner), _live(users, c.previous), c.reason) for c in after]
-    assert got == [(users[b], None, "request"), *mapped]
+    got = [
+        (c.owner, c.previous, _taken(c.reason)) for c in _track(replayed, "object:drill").changes
+    ]
+    mapped = [(_live(users, c.owner), _live(users, c.previous), _taken(c.reason)) for c in after]
+    assert got == [(users[b], None, "taken"), *mapped]
 
 
 async def _replay_window(path: Path, out: Path, start: float) -> tuple[dict[str, Any], Path]:
