@@ -7,7 +7,7 @@ import asyncio
 from collections.abc import Callable
 
 import numpy as np
-from support import poll_until, running_server
+from support import Pacer, poll_until, running_server
 
 from posecast.client.connection import ClientConnection
 from posecast.protocol import RateNotice, SetRate, Snapshot, encode_update
@@ -23,14 +23,17 @@ NARROW = Tier("narrow", max_rate_hz=30.0, bandwidth_kbps=24.0, latency_ms=20.0, 
               loss_pct=0.0)  # fmt: skip
 
 
-async def _publish(conn: ClientConnection, srv: RelayServer, stop: asyncio.Event) -> None:
+async def _publish(
+    conn: ClientConnection, srv: RelayServer, stop: asyncio.Event, pose: np.ndarray = POSE
+) -> None:
+    """``pose`` (one row per stream) at 30 Hz until ``stop`` is set."""
     assert conn.joined is not None
     ids = np.array(list(conn.joined.streams.values()))
-    seq = 0
+    pacer = Pacer(1 / 30)
+    seq = 1
     while not stop.is_set():
-        seq += 1
-        await conn.send_bytes(encode_update(seq, ids, np.full(3, srv.clock()), POSE))
-        await asyncio.sleep(1 / 30)
+        await conn.send_bytes(encode_update(seq, ids, np.full(len(ids), srv.clock()), pose))
+        seq = await pacer.next() + 1
 
 
 async def _session(
@@ -182,21 +185,12 @@ async def test_a_real_slow_reader_gets_a_lower_auto_rate() -> None:
             assert user is not None
             stop = asyncio.Event()
 
-            async def publish(conn: ClientConnection) -> None:
-                assert conn.joined is not None
-                ids = np.array(list(conn.joined.streams.values()))
-                seq = 0
-                while not stop.is_set():
-                    seq += 1
-                    await conn.send_bytes(encode_update(seq, ids, np.full(16, srv.clock()), many))
-                    await asyncio.sleep(1 / 30)
-
             async def drain(conn: ClientConnection) -> None:
                 while True:
                     await conn.recv()
 
             async with asyncio.TaskGroup() as tg:
-                tasks = [tg.create_task(publish(p)) for p in pubs]
+                tasks = [tg.create_task(_publish(p, srv, stop, many)) for p in pubs]
                 tasks += [tg.create_task(drain(p)) for p in pubs]
                 member = _member(srv, user)
                 assert member is not None and member.link_rate is not None
