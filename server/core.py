@@ -579,16 +579,9 @@ class RelayCore:
             peer.close_request = (code, close_reason(reason))
             self.emit(Close(peer.conn, *peer.close_request))
 
-    @staticmethod
-    def _log_peer(peer: Peer, now: float, msg: str, *args: object) -> None:
-        """Log what the peer caused, at most once per ``peer_log_interval``."""
-        held = peer.log_limit.admit(now)
-        if held is not None:
-            log.info(msg + "%s", *args, peer.log_limit.note(held))
-
     def _protocol_error(self, peer: Peer, err: ProtocolError, now: float) -> None:
         peer.protocol_errors += 1
-        self._log_peer(peer, now, "user %s: %s (%s)", peer.user, err.message, err.code)
+        peer.log(now, "user %s: %s (%s)", peer.user, err.message, err.code)
         self.send(peer, error_message(err))
         if err.fatal:
             self.close_peer(peer, err.close_code or 1002, err.close_reason)
@@ -605,7 +598,7 @@ class RelayCore:
         self, peer: Peer, code: ErrorCode, message: str, what: str, now: float, charge: bool = True
     ) -> None:
         """Answer a refused ``what`` (join, update) with a non-fatal error; charge the budget."""
-        self._log_peer(peer, now, "user %s: %s refused: %s (%s)", peer.user, what, message, code)
+        peer.log(now, "user %s: %s refused: %s (%s)", peer.user, what, message, code)
         self.send(peer, error_message(code, message, what))
         if charge:
             self._misbehaved(peer, now)
@@ -642,9 +635,7 @@ class RelayCore:
         elif isinstance(event, Bye):
             self.close_peer(peer, 1000, event.reason or "bye")
         elif isinstance(event, ErrorMessage):
-            self._log_peer(
-                peer, now, "user %s reports %s: %s", peer.user, event.code, event.message
-            )
+            peer.log(now, "user %s reports %s: %s", peer.user, event.code, event.message)
             if event.fatal:
                 # Its session is over (CLOSED): nothing more may be sent to it.
                 self.close_peer(peer, 1000, f"client ended the session: {event.code}")

@@ -7,6 +7,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
@@ -21,6 +22,8 @@ from posecast.server.parked import Parked
 from posecast.server.room import Member, Outbox, Room
 
 __all__ = ["COUNTERS", "ConnectionStatistics", "Peer", "PeerHost"]
+
+log = logging.getLogger("posecast.server")
 
 
 class PeerHost(Protocol):
@@ -158,6 +161,12 @@ class Peer:
             self.future_captures += 1
         else:
             self.out_of_bounds += 1
+
+    def log(self, now: float, msg: str, *args: object) -> None:
+        """Log what this peer caused, at most once per ``peer_log_interval``."""
+        held = self.log_limit.admit(now)
+        if held is not None:
+            log.info(msg + "%s", *args, self.log_limit.note(held))
 
     def _ready(self) -> None:
         self._core.emit(Wake(self.conn))
