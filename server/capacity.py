@@ -57,8 +57,8 @@ from posecast.protocol import ErrorCode, ErrorMessage, Hello, Join
 
 if TYPE_CHECKING:
     from posecast.server.config import ServerConfig
-    from posecast.server.core import RelayCore
     from posecast.server.peer import Peer
+    from posecast.server.ports import Relay
 
 __all__ = [
     "GROWTH",
@@ -70,7 +70,6 @@ __all__ = [
     "Capacity",
     "CapacityBudget",
     "budget_of",
-    "shed",
     "stale_error_due",
 ]
 
@@ -249,29 +248,30 @@ class Capacity:
         """One join refused with ``code``."""
         self.joins_refused[code] = self.joins_refused.get(code, 0) + 1
 
-
-def shed(core: RelayCore, peer: Peer, event: Hello | Join, now: float) -> bool:
-    """Refuse ``event`` with ``server-full`` (close 1013) if one more member is over the
-    budget; True if it was refused. A hello resuming a member (and its join), or one a
-    cluster node forwarded (that node admitted it), is never refused here."""
-    if isinstance(event, Hello):
-        peer.wants_retry_after = event.wants_retry_after
-        if event.resume or peer.preset_user is not None:
+    def shed(self, core: Relay, peer: Peer, event: Hello | Join, now: float) -> bool:
+        """Refuse ``event`` with ``server-full`` (close 1013) if one more member is over the
+        budget; True if it was refused. A hello resuming a member (and its join), or one a
+        cluster node forwarded (that node admitted it), is never refused here."""
+        if isinstance(event, Hello):
+            peer.wants_retry_after = event.wants_retry_after
+            if event.resume or peer.preset_user is not None:
+                return False
+        if isinstance(event, Join) and peer.parked is not None:
+            return False  # (its parked member is re-bound, unless the join asks otherwise)
+        members = sum(len(room.members) for room in core.rooms.values())
+        why = self.refusal(members, now)
+        if why is None:
             return False
-    if isinstance(event, Join) and peer.parked is not None:
-        return False  # (its parked member is re-bound, unless the join asks otherwise)
-    members = sum(len(room.members) for room in core.rooms.values())
-    why = core.capacity.refusal(members, now)
-    if why is None:
-        return False
-    core.capacity.count(ErrorCode.SERVER_FULL)
-    what = "hello" if isinstance(event, Hello) else "join"
-    why += f"; retry in {RETRY_AFTER:g} s"
-    retry = RETRY_AFTER if peer.wants_retry_after else None  # (a field only if asked)
-    error = ErrorMessage.from_code(ErrorCode.SERVER_FULL, why, in_reply_to=what, retry_after=retry)
-    core.send(peer, error)
-    core.close_peer(peer, ErrorCode.SERVER_FULL.close_code or 1013, f"try again later: {why}")
-    return True
+        self.count(ErrorCode.SERVER_FULL)
+        what = "hello" if isinstance(event, Hello) else "join"
+        why += f"; retry in {RETRY_AFTER:g} s"
+        retry = RETRY_AFTER if peer.wants_retry_after else None  # (a field only if asked)
+        error = ErrorMessage.from_code(
+            ErrorCode.SERVER_FULL, why, in_reply_to=what, retry_after=retry
+        )
+        core.send(peer, error)
+        core.close_peer(peer, ErrorCode.SERVER_FULL.close_code or 1013, f"try again later: {why}")
+        return True
 
 
 def stale_error_due(peer: Peer, now: float) -> bool:

@@ -7,26 +7,13 @@ event it decodes to), a tick is due (:meth:`~RelayCore.tick`), the adapter can
 write (:meth:`~RelayCore.take`), a connection ended
 (:meth:`~RelayCore.disconnect`). Each call takes the time as an argument
 (seconds on the server's monotonic clock; wall time only where an access token
-is checked) and returns the :data:`Action` s the adapter must carry out:
+is checked) and returns the :data:`Action` s the adapter must carry out, each
+described where it is defined (``server.actions``): wake a connection's writer,
+close it, look at the next tick or expiry again, write a record or a pose on a
+room's recording, poll or finish a recording, hold an event for the adapter.
 
-``Wake(conn)``
-    the connection's outbox holds frames: call ``take(conn, now)`` and write them.
-``Close(conn, code, reason)``
-    close the websocket with that code and reason, once the queued messages
-    (the error that explains the close) are written; the first close wins.
-``Reschedule()``
-    the earliest tick may have moved: ask :meth:`~RelayCore.next_deadline` again.
-``Record(room, topic, record, now)``, ``RecordPose(room, user, now, update, ...)``
-    write a presence, event or drops record, or a pose update, on the room's
-    recording (the adapter holds the recorders; the core only says what to write).
-``PollRecording(room)``
-    a recorded room ticked: its recording may hand its batch to the writer.
-``FinishRecording(room)``
-    a recorded room was removed (its last drops and presence are in): close its
-    recording, which may block, off the event loop.
-``Hold(conn, kind, room, token)``
-    (from :meth:`~RelayCore.hold`) the event waits for the adapter: a recording
-    to open, a cluster claim, a cluster resume lookup.
+The parts of the core (``objects``, ``resume``, ``tokens``, ``capacity``) see it
+through its port, ``server.ports.Relay``, which :class:`RelayCore` implements.
 
 The wire protocol (hello, join, the message state table, codes) is
 :class:`protocol.ServerSession`'s; this module adds the relay's rules on top:
@@ -73,7 +60,7 @@ is too slow         latest-wins snapshots are skipped (counted) while one is
                     overflowing the reliable queue (256) closes 1008 too-slow
 stops publishing    after ``stall_after`` (1 s) with no accepted update, its
                     peers hear ``peer_stalled``; its next update brings
-                    ``peer_resumed`` (``server.resume.Silence``)
+                    ``peer_resumed`` (``server.silence.Silence``)
 ==================  ==========================================================
 
 A room (:class:`server.room.Room`) ticks each member on its own rate grid and
@@ -133,6 +120,7 @@ from posecast.server.limits import (
     update_refusal,
 )
 from posecast.server.link import Downlink
+from posecast.server.parking import Parking
 from posecast.server.peer import COUNTERS, ConnectionStatistics, Peer
 from posecast.server.room import (
     TICK_LAG_BUCKETS,
@@ -142,6 +130,7 @@ from posecast.server.room import (
     Room,
 )
 from posecast.server.rooms import RoomTable
+from posecast.server.silence import Silence
 
 __all__ = [
     "COUNTERS",
@@ -198,10 +187,10 @@ class RelayCore:
         #: The cluster this relay is a node of (``server.node`` sets it; None: alone).
         self.cluster: ClusterView | None = None
         #: Members of dropped resumable connections, kept for ``resume_window``.
-        self.parking = resume.Parking(cfg.resume_window)
+        self.parking = Parking(cfg.resume_window)
         self.capacity = capacity.Capacity(capacity.budget_of(cfg))  # sheds joins over budget
         #: Members whose updates stopped (``stall_after``): peers hear peer_stalled.
-        self.silence = resume.Silence(cfg.stall_after)
+        self.silence = Silence(cfg.stall_after, self.tell_peers, self.emit_rearm)
         self.token_expiries = 0
         #: Recordings that stopped writing (disk full, I/O error), counted by the adapter.
         self.recording_errors = 0
@@ -309,7 +298,7 @@ class RelayCore:
             tokens.expired(self, self.peers[conn])
         for parked in self.parking.expire(now):
             resume.gone(self, parked, now)
-        self.silence.expire(self, now)
+        self.silence.expire(now)
         return self._actions()
 
     def emit_rearm(self) -> None:
@@ -553,6 +542,12 @@ class RelayCore:
         elif isinstance(message, UserEvent):
             member.outbox.offer_event(encode_message(message))
 
+    def tell_peers(self, room: Room, member: Member, notice: Message) -> None:
+        """Queue ``notice`` (about ``member``) to every other member but spectators."""
+        for other in list(room.members.values()):
+            if other.user != member.user and other.user not in self._spectators:
+                self.to_member(other, notice)
+
     def send(self, peer: Peer, message: Message) -> None:
         """Queue a reliable message; overflow closes that connection, not others.
 
@@ -607,7 +602,7 @@ class RelayCore:
         if isinstance(event, PoseUpdate | UserEvent) and peer.user in self._spectators:
             what = "event" if isinstance(event, UserEvent) else "update"
             event = ProtocolError(ErrorCode.STREAM_NOT_OWNED, "spectators publish nothing", what)
-        if isinstance(event, Hello | Join) and capacity.shed(self, peer, event, now):
+        if isinstance(event, Hello | Join) and self.capacity.shed(self, peer, event, now):
             return
         if isinstance(event, PoseUpdate):
             self._on_update(peer, event, now)
@@ -754,7 +749,7 @@ class RelayCore:
                 return
             stale = room.ingest(user, update, peer.session.compact_codes())
             if peer.member is not None:
-                self.silence.updated(self, room, peer.member, now)
+                self.silence.updated(room, peer.member, now)
             if room.recorded:
                 if room.recording_paused:
                     room.paused_updates += 1

@@ -86,8 +86,8 @@ from posecast.server.shared import (
 )
 
 if TYPE_CHECKING:
-    from posecast.server.core import RelayCore
     from posecast.server.peer import Peer
+    from posecast.server.ports import Relay
     from posecast.server.room import Room
 
 __all__ = ["GRAVITY", "Flight", "RoomObject", "handle", "introduce", "owner_left", "restore"]
@@ -115,14 +115,14 @@ def joined_objects(room: Room) -> dict[str, int]:
     return {obj.name: obj.stream for obj in room.objects.values()}
 
 
-def introduce(core: RelayCore, peer: Peer, room: Room) -> None:
+def introduce(core: Relay, peer: Peer, room: Room) -> None:
     """A joiner learns every object of ``room``: its pose, time and owner."""
     peer.session.objects = room.objects
     for obj in room.objects.values():
         core.send(peer, _info(room, obj))
 
 
-def restore(core: RelayCore, peer: Peer, room: Room) -> None:
+def restore(core: Relay, peer: Peer, room: Room) -> None:
     """A resumed member gets back the objects it owned (and learns them all anew)."""
     for obj in room.objects.values():
         if obj.owner == peer.user:
@@ -131,7 +131,7 @@ def restore(core: RelayCore, peer: Peer, room: Room) -> None:
 
 
 def handle(
-    core: RelayCore, peer: Peer, event: ObjectCreate | RequestOwnership | Release, now: float
+    core: Relay, peer: Peer, event: ObjectCreate | RequestOwnership | Release, now: float
 ) -> None:
     """Apply one shared-object request of ``peer``."""
     room, user = peer.room, peer.user
@@ -152,7 +152,7 @@ def handle(
 
 
 def _refuse(
-    core: RelayCore,
+    core: Relay,
     peer: Peer,
     event: ObjectCreate | RequestOwnership | Release,
     message: str,
@@ -163,7 +163,7 @@ def _refuse(
 
 
 def _create(
-    core: RelayCore, peer: Peer, room: Room, user: int, event: ObjectCreate, now: float
+    core: Relay, peer: Peer, room: Room, user: int, event: ObjectCreate, now: float
 ) -> None:
     if any(obj.name == event.name for obj in room.objects.values()):
         _refuse(core, peer, event, f"{event.name} exists in this room", now)
@@ -200,7 +200,7 @@ def _create(
 
 
 def _request(
-    core: RelayCore,
+    core: Relay,
     peer: Peer,
     room: Room,
     user: int,
@@ -230,7 +230,7 @@ def _request(
 
 
 def _release(
-    core: RelayCore, peer: Peer, room: Room, user: int, obj: RoomObject, event: Release, now: float
+    core: Relay, peer: Peer, room: Room, user: int, obj: RoomObject, event: Release, now: float
 ) -> None:
     if obj.owner != user:
         _refuse(core, peer, event, f"{obj.name} is not held by user {user}", now)
@@ -253,7 +253,7 @@ def _release(
 
 
 def _change(
-    core: RelayCore,
+    core: Relay,
     room: Room,
     obj: RoomObject,
     owner: int | None,
@@ -276,7 +276,7 @@ def _change(
 
 
 def _announce(
-    core: RelayCore,
+    core: Relay,
     room: Room,
     obj: RoomObject,
     owner: int | None,
@@ -313,7 +313,7 @@ def _announce(
     )
 
 
-def owner_left(core: RelayCore, room: Room, user: int, now: float) -> None:
+def owner_left(core: Relay, room: Room, user: int, now: float) -> None:
     """``user`` leaves ``room`` for good: release what it holds, remove what dies with it."""
     for obj in list(room.objects.values()):
         if obj.creator == user and not obj.keep:
@@ -323,7 +323,7 @@ def owner_left(core: RelayCore, room: Room, user: int, now: float) -> None:
             _announce(core, room, obj, None, user, "owner-left", now)
 
 
-def _remove(core: RelayCore, room: Room, obj: RoomObject, reason: str, now: float) -> None:
+def _remove(core: Relay, room: Room, obj: RoomObject, reason: str, now: float) -> None:
     held_by = None if obj.owner is None else core.connected(obj.owner)
     if held_by is not None:
         held_by.session.let_go(obj.stream)

@@ -1,4 +1,4 @@
-"""Resume after a dropped connection: parked members, their tokens and deadlines.
+"""Resume after a dropped connection: parking a member, resuming it, its window closing.
 
 A client that says ``hello.resumable`` gets a resume token in ``welcome``. When
 its connection ends without a ``bye`` (the socket dropped, keepalive gave up),
@@ -20,23 +20,15 @@ resumed connection's join must also carry an access token of the same user (else
 ``unauthorized``, close 1008). Neither refusal disturbs the parked member: it
 stays parked under its token (:func:`unclaim`), so its own client still resumes.
 
-A member whose connection stays up but whose pose updates stop for
-``stall_after`` seconds (a frozen browser tab: its network process still answers
-websocket pings, so keepalive never fires) is announced the same way: peers get
-``peer_stalled`` (the same message, no new field: its streams stay frozen at their
-last pose, as a parked member's), and ``peer_resumed`` at its next accepted
-update (:class:`Silence`). A member that has never published is never silent. A
-silent member whose connection then drops is parked without a second
-``peer_stalled``; a resumed one is watched again from its resume.
+The resume tokens and the parked members are ``server.parking``'s table; a member
+whose connection stays up but whose updates stop is ``server.silence``'s. The
+rules here act on the core through its port (``server.ports.Relay``).
 
 Sans-I/O like the core: the time is an argument.
 """
 
 from __future__ import annotations
 
-import heapq
-import hmac
-import secrets
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
@@ -52,20 +44,15 @@ from posecast.protocol import (
     decode_message,
 )
 from posecast.server import objects, rates
-from posecast.server.limits import Deadlines, error_message
+from posecast.server.limits import error_message
 from posecast.server.parked import Parked
 from posecast.server.room import Member, Room
 
 if TYPE_CHECKING:
-    from posecast.protocol.events import Message
-    from posecast.server.core import RelayCore
     from posecast.server.peer import Peer
+    from posecast.server.ports import Relay
 
 __all__ = [
-    "ID_LENGTH",
-    "Parked",
-    "Parking",
-    "Silence",
     "gone",
     "hello",
     "park",
@@ -75,90 +62,8 @@ __all__ = [
     "unclaim",
 ]
 
-#: Characters of a resume token that name its parked member (the rest is its secret).
-ID_LENGTH = 12
 
-
-class Parking:
-    """Resume tokens of live connections and the members parked under them."""
-
-    def __init__(self, window: float) -> None:
-        self.window = window
-        #: token id -> parked member (a token names one user; it is spent by a resume).
-        self._parked: dict[str, Parked] = {}
-        self._deadlines = Deadlines(self._still_parked)
-        self._by_conn: dict[int, str] = {}
-        #: Resumes done, windows closed, and resumes refused (a wrong secret, another
-        #: user's access token: ``posecast_resumes_refused_total``).
-        self.resumes = self.expired = self.refused = 0
-
-    @staticmethod
-    def new_token() -> str:
-        """A token id and its secret (36 URL-safe characters: 72 + 144 random bits)."""
-        return secrets.token_urlsafe(ID_LENGTH * 3 // 4) + secrets.token_urlsafe(18)
-
-    def _still_parked(self, conn: int, deadline: float) -> bool:
-        key = self._by_conn.get(conn)
-        parked = None if key is None else self._parked.get(key)
-        return parked is not None and parked.deadline == deadline
-
-    def park(self, conn: int, parked: Parked) -> None:
-        key = parked.token[:ID_LENGTH]
-        self._parked[key] = parked
-        self._by_conn[conn] = key
-        self._deadlines.add(conn, parked.deadline)
-
-    def find(self, token: str, now: float) -> Parked | None:
-        """The member parked under ``token``'s id, window open (its secret unchecked)."""
-        parked = self._parked.get(token[:ID_LENGTH])
-        return None if parked is None or parked.deadline <= now else parked
-
-    @staticmethod
-    def matches(parked: Parked, token: str) -> bool:
-        """Whether ``token`` is ``parked``'s whole token (constant time in its secret)."""
-        return hmac.compare_digest(parked.token.encode(), token.encode())
-
-    def claim(self, token: str | None, now: float) -> Parked | None:
-        """The member parked under ``token`` if its window is still open (spent)."""
-        parked = None if token is None else self.find(token, now)
-        if parked is None or token is None or not self.matches(parked, token):
-            return None
-        del self._parked[parked.token[:ID_LENGTH]]
-        self._by_conn.pop(parked.conn, None)
-        self.resumes += 1
-        return parked
-
-    def has(self, token: str) -> bool:
-        """Whether a member is parked under ``token``'s id (its secret unchecked)."""
-        return token[:ID_LENGTH] in self._parked
-
-    def tokens(self) -> dict[int, str]:
-        """Parked users and the tokens they resume with."""
-        return {p.user: p.token for p in self._parked.values()}
-
-    def holds(self, user: int) -> bool:
-        """Whether ``user`` is parked (its id must not be given to anyone else)."""
-        return any(p.user == user for p in self._parked.values())
-
-    def next(self) -> float | None:
-        return self._deadlines.next()
-
-    def expire(self, now: float) -> list[Parked]:
-        """The parked members whose window closed by ``now``, removed."""
-        out = []
-        for conn in self._deadlines.pop_due(now):
-            key = self._by_conn.pop(conn)
-            parked = self._parked.pop(key, None)
-            if parked is not None:
-                self.expired += 1
-                out.append(parked)
-        return out
-
-
-# -- the core's side (functions of RelayCore, kept here so that core.py stays small) ------
-
-
-def hello(core: RelayCore, peer: Peer, event: Hello, now: float) -> None:
+def hello(core: Relay, peer: Peer, event: Hello, now: float) -> None:
     """Welcome ``peer``: a resumed user's id back, or a new one; a token if resumable.
     A token naming a parked member without its secret is refused (1008)."""
     parking = core.parking
@@ -182,7 +87,7 @@ def hello(core: RelayCore, peer: Peer, event: Hello, now: float) -> None:
     core.send(peer, welcome)
 
 
-def refuse(core: RelayCore, peer: Peer, what: str, now: float) -> None:
+def refuse(core: Relay, peer: Peer, what: str, now: float) -> None:
     """Refuse a resume (``unauthorized``, close 1008); the parked member is not touched."""
     core.parking.refused += 1
     reason = "resume refused: not this session's resume token or user"
@@ -190,7 +95,7 @@ def refuse(core: RelayCore, peer: Peer, what: str, now: float) -> None:
     core.close_peer(peer, 1008, reason)
 
 
-def unclaim(core: RelayCore, parked: Parked, now: float) -> None:
+def unclaim(core: Relay, parked: Parked, now: float) -> None:
     """A resumed connection that ended before its join re-bound ``parked`` (refused, or
     gone): the member is parked again under its token until its window closes."""
     room = parked.room
@@ -202,7 +107,7 @@ def unclaim(core: RelayCore, parked: Parked, now: float) -> None:
     core.emit_rearm()
 
 
-def parkable(core: RelayCore, peer: Peer) -> bool:
+def parkable(core: Relay, peer: Peer) -> bool:
     """Whether a connection that just ended is parked rather than leaving: it asked
     to be resumable, is a (non-spectator) member, and neither side said goodbye."""
     return (
@@ -215,7 +120,7 @@ def parkable(core: RelayCore, peer: Peer) -> bool:
     )
 
 
-def park(core: RelayCore, peer: Peer, now: float) -> None:
+def park(core: Relay, peer: Peer, now: float) -> None:
     """Keep ``peer``'s member in its room for the resume window; peers hear it stalled."""
     room, member = peer.room, peer.member
     assert room is not None and member is not None and peer.user is not None
@@ -228,12 +133,12 @@ def park(core: RelayCore, peer: Peer, now: float) -> None:
                peer.resume_token, peer.conn),
     )  # fmt: skip
     if not member.silent:  # (a silent member's peers have heard it stalled)
-        _tell_peers(core, room, member, PeerStalled(user=peer.user))
+        core.tell_peers(room, member, PeerStalled(user=peer.user))
     peer.room = peer.member = None
     core.emit_rearm()
 
 
-def gone(core: RelayCore, parked: Parked, now: float) -> None:
+def gone(core: Relay, parked: Parked, now: float) -> None:
     """A parked member whose window closed: it leaves (``peer_left``, reason "gone")."""
     room, user = parked.room, parked.user
     if room.members.get(user) is parked.member:
@@ -255,7 +160,7 @@ def gone(core: RelayCore, parked: Parked, now: float) -> None:
         core.users.give_back(user)
 
 
-def resume_join(core: RelayCore, peer: Peer, join: Join, name: str, now: float) -> bool:
+def resume_join(core: Relay, peer: Peer, join: Join, name: str, now: float) -> bool:
     """Re-bind a resumed peer's parked member if ``join`` asks for its room and streams;
     True if it did. Otherwise the parked member leaves and the join goes on as new."""
     parked, peer.parked = peer.parked, None
@@ -301,7 +206,7 @@ def resume_join(core: RelayCore, peer: Peer, join: Join, name: str, now: float) 
 
 
 def restore(
-    core: RelayCore,
+    core: Relay,
     room: Room,
     member: Member,
     token: str,
@@ -331,73 +236,3 @@ def restore(
     core.rescheduled(room)
     core.emit_rearm()
     return True
-
-
-def _tell_peers(core: RelayCore, room: Room, member: Member, notice: Message) -> None:
-    """Queue ``notice`` (about ``member``) to every other member but spectators."""
-    for other in list(room.members.values()):
-        if other.user != member.user and not core.is_spectator(other.user):
-            core.to_member(other, notice)
-
-
-class Silence:
-    """Publishers whose updates stopped while their connection stays up.
-
-    Each publishing member has one deadline at most, at its last update plus
-    ``after``: met with no newer update, its peers hear ``peer_stalled``;
-    its next update brings ``peer_resumed``. An accepted update costs a store and
-    two flag checks (a deadline is added only when a member starts publishing
-    again), so the heap holds one entry per publisher, moved when it is met.
-    """
-
-    def __init__(self, after: float) -> None:
-        #: The bound (s); 0: off.
-        self.after = after
-        self._heap: list[tuple[float, int, Room, Member]] = []
-        self._seq = 0
-        #: Members announced stalled for silence, and announced back.
-        self.stalls = self.resumes = 0
-
-    def updated(self, core: RelayCore, room: Room, member: Member, now: float) -> None:
-        """``member`` of ``room`` had an update accepted at ``now``."""
-        member.last_update = now
-        if member.silent:
-            member.silent = False
-            self.resumes += 1
-            _tell_peers(core, room, member, PeerResumed(user=member.user))
-        if not member.watched and self.after > 0:
-            self._push(now + self.after, room, member)
-            core.emit_rearm()
-
-    def watch(self, room: Room, member: Member, now: float) -> None:
-        """Watch a publisher from ``now`` on afresh (it resumed after a drop)."""
-        if member.last_update is not None and self.after > 0:
-            member.last_update = now
-            if not member.watched:
-                self._push(now + self.after, room, member)
-
-    def _push(self, at: float, room: Room, member: Member) -> None:
-        member.watched = True
-        self._seq += 1
-        heapq.heappush(self._heap, (at, self._seq, room, member))
-
-    def next(self) -> float | None:
-        """When the earliest publisher may have been silent for ``after`` (None: none)."""
-        return self._heap[0][0] if self._heap else None
-
-    def expire(self, core: RelayCore, now: float) -> None:
-        """Announce every publisher silent for ``after`` at ``now``; re-arm the others."""
-        heap = self._heap
-        while heap and heap[0][0] <= now:
-            _, _, room, member = heapq.heappop(heap)
-            member.watched = False
-            if room.members.get(member.user) is not member or member.parked:
-                continue  # it left, or dropped (parked: its peers heard that)
-            last = member.last_update
-            assert last is not None
-            if now - last >= self.after - 1e-9:
-                member.silent = True
-                self.stalls += 1
-                _tell_peers(core, room, member, PeerStalled(user=member.user))
-            else:
-                self._push(last + self.after, room, member)

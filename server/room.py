@@ -241,7 +241,7 @@ class Member:
     parked: bool = False
     #: Server time of its last accepted pose update (None: it has published none),
     #: whether its peers were told it stalled for having stopped publishing, and
-    #: whether a silence deadline watches it (``server.resume.Silence``).
+    #: whether a silence deadline watches it (``server.silence.Silence``).
     last_update: float | None = None
     silent: bool = False
     watched: bool = False

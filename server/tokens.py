@@ -20,8 +20,8 @@ from posecast.server.auth import TokenClaims, TokenError, token_permits, verify_
 from posecast.server.limits import error_message, normalise_room
 
 if TYPE_CHECKING:
-    from posecast.server.core import RelayCore
     from posecast.server.peer import Peer
+    from posecast.server.ports import Relay
 
 __all__ = ["admit_event", "admit_join", "expired", "joinable_room", "renew"]
 
@@ -39,12 +39,12 @@ def joinable_room(event: Event, secret: str | None, wall: float) -> str | None:
     return name if token_permits(secret, event.token, name, wall) else None
 
 
-def _unauthorized(core: RelayCore, peer: Peer, exc: TokenError, what: str) -> None:
+def _unauthorized(core: Relay, peer: Peer, exc: TokenError, what: str) -> None:
     core.send(peer, error_message(ErrorCode.UNAUTHORIZED, str(exc), what))
     core.close_peer(peer, 1008, str(exc))
 
 
-def admit_join(core: RelayCore, peer: Peer, join: Join, name: str, now: float, wall: float) -> bool:
+def admit_join(core: Relay, peer: Peer, join: Join, name: str, now: float, wall: float) -> bool:
     """Whether ``join`` of room ``name`` may go on (an open server: always); on a server
     with a secret, the token's user becomes the peer's name and its expiry a deadline."""
     secret = core.config.secret
@@ -76,7 +76,7 @@ def admit_join(core: RelayCore, peer: Peer, join: Join, name: str, now: float, w
     return True
 
 
-def renew(core: RelayCore, peer: Peer, event: Renew, now: float, wall: float) -> None:
+def renew(core: Relay, peer: Peer, event: Renew, now: float, wall: float) -> None:
     """A fresh token for the same room and user moves the connection's deadline."""
     secret = core.config.secret
     if secret is None or peer.room is None:
@@ -91,14 +91,14 @@ def renew(core: RelayCore, peer: Peer, event: Renew, now: float, wall: float) ->
     core.token_expires_at(peer, now + (claims.exp - wall))
 
 
-def expired(core: RelayCore, peer: Peer) -> None:
+def expired(core: Relay, peer: Peer) -> None:
     """``peer``'s access token expired without a renew: ``unauthorized``, close 1008."""
     core.token_expiries += 1
     core.send(peer, error_message(ErrorCode.UNAUTHORIZED, "access token expired; renew it"))
     core.close_peer(peer, 1008, "access token expired")
 
 
-def _join_rate(core: RelayCore, peer: Peer, user: str | None, now: float) -> bool:
+def _join_rate(core: Relay, peer: Peer, user: str | None, now: float) -> bool:
     """Whether a join is within its address's (and token user's) join rate, across
     connections (``server/guard.py``); over it: ``room-full``, try later."""
     if core.handshakes.guard.join(peer.address, user, now):
@@ -109,7 +109,7 @@ def _join_rate(core: RelayCore, peer: Peer, user: str | None, now: float) -> boo
     return False
 
 
-def admit_event(core: RelayCore, peer: Peer, now: float) -> bool:
+def admit_event(core: Relay, peer: Peer, now: float) -> bool:
     """Whether an event of ``peer`` is within its address's and token user's rate, across
     connections (``server/guard.py``), and within its connection's update bucket
     (``RelayCore.admit_update``); over the former, dropped (counted), closed 1008."""

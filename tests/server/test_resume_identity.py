@@ -30,7 +30,7 @@ from posecast.protocol import (
 from posecast.server.actions import Close
 from posecast.server.auth import make_token
 from posecast.server.core import RelayCore, ServerConfig
-from posecast.server.resume import ID_LENGTH
+from posecast.server.parking import ID_LENGTH
 
 STREAMS = ("head", "left", "right")
 SECRET = "s3cret"
