@@ -246,7 +246,7 @@ static PyObject *py_decode_update_rows(PyObject *self, PyObject *args) {
     const unsigned char *data = view.buf;
     Py_ssize_t size = view.len;
     int velocity = (flags & F_VELOCITY) != 0, width = velocity ? 13 : 7;
-    int nk, nd, nib[9];
+    int nk, nd, nib[12]; /* key 1 + 2, delta 5 + 4 with velocities */
     int64_t check;
     UpdateGeometry g;
     int64_t streams[2 * SMALL_FRAME], off[2 * SMALL_FRAME], rows[2 * SMALL_FRAME][MAX_WIDTH];
