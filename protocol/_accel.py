@@ -1,8 +1,9 @@
 """Which implementation of the compact codec's hot paths runs: compiled or pure Python.
 
 ``protocol/_speedups.c`` (built by ``pip install`` where a C compiler exists)
-does the relay's per-pose work in C: the upstream update decode
-(``codec_fast.decode_update_rows``, ``_compact._update_of_rows``), the group
+does the relay's per-pose work in C: the upstream update decode (all of
+``_compact.UpstreamDecoder._decode_fast`` in one call; its parts
+``codec_fast.decode_update_rows``, ``_compact._update_of_rows``), the group
 encode of snapshots (``codec_relay._delta_blocks``) and Exp-Golomb packing
 (``bits.eg_pack``). Each has a pure-Python twin that is the reference: same
 bytes, same values; the compiled one returns None where its twin would take

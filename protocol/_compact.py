@@ -133,8 +133,10 @@ class UpstreamDecoder:
     A small valid frame (the relay's every update) is read by
     ``codec_fast.decode_update_rows`` straight into code rows, and its
     ``PoseUpdate`` records are packed from them with no numpy call but the one
-    that wraps the bytes; anything else takes the reference path
-    (``codec.decode_update``), which decodes it the same or raises its error.
+    that wraps the bytes (:meth:`_decode_fast`; with the compiled accelerator,
+    all of it in one call, ``_speedups.decode_update``); anything else takes the
+    reference path (``codec.decode_update``), which decodes it the same or raises
+    its error.
     """
 
     def __init__(self, volume: Volume) -> None:
@@ -147,13 +149,25 @@ class UpstreamDecoder:
         #: to compact subscribers rather than quantising the decoded floats again.
         self.last_codes: dict[int, list[int]] = {}
         self._geometry = UpdateGeometry(volume)
+        self._scale = (volume.lo, volume.step)
 
     def decode(self, data: bytes | bytearray | memoryview) -> PoseUpdate:
         """The update in ``data``; raises ``RemoteProtocolError`` (in reply to "update")."""
         data = bytes(data)
-        fast = self._decode_fast(data)
-        if fast is not None:
-            return fast
+        accel = _accel.speedups
+        if accel is not None:
+            got = accel.decode_update(
+                data, self._previous, self._geometry.packed, self.baselines, *self._scale
+            )
+            if got is not None:
+                number, base_us, records, self.last_codes = got
+                self._previous = (number, base_us)
+                dtype = UPDATE_VELOCITY_DTYPE if data[1] & F_VELOCITY else UPDATE_DTYPE
+                return PoseUpdate._trusted(number, base_us / 1e6, np.frombuffer(records, dtype))
+        else:
+            fast = self._decode_fast(data)
+            if fast is not None:
+                return fast
         try:
             whole, header = absolute(data, self._previous)
             frame = decode_update(whole, self.volume, self.baselines)  # type: ignore[arg-type]

@@ -8,6 +8,7 @@
  *
  *   eg_pack            protocol.bits.eg_pack
  *   decode_update_rows protocol.codec_fast.decode_update_rows (its small path)
+ *   decode_update      protocol._compact.UpstreamDecoder._decode_fast (the whole of it)
  *   update_records     protocol._compact._update_of_rows (the record bytes)
  *   delta_blocks       protocol.codec_relay._delta_blocks
  *   splice             protocol.codec_relay.GroupSnapshot.frame
@@ -286,6 +287,9 @@ static PyMethodDef methods[] = {
     {"decode_update_rows", py_decode_update_rows, METH_VARARGS,
      "decode_update_rows(data, pos, flags, geometry, baselines) -> (streams, offsets, rows) "
      "or None: codec_fast.decode_update_rows."},
+    {"decode_update", py_decode_update, METH_VARARGS,
+     "decode_update(data, previous, geometry, baselines, lo, step) -> (number, base_us, "
+     "records, codes) or None: _compact.UpstreamDecoder._decode_fast; updates baselines."},
     {"update_records", py_update_records, METH_VARARGS,
      "update_records(base_us, streams, offsets, rows, lo, step) -> bytes: the PoseUpdate "
      "records of decoded rows (_compact._update_of_rows)."},
@@ -311,7 +315,7 @@ PyMODINIT_FUNC PyInit__speedups(void) {
     if (m == NULL) return NULL;
     /* The constants compiled in; protocol/_accel.py refuses the module if they differ. */
     if (PyModule_AddObject(m, "__all__",
-                           Py_BuildValue("[sssss]", "decode_update_rows", "delta_blocks", "eg_pack",
+                           Py_BuildValue("[ssssss]", "decode_update", "decode_update_rows", "delta_blocks", "eg_pack",
                                          "splice", "update_records")) < 0 ||
         PyModule_AddStringConstant(m, "SOURCE_HASH", SOURCE_HASH) < 0) {
         Py_DECREF(m);

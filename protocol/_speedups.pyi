@@ -2,7 +2,14 @@
 from collections.abc import Sequence
 from typing import Any
 
-__all__ = ["decode_update_rows", "delta_blocks", "eg_pack", "splice", "update_records"]
+__all__ = [
+    "decode_update",
+    "decode_update_rows",
+    "delta_blocks",
+    "eg_pack",
+    "splice",
+    "update_records",
+]
 
 SOURCE_HASH: str
 CONSTANTS: dict[str, int]
@@ -16,6 +23,15 @@ def decode_update_rows(
     baselines: dict[int, list[int]],
     /,
 ) -> tuple[list[int], list[int], list[list[int]]] | None: ...
+def decode_update(
+    data: bytes,
+    previous: tuple[int, int] | None,
+    geometry: tuple[int, ...],
+    baselines: dict[int, list[int]],
+    lo: tuple[float, float, float],
+    step: tuple[float, float, float],
+    /,
+) -> tuple[int, int, bytes, dict[int, list[int]]] | None: ...
 def update_records(
     base_us: int,
     streams: list[int],

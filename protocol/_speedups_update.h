@@ -166,7 +166,8 @@ static PyObject *int_list(const int64_t *v, int n, int stride) {
     return out;
 }
 
-/* The header after the base time (codec_fast._update_header); -1: not this path's. */
+/* The header after the base time (codec_fast._update_header); -1: not this path's.
+ * nib holds up to 12 orders (key 1 + 2, delta 5 + 4 with velocities). */
 static int update_header(const unsigned char *data, Py_ssize_t size, Py_ssize_t *pos, int velocity,
                          int *nk, int *nd, int64_t *check, int *nib) {
     uint64_t k, d;
@@ -190,6 +191,63 @@ static int update_header(const unsigned char *data, Py_ssize_t size, Py_ssize_t 
     return 0;
 }
 
+/* A decoded update's rows; order[]: the rows in ascending stream order. */
+typedef struct {
+    int n, width;
+    int64_t streams[2 * SMALL_FRAME], off[2 * SMALL_FRAME];
+    int64_t rows[2 * SMALL_FRAME][MAX_WIDTH];
+    int order[2 * SMALL_FRAME];
+} Decoded;
+
+/* codec_fast.decode_update_rows of the frame whose header up to the base time ends at
+ * pos: 1 decoded, 0 not this path's (the caller returns None), -1 a Python error. */
+static int decode_rows(const unsigned char *data, Py_ssize_t size, Py_ssize_t pos, int flags,
+                       const UpdateGeometry *g, PyObject *baselines, Decoded *d) {
+    int velocity = (flags & F_VELOCITY) != 0, width = velocity ? 13 : 7;
+    int nk, nd, nib[12]; /* key 1 + 2, delta 5 + 4 with velocities */
+    int64_t check;
+    int64_t base[SMALL_FRAME][MAX_WIDTH];
+    memset(base, 0, sizeof(base));
+    d->width = width;
+    if (pos < 0 || pos > size || update_header(data, size, &pos, velocity, &nk, &nd, &check, nib) < 0 ||
+        nk * g->key_bits + nd * g->delta_bits > 8 * (int64_t)(size - pos))
+        return 0;
+    Reader r = {data + pos, 8 * (size - pos), 0};
+    const int *dnib = nib;
+    if (nk) {
+        if (update_ids(&r, nk, nib[0], d->streams, d->off) < 0 ||
+            update_keys(&r, nk, width, nib, g, d->rows) < 0)
+            return 0;
+        dnib = nib + 1 + (velocity ? 2 : 0);
+    }
+    if (nd) {
+        uint32_t crc;
+        if (update_ids(&r, nd, dnib[0], d->streams + nk, d->off + nk) < 0) return 0;
+        int got = baselines_of(baselines, d->streams + nk, nd, width, base, &crc);
+        if (got == -2) return -1;
+        if (got < 0 || (int64_t)(crc & 0xFFFF) != check) return 0;
+        if (update_deltas(&r, nd, width, dnib, d->streams + nk, base, flags & F_SPLIT,
+                          d->rows + nk) < 0)
+            return 0;
+    }
+    Py_ssize_t rest = r.size - r.pos;
+    if (rest >= 8 || (rest && bits_at(&r, r.pos, (int)rest))) return 0;
+    int n = d->n = nk + nd;
+    if (!rows_valid(d->rows, n, width, g)) return 0;
+    int *order = d->order;
+    for (int i = 0; i < n; i++) order[i] = i;
+    if (nk && nd) /* stable insertion sort by stream, as sorted() */
+        for (int i = 1; i < n; i++)
+            for (int j = i; j > 0 && d->streams[order[j - 1]] > d->streams[order[j]]; j--) {
+                int t = order[j];
+                order[j] = order[j - 1], order[j - 1] = t;
+            }
+    for (int i = 1; i < n; i++)
+        for (int j = 0; j < i; j++)
+            if (d->streams[order[i]] == d->streams[order[j]]) return 0;
+    return 1;
+}
+
 static int parse_geometry(PyObject *t, UpdateGeometry *g, int velocity) {
     long long v[10];
     if (!PyTuple_Check(t) || PyTuple_GET_SIZE(t) != 10) return -1;
@@ -197,92 +255,54 @@ static int parse_geometry(PyObject *t, UpdateGeometry *g, int velocity) {
         v[i] = PyLong_AsLongLong(PyTuple_GET_ITEM(t, i));
         if (v[i] == -1 && PyErr_Occurred()) return -1;
     }
-    for (int j = 0; j < 3; j++) g->widths[j] = (int)v[j], g->top[j] = v[3 + j];
+    for (int j = 0; j < 3; j++) {
+        /* A field wider than a Reader reads is not a volume's (Volume.bits <= 32). */
+        if (v[j] < 0 || v[j] > 32) return -1;
+        g->widths[j] = (int)v[j], g->top[j] = v[3 + j];
+    }
     g->key_bits = v[6 + velocity];
     g->delta_bits = v[8 + velocity];
     return 0;
 }
 
-static PyObject *decoded_rows(int64_t *streams, int64_t *off, int64_t (*rows)[MAX_WIDTH], int n,
-                              int width, int sort) {
-    int order[2 * SMALL_FRAME];
-    for (int i = 0; i < n; i++) order[i] = i;
-    if (sort) /* stable insertion sort by stream, as sorted() */
-        for (int i = 1; i < n; i++)
-            for (int j = i; j > 0 && streams[order[j - 1]] > streams[order[j]]; j--) {
-                int t = order[j];
-                order[j] = order[j - 1], order[j - 1] = t;
-            }
-    for (int i = 0; i < n; i++)
-        for (int j = 0; j < i; j++)
-            if (streams[order[i]] == streams[order[j]]) Py_RETURN_NONE;
-    PyObject *s = PyList_New(n), *o = PyList_New(n), *rs = PyList_New(n);
-    if (s == NULL || o == NULL || rs == NULL) goto fail;
-    for (int i = 0; i < n; i++) {
-        int at = order[i];
-        PyObject *a = PyLong_FromLongLong(streams[at]), *b = PyLong_FromLongLong(off[at]);
-        PyObject *row = int_list(rows[at], width, 1);
-        PyList_SET_ITEM(s, i, a);
-        PyList_SET_ITEM(o, i, b);
-        PyList_SET_ITEM(rs, i, row);
-        if (a == NULL || b == NULL || row == NULL) goto fail;
-    }
-    return Py_BuildValue("(NNN)", s, o, rs);
-fail:
-    Py_XDECREF(s);
-    Py_XDECREF(o);
-    Py_XDECREF(rs);
-    return NULL;
+static int geometry_of(PyObject *t, UpdateGeometry *g, int velocity) {
+    if (parse_geometry(t, g, velocity) == 0) return 0;
+    if (!PyErr_Occurred()) PyErr_SetString(PyExc_TypeError, "geometry: a tuple of 10 ints");
+    return -1;
 }
 
 static PyObject *py_decode_update_rows(PyObject *self, PyObject *args) {
     Py_buffer view;
     Py_ssize_t pos;
     int flags;
-    PyObject *geometry, *baselines;
+    PyObject *geometry, *baselines, *result = NULL;
     if (!PyArg_ParseTuple(args, "y*niOO!", &view, &pos, &flags, &geometry, &PyDict_Type,
                           &baselines))
         return NULL;
-    const unsigned char *data = view.buf;
-    Py_ssize_t size = view.len;
-    int velocity = (flags & F_VELOCITY) != 0, width = velocity ? 13 : 7;
-    int nk, nd, nib[12]; /* key 1 + 2, delta 5 + 4 with velocities */
-    int64_t check;
     UpdateGeometry g;
-    int64_t streams[2 * SMALL_FRAME], off[2 * SMALL_FRAME], rows[2 * SMALL_FRAME][MAX_WIDTH];
-    int64_t base[SMALL_FRAME][MAX_WIDTH];
-    PyObject *result = NULL;
-    if (parse_geometry(geometry, &g, velocity) < 0) {
-        if (!PyErr_Occurred()) PyErr_SetString(PyExc_TypeError, "geometry: a tuple of 10 ints");
-        goto done;
+    Decoded d;
+    int got = geometry_of(geometry, &g, (flags & F_VELOCITY) != 0) < 0
+                  ? -1
+                  : decode_rows(view.buf, view.len, pos, flags, &g, baselines, &d);
+    if (got == 0) result = Py_NewRef(Py_None);
+    if (got <= 0) goto done;
+    PyObject *s = PyList_New(d.n), *o = PyList_New(d.n), *rs = PyList_New(d.n);
+    if (s == NULL || o == NULL || rs == NULL) goto fail;
+    for (int i = 0; i < d.n; i++) {
+        int at = d.order[i];
+        PyObject *a = PyLong_FromLongLong(d.streams[at]), *b = PyLong_FromLongLong(d.off[at]);
+        PyObject *row = int_list(d.rows[at], d.width, 1);
+        PyList_SET_ITEM(s, i, a);
+        PyList_SET_ITEM(o, i, b);
+        PyList_SET_ITEM(rs, i, row);
+        if (a == NULL || b == NULL || row == NULL) goto fail;
     }
-    if (pos < 0 || update_header(data, size, &pos, velocity, &nk, &nd, &check, nib) < 0 ||
-        nk * g.key_bits + nd * g.delta_bits > 8 * (size - pos))
-        goto none;
-    Reader r = {data + pos, 8 * (size - pos), 0};
-    const int *dnib = nib;
-    if (nk) {
-        if (update_ids(&r, nk, nib[0], streams, off) < 0 ||
-            update_keys(&r, nk, width, nib, &g, rows) < 0)
-            goto none;
-        dnib = nib + 1 + (velocity ? 2 : 0);
-    }
-    if (nd) {
-        uint32_t crc;
-        if (update_ids(&r, nd, dnib[0], streams + nk, off + nk) < 0) goto none;
-        int got = baselines_of(baselines, streams + nk, nd, width, base, &crc);
-        if (got == -2) goto done;
-        if (got < 0 || (int64_t)(crc & 0xFFFF) != check) goto none;
-        if (update_deltas(&r, nd, width, dnib, streams + nk, base, flags & F_SPLIT, rows + nk) < 0)
-            goto none;
-    }
-    Py_ssize_t rest = r.size - r.pos;
-    if (rest >= 8 || (rest && bits_at(&r, r.pos, (int)rest))) goto none;
-    if (!rows_valid(rows, nk + nd, width, &g)) goto none;
-    result = decoded_rows(streams, off, rows, nk + nd, width, nk && nd);
+    result = Py_BuildValue("(NNN)", s, o, rs);
     goto done;
-none:
-    result = Py_NewRef(Py_None);
+fail:
+    Py_XDECREF(s);
+    Py_XDECREF(o);
+    Py_XDECREF(rs);
 done:
     PyBuffer_Release(&view);
     return result;
@@ -361,4 +381,122 @@ static PyObject *py_update_records(PyObject *self, PyObject *args) {
         }
     }
     return out;
+}
+
+/* ------------------------------------------------------------------ the whole upstream decode */
+
+#define F_RELATIVE 8
+#define UPDATE_FLAGS (1 | F_VELOCITY | F_SPLIT | F_RELATIVE)
+
+/* (number, base us) of the previous update, a tuple of two ints; -1 if not. */
+static int previous_of(PyObject *previous, int64_t *number, int64_t *base_us) {
+    if (!PyTuple_Check(previous) || PyTuple_GET_SIZE(previous) != 2) return -1;
+    int overflow;
+    long long a = PyLong_AsLongLongAndOverflow(PyTuple_GET_ITEM(previous, 0), &overflow);
+    if (overflow || (a == -1 && PyErr_Occurred())) return -1;
+    long long b = PyLong_AsLongLongAndOverflow(PyTuple_GET_ITEM(previous, 1), &overflow);
+    if (overflow || (b == -1 && PyErr_Occurred())) return -1;
+    *number = a, *base_us = b;
+    return 0;
+}
+
+/* The header fields of _compact.UpstreamDecoder._decode_fast: number, base us and the
+ * offset after them; 0 if not this path's (relative with no previous, out of range). */
+static int update_fields(const unsigned char *data, Py_ssize_t size, PyObject *previous,
+                         int64_t *number, int64_t *base_us, Py_ssize_t *pos) {
+    if (size < 4 || data[0] != 0xC1) return 0;
+    int flags = data[1];
+    if ((flags & 0xF0) != 0x10 || (flags & 0x0F & ~UPDATE_FLAGS) || !(flags & 1)) return 0;
+    uint64_t d, z;
+    *pos = 2;
+    /* read_uvarint refuses values of 2**62 and more: the reference path decides those. */
+    if (read_uvarint(data, size, pos, &d) < 0 || read_uvarint(data, size, pos, &z) < 0) return 0;
+    if (flags & F_RELATIVE) {
+        int64_t n0, b0;
+        if (previous == Py_None) return 0;
+        if (previous_of(previous, &n0, &b0) < 0) {
+            PyErr_Clear();
+            return 0;
+        }
+        if (__builtin_add_overflow(n0, unzz(d), number) ||
+            __builtin_add_overflow(b0, unzz(z), base_us))
+            return 0;
+    } else {
+        *number = (int64_t)d, *base_us = unzz(z);
+    }
+    /* 0 <= number < 2**63 holds for any int64 >= 0 */
+    if (*number < 0 || *base_us >= (INT64_C(1) << 62) || -*base_us >= (INT64_C(1) << 62)) return 0;
+    return 1;
+}
+
+/* The PoseUpdate records of decoded rows (_compact._update_of_rows), in stream order. */
+static PyObject *decoded_records(const Decoded *d, int64_t base_us, const double *lo,
+                                 const double *step) {
+    int record = d->width == 13 ? 46 : 34;
+    PyObject *out = PyBytes_FromStringAndSize(NULL, (Py_ssize_t)d->n * record);
+    if (out == NULL) return NULL;
+    unsigned char *p = (unsigned char *)PyBytes_AS_STRING(out);
+    double base = (double)base_us / 1e6;
+    for (int i = 0; i < d->n; i++, p += record) {
+        int at = d->order[i];
+        double o = (double)d->off[at];
+        if (pack_record(p, d->streams[at], (base - o / 1000.0) - base, d->rows[at], d->width, lo,
+                        step) < 0) {
+            Py_DECREF(out);
+            return NULL;
+        }
+    }
+    return out;
+}
+
+/* {stream: codes} of decoded rows, in stream order. */
+static PyObject *decoded_codes(const Decoded *d) {
+    PyObject *codes = PyDict_New();
+    if (codes == NULL) return NULL;
+    for (int i = 0; i < d->n; i++) {
+        int at = d->order[i];
+        PyObject *key = PyLong_FromLongLong(d->streams[at]);
+        PyObject *row = int_list(d->rows[at], d->width, 1);
+        int bad = key == NULL || row == NULL || PyDict_SetItem(codes, key, row) < 0;
+        Py_XDECREF(key);
+        Py_XDECREF(row);
+        if (bad) {
+            Py_DECREF(codes);
+            return NULL;
+        }
+    }
+    return codes;
+}
+
+static PyObject *py_decode_update(PyObject *self, PyObject *args) {
+    Py_buffer view;
+    PyObject *previous, *geometry, *baselines, *result = NULL;
+    double lo[3], step[3];
+    if (!PyArg_ParseTuple(args, "y*OOO!(ddd)(ddd)", &view, &previous, &geometry, &PyDict_Type,
+                          &baselines, &lo[0], &lo[1], &lo[2], &step[0], &step[1], &step[2]))
+        return NULL;
+    const unsigned char *data = view.buf;
+    int64_t number, base_us;
+    Py_ssize_t pos;
+    UpdateGeometry g;
+    Decoded d;
+    int got = update_fields(data, view.len, previous, &number, &base_us, &pos);
+    if (got == 1)
+        got = geometry_of(geometry, &g, (data[1] & F_VELOCITY) != 0) < 0
+                  ? -1
+                  : decode_rows(data, view.len, pos, data[1], &g, baselines, &d);
+    if (got == 0) result = Py_NewRef(Py_None);
+    if (got <= 0) goto done;
+    PyObject *records = decoded_records(&d, base_us, lo, step);
+    PyObject *codes = records ? decoded_codes(&d) : NULL;
+    /* The baselines change only once nothing can fail but the update itself. */
+    if (codes == NULL || PyDict_Update(baselines, codes) < 0) {
+        Py_XDECREF(records);
+        Py_XDECREF(codes);
+        goto done;
+    }
+    result = Py_BuildValue("(LLNN)", (long long)number, (long long)base_us, records, codes);
+done:
+    PyBuffer_Release(&view);
+    return result;
 }

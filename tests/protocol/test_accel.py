@@ -185,6 +185,93 @@ def test_update_decode_gives_the_same_values(
     assert compiled == pure
 
 
+def _decoder_after(frames: list[bytes]) -> UpstreamDecoder:
+    """A decoder (pure path) that has decoded ``frames``."""
+    was_pure = _accel.speedups is None
+    _accel.use(True)
+    try:
+        dec = UpstreamDecoder(DEFAULT_VOLUME)
+        for data in frames:
+            dec.decode(data)
+    finally:
+        _accel.use(was_pure)
+    return dec
+
+
+def _one_call(dec: UpstreamDecoder, data: bytes) -> Any:
+    """The compiled whole-update decode of ``data`` against a copy of ``dec``'s state,
+    as ``_decode_fast`` gives it: (seq, base time, records, codes, baselines) or None."""
+    compiled = _accel.compiled()
+    assert compiled is not None
+    baselines = {s: list(r) for s, r in dec.baselines.items()}
+    before = {s: list(r) for s, r in baselines.items()}
+    got = compiled.decode_update(data, dec._previous, dec._geometry.packed, baselines, *dec._scale)
+    if got is None:
+        assert baselines == before, "a refused frame changed the baselines"
+        return None
+    number, base_us, records, codes = got
+    assert baselines == before | codes
+    return number, base_us / 1e6, records, sorted(codes.items())
+
+
+def _fast_twin(dec: UpstreamDecoder, data: bytes) -> Any:
+    """The pure ``_decode_fast`` of ``data`` against a copy of ``dec``'s state."""
+    twin = UpstreamDecoder(DEFAULT_VOLUME)
+    twin.baselines = {s: list(r) for s, r in dec.baselines.items()}
+    twin._previous = dec._previous
+    was_pure = _accel.speedups is None
+    _accel.use(True)
+    try:
+        u = twin._decode_fast(data)
+    finally:
+        _accel.use(was_pure)
+    if u is None:
+        return None
+    return u.seq, u.base_time, u.entries.tobytes(), sorted(twin.last_codes.items())
+
+
+@needs_compiled
+@settings(max_examples=150, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    frames=st.integers(2, 8),
+    velocity=st.booleans(),
+    cut=st.integers(0, 200),
+    tail=st.binary(max_size=40),
+    flips=st.lists(st.integers(0, 8 * 200), max_size=4),
+)
+def test_one_call_update_decode_matches_its_twin_on_any_bytes(
+    seed: int, frames: int, velocity: bool, cut: int, tail: bytes, flips: list[int]
+) -> None:
+    """``_speedups.decode_update`` on a valid frame cut short, with garbage after it,
+    with bits flipped: None (the reference path decides; the baselines untouched) or
+    exactly the pure fast path's update, codes and baselines; never a crash."""
+    stream = _updates(seed, frames, velocity)
+    dec = _decoder_after(stream[:-1])
+    data = bytearray(stream[-1][:cut] + tail)
+    for bit in flips:
+        if data:
+            data[(bit // 8) % len(data)] ^= 0x80 >> (bit % 8)
+    for candidate in (stream[-1], bytes(data)):
+        got = _one_call(dec, candidate)
+        if got is not None:
+            assert got == _fast_twin(dec, candidate)
+    assert _one_call(dec, stream[-1]) is not None  # the valid frame takes this path
+
+
+@needs_compiled
+@settings(max_examples=100, deadline=None)
+@given(data=st.binary(max_size=80), relative=st.booleans())
+def test_one_call_update_decode_survives_garbage(data: bytes, relative: bool) -> None:
+    """Arbitrary bytes after an update frame's magic and flags: no crash, no read past the
+    end, and the whole decoder answers as the pure one does (same update or error)."""
+    head = bytes([0xC1, 0x11 | (8 if relative else 0)])
+    stream = _updates(5, 3, False)
+    for frame in (head + data, data):
+        compiled, pure = both(lambda f=frame: _decode_all([*stream, f]))  # type: ignore[misc]
+        assert compiled == pure
+
+
 @needs_compiled
 @settings(max_examples=200, deadline=None)
 @given(
