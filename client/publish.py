@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Callable
 from functools import partial
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,7 +23,28 @@ from posecast.protocol import PoseUpdate, encode_update
 from posecast.scenarios.motion import MotionSpec, sample_at
 from posecast.scenarios.traces import CAUSAL_SAMPLES, Trace, causal_velocities
 
-__all__ = ["CausalVelocities", "Publisher"]
+__all__ = ["CausalVelocities", "Publisher", "send_update"]
+
+
+async def send_update(
+    conn: ClientConnection,
+    codec: str,
+    seq: int,
+    ids: NDArray[Any],
+    captures: NDArray[np.float64],
+    poses: NDArray[Any],
+    velocities: NDArray[Any] | None = None,
+) -> None:
+    """One pose update on ``conn`` (capture times on the server's clock, based at the
+    newest): ``raw`` records as they are, or ``compact``, which the session codes
+    against what it sent before (per-stream baselines). The bot's publisher and the
+    replay bots send through this."""
+    args = (seq, ids, captures, np.asarray(poses, dtype=np.float32))
+    base = float(captures.max())
+    if codec == "raw":
+        await conn.send_bytes(encode_update(*args, base_time=base, velocities=velocities))
+    else:
+        await conn.send(PoseUpdate.from_arrays(*args, base_time=base, velocities=velocities))
 
 
 class CausalVelocities:
@@ -117,10 +139,7 @@ class Publisher:
             if velocities is not None:
                 velocities = np.concatenate([velocities, actor.velocity(idx)[None]])
         before = conn.bytes_out
-        args = (self._seq, ids, np.full(ids.size, cap), poses.astype(np.float32))
-        if self.codec == "raw":
-            await conn.send_bytes(encode_update(*args, base_time=cap, velocities=velocities))
-        else:  # the session codes it, against what it sent before
-            await conn.send(PoseUpdate.from_arrays(*args, base_time=cap, velocities=velocities))
+        caps = np.full(ids.size, cap)
+        await send_update(conn, self.codec, self._seq, ids, caps, poses, velocities)
         self.update_bytes += conn.bytes_out - before
         self.poses_sent += ids.size

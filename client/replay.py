@@ -66,20 +66,20 @@ from numpy.typing import NDArray
 from websockets.exceptions import ConnectionClosed
 
 from posecast.client.connection import ClientConnection
+from posecast.client.core import ClientCore
 from posecast.client.playout import ClockEstimator
+from posecast.client.publish import send_update
+from posecast.client.receiver import Receiver
+from posecast.client.reconnect import Reconnect
 from posecast.protocol import (
     MAX_TEXT_LENGTH,
     ErrorMessage,
     ObjectCreate,
     ObjectInfo,
     Owner,
-    Ping,
-    Pong,
-    PoseUpdate,
     Release,
     RequestOwnership,
     Welcome,
-    encode_update,
 )
 from posecast.protocol.errors import ErrorCode
 from posecast.protocol.objects import pose_tuple
@@ -114,6 +114,10 @@ DEFAULT_MAX_SEND_RATE = 100.0
 #: Seconds a bot waits for a live object to be in its recorded state before an action.
 DEFAULT_OBJECT_PATIENCE = 1.0
 _SYNC_PINGS = 8
+#: What a replay bot's core is set up with: it renders nothing, so any method and
+#: rate serve (a plan without a recorded rate asks for this one).
+_METHODS = ("soa",)
+_RATE = 10.0
 
 
 def _replay_label(label: str | None, speed: float, shift: float) -> str | None:
@@ -130,11 +134,21 @@ def _replay_label(label: str | None, speed: float, shift: float) -> str | None:
 
 
 class _ReplayBot:
-    """One recorded user's bot: join, publish on schedule, drain what comes back."""
+    """One recorded user's bot: join, publish on schedule, take in what comes back.
 
-    def __init__(self, plan: UserPlan, conn: ClientConnection) -> None:
+    An adapter over the client core, as the bot is: its :class:`client.receiver.Receiver`
+    syncs the clock and hands every event to a :class:`client.core.ClientCore` (the
+    room as a receiver keeps it), and tells this bot of the objects' owners; it never
+    reconnects (a replay that lost its relay is over). Updates go out through
+    :func:`client.publish.send_update`, as the bot's."""
+
+    def __init__(self, plan: UserPlan, conn: ClientConnection, url: str, clock: Clock) -> None:
         self.plan = plan
         self.conn = conn
+        self.core = ClientCore(_METHODS, plan.rate or _RATE)
+        self.receiver = Receiver(self.core, Reconnect((url,), enabled=False), clock)
+        self.receiver.attach(conn)
+        self.receiver.listen(self._heard)
         self.ids: dict[int, int] = {}
         self.sent = 0
         self.merged = 0
@@ -160,19 +174,17 @@ class _ReplayBot:
         self.pending: set[int] = set()
         self._changed = asyncio.Event()
 
-    async def drain(self) -> None:
-        with contextlib.suppress(ConnectionClosed):
-            while True:
-                ev = (await self.conn.recv()).event
-                if isinstance(ev, ObjectInfo | Owner):
-                    self.owners[ev.stream] = ev.owner
-                    self.pending.discard(ev.stream)
-                elif isinstance(ev, ErrorMessage) and ev.code == ErrorCode.OWNERSHIP_REFUSED:
-                    self.refused.append(ev.message)
-                    self.pending.clear()  # errors do not say which request
-                else:
-                    continue
-                self._changed.set()
+    def _heard(self, ev: object, arrival: float, size: int) -> None:
+        """An event the core took in: the objects' owners and refusals are this bot's."""
+        if isinstance(ev, ObjectInfo | Owner):
+            self.owners[ev.stream] = ev.owner
+            self.pending.discard(ev.stream)
+        elif isinstance(ev, ErrorMessage) and ev.code == ErrorCode.OWNERSHIP_REFUSED:
+            self.refused.append(ev.message)
+            self.pending.clear()  # errors do not say which request
+        else:
+            return
+        self._changed.set()
 
     async def _wait_for(self, ready: Callable[[], bool], clock: Clock) -> bool:
         """Wait until ``ready()`` (the live room caught up), at most ``patience`` s."""
@@ -261,7 +273,7 @@ class _ReplayBot:
         self.joined_at = to_server(clock())
         self.ids = {sid: joined.streams[plan.streams[sid]] for sid in plan.streams}
         async with asyncio.TaskGroup() as tg:
-            drain = tg.create_task(self.drain())
+            drain = tg.create_task(self.receiver.receive(conn))
             await self._publish(to_local, scale, send_rate, clock)
             self.done.set()
             if leave_at is not None:
@@ -346,15 +358,7 @@ class _ReplayBot:
             vel = vel[keep]
             if self.velocity_scale != 1.0:
                 vel = vel * np.float32(self.velocity_scale)
-        base = float(new_caps.max())
-        if self.codec == "raw":
-            data = encode_update(seq, live, new_caps, poses, base_time=base, velocities=vel)
-            await self.conn.send_bytes(data)
-        else:  # the session codes it (compact frames keep per-stream baselines)
-            update = PoseUpdate.from_arrays(
-                seq, live, new_caps, poses, base_time=base, velocities=vel
-            )
-            await self.conn.send(update)
+        await send_update(self.conn, self.codec, seq, live, new_caps, poses, vel)
         self.sent += 1
         self.poses += int(live.size)
         return 1
@@ -375,16 +379,6 @@ class _ReplayBot:
             ],
             dtype=bool,
         )
-
-
-async def _sync_clock(conn: ClientConnection, est: ClockEstimator, n: int, clock: Clock) -> None:
-    for seq in range(1, n + 1):
-        await conn.send(Ping(seq=seq, time=clock()))
-        while True:
-            rec = await conn.recv()
-            if isinstance(rec.event, Pong):
-                est.add(rec.event.offset(rec.arrival), rec.event.round_trip(rec.arrival))
-                break
 
 
 def _percentiles_ms(values: list[float]) -> dict[str, float]:
@@ -414,21 +408,21 @@ async def _connect_bots(
     url: str,
     agent: str,
     settings: tuple[float, str, float],
-    est: ClockEstimator,
     bots: list[_ReplayBot],
     clock: Clock,
 ) -> None:
-    """Connect one bot per user (appended to ``bots`` as they connect); sync ``est``.
+    """Connect one bot per user (appended to ``bots`` as they connect); the first syncs
+    its core's clock estimate (one process, one clock: its offset serves every bot).
 
     ``settings``: the speed factor, the codec and the object patience of every bot."""
     factor, codec, patience = settings
     for k, up in enumerate(plan.users):
         conn = await ClientConnection.connect(url, agent=f"{agent}:{up.name}", clock=clock)
-        bots.append(_ReplayBot(up, conn))
+        bots.append(_ReplayBot(up, conn, url, clock))
         bots[-1].velocity_scale = factor
         bots[-1].codec, bots[-1].patience = codec, patience
-        if k == 0:  # one process, one clock: one offset serves every bot
-            await _sync_clock(conn, est, _SYNC_PINGS, clock)
+        if k == 0:
+            await bots[-1].receiver.sync(conn, _SYNC_PINGS)
     users = {b.plan.user: b.conn.user for b in bots}
     for b in bots:
         b.users = users
@@ -621,7 +615,8 @@ async def replay_live(
     bots: list[_ReplayBot] = []
     start = math.nan
     try:
-        await _connect_bots(plan, url, agent, (factor, codec, object_patience), est, bots, clock)
+        await _connect_bots(plan, url, agent, (factor, codec, object_patience), bots, clock)
+        est = bots[0].core.clock
         welcome = bots[0].conn.welcome
         assert welcome is not None
         offset = est.offset
