@@ -16,6 +16,7 @@ import statistics
 import tempfile
 import time
 from contextlib import AsyncExitStack
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -27,8 +28,9 @@ from posecast.client.swarm import run_bots, swarm_report
 from posecast.cluster_local import LocalCluster, local_cluster
 from posecast.progress import PlainProgress, progress
 from posecast.server.app import RelayServer, ServerConfig, serving
+from posecast.server.link import LinkTier
 
-__all__ = ["run_demo"]
+__all__ = ["RateLog", "run_demo"]
 
 
 async def run_demo(
@@ -48,8 +50,13 @@ async def run_demo(
     kill: tuple[str, float] | None = None,
     spawn: str = "none",
     stop: asyncio.Event | None = None,
+    link: LinkTier | None = None,
 ) -> dict[str, Any]:
     """Run the demo; with ``view_port``, a live viewer of its room is served there too.
+
+    With ``auto_rate`` the bots join with rate "auto" (up to ``rate``) and the demo
+    asks the relay what it sends each (:class:`RateLog`): the report gains ``rates``.
+    ``link`` emulates that tier on every bot's downlink (``serve --link``; one relay).
 
     With ``nodes`` > 1 the relay is a cluster on this machine: a nats-server and
     that many ``posecast serve --cluster`` processes, the bots spread over them
@@ -60,15 +67,7 @@ async def run_demo(
     node-loss drill; ``cluster.kill`` reports each bot's longest snapshot gap and
     what the recordings hold (the killed node's file recovered)."""
     async with AsyncExitStack() as stack:
-        cluster: LocalCluster | None = None
-        server: RelayServer | None = None
-        if nodes > 1:
-            store = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="posecast-")))
-            cluster = await stack.enter_async_context(local_cluster(nodes, store, record_dir))
-            urls = cluster.urls
-        else:
-            server = await stack.enter_async_context(serving(_local_relay(record_dir)))
-            urls = [f"ws://127.0.0.1:{server.port}"]
+        cluster, server, urls = await _relays(stack, nodes, record_dir, link)
         tg = await stack.enter_async_context(asyncio.TaskGroup())
         viewer = (
             None if view_port is None else _start_view(tg, urls[0], methods, view_port, console)
@@ -78,23 +77,23 @@ async def run_demo(
                          duration=duration, name="bot", codec=codec,
                          auto_rate=auto_rate)  # fmt: skip
         seen: dict[str, dict[str, float]] = {}
+        rates = RateLog() if auto_rate else None
+        killed: dict[str, Any] = {}
         with _progress(console) as bar:
-            watcher = tg.create_task(_watch(bar, duration, server, cluster, seen))
-            killed: dict[str, Any] = {}
-            killer = None
+            helpers = [tg.create_task(_watch(bar, duration, server, cluster, seen, rates))]
+            if rates is not None:
+                helpers.append(tg.create_task(rates.watch(urls, "demo")))
             if kill is not None and cluster is not None:
-                killer = tg.create_task(_kill_later(cluster, seen, kill, killed, console))
+                helpers.append(tg.create_task(_kill_later(cluster, seen, kill, killed, console)))
             try:
                 reports = await run_bots(base, bots, spawn=spawn, stop=stop)
             finally:
-                watcher.cancel()
-                if killer is not None:
-                    killer.cancel()
-                if viewer is not None:
-                    viewer.cancel()
+                for task in [*helpers, *([viewer] if viewer is not None else [])]:
+                    task.cancel()
         report = swarm_report(reports)
+        report |= {"rates": rates.report(report["bots"])} if rates is not None else {}
         report["server"] = {"url": ",".join(urls), "rate_hz": rate, "auto_rate": auto_rate,
-                            "send_rate_hz": send_rate,
+                            "send_rate_hz": send_rate, "link": getattr(link, "name", None),
                             "duration_s": duration, "motion": motion, "codec": codec}  # fmt: skip
         if cluster is not None:
             report["cluster"] = _cluster_report(cluster, report["bots"], seen)
@@ -111,23 +110,37 @@ async def run_demo(
     return report
 
 
+async def _relays(
+    stack: AsyncExitStack, nodes: int, record_dir: Path | None, link: LinkTier | None
+) -> tuple[LocalCluster | None, RelayServer | None, list[str]]:
+    """The demo's relay (or local cluster of ``nodes``), run until ``stack`` closes:
+    (cluster, server, their URLs)."""
+    if nodes > 1:
+        store = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="posecast-")))
+        cluster = await stack.enter_async_context(local_cluster(nodes, store, record_dir))
+        return cluster, None, list(cluster.urls)
+    server = await stack.enter_async_context(serving(_local_relay(record_dir, link)))
+    return None, server, [f"ws://127.0.0.1:{server.port}"]
+
+
 def _newest_recording(record_dir: Path | None) -> str | None:
     """The cluster's recording of the demo: the latest started, of any node's folder."""
     files = [] if record_dir is None else list(record_dir.glob("node*/*.mcap"))
     return str(max(files, key=lambda p: p.name)) if files else None  # NAME-<start time>
 
 
-def _local_relay(record_dir: Path | None) -> RelayServer:
+def _local_relay(record_dir: Path | None, link: LinkTier | None = None) -> RelayServer:
     """The demo's relay: open (no secret, on loopback: no warning about it), no
     keepalive pings (bots and relay share one loop, which a busy machine makes
     answer late), time to load the motions before joining (longer than a
-    public relay's 5 s join timeout), and no capacity budget (its CPU reading is
-    the whole process's, bots included: it would turn the demo's own bots away)."""
+    public relay's 5 s join timeout), no capacity budget (its CPU reading is
+    the whole process's, bots included: it would turn the demo's own bots away),
+    and ``link`` emulated on every downlink (None: loopback as it is)."""
     _quiet_open_relay()
     return RelayServer(
         ServerConfig(host="127.0.0.1", port=0, record_dir=record_dir,
                      join_timeout=60.0, ping_interval=0.0,
-                     capacity_cpu=0.0, capacity_lag=0.0)
+                     capacity_cpu=0.0, capacity_lag=0.0, link=link)
     )  # fmt: skip
 
 
@@ -141,6 +154,78 @@ def _quiet_open_relay() -> None:
 class _NoOpenWarning(logging.Filter):
     def filter(self, record: logging.LogRecord) -> bool:
         return "no --secret" not in str(record.msg)
+
+
+@dataclass
+class RateLog:
+    """The snapshot rate the relay sends each member of a room, as its ``GET /rates``
+    answers (``posecast.view.rates``), asked every ``period`` s while the demo runs:
+    the relay's own choice (an auto rate's), not a rate measured at the bots."""
+
+    period: float = 0.5
+    #: User id -> the rates answered for it, in order.
+    samples: dict[int, list[float]] = field(default_factory=dict)
+    #: The last answer: user id -> rate (Hz).
+    current: dict[int, float] = field(default_factory=dict)
+    answers: int = 0
+    failures: int = 0
+
+    def add(self, rates: dict[int, float]) -> None:
+        """One answer of the relay (user id -> Hz)."""
+        self.answers += 1
+        self.current = dict(rates)
+        for user, rate in rates.items():
+            self.samples.setdefault(user, []).append(rate)
+
+    async def watch(self, urls: list[str], room: str) -> None:
+        """Ask every relay of ``urls`` for ``room``'s rates every ``period`` s, until
+        cancelled; an unanswered question is counted in ``failures``."""
+        from posecast.view.rates import fetch_rates
+
+        while True:
+            merged: dict[int, float] = {}
+            answered = False
+            for url in urls:
+                try:
+                    merged.update(await fetch_rates(url, room))
+                    answered = True
+                except (OSError, TimeoutError, ValueError):
+                    self.failures += 1
+            if answered:
+                self.add(merged)
+            await asyncio.sleep(self.period)
+
+    def line(self) -> str:
+        """The rates now, for the session line: each member's (by user id) up to 8,
+        else their range and median."""
+        rates = [self.current[u] for u in sorted(self.current)]
+        if len(rates) <= 8:
+            return "relay rates " + " ".join(f"{r:g}" for r in rates) + " Hz"
+        mid = statistics.median(rates)
+        return f"relay rates {min(rates):g}-{max(rates):g} Hz (median {mid:g})"
+
+    def report(self, bots: list[dict[str, Any]]) -> dict[str, Any]:
+        """The ``rates`` key of the demo's report; each of ``bots`` (swarm report rows)
+        gains ``relay_rate_hz`` (the last answer that listed it) and ``relay_mean_hz``
+        (the mean of the answers; NaN when no answer listed it)."""
+        nan = float("nan")
+        users = {
+            str(u): {"now_hz": r[-1], "mean_hz": statistics.fmean(r), "min_hz": min(r),
+                     "max_hz": max(r), "answers": len(r)}
+            for u, r in sorted(self.samples.items())
+        }  # fmt: skip
+        for b in bots:
+            got = users.get(str(b["id"]), {})
+            b["relay_rate_hz"] = got.get("now_hz", nan)
+            b["relay_mean_hz"] = got.get("mean_hz", nan)
+        every = [x for r in self.samples.values() for x in r]
+        return {
+            "source": f"GET /rates?room=demo every {self.period:g} s",
+            "answers": self.answers,
+            "failures": self.failures,
+            "mean_hz": statistics.fmean(every) if every else nan,
+            "users": users,
+        }
 
 
 def _progress(console: Console | None) -> Progress | PlainProgress:
@@ -161,9 +246,11 @@ async def _watch(
     server: RelayServer | None,
     cluster: LocalCluster | None,
     seen: dict[str, dict[str, float]],
+    rates: RateLog | None = None,
 ) -> None:
     """The progress bar; a cluster's figures (rooms owned, members forwarded) into
-    ``seen`` by node, as last read during the session."""
+    ``seen`` by node, as last read during the session; ``rates``: the rates the relay
+    sends each bot now, after the figures."""
     task = bar.add_task("", total=duration)
     loop = asyncio.get_running_loop()
     start = loop.time()
@@ -193,6 +280,8 @@ async def _watch(
                 f"{len(cluster.relays)} nodes, room on {', '.join(owner) or '?'}, "
                 f"{forwarded:g} bots through other nodes"
             )
+        if rates is not None and rates.current:
+            desc += f"; {rates.line()}"
         bar.update(task, completed=min(duration, loop.time() - start), description=desc)
 
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import sys
 
-from posecast.cli import benchmarks, experiments, recordings, session, vectors
+from posecast.cli import benchmarks, demo_cmd, experiments, recordings, session, vectors
 from posecast.cli import view as view_cli
 from posecast.cli import web as web_cli
 from posecast.cli.common import app, bench_app
@@ -19,7 +19,7 @@ app.command()(experiments.compare)
 app.command()(session.serve)
 app.command()(session.token)
 app.command()(session.bots)
-app.command()(session.demo)
+app.command()(demo_cmd.demo)
 bench_app.command("interp")(benchmarks.bench_interp)
 bench_app.command("relay")(benchmarks.bench_relay)
 app.command()(experiments.table1)

@@ -83,7 +83,10 @@ def _print_bots(report: dict[str, Any]) -> None:
     cluster = report.get("cluster")
     bots = small_table("bots")
     auto = any(b.get("auto_rate") for b in report["bots"])  # --rate auto: the relay's choice
-    cols: tuple[str, ...] = ("id", "name", *(("chosen\nHz",) if auto else ()), "keyframes\n/s")
+    asked = auto and "rates" in report  # the demo asked the relay its rates (GET /rates)
+    cols: tuple[str, ...] = ("id", "name", *(("chosen\nHz",) if auto else ()))
+    cols += ("relay\nmean Hz",) if asked else ()
+    cols += ("keyframes\n/s",)
     cols += ("D\nms", "render\nms/frame", "clock rtt\nms", "age\nms")
     cols += ("gap\ns",) if cluster else ()
     for col in (*cols, *(("node",) if cluster else ())):
@@ -93,6 +96,7 @@ def _print_bots(report: dict[str, Any]) -> None:
             str(b["id"]),
             b["name"],
             *((_fmt(b["granted_hz"]),) if auto else ()),
+            *((_fmt(b.get("relay_mean_hz", float("nan"))),) if asked else ()),
             _fmt(b["rate_hz"]),
             _fmt(b["delay_ms"]),
             _fmt(b["render_cpu_ms_per_frame"], 2),
@@ -106,6 +110,11 @@ def _print_bots(report: dict[str, Any]) -> None:
     plain(_BOTS_LEGEND)
     if auto:
         plain("chosen: the snapshot rate the relay chose last for the bot (--rate auto).")
+    if asked:
+        plain(
+            "relay mean: the mean of the rates the relay said it sent the bot, asked "
+            f"{report['rates']['answers']} times ({report['rates']['source']})."
+        )
     if cluster:
         print_cluster(cluster)
 
@@ -160,7 +169,7 @@ def motion_note(motion: str) -> str:
 
 def verdict(
     methods: dict[str, dict[str, dict[str, float]]],
-    rate: float,
+    rate: float | str,
     motion: str,
     starved: bool = False,
     doc: str = DEMO_DOC,
@@ -174,7 +183,8 @@ def verdict(
         for m, classes in methods.items()
         if "hands" in classes and classes["hands"]["tip_p95_mm"] == classes["hands"]["tip_p95_mm"]
     }
-    where = f"at {rate:g} Hz on this motion ({motion_note(motion)})"
+    at = f"{rate:g} Hz" if isinstance(rate, int | float) else rate  # or: auto rates
+    where = f"at {at} on this motion ({motion_note(motion)})"
     tail = "; this machine starved the session: rerun on an idle one" if starved else ""
     tail += f"; see {doc}"
     if not hands:
@@ -203,6 +213,7 @@ def demo_next_steps(recording: str | None, motion: str) -> list[str]:
     if not motion.startswith("synthetic"):
         steps.append(("posecast demo --motion synthetic", "calmer motion than Beat Saber"))
     steps.append(("posecast demo --rate 30", "the same at the rate engines send today"))
+    steps.append(("posecast demo --adaptive", "the relay chooses each bot's rate"))
     if recording:
         steps.append((f"posecast replay --offline {recording}", "score the recording again"))
     steps.append(("posecast table1 --traces traces:sample --out t1", "the paper's Table 1"))

@@ -1,4 +1,4 @@
-"""A live session: ``serve``, ``token``, ``bots``, ``demo``."""
+"""A live session: ``serve``, ``token``, ``bots`` (``demo``: ``cli.demo_cmd``)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,6 @@ import typer
 if TYPE_CHECKING:
     pass
 
-from posecast.cli.cluster import KillOption, NodesOption, kill_drill
 from posecast.cli.common import (
     DEFAULT_METHODS,
     _fail,
@@ -26,7 +25,7 @@ from posecast.cli.common import (
     console,
     plain,
 )
-from posecast.cli.report import demo_next_steps, print_swarm, verdict
+from posecast.cli.report import print_swarm
 from posecast.cli.serve_checks import (
     SERVE_LIMITS,
     AllowOriginOption,
@@ -47,13 +46,6 @@ from posecast.cli.serve_checks import (
     check_serve_args as _check_serve_args,
 )
 from posecast.progress import stop_on_ctrl_c
-
-
-class Scene(StrEnum):
-    """A scripted live scene for ``demo --scene``."""
-
-    throw_catch = "throw-catch"
-
 
 _SECRET_HELP = "Require tokens signed with this secret (see `posecast token`); visible in ps."
 _SECRET_FILE_HELP = "Read the secret from the first line of this file (kept out of ps)."
@@ -695,99 +687,3 @@ def _write_json(report: dict[str, Any], json_out: Path | None) -> None:
     if json_out is not None:
         json_out.write_text(json.dumps(report, indent=2))
         console.print(f"wrote {json_out}")
-
-
-RecordFolderOption = Annotated[Path, typer.Option(help="Folder for the session recording (MCAP).")]
-NoRecordOption = Annotated[bool, typer.Option("--no-record", help="Do not record.")]
-
-
-def _demo_rate(text: str) -> tuple[float, bool]:
-    """The demo's ``--rate`` (see :func:`_ask_rate`), within its own server's range."""
-    from posecast.server.app import ServerConfig
-
-    rate, auto = _ask_rate(text, "demo")
-    server_cfg = ServerConfig()  # what run_demo's own server allows
-    if not server_cfg.min_rate <= rate <= server_cfg.max_rate:
-        raise _fail(
-            f"--rate {rate:g} Hz is outside the demo server's range of "
-            f"{server_cfg.min_rate:g}-{server_cfg.max_rate:g} Hz"
-        )
-    return rate, auto
-
-
-def demo(
-    ctx: typer.Context,
-    bots: BotCountOption = 6,
-    rate: AskRateOption = "15",
-    duration: DurationOption = 20.0,
-    motion: MotionOption = "traces:sample",
-    interp_: InterpOption = DEFAULT_METHODS,
-    json_out: JsonOutOption = None,
-    record: RecordFolderOption = Path("recordings"),
-    no_record: NoRecordOption = False,
-    codec: CodecOption = Codec.compact,
-    view: Annotated[
-        bool, typer.Option("--view", help="Serve a live 3D viewer of the demo's room too.")
-    ] = False,
-    view_port: Annotated[
-        int, typer.Option(help="With --view: serve the page on this port (0: any free one).")
-    ] = 8080,
-    scene: Annotated[
-        Scene | None,
-        typer.Option(
-            help="Play a scripted scene instead of --motion: throw-catch (bot 0 throws "
-            "object:drill, bot 1 catches it and hands it back, the others watch; 3 bots "
-            "unless --bots); the table gains the object classes (all, flight, catch).",
-        ),
-    ] = None,
-    nodes: NodesOption = 1,
-    kill: KillOption = None,
-    spawn: SpawnOption = "circle",
-) -> None:
-    """The main job: a server and N bots on loopback, then QoE per interpolator."""
-    from posecast.demo import run_demo
-
-    if scene is not None:
-        if _given(ctx, "motion"):
-            raise _fail("give --scene or --motion, not both")
-        motion = scene.value
-        if not _given(ctx, "bots"):
-            bots = 3
-    rate_hz, auto = _demo_rate(rate)
-    methods = _check_bot_args(rate_hz, bots, duration, interp_, motion)
-    _check_spawn(spawn, bots)
-    if view and not 0 <= view_port <= 65535:
-        raise _fail(f"--view-port {view_port} is not a TCP port (0-65535)")
-
-    if not console.is_terminal:  # piped: the progress comes as plain lines
-        plain(f"posecast demo: {bots} bots for {duration:g} s on loopback (Ctrl-C ends early)")
-    report = _run_interruptible(
-        run_demo,
-        bots=bots,
-        rate=rate_hz,
-        auto_rate=auto,
-        duration=duration,
-        methods=methods,
-        motion=motion,
-        console=console,
-        record_dir=None if no_record else record,
-        codec=codec.value,
-        view_port=view_port if view else None,
-        nodes=nodes,
-        kill=kill_drill(kill, nodes, duration),
-        spawn=spawn,
-    )
-    title = f"{bots} bots at {_rate_text(rate_hz, auto)} for {duration:g} s ({motion})"
-    print_swarm(report, f"posecast demo: {title}")
-    _print_ending(report)
-    if report.get("recording"):
-        plain(f"recorded to {report['recording']} (see `posecast info`)")
-    _write_json(report, json_out)
-    starved, lone = report["starvation"]["starved"], len(report["bots"]) == 1
-    plain(verdict(report["methods"], rate_hz, motion, starved, lone=lone))
-    for line in demo_next_steps(report.get("recording"), motion):
-        plain(line)
-    if report["interrupted"]:
-        raise typer.Exit(130)
-    if report["ending"]["exit_code"]:
-        raise typer.Exit(report["ending"]["exit_code"])
