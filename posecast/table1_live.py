@@ -85,6 +85,11 @@ class LiveConfig:
     stagger: float = 0.05
     #: How often the server's per-connection statistics are sampled (s).
     poll: float = 0.25
+    #: Also run each tier once more with the bots asking rate "auto" (up to
+    #: ``auto_max`` Hz): the relay chooses each one's rate from its emulated link.
+    #: Live only (the offline counterpart models a fixed rate); one more session a tier.
+    auto: bool = False
+    auto_max: float = 30.0
 
     def __post_init__(self) -> None:
         if not self.duration > 0:
@@ -176,7 +181,7 @@ async def _watch(
 
 def _server_figures(samples: dict[int, _LinkSamples]) -> dict[str, float]:
     """Per subscriber means over the time the whole room was present."""
-    rates, bps, fps, skips = [], [], [], []
+    rates, means, spans, bps, fps, skips = [], [], [], [], [], []
     lost = offered = 0
     for ls in samples.values():
         full = [i for i, f in enumerate(ls.full) if f]
@@ -187,6 +192,8 @@ def _server_figures(samples: dict[int, _LinkSamples]) -> dict[str, float]:
         if dt <= 0:
             continue
         rates.append(ls.rate[b])
+        means.append(float(np.mean(ls.rate[a : b + 1])))
+        spans += ls.rate[a : b + 1]
         bps.append((ls.bytes[b] - ls.bytes[a]) / dt)
         fps.append((ls.frames[b] - ls.frames[a]) / dt)
         offered += ls.frames[-1] + ls.lost[-1]
@@ -201,6 +208,11 @@ def _server_figures(samples: dict[int, _LinkSamples]) -> dict[str, float]:
         "server_rate_hz": float(np.mean(rates)),
         "server_rate_min_hz": float(np.min(rates)),
         "server_rate_max_hz": float(np.max(rates)),
+        # The rate over the whole room's time, per subscriber, then their mean (an auto
+        # rate changes; a fixed one is its last).
+        "server_rate_mean_hz": float(np.mean(means)),
+        "server_rate_low_hz": float(np.min(spans)),
+        "server_rate_high_hz": float(np.max(spans)),
         "bytes_per_s": float(np.mean(bps)),
         "snapshots_per_s": float(np.mean(fps)),
         "lost_fraction": lost / offered if offered else float("nan"),
@@ -362,6 +374,10 @@ async def run_live_tier(
     offline = _offline_figures(sims, tier, rate, frame_bytes)
     if progress is not None:
         progress(f"score {tier.name}", 1, 1)
+    auto = None
+    if cfg.auto:
+        auto = await _run_auto(tier, motions, cfg, room=room, send_rate=send_rate,
+                               progress=progress)  # fmt: skip
     return {
         "tier": tier.name,
         "tier_params": tier.as_dict(),
@@ -383,7 +399,57 @@ async def run_live_tier(
         "live": live,
         "offline": offline,
         "agreement": check_agreement(live, offline, cfg.tolerance),
+        # --live-auto: the same tier with auto rates, live only (no agreement check).
+        **({"auto": auto} if auto is not None else {}),
     }
+
+
+async def _run_auto(
+    tier: Tier,
+    motions: Sequence[tuple[str, int]],
+    cfg: LiveConfig,
+    *,
+    room: str,
+    send_rate: float,
+    progress: LiveProgress | None,
+) -> dict[str, Any]:
+    """``tier`` once more, every bot asking rate "auto" (up to ``cfg.auto_max``): the
+    live figures of :func:`_live_figures` (QoE at the bots' own D, keyframes/s, the
+    server's chosen rates and link bytes), with no offline counterpart."""
+    reports, samples, lags = await _session(
+        tier, motions, cfg, room=room, send_rate=send_rate, progress=progress, auto=True
+    )
+    stage = f"score {tier.name} auto"
+    if progress is not None:
+        progress(stage, 0, 1)
+    server_fig = _server_figures(samples)
+    lag = np.array(lags) if lags else np.zeros(1)
+
+    def score() -> tuple[_Groups, _Groups, list[float]]:
+        truths: dict[str, Trace] = {}
+        live: _Groups = []
+        ample: _Groups = []
+        live_d: list[float] = []
+        for rep in reports:
+            if not rep.render_log:
+                continue
+            pt = np.array([r[0] for r in rep.render_log])
+            pd = np.array([r[1] for r in rep.render_log])
+            got, got_ample, senders = _score_bot(rep, pt, pd, cfg, send_rate, truths)
+            if senders:
+                live.append(got)
+                ample.append(got_ample)
+                live_d.append(float(np.median(pd)))
+        return live, ample, live_d
+
+    groups, groups_ample, live_d = await asyncio.to_thread(score)
+    if not groups:
+        raise RuntimeError(f"tier {tier.name} (auto): no bot received anything to score")
+    if progress is not None:
+        progress(stage, 1, 1)
+    figures = _live_figures(reports, groups, groups_ample, live_d, server_fig, lag)
+    figures["asked"] = f"auto (up to {cfg.auto_max:g} Hz)"
+    return figures
 
 
 async def _session(
@@ -394,8 +460,10 @@ async def _session(
     room: str,
     send_rate: float,
     progress: LiveProgress | None,
+    auto: bool = False,
 ) -> tuple[list[BotReport], dict[int, _LinkSamples], list[float]]:
-    """A relay emulating ``tier`` and ``cfg.bots`` bots in ``room``, to the bots' end.
+    """A relay emulating ``tier`` and ``cfg.bots`` bots in ``room``, to the bots' end;
+    ``auto``: the bots ask rate "auto" (up to ``cfg.auto_max``), not the tier's rate.
 
     Returns the bots' reports, the server's link samples per subscriber and the
     event loop's lags (s) while the bots ran.
@@ -407,14 +475,14 @@ async def _session(
             port=0,
             rate=asked,
             min_rate=min(5.0, asked),
-            max_rate=max(30.0, asked),
+            max_rate=max(30.0, asked, cfg.auto_max),
             link=tier,
             # Bots and relay share this process: its CPU is not the relay's alone.
             capacity_cpu=0.0,
             capacity_lag=0.0,
         )
     )
-    stage = f"live {tier.name}"
+    stage = f"live {tier.name}" + (" auto" if auto else "")
     samples: dict[int, _LinkSamples] = {}
     lags: list[float] = []
 
@@ -430,7 +498,8 @@ async def _session(
                 base = BotConfig(
                     url=f"ws://127.0.0.1:{server.port}",
                     room=room,
-                    rate=asked,
+                    rate=cfg.auto_max if auto else asked,
+                    auto_rate=auto,
                     send_rate=send_rate,
                     methods=cfg.methods,
                     duration=cfg.duration,
@@ -534,6 +603,7 @@ async def run_live(
             "seed": cfg.seed,
             "motions": [m.rsplit("/", 1)[-1] for m, _ in motions[: cfg.bots]],
             "tolerance": cfg.tolerance.as_dict(),
+            **({"auto_max_hz": cfg.auto_max} if cfg.auto else {}),
             "compared": "offline counterpart of each bot at the bot's own playout delay D(tau); "
             "D itself against Table 1's rule 1/rate + p95(age)",
         },

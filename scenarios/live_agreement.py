@@ -517,7 +517,45 @@ def live_markdown(live: Mapping[str, Any]) -> list[str]:
         "every tier agrees" if live["pass"] else "at least one tier does not agree (see above)"
     )
     lines += ["", f"Verdict: {verdict} within the stated tolerance.", ""]
+    if any("auto" in t for t in live["tiers"]):
+        lines += auto_markdown(live)
     return lines
+
+
+def auto_markdown(live: Mapping[str, Any]) -> list[str]:
+    """``--live-auto``: each tier at its fixed rate and with auto rates, live, side by side."""
+    first = next(iter(live["config"].get("methods", ())), "soa")
+    lines = [
+        "### Auto rates beside the tier's rate (`--live-auto`)",
+        "",
+        "The same tier and bots once more, every bot asking rate `auto` (up to "
+        f"{live['config'].get('auto_max_hz', 30):g} Hz): the relay chose each one's rate from "
+        "what its emulated link took (never from the tier's figures). Live only: the "
+        "offline counterpart models a fixed rate. Server rate: the mean over the time the "
+        "whole room was present (lowest-highest of any subscriber then); stall and tip "
+        f"error: `{first}`, hands, at the bots' own D.",
+        "",
+        "| tier | policy | server rate Hz | keyframes/s | link B/s | D ms | stall | "
+        f"`{first}` hands tip p50 / p95 mm |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for t in live["tiers"]:
+        fixed = t["live"]
+        rows = [(f"fixed {_n(t['asked_rate_hz'])} Hz", fixed)]
+        if "auto" in t:
+            rows.append(("auto", t["auto"]))
+        for policy, lv in rows:
+            hands = lv["methods"].get(first, {}).get("hands", {})
+            mean = lv.get("server_rate_mean_hz", lv["server_rate_hz"])
+            low = lv.get("server_rate_low_hz", lv.get("server_rate_min_hz"))
+            high = lv.get("server_rate_high_hz", lv.get("server_rate_max_hz"))
+            lines.append(
+                f"| {t['tier']} | {policy} | {_n(mean)} ({_n(low)}-{_n(high)}) "
+                f"| {_n(lv['rate_hz'], 2)} "
+                f"| {_n(lv['bytes_per_s'], 0)} | {_n(lv['delay_ms'])} "
+                f"| {_pc(hands.get('stall_fraction'))} | {_pair(hands)} |"
+            )
+    return [*lines, ""]
 
 
 def _live_intro(cfg: Mapping[str, Any]) -> list[str]:

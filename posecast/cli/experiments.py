@@ -97,6 +97,15 @@ LiveOption = Annotated[
 ]
 LiveDurationOption = Annotated[float, typer.Option(help="--live: seconds each bot runs, per tier.")]
 LiveBotsOption = Annotated[int, typer.Option(help="--live: bots in the room, per tier.")]
+LiveAutoOption = Annotated[
+    bool,
+    typer.Option(
+        "--live-auto",
+        help="With --live: run every tier once more with the bots asking auto rates (the "
+        "relay chooses each one's rate from its link, up to 30 Hz), live beside the tier's "
+        "fixed rate; one more session per tier.",
+    ),
+]
 
 
 def table1(
@@ -116,6 +125,7 @@ def table1(
     live: LiveOption = False,
     live_duration: LiveDurationOption = 20.0,
     live_bots: LiveBotsOption = 3,
+    live_auto: LiveAutoOption = False,
 ) -> None:
     """Reproduce the paper's Table 1: QoE vs rate, equal-QoE rates per network tier.
 
@@ -132,7 +142,7 @@ def table1(
     if transport not in ("datagram", "stream"):
         raise _fail("--transport must be datagram or stream")
     f_rates = None if frontier_rates is None else [int(r) for r in _parse_rates(frontier_rates)]
-    live_plan = _plan_live(traces, tiers, method_list, live_duration, live_bots) if live else None
+    live_plan = _plan_live(live, traces, tiers, method_list, live_duration, live_bots, live_auto)
     done: dict[str, tuple[int, int]] = {}  # stage -> (done, total), for Ctrl-C's line
     try:
         report = _run_offline(
@@ -226,13 +236,20 @@ def _print_curves(curves: dict[int, Any]) -> None:
 
 
 def _plan_live(
+    live: bool,
     traces: list[str],
     tiers: Path | None,
     method_list: list[str],
     live_duration: float,
     live_bots: int,
-) -> tuple[list[Any], Any]:
-    """The tiers and LiveConfig of --live, checked before the offline sweep starts."""
+    live_auto: bool = False,
+) -> tuple[list[Any], Any] | None:
+    """The tiers and LiveConfig of --live, checked before the offline sweep starts
+    (None: no --live)."""
+    if live_auto and not live:
+        raise _fail("--live-auto runs beside the live Table 1: give --live too")
+    if not live:
+        return None
     from posecast import interp
     from posecast.scenarios.network import TierError, load_tiers
     from posecast.scenarios.traces import TraceError
@@ -242,7 +259,9 @@ def _plan_live(
         dict.fromkeys(m for m in ["soa", *method_list] if not interp.info(m).needs_velocity)
     )
     try:
-        live_cfg = LiveConfig(duration=live_duration, bots=live_bots, methods=live_methods)
+        live_cfg = LiveConfig(
+            duration=live_duration, bots=live_bots, methods=live_methods, auto=live_auto
+        )
         live_motions(traces)
         tier_list = list(load_tiers(tiers).values())
     except (TraceError, TierError, ValueError) as exc:
@@ -420,6 +439,35 @@ def _print_live(live_report: dict[str, Any]) -> None:
             )
         lt.add_section()
     console.print(lt)
+    if any("auto" in row for row in live_report["tiers"]):
+        _print_live_auto(live_report)
+
+
+def _print_live_auto(live_report: dict[str, Any]) -> None:
+    """--live-auto: per tier, its fixed rate and auto rates, live, side by side."""
+    first = live_report["config"]["methods"][0]
+    at = Table(
+        title=f"Live, fixed vs auto rates: {first} hands p95 tip error (mm) at the bots' D",
+        title_justify="left",
+    )
+    for col in ("tier", "policy", "server Hz", "keyframes/s", "link B/s", "D ms", "p95 mm"):
+        at.add_column(col, justify="left" if col in ("tier", "policy") else "right")
+    for row in live_report["tiers"]:
+        runs = [(f"{row['asked_rate_hz']:g} Hz", row["live"])]
+        runs += [("auto", row["auto"])] if "auto" in row else []
+        for i, (policy, lv) in enumerate(runs):
+            hands = lv["methods"].get(first, {}).get("hands", {})
+            at.add_row(
+                row["tier"] if i == 0 else "",
+                policy,
+                _fmt(lv.get("server_rate_mean_hz", lv["server_rate_hz"])),
+                _fmt(lv["rate_hz"], 2),
+                _fmt(lv["bytes_per_s"], 0),
+                _fmt(lv["delay_ms"]),
+                _fmt(hands.get("tip_p95_mm", float("nan"))),
+            )
+        at.add_section()
+    console.print(at)
 
 
 def list_interpolators() -> None:

@@ -264,3 +264,18 @@ def test_write_live_adds_the_key_and_the_section(tmp_path: Path) -> None:
     assert data["live"]["tiers"][0]["live"]["delay_ms"] is None
     md = (tmp_path / "table1.md").read_text()
     assert md.index("## Live vs offline") < md.index("## Plots") and "body" in md
+
+
+def test_markdown_puts_auto_rates_beside_the_fixed_rate() -> None:
+    """A tier with an ``auto`` run gains the fixed-vs-auto table: both policies, the
+    server's mean rate (lowest-highest), the stall share and the tip error."""
+    report = _live_report(True)
+    tier = report["tiers"][0]
+    tier["asked_rate_hz"] = 20.0
+    tier["auto"] = _side(80.0, 0.002, server_rate_mean_hz=26.5, server_rate_low_hz=21.0,
+                         server_rate_high_hz=30.0)  # fmt: skip
+    md = "\n".join(live_markdown(report))
+    assert "### Auto rates beside the tier's rate (`--live-auto`)" in md
+    assert "| good | fixed 20.0 Hz | 20.0 (-" in md
+    assert "| good | auto | 26.5 (21.0-30.0) | 20.00 | 10000 | 100.0 | 0.20 % | 20.0 / 80.0 |" in md
+    assert "auto" not in "\n".join(live_markdown(_live_report(True)))
