@@ -33,8 +33,8 @@ joins a room        normalises the name (NFC, stripped; empty, over 64 bytes,
                     ``max_members`` or ``max_recorded_rooms`` (``room-full``),
                     creates the room on first join, allocates a stream id per
                     stream name, answers ``joined``, tells it every member
-                    (``peer_joined``) and every member about it, schedules it
-                    on its rate grid
+                    (``peer_joined``) and, at the room's next tick, every member
+                    about it (``server.presence``); schedules it on its grid
 publishes poses     admits at most ``max_update_rate`` updates and events a
                     second (a one-second token bucket; excess dropped and
                     counted, over ten seconds' worth closes 1008), keeps the
@@ -53,8 +53,8 @@ sends bad data      answers ``error`` with the code; fatal ones close with
                     refusal costs a token of its misbehaviour budget
                     (``misbehaviour_burst``, refilled ``misbehaviour_refill``
                     a second): none left closes 1008 "misbehaving"
-says bye / leaves   closes 1000; the room hears ``peer_left``; an empty room is
-                    removed and its recording finished
+says bye / leaves   closes 1000; the room hears ``peer_left`` at its next tick;
+                    an empty room is removed and its recording finished
 is too slow         latest-wins snapshots are skipped (counted) while one is
                     unsent or the socket holds over ``congested_bytes``;
                     overflowing the reliable queue (256) closes 1008 too-slow
@@ -99,7 +99,7 @@ from posecast.protocol import (
     encode_message,
 )
 from posecast.protocol.events import Event, Message
-from posecast.server import capacity, objects, rates, resume, tokens
+from posecast.server import capacity, objects, presence, rates, resume, tokens
 from posecast.server.actions import (
     Action,
     Close,
@@ -178,6 +178,7 @@ class RelayCore:
         self.table = RoomTable(self.config, self.volume, self.emit, objects.fly)
         self.rooms: dict[str, Room] = self.table.rooms
         self.table.adapt = rates.adapter(self)  # auto rates decide after each room's tick
+        self.table.notify = presence.flusher(self.connected, self.send)  # once per tick
         cfg = self.config
         self.admission = Admission(cfg.max_connections, cfg.max_connections_per_address)
         self.handshakes = Handshakes(self.admission, guard=Guard.of(cfg))  # caps before handshake
@@ -538,6 +539,8 @@ class RelayCore:
         events for its resume and misses presence notices (it gets the room anew)."""
         peer = self._by_user.get(member.user)
         if peer is not None and not member.parked:
+            for notice in member.presence.take_user(getattr(message, "user", None)):
+                self.send(peer, notice)  # a peer's pending presence goes before news of it
             self.send(peer, message)
         elif isinstance(message, UserEvent):
             member.outbox.offer_event(encode_message(message))
@@ -692,7 +695,7 @@ class RelayCore:
             if other.user not in spectators:
                 self.send(peer, Room.announce(other))
             if member.user not in spectators:
-                self.to_member(other, Room.announce(member))
+                other.presence.joined(Room.announce(member))  # at the room's next tick
 
     def _on_set_rate(self, peer: Peer, event: SetRate, now: float) -> None:
         room, user = peer.room, peer.user
@@ -781,6 +784,6 @@ class RelayCore:
                 room.record("presence", {"kind": "leave", "user": user, "reason": "left"}, now)
             for other in list(room.members.values()):
                 if not spectator:
-                    self.to_member(other, PeerLeft(user=user, reason="left"))
+                    other.presence.left(PeerLeft(user=user, reason="left"))
             self.forget_room_if_empty(room, now)
         peer.room = peer.member = None

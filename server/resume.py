@@ -154,7 +154,7 @@ def gone(core: Relay, parked: Parked, now: float) -> None:
         room.record("presence", {"kind": "leave", "user": user, "reason": "gone"}, now)
         for other in list(room.members.values()):
             if not core.is_spectator(other.user):
-                core.to_member(other, PeerLeft(user=user, reason="gone"))
+                other.presence.left(PeerLeft(user=user, reason="gone"))
         core.forget_room_if_empty(room, now)
     if core.connected(user) is None:
         core.users.give_back(user)
@@ -172,6 +172,7 @@ def resume_join(core: Relay, peer: Peer, join: Join, name: str, now: float) -> b
         return False
     old = member.outbox
     member.outbox, member.parked = peer.outbox, False
+    member.presence.clear()  # it gets the room anew below
     member.compact, member.echo = join.codec == "compact", join.echo
     member.velocities, member.sends_velocities = join.wants_velocities, join.sends_velocities
     member.rate = rate = rates.granted(core.config.max_rate, join)

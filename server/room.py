@@ -53,6 +53,7 @@ from posecast.protocol.codec import DEFAULT_VOLUME, Volume, quantise
 from posecast.protocol.codec_relay import GroupSnapshot, RelayEntry, encode_group
 from posecast.server.actions import Action, PollRecording, Record, RecordPose
 from posecast.server.config import DEFAULT_EVENT_QUEUE
+from posecast.server.presence import Presence
 from posecast.server.shared import RoomObject
 
 if TYPE_CHECKING:
@@ -247,6 +248,8 @@ class Member:
     watched: bool = False
     #: Its rate controller, if it joined with ``rate="auto"`` (``server.rates``).
     link_rate: LinkRate | None = None
+    #: Presence notices it has not been sent yet (``server.presence``).
+    presence: Presence = field(default_factory=Presence)
 
     def undelivered(self) -> None:
         """Its newest snapshot never reaches it (an emulated link lost or skipped

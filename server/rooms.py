@@ -56,6 +56,8 @@ class RoomTable:
         self.tick_lags = LagHistogram()
         #: Run after each room's tick: auto rates decide (``server.rates.adapt``).
         self.adapt: Callable[[Room, float], None] | None = None
+        #: Run before each room's tick: pending presence notices go out (``server.presence``).
+        self.notify: Callable[[Room], None] | None = None
 
     def refusal(self, name: str) -> str | None:
         """Why a join of room ``name`` is refused (``room-full``) now; None: it is not."""
@@ -121,6 +123,8 @@ class RoomTable:
             ticked += 1
             room = heapq.heappop(self._dues)[2]
             try:
+                if self.notify is not None:
+                    self.notify(room)
                 room.tick(now)
                 room.flush_drops(now)
                 if self.adapt is not None:

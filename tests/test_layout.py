@@ -146,6 +146,7 @@ def test_server_holds_only_the_relay() -> None:
         "parked.py",
         "parking.py",
         "ports.py",
+        "presence.py",
         "silence.py",
         "limits.py",
         "link.py",

@@ -108,6 +108,7 @@ def test_a_silent_member_that_drops_is_not_announced_twice() -> None:
     assert kinds(b.read(4.2)) == [PeerResumed]
     core.disconnect(back.conn, 4.5)
     _expire_at(core, 20.0)
+    core.tick(20.0)  # presence notices go out at the room's tick
     assert kinds(b.read(20.0)) == [PeerStalled, PeerLeft]
 
 

@@ -100,8 +100,6 @@ async def test_a_member_through_another_node_is_one_of_the_room(nats_url: str) -
             joined = remote.got(Joined)[0]
             await _until(lambda: bool(remote.got(PeerJoined)))
             assert [p.user for p in remote.got(PeerJoined)] == [local.user]
-            local.read(now)
-            assert [e.user for e in local.inbox if isinstance(e, PeerJoined)] == [user]
             # The remote member publishes; the local one gets its poses, and back.
             ids = [joined.streams["head"], joined.streams["left"]]
             update = PoseUpdate.from_arrays(1, ids, [now, now], np.repeat(POSE, 2, axis=0))
@@ -112,6 +110,8 @@ async def test_a_member_through_another_node_is_one_of_the_room(nats_url: str) -
             members.route(owner.tick(now))
             snaps = [e for e in local.read(now) if isinstance(e, Snapshot)]
             assert snaps and user in set(snaps[-1].users.tolist())
+            # Presence goes out at the room's tick (``server.presence``).
+            assert [e.user for e in local.inbox if isinstance(e, PeerJoined)] == [user]
             await _until(lambda: bool(remote.got(Snapshot)))
             assert local.user in set(remote.got(Snapshot)[-1].users.tolist())
             # Events in order, and pings answered on the owner's clock.

@@ -100,6 +100,8 @@ def test_hello_join_and_peers_both_ways() -> None:
     assert set(a.streams.values()).isdisjoint(b.streams.values())
     joined_b = [e for e in b.inbox if isinstance(e, PeerJoined)]
     assert [e.user for e in joined_b] == [a.user]
+    assert not [e for e in a.read(1.1) if isinstance(e, PeerJoined)]  # at the room's tick
+    core.tick(1.1)
     joined_a = [e for e in a.read(1.1) if isinstance(e, PeerJoined)]
     assert [e.user for e in joined_a] == [b.user] and joined_a[0].streams == b.streams
     assert core.rooms["lobby"].members.keys() == {a.user, b.user}
@@ -109,10 +111,14 @@ def test_one_snapshot_encoded_per_tick_group() -> None:
     """Two due members of one rate get the very same bytes; the sender its own streams too."""
     core = RelayCore()
     a, b = connect(core, 1.0), connect(core, 1.0)
-    a.read(1.0)
-    a.publish(1.01)
+    first = core.next_deadline()
+    assert first is not None
+    core.tick(first)  # presence notices out
+    a.read(first)
+    b.read(first)
+    a.publish(first + 0.01)
     due = core.next_deadline()
-    assert due is not None and due > 1.01
+    assert due is not None and due > first + 0.01
     actions = core.tick(due)
     assert {x.conn for x in actions if isinstance(x, Wake)} == {a.conn, b.conn}
     fa, _ = core.take(a.conn, due)
@@ -245,9 +251,11 @@ def test_leaving_tells_the_room_and_removes_it_when_empty() -> None:
     """A disconnect sends peer_left to the rest; the last one out removes the room."""
     core = RelayCore()
     a, b = connect(core, 1.0), connect(core, 1.0)
-    a.read(1.0)
+    core.tick(1.5)  # b is announced to a (a join and leave within one tick would not be)
+    a.read(1.5)
     actions = core.disconnect(b.conn, 2.0)
     assert Reschedule() in actions
+    core.tick(2.0)  # presence notices go out at the room's tick
     assert [e.user for e in a.read(2.0) if isinstance(e, PeerLeft)] == [b.user]
     core.disconnect(a.conn, 3.0)
     assert "lobby" not in core.rooms and core.next_deadline() is None

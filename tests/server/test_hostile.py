@@ -43,7 +43,7 @@ from support import poll_until
 from websockets.asyncio.client import ClientConnection as WsConnection
 from websockets.exceptions import ConnectionClosed
 
-from posecast.protocol import PeerLeft, UserEvent
+from posecast.protocol import PeerJoined, PeerLeft, UserEvent
 from posecast.server.app import RelayServer, ServerConfig
 
 ServerFactory = Callable[..., Any]
@@ -95,6 +95,8 @@ async def test_fatal_attack_closes_only_the_attacker(
     attack, code, close = FATAL[name]
     async with server_factory() as srv, observed_room(srv) as bot:
         ws, _ = await joined_ws(srv)
+        # Presence goes out per tick: a join and a leave within one would be no news.
+        await settle(lambda: bool(bot.of_type(PeerJoined)))
         await attack(ws)
         got, close_code = await until_closed(ws)
         assert close_code == close

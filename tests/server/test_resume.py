@@ -103,6 +103,7 @@ def test_the_window_closes_and_the_member_leaves_as_gone() -> None:
     core.expire(11.9)
     assert kinds(b.read(11.9)) == [PeerStalled]
     core.expire(12.0)
+    core.tick(12.0)  # presence notices go out at the room's tick
     (left,) = [e for e in b.read(12.0) if isinstance(e, PeerLeft)]
     assert (left.user, left.reason) == (wa.user, "gone")
     assert wa.user not in core.rooms["lobby"].members
@@ -116,6 +117,7 @@ def test_bye_and_server_closes_leave_at_once_and_non_resumable_clients_too() -> 
     a, _, b = pair(core)
     a.send(Bye(reason="done"), 2.0)
     core.disconnect(a.conn, 2.0)
+    core.tick(2.0)  # presence notices go out at the room's tick
     assert kinds(b.read(2.0)) == [PeerLeft]
     plain = Client(core, core.connect(3.0))
     plain.send(Hello(agent="plain"), 3.0)
@@ -123,8 +125,10 @@ def test_bye_and_server_closes_leave_at_once_and_non_resumable_clients_too() -> 
     assert w.resume is None
     plain.send(Join(room="lobby", streams=STREAMS, rate=10.0), 3.0)
     plain.read(3.0)
+    core.tick(3.0)
     b.read(3.0)
     core.disconnect(plain.conn, 4.0)
+    core.tick(4.0)
     assert kinds(b.read(4.0)) == [PeerLeft]
 
 
@@ -134,6 +138,7 @@ def test_a_resume_into_other_streams_is_a_new_join() -> None:
     core.disconnect(a.conn, 2.0)
     back, _ = hello(core, 3.0, resume=wa.resume)
     join(back, 3.0, streams=("head",))
+    core.tick(3.0)  # presence notices go out at the room's tick
     got = kinds(b.read(3.0))
     assert got[:3] == [PeerStalled, PeerLeft, PeerJoined]
 

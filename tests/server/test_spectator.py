@@ -50,6 +50,7 @@ def test_spectator_is_announced_to_nobody() -> None:
     s = spectate(core, 1.1)
     b = connect(core, 1.2)
     assert [e.user for e in s.inbox if isinstance(e, PeerJoined)] == [a.user]
+    core.tick(1.2)  # presence notices go out at the room's tick
     s.read(1.2)
     assert sorted(e.user for e in s.inbox if isinstance(e, PeerJoined)) == [a.user, b.user]
     a.read(1.2)
@@ -57,10 +58,12 @@ def test_spectator_is_announced_to_nobody() -> None:
     assert [e.user for e in b.inbox if isinstance(e, PeerJoined)] == [a.user]
     # The spectator leaves: nobody hears of it; a member leaves: the spectator hears.
     core.disconnect(s.conn, 1.4)
+    core.tick(1.4)
     a.read(1.4)
     assert not [e for e in a.inbox if isinstance(e, PeerLeft)]
     s2 = spectate(core, 1.5)
     core.disconnect(b.conn, 1.6)
+    core.tick(1.6)
     assert [e.user for e in s2.read(1.6) if isinstance(e, PeerLeft)] == [b.user]
 
 
