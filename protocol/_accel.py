@@ -4,7 +4,8 @@
 does the relay's per-pose work in C: the upstream update decode (all of
 ``_compact.UpstreamDecoder._decode_fast`` in one call; its parts
 ``codec_fast.decode_update_rows``, ``_compact._update_of_rows``), the group
-encode of snapshots (``codec_relay._delta_blocks``) and Exp-Golomb packing
+encode of snapshots (all of ``codec_relay.encode_group`` in one call, its frames
+spliced from C buffers; ``codec_relay._delta_blocks``) and Exp-Golomb packing
 (``bits.eg_pack``). Each has a pure-Python twin that is the reference: same
 bytes, same values; the compiled one returns None where its twin would take
 another path, and the twin then decides.

@@ -12,6 +12,8 @@
  *   update_records     protocol._compact._update_of_rows (the record bytes)
  *   delta_blocks       protocol.codec_relay._delta_blocks
  *   splice             protocol.codec_relay.GroupSnapshot.frame
+ *   encode_group       protocol.codec_relay.encode_group (trusted; packed for splice_packed)
+ *   splice_packed      protocol.codec_relay.GroupSnapshot.frame of a packed group
  *
  * Floating-point results must equal CPython's: build without FMA contraction
  * (setup.py passes -ffp-contract=off) and round as Python does (nearbyint in the
@@ -299,6 +301,12 @@ static PyMethodDef methods[] = {
     {"delta_blocks", py_delta_blocks, METH_VARARGS,
      "delta_blocks(entries, base) -> ([(user, n, bits, nbits, check)], nibbles) or None: "
      "codec_relay._delta_blocks."},
+    {"encode_group", py_encode_group, METH_VARARGS,
+     "encode_group(entries, base_us, velocity, bits) -> (packed, key_nibbles, delta_nibbles) "
+     "or None: codec_relay.encode_group's sections, packed for splice_packed."},
+    {"splice_packed", py_splice_packed, METH_VARARGS,
+     "splice_packed(head, packed, key_nibbles, delta_nibbles, exclude) -> (bytes, entries): "
+     "GroupSnapshot.frame of a packed group (exclude -1: nobody)."},
     {NULL, NULL, 0, NULL},
 };
 
@@ -315,8 +323,9 @@ PyMODINIT_FUNC PyInit__speedups(void) {
     if (m == NULL) return NULL;
     /* The constants compiled in; protocol/_accel.py refuses the module if they differ. */
     if (PyModule_AddObject(m, "__all__",
-                           Py_BuildValue("[ssssss]", "decode_update", "decode_update_rows", "delta_blocks", "eg_pack",
-                                         "splice", "update_records")) < 0 ||
+                           Py_BuildValue("[ssssssss]", "decode_update", "decode_update_rows",
+                                         "delta_blocks", "eg_pack", "encode_group", "splice",
+                                         "splice_packed", "update_records")) < 0 ||
         PyModule_AddStringConstant(m, "SOURCE_HASH", SOURCE_HASH) < 0) {
         Py_DECREF(m);
         return NULL;

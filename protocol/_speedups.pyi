@@ -7,7 +7,9 @@ __all__ = [
     "decode_update_rows",
     "delta_blocks",
     "eg_pack",
+    "encode_group",
     "splice",
+    "splice_packed",
     "update_records",
 ]
 
@@ -44,6 +46,17 @@ def update_records(
 def delta_blocks(
     entries: list[Any], base: float, velocity: bool, /
 ) -> tuple[list[tuple[int, int, int, int, int]], list[int]] | None: ...
+def encode_group(
+    entries: list[Any], base_us: int, velocity: bool, bits: tuple[int, int, int], /
+) -> tuple[bytes, list[int], list[int]] | None: ...
+def splice_packed(
+    head: bytes,
+    packed: bytes,
+    key_nibbles: list[int],
+    delta_nibbles: list[int],
+    exclude: int,
+    /,
+) -> tuple[bytes, int]: ...
 def splice(
     head: bytes,
     key_blocks: list[Any],

@@ -16,11 +16,15 @@ static int k_of_histogram(const int64_t *hist) {
 typedef struct {
     int64_t user, stream, off;
     int64_t row[MAX_WIDTH], base[MAX_WIDTH];
+    int key; /* no baseline: an absolute entry */
 } Entry;
 
-/* One entry (user, stream, capture, codes, baseline) as C values; -1: take the pure path. */
-static int entry_of(PyObject *e, int width, double base_time, Entry *out) {
+/* One entry (user, stream, capture, codes, baseline) as C values; -1: take the pure path.
+ * A baseline of None makes a key entry where ``keys`` allows it. */
+static int entry_parse(PyObject *e, int width, double base_time, int keys, Entry *out) {
     if (!PyTuple_Check(e) || PyTuple_GET_SIZE(e) != 5) return -1;
+    out->key = PyTuple_GET_ITEM(e, 4) == Py_None;
+    if (out->key && !keys) return -1;
     out->user = PyLong_AsLongLong(PyTuple_GET_ITEM(e, 0));
     out->stream = PyLong_AsLongLong(PyTuple_GET_ITEM(e, 1));
     double t = PyFloat_AsDouble(PyTuple_GET_ITEM(e, 2));
@@ -31,7 +35,7 @@ static int entry_of(PyObject *e, int width, double base_time, Entry *out) {
     double o = nearbyint((base_time - t) * 1000.0);
     if (!(fabs(o) < (double)TIME_MS_LIMIT)) return -1;
     out->off = (int64_t)o;
-    for (int which = 0; which < 2; which++) {
+    for (int which = 0; which < 2 - out->key; which++) {
         PyObject *row = PyTuple_GET_ITEM(e, 3 + which);
         int64_t *dst = which ? out->base : out->row;
         if (!PyList_Check(row) || PyList_GET_SIZE(row) != width) return -1;
@@ -46,6 +50,10 @@ static int entry_of(PyObject *e, int width, double base_time, Entry *out) {
         if (dst[0] < 0 || dst[0] > 3) return -1;
     }
     return 0;
+}
+
+static int entry_of(PyObject *e, int width, double base_time, Entry *out) {
+    return entry_parse(e, width, base_time, 0, out);
 }
 
 /* The values a user's block codes and their class (0 for the user's first entry),
@@ -274,5 +282,340 @@ static PyObject *py_splice(PyObject *self, PyObject *args) {
 done:
     PyMem_Free(w.buf);
     PyBuffer_Release(&head);
+    return result;
+}
+
+/* ------------------------------------------------------------------ the whole group encode */
+
+/* A group's blocks, packed for splicing (codec_relay.encode_group with the
+ * accelerator): a count, then one record per block, then the blocks' bits, each
+ * block starting on a byte. Only this module reads it (splice_packed checks it). */
+typedef struct {
+    int32_t user, n, section;
+    uint32_t check;
+    int64_t nbits, offset; /* offset: of the block's first byte in the data */
+} PackedBlock;
+
+typedef struct {
+    PackedBlock *blocks;
+    Py_ssize_t count, cap;
+    Writer data;
+} Packer;
+
+static int append_int(PyObject *list, long v) {
+    PyObject *x = PyLong_FromLong(v);
+    int got = x == NULL ? -1 : PyList_Append(list, x);
+    Py_XDECREF(x);
+    return got;
+}
+
+static PackedBlock *packer_begin(Packer *p, int64_t user, int section) {
+    if (p->count == p->cap) {
+        Py_ssize_t cap = p->cap ? 2 * p->cap : 16;
+        PackedBlock *b = PyMem_Realloc(p->blocks, cap * sizeof(PackedBlock));
+        if (b == NULL) return NULL;
+        p->blocks = b, p->cap = cap;
+    }
+    p->data.pos = (p->data.pos + 7) & ~(Py_ssize_t)7;
+    PackedBlock *b = &p->blocks[p->count++];
+    b->user = (int32_t)user, b->section = section, b->n = 0, b->check = 0;
+    b->offset = p->data.pos / 8, b->nbits = 0;
+    return b;
+}
+
+static void packer_end(Packer *p, PackedBlock *b) { b->nbits = p->data.pos - 8 * b->offset; }
+
+typedef struct {
+    int64_t user, stream;
+    int at;
+} SortKey;
+
+static int sort_key_cmp(const void *a, const void *b) {
+    const SortKey *x = a, *y = b;
+    if (x->user != y->user) return x->user < y->user ? -1 : 1;
+    if (x->stream != y->stream) return x->stream < y->stream ? -1 : 1;
+    return 0;
+}
+
+/* The key section (codec_relay._key_blocks) of entries es[at[0..n)], sorted; 0 if a code
+ * is out of range (the pure path decides), -1 on a Python error. */
+static int key_section(Packer *p, const Entry *es, const int *at, int n, int velocity,
+                       const int *bits, PyObject *nib) {
+    int64_t first[HIST] = {0}, lin[HIST] = {0}, ang[HIST] = {0};
+    for (int i = 0; i < n; i++) {
+        const Entry *e = &es[at[i]];
+        const int64_t *r = e->row;
+        if (r[1] < -M || r[1] > M || r[2] < -M || r[2] > M || r[3] < -M || r[3] > M) return 0;
+        for (int j = 0; j < 3; j++)
+            if (r[4 + j] < 0 || r[4 + j] >= (INT64_C(1) << bits[j])) return 0;
+        if (!i || es[at[i - 1]].user != e->user) first[bit_length(zz(e->off))]++;
+        if (velocity)
+            for (int c = 7; c < 13; c++) (c < 10 ? lin : ang)[bit_length(zz(r[c]))]++;
+    }
+    int kt = k_of_histogram(first), kv[2] = {0, 0};
+    if (velocity) kv[0] = k_of_histogram(lin), kv[1] = k_of_histogram(ang);
+    for (int i = 0; i < n;) {
+        const Entry *head = &es[at[i]];
+        PackedBlock *b = packer_begin(p, head->user, 0);
+        if (b == NULL) return -1;
+        Writer *w = &p->data;
+        int j = i;
+        for (; j < n && es[at[j]].user == head->user; j++) {
+            const Entry *e = &es[at[j]], *prev = j > i ? &es[at[j - 1]] : NULL;
+            const int64_t *r = e->row;
+            int ok = (prev == NULL || writer_put(w, 1, 1) == 0) &&
+                     writer_eg(w, (uint64_t)(prev ? e->stream - prev->stream - 1 : e->stream), 0) == 0 &&
+                     writer_eg(w, zz(prev ? e->off - prev->off : e->off), prev ? 0 : kt) == 0 &&
+                     writer_put(w, (uint64_t)r[0], 2) == 0;
+            for (int c = 1; ok && c < 4; c++) ok = writer_put(w, (uint64_t)(r[c] + M), ROTATION_BITS) == 0;
+            for (int c = 4; ok && c < 7; c++) ok = writer_put(w, (uint64_t)r[c], bits[c - 4]) == 0;
+            for (int c = 7; ok && velocity && c < 13; c++)
+                ok = writer_eg(w, zz(r[c]), kv[c < 10 ? 0 : 1]) == 0;
+            if (!ok) return -1;
+        }
+        b->n = j - i;
+        packer_end(p, b);
+        i = j;
+    }
+    if (append_int(nib, kt) < 0) return -1;
+    if (velocity)
+        for (int g = 0; g < 2; g++)
+            if (append_int(nib, kv[g]) < 0) return -1;
+    return 1;
+}
+
+/* The delta section (codec_relay._delta_blocks) of entries es[at[0..n)], sorted; 0: take
+ * the pure path, -1 on a Python error. */
+static int delta_section(Packer *p, const Entry *es, const int *at, int n, int width,
+                         PyObject *nib) {
+    int64_t hists[4][2][HIST], first[HIST] = {0};
+    int ks[4][2], groups = (width - 1) / 3;
+    memset(hists, 0, sizeof(hists));
+    Coded *cs = PyMem_Calloc(n, sizeof(Coded));
+    if (cs == NULL) {
+        PyErr_NoMemory();
+        return -1;
+    }
+    int got = 1;
+    for (int i = 0; i < n && got == 1; i++) {
+        const Entry *e = &es[at[i]];
+        const Entry *prev = i && es[at[i - 1]].user == e->user ? &es[at[i - 1]] : NULL;
+        if (code_entry(e, prev, width, &cs[i], hists) < 0) got = 0;
+        else if (!prev) first[bit_length(cs[i].v[1])]++;
+    }
+    int kt = k_of_histogram(first);
+    for (int g = 0; g < groups; g++)
+        for (int cls = 0; cls < 2; cls++) ks[g][cls] = k_of_histogram(hists[g][cls]);
+    for (int i = 0; i < n && got == 1;) {
+        const Entry *head = &es[at[i]];
+        PackedBlock *b = packer_begin(p, head->user, 1);
+        if (b == NULL) {
+            got = -1;
+            break;
+        }
+        int j = i;
+        for (; j < n && es[at[j]].user == head->user && got == 1; j++) {
+            const Coded *c = &cs[j];
+            int lead = c->cls ? 4 : 3; /* values before the differences */
+            for (int f = 0; f < c->n; f++) {
+                int k = f < lead ? (!c->cls && f == 1 ? kt : 0) : ks[(f - lead) / 3][c->cls];
+                if (writer_eg(&p->data, c->v[f], k) < 0) got = -1;
+            }
+            b->check ^= entry_check(&es[at[j]], width);
+        }
+        b->n = j - i;
+        packer_end(p, b);
+        i = j;
+    }
+    PyMem_Free(cs);
+    if (got != 1) return got;
+    if (append_int(nib, kt) < 0) return -1;
+    for (int g = 0; g < groups; g++)
+        for (int cls = 0; cls < 2; cls++)
+            if (append_int(nib, ks[g][cls]) < 0) return -1;
+    return 1;
+}
+
+/* The packed blob of a packer: int64 count, the records, the data. */
+static PyObject *packer_bytes(const Packer *p) {
+    Py_ssize_t head = 8 + p->count * (Py_ssize_t)sizeof(PackedBlock), data = (p->data.pos + 7) / 8;
+    PyObject *out = PyBytes_FromStringAndSize(NULL, head + data);
+    if (out == NULL) return NULL;
+    char *o = PyBytes_AS_STRING(out);
+    int64_t count = p->count;
+    memcpy(o, &count, 8);
+    if (p->count) memcpy(o + 8, p->blocks, p->count * sizeof(PackedBlock));
+    if (data) memcpy(o + head, p->data.buf, data);
+    return out;
+}
+
+static PyObject *py_encode_group(PyObject *self, PyObject *args) {
+    PyObject *entries;
+    long long base_us;
+    int velocity, bits[3];
+    if (!PyArg_ParseTuple(args, "O!Lp(iii)", &PyList_Type, &entries, &base_us, &velocity, &bits[0],
+                          &bits[1], &bits[2]))
+        return NULL;
+    for (int j = 0; j < 3; j++)
+        if (bits[j] < 1 || bits[j] > 32) {
+            PyErr_SetString(PyExc_ValueError, "volume bits out of 1..32");
+            return NULL;
+        }
+    Py_ssize_t n = PyList_GET_SIZE(entries);
+    int width = velocity ? 13 : 7;
+    double base = (double)base_us / 1e6;
+    Entry *es = PyMem_Calloc(n ? n : 1, sizeof(Entry));
+    SortKey *keys = PyMem_Calloc(n ? n : 1, sizeof(SortKey));
+    int *at = PyMem_Calloc(n ? n : 1, sizeof(int));
+    Packer p = {NULL, 0, 0, {NULL, 0, 0}};
+    PyObject *knib = PyList_New(0), *dnib = PyList_New(0), *result = NULL;
+    if (es == NULL || keys == NULL || at == NULL || knib == NULL || dnib == NULL) {
+        if (!PyErr_Occurred()) PyErr_NoMemory();
+        goto done;
+    }
+    if (n > INT32_MAX / 2) goto none;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        if (entry_parse(PyList_GET_ITEM(entries, i), width, base, 1, &es[i]) < 0) goto none;
+        keys[i].user = es[i].user, keys[i].stream = es[i].stream, keys[i].at = (int)i;
+    }
+    qsort(keys, n, sizeof(SortKey), sort_key_cmp);
+    for (Py_ssize_t i = 1; i < n; i++)
+        if (keys[i].user == keys[i - 1].user && keys[i].stream == keys[i - 1].stream) goto none;
+    int nk = 0, nd = 0;
+    for (Py_ssize_t i = 0; i < n; i++)
+        if (es[keys[i].at].key) at[nk++] = keys[i].at;
+    for (Py_ssize_t i = 0; i < n; i++)
+        if (!es[keys[i].at].key) at[nk + nd++] = keys[i].at;
+    int got = nk ? key_section(&p, es, at, nk, velocity, bits, knib) : 1;
+    if (got == 1 && nd) got = delta_section(&p, es, at + nk, nd, width, dnib);
+    if (got == 0) goto none;
+    if (got < 0) goto done;
+    PyObject *packed = packer_bytes(&p);
+    if (packed == NULL) goto done;
+    result = Py_BuildValue("(NOO)", packed, knib, dnib);
+    goto done;
+none:
+    PyErr_Clear();
+    result = Py_NewRef(Py_None);
+done:
+    Py_XDECREF(knib);
+    Py_XDECREF(dnib);
+    PyMem_Free(p.blocks);
+    PyMem_Free(p.data.buf);
+    PyMem_Free(es);
+    PyMem_Free(keys);
+    PyMem_Free(at);
+    return result;
+}
+
+/* Append nbits bits from src (MSB first, from its first byte) to the writer. */
+static int writer_copy(Writer *w, const unsigned char *src, int64_t nbits) {
+    Py_ssize_t need = (w->pos + nbits + 7) / 8 + 1;
+    if (need > w->cap) {
+        Py_ssize_t cap = w->cap * 2 > need ? w->cap * 2 : need + 64;
+        unsigned char *buf = PyMem_Realloc(w->buf, cap);
+        if (buf == NULL) return -1;
+        memset(buf + w->cap, 0, cap - w->cap);
+        w->buf = buf, w->cap = cap;
+    }
+    int sh = (int)(w->pos & 7);
+    unsigned char *d = w->buf + (w->pos >> 3);
+    int64_t whole = nbits / 8;
+    int rest = (int)(nbits % 8);
+    if (sh == 0) {
+        memcpy(d, src, whole);
+    } else {
+        for (int64_t i = 0; i < whole; i++) {
+            d[i] |= (unsigned char)(src[i] >> sh);
+            d[i + 1] = (unsigned char)(src[i] << (8 - sh));
+        }
+    }
+    w->pos += 8 * whole;
+    if (rest) return writer_put(w, (uint64_t)(src[whole] >> (8 - rest)), rest);
+    return 0;
+}
+
+/* The records of a packed blob, checked against its size; -1 (ValueError) if it is not one. */
+static int packed_blocks(const char *blob, Py_ssize_t size, const PackedBlock **blocks,
+                         int64_t *count, const unsigned char **data, Py_ssize_t *data_size) {
+    if (size < 8) goto bad;
+    memcpy(count, blob, 8);
+    if (*count < 0 || *count > (size - 8) / (Py_ssize_t)sizeof(PackedBlock)) goto bad;
+    Py_ssize_t head = 8 + *count * (Py_ssize_t)sizeof(PackedBlock);
+    *data = (const unsigned char *)blob + head;
+    *data_size = size - head;
+    *blocks = (const PackedBlock *)(blob + 8);
+    for (int64_t i = 0; i < *count; i++) {
+        PackedBlock b;
+        memcpy(&b, blob + 8 + i * sizeof(PackedBlock), sizeof(b));
+        if (b.nbits < 0 || b.offset < 0 || b.offset > *data_size ||
+            b.nbits > 8 * (*data_size - b.offset) || b.user < 0 || b.user > ID_MAX || b.n < 0 ||
+            (b.section != 0 && b.section != 1))
+            goto bad;
+    }
+    return 0;
+bad:
+    PyErr_SetString(PyExc_ValueError, "not a packed group");
+    return -1;
+}
+
+static PyObject *py_splice_packed(PyObject *self, PyObject *args) {
+    Py_buffer head, blob;
+    PyObject *knib, *dnib, *result = NULL;
+    long long exclude;
+    if (!PyArg_ParseTuple(args, "y*y*O!O!L", &head, &blob, &PyList_Type, &knib, &PyList_Type,
+                          &dnib, &exclude))
+        return NULL;
+    Writer w = {NULL, 0, 0};
+    const PackedBlock *blocks;
+    const unsigned char *data;
+    Py_ssize_t data_size, n[2] = {0, 0};
+    int64_t count;
+    uint32_t check = 0;
+    if (packed_blocks(blob.buf, blob.len, &blocks, &count, &data, &data_size) < 0) goto done;
+    for (int section = 0; section < 2; section++) {
+        int64_t prev = 0;
+        for (int64_t i = 0; i < count; i++) {
+            PackedBlock b;
+            memcpy(&b, (const char *)blocks + i * sizeof(PackedBlock), sizeof(b));
+            if (b.section != section || b.user == exclude) continue;
+            if (b.user < prev) {
+                PyErr_SetString(PyExc_ValueError, "blocks out of user order");
+                goto done;
+            }
+            if (writer_eg(&w, (uint64_t)(b.user - prev), 0) < 0 ||
+                writer_copy(&w, data + b.offset, b.nbits) < 0)
+                goto done;
+            n[section] += b.n;
+            if (section) check ^= b.check;
+            prev = b.user;
+        }
+    }
+    if (n[0] + n[1] == 0) {
+        result = Py_BuildValue("(yi)", "", 0);
+        goto done;
+    }
+    int nib[16], got = 0;
+    if (n[0] && (got = nibbles_of(knib, nib, got)) < 0) goto done;
+    if (n[1] && (got = nibbles_of(dnib, nib, got)) < 0) goto done;
+    if (got % 2) nib[got++] = 0;
+    Py_ssize_t body = (w.pos + 7) / 8, size = head.len + 20 + 4 + got / 2 + body;
+    PyObject *out = PyBytes_FromStringAndSize(NULL, size);
+    if (out == NULL) goto done;
+    unsigned char *o = (unsigned char *)PyBytes_AS_STRING(out), *start = o;
+    memcpy(o, head.buf, head.len);
+    o += head.len;
+    o += put_uvarint(o, (uint64_t)n[0]);
+    o += put_uvarint(o, (uint64_t)n[1]);
+    if (n[1]) put_le32(o, (int64_t)check), o += 4;
+    for (int i = 0; i < got; i += 2) *o++ = (unsigned char)(nib[i] << 4 | nib[i + 1]);
+    if (body) memcpy(o, w.buf, body);
+    o += body;
+    if (_PyBytes_Resize(&out, o - start) < 0) goto done;
+    result = Py_BuildValue("(Nn)", out, n[0] + n[1]);
+done:
+    PyMem_Free(w.buf);
+    PyBuffer_Release(&head);
+    PyBuffer_Release(&blob);
     return result;
 }

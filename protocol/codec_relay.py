@@ -53,7 +53,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from itertools import pairwise
 from operator import itemgetter
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -191,6 +191,7 @@ class GroupSnapshot:
         "_key",
         "_nibbles",
         "_orders",
+        "_packed",
         "_spliced",
         "base_time",
         "tick",
@@ -217,15 +218,45 @@ class GroupSnapshot:
         self._spliced: tuple[_Spliced, _Spliced] | None = None
         #: The nibble bytes of the orders, by (any key entry, any delta entry).
         self._orders: dict[tuple[bool, bool], bytes] = {}
+        #: (compiled module, its packed blocks) of a group the accelerator encoded
+        #: (``key`` and ``delta`` are then empty): only that module splices them.
+        self._packed: tuple[Any, bytes] | None = None
+
+    @classmethod
+    def _compiled(
+        cls,
+        tick: int,
+        base_us: int,
+        velocity: bool,
+        fast: Any,
+        packed: bytes,
+        nibbles: tuple[list[int], list[int]],
+    ) -> GroupSnapshot:
+        """A group encoded by the accelerator (``_speedups.encode_group``)."""
+        group = cls(tick, base_us, velocity, [], [], nibbles)
+        group._packed = (fast, packed)
+        return group
 
     @property
     def users(self) -> list[int]:
         """Every user with an entry in this snapshot."""
+        if self._packed is not None:
+            packed = self._packed[1]
+            (count,) = struct.unpack_from("<q", packed)
+            return sorted(
+                {u for (u, *_) in struct.iter_unpack("<iiiIqq", packed[8 : 8 + 32 * count])}
+            )
         return sorted({b.user for b in self._key} | {b.user for b in self._delta})
 
     def frame(self, exclude: int | None = None) -> tuple[bytes, int]:
         """The bytes for a subscriber that does not receive ``exclude``'s streams,
         and how many entries they hold (0: nothing to send, and ``b""``)."""
+        if self._packed is not None:
+            module, packed = self._packed
+            out: tuple[bytes, int] = module.splice_packed(
+                self._head, packed, *self._nibbles, -1 if exclude is None else exclude
+            )
+            return out
         fast = _accel.speedups
         if fast is not None:
             got: tuple[bytes, int] = fast.splice(
@@ -246,6 +277,8 @@ class GroupSnapshot:
 
     def _frame_joined(self, exclude: int | None) -> tuple[bytes, int]:
         """:meth:`frame` by joining every block (the first frame of a group)."""
+        if self._packed is not None:
+            return self.frame(exclude)
         acc = nbits = check = 0
         counts = [0, 0]
         for section, blocks in enumerate((self._key, self._delta)):
@@ -481,6 +514,14 @@ def encode_group(
     if abs(base_us) >= _US_LIMIT:
         raise local_error(ErrorCode.BAD_MESSAGE, "base time out of range")
     base = base_us / 1e6
+    fast = _accel.speedups
+    if trusted and fast is not None and type(entries) is list:
+        # Sorting, the id checks and both sections in one call; None where the
+        # checks below would raise (they do) or the pure path decide otherwise.
+        got = fast.encode_group(entries, base_us, velocity, volume.bits)
+        if got is not None:
+            return GroupSnapshot._compiled(tick, base_us, velocity, fast, got[0], (got[1], got[2]))
+        fast = None
     width = 13 if velocity else 7
     ordered = sorted(entries, key=itemgetter(0, 1))
     previous = None
@@ -497,6 +538,10 @@ def encode_group(
             problem = codes_problem_rows([e[3]] if e[4] is None else [e[3], e[4]], volume)
             if problem:
                 raise local_error(ErrorCode.BAD_POSE, problem)
+    if fast is not None:
+        got = fast.encode_group(ordered, base_us, velocity, volume.bits)
+        if got is not None:
+            return GroupSnapshot._compiled(tick, base_us, velocity, fast, got[0], (got[1], got[2]))
     key, knib = _key_blocks([e for e in ordered if e[4] is None], base, volume, velocity)
     delta, dnib = _delta_blocks([e for e in ordered if e[4] is not None], base, velocity)
     return GroupSnapshot(tick, base_us, velocity, key, delta, (knib, dnib))

@@ -125,6 +125,71 @@ def test_group_encode_refuses_alike() -> None:
         assert isinstance(compiled, str) and compiled == pure
 
 
+@needs_compiled
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    users=st.integers(1, 12),
+    velocity=st.booleans(),
+    trusted=st.booleans(),
+    damage=st.sampled_from(["none", "twin", "user", "stream", "width", "code", "idx", "position"]),
+)
+def test_group_encode_refuses_what_the_pure_path_refuses(
+    seed: int, users: int, velocity: bool, trusted: bool, damage: str
+) -> None:
+    """Entries with a stream twice, ids or codes out of range, rows of another width:
+    the same error on both paths (trusted or not), or the same bytes where the pure
+    path takes them; the group's users are the same."""
+    entries = _entries(seed, users, velocity, 0.5)
+    u, s, t, row, base = entries[0]
+    row = list(row)
+    if damage == "twin":
+        entries.append((u, s, t - 0.001, row, None))
+    elif damage == "user":
+        entries[0] = (0x10000, s, t, row, base)
+    elif damage == "stream":
+        entries[0] = (u, -1, t, row, base)
+    elif damage == "width":
+        entries[0] = (u, s, t, row[:6], base)
+    elif damage == "code":
+        row[1] = M + 1
+        entries[0] = (u, s, t, row, base)
+    elif damage == "idx":
+        row[0] = 4
+        entries[0] = (u, s, t, row, base)
+    elif damage == "position":
+        row[4] = 1 << DEFAULT_VOLUME.bits[0]
+        entries[0] = (u, s, t, row, None)
+
+    def run() -> Any:
+        try:
+            group = encode_group(7, 100.0, entries, DEFAULT_VOLUME, velocity, trusted=trusted)
+        except ProtocolViolation:
+            raise
+        except Exception as exc:  # trusted codes out of range: whatever the pure path does
+            return type(exc).__name__
+        users = sorted({e[0] for e in entries})
+        return group.users, [group.frame(None), *(group.frame(x) for x in users)]
+
+    compiled, pure = both(run)
+    assert compiled == pure
+
+
+@needs_compiled
+@settings(max_examples=200, deadline=None)
+@given(blob=st.binary(max_size=300), exclude=st.integers(-1, 5))
+def test_splice_of_a_garbage_group_is_refused(blob: bytes, exclude: int) -> None:
+    """A packed group is only ever the accelerator's own, but anything else given to its
+    splice is refused with ValueError (or spliced within its bounds), never read past."""
+    compiled = _accel.compiled()
+    assert compiled is not None
+    try:
+        data, n = compiled.splice_packed(b"\xc1\x24\x01\x00", blob, [1, 2], [3, 4, 5], exclude)
+    except ValueError:
+        return
+    assert isinstance(data, bytes) and n >= 0
+
+
 def _updates(seed: int, frames: int, velocity: bool) -> list[bytes]:
     """A client's compact update frames: 1-3 streams a frame, some jumps, some new streams."""
     rng = np.random.default_rng(seed)
