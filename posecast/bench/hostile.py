@@ -9,7 +9,10 @@ server's RSS (``/proc/PID/status``) and its ``/metrics``
 (``posecast_tick_overdue_seconds``, ``posecast_room_tick_lag_max_ms``, rooms,
 connections). The first run is clean (no attacker); each attack's figures are
 shown beside it, with the ratio, and the issue's targets are checked and a
-missed one is said plainly. Figures are measured, never asserted.
+missed one is said plainly. Figures are measured, never asserted. The attacks of
+issue 29 and what the controller adds for them (a secret for the resume-hijack,
+a blackholed bot, ``/healthz`` polls, tracebacks in the relay's log) are in
+:mod:`posecast.bench.hostile_runs`.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ import math
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,8 +30,10 @@ from typing import Any
 import numpy as np
 from rich.console import Console
 
+from posecast.bench import hostile_runs as runs29
 from posecast.bench.common import _LISTENING, _SERVER_BOOT
-from posecast.bench.hostile_attacks import _ATTACK_BOOT, ATTACKS, AttackConfig
+from posecast.bench.hostile_attacks import _ATTACK_BOOT, ATTACKS, ATTACKS_29, AttackConfig
+from posecast.bench.hostile_runs import RunSpec
 from posecast.bench.procs import _Child, _histogram_quantile, _scrape
 
 __all__ = ["HostileConfig", "run_hostile_bench"]
@@ -66,6 +72,16 @@ class HostileConfig:
     rooms_rate: float = 100.0
     sample_interval: float = 0.25
     server_args: tuple[str, ...] = field(default_factory=tuple)
+    # -- issue 29 -------------------------------------------------------------------
+    room_fuzzers: int = 10
+    event_rate: float = 10_000.0
+    churn_rates: tuple[float, ...] = (57.0, 30.0)
+    liar_lags: tuple[float, ...] = (0.03, 0.09, 0.3)
+    slowloris_connections: int = 3000
+    slowloris_rate: float = 1000.0
+    slowloris_addresses: int = 64
+    hijack_attempts: int = 20
+    blackhole_after: float = 3.0
 
     def check(self) -> None:
         """ValueError (one line) for a bad setting."""
@@ -79,24 +95,45 @@ class HostileConfig:
         counts = (self.fuzz_frames, self.fuzz_connections, self.flood_connections, self.rooms)
         if min(*counts, self.addresses) < 1 or min(self.flood_rate, self.rooms_rate) <= 0:
             raise ValueError("attack counts and rates must be positive")
+        more = (self.room_fuzzers, self.slowloris_connections, self.slowloris_addresses)
+        rates = (self.event_rate, self.slowloris_rate, *self.churn_rates, *self.liar_lags)
+        if min(*more, self.hijack_attempts) < 1 or min(rates, default=0) <= 0:
+            raise ValueError("attack counts, rates and lags must be positive")
+        if not self.churn_rates or not self.liar_lags or self.blackhole_after < 0:
+            raise ValueError("give a churn rate and a liar lag; blackhole-after must be >= 0")
 
-    def attack(self, kind: str, url: str) -> AttackConfig:
+    def attack(self, run: RunSpec, url: str, secret_file: Path | None = None) -> AttackConfig:
+        kind = run.kind
+        assert kind is not None
+        lag = run.variant if kind == "lag-liar" else None
+        seconds = self.duration + 15.0
+        if kind == "blackhole":  # it cuts the path on the controller's word (runs29.Cut)
+            seconds = runs29.victim_seconds(self) + 15.0
         return AttackConfig(
             kind=kind,
             url=url,
             room=self.room,
-            seconds=self.duration + 15.0,
+            seconds=seconds,
             address=self.address,
-            addresses=self.addresses,
+            addresses=self.slowloris_addresses if kind == "slowloris" else self.addresses,
             # Spread over the bots' run (plus their start), not all in its first seconds.
             fuzz_rate=self.fuzz_frames / (self.duration + 1.0),
-            stamp_age=self.stamp_age,
+            stamp_age=self.stamp_age if lag is None else lag,
             fuzz_frames=self.fuzz_frames,
             fuzz_connections=self.fuzz_connections,
             flood_connections=self.flood_connections,
             flood_rate=self.flood_rate,
             rooms=self.rooms,
             rooms_rate=self.rooms_rate,
+            room_fuzzers=self.room_fuzzers,
+            event_rate=self.event_rate,
+            churn_rate=run.variant if kind == "churn" and run.variant else 57.0,
+            slowloris_connections=self.slowloris_connections,
+            slowloris_rate=self.slowloris_rate,
+            secret_file=None if secret_file is None else str(secret_file),
+            hijack_attempts=self.hijack_attempts,
+            blackhole_after=-1.0,
+            wait_for="go" if kind in runs29.WAIT_FOR_BOTS else None,
         )
 
 
@@ -128,9 +165,17 @@ class _Samples:
     unanswered: int = 0
     first: dict[str, float] | None = None
     last: dict[str, float] | None = None
+    #: ``GET /healthz`` polls: their answer times (s), and those not answered in time.
+    healthz_s: list[float] = field(default_factory=list)
+    healthz_unanswered: int = 0
 
     def take(self, pid: int, port: int, timeout: float) -> None:
         self.rss_mb.append(_rss_mb(pid)[0])
+        took = runs29.healthz(port, max(2.0, timeout))
+        if took is None:
+            self.healthz_unanswered += 1
+        else:
+            self.healthz_s.append(took)
         m = _scrape(port, timeout=timeout)
         if m is None:
             self.unanswered += 1
@@ -149,45 +194,75 @@ def _server_argv(extra: tuple[str, ...]) -> list[str]:
     return [*argv, "--log-level", "warning", *extra]
 
 
-def _bots_argv(cfg: HostileConfig, url: str, json_path: Path) -> list[str]:
+def _bots_argv(
+    cfg: HostileConfig, url: str, json_path: Path, secret_file: Path | None = None
+) -> list[str]:
+    secret = () if secret_file is None else ("--secret-file", str(secret_file))
     return [
         *(sys.executable, "-c", _SERVER_BOOT, "bots", "--url", url, "--n", str(cfg.bots)),
         *("--room", cfg.room, "--rate", f"{cfg.rate:g}", "--send-rate", f"{cfg.send_rate:g}"),
         *("--duration", f"{cfg.duration:g}", "--motion", cfg.motion, "--interp", cfg.method),
-        *("--codec", "compact", "--json", str(json_path)),
+        *("--codec", "compact", "--json", str(json_path), *secret),
     ]
 
 
-def _start_server(cfg: HostileConfig) -> tuple[_Child, int]:
-    server = _Child("server", _server_argv(cfg.server_args))
+def _start_server(cfg: HostileConfig, extra: tuple[str, ...] = ()) -> tuple[_Child, int]:
+    server = _Child("server", _server_argv((*cfg.server_args, *extra)))
     line = server.wait_line(lambda s: _LISTENING.search(s) is not None, timeout=30.0)
     found = _LISTENING.search(line)
     assert found is not None
     return server, int(found.group(2))
 
 
-def _run_bots(cfg: HostileConfig, server: _Child, port: int, tmp: Path) -> tuple[Any, _Samples]:
-    """Run the honest bots to their end, sampling the server; (their report, samples)."""
+def _run_bots(
+    cfg: HostileConfig,
+    server: _Child,
+    port: int,
+    tmp: Path,
+    run: RunSpec,
+    extra: tuple[Path | None, Callable[[_Samples], None] | None] = (None, None),
+) -> tuple[Any, _Samples]:
+    """Run the honest bots to their end, sampling the server; (their report, samples).
+
+    ``extra``: the relay's secret file, if it has one; a hook called after each sample.
+    """
+    secret_file, hook = extra
     json_path = tmp / "bots.json"
-    bots = _Child("bots", _bots_argv(cfg, f"ws://127.0.0.1:{port}", json_path))
+    argv = _bots_argv(cfg, f"ws://127.0.0.1:{port}", json_path, secret_file)
+    if run.kind == "blackhole":  # as long as the blackholed bot, to see it come back
+        argv[argv.index("--duration") + 1] = f"{runs29.victim_seconds(cfg):g}"
+    bots = _Child("bots", argv)
     samples = _Samples()
-    deadline = time.monotonic() + cfg.duration + 90.0
+    deadline = time.monotonic() + runs29.victim_seconds(cfg) + 90.0
     try:
         while bots.proc.poll() is None:
             if time.monotonic() > deadline:
                 raise bots.fail("did not finish")
             t = time.monotonic()
             samples.take(server.pid, port, timeout=max(1.0, 4 * cfg.sample_interval))
+            if hook is not None:
+                hook(samples)
             time.sleep(max(0.0, t + cfg.sample_interval - time.monotonic()))
     finally:
         code = bots.stop(grace=10.0)
     if not json_path.exists():
-        raise RuntimeError(
-            f"the honest bots wrote no report (exit code {code})\n{bots.stderr_tail()}"
-        )
+        said = "".join(line for line in _drain(bots) if line)[-2000:]
+        why = f"the honest bots wrote no report (exit code {code})\n{said}{bots.stderr_tail()}"
+        if run.kind is None:  # nothing to compare the attacks with
+            raise RuntimeError(why)
+        # Under an attack that is a finding (e.g. their join refused): said, not fatal.
+        return {"failed": why.strip(), "n": cfg.bots, "bots": [], "exit_code": code}, samples
     report = json.loads(json_path.read_text())
     report["exit_code"] = code
     return report, samples
+
+
+def _drain(child: _Child) -> list[str | None]:
+    """What ``child`` printed that nobody read yet."""
+    out: list[str | None] = []
+    while not child.lines.empty():
+        out.append(child.lines.get_nowait())
+    return out
 
 
 def _honest(report: dict[str, Any], method: str) -> dict[str, Any]:
@@ -204,6 +279,8 @@ def _honest(report: dict[str, Any], method: str) -> dict[str, Any]:
         "rate_hz_min": min(rates, default=math.nan),
         "complete": bool(report.get("ending", {}).get("complete", False)),
         "endings": [b.get("ended") for b in bots],
+        "closed": runs29.closed_bots(report),
+        **({"failed": report["failed"]} if "failed" in report else {}),
     }
 
 
@@ -234,37 +311,67 @@ def _server_figures(samples: _Samples, final: dict[str, float] | None, pid: int)
         * _histogram_quantile(samples.first, last or None, "posecast_tick_lag_seconds", 0.99),
         "scrapes": len(samples.rss_mb),
         "scrapes_unanswered": samples.unanswered,
+        "healthz_polls": len(samples.healthz_s) + samples.healthz_unanswered,
+        "healthz_unanswered": samples.healthz_unanswered,
+        "healthz_max_ms": 1e3 * max(samples.healthz_s, default=math.nan),
         "rooms_peak": samples.rooms_peak,
         "connections_peak": samples.connections_peak,
         **{key: last.get(name, math.nan) for key, name in _COUNTERS.items()},
     }
 
 
-def _run_one(cfg: HostileConfig, kind: str | None, console: Console) -> dict[str, Any]:
-    """One run: the server, the attacker ``kind`` (None: clean) and the honest bots."""
-    result: dict[str, Any] = {"attack": kind or "clean", "load_1m": _load_average()[:1]}
-    server, port = _start_server(cfg)
+def _start_attacker(
+    cfg: HostileConfig, run: RunSpec, port: int, tmp: Path, secret_file: Path | None
+) -> tuple[_Child, _Child | None]:
+    """The attacker of ``run``, in place; and the blackholed bot behind its proxy, if any."""
+    attack = cfg.attack(run, f"ws://127.0.0.1:{port}", secret_file)
+    boot = [sys.executable, "-c", _ATTACK_BOOT, json.dumps(asdict(attack))]
+    attacker = _Child("attacker", [*boot, str(cfg.attacker_nice)], stdin=True)
+    started = attacker.wait_json("attacking", timeout=30.0)
+    victim = None
+    if run.kind == "blackhole":
+        argv = runs29.victim_argv(cfg, int(started["port"]), tmp / "victim.json")
+        victim = _Child("victim", argv)
+    return attacker, victim
+
+
+def _run_one(cfg: HostileConfig, run: RunSpec, console: Console) -> dict[str, Any]:
+    """One run: the server, the attacker of ``run`` (none: clean) and the honest bots."""
+    result: dict[str, Any] = {"attack": run.kind or "clean", "label": run.label}
+    result["load_1m"] = _load_average()[:1]
+    if run.variant is not None:
+        result["variant"] = run.variant
     attacker: _Child | None = None
-    try:
-        with tempfile.TemporaryDirectory(prefix="posecast-hostile-") as tmp:
-            if kind is not None:
-                attack = cfg.attack(kind, f"ws://127.0.0.1:{port}")
-                boot = [sys.executable, "-c", _ATTACK_BOOT, json.dumps(asdict(attack))]
-                attacker = _Child("attacker", [*boot, str(cfg.attacker_nice)], stdin=True)
-                attacker.wait_json("attacking", timeout=30.0)
-            report, samples = _run_bots(cfg, server, port, Path(tmp))
-        if attacker is not None:
-            attacker.close_stdin()
-            got = attacker.wait_json("attack-result", timeout=60.0)
-            got.pop("event", None)
-            result["attacker"] = got
-        final = _scrape(port, timeout=10.0)
-        result["honest"] = _honest(report, cfg.method)
-        result["server"] = _server_figures(samples, final, server.pid)
-    finally:
-        if attacker is not None:
-            attacker.stop(grace=5.0)
-        result.setdefault("server", {})["exit_code"] = server.stop(grace=10.0)
+    victim: _Child | None = None
+    with tempfile.TemporaryDirectory(prefix="posecast-hostile-") as folder:
+        tmp = Path(folder)
+        secret = runs29.secret_file(tmp) if run.kind == "resume-hijack" else None
+        server, port = _start_server(cfg, () if secret is None else ("--secret-file", str(secret)))
+        try:
+            if run.kind is not None:
+                attacker, victim = _start_attacker(cfg, run, port, tmp, secret)
+            hook = None
+            if attacker is not None and run.kind is not None:
+                hook = runs29.hook(attacker, run.kind, cfg)
+            report, samples = _run_bots(cfg, server, port, tmp, run, (secret, hook))
+            if victim is not None:
+                seconds = runs29.victim_seconds(cfg)
+                result["victim"] = runs29.victim_figures(victim, tmp / "victim.json", seconds)
+            if attacker is not None:
+                attacker.close_stdin()
+                got = attacker.wait_json("attack-result", timeout=60.0)
+                got.pop("event", None)
+                result["attacker"] = got
+            final = _scrape(port, timeout=10.0)
+            result["honest"] = _honest(report, cfg.method)
+            result["server"] = _server_figures(samples, final, server.pid)
+        finally:
+            for child in (victim, attacker):
+                if child is not None:
+                    child.stop(grace=5.0)
+            figures = result.setdefault("server", {})
+            figures["tracebacks"] = runs29.tracebacks(server)
+            figures["exit_code"] = server.stop(grace=10.0)
     return result
 
 
@@ -308,7 +415,9 @@ def _targets(run: dict[str, Any], cfg: HostileConfig) -> list[dict[str, Any]]:
     if kind == "fuzz":
         sent = float(sum(run.get("attacker", {}).get("sent", {}).values()))
         check(f"{cfg.fuzz_frames} fuzzed frames sent", sent, sent >= cfg.fuzz_frames)
-    if kind is not None and kind != "clean":
+    if kind in ATTACKS_29:
+        runs29.targets_29(run, check)
+    elif kind is not None and kind != "clean":
         done = 1.0 if run["honest"]["complete"] else 0.0
         check("no honest bot closed", done, done == 1.0)
     return out
@@ -321,14 +430,17 @@ def run_hostile_bench(cfg: HostileConfig, console: Console | None = None) -> dic
     cfg.check()
     console = console or Console()
     runs: list[dict[str, Any]] = []
-    for kind in (None, *cfg.attacks):
-        with console.status(f"bench hostile: {kind or 'clean'} run ({cfg.duration:g} s) ..."):
-            runs.append(_run_one(cfg, kind, console))
+    for spec in runs29.plan(cfg):
+        with console.status(f"bench hostile: {spec.label} run ({cfg.duration:g} s) ..."):
+            try:
+                runs.append(_run_one(cfg, spec, console))
+            except RuntimeError as exc:
+                raise RuntimeError(f"{spec.label} run: {exc}") from None
     clean = runs[0]
     for run in runs:
         run["vs_clean"] = _compare(run, clean)
         run["targets"] = _targets(run, cfg)
-    missed = [f"{r['attack']}: {t['target']}" for r in runs for t in r["targets"] if not t["met"]]
+    missed = [f"{r['label']}: {t['target']}" for r in runs for t in r["targets"] if not t["met"]]
     report = {
         "config": {k: v for k, v in asdict(cfg).items() if k != "server_args"},
         "runs": runs,

@@ -9,7 +9,8 @@ its time bound passes or its count bound is reached, and prints
 ``{"event": "attack-result", ...}``: what it sent and what the server answered
 (close codes and error codes, counted).
 
-Attacks (the ones the relay was probed with in issue 14):
+Attacks (the ones the relay was probed with in issue 14; those of issue 29 are in
+:mod:`posecast.bench.hostile_room` and :mod:`posecast.bench.hostile_path`):
 
 - ``timestamp``: a member publishing valid poses at 30 Hz stamped "now - 2 s";
 - ``fuzz``: several joined connections sending a mix of invalid frames (NaN
@@ -44,10 +45,20 @@ from websockets.exceptions import ConnectionClosed, WebSocketException
 from posecast.bench.common import _raise_nofile, _run_loop
 from posecast.protocol import encode_update
 
-__all__ = ["ATTACKS", "AttackConfig", "run_attack"]
+__all__ = ["ATTACKS", "ATTACKS_14", "ATTACKS_29", "AttackConfig", "Tally", "run_attack"]
 
-#: The attacks, in the order the bench runs them.
-ATTACKS = ("timestamp", "fuzz", "flood", "never-reader", "rooms")
+#: The attacks of issue 14, then those of issue 29, in the order the bench runs them.
+ATTACKS_14 = ("timestamp", "fuzz", "flood", "never-reader", "rooms")
+ATTACKS_29 = (
+    "fuzz-in-room",
+    "events-reconnect",
+    "churn",
+    "lag-liar",
+    "slowloris",
+    "resume-hijack",
+    "blackhole",
+)
+ATTACKS = ATTACKS_14 + ATTACKS_29
 
 _ATTACK_BOOT = "from posecast.bench.hostile_attacks import _attack_entry; _attack_entry()"
 #: A pose inside the default room volume (x, z in [-8, 8] m, y in [-2, 4] m).
@@ -74,6 +85,23 @@ class AttackConfig:
     rooms: int = 300
     rooms_rate: float = 100.0
     seed: int = 0
+    #: fuzz-in-room: members fuzzing in the honest room at once (each reconnects).
+    room_fuzzers: int = 10
+    #: events-reconnect: events a second, in all.
+    event_rate: float = 10_000.0
+    #: churn: joins (each then leaves) a second.
+    churn_rate: float = 57.0
+    #: slowloris: connections held at once, and opened (or reopened) a second at most.
+    slowloris_connections: int = 3000
+    slowloris_rate: float = 200.0
+    #: resume-hijack: the relay's secret (a file: kept out of ``ps``), and attempts.
+    secret_file: str | None = None
+    hijack_attempts: int = 20
+    #: blackhole: seconds after the first connection through the proxy opens that its
+    #: path goes dead; < 0: when the controller signals ``cut``.
+    blackhole_after: float = 3.0
+    #: Wait for this signal from the controller before attacking (None: attack at once).
+    wait_for: str | None = None
 
 
 @dataclass
@@ -124,13 +152,14 @@ async def _connect(
 
 
 async def _join(
-    ws: WsConnection, room: str, streams: tuple[str, ...], rate: float
+    ws: WsConnection, room: str, streams: tuple[str, ...], rate: float, **join: object
 ) -> tuple[float, list[int]]:
-    """hello + join: (server clock minus ours, own stream ids); RuntimeError if refused."""
+    """hello + join (with the fields ``join``): (server clock minus ours, own stream ids);
+    RuntimeError if refused."""
     await ws.send(_HELLO)
     welcome = msgpack.unpackb(await ws.recv())
     offset = float(welcome.get("server_time", time.monotonic())) - time.monotonic()
-    await ws.send(_frame("join", room=room, streams=list(streams), rate=rate))
+    await ws.send(_frame("join", room=room, streams=list(streams), rate=rate, **join))
     while True:
         msg = msgpack.unpackb(await ws.recv())
         if msg["type"] == "joined":
@@ -154,7 +183,9 @@ async def _count_replies(ws: WsConnection, tally: Tally) -> None:
 
 
 async def _timestamp(cfg: AttackConfig, stop: asyncio.Event, tally: Tally) -> None:
-    """A member publishing valid poses at 30 Hz, each stamped ``stamp_age`` s in the past."""
+    """A member publishing valid poses at 30 Hz, each stamped ``stamp_age`` s in the past
+    (``timestamp``: refused as stale; ``lag-liar``: 30-300 ms, accepted but late)."""
+    what = "stale-update" if cfg.kind == "timestamp" else "lagged-update"
     ws = await _connect(cfg)
     offset, ids = await _join(ws, cfg.room, ("head", "left", "right"), 30.0)
     ready()
@@ -166,7 +197,7 @@ async def _timestamp(cfg: AttackConfig, stop: asyncio.Event, tally: Tally) -> No
             stamp = time.monotonic() + offset - cfg.stamp_age
             poses[:, 0] = 0.5 + 0.2 * np.sin(stamp)
             await ws.send(encode_update(seq, ids, np.full(len(ids), stamp), poses))
-            tally.sent["stale-update"] += 1
+            tally.sent[what] += 1
             seq += 1
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), max(0.0, start + seq / 30.0 - time.monotonic()))
@@ -364,8 +395,9 @@ async def _never_reader(cfg: AttackConfig, stop: asyncio.Event, tally: Tally) ->
     ws.transport.abort()
 
 
-_RUNNERS = {
+_RUNNERS: dict[str, Any] = {
     "timestamp": _timestamp,
+    "lag-liar": _timestamp,
     "fuzz": _fuzz,
     "flood": _flood,
     "never-reader": _never_reader,
@@ -373,21 +405,40 @@ _RUNNERS = {
 }
 
 
-def ready() -> None:
-    """Tell the controller the attack is in place."""
-    print(json.dumps({"event": "attacking"}), flush=True)
+def ready(**extra: object) -> None:
+    """Tell the controller the attack is in place (and ``extra``, e.g. a proxy's port)."""
+    print(json.dumps({"event": "attacking", **extra}), flush=True)
+
+
+async def go(cfg: AttackConfig, stop: asyncio.Event) -> None:
+    """Wait for the controller's ``cfg.wait_for`` signal (or the end), if any."""
+    if cfg.wait_for is not None:
+        began = asyncio.create_task(signal(cfg.wait_for).wait())
+        ended = asyncio.create_task(stop.wait())
+        await asyncio.wait([began, ended], return_when=asyncio.FIRST_COMPLETED)
+        began.cancel()
+        ended.cancel()
+
+
+def _runners() -> dict[str, Any]:
+    """Every attack's coroutine (those of issue 29 import this module's helpers)."""
+    from posecast.bench.hostile_path import RUNNERS as path
+    from posecast.bench.hostile_room import RUNNERS as room
+
+    return {**_RUNNERS, **room, **path}
 
 
 async def run_attack(cfg: AttackConfig, stop: asyncio.Event | None = None) -> dict[str, Any]:
     """Run attack ``cfg.kind`` until ``stop`` is set or ``cfg.seconds`` pass; its tally."""
-    if cfg.kind not in _RUNNERS:
+    runners = _runners()
+    if cfg.kind not in runners:
         raise ValueError(f"unknown attack {cfg.kind!r}: one of {', '.join(ATTACKS)}")
     stop = stop or asyncio.Event()
     tally = Tally()
     timer = asyncio.get_running_loop().call_later(cfg.seconds, stop.set)
     start = time.monotonic()
     try:
-        await _RUNNERS[cfg.kind](cfg, stop, tally)
+        await runners[cfg.kind](cfg, stop, tally)
     finally:
         timer.cancel()
     result = tally.as_dict()
@@ -395,9 +446,26 @@ async def run_attack(cfg: AttackConfig, stop: asyncio.Event | None = None) -> di
     return result
 
 
+#: Signals from the controller (``{"signal": NAME}`` lines on stdin), by name.
+_SIGNALS: dict[str, asyncio.Event] = {}
+
+
+def signal(name: str) -> asyncio.Event:
+    """The event the controller's signal ``name`` sets (e.g. ``cut``: the blackhole)."""
+    return _SIGNALS.setdefault(name, asyncio.Event())
+
+
+def _set_signal(name: str) -> None:
+    signal(name).set()
+
+
 def _watch_stdin(loop: asyncio.AbstractEventLoop, stop: asyncio.Event) -> None:
-    """Set ``stop`` when the controller closes our stdin (a thread: stdin blocks)."""
-    sys.stdin.read()
+    """Pass on the controller's signals; set ``stop`` when it closes our stdin (a
+    thread: stdin blocks)."""
+    for line in sys.stdin:
+        with contextlib.suppress(ValueError, AttributeError):
+            name = str(json.loads(line).get("signal"))
+            loop.call_soon_threadsafe(_set_signal, name)
     loop.call_soon_threadsafe(stop.set)
 
 
@@ -416,6 +484,6 @@ def _attack_entry() -> None:
         # Real attackers run on other machines: on a shared 2-core box an attacker
         # at equal priority would measure the OS scheduler, not the relay.
         os.nice(int(sys.argv[2]))
-    _raise_nofile(cfg.flood_connections + cfg.rooms + 256)
+    _raise_nofile(cfg.flood_connections + cfg.rooms + cfg.slowloris_connections + 256)
     result = _run_loop(_main(cfg))
     print(json.dumps({"event": "attack-result", **result}, default=dict), flush=True)

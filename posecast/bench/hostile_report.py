@@ -45,7 +45,7 @@ def _honest_table(runs: list[dict[str, Any]], method: str) -> Table:
         h, s, vs = run["honest"], run["server"], run["vs_clean"]
         clean = run["attack"] == "clean"
         table.add_row(
-            run["attack"],
+            run.get("label", run["attack"]),
             _num(h["hands_tip_p95_mm"])
             if clean
             else _with_ratio(h["hands_tip_p95_mm"], vs["hands_tip_p95"], ".0f"),
@@ -80,7 +80,7 @@ def _attacker_table(runs: list[dict[str, Any]]) -> Table:
             "rooms peak": s.get("rooms_peak"),
         }
         table.add_row(
-            run["attack"],
+            run.get("label", run["attack"]),
             f"{sum(got.get('sent', {}).values())} in {got.get('seconds', 0):.1f} s\n"
             + _counts(got.get("sent", {})),
             _counts(got.get("closes", {})),
@@ -90,15 +90,57 @@ def _attacker_table(runs: list[dict[str, Any]]) -> Table:
     return table
 
 
+def _what_held(run: dict[str, Any]) -> str:
+    """Issue 29's yes/no figures of a run: the hijack, the victim, the blackholed bot."""
+    got, parts = run.get("attacker", {}), []
+    hijack = got.get("hijack")
+    if hijack is not None:
+        tries, accepted = sum(hijack["tries"].values()), sum(hijack["accepted"].values())
+        codes = _counts(got.get("errors", {}))
+        parts.append(f"hijack refused {tries - accepted}/{tries} ({codes})")
+        v = got.get("victim", {})
+        parts.append(f"victim resumed {v.get('resumed', 0)}/{got.get('rounds', 0)}")
+    v = run.get("victim")
+    if v is not None and v.get("report"):
+        back = got.get("bot_back_after_s")
+        parts.append(
+            f"bot back {_num(back, '.1f')} s after the path died, resumed {v['resumed']}, "
+            f"rejoined {v['rejoined']}, stalled {100 * v['stall_share']:.0f} %, '{v['ended']}'"
+        )
+    return "; ".join(parts) or "-"
+
+
+def _checks_table(runs: list[dict[str, Any]]) -> Table:
+    table = Table(title="relay log, honest bots closed, /healthz, and what held")
+    for col in ("run", "tracebacks", "bots closed", "/healthz missed", "/healthz max ms", "held"):
+        table.add_column(col, justify="left" if col in ("run", "held") else "right")
+    for run in runs:
+        s = run["server"]
+        table.add_row(
+            run.get("label", run["attack"]),
+            str(s.get("tracebacks", "-")),
+            str(run["honest"].get("closed", "-")),
+            f"{s.get('healthz_unanswered', '-')}/{s.get('healthz_polls', '-')}",
+            _num(s.get("healthz_max_ms"), ".0f"),
+            _what_held(run),
+        )
+    return table
+
+
 def print_hostile_report(report: dict[str, Any], console: Console) -> None:
-    """Both tables, every target met or missed (plainly), and the machine's load."""
+    """The tables, every target met or missed (plainly), and the machine's load."""
     runs = report["runs"]
     console.print(_honest_table(runs, report["config"]["method"]))
     console.print(_attacker_table(runs))
+    console.print(_checks_table(runs))
     for run in runs:
+        name = run.get("label", run["attack"])
+        if "failed" in run["honest"]:
+            failed = run["honest"]["failed"]
+            console.print(f"{name}: {failed}", markup=False, style="bold red")
         for t in run["targets"]:
             mark = "met" if t["met"] else "[bold red]MISSED[/bold red]"
-            console.print(f"{run['attack']}: {t['target']}: {_num(t['value'], '.2f')} -> {mark}")
+            console.print(f"{name}: {t['target']}: {_num(t['value'], '.2f')} -> {mark}")
     if report["missed"]:
         console.print(f"[bold red]{len(report['missed'])} target(s) missed[/bold red]")
     load = report.get("load") or []

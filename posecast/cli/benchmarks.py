@@ -286,31 +286,86 @@ def _bench_relay_run(
         json_out.write_text(json.dumps(report, indent=2, default=float) + "\n")
 
 
+def _floats(text: str, flag: str) -> tuple[float, ...]:
+    """A comma-separated list of numbers (a one-line error names ``flag``)."""
+    try:
+        return tuple(float(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise _fail(f"{flag}: give numbers separated by commas, e.g. 57,30") from None
+
+
+#: The attacks of ``bench hostile`` (posecast.bench.hostile_attacks.ATTACKS; not imported
+#: here, so that ``posecast --help`` stays light).
+ALL_ATTACKS = (
+    "timestamp,fuzz,flood,never-reader,rooms,"
+    "fuzz-in-room,events-reconnect,churn,lag-liar,slowloris,resume-hijack,blackhole"
+)
+HostileAttacks = Annotated[
+    str, typer.Option(help=f"Comma-separated attacks to run: {ALL_ATTACKS.replace(',', ', ')}.")
+]
+HostileDuration = Annotated[
+    float,
+    typer.Option(help="Seconds each run's honest bots play (one clean run + one per attack)."),
+]
+StampAge = Annotated[
+    float, typer.Option(help="Timestamp attack: how far in the past its poses are stamped (s).")
+]
+FuzzFrames = Annotated[
+    int,
+    typer.Option(
+        help="Fuzz and fuzz-in-room attacks: invalid frames to send in all (bounded by the time)."
+    ),
+]
+AttackerAddresses = Annotated[
+    int,
+    typer.Option(
+        help="Loopback source addresses the flood and room spam use in turn "
+        "(127.0.0.2 and up; the honest bots use 127.0.0.1)."
+    ),
+]
+# Settings of the attacks of issue 29 (docs/guides/security.md).
+RoomFuzzers = Annotated[
+    int, typer.Option(help="fuzz-in-room: members of the honest room fuzzing at once.")
+]
+EventRate = Annotated[
+    float, typer.Option(help="events-reconnect: events a second (it reconnects when closed).")
+]
+ChurnRates = Annotated[
+    str, typer.Option(help="churn: joins (each then leaves) a second; one run per rate.")
+]
+LiarLags = Annotated[
+    str, typer.Option(help="lag-liar: how late its poses are stamped (s); one run per lag.")
+]
+SlowConns = Annotated[
+    int, typer.Option(help="slowloris: slow upgrade requests held at once (1 byte/s).")
+]
+SlowRate = Annotated[
+    float, typer.Option(help="slowloris: connections (re)opened a second at most.")
+]
+SlowAddresses = Annotated[
+    int, typer.Option(help="slowloris: loopback source addresses it uses in turn.")
+]
+HijackAttempts = Annotated[
+    int, typer.Option(help="resume-hijack: rounds of victim drop, thief tries, victim resume.")
+]
+BlackholeAfter = Annotated[
+    float, typer.Option(help="blackhole: seconds after the bot connects that its path dies.")
+]
+
+
 def bench_hostile(
     bots: Annotated[int, typer.Option(help="Honest bots in the room (at least 2).")] = 4,
     rate: Annotated[float, typer.Option(help="Snapshot rate the honest bots ask (Hz).")] = 20.0,
-    duration: Annotated[
-        float,
-        typer.Option(help="Seconds each run's honest bots play (one clean run + one per attack)."),
-    ] = 10.0,
-    attacks: Annotated[
-        str,
-        typer.Option(
-            help="Comma-separated attacks to run: timestamp, fuzz, flood, never-reader, rooms."
-        ),
-    ] = "timestamp,fuzz,flood,never-reader,rooms",
+    duration: HostileDuration = 10.0,
+    attacks: HostileAttacks = ALL_ATTACKS,
     motion: Annotated[
         str, typer.Option(help="What the honest bots publish (a trace set, as for `bots`).")
     ] = "traces:sample",
     interp_: Annotated[
         str, typer.Option("--interp", help="The interpolator the honest bots are scored with.")
     ] = "soa",
-    stamp_age: Annotated[
-        float, typer.Option(help="Timestamp attack: how far in the past its poses are stamped (s).")
-    ] = 2.0,
-    fuzz_frames: Annotated[
-        int, typer.Option(help="Fuzz attack: invalid frames to send in all (bounded by the time).")
-    ] = 200_000,
+    stamp_age: StampAge = 2.0,
+    fuzz_frames: FuzzFrames = 200_000,
     fuzz_connections: Annotated[
         int, typer.Option(help="Fuzz attack: connections fuzzing at once (each reconnects).")
     ] = 8,
@@ -321,19 +376,22 @@ def bench_hostile(
         float, typer.Option(help="Flood attack: connections opened per second.")
     ] = 250.0,
     rooms: Annotated[int, typer.Option(help="Room spam: distinct rooms to try to open.")] = 300,
-    attacker_addresses: Annotated[
-        int,
-        typer.Option(
-            help="Loopback source addresses the flood and room spam use in turn "
-            "(127.0.0.2 and up; the honest bots use 127.0.0.1)."
-        ),
-    ] = 1,
+    attacker_addresses: AttackerAddresses = 1,
     attacker_nice: Annotated[
         int, typer.Option(help="Niceness of the attacker process (0: same priority as the relay).")
     ] = 10,
     json_out: Annotated[
         Path | None, typer.Option("--json", help="Also write the report as JSON here.")
     ] = None,
+    room_fuzzers: RoomFuzzers = 10,
+    event_rate: EventRate = 10_000.0,
+    churn_rates: ChurnRates = "57,30",
+    liar_lags: LiarLags = "0.03,0.09,0.3",
+    slowloris_connections: SlowConns = 3000,
+    slowloris_rate: SlowRate = 1000.0,
+    slowloris_addresses: SlowAddresses = 64,
+    hijack_attempts: HijackAttempts = 20,
+    blackhole_after: BlackholeAfter = 3.0,
 ) -> None:
     """Honest bots' QoE, server RSS and tick lag under each attack, beside a clean run."""
     from posecast.bench.hostile import HostileConfig, run_hostile_bench
@@ -353,6 +411,15 @@ def bench_hostile(
         rooms=rooms,
         addresses=attacker_addresses,
         attacker_nice=attacker_nice,
+        room_fuzzers=room_fuzzers,
+        event_rate=event_rate,
+        churn_rates=_floats(churn_rates, "--churn-rates"),
+        liar_lags=_floats(liar_lags, "--liar-lags"),
+        slowloris_connections=slowloris_connections,
+        slowloris_rate=slowloris_rate,
+        slowloris_addresses=slowloris_addresses,
+        hijack_attempts=hijack_attempts,
+        blackhole_after=blackhole_after,
     )
     try:
         cfg.check()
