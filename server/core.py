@@ -72,7 +72,6 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from typing import Protocol
 
 from posecast.protocol import (
     ROOM_USER,
@@ -122,6 +121,7 @@ from posecast.server.limits import (
 from posecast.server.link import Downlink
 from posecast.server.parking import Parking
 from posecast.server.peer import COUNTERS, ConnectionStatistics, Peer
+from posecast.server.ports import ClusterView
 from posecast.server.room import (
     TICK_LAG_BUCKETS,
     IdAllocator,
@@ -149,14 +149,6 @@ __all__ = [
 ]
 
 log = logging.getLogger("posecast.server")
-
-
-class ClusterView(Protocol):
-    """What the core asks of the cluster it is a node of (``server.node.ClusterNode``)."""
-
-    def must_claim(self, room: str) -> bool:
-        """Whether a join of ``room`` waits for a claim in the cluster first."""
-        ...
 
 
 class RelayCore:

@@ -1,4 +1,4 @@
-"""What the relay core's parts may ask of the core: its surface, as a Protocol.
+"""The relay core's ports: what its parts may ask of it, and what it asks of its cluster.
 
 The core (``server.core.RelayCore``) keeps the connections, users and rooms; its
 parts hold one rule set each and act on the core only through :class:`Relay`:
@@ -19,6 +19,9 @@ core -> parts -> ports, and a part can be read (and tested) without the core.
 The surface is what the parts use and no more: sending and refusing, who is
 connected, the room table and the user ids, the parking and silence tables, the
 settings, and the few hooks that move a deadline or a tick.
+
+The other way, :class:`ClusterView` is what the core asks of the cluster it is a
+node of (``server.node.ClusterNode`` implements it; the core never imports it).
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ if TYPE_CHECKING:
     from posecast.server.room import IdAllocator, Member, Room
     from posecast.server.silence import Silence
 
-__all__ = ["Relay"]
+__all__ = ["ClusterView", "Relay"]
 
 
 class Relay(Protocol):
@@ -142,4 +145,12 @@ class Relay(Protocol):
 
     def forget_room_if_empty(self, room: Room, now: float) -> None:
         """Remove ``room`` once its last member is gone (its recording is finished)."""
+        ...
+
+
+class ClusterView(Protocol):
+    """What the core asks of the cluster it is a node of (``server.node.ClusterNode``)."""
+
+    def must_claim(self, room: str) -> bool:
+        """Whether a join of ``room`` waits for a claim in the cluster first."""
         ...
