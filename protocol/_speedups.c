@@ -14,6 +14,8 @@
  *   splice             protocol.codec_relay.GroupSnapshot.frame
  *   encode_group       protocol.codec_relay.encode_group (trusted; packed for splice_packed)
  *   splice_packed      protocol.codec_relay.GroupSnapshot.frame of a packed group
+ *   encode_stored      protocol.codec_relay.encode_stored (gathers a room's store, then as
+ *                      encode_group)
  *
  * Floating-point results must equal CPython's: build without FMA contraction
  * (setup.py passes -ffp-contract=off) and round as Python does (nearbyint in the
@@ -304,6 +306,9 @@ static PyMethodDef methods[] = {
     {"encode_group", py_encode_group, METH_VARARGS,
      "encode_group(entries, base_us, velocity, bits) -> (packed, key_nibbles, delta_nibbles) "
      "or None: codec_relay.encode_group's sections, packed for splice_packed."},
+    {"encode_stored", py_encode_stored, METH_VARARGS,
+     "encode_stored(streams, since, volume, base_us, velocity, bits) -> (packed, key_nibbles, "
+     "delta_nibbles), False (no stream newer than since) or None: codec_relay.encode_stored."},
     {"splice_packed", py_splice_packed, METH_VARARGS,
      "splice_packed(head, packed, key_nibbles, delta_nibbles, exclude) -> (bytes, entries): "
      "GroupSnapshot.frame of a packed group (exclude -1: nobody)."},
@@ -319,12 +324,14 @@ PyMODINIT_FUNC PyInit__speedups(void) {
     crc_init();
     sources_init();
     ROT_SCALE = sqrt(2.0) * M;
+    if (stored_init() < 0) return NULL;
     PyObject *m = PyModule_Create(&module);
     if (m == NULL) return NULL;
     /* The constants compiled in; protocol/_accel.py refuses the module if they differ. */
     if (PyModule_AddObject(m, "__all__",
-                           Py_BuildValue("[ssssssss]", "decode_update", "decode_update_rows",
-                                         "delta_blocks", "eg_pack", "encode_group", "splice",
+                           Py_BuildValue("[sssssssss]", "decode_update", "decode_update_rows",
+                                         "delta_blocks", "eg_pack", "encode_group",
+                                         "encode_stored", "splice",
                                          "splice_packed", "update_records")) < 0 ||
         PyModule_AddStringConstant(m, "SOURCE_HASH", SOURCE_HASH) < 0) {
         Py_DECREF(m);

@@ -20,14 +20,16 @@ typedef struct {
 } Entry;
 
 /* One entry (user, stream, capture, codes, baseline) as C values; -1: take the pure path.
- * A baseline of None makes a key entry where ``keys`` allows it. */
-static int entry_parse(PyObject *e, int width, double base_time, int keys, Entry *out) {
-    if (!PyTuple_Check(e) || PyTuple_GET_SIZE(e) != 5) return -1;
-    out->key = PyTuple_GET_ITEM(e, 4) == Py_None;
+ * A baseline of None makes a key entry where ``keys`` allows it. Rows are lists of
+ * exactly ``width`` codes, or (``longer``) of at least that many, the first ones read. */
+static int entry_fill(PyObject *user, PyObject *stream, PyObject *capture, PyObject *row_obj,
+                      PyObject *base_obj, int width, double base_time, int keys, int longer,
+                      Entry *out) {
+    out->key = base_obj == Py_None;
     if (out->key && !keys) return -1;
-    out->user = PyLong_AsLongLong(PyTuple_GET_ITEM(e, 0));
-    out->stream = PyLong_AsLongLong(PyTuple_GET_ITEM(e, 1));
-    double t = PyFloat_AsDouble(PyTuple_GET_ITEM(e, 2));
+    out->user = PyLong_AsLongLong(user);
+    out->stream = PyLong_AsLongLong(stream);
+    double t = PyFloat_AsDouble(capture);
     if (PyErr_Occurred()) return -1;
     if (out->user < 0 || out->user > ID_MAX || out->stream < 0 || out->stream > ID_MAX) return -1;
     /* codec_relay._offsets */
@@ -36,9 +38,11 @@ static int entry_parse(PyObject *e, int width, double base_time, int keys, Entry
     if (!(fabs(o) < (double)TIME_MS_LIMIT)) return -1;
     out->off = (int64_t)o;
     for (int which = 0; which < 2 - out->key; which++) {
-        PyObject *row = PyTuple_GET_ITEM(e, 3 + which);
+        PyObject *row = which ? base_obj : row_obj;
         int64_t *dst = which ? out->base : out->row;
-        if (!PyList_Check(row) || PyList_GET_SIZE(row) != width) return -1;
+        if (!PyList_Check(row)) return -1;
+        Py_ssize_t size = PyList_GET_SIZE(row);
+        if (longer ? size < width : size != width) return -1;
         for (int j = 0; j < width; j++) {
             int overflow;
             long long v = PyLong_AsLongLongAndOverflow(PyList_GET_ITEM(row, j), &overflow);
@@ -50,6 +54,13 @@ static int entry_parse(PyObject *e, int width, double base_time, int keys, Entry
         if (dst[0] < 0 || dst[0] > 3) return -1;
     }
     return 0;
+}
+
+static int entry_parse(PyObject *e, int width, double base_time, int keys, Entry *out) {
+    if (!PyTuple_Check(e) || PyTuple_GET_SIZE(e) != 5) return -1;
+    return entry_fill(PyTuple_GET_ITEM(e, 0), PyTuple_GET_ITEM(e, 1), PyTuple_GET_ITEM(e, 2),
+                      PyTuple_GET_ITEM(e, 3), PyTuple_GET_ITEM(e, 4), width, base_time, keys, 0,
+                      out);
 }
 
 static int entry_of(PyObject *e, int width, double base_time, Entry *out) {
@@ -449,35 +460,30 @@ static PyObject *packer_bytes(const Packer *p) {
     return out;
 }
 
-static PyObject *py_encode_group(PyObject *self, PyObject *args) {
-    PyObject *entries;
-    long long base_us;
-    int velocity, bits[3];
-    if (!PyArg_ParseTuple(args, "O!Lp(iii)", &PyList_Type, &entries, &base_us, &velocity, &bits[0],
-                          &bits[1], &bits[2]))
-        return NULL;
+static int bits_of(const int *bits) {
     for (int j = 0; j < 3; j++)
         if (bits[j] < 1 || bits[j] > 32) {
             PyErr_SetString(PyExc_ValueError, "volume bits out of 1..32");
-            return NULL;
+            return -1;
         }
-    Py_ssize_t n = PyList_GET_SIZE(entries);
+    return 0;
+}
+
+/* The packed group of es[0..n) (any order): (packed, key nibbles, delta nibbles), None
+ * where the pure path decides (a stream twice, a key code out of range), NULL on error. */
+static PyObject *encode_entries(Entry *es, Py_ssize_t n, int velocity, const int *bits) {
     int width = velocity ? 13 : 7;
-    double base = (double)base_us / 1e6;
-    Entry *es = PyMem_Calloc(n ? n : 1, sizeof(Entry));
     SortKey *keys = PyMem_Calloc(n ? n : 1, sizeof(SortKey));
     int *at = PyMem_Calloc(n ? n : 1, sizeof(int));
     Packer p = {NULL, 0, 0, {NULL, 0, 0}};
     PyObject *knib = PyList_New(0), *dnib = PyList_New(0), *result = NULL;
-    if (es == NULL || keys == NULL || at == NULL || knib == NULL || dnib == NULL) {
+    if (keys == NULL || at == NULL || knib == NULL || dnib == NULL) {
         if (!PyErr_Occurred()) PyErr_NoMemory();
         goto done;
     }
     if (n > INT32_MAX / 2) goto none;
-    for (Py_ssize_t i = 0; i < n; i++) {
-        if (entry_parse(PyList_GET_ITEM(entries, i), width, base, 1, &es[i]) < 0) goto none;
+    for (Py_ssize_t i = 0; i < n; i++)
         keys[i].user = es[i].user, keys[i].stream = es[i].stream, keys[i].at = (int)i;
-    }
     qsort(keys, n, sizeof(SortKey), sort_key_cmp);
     for (Py_ssize_t i = 1; i < n; i++)
         if (keys[i].user == keys[i - 1].user && keys[i].stream == keys[i - 1].stream) goto none;
@@ -502,9 +508,176 @@ done:
     Py_XDECREF(dnib);
     PyMem_Free(p.blocks);
     PyMem_Free(p.data.buf);
-    PyMem_Free(es);
     PyMem_Free(keys);
     PyMem_Free(at);
+    return result;
+}
+
+static PyObject *py_encode_group(PyObject *self, PyObject *args) {
+    PyObject *entries, *result = NULL;
+    long long base_us;
+    int velocity, bits[3];
+    if (!PyArg_ParseTuple(args, "O!Lp(iii)", &PyList_Type, &entries, &base_us, &velocity, &bits[0],
+                          &bits[1], &bits[2]) ||
+        bits_of(bits) < 0)
+        return NULL;
+    Py_ssize_t n = PyList_GET_SIZE(entries);
+    double base = (double)base_us / 1e6;
+    Entry *es = PyMem_Calloc(n ? n : 1, sizeof(Entry));
+    if (es == NULL) return PyErr_NoMemory();
+    for (Py_ssize_t i = 0; i < n; i++)
+        if (entry_parse(PyList_GET_ITEM(entries, i), velocity ? 13 : 7, base, 1, &es[i]) < 0) {
+            PyErr_Clear();
+            result = Py_NewRef(Py_None);
+            goto done;
+        }
+    result = encode_entries(es, n, velocity, bits);
+done:
+    PyMem_Free(es);
+    return result;
+}
+
+/* ------------------------------------------------------------------ a room's store, gathered */
+
+static PyObject *S_VERSION, *S_CODES, *S_HISTORY, *S_USER, *S_CAPTURE, *S_CODED, *S_APPEND;
+
+static int stored_init(void) {
+    S_VERSION = PyUnicode_InternFromString("version");
+    S_CODES = PyUnicode_InternFromString("codes");
+    S_HISTORY = PyUnicode_InternFromString("history");
+    S_USER = PyUnicode_InternFromString("user");
+    S_CAPTURE = PyUnicode_InternFromString("capture");
+    S_CODED = PyUnicode_InternFromString("coded");
+    S_APPEND = PyUnicode_InternFromString("append");
+    return S_VERSION && S_CODES && S_HISTORY && S_USER && S_CAPTURE && S_CODED && S_APPEND ? 0
+                                                                                         : -1;
+}
+
+/* (version, codes) item i of a history; borrowed codes, or NULL (an error set) */
+static PyObject *history_item(PyObject *history, Py_ssize_t i, long long *version) {
+    PyObject *item = PySequence_GetItem(history, i);
+    if (item == NULL) return NULL;
+    PyObject *codes = NULL;
+    if (PyTuple_Check(item) && PyTuple_GET_SIZE(item) == 2) {
+        *version = PyLong_AsLongLong(PyTuple_GET_ITEM(item, 0));
+        if (!(*version == -1 && PyErr_Occurred())) codes = PyTuple_GET_ITEM(item, 1);
+    } else {
+        PyErr_SetString(PyExc_TypeError, "history: (version, codes) pairs");
+    }
+    Py_DECREF(item); /* the history still holds it, and so its codes */
+    return codes;
+}
+
+/* One stored stream's codes (codec_relay._stored_entry): 1 an entry, 0 not newer than
+ * since, -1 an error. *row and *base are new references (base may be None). */
+static int stored_codes(PyObject *s, long long since, PyObject *volume, PyObject **row,
+                        PyObject **base) {
+    *row = *base = NULL;
+    PyObject *v = PyObject_GetAttr(s, S_VERSION);
+    if (v == NULL) return -1;
+    long long version = PyLong_AsLongLong(v);
+    Py_DECREF(v);
+    if (version == -1 && PyErr_Occurred()) return -1;
+    if (version <= since) return 0;
+    PyObject *codes = PyObject_GetAttr(s, S_CODES);
+    PyObject *history = codes ? PyObject_GetAttr(s, S_HISTORY) : NULL;
+    Py_ssize_t size = history ? PySequence_Size(history) : -1;
+    long long newest = -1;
+    int fresh = 0;
+    if (size > 0) {
+        PyObject *last = history_item(history, size - 1, &newest);
+        fresh = last != NULL && codes != Py_None && newest == version;
+    }
+    if (PyErr_Occurred()) goto fail;
+    if (fresh) {
+        *row = codes;
+        codes = NULL;
+    } else if (codes != Py_None && PyList_Check(codes)) {
+        /* coded() of a stream whose codes came with its update: remember this version */
+        PyObject *pair = Py_BuildValue("(LO)", version, codes);
+        PyObject *done = pair ? PyObject_CallMethodOneArg(history, S_APPEND, pair) : NULL;
+        Py_XDECREF(pair);
+        if (done == NULL) goto fail;
+        Py_DECREF(done);
+        *row = codes;
+        codes = NULL;
+        size = PySequence_Size(history);
+        if (size < 0) goto fail;
+    } else {
+        /* codes to compute, or this version to remember: the stream's own method */
+        *row = PyObject_CallMethodOneArg(s, S_CODED, volume);
+        if (*row == NULL) goto fail;
+        Py_DECREF(history);
+        history = PyObject_GetAttr(s, S_HISTORY);
+        size = history ? PySequence_Size(history) : -1;
+        if (size < 0) goto fail;
+    }
+    Py_XDECREF(codes);
+    codes = NULL;
+    if (since >= 0)
+        for (Py_ssize_t i = size - 1; i >= 0 && *base == NULL; i--) {
+            long long at;
+            PyObject *c = history_item(history, i, &at);
+            if (c == NULL) goto fail;
+            if (at <= since) *base = Py_NewRef(c);
+        }
+    if (*base == NULL) *base = Py_NewRef(Py_None);
+    Py_DECREF(history);
+    return 1;
+fail:
+    Py_XDECREF(codes);
+    Py_XDECREF(history);
+    Py_CLEAR(*row);
+    return -1;
+}
+
+static PyObject *py_encode_stored(PyObject *self, PyObject *args) {
+    PyObject *streams, *volume, *result = NULL;
+    long long since, base_us;
+    int velocity, bits[3];
+    if (!PyArg_ParseTuple(args, "O!LOLp(iii)", &PyDict_Type, &streams, &since, &volume, &base_us,
+                          &velocity, &bits[0], &bits[1], &bits[2]) ||
+        bits_of(bits) < 0)
+        return NULL;
+    Py_ssize_t cap = PyDict_GET_SIZE(streams), n = 0;
+    double base = (double)base_us / 1e6;
+    Entry *es = PyMem_Calloc(cap ? cap : 1, sizeof(Entry));
+    if (es == NULL) return PyErr_NoMemory();
+    /* coded() is Python: were it to add or drop a stream, the dict would change under
+     * PyDict_Next. Walk a list of its items instead. */
+    PyObject *items = PyDict_Items(streams);
+    if (items == NULL) goto done;
+    int pure = 0;
+    for (Py_ssize_t i = 0; i < PyList_GET_SIZE(items) && n < cap; i++) {
+        PyObject *item = PyList_GET_ITEM(items, i), *row, *basecodes;
+        PyObject *sid = PyTuple_GET_ITEM(item, 0), *s = PyTuple_GET_ITEM(item, 1);
+        int got = stored_codes(s, since, volume, &row, &basecodes);
+        if (got < 0) goto done;
+        if (got == 0) continue;
+        PyObject *user = PyObject_GetAttr(s, S_USER);
+        PyObject *capture = user ? PyObject_GetAttr(s, S_CAPTURE) : NULL;
+        if (capture != NULL && !pure &&
+            entry_fill(user, sid, capture, row, basecodes, velocity ? 13 : 7, base, 1, 1,
+                       &es[n]) < 0) {
+            PyErr_Clear();
+            pure = 1; /* gather on, then let the pure path decide */
+        }
+        Py_XDECREF(user);
+        Py_XDECREF(capture);
+        Py_DECREF(row);
+        Py_DECREF(basecodes);
+        if (capture == NULL) goto done;
+        n++;
+    }
+    if (pure)
+        result = Py_NewRef(Py_None);
+    else if (n == 0)
+        result = Py_NewRef(Py_False);
+    else
+        result = encode_entries(es, n, velocity, bits);
+done:
+    Py_XDECREF(items);
+    PyMem_Free(es);
     return result;
 }
 

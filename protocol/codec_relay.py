@@ -49,11 +49,12 @@ from __future__ import annotations
 
 import struct
 import zlib
+from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from itertools import pairwise
 from operator import itemgetter
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -98,9 +99,11 @@ __all__ = [
     "GroupSnapshot",
     "RelayEntry",
     "RelaySnapshot",
+    "StoredStream",
     "baseline_check",
     "decode_relay_snapshot",
     "encode_group",
+    "encode_stored",
     "snapshot_counts",
 ]
 
@@ -492,6 +495,78 @@ def _delta_blocks(
     return blocks, nib
 
 
+class StoredStream(Protocol):
+    """A relay's stored stream as :func:`encode_stored` reads it."""
+
+    user: int
+    #: Capture time of its newest pose, and the store version it was stored at.
+    capture: float
+    version: int
+    #: Codes of that pose, or None until :meth:`coded` computes them.
+    codes: Row | None
+    #: (version, codes) of the versions coded so far, oldest first.
+    history: deque[tuple[int, Row]]
+
+    def coded(self, volume: Volume) -> Row:
+        """The newest version's codes (computed once), remembered in ``history``.
+
+        With ``codes`` set (a list) this must be ``history.append((version, codes))``
+        unless ``history[-1]`` is that version already, then ``codes``: the
+        accelerator does just that itself rather than call it."""
+        ...
+
+
+def encode_stored(
+    tick: int,
+    base_time: float,
+    streams: Mapping[int, StoredStream],
+    since: int,
+    volume: Volume,
+    velocity: bool = False,
+) -> GroupSnapshot | None:
+    """:func:`encode_group` (trusted) of the streams stored after version ``since``, each
+    coded against its codes as of ``since`` (the newest of its ``history`` at or before
+    it: what a subscriber whose last snapshot covered ``since`` holds) or absolute if it
+    has none then or ``since < 0``; None if no stream is newer than ``since``.
+
+    A relay's group snapshot in one call; the accelerator reads the store itself.
+    """
+    fast = _accel.speedups
+    if fast is not None and type(streams) is dict:
+        base_us = _base_us(tick, base_time)
+        got = fast.encode_stored(streams, since, volume, base_us, velocity, volume.bits)
+        if got is False:
+            return None
+        if got is not None:
+            return GroupSnapshot._compiled(tick, base_us, velocity, fast, got[0], (got[1], got[2]))
+    width = 13 if velocity else 7
+    entries: list[RelayEntry] = []
+    for sid, s in streams.items():
+        if s.version <= since:
+            continue
+        row = s.coded(volume)
+        base = None
+        if since >= 0:
+            for version, codes in reversed(s.history):
+                if version <= since:
+                    base = codes[:width]
+                    break
+        entries.append((s.user, sid, s.capture, row[:width], base))
+    if not entries:
+        return None
+    return encode_group(tick, base_time, entries, volume, velocity, trusted=True)
+
+
+def _base_us(tick: int, base_time: float) -> int:
+    """The base time in integer microseconds; raises for it or the tick out of range."""
+    if not 0 <= tick < 1 << 63:
+        raise local_error(ErrorCode.BAD_MESSAGE, "tick out of range")
+    base_us = round(base_time * 1e6) if base_time == base_time else _US_LIMIT
+    if abs(base_us) >= _US_LIMIT:
+        raise local_error(ErrorCode.BAD_MESSAGE, "base time out of range")
+    return base_us
+
+
 def encode_group(
     tick: int,
     base_time: float,
@@ -508,11 +583,7 @@ def encode_group(
     codes out of range; ``trusted`` skips the range checks of the codes (a relay's
     codes come from its own quantiser or decoder, which checked them).
     """
-    if not 0 <= tick < 1 << 63:
-        raise local_error(ErrorCode.BAD_MESSAGE, "tick out of range")
-    base_us = round(base_time * 1e6) if base_time == base_time else _US_LIMIT
-    if abs(base_us) >= _US_LIMIT:
-        raise local_error(ErrorCode.BAD_MESSAGE, "base time out of range")
+    base_us = _base_us(tick, base_time)
     base = base_us / 1e6
     fast = _accel.speedups
     if trusted and fast is not None and type(entries) is list:

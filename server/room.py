@@ -50,7 +50,7 @@ from posecast.protocol import (
     update_records,
 )
 from posecast.protocol.codec import DEFAULT_VOLUME, Volume, quantise
-from posecast.protocol.codec_relay import GroupSnapshot, RelayEntry, encode_group
+from posecast.protocol.codec_relay import GroupSnapshot, encode_stored
 from posecast.server.actions import Action, PollRecording, Record, RecordPose
 from posecast.server.config import DEFAULT_EVENT_QUEUE
 from posecast.server.presence import Presence
@@ -654,21 +654,11 @@ class Room:
     def _encode_group(self, now: float, since: int, velocities: bool) -> GroupSnapshot | None:
         """Entries newer than ``since`` against the baselines as of ``since``
         (``since < 0``: every stream, absolute)."""
-        width = 13 if velocities else 7
-        entries: list[RelayEntry] = []
-        for sid, s in self._streams.items():
-            if s.version <= since:
-                continue
-            row = s.coded(self.volume)
-            base = s.baseline(since) if since >= 0 else None
-            entries.append(
-                (s.user, sid, s.capture, row[:width], None if base is None else base[:width])
-            )
-        if not entries:
-            return None
-        self._tick += 1
-        self._snapshots += 1
-        return encode_group(self._tick, now, entries, self.volume, velocities, trusted=True)
+        group = encode_stored(self._tick + 1, now, self._streams, since, self.volume, velocities)
+        if group is not None:
+            self._tick += 1
+            self._snapshots += 1
+        return group
 
     def retire(self) -> None:
         """Mark the room as removed (its members are gone or the server stops)."""

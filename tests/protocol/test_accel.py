@@ -13,7 +13,9 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
 import numpy as np
@@ -31,7 +33,7 @@ from posecast.protocol.codec_quant import (
     M,
     quantise,
 )
-from posecast.protocol.codec_relay import RelayEntry, encode_group
+from posecast.protocol.codec_relay import RelayEntry, encode_group, encode_stored
 from posecast.protocol.codec_small import SMALL_FRAME
 from posecast.protocol.errors import ProtocolViolation
 from posecast.protocol.poses import PoseUpdate
@@ -188,6 +190,98 @@ def test_splice_of_a_garbage_group_is_refused(blob: bytes, exclude: int) -> None
     except ValueError:
         return
     assert isinstance(data, bytes) and n >= 0
+
+
+@dataclass
+class _Stored:
+    """A relay's stored stream (codec_relay.StoredStream), as server.room keeps it."""
+
+    user: int
+    capture: float
+    version: int
+    pose: list[float]
+    codes: list[int] | None
+    history: deque[tuple[int, list[int]]] = field(default_factory=lambda: deque(maxlen=4))
+    computed: int = 0
+
+    def coded(self, volume: codec.Volume) -> list[int]:
+        codes = self.codes
+        if codes is None:
+            self.computed += 1
+            codes = self.codes = quantise(np.array([self.pose]), volume)[0].tolist() + [0] * 6
+        if not self.history or self.history[-1][0] != self.version:
+            self.history.append((self.version, codes))
+        return codes
+
+
+def _store(seed: int, users: int) -> tuple[dict[int, _Stored], list[tuple[int, int, list[float]]]]:
+    """A store of 1-3 streams per user, then the updates that follow: (stream, version,
+    pose). Some streams come with codes (a compact publisher), some without (raw)."""
+    rng = np.random.default_rng(seed)
+    store: dict[int, _Stored] = {}
+    later = []
+    version = 0
+    for user in rng.choice(np.arange(1, 300), size=users, replace=False).tolist():
+        for _ in range(int(rng.integers(1, 4))):
+            sid = int(rng.integers(0, 2000))
+            if sid in store:
+                continue
+            version += 1
+            pose = _poses(rng, 1)[0].tolist()
+            compact = bool(rng.random() < 0.6)
+            codes = quantise(np.array([pose]), DEFAULT_VOLUME).tolist()[0] + [0] * 6
+            store[sid] = _Stored(user, 50.0 - float(rng.uniform(0, 0.3)), version, pose,
+                                 codes if compact else None)  # fmt: skip
+    for _ in range(3 * len(store)):
+        sid = int(rng.choice(list(store)))
+        version += 1
+        later.append((sid, version, _poses(rng, 1, 0.1)[0].tolist()))
+    return store, later
+
+
+def _stored_frames(seed: int, users: int, sinces: list[int], velocity: bool) -> Any:
+    """Frames of the store's group after each step of updates, from each ``since``,
+    and what the store holds after: the history of every stream, codes computed."""
+    store, later = _store(seed, users)
+    out: list[Any] = []
+    step = max(1, len(later) // 3)
+    for i in range(0, len(later) + 1, step):
+        for sid, version, pose in later[i : i + step]:
+            s = store[sid]
+            s.version, s.pose, s.capture = version, pose, s.capture + 0.05
+            s.codes = (
+                quantise(np.array([pose]), DEFAULT_VOLUME).tolist()[0] + [0] * 6
+                if version % 3
+                else None
+            )
+        top = max(s.version for s in store.values())
+        for since in sinces:
+            group = encode_stored(i + 1, 50.0 + i, store, min(since, top), DEFAULT_VOLUME, velocity)
+            if group is None:
+                out.append(None)
+                continue
+            users_in = group.users
+            out.append([users_in, group.frame(None), *(group.frame(u) for u in users_in)])
+    out.append({sid: (list(s.history), s.codes, s.computed) for sid, s in store.items()})
+    return out
+
+
+@needs_compiled
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    users=st.integers(1, 12),
+    sinces=st.lists(st.integers(-1, 60), min_size=1, max_size=4),
+    velocity=st.booleans(),
+)
+def test_stored_group_encode_gives_the_same_bytes_and_store(
+    seed: int, users: int, sinces: list[int], velocity: bool
+) -> None:
+    """A group gathered from a relay's store (codes from updates or computed, deltas
+    against the history as of ``since``, keys where there is none): the same frames
+    for every subscriber, and the same history and codes left in the store."""
+    compiled, pure = both(lambda: _stored_frames(seed, users, sinces, velocity))
+    assert compiled == pure
 
 
 def _updates(seed: int, frames: int, velocity: bool) -> list[bytes]:
