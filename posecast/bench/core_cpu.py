@@ -9,7 +9,8 @@ relay`` does. Only the relay's work is timed, with ``time.process_time``: its
 group encode and a splice per subscriber for compact) and ``take``. The clients'
 sessions (encoding updates, decoding snapshots) run outside the timed region.
 Figures are CPU per remote pose delivered (a subscriber's own streams left out),
-medians over interleaved rounds, so a busy machine slows all three alike. No
+medians over interleaved rounds, so a busy machine slows all three alike; each
+is split into its receive, tick and take phases (medians of each). No
 websocket framing or socket writes: for those, and the bare baseline, see
 ``posecast bench relay``.
 """
@@ -31,6 +32,7 @@ __all__ = ["main", "measure"]
 
 RATE = 20.0
 ROOM = 10
+PHASES = ("receive", "tick", "take")
 STREAMS = ("head", "left", "right")
 
 
@@ -81,6 +83,13 @@ def _remote_poses(m: _Member, frames: list[bytes]) -> int:
 
 def measure(codec: str, rooms: int, seconds: float, traces: list[Trace]) -> float:
     """Relay CPU (us) per remote pose delivered, for rooms of 10 on ``codec``."""
+    return sum(measure_phases(codec, rooms, seconds, traces).values())
+
+
+def measure_phases(codec: str, rooms: int, seconds: float, traces: list[Trace]) -> dict[str, float]:
+    """:func:`measure` by phase: relay CPU (us) per remote pose delivered in
+    ``receive`` (updates: decode, checks, ingest), ``tick`` (snapshots encoded and
+    offered) and ``take`` (frames taken for writing)."""
     core, t0 = RelayCore(), 1000.0
     members = []
     for i in range(rooms * ROOM):
@@ -88,7 +97,8 @@ def measure(codec: str, rooms: int, seconds: float, traces: list[Trace]) -> floa
         start = tr.times[0] + (i // 4) * 7.0 + 0.9 * (i % ROOM) - t0
         members.append(_join(core, f"r{i // ROOM}", codec, tr, start, (i * 0.37) % 1.0, t0))
     next_pub = [t0 + m.phase / RATE for m in members]
-    now, cpu, poses = t0, 0.0, 0
+    now, poses = t0, 0
+    cpu = dict.fromkeys(PHASES, 0.0)
     while now < t0 + seconds:
         now = min(min(next_pub), core.next_deadline() or now + 1)
         for k, m in enumerate(members):
@@ -96,18 +106,20 @@ def measure(codec: str, rooms: int, seconds: float, traces: list[Trace]) -> floa
                 data = _update(m, now)
                 c = time.process_time()
                 core.receive(m.conn, data, now)
-                cpu += time.process_time() - c
+                cpu["receive"] += time.process_time() - c
                 next_pub[k] += 1 / RATE
         due = core.next_deadline()
         if due is not None and due <= now + 1e-12:
             c = time.process_time()
             core.tick(now)
+            c2 = time.process_time()
             out = [core.take(m.conn, now)[0] for m in members]
-            cpu += time.process_time() - c
+            cpu["tick"] += c2 - c
+            cpu["take"] += time.process_time() - c2
             poses += sum(_remote_poses(m, frames) for m, frames in zip(members, out, strict=True))
     if not poses:
         raise RuntimeError("the relay delivered no pose")
-    return 1e6 * cpu / poses
+    return {phase: 1e6 * t / poses for phase, t in cpu.items()}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -124,19 +136,26 @@ def main(argv: list[str] | None = None) -> None:
     }
     if _accel.compiled() is None:
         del runs["compact compiled"]
-    got: dict[str, list[float]] = {name: [] for name in runs}
+    got: dict[str, list[dict[str, float]]] = {name: [] for name in runs}
     was_pure = _accel.speedups is None
     try:
         for _ in range(args.rounds):
             for name, (codec, pure) in runs.items():
                 _accel.use(pure)
-                got[name].append(measure(codec, args.rooms, args.seconds, traces))
+                got[name].append(measure_phases(codec, args.rooms, args.seconds, traces))
     finally:
         _accel.use(was_pure)
     print(f"relay core CPU per delivered remote pose, {args.rooms} rooms of {ROOM} at {RATE:g} Hz:")
-    for name, values in got.items():
+    medians = {}
+    for name, runs_ in got.items():
+        values = [sum(r.values()) for r in runs_]
+        medians[name] = statistics.median(values)
         rounds = ", ".join(f"{v:.2f}" for v in values)
-        print(f"  {name:17} {statistics.median(values):6.2f} us  (rounds: {rounds})")
+        phases = "  ".join(f"{p} {statistics.median(r[p] for r in runs_):.2f}" for p in PHASES)
+        print(f"  {name:17} {medians[name]:6.2f} us  ({phases}; rounds: {rounds})")
+    if "compact compiled" in medians:
+        ratio = medians["compact compiled"] / medians["raw"]
+        print(f"  compact compiled / raw: {ratio:.2f}x")
 
 
 if __name__ == "__main__":

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from posecast.bench.core_cpu import main, measure
+from posecast.bench.core_cpu import PHASES, main, measure, measure_phases
 from posecast.scenarios.traces import find_traces, load_trace
 
 
@@ -18,8 +18,17 @@ def test_measure_delivers_poses_and_gives_a_cost(codec: str) -> None:
     assert math.isfinite(got) and got > 0
 
 
+def test_phases_add_up_to_the_figure() -> None:
+    """The receive, tick and take phases are each finite and positive."""
+    traces = [load_trace(p) for p in find_traces("traces:sample")]
+    got = measure_phases("compact", rooms=1, seconds=1.0, traces=traces)
+    assert list(got) == list(PHASES)
+    assert all(math.isfinite(v) and v > 0 for v in got.values())
+
+
 def test_main_prints_every_path(capsys: pytest.CaptureFixture[str]) -> None:
     """The command prints a line per path (raw, compact compiled where built, compact pure)."""
     main(["--rooms", "1", "--seconds", "0.5", "--rounds", "1"])
     out = capsys.readouterr().out
     assert "raw" in out and "compact pure" in out
+    assert all(phase in out for phase in PHASES)
