@@ -65,7 +65,7 @@ import numpy as np
 from numpy.typing import NDArray
 from websockets.exceptions import ConnectionClosed
 
-from posecast.client.connection import ClientConnection
+from posecast.client.connection import ClientConnection, JoinRefused
 from posecast.client.core import ClientCore
 from posecast.client.playout import ClockEstimator
 from posecast.client.publish import send_update
@@ -157,8 +157,8 @@ class _ReplayBot:
         self.joined_at: float | None = None
         #: Velocities are multiplied by this (the replay speed: time runs faster).
         self.velocity_scale = 1.0
-        #: Set once every update has been sent.
-        self.done = asyncio.Event()
+        #: Set once every update has been sent, and once it has joined.
+        self.done, self.joined = asyncio.Event(), asyncio.Event()
         #: ``Join.codec``: compact (quantised in the server's volume) or raw records.
         self.codec = "compact"
         #: Recorded user id -> live user id of every bot of the replay (shared).
@@ -271,6 +271,7 @@ class _ReplayBot:
             codec=self.codec,
         )
         self.joined_at = to_server(clock())
+        self.joined.set()
         self.ids = {sid: joined.streams[plan.streams[sid]] for sid in plan.streams}
         async with asyncio.TaskGroup() as tg:
             drain = tg.create_task(self.receiver.receive(conn))
@@ -440,8 +441,10 @@ async def _run_bots(
     send_rate: float,
     linger: float,
     clock: Clock,
+    opener: ClientConnection | None = None,
 ) -> None:
-    """Run every bot to the end of the replay (``start`` on the server clock)."""
+    """Run every bot to the end of the replay (``start`` on the server clock); the
+    ``opener`` (:func:`_open_room`) leaves once the bots present at the start joined."""
 
     def to_server(local: float) -> float:
         return local + offset
@@ -474,10 +477,35 @@ async def _run_bots(
                     clock=clock,
                 )
             )
+        if opener is not None:
+            first = [b for b in bots if b.plan.joined is None or b.plan.joined <= plan.origin]
+            for b in first:
+                await b.joined.wait()
+            with contextlib.suppress(ConnectionClosed):
+                await opener.close("replay started")
         for b in bots:
             await b.done.wait()
         await asyncio.sleep(linger)
         finished.set()
+
+
+async def _open_room(
+    url: str, room: str, rate: float, agent: str, clock: Clock
+) -> ClientConnection | None:
+    """A spectator in ``room`` before the replay's clock starts: a relay that holds a
+    room's first join while it opens the room's recording (a process starting: seconds
+    on a loaded machine) does it now, not inside the bots' ``lead``, which would leave
+    them joining late and their object actions, overdue, racing each other.
+    Spectators are neither announced nor recorded. None if the relay refuses it (the
+    bots then meet the same refusal)."""
+    conn = await ClientConnection.connect(url, agent=f"{agent}:opener", clock=clock)
+    try:
+        await conn.join(room=room, streams=("head",), rate=rate, spectator=True)
+    except JoinRefused:
+        with contextlib.suppress(ConnectionClosed):
+            await conn.close("refused")
+        return None
+    return conn
 
 
 def _report(
@@ -614,12 +642,15 @@ async def replay_live(
     est = ClockEstimator()
     bots: list[_ReplayBot] = []
     start = math.nan
+    opener: ClientConnection | None = None
     try:
         await _connect_bots(plan, url, agent, (factor, codec, object_patience), bots, clock)
         est = bots[0].core.clock
         welcome = bots[0].conn.welcome
         assert welcome is not None
         offset = est.offset
+        if token is None:  # (a token's user would be taken by the opener)
+            opener = await _open_room(url, plan.room, welcome.min_rate, agent, clock)
         # The replay's server-clock start: ``lead`` leaves the bots present at the
         # start time to join (their labels, re-based to it, go with the join).
         start = clock() + offset + lead
@@ -634,9 +665,10 @@ async def replay_live(
             send_rate=max_send_rate,
             linger=linger,
             clock=clock,
+            opener=opener,
         )
     finally:
-        for b in bots:
+        for conn in [b.conn for b in bots] + ([] if opener is None else [opener]):
             with contextlib.suppress(Exception):
-                await b.conn.close("replay done")
+                await conn.close("replay done")
     return _report(path, url, plan, speed, factor, start, bots, est)
