@@ -9,6 +9,7 @@ bit for bit, and the second relay's own flights along the recorded ones.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import sys
 from pathlib import Path
 from typing import Any
@@ -18,6 +19,7 @@ import pytest
 from objkit import Session, record_handover_session
 from support import running_server
 from typer.testing import CliRunner
+from websockets.exceptions import ConnectionClosed
 
 from posecast.cli import app
 from posecast.client.connection import ClientConnection
@@ -213,15 +215,19 @@ async def test_cli_replays_the_handovers_twice_into_one_room(
     async with running_server(config) as server:
         url = f"ws://127.0.0.1:{server.port}"
         keep = await ClientConnection.open(url, room="objects", streams=("head",), rate=10)
-        try:  # a member that stays: the room and its drill outlive the first pass
-            for _ in range(2):
-                code, output = await _posecast(
-                    "replay", str(session.path), "--url", url, "--object-patience", "2",
-                )  # fmt: skip
-                assert code == 0, output
-                outputs.append(output)
-        finally:
-            await keep.close()
+        async with asyncio.TaskGroup() as tg:
+            # A member that stays, and reads: the room and its drill outlive the first
+            # pass (one that never read would stop taking its keepalive's pongs).
+            tg.create_task(_read_until_closed(keep))
+            try:
+                for _ in range(2):
+                    code, output = await _posecast(
+                        "replay", str(session.path), "--url", url, "--object-patience", "2",
+                    )  # fmt: skip
+                    assert code == 0, output
+                    outputs.append(output)
+            finally:
+                await keep.close()
     assert all("shared objects: 9 of 9 creates, requests and releases sent" in o for o in outputs)
     (path,) = server.recordings
     changes = [(_taken(c.reason), c.previous is None) for c in _track(path, "object:drill").changes]
@@ -230,6 +236,12 @@ async def test_cli_replays_the_handovers_twice_into_one_room(
     ]
     # The second pass: the drill is there, unowned (its last owner left): a request.
     assert changes == [*once, ("taken", True), *once[1:]]
+
+
+async def _read_until_closed(conn: ClientConnection) -> None:
+    with contextlib.suppress(ConnectionClosed):
+        while True:
+            await conn.recv()
 
 
 def test_cli_refuses_a_negative_object_patience(session: Session) -> None:
