@@ -611,8 +611,10 @@ async def replay_live(
 
     ``speed``: a positive factor (1 = as recorded, 10 = ten times faster) or
     ``"max"``. ``room`` overrides the recorded room; ``token`` is passed to every
-    join. The replay starts ``lead`` seconds after every bot present at the
-    start has joined; bots that never left in the recording close ``linger``
+    join. The replay starts ``lead`` seconds after a spectator joined its room (so a
+    relay that opens the room's recording at its first join has done so; not with a
+    ``token``): the bots present at the start join within that lead, the spectator
+    leaves once they have. Bots that never left in the recording close ``linger``
     seconds after the last update. The report::
 
         {"path", "url", "room", "speed", "origin", "server_start", "duration_s",
