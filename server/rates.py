@@ -39,17 +39,15 @@ as before. :class:`AutoRates` is the glue the relay runs after each room tick;
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Generic, Protocol, TypeVar
 
 from posecast.protocol import Join, RateNotice
 from posecast.server.link import Downlink
 
 if TYPE_CHECKING:
     from posecast.server.config import ServerConfig
-    from posecast.server.peer import Peer
-    from posecast.server.room import Member, Room
 
 __all__ = [
     "RATE_BUCKETS",
@@ -237,7 +235,56 @@ def granted(max_rate: float, join: Join) -> float:
     return join.max_rate if join.max_rate is not None else max_rate
 
 
-def attach(config: ServerConfig, peer: Peer, member: Member, join: Join) -> None:
+class RatedOutbox(Protocol):
+    """What the rate rules read of a connection's outbox (``server.room.Outbox``)."""
+
+    @property
+    def snapshots_offered(self) -> int: ...
+    @property
+    def skips(self) -> int: ...
+    def buffered(self) -> int: ...
+
+
+class RatedPeer(Protocol):
+    """What the rate rules use of a connection (``server.peer.Peer``): its counters,
+    and its emulated downlink, which :func:`attach` sets."""
+
+    downlink: Downlink | None
+
+    @property
+    def user(self) -> int | None: ...
+    @property
+    def outbox(self) -> RatedOutbox: ...
+    @property
+    def bytes_out(self) -> int: ...
+
+
+class RatedMember(Protocol):
+    """What the rate rules use of a room's member (``server.room.Member``)."""
+
+    rate: float
+    asked_rate: float
+    link_rate: LinkRate | None
+
+    @property
+    def user(self) -> int: ...
+    @property
+    def parked(self) -> bool: ...
+    @property
+    def compact(self) -> bool: ...
+    @property
+    def congestion_skips(self) -> int: ...
+
+
+class RatedRoom(Protocol):
+    """What :class:`AutoRates` uses of a room (``server.room.Room``)."""
+
+    @property
+    def members(self) -> Mapping[int, RatedMember]: ...
+    def set_rate(self, user: int, rate: float, now: float) -> None: ...
+
+
+def attach(config: ServerConfig, peer: RatedPeer, member: RatedMember, join: Join) -> None:
     """Give a joining member its rate controls: the emulated link (``serve --link``)
     and, for ``rate="auto"``, a :class:`LinkRate` from the server's min to its ceiling."""
     member.asked_rate = member.rate
@@ -251,7 +298,8 @@ def attach(config: ServerConfig, peer: Peer, member: Member, join: Join) -> None
     )
 
 
-def egress(peer: Peer, member: Member) -> Egress:
+
+def egress(peer: RatedPeer, member: RatedMember) -> Egress:
     """``member``'s egress counters as its connection ``peer`` has them."""
     outbox, downlink = peer.outbox, peer.downlink
     ticks = outbox.snapshots_offered + member.congestion_skips
@@ -263,25 +311,28 @@ def egress(peer: Peer, member: Member) -> Egress:
     return Egress(ticks, skips, peer.bytes_out - backlog, backlog)
 
 
-class RelayView(Protocol):
-    """What :func:`adapt` needs of the relay core (``server.core.RelayCore``)."""
-
-    def connected(self, user: int) -> Peer | None: ...
-
-    def send(self, peer: Peer, message: RateNotice) -> None: ...
+P = TypeVar("P", bound=RatedPeer)
 
 
-class AutoRates:
+class RelayView(Protocol[P]):
+    """What :class:`AutoRates` needs of the relay core (``server.core.RelayCore``)."""
+
+    def connected(self, user: int) -> P | None: ...
+
+    def send(self, peer: P, message: RateNotice) -> None: ...
+
+
+class AutoRates(Generic[P]):
     """What the relay runs after each room's tick (``server.rooms.RoomTable.adapt``):
     each auto-rate member's controller decides; a new rate moves the member (the
     caller schedules the room after) and is told to the client. Keeps the rates'
     histogram for ``/metrics``."""
 
-    def __init__(self, core: RelayView) -> None:
+    def __init__(self, core: RelayView[P]) -> None:
         self.core = core
         self.histogram = RateHistogram()
 
-    def __call__(self, room: Room, now: float) -> None:
+    def __call__(self, room: RatedRoom, now: float) -> None:
         core, hist = self.core, self.histogram
         for member in room.members.values():
             ctl = member.link_rate
@@ -299,11 +350,11 @@ class AutoRates:
                 room.set_rate(member.user, rate, now)
                 core.send(peer, RateNotice(rate=rate))
 
-    def metric_lines(self, rooms: Iterable[Room]) -> list[str]:
+    def metric_lines(self, rooms: Iterable[RatedRoom]) -> list[str]:
         members = sum(m.link_rate is not None for r in rooms for m in r.members.values())
         return self.histogram.metric_lines(members)
 
 
-def adapter(core: RelayView) -> AutoRates:
+def adapter(core: RelayView[P]) -> AutoRates[P]:
     """The :class:`AutoRates` of ``core``'s rooms."""
     return AutoRates(core)

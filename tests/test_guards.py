@@ -27,16 +27,7 @@ PACKAGES = ("posecast", "server", "client", "protocol", "interp", "recorder", "s
 #: room's member holding its LinkRate while rates' functions take Member, Room and
 #: Peer (room <-> rates, which peer and parked sit on). All type-only imports. (The
 #: relay core and its parts no longer form one: they see it through server.ports.)
-ALLOWED_CYCLES: tuple[frozenset[str], ...] = (
-    frozenset(
-        {
-            "posecast.server.parked",
-            "posecast.server.peer",
-            "posecast.server.rates",
-            "posecast.server.room",
-        }
-    ),
-)
+ALLOWED_CYCLES: tuple[frozenset[str], ...] = ()
 
 
 def module_files() -> dict[str, Path]:
