@@ -1,12 +1,12 @@
 """The expected interpolation error at a keyframe interval, checked against traces.
 
-The model a view-aware rate (issue 31) would use: between two keyframes ``dt``
-apart, linear interpolation of a position whose acceleration stays within ``A``
-is off by at most ``A dt^2 / 8`` (the chord of a parabola, at mid-interval). A
-relay that receives every native update can estimate ``A`` causally: the largest
-``|a|`` over the last ``window_s`` of the stream, from second differences over a
-stride of ``stride`` native samples (a longer stride keeps tracking noise, which
-second differences amplify by 1/h^2, from swamping the motion).
+The model the view-aware rates use (issue 31, ``server.view_rates``): between two
+keyframes ``dt`` apart, linear interpolation of a position whose acceleration
+stays within ``A`` is off by at most ``A dt^2 / 8`` (the chord of a parabola, at
+mid-interval), with ``A`` estimated causally from the stream's recent motion
+(``interp.expected_error``, shared with the relay, which receives every native
+update: the largest ``|a|`` over the last 0.3 s, from second differences over a
+stride of 3 native samples).
 
 :func:`check` measures, for every keyframe interval of every stream at each rate,
 the largest position error of linear interpolation over the native samples inside
@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from posecast.interp.expected_error import causal_acceleration, expected_error
 from posecast.scenarios.qoe import sample_keyframes
 from posecast.scenarios.traces import DEVICE_NAMES, Trace, find_traces, load_trace
 
@@ -42,24 +43,6 @@ class IntervalErrors:
     predicted_mm: F64
 
 
-def causal_acceleration(times: F64, pos: F64, stride: int = 3, window_s: float = 0.3) -> F64:
-    """At each native sample: the largest |a| (m/s^2) seen over the last ``window_s``,
-    from second differences over ``stride`` samples (centred on a sample ``stride``
-    back, so only past samples are used)."""
-    n = times.shape[0]
-    acc = np.zeros(n)
-    h = stride
-    if n > 2 * h:
-        dt = (times[2 * h :] - times[: -2 * h]) / 2.0
-        second = pos[2 * h :] - 2.0 * pos[h:-h] + pos[: -2 * h]
-        acc[2 * h :] = np.linalg.norm(second, axis=1) / dt**2
-    out = np.empty(n)
-    lo = np.searchsorted(times, times - window_s, side="left")
-    for i in range(n):  # a running max over a time window
-        out[i] = acc[lo[i] : i + 1].max()
-    return out
-
-
 def _intervals(times: F64, pos: F64, acc: F64, rate: float) -> tuple[F64, F64]:
     """Measured and predicted largest errors (mm) of every keyframe interval at ``rate``."""
     _, idx = sample_keyframes(times, rate)
@@ -72,7 +55,7 @@ def _intervals(times: F64, pos: F64, acc: F64, rate: float) -> tuple[F64, F64]:
         lerp = pos[k0] + s[:, None] * (pos[k1] - pos[k0])
         err = np.linalg.norm(lerp - pos[k0 + 1 : k1], axis=1).max()
         measured.append(1000.0 * err)
-        predicted.append(1000.0 * acc[k0] * (t1 - t0) ** 2 / 8.0)
+        predicted.append(1000.0 * expected_error(acc[k0], t1 - t0))
     return np.array(measured), np.array(predicted)
 
 
