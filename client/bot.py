@@ -142,6 +142,9 @@ class BotConfig:
     urls: tuple[str, ...] = ()
     spawn: SpawnPoint | None = None  # its motion moved there (scenarios.spawn); None: not
     auto_rate: bool = False  # join rate "auto": the relay chooses it, up to ``rate``
+    #: Join with this error budget (degrees of visual angle, ``join.budget_deg``):
+    #: the relay sends each peer at the lowest rate that keeps within it. None: off.
+    budget_deg: float | None = None
 
     @property
     def relays(self) -> tuple[str, ...]:
@@ -389,6 +392,7 @@ class Bot:
             streams=streams,
             rate=cfg.rate,
             auto_rate=cfg.auto_rate,
+            budget_deg=cfg.budget_deg,
             token=cfg.token,
             label=label,
             sends_velocities=self.velocities,

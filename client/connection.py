@@ -214,6 +214,7 @@ class ClientConnection:
         codec: str = "raw",
         auto_rate: bool = False,
         spectator: bool = False,
+        budget_deg: float | None = None,
     ) -> Joined:
         """Join ``room``; :class:`JoinRefused` if the server refuses.
 
@@ -223,7 +224,10 @@ class ClientConnection:
         compact codec (``protocol.codec``), ``raw`` as float records. ``auto_rate``:
         the relay chooses the rate, up to ``rate`` (``join.rate = "auto"``), and tells
         each change (``rate``), which :attr:`on_rate` hears. ``spectator``: watch
-        only (publish nothing, nobody is told).
+        only (publish nothing, nobody is told). ``budget_deg``: an error budget in
+        degrees of visual angle (``join.budget_deg``): the relay may send each peer
+        at a lower rate, the lowest that keeps its expected error, seen from this
+        client's ``head``, within it.
         """
         welcome = self.welcome
         if welcome is not None and not welcome.min_rate <= rate <= welcome.max_rate:
@@ -242,6 +246,7 @@ class ClientConnection:
                 codec=codec,
                 max_rate=rate if auto_rate else None,
                 spectator=spectator,
+                budget_deg=budget_deg,
             )
         )
         joined = await self._expect(Joined)
@@ -267,6 +272,7 @@ class ClientConnection:
         codec: str = "raw",
         tls: Tls | None = None,
         auto_rate: bool = False,
+        budget_deg: float | None = None,
     ) -> ClientConnection:
         """Connect, say hello and join ``room``; :class:`JoinRefused` if refused."""
         conn = await cls.connect(url, agent=agent, clock=clock, open_timeout=open_timeout, tls=tls)
@@ -281,6 +287,7 @@ class ClientConnection:
                 wants_velocities=wants_velocities,
                 codec=codec,
                 auto_rate=auto_rate,
+                budget_deg=budget_deg,
             )
         except BaseException:
             await conn.ws.close()

@@ -297,6 +297,11 @@ class Join(ControlMessage):
     max_rate: float | None = _omitted(None)
     """With ``rate="auto"``: the highest rate the server may choose, Hz (None: the
     server's ``max_rate``). Not sent while None; only allowed with an auto rate."""
+    budget_deg: float | None = _omitted(None)
+    """An error budget in degrees of visual angle, in (0, 90): the server may send each
+    peer's streams at a lower rate than this client's snapshot rate, the lowest whose
+    expected interpolation error seen from this client's ``head`` stays within it
+    (view-aware rates). None: every peer at the snapshot rate. Not sent while None."""
 
     @property
     def auto_rate(self) -> bool:
@@ -321,6 +326,9 @@ class Join(ControlMessage):
         _set(self, "max_rate", check_optional_float("join.max_rate", self.max_rate))
         if self.max_rate is not None and self.rate != AUTO_RATE:
             raise bad("join.max_rate", 'is only allowed with rate "auto"')
+        _set(self, "budget_deg", check_optional_float("join.budget_deg", self.budget_deg))
+        if self.budget_deg is not None and not 0.0 < self.budget_deg < 90.0:
+            raise bad("join.budget_deg", "must be in (0, 90) degrees")
         check_optional_text("join.token", self.token)
         check_optional_text("join.label", self.label)
 

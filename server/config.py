@@ -54,6 +54,11 @@ class ServerConfig:
     link: LinkTier | None = None
     #: Snapshots held in one subscriber's emulated link at most (older ones drop).
     link_max_in_flight: int = 64
+    #: Honour ``join.budget_deg`` (view-aware per-peer rates, ``server.view_rates``;
+    #: ``serve --no-view-rates``: every peer at the snapshot rate), and the safety
+    #: factor on the expected error it uses.
+    view_rates: bool = True
+    view_margin: float = 1.0
     #: What a peer causes (its protocol errors, the errors it reports) is logged
     #: at most once per this many seconds per connection, with a count of the
     #: records held back, so that a misbehaving peer cannot fill the disk.

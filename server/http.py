@@ -220,8 +220,7 @@ def metrics_text(core: RelayCore, now: float | None = None) -> str:
     _limit_metrics(core, metric, total)
     _room_metrics(core, metric)
     _tick_lag_histogram(core, lines)
-    if isinstance(core.table.adapt, rates.AutoRates):
-        lines += core.table.adapt.metric_lines(core.rooms.values())
+    lines += _rate_lines(core)
     if now is not None:
         _overdue_metric(core, metric, now)
         _capacity_metric(core, metric, now)
@@ -229,6 +228,17 @@ def metrics_text(core: RelayCore, now: float | None = None) -> str:
 
 
 Metric = Callable[[str, str, str, list[tuple[str, float]]], None]
+
+
+def _rate_lines(core: RelayCore) -> list[str]:
+    """The rates the relay chose: auto rates (per subscriber) and view rates (per peer)."""
+    lines = []
+    if isinstance(core.table.adapt, rates.AutoRates):
+        lines += core.table.adapt.metric_lines(core.rooms.values())
+    if core.table.view_rates is not None:
+        budgets = sum(m.view is not None for r in core.rooms.values() for m in r.members.values())
+        lines += core.table.view_rates.metric_lines(budgets)
+    return lines
 
 
 def _room_metrics(core: RelayCore, metric: Metric) -> None:

@@ -45,6 +45,7 @@ from typing import TYPE_CHECKING, Generic, Protocol, TypeVar
 
 from posecast.protocol import Join, RateNotice
 from posecast.server.link import Downlink
+from posecast.server.view_rates import ViewState
 
 if TYPE_CHECKING:
     from posecast.server.config import ServerConfig
@@ -265,6 +266,7 @@ class RatedMember(Protocol):
     rate: float
     asked_rate: float
     link_rate: LinkRate | None
+    view: ViewState | None
 
     @property
     def user(self) -> int: ...
@@ -285,8 +287,9 @@ class RatedRoom(Protocol):
 
 
 def attach(config: ServerConfig, peer: RatedPeer, member: RatedMember, join: Join) -> None:
-    """Give a joining member its rate controls: the emulated link (``serve --link``)
-    and, for ``rate="auto"``, a :class:`LinkRate` from the server's min to its ceiling."""
+    """Give a joining member its rate controls: the emulated link (``serve --link``),
+    for ``rate="auto"`` a :class:`LinkRate` from the server's min to its ceiling, and
+    for ``budget_deg`` its per-peer schedule (``server.view_rates``)."""
     member.asked_rate = member.rate
     if config.link is not None:
         assert peer.user is not None
@@ -296,7 +299,8 @@ def attach(config: ServerConfig, peer: RatedPeer, member: RatedMember, join: Joi
     member.link_rate = (
         LinkRate(config.min_rate, member.rate, start=member.rate) if join.auto_rate else None
     )
-
+    budget = join.budget_deg if config.view_rates else None
+    member.view = ViewState(budget) if budget is not None else None
 
 
 def egress(peer: RatedPeer, member: RatedMember) -> Egress:

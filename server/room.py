@@ -31,6 +31,7 @@ same slots for every member of one rate, so that they share it too.
 from __future__ import annotations
 
 import math
+import struct
 import zlib
 from bisect import bisect_left
 from collections import deque
@@ -55,6 +56,7 @@ from posecast.server.actions import Action, PollRecording, Record, RecordPose
 from posecast.server.config import DEFAULT_EVENT_QUEUE
 from posecast.server.presence import Presence
 from posecast.server.shared import RoomObject
+from posecast.server.view_rates import Motion, ViewRates, ViewState, encode_peers, peer_divisor
 
 if TYPE_CHECKING:
     from posecast.server.rates import LinkRate
@@ -75,6 +77,8 @@ __all__ = [
 KEY_INTERVAL = 2.0
 #: Coded versions kept per stream as baselines of compact subscribers' deltas.
 CODES_HISTORY = 16
+#: A pose's position (the first 12 of its 28 wire bytes).
+_POSITION = struct.Struct("<3f")
 
 
 #: Upper bounds (s) of the tick lag histogram's buckets (``posecast_tick_lag_seconds``;
@@ -250,11 +254,15 @@ class Member:
     link_rate: LinkRate | None = None
     #: Presence notices it has not been sent yet (``server.presence``).
     presence: Presence = field(default_factory=Presence)
+    #: Its per-peer schedule, if it joined with ``budget_deg`` (``server.view_rates``).
+    view: ViewState | None = None
 
     def undelivered(self) -> None:
         """Its newest snapshot never reaches it (an emulated link lost or skipped
         it): the next is coded against what it holds, and is a key if that was."""
         self.last_version = self.delivered_version
+        if self.view is not None:
+            self.view.last = dict(self.view.delivered)
         if self.key_sent:
             self.key_slot = -1
 
@@ -363,6 +371,10 @@ class Room:
     #: this class (add, set_rate, tick) and clears it; so does ``remove``.
     _due: float | None = None
     _due_members: int = 0
+    #: The server's view-aware setting (None: ``budget_deg`` is ignored), and what
+    #: this room follows of its streams' motion once a member has a budget.
+    views: ViewRates | None = None
+    motion: Motion | None = None
 
     def pause_recording(self, now: float) -> None:
         """Stop recording pose updates (counted, written as one drops record on resume)."""
@@ -435,6 +447,10 @@ class Room:
         return {n: self.stream_ids.take() for n in names}
 
     def add(self, member: Member, now: float) -> None:
+        if member.view is not None and self.views is None:
+            member.view = None  # the server does not do view-aware rates
+        if member.view is not None and self.motion is None:
+            self.motion = Motion()
         member.next_due = self._grid_after(now, member.rate)
         member.last_version = member.delivered_version = 0
         member.key_slot = -1
@@ -448,6 +464,8 @@ class Room:
             for sid in member.streams.values():
                 self._streams.pop(sid, None)
                 self.stream_ids.give_back(sid)
+                if self.motion is not None:
+                    self.motion.forget(sid)
         return member
 
     @staticmethod
@@ -469,6 +487,8 @@ class Room:
         member.rate = rate
         member.next_due = self._grid_after(now, rate)
         member.key_slot = -1
+        if member.view is not None:
+            member.view.reset()
         self._due = None
 
     # -- ingest -------------------------------------------------------------------
@@ -486,7 +506,7 @@ class Room:
         if member is not None:
             member.updates_in += 1
         stale = 0
-        objects = self.objects
+        objects, motion = self.objects, self.motion
         for sid, t, pose, vel in update_records(update):
             cur = self._streams.get(sid)
             publisher = user
@@ -497,6 +517,8 @@ class Room:
             if cur is not None and t <= cur.capture:
                 stale += 1
                 continue
+            if motion is not None:
+                motion.observe(sid, t, pose)
             row = None if codes is None else codes.get(sid)
             if row is not None and len(row) == 7:
                 row = row + [0] * 6
@@ -561,6 +583,7 @@ class Room:
         """Send a snapshot to every due member; returns how many were offered."""
         cache: dict[tuple[int, bool], tuple[bytes, int]] = {}
         groups: dict[tuple[int, bool], GroupSnapshot | None] = {}
+        views: dict[Any, Any] = {}  # per-peer frames of this tick (_view_frame)
         offered = 0
         self._due = None  # due members move on to their next grid point
         if self.objects and self.fly is not None:
@@ -589,7 +612,9 @@ class Room:
                 member.delivered_version = member.last_version
             # A snapshot still waiting in the slot is about to be replaced (a skip),
             # so the new one must also carry what only the replaced one had.
-            if member.compact:
+            if member.view is not None:
+                data, n = self._view_frame(member, member.view, now, views)
+            elif member.compact:
                 # Slots of KEY_INTERVAL less one tick, per rate: keys at most
                 # KEY_INTERVAL apart, and members of one rate share them.
                 slot = math.floor(now / max(KEY_INTERVAL - 1.0 / member.rate, 1e-3))
@@ -659,6 +684,61 @@ class Room:
             self._tick += 1
             self._snapshots += 1
         return group
+
+    # -- per-peer rates (``server.view_rates``) -------------------------------------
+
+    def _view_frame(
+        self, member: Member, view: ViewState, now: float, cache: dict[Any, Any]
+    ) -> tuple[bytes, int]:
+        """A budget member's frame: only the streams of the peers due for it now,
+        each since what it holds of that peer; encoded once per tick for every
+        member due the same peers at the same versions."""
+        if member.outbox.pose is None:
+            view.delivered = dict(view.last)
+        publishers = cache.get("publishers")
+        if publishers is None:
+            publishers = cache["publishers"] = {}
+            for sid, s in self._streams.items():
+                publishers.setdefault(s.user, []).append((sid, s))
+        tick = round(now * member.rate - self.phase)
+        if member.compact:
+            slot = math.floor(now / max(KEY_INTERVAL - 1.0 / member.rate, 1e-3))
+            if member.key_slot != slot:  # a key, peer by peer as each one goes
+                member.key_slot = slot
+                view.absolute = set(publishers)
+        head_sid = member.streams.get("head")
+        head = self._streams.get(head_sid) if head_sid is not None else None
+        eye = None if head is None else _POSITION.unpack_from(head.pose)
+        wanted = []
+        for user, streams in publishers.items():
+            sids = [sid for sid, _ in streams]
+            k = view.k[user] = peer_divisor(
+                self.views, self.motion, view, member.rate, user == member.user, eye, sids
+            )
+            if self.views is not None and user != member.user:
+                self.views.observe(member.rate / k)
+            if view.due(user, tick, k):
+                if member.compact:
+                    since = -1 if user in view.absolute else view.delivered.get(user, -1)
+                else:
+                    since = max(0, view.delivered.get(user, 0))
+                wanted.append((user, since))
+        key = (member.compact, member.velocities, tuple(wanted))
+        if key not in cache:
+            cache[key] = encode_peers(self._tick + 1, now, key, publishers, self.volume)
+            if cache[key] is not None:
+                self._tick += 1
+                self._snapshots += 1
+        for user, _ in wanted:
+            view.last[user], view.sent_tick[user] = self._version, tick
+            view.absolute.discard(user)
+        member.key_sent = any(since < 0 for _, since in wanted)
+        frame = cache[key]
+        if frame is None:
+            return b"", 0
+        if isinstance(frame, GroupSnapshot):
+            return frame.frame(None if member.echo else member.user)
+        return frame  # type: ignore[no-any-return]
 
     def retire(self) -> None:
         """Mark the room as removed (its members are gone or the server stops)."""

@@ -23,6 +23,7 @@ from posecast.server.actions import Action, FinishRecording, Reschedule
 from posecast.server.config import ServerConfig
 from posecast.server.limits import room_refusal
 from posecast.server.room import LagHistogram, Room, room_phase
+from posecast.server.view_rates import ViewRates
 
 __all__ = ["RoomTable"]
 
@@ -54,6 +55,10 @@ class RoomTable:
         self.recording_paused = False
         #: Every room's member ticks by lag (``posecast_tick_lag_seconds``).
         self.tick_lags = LagHistogram()
+        #: Per-peer rates of members with a budget (None: ``serve --no-view-rates``).
+        self.view_rates = (
+            ViewRates(config.min_rate, config.view_margin) if config.view_rates else None
+        )
         #: Run after each room's tick: auto rates decide (``server.rates.adapt``).
         self.adapt: Callable[[Room, float], None] | None = None
         #: Run before each room's tick: pending presence notices go out (``server.presence``).
@@ -83,6 +88,7 @@ class RoomTable:
                 phase=room_phase(name),
                 volume=self.volume,
                 lags=self.tick_lags,
+                views=self.view_rates,
                 emit=self.emit,
                 fly=self.fly,
             )

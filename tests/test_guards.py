@@ -23,10 +23,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("posecast", "server", "client", "protocol", "interp", "recorder", "scenarios")
 
-#: The cycles of issue 27 still to untie, each as the set of modules it binds: a
-#: room's member holding its LinkRate while rates' functions take Member, Room and
-#: Peer (room <-> rates, which peer and parked sit on). All type-only imports. (The
-#: relay core and its parts no longer form one: they see it through server.ports.)
+#: The cycles of issue 27 still to untie, each as the set of modules it binds: none
+#: left (the relay core and its parts see it through server.ports; server.rates
+#: takes its rooms, members and peers as Protocols).
 ALLOWED_CYCLES: tuple[frozenset[str], ...] = ()
 
 

@@ -151,6 +151,7 @@ def test_server_holds_only_the_relay() -> None:
         "limits.py",
         "link.py",
         "rates.py",
+        "view_rates.py",
         "room.py",
         "rooms.py",
         "shared.py",

@@ -16,6 +16,7 @@ if TYPE_CHECKING:
 __all__ = [
     "SERVE_LIMITS",
     "AllowOriginOption",
+    "BudgetDegOption",
     "CapacityBacklogOption",
     "CapacityCpuOption",
     "CapacityLagOption",
@@ -24,6 +25,7 @@ __all__ = [
     "MaxEventRateOption",
     "MaxJoinRateOption",
     "StallAfterOption",
+    "ViewRatesOption",
     "allowed_origins",
     "check_serve_args",
     "check_tls_files",
@@ -56,6 +58,7 @@ SERVE_LIMITS = (
     "capacity_cpu",
     "capacity_lag",
     "capacity_backlog",
+    "view_rates",
 )
 
 HandshakeTimeoutOption = Annotated[
@@ -87,6 +90,33 @@ MaxEventRateOption = Annotated[
         help="Events a second from one address or token user, across reconnects (bursts "
         "of 10 s worth); over it: closed 1008. 0: off.",
         envvar="POSECAST_MAX_EVENT_RATE",
+    ),
+]
+ViewRatesOption = Annotated[
+    bool,
+    typer.Option(
+        "--view-rates/--no-view-rates",
+        help="Honour a join's error budget (budget_deg): send each peer to that subscriber "
+        "at the lowest rate whose expected error, seen from its head, stays within it. "
+        "Off: every peer at the snapshot rate.",
+        envvar="POSECAST_VIEW_RATES",
+    ),
+]
+
+
+def _budget(value: float | None) -> float | None:
+    if value is not None and not 0.0 < value < 90.0:
+        raise typer.BadParameter(f"{value:g} is not in (0, 90) degrees")
+    return value
+
+
+BudgetDegOption = Annotated[
+    float | None,
+    typer.Option(
+        help="Join with this error budget (degrees of visual angle): the relay sends each "
+        "peer at the lowest rate whose expected error, seen from the bot's head, stays "
+        "within it (join.budget_deg). Default: every peer at the snapshot rate.",
+        callback=_budget,
     ),
 ]
 StallAfterOption = Annotated[

@@ -29,6 +29,7 @@ from posecast.cli.report import print_swarm
 from posecast.cli.serve_checks import (
     SERVE_LIMITS,
     AllowOriginOption,
+    BudgetDegOption,
     CapacityBacklogOption,
     CapacityCpuOption,
     CapacityLagOption,
@@ -37,6 +38,7 @@ from posecast.cli.serve_checks import (
     MaxEventRateOption,
     MaxJoinRateOption,
     StallAfterOption,
+    ViewRatesOption,
     allowed_origins,
     check_tls_files,
     cluster_config,
@@ -307,6 +309,7 @@ def serve(
     capacity_cpu: CapacityCpuOption = 0.8,
     capacity_lag: CapacityLagOption = 0.025,
     capacity_backlog: CapacityBacklogOption = 32 << 20,
+    view_rates: ViewRatesOption = True,
 ) -> None:
     """Run the relay server until SIGINT/SIGTERM (then close all with 1001, exit 0).
 
@@ -548,6 +551,7 @@ def bots(
     cafile: CafileOption = None,
     insecure: InsecureOption = False,
     spawn: SpawnOption = "circle",
+    budget_deg: BudgetDegOption = None,
 ) -> None:
     """Run N headless bots against a server and report QoE per interpolator.
 
@@ -576,6 +580,7 @@ def bots(
         room=room,
         rate=rate_hz,
         auto_rate=auto,
+        budget_deg=budget_deg,
         send_rate=send_rate,
         methods=methods,
         motion=motion,

@@ -61,6 +61,10 @@ export interface ClientOptions {
   rate?: JoinRate;
   /** With `rate: "auto"` only: the highest rate the relay may choose (Hz; default the welcome's max_rate). */
   maxRate?: number;
+  /** An error budget in degrees of visual angle, in (0, 90) (`join.budget_deg`): the relay
+   * sends each peer at the lowest rate whose expected error, seen from this client's head,
+   * stays within it (section 5.6 of the spec). Default: every peer at the snapshot rate. */
+  budgetDeg?: number;
   token?: string | null;
   /** A free label peers see with this user (e.g. what it plays). */
   label?: string | null;
@@ -201,6 +205,9 @@ export class PosecastClient extends Emitter<ClientEvents> {
       throw new UsageError("bad-rate", `rate must be a number of Hz or "auto", got ${String(opts.rate)}`);
     }
     if (opts.maxRate !== undefined && opts.rate !== "auto") throw new UsageError("bad-message", 'maxRate is only allowed with rate "auto"');
+    if (opts.budgetDeg !== undefined && !(opts.budgetDeg > 0 && opts.budgetDeg < 90)) {
+      throw new UsageError("bad-message", `budgetDeg must be in (0, 90) degrees, got ${String(opts.budgetDeg)}`);
+    }
     this.rate = opts.rate;
     this.clock = opts.clock ?? monotonicSeconds;
     this.WebSocket = opts.WebSocket ?? defaultWebSocket();
@@ -340,6 +347,7 @@ export class PosecastClient extends Emitter<ClientEvents> {
       codec: this.options.codec,
       spectator: this.options.spectator,
       max_rate: auto ? (this.opts.maxRate ?? null) : null,
+      budget_deg: this.opts.budgetDeg ?? null,
     });
     // The codec's baselines start afresh with each join.
     this.compact = compact ? new CompactSession(welcome.volume, this.options.velocities) : null;

@@ -84,6 +84,7 @@ export const SCHEMAS: Readonly<Record<string, readonly FieldSpec[]>> = {
     f("echo", "bool", OMIT_FALSE),
     f("spectator", "bool", OMIT_FALSE),
     f("max_rate", "float", OMIT_NULL),
+    f("budget_deg", "float", OMIT_NULL),
   ],
   joined: [
     f("room", "str"),
@@ -168,6 +169,10 @@ export interface Join {
   codec?: "raw" | "compact"; echo?: boolean; spectator?: boolean;
   /** With rate "auto" only: the highest rate the relay may choose (Hz; null: the welcome's). */
   max_rate?: number | null;
+  /** An error budget in degrees of visual angle, in (0, 90): the relay may send each peer
+   * at the lowest rate whose expected error seen from this client's head stays within it
+   * (section 5.6 of the spec). null: every peer at the snapshot rate. */
+  budget_deg?: number | null;
 }
 export interface Joined { type: "joined"; room: string; streams: Record<string, number>; rate: number; objects: Record<string, number> }
 export interface PeerJoined { type: "peer_joined"; user: number; streams: Record<string, number>; label: string | null; velocities: boolean }
