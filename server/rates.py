@@ -17,17 +17,24 @@ What it watches (all of it the relay's own view of its egress, no client report)
 
 The rule, evaluated once per ``window`` (0.5 s):
 
-- *congested* (a skip in the window, or a backlog of more than ``backlog_frames``
-  snapshots): **down fast**, at once, to the rate the measured drain carries with
-  ``headroom`` to spare (``headroom x drained bytes/s / bytes per snapshot``), and
-  at least ``down_factor`` below the rate that failed; that rate is remembered as
-  the link's *ceiling*;
+- *at the edge* (one skip, none in the ``isolated_s`` (3 s) before it, no backlog,
+  no step up on trial): the link carries about this rate; it **stays**, and the
+  next rate up counts as the ceiling (no step up while such skips keep coming).
+  A rate a little above the cap skips one snapshot every several seconds, which
+  costs less than a whole Hz less (the mediocre tier's 20 Hz);
+- *congested* (more skips, or a backlog of more than ``backlog_frames``
+  snapshots): **down fast**, at once, to the rate the measured drain carries
+  (``headroom x drained bytes/s / bytes per snapshot``), at least 1 Hz below the
+  rate that failed (``down_factor`` below it before any snapshot got through);
+  that rate is remembered as the link's *ceiling*;
 - *clear* for ``up_after`` (1 s) since the last congestion and ``up_every`` (0.5 s)
   since the last change: **up slowly**, by ``up_step`` (25 %) of the rate (at least 1 Hz),
   but not to the ceiling until the ceiling is ``ceiling_hold`` (10 s) old: the
-  probe of a known limit is rare, so the rate does not oscillate around it; a step
-  up that fails at once (within ``2 up_every``) goes back to the rate before it
-  (and the next step up stops below the rate that failed).
+  probe of a known limit is rare, so the rate does not oscillate around it. A step
+  up that fails at once (within ``2 up_every``) goes back to the rate before it,
+  and then no step up for ``ceiling_hold`` (times ``probe_backoff`` per failure in
+  a row, up to ``ceiling_hold_max``; 1 by default: on ``dev`` a longer wait did
+  not pay); the next probes step at most halfway to the rate that failed.
 
 Rates are whole Hz: subscribers at one rate tick in step and share one encoded
 snapshot per tick (``server.room``), and each change costs a compact subscriber a
@@ -95,6 +102,13 @@ class LinkRate:
     up_every: float = 0.5
     up_step: float = 0.25
     ceiling_hold: float = 10.0
+    #: A lone skip (none in the ``isolated_s`` before it, no probe on trial, no
+    #: backlog) marks the rate as the link's edge: the rate stays, no step up.
+    isolated_s: float = 3.0
+    #: Each probe that fails in a row multiplies the hold before the next by this,
+    #: up to ``ceiling_hold_max``.
+    probe_backoff: float = 1.0
+    ceiling_hold_max: float = 40.0
     rate: float = field(init=False)
     #: The rate that last failed and when (inf: none known).
     ceiling: float = field(init=False, default=math.inf)
@@ -110,11 +124,22 @@ class LinkRate:
     _down_at: float = field(init=False, default=-math.inf)
     #: The rate before the last step up (None: the last change was no step up).
     _probe: float | None = field(init=False, default=None)
+    #: How long the ceiling holds now (``ceiling_hold``, longer after failed probes).
+    _hold: float = field(init=False, default=0.0)
+    #: No step up before this time (after a failed probe).
+    _blocked_until: float = field(init=False, default=-math.inf)
+    #: The last rate a probe failed at (kept after its ceiling expired: the next
+    #: probes step towards it by halves).
+    _failed_probe: float = field(init=False, default=math.inf)
+    _skip_at: float = field(init=False, default=-math.inf)
+    #: Lone skips seen (the rate stayed).
+    edges: int = field(init=False, default=0)
 
     def __post_init__(self) -> None:
         if not 0 < self.lo <= self.hi:
             raise ValueError(f"LinkRate needs 0 < lo <= hi, got [{self.lo:g}, {self.hi:g}]")
         self.rate = self._whole(self.hi if self.start is None else self.start)
+        self._hold = self.ceiling_hold
 
     def _whole(self, rate: float) -> float:
         """``rate`` in whole Hz, within [lo, hi] (lo and hi themselves are kept as given)."""
@@ -144,30 +169,60 @@ class LinkRate:
         if skips > 0 or backlogged:
             if now - self._down_at < 2.0 * self.window:
                 return None  # what queued before the last step down is still draining
+            lone = skips == 1 and not backlogged and now - self._skip_at >= self.isolated_s
+            if lone and not self._on_trial(now):
+                self._edge(now)
+                return None
             return self._down(now, drained / dt)
         return self._up(now)
+
+    def _on_trial(self, now: float) -> bool:
+        """Whether the last change was a step up made within ``2 up_every``."""
+        return self._probe is not None and now - self._changed_at <= 2.0 * self.up_every
+
+    def _edge(self, now: float) -> None:
+        """A lone skip: the link carries about this rate. Stay, and hold the next
+        rate up as the ceiling (a step up would fail)."""
+        self.edges += 1
+        self._skip_at = now
+        self.ceiling, self.ceiling_at = min(self.ceiling, self.rate + 1.0), now
 
     def _down(self, now: float, drain: float) -> float | None:
         self.congestions += 1
         failed = self.rate
         self.ceiling, self.ceiling_at = failed, now
         self._down_at = now
-        if self._probe is not None and now - self._changed_at <= 2.0 * self.up_every:
-            # A step up failed at once: back to the rate that was fine before it.
+        if self._on_trial(now):
+            # A step up failed at once: back to the rate that was fine before it, and
+            # wait longer each time before the next try.
+            assert self._probe is not None
+            self._failed_probe = failed
+            self._hold = min(self.ceiling_hold_max, self._hold * self.probe_backoff)
+            self._blocked_until = now + self._hold
             return self._set(now, self._probe)
+        # The link changed under a rate that held: probes as usual after the recovery.
+        self._hold, self._blocked_until = self.ceiling_hold, -math.inf
+        # What the drain carried (the link's measure), at least 1 Hz down; without
+        # a measure yet, down by ``down_factor``.
         target = failed * self.down_factor
         if self.frame_bytes:
-            target = min(target, self.headroom * drain / self.frame_bytes)
+            target = min(failed - 1.0, self.headroom * drain / self.frame_bytes)
         return self._set(now, self._whole(target))
 
     def _up(self, now: float) -> float | None:
         if now - self.ceiling_at < self.up_after or now - self._changed_at < self.up_every:
             return None
-        if self.rate >= self.hi:
+        if self.rate >= self.hi or now < self._blocked_until:
             return None
-        if now - self.ceiling_at >= self.ceiling_hold:
+        if self._probe is not None:  # the last step up held: probes may come sooner
+            self._hold = self.ceiling_hold
+        if now - self.ceiling_at >= self._hold:
             self.ceiling = math.inf  # an old limit: the link may have widened
         step = max(1.0, math.floor(self.rate * self.up_step))
+        if self.rate < self._failed_probe < math.inf:  # halfway to where a probe failed
+            step = min(step, max(1.0, math.floor((self._failed_probe - self.rate) / 2)))
+        else:
+            self._failed_probe = math.inf
         target = self._whole(self.rate + step)
         if target >= self.ceiling:
             target = self._whole(self.ceiling - 1.0)

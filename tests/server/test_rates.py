@@ -86,6 +86,32 @@ def test_on_a_steady_link_it_settles_at_the_cap_and_probes_rarely() -> None:
     assert changes[0][1] < 15.0 and 14.0 <= ctl.rate <= 16.0
 
 
+def test_a_lone_skip_at_the_links_edge_keeps_the_rate() -> None:
+    """At 20 Hz through a link that carries 19.8 Hz of 1 kB frames, a skip comes about
+    every 5 s: each is the link's edge, not congestion. The rate stays at 20 Hz (as the
+    best fixed rate would), with no probe above it while the skips keep coming."""
+    ctl = LinkRate(5.0, 30.0, start=20.0)
+    link = CappedLink(19_800)
+    run(ctl, link, 0.0, 10.0)  # its first probe above 20 Hz fails and comes back
+    assert ctl.rate == 20.0
+    edges, congestions = ctl.edges, ctl.congestions
+    assert run(ctl, link, 10.0, 70.0) == [] and ctl.rate == 20.0
+    assert ctl.edges - edges >= 5 and ctl.congestions == congestions
+
+
+def test_after_a_failed_probe_it_waits_and_steps_halfway() -> None:
+    """A probe that fails at once goes back, then no step up for ceiling_hold; the
+    next probe steps halfway to the rate that failed, not a quarter up again."""
+    ctl = LinkRate(5.0, 30.0, start=16.0)
+    link = CappedLink(16_500)  # 16.5 Hz of 1 kB frames
+    changes = run(ctl, link, 0.0, 40.0)
+    (t_up, probe), (t_back, back) = changes[:2]
+    assert probe == 20.0 and back == 16.0 and t_back - t_up <= 2 * ctl.up_every + 1e-9
+    t_next, nxt = changes[2]
+    assert t_next - t_back >= ctl.ceiling_hold - 1e-9
+    assert nxt == 18.0  # halfway from 16 to 20
+
+
 def test_up_slowly_when_the_link_widens() -> None:
     """The link widens from 8 to 40 kB/s: the rate climbs back to 30 Hz, never by more
     than up_step (>= 1 Hz) a step and at least up_every apart."""
