@@ -109,6 +109,8 @@ class Guard:
         self.connects = RateTable(lim.connect_rate, lim.connect_burst)
         self.joins = RateTable(lim.join_rate, lim.join_burst)
         self.events = RateTable(lim.event_rate, lim.event_burst)
+        #: Joins refused for their rate (``room-full``; in ``posecast_joins_refused_total``).
+        self.joins_refused = 0
 
     @staticmethod
     def _keys(address: str | None, user: str | None) -> list[str]:
@@ -121,7 +123,10 @@ class Guard:
 
     def join(self, address: str | None, user: str | None, now: float) -> bool:
         """A join from ``address`` (by token ``user``, if any) may go on."""
-        return all([self.joins.take(k, now) for k in self._keys(address, user)])
+        if all([self.joins.take(k, now) for k in self._keys(address, user)]):
+            return True
+        self.joins_refused += 1
+        return False
 
     def event(self, address: str | None, user: str | None, now: float) -> bool:
         """An event from ``address`` (by token ``user``, if any) may be relayed."""

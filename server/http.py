@@ -325,12 +325,14 @@ def _limit_metrics(
         "Connections closed at once (1013) for exceeding a connection limit.",
         [("", core.refused_connections)],
     )
-    refused = core.capacity.joins_refused
+    refused = dict(core.capacity.joins_refused)
+    refused["room-full"] = refused.get("room-full", 0) + core.handshakes.guard.joins_refused
     metric(
         "posecast_joins_refused_total",
         "counter",
         "Hellos and joins refused: server-full (the relay at its measured capacity, close"
-        " 1013), room-full (over max_rooms, max_members or max_recorded_rooms).",
+        " 1013), room-full (over max_rooms, max_members or max_recorded_rooms, or over"
+        " the join rate of an address or token user).",
         [(f'{{code="{code}"}}', refused.get(code, 0)) for code in ("server-full", "room-full")],
     )
     metric(

@@ -8,6 +8,7 @@ from posecast.protocol import ErrorMessage, Hello, Join, Joined, UserEvent
 from posecast.server.actions import Close
 from posecast.server.core import RelayCore
 from posecast.server.guard import Guard, GuardLimits, RateTable
+from posecast.server.http import metrics_text
 
 
 def test_a_bucket_refills_at_its_rate_and_forgets_the_oldest_key() -> None:
@@ -40,6 +41,8 @@ def test_joins_from_one_address_are_limited_across_connections() -> None:
         joined.append(any(isinstance(e, Joined) for e in c.inbox))
         core.disconnect(c.conn, 1.0, said_bye=True)
     assert joined == [True, True, True, False, False]
+    metrics = metrics_text(core, 1.0)
+    assert 'posecast_joins_refused_total{code="room-full"} 2' in metrics
     other = _joiner(core, 1.0, "10.0.0.10")  # another address has its own bucket
     assert any(isinstance(e, Joined) for e in other.inbox)
     late = _joiner(core, 2.0, "10.0.0.9")  # one token back after a second
