@@ -115,7 +115,10 @@ class Tally:
 
     def closed(self, ws: WsConnection | None) -> None:
         rcvd = None if ws is None else ws.protocol.close_rcvd
-        self.closes[str(rcvd.code) if rcvd is not None else "none"] += 1
+        code = "none" if rcvd is None else str(rcvd.code)
+        if code == "1011":  # an internal error, or keepalive: the reason says which
+            code += f" {rcvd.reason[:40]}" if rcvd is not None else ""
+        self.closes[code] += 1
 
     def as_dict(self) -> dict[str, Any]:
         return {

@@ -161,11 +161,15 @@ def _mutant(rng: np.random.Generator, corpus: list[bytes]) -> tuple[str, bytes]:
 
 
 async def _pace(stop: asyncio.Event, rate: float, sent: int, start: float) -> None:
-    """Wait until ``sent`` frames are due at ``rate`` a second from ``start`` (or stop)."""
+    """Wait until ``sent`` frames are due at ``rate`` a second from ``start`` (or stop);
+    behind, still yield: a sender that never does starves its own reader (the close
+    frames, the pings), and the relay's closes would go unseen."""
     ahead = start + sent / rate - time.monotonic()
     if ahead > 0:
         with contextlib.suppress(TimeoutError):
             await asyncio.wait_for(stop.wait(), ahead)
+    else:
+        await asyncio.sleep(0)
 
 
 async def _session_end(
