@@ -641,16 +641,32 @@ async def replay_live(
     # Reading the recording is file I/O: not on the event loop.
     plan = await asyncio.to_thread(_plan, path, room, (start_s, duration_s, users), spawn)
     factor = _replay_factor(plan, speed, max_send_rate)
-    est = ClockEstimator()
+    settings = (factor, codec, object_patience)
+    start, bots = await _replay(
+        plan, url, agent, settings, token, (lead, linger, max_send_rate), clock
+    )
+    return _report(path, url, plan, speed, factor, start, bots, bots[0].core.clock)
+
+
+async def _replay(
+    plan: ReplayPlan,
+    url: str,
+    agent: str,
+    settings: tuple[float, str, float],
+    token: str | None,
+    timing: tuple[float, float, float],
+    clock: Clock,
+) -> tuple[float, list[_ReplayBot]]:
+    """Connect the bots, open the room (:func:`_open_room`), run the replay; its start
+    (server clock) and the bots. ``timing``: lead, linger and the send rate."""
+    lead, linger, send_rate = timing
     bots: list[_ReplayBot] = []
-    start = math.nan
     opener: ClientConnection | None = None
     try:
-        await _connect_bots(plan, url, agent, (factor, codec, object_patience), bots, clock)
-        est = bots[0].core.clock
+        await _connect_bots(plan, url, agent, settings, bots, clock)
         welcome = bots[0].conn.welcome
         assert welcome is not None
-        offset = est.offset
+        offset = bots[0].core.clock.offset
         if token is None:  # (a token's user would be taken by the opener)
             opener = await _open_room(url, plan.room, welcome.min_rate, agent, clock)
         # The replay's server-clock start: ``lead`` leaves the bots present at the
@@ -662,9 +678,9 @@ async def replay_live(
             welcome,
             offset=offset,
             start=start,
-            factor=factor,
+            factor=settings[0],
             token=token,
-            send_rate=max_send_rate,
+            send_rate=send_rate,
             linger=linger,
             clock=clock,
             opener=opener,
@@ -673,4 +689,4 @@ async def replay_live(
         for conn in [b.conn for b in bots] + ([] if opener is None else [opener]):
             with contextlib.suppress(Exception):
                 await conn.close("replay done")
-    return _report(path, url, plan, speed, factor, start, bots, est)
+    return start, bots
