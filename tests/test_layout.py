@@ -255,6 +255,20 @@ def test_the_relay_core_touches_no_clock_file_or_socket() -> None:
     assert not bad, bad
 
 
+def test_the_core_s_parts_see_it_through_its_port() -> None:
+    """No module of the relay core but ``core`` itself names ``server.core`` (not even
+    for a type): the parts act on it through ``server.ports.Relay``, so it can import
+    them without a cycle (the adapter's modules may import it)."""
+    bad = [
+        (module, name)
+        for module in RELAY_CORE
+        if module != "core"
+        for name in imports_of(ROOT / "server" / f"{module}.py")
+        if name == "server.core" or name.startswith("server.core.")
+    ]
+    assert not bad, bad
+
+
 def _attributes(tree: ast.Module) -> set[str]:
     """Attribute names a module's classes define: methods, class fields, ``x.name = ...``."""
     out: set[str] = set()
