@@ -51,11 +51,14 @@ async def run_demo(
     spawn: str = "none",
     stop: asyncio.Event | None = None,
     link: LinkTier | None = None,
+    budget_deg: float | None = None,
 ) -> dict[str, Any]:
     """Run the demo; with ``view_port``, a live viewer of its room is served there too.
 
     With ``auto_rate`` the bots join with rate "auto" (up to ``rate``) and the demo
-    asks the relay what it sends each (:class:`RateLog`): the report gains ``rates``.
+    asks the relay what it sends each (:class:`RateLog`): the report gains ``rates``;
+    ``budget_deg``: the bots join with that error budget, and ``rates`` has each
+    peer's rate to each bot too.
     ``link`` emulates that tier on every bot's downlink (``serve --link``; one relay).
 
     With ``nodes`` > 1 the relay is a cluster on this machine: a nats-server and
@@ -75,9 +78,9 @@ async def run_demo(
         base = BotConfig(url=urls[0], urls=tuple(urls), room="demo", rate=rate,
                          send_rate=send_rate, methods=methods, motion=motion,
                          duration=duration, name="bot", codec=codec,
-                         auto_rate=auto_rate)  # fmt: skip
+                         auto_rate=auto_rate, budget_deg=budget_deg)  # fmt: skip
         seen: dict[str, dict[str, float]] = {}
-        rates = RateLog() if auto_rate else None
+        rates = RateLog() if auto_rate or budget_deg is not None else None
         killed: dict[str, Any] = {}
         with _progress(console) as bar:
             helpers = [tg.create_task(_watch(bar, duration, server, cluster, seen, rates))]
@@ -94,6 +97,7 @@ async def run_demo(
         report |= {"rates": rates.report(report["bots"])} if rates is not None else {}
         report["server"] = {"url": ",".join(urls), "rate_hz": rate, "auto_rate": auto_rate,
                             "send_rate_hz": send_rate, "link": getattr(link, "name", None),
+                            "budget_deg": budget_deg,
                             "duration_s": duration, "motion": motion, "codec": codec}  # fmt: skip
         if cluster is not None:
             report["cluster"] = _cluster_report(cluster, report["bots"], seen)
@@ -167,32 +171,46 @@ class RateLog:
     samples: dict[int, list[float]] = field(default_factory=dict)
     #: The last answer: user id -> rate (Hz).
     current: dict[int, float] = field(default_factory=dict)
+    #: (subscriber, peer) -> the rates of that peer's streams to that subscriber, for
+    #: members with an error budget (``join.budget_deg``).
+    peer_samples: dict[tuple[int, int], list[float]] = field(default_factory=dict)
     answers: int = 0
     failures: int = 0
 
-    def add(self, rates: dict[int, float]) -> None:
-        """One answer of the relay (user id -> Hz)."""
+    def add(
+        self, rates: dict[int, float], peers: dict[int, dict[int, float]] | None = None
+    ) -> None:
+        """One answer of the relay (user id -> Hz; ``peers``: subscriber -> peer -> Hz)."""
         self.answers += 1
         self.current = dict(rates)
         for user, rate in rates.items():
             self.samples.setdefault(user, []).append(rate)
+        for user, by_peer in (peers or {}).items():
+            for peer, rate in by_peer.items():
+                self.peer_samples.setdefault((user, peer), []).append(rate)
 
     async def watch(self, urls: list[str], room: str) -> None:
         """Ask every relay of ``urls`` for ``room``'s rates every ``period`` s, until
         cancelled; an unanswered question is counted in ``failures``."""
-        from posecast.view.rates import fetch_rates
+        from posecast.view.rates import fetch_rate_table
 
         while True:
-            merged: dict[int, float] = {}
+            merged: dict[str, dict[str, Any]] = {}
             answered = False
             for url in urls:
                 try:
-                    merged.update(await fetch_rates(url, room))
+                    merged.update(await fetch_rate_table(url, room))
                     answered = True
-                except (OSError, TimeoutError, ValueError):
+                except (OSError, TimeoutError, ValueError, KeyError):
                     self.failures += 1
             if answered:
-                self.add(merged)
+                rates = {int(u): float(v["rate"]) for u, v in merged.items()}
+                peers = {
+                    int(u): {int(p): float(r) for p, r in v["peers"].items()}
+                    for u, v in merged.items()
+                    if "peers" in v
+                }
+                self.add(rates, peers)
             await asyncio.sleep(self.period)
 
     def line(self) -> str:
@@ -207,17 +225,23 @@ class RateLog:
     def report(self, bots: list[dict[str, Any]]) -> dict[str, Any]:
         """The ``rates`` key of the demo's report; each of ``bots`` (swarm report rows)
         gains ``relay_rate_hz`` (the last answer that listed it) and ``relay_mean_hz``
-        (the mean of the answers; NaN when no answer listed it)."""
+        (the mean of the answers; NaN when no answer listed it), and with an error
+        budget ``relay_peer_mean_hz`` (peer id -> the mean of its rates to the bot)."""
         nan = float("nan")
-        users = {
+        users: dict[str, dict[str, Any]] = {
             str(u): {"now_hz": r[-1], "mean_hz": statistics.fmean(r), "min_hz": min(r),
                      "max_hz": max(r), "answers": len(r)}
             for u, r in sorted(self.samples.items())
         }  # fmt: skip
+        for (user, peer), r in sorted(self.peer_samples.items()):
+            if str(user) in users:
+                users[str(user)].setdefault("peers_mean_hz", {})[str(peer)] = statistics.fmean(r)
         for b in bots:
             got = users.get(str(b["id"]), {})
             b["relay_rate_hz"] = got.get("now_hz", nan)
             b["relay_mean_hz"] = got.get("mean_hz", nan)
+            if "peers_mean_hz" in got:
+                b["relay_peer_mean_hz"] = got["peers_mean_hz"]
         every = [x for r in self.samples.values() for x in r]
         return {
             "source": f"GET /rates?room=demo every {self.period:g} s",

@@ -138,12 +138,18 @@ def _http_only(msg: Any, extra: Any) -> bool:
 def rates_json(core: RelayCore, room: str) -> str:
     """``GET /rates?room=NAME``: the snapshot rate the relay sends each member of a room
     now, ``{"room": NAME, "users": {"3": {"rate": 12.0, "asked_rate": 30.0, "auto": true}}}``
-    (no such room: no users). User ids and rates only, no labels or streams."""
+    (no such room: no users); a member with an error budget adds ``budget_deg`` and
+    ``peers`` (peer id -> the rate it sends that peer's streams to the member now).
+    User ids and rates only, no labels or streams."""
     found = core.rooms.get(room)
-    users = {
+    users: dict[str, dict[str, Any]] = {
         str(m.user): {"rate": m.rate, "asked_rate": m.asked_rate, "auto": m.link_rate is not None}
         for m in (found.members.values() if found is not None else ())
     }
+    for m in found.members.values() if found is not None else ():
+        if m.view is not None:  # join.budget_deg: each peer's rate, the snapshot rate / k
+            peers = {str(p): m.rate / k for p, k in sorted(m.view.k.items())}
+            users[str(m.user)] |= {"budget_deg": m.view.budget_deg, "peers": peers}
     return json.dumps({"room": room, "users": users}, separators=(",", ":"))
 
 

@@ -11,6 +11,7 @@ import typer
 from posecast.cli.cluster import KillOption, NodesOption, kill_drill
 from posecast.cli.common import DEFAULT_METHODS, _fail, _tier, console, plain
 from posecast.cli.report import demo_next_steps, print_swarm, verdict
+from posecast.cli.serve_checks import BudgetDegOption
 from posecast.cli.session import (
     AskRateOption,
     BotCountOption,
@@ -116,6 +117,7 @@ def demo(
     spawn: SpawnOption = "circle",
     adaptive: AdaptiveOption = False,
     link: DemoLinkOption = None,
+    budget_deg: BudgetDegOption = None,
 ) -> None:
     """The main job: a server and N bots on loopback, then QoE per interpolator."""
     from posecast.demo import run_demo
@@ -153,6 +155,7 @@ def demo(
         kill=kill_drill(kill, nodes, duration),
         spawn=spawn,
         link=tier,
+        budget_deg=budget_deg,
     )
     _print_demo(report, bots, rate_hz, auto, duration, motion, link, json_out)
 

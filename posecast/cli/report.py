@@ -117,6 +117,36 @@ def _print_bots(report: dict[str, Any]) -> None:
         )
     if cluster:
         print_cluster(cluster)
+    _print_peer_rates(report)
+
+
+def _print_peer_rates(report: dict[str, Any]) -> None:
+    """With an error budget (``--budget-deg``): the mean rate the relay sent each peer's
+    streams to each bot, as it said (``GET /rates``); one column a peer up to 8 peers,
+    else their lowest, mean and highest."""
+    bots = [b for b in report["bots"] if b.get("relay_peer_mean_hz")]
+    if not bots:
+        return
+    peers = sorted({int(p) for b in bots for p in b["relay_peer_mean_hz"]})
+    wide = len(peers) > 8
+    table = small_table("rates per peer (Hz)")
+    cols = ("lowest", "mean", "highest") if wide else tuple(str(p) for p in peers)
+    for col in ("id", "name", *cols):
+        table.add_column(col, justify="right")
+    for b in bots:
+        got = {int(p): r for p, r in b["relay_peer_mean_hz"].items()}
+        cells = (
+            [_fmt(min(got.values())), _fmt(sum(got.values()) / len(got)), _fmt(max(got.values()))]
+            if wide
+            else [_fmt(got[p]) if p in got else "-" for p in peers]
+        )
+        table.add_row(str(b["id"]), b["name"], *cells)
+    console.print(table)
+    plain(
+        "rates per peer: the mean rate the relay said it sent each peer's streams (columns: "
+        "peer ids) to the bot within its error budget (--budget-deg): near peers more "
+        "often, far ones less; a bot's own column is its own streams, echoed."
+    )
 
 
 def _print_objects(report: dict[str, Any]) -> None:

@@ -13,9 +13,10 @@ from __future__ import annotations
 import asyncio
 import json
 import ssl
+from typing import Any
 from urllib.parse import quote, urlsplit
 
-__all__ = ["RATE_SCALE", "fetch_rates", "legend_html", "rate_colour"]
+__all__ = ["RATE_SCALE", "fetch_rate_table", "fetch_rates", "legend_html", "rate_colour"]
 
 #: The rates (Hz) the colour scale spans: the relay's default range.
 RATE_SCALE = (5.0, 30.0)
@@ -28,6 +29,13 @@ async def fetch_rates(url: str, room: str) -> dict[int, float]:
     that member of ``room`` now; within 2 s. Raises OSError, TimeoutError or
     ValueError when the relay does not answer it (one that predates ``/rates``
     answers 426)."""
+    users = await fetch_rate_table(url, room)
+    return {int(u): float(v["rate"]) for u, v in users.items()}
+
+
+async def fetch_rate_table(url: str, room: str) -> dict[str, dict[str, Any]]:
+    """The ``users`` of the relay's ``/rates`` answer as it is (user id -> its rate,
+    and per-peer rates for a member with an error budget); as :func:`fetch_rates`."""
     parts = urlsplit(url)
     secure = parts.scheme == "wss"
     host, port = parts.hostname or "127.0.0.1", parts.port or (443 if secure else 80)
@@ -48,8 +56,8 @@ async def fetch_rates(url: str, room: str) -> dict[int, float]:
     status = head.split(b"\r\n", 1)[0].split(b" ")
     if len(status) < 2 or status[1] != b"200":
         raise ValueError(f"/rates answered {head[:40]!r}")
-    users = json.loads(body)["users"]
-    return {int(u): float(v["rate"]) for u, v in users.items()}
+    users: dict[str, dict[str, Any]] = json.loads(body)["users"]
+    return users
 
 
 def rate_colour(rate: float) -> tuple[int, int, int]:

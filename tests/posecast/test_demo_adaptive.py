@@ -4,10 +4,12 @@ relay chose for each, as the relay itself reports them (``GET /rates``)."""
 from __future__ import annotations
 
 import asyncio
+import io
 import json
 import math
 from pathlib import Path
 
+import pytest
 from support import poll_until, running_server
 from typer.testing import CliRunner
 
@@ -90,3 +92,41 @@ def test_adaptive_and_link_mistakes_are_one_line() -> None:
     assert res.exit_code == 2 and "unknown tier 'dialup'" in res.output
     res = CliRunner().invoke(app, ["demo", "--link", "poor", "--nodes", "2"])
     assert res.exit_code == 2 and "--link emulates the demo's one relay" in res.output
+
+
+async def test_a_budget_adds_each_peers_rate_as_the_relay_chose_it() -> None:
+    """``budget_deg``: the relay answers each peer's rate to each bot (``/rates``
+    ``peers``); the report has, per bot, every other bot's mean rate, within the
+    server's range and at most the bot's own snapshot rate."""
+    report = await run_demo(bots=3, rate=30.0, auto_rate=True, duration=4.0,
+                            methods=("soa",), motion="synthetic:orbit",
+                            budget_deg=0.5, spawn="circle")  # fmt: skip
+    assert report["server"]["budget_deg"] == 0.5
+    ids = {str(b["id"]) for b in report["bots"]}
+    for b in report["bots"]:
+        peers = b["relay_peer_mean_hz"]
+        assert ids - {str(b["id"])} <= set(peers)
+        assert all(5.0 <= r <= b["relay_mean_hz"] + 1e-9 for r in peers.values()), peers
+        assert report["rates"]["users"][str(b["id"])]["peers_mean_hz"] == peers
+
+
+def test_the_per_peer_table_fits_80_columns(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The per-peer rates print one column a peer (up to 8), else lowest/mean/highest."""
+    from rich.console import Console
+
+    from posecast.cli import common, report
+
+    out = io.StringIO()
+    narrow = Console(file=out, width=80, force_terminal=False)
+    monkeypatch.setattr(common, "console", narrow)
+    monkeypatch.setattr(report, "console", narrow)
+    for n in (3, 12):
+        rates = {str(p): 5.0 + p for p in range(n)}
+        bots = [{"id": i, "name": f"bot{i}", "relay_peer_mean_hz": rates} for i in range(n)]
+        out.seek(0)
+        out.truncate(0)
+        report._print_peer_rates({"bots": bots})
+        text = out.getvalue()
+        assert max(len(line) for line in text.splitlines()) <= 80, text
+        assert ("lowest" in text) == (n > 8), text
+        assert ("16.0" if n > 8 else "7.0") in text, text
