@@ -32,8 +32,9 @@ from rich.console import Console
 
 from posecast.bench import hostile_runs as runs29
 from posecast.bench.common import _LISTENING, _SERVER_BOOT
-from posecast.bench.hostile_attacks import _ATTACK_BOOT, ATTACKS, ATTACKS_29, AttackConfig
-from posecast.bench.hostile_runs import RunSpec
+from posecast.bench.hostile_attacker import _ATTACK_BOOT
+from posecast.bench.hostile_attacks import ATTACKS_29
+from posecast.bench.hostile_config import HostileConfig, RunSpec, victim_seconds
 from posecast.bench.procs import _Child, _histogram_quantile, _scrape
 
 __all__ = ["HostileConfig", "run_hostile_bench"]
@@ -46,95 +47,6 @@ _TICK_LAG_MS = 50.0
 #: ... and honest bots keep their rates (within 10 %) under these.
 _RATE_TARGETS = ("flood",)
 _RATE_RATIO = 0.9
-
-
-@dataclass
-class HostileConfig:
-    """What ``posecast bench hostile`` runs: the honest room and each attack's bounds."""
-
-    bots: int = 4
-    rate: float = 20.0
-    send_rate: float = 30.0
-    duration: float = 10.0
-    motion: str = "traces:sample"
-    method: str = "soa"
-    room: str = "lobby"
-    attacks: tuple[str, ...] = ATTACKS
-    attacker_nice: int = 10
-    address: str = "127.0.0.2"
-    addresses: int = 1
-    stamp_age: float = 2.0
-    fuzz_frames: int = 200_000
-    fuzz_connections: int = 8
-    flood_connections: int = 2000
-    flood_rate: float = 250.0
-    rooms: int = 300
-    rooms_rate: float = 100.0
-    sample_interval: float = 0.25
-    server_args: tuple[str, ...] = field(default_factory=tuple)
-    # -- issue 29 -------------------------------------------------------------------
-    room_fuzzers: int = 10
-    event_rate: float = 10_000.0
-    churn_rates: tuple[float, ...] = (57.0, 30.0)
-    liar_lags: tuple[float, ...] = (0.03, 0.09, 0.3)
-    slowloris_connections: int = 3000
-    slowloris_rate: float = 1000.0
-    slowloris_addresses: int = 64
-    hijack_attempts: int = 20
-    blackhole_after: float = 3.0
-
-    def check(self) -> None:
-        """ValueError (one line) for a bad setting."""
-        unknown = [a for a in self.attacks if a not in ATTACKS]
-        if unknown:
-            raise ValueError(f"unknown attack {unknown[0]!r}: one of {', '.join(ATTACKS)}")
-        if self.bots < 2:
-            raise ValueError("bots must be at least 2 (each scores what the others send)")
-        if min(self.rate, self.send_rate, self.duration, self.sample_interval) <= 0:
-            raise ValueError("rate, send rate, duration and sample interval must be positive")
-        counts = (self.fuzz_frames, self.fuzz_connections, self.flood_connections, self.rooms)
-        if min(*counts, self.addresses) < 1 or min(self.flood_rate, self.rooms_rate) <= 0:
-            raise ValueError("attack counts and rates must be positive")
-        more = (self.room_fuzzers, self.slowloris_connections, self.slowloris_addresses)
-        rates = (self.event_rate, self.slowloris_rate, *self.churn_rates, *self.liar_lags)
-        if min(*more, self.hijack_attempts) < 1 or min(rates, default=0) <= 0:
-            raise ValueError("attack counts, rates and lags must be positive")
-        if not self.churn_rates or not self.liar_lags or self.blackhole_after < 0:
-            raise ValueError("give a churn rate and a liar lag; blackhole-after must be >= 0")
-
-    def attack(self, run: RunSpec, url: str, secret_file: Path | None = None) -> AttackConfig:
-        kind = run.kind
-        assert kind is not None
-        lag = run.variant if kind == "lag-liar" else None
-        seconds = self.duration + 15.0
-        if kind == "blackhole":  # it cuts the path on the controller's word (runs29.Cut)
-            seconds = runs29.victim_seconds(self) + 15.0
-        return AttackConfig(
-            kind=kind,
-            url=url,
-            room=self.room,
-            seconds=seconds,
-            address=self.address,
-            addresses=self.slowloris_addresses if kind == "slowloris" else self.addresses,
-            # Spread over the bots' run (plus their start), not all in its first seconds.
-            fuzz_rate=self.fuzz_frames / (self.duration + 1.0),
-            stamp_age=self.stamp_age if lag is None else lag,
-            fuzz_frames=self.fuzz_frames,
-            fuzz_connections=self.fuzz_connections,
-            flood_connections=self.flood_connections,
-            flood_rate=self.flood_rate,
-            rooms=self.rooms,
-            rooms_rate=self.rooms_rate,
-            room_fuzzers=self.room_fuzzers,
-            event_rate=self.event_rate,
-            churn_rate=run.variant if kind == "churn" and run.variant else 57.0,
-            slowloris_connections=self.slowloris_connections,
-            slowloris_rate=self.slowloris_rate,
-            secret_file=None if secret_file is None else str(secret_file),
-            hijack_attempts=self.hijack_attempts,
-            blackhole_after=-1.0,
-            wait_for="go" if kind in runs29.WAIT_FOR_BOTS else None,
-        )
 
 
 # -- one run --------------------------------------------------------------------------
@@ -230,10 +142,10 @@ def _run_bots(
     json_path = tmp / "bots.json"
     argv = _bots_argv(cfg, f"ws://127.0.0.1:{port}", json_path, secret_file)
     if run.kind == "blackhole":  # as long as the blackholed bot, to see it come back
-        argv[argv.index("--duration") + 1] = f"{runs29.victim_seconds(cfg):g}"
+        argv[argv.index("--duration") + 1] = f"{victim_seconds(cfg):g}"
     bots = _Child("bots", argv)
     samples = _Samples()
-    deadline = time.monotonic() + runs29.victim_seconds(cfg) + 90.0
+    deadline = time.monotonic() + victim_seconds(cfg) + 90.0
     try:
         while bots.proc.poll() is None:
             if time.monotonic() > deadline:
@@ -355,7 +267,7 @@ def _run_one(cfg: HostileConfig, run: RunSpec, console: Console) -> dict[str, An
                 hook = runs29.hook(attacker, run.kind, cfg)
             report, samples = _run_bots(cfg, server, port, tmp, run, (secret, hook))
             if victim is not None:
-                seconds = runs29.victim_seconds(cfg)
+                seconds = victim_seconds(cfg)
                 result["victim"] = runs29.victim_figures(victim, tmp / "victim.json", seconds)
             if attacker is not None:
                 attacker.close_stdin()

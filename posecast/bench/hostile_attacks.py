@@ -1,7 +1,7 @@
-"""The attacker process of ``posecast bench hostile``: one attack, bounded, then a report.
+"""The attacks of ``posecast bench hostile``, and what every attack shares.
 
-Run as ``python -c BOOT CONFIG_JSON`` by the controller (:mod:`posecast.bench.hostile`).
-It connects from its own loopback address (``127.0.0.2`` by default; the flood and
+The attacker process (:mod:`posecast.bench.hostile_attacker`) runs one of them. It
+connects from its own loopback address (``127.0.0.2`` by default; the flood and
 the room spam can take ``addresses`` of them in turn), so that the per-address
 limits of the relay see it apart from the honest bots; prints
 ``{"event": "attacking"}`` once it is in place, attacks until its stdin closes,
@@ -27,10 +27,7 @@ import asyncio
 import contextlib
 import ipaddress
 import json
-import os
 import socket
-import sys
-import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -42,10 +39,9 @@ from websockets.asyncio.client import ClientConnection as WsConnection
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, WebSocketException
 
-from posecast.bench.common import _raise_nofile, _run_loop
 from posecast.protocol import encode_update
 
-__all__ = ["ATTACKS", "ATTACKS_14", "ATTACKS_29", "AttackConfig", "Tally", "run_attack"]
+__all__ = ["ATTACKS", "ATTACKS_14", "ATTACKS_29", "AttackConfig", "Tally", "signal"]
 
 #: The attacks of issue 14, then those of issue 29, in the order the bench runs them.
 ATTACKS_14 = ("timestamp", "fuzz", "flood", "never-reader", "rooms")
@@ -60,7 +56,6 @@ ATTACKS_29 = (
 )
 ATTACKS = ATTACKS_14 + ATTACKS_29
 
-_ATTACK_BOOT = "from posecast.bench.hostile_attacks import _attack_entry; _attack_entry()"
 #: A pose inside the default room volume (x, z in [-8, 8] m, y in [-2, 4] m).
 _POSE = (0.5, 1.5, 0.0, 1.0, 0.0, 0.0, 0.0)
 _OVERSIZE = 70_000
@@ -423,32 +418,6 @@ async def go(cfg: AttackConfig, stop: asyncio.Event) -> None:
         ended.cancel()
 
 
-def _runners() -> dict[str, Any]:
-    """Every attack's coroutine (those of issue 29 import this module's helpers)."""
-    from posecast.bench.hostile_path import RUNNERS as path
-    from posecast.bench.hostile_room import RUNNERS as room
-
-    return {**_RUNNERS, **room, **path}
-
-
-async def run_attack(cfg: AttackConfig, stop: asyncio.Event | None = None) -> dict[str, Any]:
-    """Run attack ``cfg.kind`` until ``stop`` is set or ``cfg.seconds`` pass; its tally."""
-    runners = _runners()
-    if cfg.kind not in runners:
-        raise ValueError(f"unknown attack {cfg.kind!r}: one of {', '.join(ATTACKS)}")
-    stop = stop or asyncio.Event()
-    tally = Tally()
-    timer = asyncio.get_running_loop().call_later(cfg.seconds, stop.set)
-    start = time.monotonic()
-    try:
-        await runners[cfg.kind](cfg, stop, tally)
-    finally:
-        timer.cancel()
-    result = tally.as_dict()
-    result["seconds"] = time.monotonic() - start
-    return result
-
-
 #: Signals from the controller (``{"signal": NAME}`` lines on stdin), by name.
 _SIGNALS: dict[str, asyncio.Event] = {}
 
@@ -460,33 +429,3 @@ def signal(name: str) -> asyncio.Event:
 
 def _set_signal(name: str) -> None:
     signal(name).set()
-
-
-def _watch_stdin(loop: asyncio.AbstractEventLoop, stop: asyncio.Event) -> None:
-    """Pass on the controller's signals; set ``stop`` when it closes our stdin (a
-    thread: stdin blocks)."""
-    for line in sys.stdin:
-        with contextlib.suppress(ValueError, AttributeError):
-            name = str(json.loads(line).get("signal"))
-            loop.call_soon_threadsafe(_set_signal, name)
-    loop.call_soon_threadsafe(stop.set)
-
-
-async def _main(cfg: AttackConfig) -> dict[str, Any]:
-    stop = asyncio.Event()
-    threading.Thread(
-        target=_watch_stdin, args=(asyncio.get_running_loop(), stop), daemon=True
-    ).start()
-    return await run_attack(cfg, stop)
-
-
-def _attack_entry() -> None:
-    """Entry of the attacker process: ``python -c BOOT CONFIG_JSON [NICE]``."""
-    cfg = AttackConfig(**json.loads(sys.argv[1]))
-    if len(sys.argv) > 2 and int(sys.argv[2]):
-        # Real attackers run on other machines: on a shared 2-core box an attacker
-        # at equal priority would measure the OS scheduler, not the relay.
-        os.nice(int(sys.argv[2]))
-    _raise_nofile(cfg.flood_connections + cfg.rooms + cfg.slowloris_connections + 256)
-    result = _run_loop(_main(cfg))
-    print(json.dumps({"event": "attack-result", **result}, default=dict), flush=True)

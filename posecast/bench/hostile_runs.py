@@ -20,18 +20,16 @@ import secrets
 import sys
 import time
 import urllib.request
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from posecast.bench.common import _SERVER_BOOT
+from posecast.bench.hostile_config import WAIT_FOR_BOTS, HostileConfig, RunSpec, victim_seconds
 
 if TYPE_CHECKING:
-    from posecast.bench.hostile import HostileConfig
     from posecast.bench.procs import _Child
 
 __all__ = [
-    "RunSpec",
     "Signal",
     "healthz",
     "hook",
@@ -45,25 +43,6 @@ __all__ = [
 QOE_RATIO_29 = 1.25
 LIAR_DELAY_RATIO = 1.10
 RATE_RATIO_29 = 0.75
-
-
-@dataclass(frozen=True)
-class RunSpec:
-    """One run: the attack (None: clean), its variant (a churn rate, a liar's lag in
-    s), and the name the tables show."""
-
-    kind: str | None
-    variant: float | None = None
-
-    @property
-    def label(self) -> str:
-        if self.kind is None:
-            return "clean"
-        if self.kind == "churn" and self.variant is not None:
-            return f"churn {self.variant:g}/s"
-        if self.kind == "lag-liar" and self.variant is not None:
-            return f"lag-liar {1e3 * self.variant:g} ms"
-        return self.kind
 
 
 def plan(cfg: HostileConfig) -> list[RunSpec]:
@@ -108,12 +87,6 @@ def healthz(port: int, timeout: float) -> float | None:
     return time.monotonic() - start if ok else None
 
 
-def victim_seconds(cfg: HostileConfig) -> float:
-    """How long the blackhole run's bots play: long enough for the blackholed one to notice
-    (keepalive: 5 s) and resume, with a few seconds more to see it back."""
-    return max(cfg.duration, cfg.blackhole_after + 12.0)
-
-
 class Signal:
     """A sampling hook: tell the attacker ``name`` (a stdin line) ``after`` s after the
     relay first holds ``need`` connections (the honest bots, and the blackholed one)."""
@@ -130,12 +103,6 @@ class Signal:
         if not self.done and self.full_at is not None and now >= self.full_at + self.after:
             self.attacker.tell({"signal": self.name})
             self.done = True
-
-
-#: Attacks that start once the honest bots are in (``go``): a newcomer's join during
-#: them is another matter (the relay may refuse it ``server-full`` while members
-#: come and go), measured by none of them.
-WAIT_FOR_BOTS = ("fuzz-in-room", "events-reconnect", "churn")
 
 
 def hook(attacker: _Child, kind: str, cfg: HostileConfig) -> Signal | None:
