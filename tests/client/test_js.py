@@ -382,3 +382,78 @@ def test_js_bot_asking_auto_hears_the_relays_rate(node: Node) -> None:
     assert js["current_rate"] == rates[-1]
     assert js["playout_interval"] == pytest.approx(1.0 / rates[-1])
     assert js["decode_errors"] == 0 and js["errors"] == [], js
+
+
+_DECODE_FRAMES = """
+import { readFileSync } from "node:fs";
+import { pathToFileURL } from "node:url";
+const [sdk, input] = process.argv.slice(2);
+const { CompactSession, decodeMessage, DEFAULT_VOLUME } = await import(pathToFileURL(sdk).href);
+const job = JSON.parse(readFileSync(input, "utf8"));
+const session = new CompactSession(DEFAULT_VOLUME, false);
+const out = job.frames.map((hex) => {
+  const data = Uint8Array.from(Buffer.from(hex, "hex"));
+  const snap = job.compact ? session.decodeSnapshot(data) : decodeMessage(data);
+  return snap.entries.map((e) => [e.user, e.stream, e.capture, ...e.pose.slice(0, 3)]);
+});
+console.log(JSON.stringify(out));
+"""
+
+
+@pytest.mark.parametrize("compact", [False, True])
+def test_js_decodes_per_peer_snapshots_as_python_does(
+    node: Node, compact: bool, tmp_path: Path
+) -> None:
+    """A budget subscriber's snapshots (peers at different rates, each with its own
+    capture times; compact keys peer by peer) decode in the SDK to the entries the
+    Python client decodes: same users, streams, capture times and positions."""
+    from posecast.protocol import PoseUpdate, Snapshot, decode_message
+    from posecast.protocol._compact import SnapshotDecoder
+    from posecast.protocol.codec import DEFAULT_VOLUME
+    from posecast.server.room import Member, Outbox, Room
+    from posecast.server.view_rates import ViewRates, ViewState
+
+    room = Room("r", views=ViewRates())
+    names = ("head", "left", "right")
+    places = {1: 0.0, 2: -0.6, 3: -7.0}  # me, a near swinging peer, a far still one
+    members = {u: Member(u, f"u{u}", room.allocate_streams(names), 30.0, Outbox(),
+                         compact=compact) for u in places}  # fmt: skip
+    members[1].view = ViewState(1.0)
+    for m in members.values():
+        room.add(m, 0.0)
+    frames: list[bytes] = []
+    for seq in range(1, 300):
+        t = seq / 90
+        for u, z in places.items():
+            swing = 0.3 * math.sin(4 * math.pi * t) if u == 2 else 0.0
+            poses = [[swing, 1.6 - 0.2 * k, z, 1.0, 0.0, 0.0, 0.0] for k in range(3)]
+            ids = list(members[u].streams.values())
+            room.ingest(u, PoseUpdate.from_arrays(seq, ids, [t] * 3, poses))
+        if (due := room.next_due()) is not None and due <= t:
+            room.tick(due)
+            for u, m in members.items():
+                data = m.outbox.take()
+                if u == 1 and data is not None:
+                    frames.append(data)
+    dec = SnapshotDecoder(DEFAULT_VOLUME)
+    want = []
+    for data in frames:
+        snap = dec.decode(data) if compact else decode_message(data)
+        assert isinstance(snap, Snapshot)
+        want.append([[int(u), int(s), float(c), *map(float, p[:3])]
+                     for u, s, c, p in zip(snap.users, snap.streams, snap.capture_times,
+                                           snap.poses, strict=True)])  # fmt: skip
+    job = tmp_path / "frames.json"
+    job.write_text(json.dumps({"compact": compact, "frames": [f.hex() for f in frames]}))
+    script = tmp_path / "decode.mjs"
+    script.write_text(_DECODE_FRAMES)
+    done = subprocess.run([node.node, str(script), str(JS / "dist" / "posecast.js"), str(job)],
+                          env=node.env, capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    got = json.loads(done.stdout)
+    assert len(got) == len(want) > 50
+    far_frames = sum(any(e[0] == 3 for e in f) for f in want)
+    assert 0 < far_frames < 0.5 * len(want)  # the far peer went at a lower rate
+    for g, w in zip(got, want, strict=True):
+        assert sorted(e[:2] for e in g) == sorted(e[:2] for e in w)
+        np.testing.assert_allclose(sorted(g), sorted(w), atol=1e-6)
