@@ -27,6 +27,7 @@ from typing import Any
 
 import msgpack
 import numpy as np
+from websockets.asyncio.client import ClientConnection as WsConnection
 from websockets.exceptions import ConnectionClosed, WebSocketException
 
 from posecast.bench.hostile_attacks import (
@@ -196,6 +197,29 @@ def _failed(tally: Tally, exc: BaseException) -> None:
         tally.errors[str(exc)] += 1
 
 
+async def _member(
+    cfg: AttackConfig,
+    stop: asyncio.Event,
+    tally: Tally,
+    streams: tuple[str, ...],
+    backoff: float,
+    rate: float = 10.0,
+    **join: object,
+) -> tuple[WsConnection, float, list[int]] | None:
+    """A new member of the honest room: (socket, server clock minus ours, stream ids);
+    None if it could not connect or join (counted, then ``backoff`` s of waiting)."""
+    try:
+        ws = await _connect(cfg)
+        offset, ids = await _join(ws, cfg.room, streams, rate, **join)
+    except (OSError, RuntimeError, WebSocketException, TimeoutError) as exc:
+        _failed(tally, exc)
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(stop.wait(), backoff)
+        return None
+    tally.sent["join"] += 1
+    return ws, offset, ids
+
+
 async def _room_fuzzer(
     cfg: AttackConfig, stop: asyncio.Event, tally: Tally, k: int, start: float, rate: float
 ) -> None:
@@ -203,15 +227,10 @@ async def _room_fuzzer(
     rng = np.random.default_rng(cfg.seed + 100 + k)
     codec = "compact" if k % 2 else "raw"
     while not stop.is_set() and sum(tally.sent.values()) < cfg.fuzz_frames:
-        try:
-            ws = await _connect(cfg)
-            offset, ids = await _join(ws, cfg.room, ("head", "left"), 10.0, codec=codec)
-        except (OSError, RuntimeError, WebSocketException, TimeoutError) as exc:
-            _failed(tally, exc)
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(stop.wait(), 0.1)
+        joined = await _member(cfg, stop, tally, ("head", "left"), 0.1, codec=codec)
+        if joined is None:
             continue
-        tally.sent["join"] += 1
+        ws, offset, ids = joined
         reader = asyncio.create_task(_count_replies(ws, tally))
         corpus = _corpus(cfg.room, ids, time.monotonic() + offset)
         with contextlib.suppress(ConnectionClosed):
@@ -244,15 +263,10 @@ async def _events_reconnect(cfg: AttackConfig, stop: asyncio.Event, tally: Tally
     await go(cfg, stop)
     start = time.monotonic()
     while not stop.is_set():
-        try:
-            ws = await _connect(cfg)
-            _, ids = await _join(ws, cfg.room, ("head",), 5.0)
-        except (OSError, RuntimeError, WebSocketException, TimeoutError) as exc:
-            _failed(tally, exc)
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(stop.wait(), 0.02)
+        joined = await _member(cfg, stop, tally, ("head",), 0.02, rate=5.0)
+        if joined is None:
             continue
-        tally.sent["join"] += 1
+        ws, _, ids = joined
         reader = asyncio.create_task(_count_replies(ws, tally))
         frame = _frame("event", kind="button", stream=ids[0], payload={"button": 1})
         with contextlib.suppress(ConnectionClosed):
