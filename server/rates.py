@@ -51,6 +51,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Generic, Protocol, TypeVar
 
 from posecast.protocol import Join, RateNotice
+from posecast.server.histogram import bucket, histogram_lines
 from posecast.server.link import Downlink
 from posecast.server.view_rates import ViewState
 
@@ -253,24 +254,19 @@ class RateHistogram:
     changes: int = 0
 
     def observe(self, rate: float) -> None:
-        i = next((i for i, b in enumerate(RATE_BUCKETS) if rate <= b), len(RATE_BUCKETS))
-        self.counts[i] += 1
+        self.counts[bucket(rate, RATE_BUCKETS)] += 1
         self.total += rate
 
     def metric_lines(self, members: int) -> list[str]:
         """Prometheus text: the histogram, the changes counter, the members gauge."""
-        name = "posecast_auto_rate_hz"
-        lines = [
-            f"# HELP {name} Snapshot rate the relay chose for each auto-rate subscriber "
-            '(join rate "auto"), observed once per subscriber per 0.5 s decision window.',
-            f"# TYPE {name} histogram",
-        ]
-        cumulative = 0
-        for bound, count in zip((*RATE_BUCKETS, math.inf), self.counts, strict=True):
-            cumulative += count
-            le = "+Inf" if math.isinf(bound) else f"{bound:g}"
-            lines.append(f'{name}_bucket{{le="{le}"}} {cumulative}')
-        lines += [f"{name}_sum {self.total:g}", f"{name}_count {cumulative}"]
+        lines = histogram_lines(
+            "posecast_auto_rate_hz",
+            "Snapshot rate the relay chose for each auto-rate subscriber"
+            ' (join rate "auto"), observed once per subscriber per 0.5 s decision window.',
+            RATE_BUCKETS,
+            self.counts,
+            self.total,
+        )
         lines += [
             "# HELP posecast_auto_rate_changes_total Rate changes the relay told auto-rate "
             "subscribers (rate messages).",

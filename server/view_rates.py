@@ -40,6 +40,7 @@ from posecast.interp.expected_error import Acceleration, divisor, tip_of
 from posecast.protocol import pack_snapshot, pack_velocity_snapshot
 from posecast.protocol.codec import Volume
 from posecast.protocol.codec_relay import GroupSnapshot, RelayEntry, encode_group
+from posecast.server.histogram import bucket, histogram_lines
 
 __all__ = [
     "MARGIN",
@@ -90,24 +91,19 @@ class ViewRates:
     total: float = 0.0
 
     def observe(self, rate: float) -> None:
-        i = next((i for i, b in enumerate(VIEW_RATE_BUCKETS) if rate <= b), len(VIEW_RATE_BUCKETS))
-        self.counts[i] += 1
+        self.counts[bucket(rate, VIEW_RATE_BUCKETS)] += 1
         self.total += rate
 
     def metric_lines(self, members: int) -> list[str]:
         """Prometheus text: the histogram and the gauge of members with a budget."""
-        name = "posecast_view_rate_hz"
-        lines = [
-            f"# HELP {name} Rate the relay chose for each peer of each subscriber with an "
-            "error budget (join budget_deg), observed at every tick of the subscriber.",
-            f"# TYPE {name} histogram",
-        ]
-        cumulative = 0
-        for bound, count in zip((*VIEW_RATE_BUCKETS, math.inf), self.counts, strict=True):
-            cumulative += count
-            le = "+Inf" if math.isinf(bound) else f"{bound:g}"
-            lines.append(f'{name}_bucket{{le="{le}"}} {cumulative}')
-        lines += [f"{name}_sum {self.total:g}", f"{name}_count {cumulative}"]
+        lines = histogram_lines(
+            "posecast_view_rate_hz",
+            "Rate the relay chose for each peer of each subscriber with an error budget"
+            " (join budget_deg), observed at every tick of the subscriber.",
+            VIEW_RATE_BUCKETS,
+            self.counts,
+            self.total,
+        )
         lines += [
             "# HELP posecast_view_rate_members Members whose peers' rates the relay "
             "chooses from their error budget now.",

@@ -152,6 +152,7 @@ def test_server_holds_only_the_relay() -> None:
         "link.py",
         "rates.py",
         "view_rates.py",
+        "histogram.py",
         "room.py",
         "rooms.py",
         "shared.py",
