@@ -90,6 +90,10 @@ class LiveConfig:
     #: Live only (the offline counterpart models a fixed rate); one more session a tier.
     auto: bool = False
     auto_max: float = 30.0
+    #: With ``auto``: the auto session's bots also join with this error budget
+    #: (``join.budget_deg``, degrees): the relay sends each peer at the rate its view
+    #: needs, within the link's rate. None: no budget.
+    budget_deg: float | None = None
 
     def __post_init__(self) -> None:
         if not self.duration > 0:
@@ -100,6 +104,10 @@ class LiveConfig:
             )
         if self.send_rate is not None and not self.send_rate > 0:
             raise ValueError(f"send rate must be positive, got {self.send_rate}")
+        if self.budget_deg is not None and not 0 < self.budget_deg < 90:
+            raise ValueError(f"budget must be in (0, 90) degrees, got {self.budget_deg:g}")
+        if self.budget_deg is not None and not self.auto:
+            raise ValueError("a budget applies to the auto session: ask for auto rates too")
         needs = [m for m in self.methods if interp.info(m).needs_velocity]
         if needs:
             raise ValueError(
@@ -449,6 +457,8 @@ async def _run_auto(
         progress(stage, 1, 1)
     figures = _live_figures(reports, groups, groups_ample, live_d, server_fig, lag)
     figures["asked"] = f"auto (up to {cfg.auto_max:g} Hz)"
+    if cfg.budget_deg is not None:
+        figures["asked"] += f", budget {cfg.budget_deg:g} deg"
     return figures
 
 
@@ -500,6 +510,7 @@ async def _session(
                     room=room,
                     rate=cfg.auto_max if auto else asked,
                     auto_rate=auto,
+                    budget_deg=cfg.budget_deg if auto else None,
                     send_rate=send_rate,
                     methods=cfg.methods,
                     duration=cfg.duration,

@@ -106,6 +106,14 @@ LiveAutoOption = Annotated[
         "fixed rate; one more session per tier.",
     ),
 ]
+LiveBudgetOption = Annotated[
+    float | None,
+    typer.Option(
+        "--live-budget-deg",
+        help="With --live-auto: the auto session's bots also join with this error budget "
+        "(degrees of visual angle): the relay sends each peer at the rate its view needs.",
+    ),
+]
 
 
 def table1(
@@ -126,6 +134,7 @@ def table1(
     live_duration: LiveDurationOption = 20.0,
     live_bots: LiveBotsOption = 3,
     live_auto: LiveAutoOption = False,
+    live_budget_deg: LiveBudgetOption = None,
 ) -> None:
     """Reproduce the paper's Table 1: QoE vs rate, equal-QoE rates per network tier.
 
@@ -142,7 +151,9 @@ def table1(
     if transport not in ("datagram", "stream"):
         raise _fail("--transport must be datagram or stream")
     f_rates = None if frontier_rates is None else [int(r) for r in _parse_rates(frontier_rates)]
-    live_plan = _plan_live(live, traces, tiers, method_list, live_duration, live_bots, live_auto)
+    live_plan = _plan_live(
+        live, traces, tiers, method_list, live_duration, live_bots, live_auto, live_budget_deg
+    )
     done: dict[str, tuple[int, int]] = {}  # stage -> (done, total), for Ctrl-C's line
     try:
         report = _run_offline(
@@ -243,11 +254,14 @@ def _plan_live(
     live_duration: float,
     live_bots: int,
     live_auto: bool = False,
+    live_budget_deg: float | None = None,
 ) -> tuple[list[Any], Any] | None:
     """The tiers and LiveConfig of --live, checked before the offline sweep starts
     (None: no --live)."""
     if live_auto and not live:
         raise _fail("--live-auto runs beside the live Table 1: give --live too")
+    if live_budget_deg is not None and not live_auto:
+        raise _fail("--live-budget-deg applies to the auto session: give --live-auto too")
     if not live:
         return None
     from posecast import interp
@@ -260,7 +274,11 @@ def _plan_live(
     )
     try:
         live_cfg = LiveConfig(
-            duration=live_duration, bots=live_bots, methods=live_methods, auto=live_auto
+            duration=live_duration,
+            bots=live_bots,
+            methods=live_methods,
+            auto=live_auto,
+            budget_deg=live_budget_deg,
         )
         live_motions(traces)
         tier_list = list(load_tiers(tiers).values())

@@ -102,17 +102,23 @@ def test_table1_live_refuses_a_synthetic_suite_before_the_sweep(tmp_path: Path) 
     assert not (out / "table1.json").exists()
 
 
-async def test_live_auto_runs_the_tier_again_with_the_relays_rates(sample_dir: Path) -> None:
-    """LiveConfig(auto=True): the tier once more with auto rates. On a link that carries
-    about 15 Hz of 2-bot raw snapshots, the relay brings the bots down from 30 Hz and
-    keeps the link's bytes/s within its cap; the fixed run and its verdict are as before."""
+@pytest.mark.parametrize("budget", [None, 2.0])
+async def test_live_auto_runs_the_tier_again_with_the_relays_rates(
+    sample_dir: Path, budget: float | None
+) -> None:
+    """LiveConfig(auto=True): the tier once more with auto rates (and, with a budget,
+    each peer at the rate its view needs). On a link that carries about 15 Hz of 2-bot
+    raw snapshots, the relay brings the bots down from 30 Hz and keeps the link's
+    bytes/s within its cap; the fixed run and its verdict are as before."""
     tier = replace(load_tiers()["mediocre"], name="narrow", max_rate_hz=10.0,
                    bandwidth_kbps=34.0, loss_pct=0.0)  # fmt: skip
     motions = live_motions([str(sample_dir)])
-    row = await run_live_tier(tier, motions, LiveConfig(duration=5.0, bots=2, auto=True))
+    cfg = LiveConfig(duration=5.0, bots=2, auto=True, budget_deg=budget)
+    row = await run_live_tier(tier, motions, cfg)
     assert {"live", "offline", "agreement", "auto"} <= set(row)
     auto = row["auto"]
-    assert auto["asked"] == "auto (up to 30 Hz)"
+    budget_text = "" if budget is None else ", budget 2 deg"
+    assert auto["asked"] == "auto (up to 30 Hz)" + budget_text
     assert 5.0 <= auto["server_rate_low_hz"] < 30.0
     assert auto["server_rate_low_hz"] <= auto["server_rate_mean_hz"] <= auto["server_rate_high_hz"]
     assert auto["bytes_per_s"] <= 1.05 * tier.bytes_per_s
@@ -123,3 +129,15 @@ async def test_live_auto_runs_the_tier_again_with_the_relays_rates(sample_dir: P
 def test_live_auto_needs_live(tmp_path: Path) -> None:
     res = _run_cli(["--traces", "traces:sample", "--out", str(tmp_path / "t1"), "--live-auto"])
     assert res.exit_code == 2 and "give --live too" in res.output
+
+
+def test_live_budget_needs_live_auto_and_a_valid_angle(tmp_path: Path) -> None:
+    """--live-budget-deg: one line, before any work, without --live-auto or out of range."""
+    base = ["--traces", "traces:sample", "--out", str(tmp_path / "t1"), "--live"]
+    res = _run_cli([*base, "--live-budget-deg", "2"])
+    assert res.exit_code == 2 and "give --live-auto too" in res.output
+    res = _run_cli([*base, "--live-auto", "--live-budget-deg", "95"])
+    assert res.exit_code == 2 and "budget must be in (0, 90) degrees" in res.output
+    assert not (tmp_path / "t1" / "table1.json").exists()
+    with pytest.raises(ValueError, match="ask for auto rates too"):
+        LiveConfig(budget_deg=2.0)
