@@ -194,13 +194,17 @@ class SessionLog(Observer):
         return out
 
     def keyframe_rate(self) -> float:
-        """New keyframes received per remote stream per second (mean over streams)."""
-        rates = [
-            (len(set(rs.capture)) - 1) / (rs.arrival[-1] - rs.arrival[0])
+        """New keyframes received per remote stream per second: every stream's new
+        keyframes over the time it was received (first to last arrival), pooled, so
+        a stream seen only briefly (a peer that came and went, a resume) weighs its
+        little time and not one stream's share."""
+        spans = [
+            (len(set(rs.capture)) - 1, rs.arrival[-1] - rs.arrival[0])
             for rs in self.streams.values()
             if len(rs.arrival) > 1 and rs.arrival[-1] > rs.arrival[0]
         ]
-        return float(np.mean(rates)) if rates else 0.0
+        seconds = sum(span for _, span in spans)
+        return sum(n for n, _ in spans) / seconds if seconds > 0 else 0.0
 
     def late_delay_ms(self) -> dict[int, float]:
         """Peers shown late alone: their mean own D over those frames, ms."""
