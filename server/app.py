@@ -145,13 +145,17 @@ class _Connection(WebSocketConnection):
         self.server._all_gone.clear()
         peername = transport.get_extra_info("peername")
         self._address = peername[0] if isinstance(peername, tuple) and peername else None
-        self._slot = self.server.core.handshakes.admit(self._address, self.server.clock())
+        shakes = self.server.core.handshakes
+        self._slot = shakes.admit(self._address, self.server.clock(), key=self)
+        for oldest in shakes.take_evicted():  # at the cap: slow handshakes give way
+            if isinstance(oldest, _Connection):
+                oldest.abort()
         if self._slot is None:
             self.abort()  # over the caps and the spare places: not one byte read
 
     def _release_slot(self) -> None:
         if self._slot is not None:
-            self.server.core.handshakes.release(self._slot, self._address)
+            self.server.core.handshakes.release(self._slot, self._address, key=self)
             self._slot = None
 
     def connection_lost(self, exc: Exception | None) -> None:

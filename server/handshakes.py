@@ -13,6 +13,10 @@ before the core sees it (``RelayCore.connect`` runs once the handshake is done).
   1013 "try again later" right after its handshake (as over the caps of open
   connections), or, with no spare place either, it is dropped at once;
 - its handshake must end within ``handshake_timeout`` (2 s by default; it was 10 s);
+- at the total cap, a new connection takes the place of the oldest pending
+  handshake if that one has been pending ``EVICT_AFTER`` (0.5 s) or more: slow
+  upgrades from many addresses (each under its own cap) then cannot fill the relay
+  and lock honest users out, whose handshakes take milliseconds, not seconds;
 - :func:`fd_budget` raises the process's ``nofile`` soft limit to its hard limit
   and lowers the caps so that ``FD_RESERVE`` descriptors always stay free (for the
   spare places, recordings, the cluster's NATS, the log).
@@ -31,7 +35,7 @@ from posecast.server.guard import Guard
 from posecast.server.limits import Admission
 from posecast.server.logs import LogLimiter
 
-__all__ = ["FD_RESERVE", "HEALTH_RESERVE", "Handshakes", "fd_budget"]
+__all__ = ["EVICT_AFTER", "FD_RESERVE", "HEALTH_RESERVE", "Handshakes", "fd_budget"]
 
 log = logging.getLogger("posecast.server")
 
@@ -39,6 +43,8 @@ log = logging.getLogger("posecast.server")
 HEALTH_RESERVE = 16
 #: File descriptors kept free beyond every connection the caps allow.
 FD_RESERVE = 64
+#: At the total cap, a pending handshake this old (s) gives its place to a new one.
+EVICT_AFTER = 0.5
 
 Slot = Literal["handshake", "probe"]
 
@@ -59,24 +65,73 @@ class Handshakes:
         #: Dropped at once (over a cap, no spare place), and dropped for not
         #: finishing their handshake in time.
         self.refused = self.timeouts = 0
+        #: Pending handshakes dropped for a new connection at the total cap.
+        self.evicted = 0
+        self.evict_after = EVICT_AFTER
+        #: Pending handshakes admitted with a key, oldest first: key -> (address, since).
+        self._order: dict[object, tuple[str | None, float]] = {}
+        self._evicted: list[object] = []
         self._log = LogLimiter(1.0)
         #: Rates across connections, per address and token user (``server/guard.py``).
         self.guard = guard or Guard()
 
-    def admit(self, address: str | None, now: float) -> Slot | None:
+    def admit(self, address: str | None, now: float, key: object = None) -> Slot | None:
         """Count a new TCP connection from ``address``: ``"handshake"`` (within the caps),
-        ``"probe"`` (over one: a spare place, plain HTTP only) or None (drop it now)."""
+        ``"probe"`` (over one: a spare place, plain HTTP only) or None (drop it now).
+
+        ``key`` (the adapter's connection) lets a later connection at the total cap take
+        its place once it has been pending ``evict_after`` s; :meth:`take_evicted` then
+        names it, and the adapter drops it."""
         cap = self.admission
-        over = bool(cap.max_total) and self.pending + cap.total >= cap.max_total
-        over = over or not self.guard.connect(address, now)  # reconnecting too fast
-        if address is not None and cap.max_per_address and not over:
+        full = bool(cap.max_total) and self.pending + cap.total >= cap.max_total
+        if full and self._oldest(now) is None:
+            return self._over(address, now)
+        if not self.guard.connect(address, now):  # reconnecting too fast
+            return self._over(address, now)
+        if address is not None and cap.max_per_address:
             held = self.by_address.get(address, 0) + cap.by_address.get(address, 0)
-            over = held >= cap.max_per_address
-        if not over:
-            self.pending += 1
-            if address is not None:
-                self.by_address[address] = self.by_address.get(address, 0) + 1
-            return "handshake"
+            if held >= cap.max_per_address:
+                return self._over(address, now)
+        if full:
+            self._evict_oldest(now)
+        self.pending += 1
+        if address is not None:
+            self.by_address[address] = self.by_address.get(address, 0) + 1
+        if key is not None:
+            self._order[key] = (address, now)
+        return "handshake"
+
+    def _oldest(self, now: float) -> object | None:
+        """The key of the oldest pending handshake if it has waited ``evict_after`` s."""
+        key = next(iter(self._order), None)
+        if key is None or now - self._order[key][1] < self.evict_after:
+            return None
+        return key
+
+    def _evict_oldest(self, now: float) -> None:
+        """Give up the oldest pending handshake (:meth:`_oldest`) for a new one."""
+        key = self._oldest(now)
+        if key is None:
+            return
+        address, _ = self._order.pop(key)
+        self._count_off(address)
+        self._evicted.append(key)
+        self.evicted += 1
+        quiet = self._log.admit(now)
+        if quiet is not None:
+            log.warning(
+                "at the connection cap (%d): the oldest pending handshake (from %s) "
+                "gave its place to a new connection%s",
+                self.admission.max_total, address, self._log.note(quiet),
+            )  # fmt: skip
+
+    def take_evicted(self) -> list[object]:
+        """The keys of the pending handshakes given up since the last call (drop them)."""
+        out, self._evicted = self._evicted, []
+        return out
+
+    def _over(self, address: str | None, now: float) -> Slot | None:
+        cap = self.admission
         if self.probes < self.reserve:
             self.probes += 1
             return "probe"
@@ -91,11 +146,16 @@ class Handshakes:
             )  # fmt: skip
         return None
 
-    def release(self, slot: Slot, address: str | None) -> None:
+    def release(self, slot: Slot, address: str | None, key: object = None) -> None:
         """A connection :meth:`admit` counted has finished its handshake, or ended."""
         if slot == "probe":
             self.probes -= 1
             return
+        if key is not None and self._order.pop(key, None) is None:
+            return  # given up at the cap: no longer counted
+        self._count_off(address)
+
+    def _count_off(self, address: str | None) -> None:
         self.pending -= 1
         if address is not None:
             left = self.by_address.pop(address, 1) - 1

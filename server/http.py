@@ -366,8 +366,13 @@ def _limit_metrics(
         "posecast_handshakes_refused_total",
         "counter",
         "TCP connections dropped before their handshake: over a connection cap with no"
-        " spare place left, or not done within handshake_timeout.",
-        [('{reason="over-cap"}', shakes.refused), ('{reason="timeout"}', shakes.timeouts)],
+        " spare place left, not done within handshake_timeout, or pending for"
+        " 0.5 s or more when a new connection came at the total cap.",
+        [
+            ('{reason="over-cap"}', shakes.refused),
+            ('{reason="timeout"}', shakes.timeouts),
+            ('{reason="evicted"}', shakes.evicted),
+        ],
     )
     metric(
         "posecast_resumes_refused_total",

@@ -39,6 +39,28 @@ def test_pending_and_open_connections_share_the_caps() -> None:
     assert shakes.by_address == {"a": 1, "b": 1, "d": 1}
 
 
+def test_at_the_total_cap_the_oldest_slow_handshake_gives_way() -> None:
+    """At the total cap a new connection takes the place of the oldest handshake pending
+    for ``evict_after`` s or more (named by take_evicted, released once); a younger one
+    keeps its place, and the per-address cap is not bypassed."""
+    admission = Admission(max_total=2, max_per_address=2)
+    shakes = Handshakes(admission, reserve=0)
+    assert shakes.admit("a", 0.0, key="k1") == "handshake"
+    assert shakes.admit("b", 0.2, key="k2") == "handshake"
+    assert shakes.admit("c", 0.4, key="k3") is None  # k1 waited 0.4 s: it keeps its place
+    assert shakes.take_evicted() == [] and shakes.evicted == 0
+    assert shakes.admit("c", 0.5, key="k4") == "handshake"
+    assert shakes.take_evicted() == ["k1"] and shakes.evicted == 1
+    assert shakes.pending == 2 and shakes.by_address == {"b": 1, "c": 1}
+    shakes.release("handshake", "a", key="k1")  # the dropped one ends: counted once
+    assert shakes.pending == 2 and shakes.by_address == {"b": 1, "c": 1}
+    shakes.release("handshake", "b", key="k2")  # a handshake done
+    assert shakes.pending == 1 and shakes.by_address == {"c": 1}
+    assert shakes.admit("c", 0.9, key="k5") == "handshake"
+    assert shakes.admit("c", 9.0, key="k6") is None  # c at its own cap of 2: no eviction
+    assert shakes.take_evicted() == []
+
+
 async def _http(port: int, path: str) -> bytes:
     reader, writer = await asyncio.open_connection("127.0.0.1", port)
     writer.write(f"GET {path} HTTP/1.1\r\nHost: relay\r\n\r\n".encode())
@@ -113,3 +135,23 @@ async def test_silent_connections_are_dropped_at_the_handshake_deadline() -> Non
             await ws.ping()
         text = srv.metrics_text()
         assert _metric(text.encode(), 'posecast_handshakes_refused_total{reason="timeout"}') == 2
+
+
+async def test_slow_upgrades_at_the_total_cap_do_not_lock_a_user_out() -> None:
+    """Silent upgrades from one address each (as from many machines) fill the relay's
+    total cap; a websocket client still gets in, in the place of the oldest."""
+    cfg = ServerConfig(host="127.0.0.1", port=0, max_connections=3, handshake_timeout=60.0)
+    async with running_server(cfg) as srv:
+        assert srv.port is not None
+        shakes = srv.core.handshakes
+        shakes.evict_after = 0.0  # (0.5 s by default: no waiting in a test)
+        slow = [await _silent(srv.port) for _ in range(3)]
+        await poll_until(lambda: shakes.pending == 3)
+        async with connect(f"ws://127.0.0.1:{srv.port}") as ws:
+            await (await ws.ping())  # a pong: open, not closed 1013 over the cap
+        assert await _dropped(slow[0][0])
+        assert shakes.evicted >= 1 and srv.core.refused_connections == 0
+        text = srv.metrics_text()
+        assert _metric(text.encode(), 'posecast_handshakes_refused_total{reason="evicted"}') >= 1
+        for _, writer in slow:
+            writer.close()
