@@ -254,6 +254,31 @@ static int nibbles_of(PyObject *list, int *out, int at) {
     return at;
 }
 
+/* A snapshot frame of ``nk`` key and ``nd`` delta entries whose bits are in ``w``:
+ * ``head``, the two counts, the delta section's check, the order nibbles of the
+ * sections present, the bits. Returns (bytes, nk + nd); NULL with an exception set. */
+static PyObject *frame_of(const Py_buffer *head, Py_ssize_t nk, Py_ssize_t nd, uint32_t check,
+                          PyObject *knib, PyObject *dnib, const Writer *w) {
+    int nib[16], count = 0;
+    if (nk && (count = nibbles_of(knib, nib, count)) < 0) return NULL;
+    if (nd && (count = nibbles_of(dnib, nib, count)) < 0) return NULL;
+    if (count % 2) nib[count++] = 0;
+    Py_ssize_t body = (w->pos + 7) / 8, size = head->len + 20 + 4 + count / 2 + body;
+    PyObject *out = PyBytes_FromStringAndSize(NULL, size);
+    if (out == NULL) return NULL;
+    unsigned char *p = (unsigned char *)PyBytes_AS_STRING(out), *start = p;
+    memcpy(p, head->buf, head->len);
+    p += head->len;
+    p += put_uvarint(p, (uint64_t)nk);
+    p += put_uvarint(p, (uint64_t)nd);
+    if (nd) put_le32(p, (int64_t)check), p += 4;
+    for (int i = 0; i < count; i += 2) *p++ = (unsigned char)(nib[i] << 4 | nib[i + 1]);
+    if (body) memcpy(p, w->buf, body);
+    p += body;
+    if (_PyBytes_Resize(&out, p - start) < 0) return NULL;
+    return Py_BuildValue("(Nn)", out, nk + nd);
+}
+
 static PyObject *py_splice(PyObject *self, PyObject *args) {
     Py_buffer head;
     PyObject *key, *delta, *knib, *dnib, *result = NULL;
@@ -272,24 +297,7 @@ static PyObject *py_splice(PyObject *self, PyObject *args) {
         result = Py_BuildValue("(yi)", "", 0);
         goto done;
     }
-    int nib[16], count = 0;
-    if (nk && (count = nibbles_of(knib, nib, count)) < 0) goto done;
-    if (nd && (count = nibbles_of(dnib, nib, count)) < 0) goto done;
-    if (count % 2) nib[count++] = 0;
-    Py_ssize_t body = (w.pos + 7) / 8, size = head.len + 20 + 4 + count / 2 + body;
-    PyObject *out = PyBytes_FromStringAndSize(NULL, size);
-    if (out == NULL) goto done;
-    unsigned char *p = (unsigned char *)PyBytes_AS_STRING(out), *start = p;
-    memcpy(p, head.buf, head.len);
-    p += head.len;
-    p += put_uvarint(p, (uint64_t)nk);
-    p += put_uvarint(p, (uint64_t)nd);
-    if (nd) put_le32(p, (int64_t)check), p += 4;
-    for (int i = 0; i < count; i += 2) *p++ = (unsigned char)(nib[i] << 4 | nib[i + 1]);
-    if (body) memcpy(p, w.buf, body);
-    p += body;
-    if (_PyBytes_Resize(&out, p - start) < 0) goto done;
-    result = Py_BuildValue("(Nn)", out, nk + nd);
+    result = frame_of(&head, nk, nd, check, knib, dnib, &w);
 done:
     PyMem_Free(w.buf);
     PyBuffer_Release(&head);
@@ -768,24 +776,7 @@ static PyObject *py_splice_packed(PyObject *self, PyObject *args) {
         result = Py_BuildValue("(yi)", "", 0);
         goto done;
     }
-    int nib[16], got = 0;
-    if (n[0] && (got = nibbles_of(knib, nib, got)) < 0) goto done;
-    if (n[1] && (got = nibbles_of(dnib, nib, got)) < 0) goto done;
-    if (got % 2) nib[got++] = 0;
-    Py_ssize_t body = (w.pos + 7) / 8, size = head.len + 20 + 4 + got / 2 + body;
-    PyObject *out = PyBytes_FromStringAndSize(NULL, size);
-    if (out == NULL) goto done;
-    unsigned char *o = (unsigned char *)PyBytes_AS_STRING(out), *start = o;
-    memcpy(o, head.buf, head.len);
-    o += head.len;
-    o += put_uvarint(o, (uint64_t)n[0]);
-    o += put_uvarint(o, (uint64_t)n[1]);
-    if (n[1]) put_le32(o, (int64_t)check), o += 4;
-    for (int i = 0; i < got; i += 2) *o++ = (unsigned char)(nib[i] << 4 | nib[i + 1]);
-    if (body) memcpy(o, w.buf, body);
-    o += body;
-    if (_PyBytes_Resize(&out, o - start) < 0) goto done;
-    result = Py_BuildValue("(Nn)", out, n[0] + n[1]);
+    result = frame_of(&head, n[0], n[1], check, knib, dnib, &w);
 done:
     PyMem_Free(w.buf);
     PyBuffer_Release(&head);
