@@ -146,11 +146,7 @@ def table1(
     the command exits 1 if they disagree beyond the stated tolerance.
     Ctrl-C prints what was measured by then, writes nothing, and exits 130.
     """
-    rate_list = [int(r) for r in _parse_rates(rates)]
-    method_list = _parse_methods(methods)
-    if transport not in ("datagram", "stream"):
-        raise _fail("--transport must be datagram or stream")
-    f_rates = None if frontier_rates is None else [int(r) for r in _parse_rates(frontier_rates)]
+    rate_list, method_list, f_rates = _table1_choices(rates, methods, transport, frontier_rates)
     live_plan = _plan_live(
         live, traces, tiers, method_list, live_duration, live_bots, live_auto, live_budget_deg
     )
@@ -244,6 +240,18 @@ def _print_curves(curves: dict[int, Any]) -> None:
         cells = [curves[rate][m].get("hands", {}).get("tip_p95_mm", float("nan")) for m in methods]
         table.add_row(str(rate), *(f"{c:.1f}" for c in cells))
     console.print(table)
+
+
+def _table1_choices(
+    rates: str, methods: str, transport: str, frontier_rates: str | None
+) -> tuple[list[int], list[str], list[int] | None]:
+    """table1's rates, methods and frontier rates (a one-line error for a bad one)."""
+    rate_list = [int(r) for r in _parse_rates(rates)]
+    method_list = _parse_methods(methods)
+    if transport not in ("datagram", "stream"):
+        raise _fail("--transport must be datagram or stream")
+    f_rates = None if frontier_rates is None else [int(r) for r in _parse_rates(frontier_rates)]
+    return rate_list, method_list, f_rates
 
 
 def _plan_live(
