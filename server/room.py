@@ -81,6 +81,12 @@ CODES_HISTORY = 16
 _POSITION = struct.Struct("<3f")
 
 
+def _key_slot(now: float, rate: float) -> int:
+    """A compact subscriber's key slot at ``now``: slots of KEY_INTERVAL less one tick,
+    per rate, so keys come at most KEY_INTERVAL apart and members of one rate share them."""
+    return math.floor(now / max(KEY_INTERVAL - 1.0 / rate, 1e-3))
+
+
 #: Upper bounds (s) of the tick lag histogram's buckets (``posecast_tick_lag_seconds``;
 #: one more bucket, +Inf, holds the rest).
 TICK_LAG_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0)
@@ -615,10 +621,7 @@ class Room:
             if member.view is not None:
                 data, n = self._view_frame(member, member.view, now, views)
             elif member.compact:
-                # Slots of KEY_INTERVAL less one tick, per rate: keys at most
-                # KEY_INTERVAL apart, and members of one rate share them.
-                slot = math.floor(now / max(KEY_INTERVAL - 1.0 / member.rate, 1e-3))
-                data, n = self._compact_frame(member, now, slot, groups)
+                data, n = self._compact_frame(member, now, _key_slot(now, member.rate), groups)
             else:
                 key = (member.delivered_version, member.velocities)
                 if key not in cache:
@@ -702,7 +705,7 @@ class Room:
                 publishers.setdefault(s.user, []).append((sid, s))
         tick = round(now * member.rate - self.phase)
         if member.compact:
-            slot = math.floor(now / max(KEY_INTERVAL - 1.0 / member.rate, 1e-3))
+            slot = _key_slot(now, member.rate)
             if member.key_slot != slot:  # a key, peer by peer as each one goes
                 member.key_slot = slot
                 view.absolute = set(publishers)
