@@ -84,7 +84,8 @@ class Handshakes:
         names it, and the adapter drops it."""
         cap = self.admission
         full = bool(cap.max_total) and self.pending + cap.total >= cap.max_total
-        if full and self._oldest(now) is None:
+        oldest = self._oldest(now) if full else None
+        if full and oldest is None:
             return self._over(address, now)
         if not self.guard.connect(address, now):  # reconnecting too fast
             return self._over(address, now)
@@ -92,8 +93,8 @@ class Handshakes:
             held = self.by_address.get(address, 0) + cap.by_address.get(address, 0)
             if held >= cap.max_per_address:
                 return self._over(address, now)
-        if full:
-            self._evict_oldest(now)
+        if oldest is not None:
+            self._evict(oldest, now)
         self.pending += 1
         if address is not None:
             self.by_address[address] = self.by_address.get(address, 0) + 1
@@ -108,11 +109,8 @@ class Handshakes:
             return None
         return key
 
-    def _evict_oldest(self, now: float) -> None:
-        """Give up the oldest pending handshake (:meth:`_oldest`) for a new one."""
-        key = self._oldest(now)
-        if key is None:
-            return
+    def _evict(self, key: object, now: float) -> None:
+        """Give up the pending handshake ``key`` (:meth:`_oldest`) for a new one."""
         address, _ = self._order.pop(key)
         self._count_off(address)
         self._evicted.append(key)
