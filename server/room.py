@@ -472,6 +472,8 @@ class Room:
                 self.stream_ids.give_back(sid)
                 if self.motion is not None:
                     self.motion.forget(sid)
+            if member.view is not None and all(m.view is None for m in self.members.values()):
+                self.motion = None  # no budget left: stop following motion per pose
         return member
 
     @staticmethod
