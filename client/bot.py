@@ -256,7 +256,13 @@ class Bot:
         if needs and not self.velocities:
             raise ValueError(f"{', '.join(needs)} need keyframe velocities (velocities=False)")
         self.log = SessionLog(cfg.methods, keep_render_log=cfg.keep_render_log)
-        self.core = ClientCore(cfg.methods, cfg.rate, velocities=self.velocities, observer=self.log)
+        self.core = ClientCore(
+            cfg.methods,
+            cfg.rate,
+            velocities=self.velocities,
+            observer=self.log,
+            per_peer=cfg.budget_deg is not None,
+        )
         self.policy = Reconnect(cfg.relays, cfg.resume, cfg.resume_window)
         self.receiver = Receiver(self.core, self.policy, clock, ping_interval=cfg.ping_interval)
         self.receiver.listen(self._owner)

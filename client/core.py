@@ -119,7 +119,8 @@ class Observer:
 @dataclass(frozen=True)
 class Playout:
     """One frame's playout: server time ``now``, the room's D, the room's playout
-    time ``now - delay``, and the users shown late alone with their own D."""
+    time ``now - delay``, and the users shown at their own D (late alone, or slower
+    peers' longer D)."""
 
     now: float
     delay: float
@@ -154,13 +155,16 @@ class ClientCore:
 
     ``methods``: interpolators each frame renders; ``rate``: the snapshot rate asked
     (D starts at one interval, plus one per keyframe a window method looks ahead);
-    ``velocities``: it receives velocity snapshots; ``observer``: gets its reports.
+    ``velocities``: it receives velocity snapshots; ``observer``: gets its reports;
+    ``per_peer``: size each user's D from its own keyframe interval (a client that
+    joined with ``budget_deg``, :class:`client.playout.RoomPlayoutDelay`).
     """
 
     methods: tuple[str, ...]
     rate: float
     velocities: bool = False
     observer: Observer = field(default_factory=Observer)
+    per_peer: bool = False
     clock: ClockEstimator = field(default_factory=ClockEstimator)
     delay: RoomPlayoutDelay = field(init=False)
     buffers: RoomBuffers = field(default_factory=RoomBuffers)
@@ -182,7 +186,9 @@ class ClientCore:
     def __post_init__(self) -> None:
         # A window method waits for the keyframe after the bracket: one more interval.
         lookahead = max(interp_info(m).lookahead for m in self.methods)
-        self.delay = RoomPlayoutDelay(interval=(1.0 + lookahead) / self.rate, rate=self.rate)
+        self.delay = RoomPlayoutDelay(
+            interval=(1.0 + lookahead) / self.rate, rate=self.rate, per_peer=self.per_peer
+        )
 
     # -- what arrives -------------------------------------------------------------
 
@@ -293,7 +299,7 @@ class ClientCore:
             vel = None if vel64 is None else vel64[i]
             obs.keyframe(key, cap, arrival_srv, arrival, sent, pose, vel)
             remote.buffer.push(cap, pose, floor, vel)
-            self.delay.observe(user, arrival_srv - cap)
+            self.delay.observe(user, arrival_srv - cap, sent)
         obs.snapshot(arrival_srv, arrival, sent, size, per_user)
         return new
 
@@ -303,7 +309,7 @@ class ClientCore:
         """This frame's playout at ``local`` (caller's clock): D slews towards its target."""
         now = local + self.clock.offset
         d = self.delay.update(now)
-        return Playout(now, d, self.delay.own)
+        return Playout(now, d, self.delay.own_delays())
 
     def render(self, playout: Playout, *, report: bool = True) -> Rendered:
         """Every remote stream at its playout time, one batched call per method.

@@ -10,11 +10,14 @@ Nothing here reads a clock: every method takes the time it needs.
 - :class:`RoomPlayoutDelay`: a :class:`PlayoutDelay` per remote user, the room's
   D from the users whose ages are not outliers (the majority's median plus a
   bound that follows the room's own jitter width, or the MAD of the medians); a
-  late user is shown late alone, at its own D.
+  late user is shown late alone, at its own D; with ``per_peer``, a user whose
+  keyframes come every k snapshot intervals (the relay's view-aware rates) is
+  shown k - 1 intervals later than the room's D.
 """
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -122,6 +125,18 @@ class RoomPlayoutDelay:
     late alone at its own D (``own``), slewing from where it was shown to
     ``max(room's target, its own)``; no longer late, it slews back and rejoins the
     room's D within 1 ms. Users with under ``min_samples`` ages are not judged.
+
+    Per peer (``per_peer``, for a client that joined with ``budget_deg``: the relay
+    then sends each peer every ``k`` snapshot intervals, its own ``k``, section 5.6
+    of the protocol): the send times of the snapshots that carry a user's new
+    keyframes say its keyframe interval in snapshot intervals (``round(gap *
+    rate)`` half up, at least 1; the last ``gap_window`` of them). Its divisor ``k`` is their
+    ``percentile`` (nearest rank), and its D is the one above plus ``(k - 1) *
+    interval`` (the bracket it must bridge is k times longer; ``interval`` holds a
+    window method's look-ahead too), that extra slewing like any D (set at once for
+    a user's first gap). A user whose keyframes come at the snapshot rate has k = 1
+    and exactly the D it had without ``per_peer``. Ages stay as they are: they
+    measure the path, not the interval.
     """
 
     interval: float
@@ -143,6 +158,10 @@ class RoomPlayoutDelay:
     early: float = 0.1
     #: The snapshot rate ``interval`` is for (Hz; None: not given, :meth:`retime` does nothing).
     rate: float | None = None
+    #: Size each user's D from its own keyframe interval too (see the class docstring).
+    per_peer: bool = False
+    #: Keyframe intervals (in snapshot intervals) a user's divisor is judged over.
+    gap_window: int = 16
     room: PlayoutDelay = field(init=False)
     #: Users shown late alone (or slewing back to the room's D): their own D (s).
     own: dict[int, float] = field(default_factory=dict)
@@ -154,6 +173,12 @@ class RoomPlayoutDelay:
     _own: dict[int, float] = field(default_factory=dict)
     _seated: set[int] = field(default_factory=set)
     _was: set[int] = field(default_factory=set)
+    #: Per peer: each user's last send time carrying its keyframes, its gaps (in
+    #: snapshot intervals), its extra D (s) and when the extras last slewed.
+    _sent: dict[int, float] = field(default_factory=dict)
+    _gaps: dict[int, deque[int]] = field(default_factory=dict)
+    _extra: dict[int, float] = field(default_factory=dict)
+    _extra_at: float | None = None
 
     def __post_init__(self) -> None:
         self.room = self._new()
@@ -169,23 +194,53 @@ class RoomPlayoutDelay:
         self.interval *= scale
         for d in (self.room, *self._users.values()):
             d.interval *= scale
+        self._gaps.clear()  # counted in the old intervals; the extras slew from where they are
         self._dirty = True
 
-    def observe(self, user: int, age: float) -> None:
-        """One keyframe of ``user``'s, its age on arrival (server clock)."""
+    def observe(self, user: int, age: float, sent: float | None = None) -> None:
+        """One keyframe of ``user``'s, its age on arrival (server clock); ``sent``: the
+        send time of the snapshot that carried it (server clock; used ``per_peer``)."""
         (self._users.get(user) or self._users.setdefault(user, self._new())).observe(age)
         self._dirty = True
+        if self.per_peer and sent is not None:
+            last = self._sent.get(user)
+            if last is None or sent > last:
+                self._sent[user] = sent
+            if last is not None and sent > last:
+                gaps = self._gaps.get(user) or self._gaps.setdefault(
+                    user, deque(maxlen=self.gap_window)
+                )
+                gaps.append(max(1, math.floor((sent - last) / self._interval() + 0.5)))
+
+    def divisor(self, user: int) -> int:
+        """``user``'s keyframe interval in snapshot intervals (1 without ``per_peer``)."""
+        gaps = self._gaps.get(user)
+        if not gaps:
+            return 1
+        ranked = sorted(gaps)  # nearest rank: the ceil(n p / 100)-th smallest
+        return ranked[max(0, math.ceil(len(ranked) * self.percentile / 100) - 1)]
+
+    def own_delays(self) -> dict[int, float]:
+        """Every user shown at another D than the room's: late ones, slower peers."""
+        out = dict(self.own)
+        for u, e in self._extra.items():
+            if e > 1e-9:
+                out[u] = self.own.get(u, self.room.value) + e
+        return out
 
     def forget(self, user: int) -> None:
         """A user left: its ages no longer count."""
         self._users.pop(user, None)
         self.own.pop(user, None)
         self.late.discard(user)
+        self._sent.pop(user, None)
+        self._gaps.pop(user, None)
+        self._extra.pop(user, None)
         self._dirty = True
 
     def delay(self, user: int) -> float:
         """The D ``user``'s streams are rendered with."""
-        return self.own.get(user, self.room.value)
+        return self.own.get(user, self.room.value) + self._extra.get(user, 0.0)
 
     def _interval(self) -> float:
         return 1.0 / self.rate if self.rate else self.interval
@@ -247,4 +302,16 @@ class RoomPlayoutDelay:
                 del self.own[u]  # back in step with the room
             else:
                 self.own[u] = d.value
+        if self._gaps:
+            self._slew_extras(now)
         return room
+
+    def _slew_extras(self, now: float) -> None:
+        """Each slower peer's extra D towards ``(k - 1) * interval``."""
+        dt = 0.0 if self._extra_at is None else max(0.0, now - self._extra_at)
+        step = 1.0 if self._extra_at is None else min(1.0, dt / self.tau)
+        self._extra_at = now
+        for u in self._gaps:
+            goal = (self.divisor(u) - 1) * self.interval
+            e = self._extra.get(u)
+            self._extra[u] = goal if e is None else e + (goal - e) * step

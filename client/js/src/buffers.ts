@@ -200,7 +200,14 @@ export class PlayoutDelay {
 
 /** Playout delay per remote user: one late user cannot raise D for the others. The
  * late bound follows the room's own spread of ages, as Python's
- * `client.playout.RoomPlayoutDelay` (its docstring states the rule). */
+ * `client.playout.RoomPlayoutDelay` (its docstring states the rule).
+ *
+ * Per peer (`perPeer`, for a client that joined with a `budgetDeg`: the relay sends
+ * each peer every k snapshot intervals, its own k): the send times of the snapshots
+ * carrying a user's new keyframes give its keyframe interval in snapshot intervals
+ * (the last `gapWindow` of them); its divisor k is their `pct` percentile (nearest
+ * rank), and its D is the above plus (k - 1) intervals, slewing like any D. A user at
+ * the snapshot rate has k = 1 and the D it had without `perPeer`. */
 export class RoomPlayoutDelay {
   readonly room: PlayoutDelay;
   /** Users shown late alone (or slewing back to the room's D): their own D (s). */
@@ -212,6 +219,14 @@ export class RoomPlayoutDelay {
   private ownTargets = new Map<number, number>();
   private seated = new Set<number>();
   private was = new Set<number>();
+  /** Size each user's D from its own keyframe interval too (see the class comment). */
+  perPeer = false;
+  /** Keyframe intervals (in snapshot intervals) a user's divisor is judged over. */
+  gapWindow = 16;
+  private readonly sent = new Map<number, number>();
+  private readonly gaps = new Map<number, Window>();
+  private readonly extra = new Map<number, number>();
+  private extraAt: number | null = null;
 
   constructor(
     /** The snapshot interval (s), 1 / rate; `retime` changes it. */
@@ -252,26 +267,55 @@ export class RoomPlayoutDelay {
     this.rate = rate;
     this.interval *= scale;
     for (const d of [this.room, ...this.users.values()]) d.interval *= scale;
+    this.gaps.clear(); // counted in the old intervals; the extras slew from where they are
     this.dirty = true;
   }
 
-  observe(user: number, age: number): void {
+  /** One keyframe of `user`'s, its age on arrival (server clock); `sent`: the send
+   * time of the snapshot that carried it (server clock; used with `perPeer`). */
+  observe(user: number, age: number, sent: number | null = null): void {
     let d = this.users.get(user);
     if (!d) this.users.set(user, (d = this.make()));
     d.observe(age);
     this.dirty = true;
+    if (!this.perPeer || sent === null) return;
+    const last = this.sent.get(user);
+    if (last === undefined || sent > last) this.sent.set(user, sent);
+    if (last === undefined || !(sent > last)) return;
+    let gaps = this.gaps.get(user);
+    if (!gaps) this.gaps.set(user, (gaps = new Window(this.gapWindow)));
+    const step = this.rate > 0 ? 1 / this.rate : this.interval;
+    gaps.push(Math.max(1, Math.floor((sent - last) / step + 0.5)));
+  }
+
+  /** `user`'s keyframe interval in snapshot intervals (1 without `perPeer`). */
+  divisor(user: number): number {
+    const gaps = this.gaps.get(user);
+    if (!gaps || !gaps.length) return 1;
+    const ranked = [...gaps.values].sort((a, b) => a - b);
+    return ranked[Math.max(0, Math.ceil((ranked.length * this.pct) / 100) - 1)]!;
+  }
+
+  /** Every user shown at another D than the room's: late ones, slower peers. */
+  ownDelays(): Map<number, number> {
+    const out = new Map(this.own);
+    for (const [u, e] of this.extra) if (e > 1e-9) out.set(u, (this.own.get(u) ?? this.room.value) + e);
+    return out;
   }
 
   forget(user: number): void {
     this.users.delete(user);
     this.own.delete(user);
     this.late.delete(user);
+    this.sent.delete(user);
+    this.gaps.delete(user);
+    this.extra.delete(user);
     this.dirty = true;
   }
 
   /** The D `user`'s streams are rendered with. */
   delay(user: number): number {
-    return this.own.get(user) ?? this.room.value;
+    return (this.own.get(user) ?? this.room.value) + (this.extra.get(user) ?? 0);
   }
 
   private classify(): number | null {
@@ -344,6 +388,18 @@ export class RoomPlayoutDelay {
         this.own.set(u, d.value);
       }
     }
+    if (this.gaps.size) this.slewExtras(now);
     return room;
+  }
+
+  /** Each slower peer's extra D towards (k - 1) intervals. */
+  private slewExtras(now: number): void {
+    const step = this.extraAt === null ? 1 : Math.min(1, Math.max(0, now - this.extraAt) / this.tau);
+    this.extraAt = now;
+    for (const u of this.gaps.keys()) {
+      const goal = (this.divisor(u) - 1) * this.interval;
+      const e = this.extra.get(u);
+      this.extra.set(u, e === undefined ? goal : e + (goal - e) * step);
+    }
   }
 }

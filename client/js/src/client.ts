@@ -63,7 +63,8 @@ export interface ClientOptions {
   maxRate?: number;
   /** An error budget in degrees of visual angle, in (0, 90) (`join.budget_deg`): the relay
    * sends each peer at the lowest rate whose expected error, seen from this client's head,
-   * stays within it (section 5.6 of the spec). Default: every peer at the snapshot rate. */
+   * stays within it (section 5.6 of the spec); the receiver then sizes each peer's playout
+   * delay from that peer's own keyframe interval. Default: every peer at the snapshot rate. */
   budgetDeg?: number;
   token?: string | null;
   /** A free label peers see with this user (e.g. what it plays). */
@@ -212,7 +213,7 @@ export class PosecastClient extends Emitter<ClientEvents> {
     this.clock = opts.clock ?? monotonicSeconds;
     this.WebSocket = opts.WebSocket ?? defaultWebSocket();
     const first = opts.rate === "auto" ? (opts.maxRate ?? 30) : (opts.rate ?? 30);
-    this.receiver = new Receiver({ rate: first, capacity: opts.bufferCapacity ?? 64 });
+    this.receiver = new Receiver({ rate: first, capacity: opts.bufferCapacity ?? 64, perPeer: opts.budgetDeg !== undefined });
   }
 
   /** This user's id (from welcome); -1 before. */

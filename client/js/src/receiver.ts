@@ -79,6 +79,9 @@ export interface ReceiverOptions {
   /** Snapshot rate (Hz): the playout delay starts at one interval. */
   rate: number;
   capacity?: number;
+  /** Size each peer's playout delay from its own keyframe interval too (a client that
+   * joined with `budgetDeg`: the relay sends each peer at its own rate). */
+  perPeer?: boolean;
 }
 
 export class Receiver {
@@ -91,15 +94,23 @@ export class Receiver {
   posesReceived = 0;
   private floor = -Infinity;
   private readonly capacity: number;
+  private readonly perPeer: boolean;
 
   constructor(opts: ReceiverOptions) {
     this.capacity = opts.capacity ?? DEFAULT_BUFFER_CAPACITY;
-    this.delay = new RoomPlayoutDelay(1 / opts.rate);
+    this.perPeer = opts.perPeer ?? false;
+    this.delay = this.makeDelay(1 / opts.rate);
+  }
+
+  private makeDelay(interval: number): RoomPlayoutDelay {
+    const d = new RoomPlayoutDelay(interval);
+    d.perPeer = this.perPeer;
+    return d;
   }
 
   /** A new snapshot rate (set_rate, rejoin): the delay's interval follows it. */
   setRate(rate: number): void {
-    this.delay = new RoomPlayoutDelay(1 / rate);
+    this.delay = this.makeDelay(1 / rate);
   }
 
   /** The relay chose another rate (a `rate` notice, auto rate): the delay keeps its
@@ -113,7 +124,7 @@ export class Receiver {
     this.peers.clear();
     this.objects.clear();
     this.streams.clear();
-    this.delay = new RoomPlayoutDelay(this.delay.interval);
+    this.delay = this.makeDelay(this.delay.interval);
     this.floor = -Infinity;
   }
 
@@ -196,7 +207,7 @@ export class Receiver {
       rs.received++;
       this.posesReceived++;
       b.push(e.capture, e.pose, this.floor, (e.velocity as Velocity | undefined) ?? null);
-      this.delay.observe(e.user, arrival - e.capture);
+      this.delay.observe(e.user, arrival - e.capture, snap.time);
       added++;
     }
     return added;

@@ -4,7 +4,8 @@
   dq-slerp, motor-lerp) returns for them;
 - test/receiver-vectors.json: a scripted run of the client core's
   ``RoomPlayoutDelay`` (``client.playout``; keyframe ages of three users, one of
-  them late) and of a ``StreamBuffer`` (``client.buffers``; pushes, some duplicate
+  them late), of one with ``per_peer`` (users at their own keyframe intervals),
+  and of a ``StreamBuffer`` (``client.buffers``; pushes, some duplicate
   or stale, and brackets).
 
 Run from the repository root: ``.venv/bin/python client/js/test/make_vectors.py``.
@@ -120,6 +121,41 @@ def playout_script() -> dict[str, object]:
     return {"interval": 1 / 20, "steps": steps}
 
 
+def per_peer_script() -> dict[str, object]:
+    """Per-peer D at 30 Hz: users 1 and 2 in every snapshot, 3 in every 4th, 4 in
+    every 2nd and from t = 3 s in every 6th (it slows down), 5 late by 0.25 s from
+    t = 2 s; each keyframe with its snapshot's send time."""
+    rng = np.random.default_rng(31)
+    rate = 30.0
+    delay = RoomPlayoutDelay(interval=1 / rate, rate=rate, per_peer=True)
+    steps: list[dict[str, object]] = []
+    tick, snap = 0, 0.0
+    for f in range(6 * 90):
+        t = round(f / 90, 6)
+        obs = []
+        while snap <= t:
+            every = {1: 1, 2: 1, 3: 4, 4: 2 if snap < 3 else 6, 5: 1}
+            for user, k in every.items():
+                if tick % k == 0:
+                    lag = 0.25 if user == 5 and snap > 2 else 0.0
+                    age = float(0.004 + abs(rng.normal(0, 0.008)) + lag)
+                    delay.observe(user, age, snap)
+                    obs.append([user, age, snap])
+            tick += 1
+            snap = round(tick / rate, 9)
+        room = delay.update(t)
+        steps.append(
+            {
+                "now": t,
+                "observe": obs,
+                "room": room,
+                "own": {str(u): d for u, d in delay.own_delays().items()},
+                "delay": {str(u): delay.delay(u) for u in (1, 2, 3, 4, 5)},
+            }
+        )
+    return {"rate": rate, "steps": steps}
+
+
 def buffer_script() -> dict[str, object]:
     """Pushes (in and out of order, duplicate, stale, over capacity) and brackets."""
     rng = np.random.default_rng(11)
@@ -176,6 +212,7 @@ def main() -> int:
         "about": "posecast scenarios.receiver runs for the JS SDK's tests; regenerate with "
         "client/js/test/make_vectors.py",
         "playout": playout_script(),
+        "per_peer": per_peer_script(),
         "buffer": buffer_script(),
     }
     RECEIVER_OUT.write_text(json.dumps(receiver, separators=(",", ":")) + "\n")

@@ -141,3 +141,84 @@ test("RoomPlayoutDelay.retime: the interval follows the rate, the ages stay, D s
   d.retime(0); // not a rate: ignored
   assert.ok(Math.abs(d.interval - 0.1) < 1e-15);
 });
+
+const perPeer = (doc as unknown as {
+  per_peer: {
+    rate: number;
+    steps: { now: number; observe: [number, number, number][]; room: number; own: Record<string, number>; delay: Record<string, number> }[];
+  };
+}).per_peer;
+
+test("per peer: RoomPlayoutDelay gives each user Python's D step for step (slower peers later, the rest as before)", () => {
+  const d = new RoomPlayoutDelay(1 / perPeer.rate);
+  d.perPeer = true;
+  let apart = 0;
+  for (const step of perPeer.steps) {
+    for (const [user, age, sent] of step.observe) d.observe(user, age, sent);
+    const room = d.update(step.now);
+    assert.ok(Math.abs(room - step.room) < 1e-12, `t=${step.now}: room D ${room} != ${step.room}`);
+    for (const [u, v] of Object.entries(step.delay)) {
+      assert.ok(Math.abs(d.delay(Number(u)) - v) < 1e-12, `t=${step.now}: user ${u} D ${d.delay(Number(u))} != ${v}`);
+    }
+    const own = d.ownDelays();
+    assert.deepEqual([...own.keys()].map(String).sort(), Object.keys(step.own).sort(), `t=${step.now}: own`);
+    if (own.has(3)) apart++;
+  }
+  assert.equal(d.divisor(3), 4);
+  assert.equal(d.divisor(1), 1);
+  assert.ok(apart > 400, "the every-4th peer is shown at its own D");
+});
+
+test("per peer off: observe with a send time changes nothing (a client without a budget)", () => {
+  const on = new RoomPlayoutDelay(1 / 30);
+  const off = new RoomPlayoutDelay(1 / 30);
+  for (let i = 0; i < 120; i++) {
+    const sent = i / 30;
+    off.observe(1, 0.01 + (i % 7) * 0.001, sent);
+    on.observe(1, 0.01 + (i % 7) * 0.001);
+    if (i % 4 === 0) {
+      off.observe(2, 0.012, sent);
+      on.observe(2, 0.012);
+    }
+    assert.equal(off.update(sent), on.update(sent));
+    assert.equal(off.delay(2), on.delay(2));
+  }
+  assert.equal(off.divisor(2), 1);
+});
+
+function stallsOfPeers(perPeer: boolean): { far: number; near: number; farDelay: number; nearDelay: number } {
+  // 30 Hz snapshots: peer 2 in every one, peer 3 in every 5th (6 Hz); frames at 90 Hz.
+  const r = new Receiver({ rate: 30, perPeer });
+  r.me = 1;
+  for (const u of [2, 3]) r.peerJoined({ type: "peer_joined", user: u, streams: { head: 0 }, label: null, velocities: false });
+  let far = 0;
+  let near = 0;
+  let frame = 0;
+  let last = { far: 0, near: 0 };
+  for (let tick = 0; tick < 180; tick++) {
+    const t = tick / 30;
+    const pose: Pose = [t, 1.5, 0, 1, 0, 0, 0];
+    const entries = [{ user: 2, stream: 0, capture: t, pose }];
+    if (tick % 5 === 0) entries.push({ user: 3, stream: 0, capture: t, pose });
+    r.snapshot({ type: "snapshot", tick, time: t, entries }, t + 0.01);
+    while (frame <= t + 0.01) {
+      const f = r.render(frame);
+      if (frame > 3) {
+        for (const p of f.poses) if (p.stalled) p.user === 3 ? far++ : near++;
+        last = { far: f.poses.find((p) => p.user === 3)!.delay, near: f.poses.find((p) => p.user === 2)!.delay };
+      }
+      frame += 1 / 90;
+    }
+  }
+  return { far, near, farDelay: last.far, nearDelay: last.near };
+}
+
+test("per peer: a Receiver bridges a peer sent at 6 Hz without stalls, the 30 Hz peer at the room's D", () => {
+  const on = stallsOfPeers(true);
+  assert.equal(on.far, 0);
+  assert.equal(on.near, 0);
+  assert.ok(Math.abs(on.farDelay - on.nearDelay - 4 / 30) < 0.01, `${on.farDelay} vs ${on.nearDelay}`);
+  const off = stallsOfPeers(false);
+  assert.ok(off.far > 100, `without per peer the far peer stalls (${off.far})`);
+  assert.equal(off.farDelay, off.nearDelay);
+});
