@@ -91,6 +91,9 @@ OPEN_TIMEOUT = 2.0
 #: A forwarded client (its room is another cluster node's) with more than this
 #: unsent is closed as too slow: the owner node cannot see its socket's buffer.
 FORWARDED_BUFFER = 1 << 20
+#: Connections the kernel queues until accepted (listen backlog; capped by the kernel's
+#: ``net.core.somaxconn``): past it new ones are dropped and wait for SYN retries (1, 3, 7 s).
+ACCEPTS = 4096
 #: Seconds between the capacity's readings of CPU time and unsent bytes.
 MEASURE_EVERY = 0.5
 
@@ -745,7 +748,7 @@ class RelayServer:
         cfg = self.config
         loop = asyncio.get_running_loop()
         listener = await loop.create_server(
-            lambda: _Connection(self), cfg.host, cfg.port, ssl=self._tls_context()
+            lambda: _Connection(self), cfg.host, cfg.port, ssl=self._tls_context(), backlog=ACCEPTS
         )
         try:
             self.port = int(listener.sockets[0].getsockname()[1])

@@ -117,34 +117,45 @@ class LoadFleet:
 def merge_ramped(parts: list[dict[str, Any]]) -> dict[str, Any]:
     """Load processes' ``ramped`` messages as one: joins by outcome, their times (s)."""
     codes: dict[str, int] = {}
+    hung_at: dict[str, int] = {}
     for p in parts:
         for code, n in p.get("codes", {}).items():
             codes[code] = codes.get(code, 0) + int(n)
+        for step, n in p.get("hung_at", {}).items():
+            hung_at[step] = hung_at.get(step, 0) + int(n)
+    times = ("join_s", "refused_s", "server_full_s", "connect_s", "upgrade_s")
     return {
         "joined": sum(int(p["joined"]) for p in parts),
         "failed": sum(int(p["failed"]) for p in parts),
         "errors": [e for p in parts for e in p["errors"]][:5],
         "codes": codes,
         "hung": sum(int(p.get("hung", 0)) for p in parts),
-        "join_s": [t for p in parts for t in p.get("join_s", [])],
-        "refused_s": [t for p in parts for t in p.get("refused_s", [])],
+        "hung_at": hung_at,
+        **{key: [t for p in parts for t in p.get(key, [])] for key in times},
         "ramp_s": max(float(p["ramp_s"]) for p in parts),
     }
 
 
 def join_figures(ramped: dict[str, Any]) -> dict[str, Any]:
     """The report's join accounting from a (merged) ``ramped`` message: admitted,
-    refused by the server's error code, hung (no answer within the open timeout), and
-    how long joins and refusals took from each client's first byte (ms)."""
+    refused by the server's error code, hung (no answer within the open timeout) and
+    at which step, and how long joins and refusals took from each client's first
+    byte (ms): every refusal, ``server-full`` ones apart, and the TCP connect and the
+    websocket handshake of every client that got that far."""
     codes = dict(ramped.get("codes", {}))
     hung = int(codes.pop("hung", 0))
-    refused = np.asarray(ramped.get("refused_s", []), dtype=np.float64) * 1e3
-    joins = np.asarray(ramped.get("join_s", []), dtype=np.float64) * 1e3
+
+    def ms(key: str) -> np.ndarray:
+        return np.asarray(ramped.get(key, []), dtype=np.float64) * 1e3
+
+    refused, joins, full = ms("refused_s"), ms("join_s"), ms("server_full_s")
+    connect, upgrade = ms("connect_s"), ms("upgrade_s")
     return {
         "clients_joined": int(ramped["joined"]),
         "clients_failed": int(ramped["failed"]),
         "clients_refused": sum(n for code, n in codes.items() if code != "unreachable"),
         "clients_hung": hung,
+        "clients_hung_at": dict(ramped.get("hung_at", {})),
         "join_errors": codes,
         "join_error_examples": ramped["errors"],
         "join_p50_ms": _pct(joins, 50),
@@ -152,6 +163,14 @@ def join_figures(ramped: dict[str, Any]) -> dict[str, Any]:
         "refusal_p50_ms": _pct(refused, 50),
         "refusal_p99_ms": _pct(refused, 99),
         "refusal_max_ms": float(refused.max()) if len(refused) else math.nan,
+        "server_full_p50_ms": _pct(full, 50),
+        "server_full_p99_ms": _pct(full, 99),
+        "server_full_max_ms": float(full.max()) if len(full) else math.nan,
+        "server_full_within_1s": int((full <= 1e3).sum()),
+        "connect_p50_ms": _pct(connect, 50),
+        "connect_p99_ms": _pct(connect, 99),
+        "upgrade_p50_ms": _pct(upgrade, 50),
+        "upgrade_p99_ms": _pct(upgrade, 99),
     }
 
 

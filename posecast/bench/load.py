@@ -51,8 +51,9 @@ from posecast.bench.wsclient import (
     CompactUpdateFrames,
     FrameConnection,
     RawUpdateFrames,
+    StepTimeout,
     client_frame,
-    open_connection,
+    connect,
 )
 from posecast.protocol import (
     SNAPSHOT_DTYPE,
@@ -250,6 +251,8 @@ class _Refused(RuntimeError):
 
 #: What became of a client's join (besides an error code of the server's).
 JOINED, HUNG, CLOSED, UNREACHABLE = "joined", "hung", "closed", "unreachable"
+#: The relay's answer when it is full (``protocol.ErrorCode.SERVER_FULL``).
+SERVER_FULL = "server-full"
 
 
 class _BenchClient:
@@ -280,6 +283,10 @@ class _BenchClient:
         #: long that took from its first byte (s).
         self.outcome = ""
         self.join_s = math.nan
+        #: When its TCP connection and its websocket handshake were done (s from its
+        #: first byte; NaN: never), and the step a hung join got no answer to.
+        self.connect_s = self.upgrade_s = math.nan
+        self.hung_at = ""
         self.conn: FrameConnection | None = None
         self.session = ClientSession()
         self.user = -1
@@ -302,8 +309,10 @@ class _BenchClient:
         (no answer to a step within ``within``), closed or unreachable."""
         start = time.monotonic()
         try:
-            conn, _ = await open_connection(url, time.monotonic, within)
-            self.conn = conn
+            conn = self.conn = await connect(url, time.monotonic, within)
+            self.connect_s = conn.connected_at - start
+            await conn.upgraded(within)
+            self.upgrade_s = conn.opened_at - start
             conn.on_message = self._handshake_message
             hello = Hello(agent="posecast-bench", wants_retry_after=True)
             welcome = await self._ask(hello, within)
@@ -316,6 +325,7 @@ class _BenchClient:
                 self.outcome = exc.code
             elif isinstance(exc, TimeoutError):
                 self.outcome = HUNG
+                self.hung_at = exc.step if isinstance(exc, StepTimeout) else "?"
             else:
                 self.outcome = UNREACHABLE
             if self.conn is not None:
@@ -350,6 +360,8 @@ class _BenchClient:
         conn.write(client_frame(self.session.send(message)))
         try:
             return await asyncio.wait_for(waiting, within)
+        except TimeoutError as exc:
+            raise StepTimeout(message.TYPE, within) from exc
         finally:
             conn.closed.remove_done_callback(closed)
 
@@ -563,21 +575,29 @@ def measured_clients(clients: list[_BenchClient]) -> list[int]:
 
 
 def join_outcomes(clients: list[_BenchClient]) -> dict[str, Any]:
-    """How the joins ended: joined, failed (refused by code, hung, ...), and how long
-    each refusal and each join took (s), for the controller to add up."""
+    """How the joins ended: joined, failed (refused by code, hung, ...), the step each
+    hung join got no answer to, and how long each join, refusal (``server-full`` apart)
+    and each client's TCP connect and websocket handshake took (s), to add up."""
     errors = [c.error for c in clients if c.error]
     codes: dict[str, int] = {}
+    hung_at: dict[str, int] = {}
     for c in clients:
         if c.outcome and c.outcome != JOINED:
             codes[c.outcome] = codes.get(c.outcome, 0) + 1
+        if c.outcome == HUNG:
+            hung_at[c.hung_at] = hung_at.get(c.hung_at, 0) + 1
     return {
         "joined": sum(1 for c in clients if c.conn is not None),
         "failed": len(errors),
         "errors": errors[:5],
         "codes": codes,
         "hung": codes.get(HUNG, 0),
+        "hung_at": hung_at,
         "join_s": [c.join_s for c in clients if c.outcome == JOINED],
         "refused_s": [c.join_s for c in clients if c.outcome not in ("", JOINED, HUNG)],
+        "server_full_s": [c.join_s for c in clients if c.outcome == SERVER_FULL],
+        "connect_s": [c.connect_s for c in clients if not math.isnan(c.connect_s)],
+        "upgrade_s": [c.upgrade_s for c in clients if not math.isnan(c.upgrade_s)],
     }
 
 

@@ -104,11 +104,14 @@ def _join_rows(r: dict[str, Any]) -> list[_Row]:
     """Who joined, who was refused (by the server's error code) and whose join hung."""
     codes = r.get("join_errors") or {}
     refused = ", ".join(f"{n} {code}" for code, n in sorted(codes.items())) or "none"
+    steps = sorted(r.get("clients_hung_at", {}).items())
+    hung_at = ", ".join(f"{n} at {step}" for step, n in steps)
     rows: list[_Row] = [
         (
             "clients joined / refused / hung",
             f"{r['clients_joined']} / {r.get('clients_refused', 0)} / {r.get('clients_hung', 0)}",
-            f"refused: {refused}; hung: no answer to a handshake step in 15 s",
+            f"refused: {refused}; hung: no answer to a handshake step in 15 s"
+            + (f" ({hung_at})" if hung_at else ""),
         )
     ]
     if codes:
@@ -118,6 +121,16 @@ def _join_rows(r: dict[str, Any]) -> list[_Row]:
                 f"{_f(r['refusal_p50_ms'])} / {_f(r['refusal_p99_ms'])} / "
                 f"{_f(r['refusal_max_ms'])} ms",
                 "from the client's first byte to the refusal (error or close)",
+            )
+        )
+    if codes.get("server-full"):
+        rows.append(
+            (
+                "server-full after p50 / p99",
+                f"{_f(r['server_full_p50_ms'])} / {_f(r['server_full_p99_ms'])} ms",
+                f"{r['server_full_within_1s']} of {codes['server-full']} within 1 s; "
+                f"TCP connect p99 {_f(r['connect_p99_ms'])} ms, "
+                f"websocket upgrade p99 {_f(r['upgrade_p99_ms'])} ms",
             )
         )
     return rows

@@ -23,6 +23,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import hashlib
+import math
 import os
 import struct
 from collections.abc import Callable
@@ -39,7 +40,9 @@ __all__ = [
     "CompactUpdateFrames",
     "FrameConnection",
     "RawUpdateFrames",
+    "StepTimeout",
     "client_frame",
+    "connect",
     "split_codec_update",
 ]
 
@@ -197,6 +200,8 @@ class FrameConnection(asyncio.Protocol):
         self.on_message: OnMessage = lambda data, arrival: None
         self.opened: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         self.closed: asyncio.Future[str] = asyncio.get_running_loop().create_future()
+        #: ``clock`` readings once the TCP connection and the handshake were done.
+        self.connected_at = self.opened_at = math.nan
 
     # -- asyncio.Protocol ---------------------------------------------------------
 
@@ -260,6 +265,19 @@ class FrameConnection(asyncio.Protocol):
         return pos
 
     # -- what the load calls ------------------------------------------------------
+
+    async def upgraded(self, within: float) -> None:
+        """Wait for the server's handshake response, ``within`` s (else
+        :class:`StepTimeout` ``upgrade``; the connection is dropped if it fails);
+        ``opened_at`` is the clock reading then."""
+        try:
+            await asyncio.wait_for(self.opened, within)
+        except BaseException as exc:
+            self.abort()
+            if isinstance(exc, TimeoutError):
+                raise StepTimeout("upgrade", within) from exc
+            raise
+        self.opened_at = self._clock()
 
     def write(self, frame: bytes) -> None:
         if self.transport is not None and not self.transport.is_closing():
@@ -335,22 +353,38 @@ class FrameConnection(asyncio.Protocol):
                 self.on_message(whole, arrival)
 
 
-async def open_connection(
-    url: str, clock: Callable[[], float], within: float
-) -> tuple[FrameConnection, Any]:
-    """Connect to ``ws://host:port/path`` and finish the opening handshake, each ``within`` s."""
+class StepTimeout(TimeoutError):
+    """No answer to one step of a join within its time: ``step`` names it (``connect``:
+    the TCP connection, ``upgrade``: the websocket handshake, or a later step)."""
+
+    def __init__(self, step: str, within: float) -> None:
+        super().__init__(f"no answer to {step} within {within:g} s")
+        self.step = step
+
+
+async def connect(url: str, clock: Callable[[], float], within: float) -> FrameConnection:
+    """A TCP connection to ``ws://host:port/path`` within ``within`` s (else
+    :class:`StepTimeout` ``connect``), its upgrade request written; its
+    ``connected_at`` is the ``clock`` reading once connected."""
     if not url.startswith("ws://"):
         raise ValueError(f"the load speaks ws:// only, not {url!r}")
     hostport, _, path = url[5:].partition("/")
     host, _, port = hostport.rpartition(":")
     loop = asyncio.get_running_loop()
     conn = FrameConnection(hostport, "/" + path, clock)
-    transport, _ = await asyncio.wait_for(
-        loop.create_connection(lambda: conn, host, int(port)), within
-    )
     try:
-        await asyncio.wait_for(conn.opened, within)
-    except BaseException:
-        transport.abort()
-        raise
-    return conn, transport
+        await asyncio.wait_for(loop.create_connection(lambda: conn, host, int(port)), within)
+    except TimeoutError as exc:
+        raise StepTimeout("connect", within) from exc
+    conn.connected_at = clock()
+    return conn
+
+
+async def open_connection(
+    url: str, clock: Callable[[], float], within: float
+) -> tuple[FrameConnection, Any]:
+    """Connect to ``ws://host:port/path`` and finish the opening handshake, each ``within`` s
+    (:class:`StepTimeout` names the step that took longer)."""
+    conn = await connect(url, clock, within)
+    await conn.upgraded(within)
+    return conn, conn.transport

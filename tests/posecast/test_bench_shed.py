@@ -73,7 +73,11 @@ def test_every_join_is_accounted_for() -> None:
     assert ramped["joined"] == 1 and ramped["failed"] == 3
     assert ramped["codes"] == {"server-full": 1, HUNG: 1, UNREACHABLE: 1}
     assert ramped["hung"] == 1
+    assert ramped["hung_at"] == {"upgrade": 1}  # the mute listener took the connection
     assert len(ramped["join_s"]) == 1 and len(ramped["refused_s"]) == 2
+    assert len(ramped["server_full_s"]) == 1
+    # Every client that reached a listener was connected; three got their upgrade.
+    assert len(ramped["connect_s"]) == 3 and len(ramped["upgrade_s"]) == 2
     assert all(t >= 0 for t in ramped["join_s"] + ramped["refused_s"])
     two = merge_ramped([{**ramped, "ramp_s": 1.0}, {**ramped, "ramp_s": 2.0}])
     assert two["codes"] == {"server-full": 2, HUNG: 2, UNREACHABLE: 2} and two["hung"] == 2
@@ -81,6 +85,10 @@ def test_every_join_is_accounted_for() -> None:
     assert figures["clients_joined"] == 2 and figures["clients_failed"] == 6
     assert figures["join_errors"] == {"server-full": 2, UNREACHABLE: 2}
     assert figures["clients_hung"] == 2 and figures["clients_refused"] == 2
+    assert figures["clients_hung_at"] == {"upgrade": 2}
+    assert figures["server_full_within_1s"] + (figures["server_full_max_ms"] > 1e3) >= 1
+    for key in ("server_full_p99_ms", "connect_p99_ms", "upgrade_p99_ms"):
+        assert math.isfinite(figures[key]) and figures[key] >= 0, key
     assert math.isfinite(figures["refusal_p99_ms"]) and math.isfinite(figures["join_p99_ms"])
     assert any("server-full" in e for e in figures["join_error_examples"])
 
