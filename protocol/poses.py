@@ -48,9 +48,9 @@ from __future__ import annotations
 
 import math
 import struct
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
-from typing import ClassVar, Literal, Self
+from typing import Any, ClassVar, Literal, Self
 
 import msgpack
 import numpy as np
@@ -287,12 +287,19 @@ class _PoseRecords:
 
     @classmethod
     def _trusted(cls, counter: int, time: float, entries: NDArray[np.void]) -> Self:
-        # The decoder has checked every field already; skipping __post_init__
-        # saves a microsecond or two per frame on the server's hottest path.
+        # The decoder has checked every field already; skipping __post_init__ (and
+        # the frozen __setattr__, for the slots' own setters) saves a few
+        # microseconds per frame on the server's hottest path.
         self = object.__new__(cls)
-        object.__setattr__(self, cls._COUNTER, counter)
-        object.__setattr__(self, cls._TIME, time)
-        object.__setattr__(self, "entries", entries)
+        setters = _SETTERS.get(cls)
+        if setters is None:
+            object.__setattr__(self, cls._COUNTER, counter)
+            object.__setattr__(self, cls._TIME, time)
+            object.__setattr__(self, "entries", entries)
+        else:
+            setters[0](self, counter)
+            setters[1](self, time)
+            setters[2](self, entries)
         return self
 
     def _head(self) -> tuple[int, float]:
@@ -451,6 +458,13 @@ class Snapshot(_PoseRecords):
     def users(self) -> NDArray[np.uint16]:
         """User ids, (n,) view."""
         return self.entries["user"]
+
+
+#: The slots' setters of each pose frame class (counter, time, entries), for _trusted.
+_SETTERS: dict[type, tuple[Callable[[Any, Any], None], ...]] = {
+    c: tuple(c.__dict__[name].__set__ for name in (c._COUNTER, c._TIME, "entries"))
+    for c in (PoseUpdate, Snapshot)
+}
 
 
 def _key(entries: NDArray[np.void]) -> str:

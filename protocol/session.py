@@ -294,9 +294,12 @@ class _Session:
 
     # Shared checks -------------------------------------------------------
 
-    def _check_update(self, update: PoseUpdate, decoded: bool = False) -> None:
+    def _check_update(
+        self, update: PoseUpdate, decoded: bool = False, ids: list[int] | None = None
+    ) -> None:
         """Stream ownership and the records; ``decoded``: a compact update, whose poses and
-        velocities the codec made from valid codes (finite, unit: not checked again)."""
+        velocities the codec made from valid codes (finite, unit: not checked again);
+        ``ids``: its stream ids, if its decoder listed them (then not read again)."""
         entries = update.entries
         owned = self._owned
         if len(entries) > len(owned):
@@ -304,7 +307,8 @@ class _Session:
                 ErrorCode.TOO_MANY_STREAMS,
                 f"update has {len(entries)} poses for {len(owned)} streams",
             )
-        ids = entries["stream"].tolist()
+        if ids is None or len(ids) != len(entries):
+            ids = entries["stream"].tolist()
         seen = set(ids)
         if not seen <= owned:
             raise ProtocolViolation(
@@ -475,7 +479,10 @@ class ServerSession(_Session):
             self._compact_update = None
             update = self._strip_stray_objects(message)
             if update is not None:
-                self._check_update(update, decoded=self._upstream is not None)
+                upstream = self._upstream
+                # A compact update's ids are its decoder's codes' keys (one per stream).
+                ids = list(upstream.last_codes) if upstream and update is message else None
+                self._check_update(update, decoded=upstream is not None, ids=ids)
             return update
         elif isinstance(message, ObjectCreate):
             if not is_valid_stream_name(message.name, self.limits.max_stream_name_length):

@@ -43,12 +43,12 @@ import numpy as np
 
 from posecast.protocol import (
     ROOM_USER,
+    UPDATE_VELOCITY_ENTRY_SIZE,
     ZERO_VELOCITY,
     PeerJoined,
     PoseUpdate,
     pack_snapshot,
     pack_velocity_snapshot,
-    update_records,
 )
 from posecast.protocol.codec import DEFAULT_VOLUME, Volume, quantise
 from posecast.protocol.codec_relay import GroupSnapshot, encode_stored
@@ -79,6 +79,11 @@ KEY_INTERVAL = 2.0
 CODES_HISTORY = 16
 #: A pose's position (the first 12 of its 28 wire bytes).
 _POSITION = struct.Struct("<3f")
+#: An update's record: stream, dt, the 28 pose bytes [, the 12 velocity bytes].
+_RECORD = struct.Struct("<Hf28s")
+_VELOCITY_RECORD = struct.Struct("<Hf28s12s")
+#: The velocity codes of a compact update without velocities.
+_NO_VELOCITY_CODES = [0] * 6
 
 
 def _key_slot(now: float, rate: float) -> int:
@@ -514,9 +519,14 @@ class Room:
         if member is not None:
             member.updates_in += 1
         stale = 0
-        objects, motion = self.objects, self.motion
-        for sid, t, pose, vel in update_records(update):
-            cur = self._streams.get(sid)
+        objects, motion, streams = self.objects, self.motion, self._streams
+        base, entries = update.base_time, update.entries
+        # The records' bytes read in one C call each (as protocol.update_records reads them).
+        velocities = entries.itemsize == UPDATE_VELOCITY_ENTRY_SIZE
+        layout = _VELOCITY_RECORD if velocities else _RECORD
+        for record in layout.iter_unpack(entries.tobytes()):
+            sid, t, pose = record[0], base + record[1], record[2]
+            cur = streams.get(sid)
             publisher = user
             if objects and sid in objects:
                 # A shared object: the room's stream, in its owner's shifted time.
@@ -529,8 +539,8 @@ class Room:
                 motion.observe(sid, t, pose)
             row = None if codes is None else codes.get(sid)
             if row is not None and len(row) == 7:
-                row = row + [0] * 6
-            velocity = ZERO_VELOCITY if vel is None else vel
+                row = row + _NO_VELOCITY_CODES
+            velocity = record[3] if velocities else ZERO_VELOCITY
             if cur is None:
                 self.store(sid, publisher, t, pose, velocity, row)
             else:  # store(), without looking the stream up again
