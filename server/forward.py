@@ -37,6 +37,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+from collections import deque
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -185,28 +186,61 @@ class Members:
     async def flush(self) -> None:
         """One message per edge with every frame due to its clients."""
         now = self.clock()
-        batches: dict[str, dict[int, tuple[bytes, list[int]]]] = {}
+        batches: dict[str, list[tuple[int, list[bytes]]]] = {}
         for conn in list(self._dirty):
             frames, _ = self.core.take(conn, now)
             key = self.remote.get(conn)
-            if key is None:
-                continue
-            edge, econn = key
-            batch = batches.setdefault(edge, {})
-            for data in frames:
-                # The same bytes object (a tick group's snapshot) goes once per edge.
-                entry = batch.setdefault(id(data), (data, []))
-                entry[1].append(econn)
+            if key is not None and frames:
+                batches.setdefault(key[0], []).append((key[1], frames))
         self._dirty.clear()
         self.route(self.core.pending())
-        for edge, batch in batches.items():
-            items = [[targets, data] for data, targets in batch.values()]
+        for edge, seqs in batches.items():
+            items = _batch_items(seqs)
             self.frames_out += sum(len(t) for t, _ in items)
             self.messages_out += 1
             await self.nc.publish(outbox(edge), msgpack.packb(["frames", *items]))
         closing, self._closing = self._closing, []
         for edge, econn, code, reason in closing:
             await self.nc.publish(outbox(edge), msgpack.packb(["close", econn, code, reason]))
+
+
+def _batch_items(seqs: list[tuple[int, list[bytes]]]) -> list[list[Any]]:
+    """One edge's frames as ``[targets, frame]`` items, in the order the edge writes them.
+
+    ``seqs``: each edge connection's frames in order. The same bytes object (a tick
+    group's snapshot, a presence notice) goes once with all its targets, and every
+    connection still gets its frames in its own order: the items are a topological
+    order of "comes before" over all the sequences (a member that joined since the
+    last write has its ``joined`` before the snapshot it shares with the others).
+    Should two connections hold shared frames in opposite orders, nothing is shared.
+    """
+    frames: dict[int, bytes] = {}
+    targets: dict[int, list[int]] = {}
+    after: dict[int, list[int]] = {}
+    before: dict[int, int] = {}
+    for econn, seq in seqs:
+        prev = -1
+        for data in seq:
+            key = id(data)
+            if key not in frames:
+                frames[key], targets[key], after[key], before[key] = data, [], [], 0
+            targets[key].append(econn)
+            if prev != -1:
+                after[prev].append(key)
+                before[key] += 1
+            prev = key
+    ready = deque(key for key in frames if before[key] == 0)
+    order: list[int] = []
+    while ready:
+        key = ready.popleft()
+        order.append(key)
+        for nxt in after[key]:
+            before[nxt] -= 1
+            if before[nxt] == 0:
+                ready.append(nxt)
+    if len(order) < len(frames):
+        return [[[econn], data] for econn, seq in seqs for data in seq]
+    return [[targets[key], frames[key]] for key in order]
 
 
 #: Frames an edge holds for its owners while NATS takes them (per node, at most).

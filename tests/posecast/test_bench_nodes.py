@@ -53,7 +53,13 @@ def test_split_run_reports_both_runs_side_by_side() -> None:
     split = report["split"]
     assert report["nodes"] == 2 and report["server"] == "relay" and split["server"] == "cluster"
     for run in (report, split):
-        joins = ("clients_joined", "clients_failed", "clients_hung", "join_errors")
+        joins = (
+            "clients_joined",
+            "clients_failed",
+            "clients_hung",
+            "join_errors",
+            "join_error_examples",
+        )
         assert run["clients_joined"] == 20 and run["clients_failed"] == 0, {
             k: run.get(k) for k in joins
         }

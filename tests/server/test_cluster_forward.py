@@ -31,12 +31,13 @@ from posecast.protocol import (
     Ping,
     Pong,
     PoseUpdate,
+    ProtocolError,
     Snapshot,
     UserEvent,
     Welcome,
 )
 from posecast.server.core import RelayCore
-from posecast.server.forward import Edge, Members
+from posecast.server.forward import Edge, Members, _batch_items
 from posecast.server.room import IdAllocator
 
 pytestmark = needs_nats
@@ -200,3 +201,62 @@ async def _open_remote(
     edge.open(econn, "o", user, "far", False, "x")
     edge.forward(econn, [session.send(Join(room="lab", streams=("head",), rate=20.0))])
     await _until(lambda: any(isinstance(e, Joined) for e in inbox))
+
+
+async def test_a_new_member_gets_joined_before_a_shared_snapshot(nats_url: str) -> None:
+    """A remote member joins and the room ticks before the owner writes to its edge:
+    the tick's snapshot is shared with a member already there, and each client still
+    gets its frames in order (``joined`` first: a snapshot before it is a protocol
+    error that ends the client's join)."""
+    now = 50.0
+    owner = RelayCore()
+    nc_owner, nc_edge = await nats.connect(nats_url), await nats.connect(nats_url)
+    members = Members(owner, nc_owner, "o", lambda actions: None, clock=lambda: now)
+    sessions = {e: ClientSession() for e in (1, 2)}
+    got: dict[int, list[object]] = {e: [] for e in sessions}
+
+    def deliver(econn: int, data: bytes) -> None:
+        got[econn].extend(sessions[econn].receive_data(data))
+
+    edge = Edge(nc_edge, "e", deliver, lambda econn, code, reason: None)
+    await members.start()
+    await edge.start()
+    try:
+        async with asyncio.TaskGroup() as tg:
+            sender = tg.create_task(edge.run())
+            writer = tg.create_task(members.run())
+            pub = connect(owner, now, room="lab", rate=20.0)
+            await _open_remote(edge, members, sessions[1], got[1], 1, now)
+            writer.cancel()  # from here on the owner writes only when told to
+            edge_core = RelayCore()
+            edge_core.users = IdAllocator(1030, start=1029)
+            conn = edge_core.connect(now)
+            edge_core.receive(conn, sessions[2].send(Hello(agent="far")), now)
+            for frame in edge_core.take(conn, now)[0]:
+                deliver(2, frame)
+            user = next(e.user for e in got[2] if isinstance(e, Welcome))
+            edge.open(2, "o", user, "far", False, "x")
+            seen = members.frames_in
+            edge.forward(2, [sessions[2].send(Join(room="lab", streams=("head",), rate=20.0))])
+            await _until(lambda: members.frames_in > seen)
+            pub.publish(now)
+            now += 0.05
+            members.route(owner.tick(now))  # the tick comes before the owner's write
+            await members.flush()
+            await _until(lambda: any(isinstance(e, Snapshot | ProtocolError) for e in got[2]))
+            kinds = [type(e).__name__ for e in got[2]]
+            assert not [e for e in got[2] if isinstance(e, ProtocolError)], kinds
+            assert kinds.index("Joined") < kinds.index("Snapshot"), kinds
+            assert any(isinstance(e, Snapshot) for e in got[1])
+            sender.cancel()
+    finally:
+        await nc_owner.close()
+        await nc_edge.close()
+
+
+def test_frames_shared_in_opposite_orders_are_not_shared() -> None:
+    """Each edge connection gets its frames in its own order, whatever is shared."""
+    a, b, own = b"tick-1", b"tick-2", b"joined"
+    assert _batch_items([(1, [a, b]), (2, [own, a, b])]) == [[[2], own], [[1, 2], a], [[1, 2], b]]
+    # Opposite orders cannot be one sequence: nothing is shared then.
+    assert _batch_items([(1, [a, b]), (2, [b, a])]) == [[[1], a], [[1], b], [[2], b], [[2], a]]
