@@ -12,6 +12,7 @@ import pytest
 from support import Pacer, poll_until, running_server
 
 from posecast.client.connection import ClientConnection
+from posecast.client.core import ClientCore
 from posecast.protocol import Join, PoseUpdate, Snapshot, encode_message
 from posecast.protocol.errors import LocalProtocolError
 from posecast.server.app import RelayServer, ServerConfig
@@ -134,3 +135,35 @@ def test_the_join_field_is_checked_and_absent_by_default() -> None:
     for bad in (0.0, -1.0, 90.0, float("nan"), "1"):
         with pytest.raises(LocalProtocolError, match="budget_deg"):
             Join(room="r", streams=("head",), rate=30.0, budget_deg=bad)  # type: ignore[arg-type]
+
+
+def _far_stalls(snaps: list[Snapshot], far: int, per_peer: bool) -> tuple[int, float, float]:
+    """The snapshots through a client core (arriving 5 ms after they were sent), frames
+    at 90 Hz: the far peer's stalled stream frames after the first second, its D and
+    the room's at the end."""
+    core = ClientCore(("soa",), 30.0, per_peer=per_peer)
+    start = snaps[0].send_time + 1.0
+    frame, stalls = snaps[0].send_time, 0
+    for snap in snaps:
+        core.snapshot(snap, snap.send_time + 0.005)
+        while frame <= snap.send_time + 0.005:
+            out = core.render(core.playout(frame))
+            if frame > start:
+                rows = zip(core.shown(), out.frame.stalled.tolist(), strict=True)
+                stalls += sum(s for k, s in rows if k[0] == far)
+            frame += 1 / 90
+    return stalls, core.delay.delay(far), core.delay.room.value
+
+
+async def test_a_client_with_per_peer_delays_bridges_the_far_peer() -> None:
+    """The relay's per-peer schedule through the client core: with per-peer delays the
+    far peer (about 5 Hz) is shown later than the room's D and (almost) never stalls;
+    with the room's D alone it stalls between its keyframes."""
+    async with running_server(ServerConfig(host="127.0.0.1", port=0)) as srv:
+        snaps, sent, _ = await _room(srv, "raw", 1.0)
+    far = list(sent)[1]
+    per_stalls, per_d, per_room = _far_stalls(snaps, far, per_peer=True)
+    room_stalls, room_d, room_room = _far_stalls(snaps, far, per_peer=False)
+    assert per_d > per_room + 2 / 30.0, (per_d, per_room)
+    assert room_d == room_room
+    assert room_stalls > 2 * max(per_stalls, 1), (per_stalls, room_stalls)
