@@ -276,7 +276,7 @@ class _Connection(WebSocketConnection):
             data = next(messages, None)
             if data is None:
                 return
-            events, raw = core.frame(conn, data), data
+            events, raw = core.frame(conn, data, now), data
 
     def _hold(
         self, held: Hold, events: list[Event], rest: Iterator[bytes | str], raw: bytes | str

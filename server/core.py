@@ -330,9 +330,12 @@ class RelayCore:
         self._token_deadlines.add(peer.conn, deadline)
         self.emit(Rearm())
 
-    def frame(self, conn: int, data: bytes | str) -> list[Event]:
-        """The events one received frame decodes to (none while the connection closes)."""
+    def frame(self, conn: int, data: bytes | str, now: float | None = None) -> list[Event]:
+        """The events one received frame decodes to (none while the connection closes;
+        with ``now``, none for an event over its bucket: ``tokens.event_dropped``)."""
         peer = self.peers[conn]
+        if now is not None and tokens.event_dropped(self, peer, data, now):
+            return []
         peer.frames_in += 1
         if peer.close_request is not None:
             # Closing: what it still sends cannot matter to anyone.
@@ -382,7 +385,7 @@ class RelayCore:
     def receive(self, conn: int, data: bytes | str, now: float, wall: float = 0.0) -> list[Action]:
         """:meth:`frame` and :meth:`handle` in one (rooms of a recording server must exist)."""
         peer = self.peers.get(conn)
-        if peer is not None:
+        if peer is not None and not tokens.event_dropped(self, peer, data, now):
             for event in self.frame(conn, data):
                 self._handle(peer, event, now, wall)
         return self._actions()

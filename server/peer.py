@@ -153,6 +153,10 @@ class Peer:
         self._bucket -= 1.0
         return True
 
+    def would_admit(self, rate: float, now: float) -> bool:
+        """Whether :meth:`admit` would take one now (nothing spent, nothing counted)."""
+        return min(rate, self._bucket + (now - self._bucket_time) * rate) >= 1.0
+
     def count_refused(self, kind: str) -> None:
         """Count an update refused for ``kind`` (a :class:`server.limits.Refusal` kind)."""
         if kind == "stale-capture":

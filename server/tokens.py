@@ -23,7 +23,11 @@ if TYPE_CHECKING:
     from posecast.server.peer import Peer
     from posecast.server.ports import Relay
 
-__all__ = ["admit_event", "admit_join", "expired", "joinable_room", "renew"]
+__all__ = ["admit_event", "admit_join", "event_dropped", "expired", "joinable_room", "renew"]
+
+#: What follows the map header of an event frame as ``protocol.messages`` writes it
+#: ("type" first): the key "type" and the value "event", msgpack fixstrs.
+_EVENT_TYPE = b"\xa4type\xa5event"
 
 
 def joinable_room(event: Event, secret: str | None, wall: float) -> str | None:
@@ -107,6 +111,27 @@ def _join_rate(core: Relay, peer: Peer, user: str | None, now: float) -> bool:
     why = f"too many joins from this address or user (over {rate:g}/s); try later"
     core.refuse(peer, ErrorCode.ROOM_FULL, why, "join", now)
     return False
+
+
+def event_dropped(core: Relay, peer: Peer, data: bytes | str, now: float) -> bool:
+    """Drop an event frame of a member whose connection's bucket is empty before
+    decoding it (a peek at its first 12 bytes; counted as :func:`admit_event` counts
+    it after a decode): a flood costs the relay little per dropped event. A frame
+    the peek does not recognise, or that fits the bucket, is decoded as any other."""
+    if (
+        peer.room is None
+        or peer.close_request is not None
+        or type(data) is not bytes
+        or data[1:12] != _EVENT_TYPE
+        or data[0] & 0xF0 != 0x80  # a fixmap (an event has at most 6 fields)
+        or core.is_spectator(peer.user)  # its events are refused, not dropped
+        or peer.would_admit(core.config.max_update_rate, now)
+    ):
+        return False
+    peer.frames_in += 1
+    peer.bytes_in += len(data)
+    core.admit_update(peer, now)  # drops and counts it; a long flood is closed 1008
+    return True
 
 
 def admit_event(core: Relay, peer: Peer, now: float) -> bool:
