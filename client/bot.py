@@ -382,7 +382,9 @@ class Bot:
         self.publisher = await self._motion(conn, start)
         await self._join(conn, self.publisher.spec.label())
         self.receiver.attach(conn)
-        stop = start + self.cfg.duration
+        # Its duration in the room: a join the relay held (a recorded room's recorder
+        # starting, a cluster claim) does not eat into it.
+        stop = max(start, self.server_now()) + self.cfg.duration
         async with asyncio.TaskGroup() as tg:
             link = tg.create_task(self._connected(conn, stop))
             # The render loop ends at ``stop`` or as soon as the connection ended.
