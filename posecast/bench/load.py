@@ -641,7 +641,10 @@ async def _load_main(cfg: dict[str, Any], emit: Callable[[dict[str, Any]], None]
         async with asyncio.TaskGroup() as tg:
             pub = tg.create_task(publisher.run())
             emit(await _ramp(clients, cfg, publisher))
-            await _measure(cfg, stats, clients, lines, emit)
+            if await _measure(cfg, stats, clients, lines, emit):
+                # Keep the clients (and their load) on until the controller, which
+                # samples the relay's end of the window after it, says it is done.
+                await _until_eof(lines, float(cfg.get("window_timeout", 60.0)))
             pub.cancel()
     finally:
         await _close_all(clients, within=10.0)
@@ -653,14 +656,15 @@ async def _measure(
     clients: list[_BenchClient],
     lines: asyncio.Queue[str | None],
     emit: Callable[[dict[str, Any]], None],
-) -> None:
-    """Wait for the window, count through it, write the samples and emit ``result``."""
+) -> bool:
+    """Wait for the window, count through it, write the samples and emit ``result``
+    (False: the controller ended without a window)."""
     line = await asyncio.wait_for(lines.get(), timeout=float(cfg["window_timeout"]))
     if line is None:
-        return
+        return False
     order = json.loads(line)
     if "window" not in order:
-        return
+        return False
     stats.t0, stats.t1 = (float(x) for x in order["window"])
     await asyncio.sleep(max(0.0, stats.t1 - time.monotonic()) + 0.05)
     summary = stats.counts(measured_clients(clients))
@@ -684,6 +688,15 @@ async def _measure(
         )
     summary["event"] = "result"
     emit(summary)
+    return True
+
+
+async def _until_eof(lines: asyncio.Queue[str | None], within: float) -> None:
+    """Wait until the controller closes this process's stdin (at most ``within`` s)."""
+    with contextlib.suppress(TimeoutError):
+        async with asyncio.timeout(within):
+            while await lines.get() is not None:
+                pass
 
 
 def _load_entry() -> None:
