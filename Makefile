@@ -24,7 +24,7 @@ demo: $(VENV)/.installed-run
 # two halve the wall time on a 2-core machine. Tests that build or drive the JS
 # bundle and Chromium share a group (tests/conftest.py): one worker runs them in turn.
 test: $(VENV)/.installed-test
-	$(BIN)/python -m pytest -q -n 2 --dist loadgroup
+	$(BIN)/python -m pytest -q -n 2 --dist loadgroup --durations=25
 
 # mypy reads modules from files, not through the install's folder mapping: it checks
 # a tree of links laid out as the installed package (posecast/server -> server/, ...).
