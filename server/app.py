@@ -228,6 +228,11 @@ class _Connection(WebSocketConnection):
             if actions:
                 apply(actions)
 
+    def on_pong(self, rtt: float) -> None:
+        peer = self.server.core.peers.get(self.conn)
+        if peer is not None:  # its round trip: how old its updates may be (server/stamps.py)
+            peer.stamps.round_trip(rtt)
+
     def on_writable(self) -> None:
         self.flush()
         if self.close_request is not None and not self.server.core.events_pending(self.conn):

@@ -68,6 +68,10 @@ class ServerConfig:
     max_capture_age: float = 1.0
     #: ... and one captured later than now plus this (the clock-sync error allowance).
     max_capture_ahead: float = 0.25
+    #: A stream whose capture times are older than its link explains (its smallest age
+    #: on arrival over half its round trip) by more than this (s) has them moved later
+    #: by that much (``server/stamps.py``: a lagging liar); 0: off.
+    stamp_lag: float = 0.025
     #: Positions must lie within this box (m): the room volume, stated at welcome,
     #: in which compact codes quantise positions (0.5 mm steps at most).
     volume: Volume = DEFAULT_VOLUME

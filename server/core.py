@@ -745,6 +745,7 @@ class RelayCore:
                 if not aged or capacity.stale_error_due(peer, now):
                     self.refuse(peer, ErrorCode.BAD_POSE, refused.message, "update", now, not aged)
                 return
+            update = peer.stamps.check(update, now)  # a lagging liar's are moved (stamps.py)
             stale = room.ingest(user, update, peer.session.compact_codes())
             if peer.member is not None:
                 self.silence.updated(room, peer.member, now)

@@ -326,6 +326,13 @@ def _limit_metrics(
         ],
     )
     metric(
+        "posecast_stamps_moved_total",
+        "counter",
+        "Pose updates whose capture times the relay moved later: older than the"
+        " publisher's link explains by over stamp_lag (server/stamps.py, a lagging liar).",
+        total("stamps_moved"),
+    )
+    metric(
         "posecast_connections_refused_total",
         "counter",
         "Connections closed at once (1013) for exceeding a connection limit.",

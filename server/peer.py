@@ -20,6 +20,7 @@ from posecast.server.link import Downlink
 from posecast.server.logs import LogLimiter
 from posecast.server.parked import Parked
 from posecast.server.room import Member, Outbox, Room
+from posecast.server.stamps import StampCheck, StampRule
 
 __all__ = ["COUNTERS", "ConnectionStatistics", "Peer", "PeerHost"]
 
@@ -57,6 +58,7 @@ COUNTERS = (
     "stale_captures",
     "future_captures",
     "out_of_bounds",
+    "stamps_moved",
 )
 
 
@@ -79,6 +81,8 @@ class ConnectionStatistics:
     stale_captures: int = 0
     future_captures: int = 0
     out_of_bounds: int = 0
+    #: Updates whose capture times the relay moved later (``server/stamps.py``).
+    stamps_moved: int = 0
     #: With an emulated link: the rate the server chose for this subscriber (Hz),
     #: snapshots delivered / skipped at the cap / lost, and bytes on the link.
     link_rate_hz: float | None = None
@@ -139,6 +143,8 @@ class Peer:
         self._bucket = cfg.max_update_rate
         self._bucket_time = now
         self.log_limit = LogLimiter(cfg.peer_log_interval)
+        #: Its capture times against its link (a lagging liar's are moved).
+        self.stamps = StampCheck(StampRule(cfg.stamp_lag))
 
     def admit(self, rate: float, now: float) -> bool:
         """Token bucket over pose updates and events: ``rate`` a second, holding one
@@ -194,6 +200,7 @@ class Peer:
             stale_captures=self.stale_captures,
             future_captures=self.future_captures,
             out_of_bounds=self.out_of_bounds,
+            stamps_moved=self.stamps.corrected,
             link_rate_hz=m.rate if (m is not None and link is not None) else None,
             link_frames=link.frames if link else 0,
             link_cap_skips=link.cap_skips if link else 0,

@@ -12,8 +12,10 @@ so the same bytes serve every subscriber of one snapshot) and
 
 Time here is the loop's timers only (``call_later``): the opening handshake
 must end within ``open_timeout``; a keepalive ping goes out every
-``ping_interval`` and a pong must answer within ``ping_timeout`` (else 1011
-"keepalive ping timeout", as websockets does); once a close is expected (a
+``ping_interval`` (the first ``FIRST_PING`` s after the handshake, so that the
+relay knows each connection's round trip early: :meth:`on_pong`) and a pong must
+answer within ``ping_timeout`` (else 1011 "keepalive ping timeout", as websockets
+does); once a close is expected (a
 close frame sent or received, a refused handshake) the TCP connection is
 aborted if it has not ended within ``close_timeout``. The relay's rules are
 the subclass's (``server/app.py``).
@@ -53,6 +55,10 @@ _PING = struct.Struct("!I")
 #: often, whatever the peers send: a fuzzer must not be able to fill the disk.
 BUG_LOG_INTERVAL = 60.0
 _bug_log = LogLimiter(BUG_LOG_INTERVAL, time.monotonic)
+
+#: The first keepalive ping goes out this long after the handshake (at most
+#: ``ping_interval``): its pong is the connection's first round trip.
+FIRST_PING = 0.5
 
 #: The websocket subprotocol of this wire format (selected when offered, not required).
 SUBPROTOCOL = "posecast.v1"
@@ -115,6 +121,7 @@ class WebSocketConnection(asyncio.Protocol):
         self._abort_timer: asyncio.TimerHandle | None = None
         self._ping_seq = 0
         self._ping_data = b""
+        self._ping_at = 0.0
         #: The parts of a fragmented message so far (None: not inside one).
         self._parts: list[bytes] | None = None
         self._text = False
@@ -136,6 +143,9 @@ class WebSocketConnection(asyncio.Protocol):
 
     def on_writable(self) -> None:
         """The transport takes writes again (after a pause)."""
+
+    def on_pong(self, rtt: float) -> None:
+        """A keepalive ping was answered ``rtt`` s (the loop's clock) after it went out."""
 
     def on_end(self) -> None:
         """The connection has ended (only after :meth:`on_open`)."""
@@ -244,6 +254,8 @@ class WebSocketConnection(asyncio.Protocol):
             self._pong_timer.cancel()
             self._pong_timer = None
             self._schedule_ping()
+            assert self._loop is not None
+            self.on_pong(self._loop.time() - self._ping_at)
 
     def _message(self, data: bytes, text: bool, messages: list[bytes | str]) -> None:
         if not text:
@@ -266,7 +278,7 @@ class WebSocketConnection(asyncio.Protocol):
                 self._open_timer.cancel()
                 self._open_timer = None
             self.is_open = True
-            self._schedule_ping()
+            self._schedule_ping(FIRST_PING)
             self.on_open()
 
     def _send_pending(self) -> None:
@@ -300,9 +312,11 @@ class WebSocketConnection(asyncio.Protocol):
             )
             self.abort()
 
-    def _schedule_ping(self) -> None:
-        if self.ping_interval and self._loop is not None and not self._lost:
-            self._ping_timer = self._loop.call_later(self.ping_interval, self._ping)
+    def _schedule_ping(self, within: float | None = None) -> None:
+        interval = self.ping_interval
+        if interval and self._loop is not None and not self._lost:
+            delay = interval if within is None else min(within, interval)
+            self._ping_timer = self._loop.call_later(delay, self._ping)
 
     def _ping(self) -> None:
         self._ping_timer = None
@@ -312,6 +326,8 @@ class WebSocketConnection(asyncio.Protocol):
         self._ping_data = _PING.pack(self._ping_seq & 0xFFFFFFFF)
         self.protocol.send_ping(self._ping_data)
         self._send_pending()
+        assert self._loop is not None
+        self._ping_at = self._loop.time()
         if self.ping_timeout:
             assert self._loop is not None
             self._pong_timer = self._loop.call_later(self.ping_timeout, self._pong_missing)

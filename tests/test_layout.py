@@ -149,6 +149,7 @@ def test_server_holds_only_the_relay() -> None:
         "presence.py",
         "silence.py",
         "limits.py",
+        "stamps.py",
         "link.py",
         "rates.py",
         "view_rates.py",

@@ -206,6 +206,7 @@ _COUNTERS = {
     "flood_drops": "posecast_flood_drops_total",
     "frames_in": "posecast_frames_in_total",
     "connections_closed": "posecast_connections_closed_total",
+    "stamps_moved": "posecast_stamps_moved_total",
 }
 
 

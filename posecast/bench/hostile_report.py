@@ -100,6 +100,9 @@ def _what_held(run: dict[str, Any]) -> str:
         parts.append(f"hijack refused {tries - accepted}/{tries} ({codes})")
         v = got.get("victim", {})
         parts.append(f"victim resumed {v.get('resumed', 0)}/{got.get('rounds', 0)}")
+    moved = run.get("server", {}).get("stamps_moved")
+    if got.get("sent", {}).get("lagged-update") and moved is not None:
+        parts.append(f"{_num(moved)} of its updates re-stamped by the relay")
     v = run.get("victim")
     if v is not None and v.get("report"):
         back = got.get("bot_back_after_s")

@@ -25,6 +25,7 @@ __all__ = [
     "MaxEventRateOption",
     "MaxJoinRateOption",
     "StallAfterOption",
+    "StampLagOption",
     "ViewRatesOption",
     "allowed_origins",
     "check_serve_args",
@@ -41,6 +42,7 @@ SERVE_LIMITS = (
     "ping_timeout",
     "max_capture_age",
     "max_capture_ahead",
+    "stamp_lag",
     "misbehaviour_burst",
     "misbehaviour_refill",
     "join_timeout",
@@ -61,6 +63,14 @@ SERVE_LIMITS = (
     "view_rates",
 )
 
+StampLagOption = Annotated[
+    float,
+    typer.Option(
+        help="Move a stream's capture times later when they are older than its link "
+        "explains by more than this (s; a lagging liar, server/stamps.py). 0: off.",
+        envvar="POSECAST_STAMP_LAG",
+    ),
+]
 HandshakeTimeoutOption = Annotated[
     float,
     typer.Option(

@@ -29,6 +29,7 @@ from posecast.client.bot import (
 )
 from posecast.interp import get
 from posecast.scenarios.qoe import playout_brackets
+from posecast.server.app import ServerConfig
 
 LATE_BY = 0.8
 DURATION = 10.0
@@ -42,7 +43,9 @@ HONEST, RATE = 3, 15
 
 
 async def _room() -> tuple[list[BotReport], BotReport]:
-    async with running_server() as server:
+    # The relay's stamp rule off (server/stamps.py would re-stamp this member): what is
+    # tested is the receivers' own answer to a late member the relay leaves late.
+    async with running_server(ServerConfig(host="127.0.0.1", port=0, stamp_lag=0.0)) as server:
         url = f"ws://127.0.0.1:{server.port}"
 
         def cfg(seed: int) -> BotConfig:

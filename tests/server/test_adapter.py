@@ -167,7 +167,8 @@ async def test_a_burst_of_events_in_one_read_does_not_overflow_a_reading_peer() 
 async def test_writes_wait_while_the_buffer_is_full_then_go_out_in_order() -> None:
     """A subscriber that stops reading pauses our writes: its events wait in the outbox
     (nothing more reaches the transport), and all arrive in order once it reads again."""
-    async with running_server(config(max_event_queue=64)) as srv:
+    # (no keepalive: a ping written meanwhile would change the buffer this test watches)
+    async with running_server(config(max_event_queue=64, ping_interval=0)) as srv:
         url = f"ws://127.0.0.1:{srv.port}"
         streams = ("head", "left", "right", *(f"object:o{i}" for i in range(13)))
         pub = await Bot.join(url, srv.clock, room="p", rate=30.0, streams=streams)
