@@ -385,7 +385,9 @@ class RelayCore:
     def receive(self, conn: int, data: bytes | str, now: float, wall: float = 0.0) -> list[Action]:
         """:meth:`frame` and :meth:`handle` in one (rooms of a recording server must exist)."""
         peer = self.peers.get(conn)
-        if peer is not None and not tokens.event_dropped(self, peer, data, now):
+        if peer is not None and not (
+            data[1:12] == tokens.EVENT_TYPE and tokens.event_dropped(self, peer, data, now)
+        ):
             for event in self.frame(conn, data):
                 self._handle(peer, event, now, wall)
         return self._actions()

@@ -23,11 +23,20 @@ if TYPE_CHECKING:
     from posecast.server.peer import Peer
     from posecast.server.ports import Relay
 
-__all__ = ["admit_event", "admit_join", "event_dropped", "expired", "joinable_room", "renew"]
+__all__ = [
+    "EVENT_TYPE",
+    "admit_event",
+    "admit_join",
+    "event_dropped",
+    "expired",
+    "joinable_room",
+    "renew",
+]
 
 #: What follows the map header of an event frame as ``protocol.messages`` writes it
-#: ("type" first): the key "type" and the value "event", msgpack fixstrs.
-_EVENT_TYPE = b"\xa4type\xa5event"
+#: ("type" first): the key "type" and the value "event", msgpack fixstrs. The core
+#: compares a frame's bytes 1-11 with it before it calls :func:`event_dropped`.
+EVENT_TYPE = b"\xa4type\xa5event"
 
 
 def joinable_room(event: Event, secret: str | None, wall: float) -> str | None:
@@ -122,7 +131,7 @@ def event_dropped(core: Relay, peer: Peer, data: bytes | str, now: float) -> boo
         peer.room is None
         or peer.close_request is not None
         or type(data) is not bytes
-        or data[1:12] != _EVENT_TYPE
+        or data[1:12] != EVENT_TYPE
         or data[0] & 0xF0 != 0x80  # a fixmap (an event has at most 6 fields)
         or core.is_spectator(peer.user)  # its events are refused, not dropped
         or peer.would_admit(core.config.max_update_rate, now)
