@@ -4,6 +4,9 @@
   bracket of all streams, one gather, one batched interpolator call per
   method (a pair method's allocation-free row kernel), window and velocity
   methods alike. The buffers are :class:`client.buffers.RoomBuffers` rows.
+  Where the compiled render kernels are built (:mod:`interp.accel`), the
+  bracket and the pair methods are one call each (the same results to float
+  rounding); numpy otherwise, and with ``POSECAST_PURE=1``.
 - :func:`rendered_method`: the method that actually renders a stream (a velocity
   method falls back to :data:`VELOCITY_FALLBACK` on a stream without velocities).
 
@@ -15,15 +18,16 @@ from __future__ import annotations
 import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
+from types import ModuleType
 from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
 from posecast.client.buffers import RoomBuffers, StreamBuffer
-from posecast.interp import InterpolatorInfo, interpolate_brackets
+from posecast.interp import InterpolatorInfo, accel, interpolate_brackets
 from posecast.interp import info as interp_info
-from posecast.interp.kernels import SHARES_PRODUCTS, share_rows
+from posecast.interp.kernels import COMPILED_KIND, SHARES_PRODUCTS, share_rows
 from posecast.interp.registry import generation as registry_generation
 from posecast.scenarios.qoe import window_depth
 
@@ -32,6 +36,7 @@ __all__ = ["VELOCITY_FALLBACK", "RenderFrame", "render_buffers", "rendered_metho
 F64 = NDArray[np.float64]
 
 _count = np.count_nonzero
+_local = threading.local()
 
 
 #: What a velocity method renders a stream with when its sender reports no
@@ -121,6 +126,30 @@ def _bracket_rows(
     return _Brackets(lo, hi, base, newest, s, stalled, ends)
 
 
+def _bracket_c(
+    ck: ModuleType, room: RoomBuffers, rows: NDArray[np.intp], t: float | F64, whole: bool
+) -> _Brackets:
+    """:func:`_bracket_rows` in one call of the compiled kernels (the same brackets)."""
+    n = rows.shape[0]
+    v = room.whole()
+    if whole:
+        base, newest = v.base, v.newest
+    else:
+        base, newest = room.base[rows], room.newest[rows]
+    lo, hi, s = _bracket_scratch(n)
+    stalled = np.empty(n, dtype=bool)  # the frame's own
+    ends = ck.bracket_rows(v.flat_times, base, newest, t, lo, hi, s, stalled)
+    return _Brackets(lo, hi, base, newest, s, stalled, ends)
+
+
+def _bracket_scratch(n: int) -> tuple[NDArray[np.intp], NDArray[np.intp], F64]:
+    """This thread's ``lo``, ``hi`` and ``s`` for ``n`` brackets (kept for the last ``n``)."""
+    got: tuple[NDArray[np.intp], NDArray[np.intp], F64] | None = getattr(_local, "br", None)
+    if got is None or got[2].shape[0] != n:
+        got = _local.br = (np.empty(n, dtype=np.intp), np.empty(n, dtype=np.intp), np.empty(n))
+    return got
+
+
 def _window(br: _Brackets, lb: int, la: int) -> NDArray[np.intp]:
     """Flat slots ``(lb + 2 + la, n)`` of each bracket's window (the rule of
     :mod:`interp.registry`: a missing neighbour, or any after a held bracket,
@@ -176,7 +205,7 @@ def _live_times(
     """Per-buffer playout times ``t`` cut down to the non-empty ones :func:`_rows_of` kept."""
     if t.shape != (len(buffers),):
         raise ValueError(f"Expected `t` to have shape ({len(buffers)},), got {t.shape}")
-    t = t.astype(np.float64, copy=False)
+    t = np.ascontiguousarray(t, dtype=np.float64)
     if isinstance(buffers, RoomBuffers):
         return t if whole else t[rows]
     return t[[i for i, b in enumerate(buffers) if len(b)]]
@@ -211,12 +240,16 @@ def render_buffers(
         t = _live_times(buffers, t, rows, whole)
     if not n:
         return RenderFrame({m: np.empty((0, 7)) for m in methods}, np.zeros(0, dtype=bool))
-    br = _bracket_rows(room, rows, t, whole)
+    ck = accel.kernels
+    br = _bracket_rows(room, rows, t, whole) if ck is None else _bracket_c(ck, room, rows, t, whole)
     has_v = room.whole().has_velocities if whole else room.has_velocities[rows]
     plan = _plan(methods, _count(has_v) == n)
     out: dict[str, NDArray[np.float64]] = {}
     if plan.pair:
-        out.update(_render_pairs(room, br, plan.pair, plan.share))
+        if ck is None or not plan.compiled:
+            out.update(_render_pairs(room, br, plan.pair, plan.share))
+        else:
+            out.update(_render_pairs_c(ck, room, br, plan.pair))
     if plan.rest:
         out.update(_render_windows(room, br, plan.rest, methods))
     if plan.direct:
@@ -244,6 +277,8 @@ class _Plan(NamedTuple):
     #: Whether every method renders itself and what runs is ``methods`` in order
     #: (then the frame is what ran).
     direct: bool
+    #: Whether every pair method has a compiled kernel (:data:`COMPILED_KIND`).
+    compiled: bool
 
 
 _plans: dict[tuple[tuple[str, ...], bool], _Plan] = {}
@@ -267,7 +302,8 @@ def _plan(methods: Sequence[str], all_v: bool) -> _Plan:
     share = None if len(kernels) < 2 else len(SHARES_PRODUCTS.intersection(kernels)) > 1
     if len(_plans) >= 64:  # a bounded cache: callers use a handful of method sets
         _plans.clear()
-    plan = _plans[key] = _Plan(gen, shown, pair, rest, share, direct)
+    compiled = all(e.rows in COMPILED_KIND for e in pair)
+    plan = _plans[key] = _Plan(gen, shown, pair, rest, share, direct, compiled)
     return plan
 
 
@@ -299,7 +335,20 @@ def _render_pairs(
     return out
 
 
-_local = threading.local()
+def _render_pairs_c(
+    ck: ModuleType, room: RoomBuffers, br: _Brackets, entries: list[InterpolatorInfo]
+) -> dict[str, NDArray[np.float64]]:
+    """Pair methods with compiled kernels: each one call on the room's keyframes
+    where they lie (no gather), into the frame's own ``(n, 7)`` poses."""
+    n = br.lo.shape[0]
+    poses = room.whole().flat_poses
+    out: dict[str, NDArray[np.float64]] = {}
+    for entry in entries:
+        assert entry.rows is not None
+        res = np.empty((n, 7))
+        ck.pair_rows(COMPILED_KIND[entry.rows], poses, br.lo, br.hi, br.s, res)
+        out[entry.name] = res
+    return out
 
 
 def _gather_rows(n: int) -> tuple[F64, F64]:

@@ -75,6 +75,7 @@ from posecast.interp.rowops import (
 __all__ = [
     "CALLER_ROWS",
     "CHUNK",
+    "COMPILED_KIND",
     "SCRATCH_ROWS",
     "SHARES_PRODUCTS",
     "RowKernel",
@@ -623,3 +624,7 @@ def dq_slerp_rows(
 #: The kernels that read :attr:`Shared.cv` and :attr:`Shared.cross`: worth computing
 #: (``share_rows(..., products=True)``) when two of them run on the same rows.
 SHARES_PRODUCTS: frozenset[RowKernel] = frozenset({motor_lerp_rows, dq_slerp_rows})
+
+#: Each kernel's number in the compiled render kernels (``interp/_rowkernels.c``'s
+#: ``pair_rows``; :mod:`interp.accel`): the same method, to float rounding.
+COMPILED_KIND: dict[RowKernel, int] = {soa_rows: 0, motor_lerp_rows: 1, dq_slerp_rows: 2}

@@ -74,7 +74,8 @@ app = typer.Typer(
 
 
 def version_lines() -> list[str]:
-    """What ``posecast --version`` prints: the package, the protocol it speaks, the codec path.
+    """What ``posecast --version`` prints: the package, the protocol it speaks, the codec
+    path and the render kernels' (:mod:`interp.accel`).
 
     The codec path is ``protocol.codec.IMPLEMENTATION`` when the codec module
     sets it (a compiled accelerator names itself there), else the pure-Python one.
@@ -88,11 +89,14 @@ def version_lines() -> list[str]:
         package = version("posecast")
     except PackageNotFoundError:  # run from a source tree that is not installed
         package = "unknown (not installed)"
+    from posecast.interp import accel as render_accel
+
     path = getattr(codec_module, "IMPLEMENTATION", "pure Python (numpy)")
     return [
         f"posecast {package}",
         f"protocol version {PROTOCOL_VERSION}",
         f"codec: {path}",
+        f"render kernels: {render_accel.IMPLEMENTATION}",
         f"python {sys.version.split()[0]}",
     ]
 

@@ -1,0 +1,390 @@
+/* Compiled render kernels of the pair interpolators (posecast.interp._rowkernels).
+ *
+ * A receiver's render frame brackets every remote stream at its playout time and
+ * interpolates each bracket with the pair methods. In numpy that is about fifty
+ * calls on a few dozen poses, each costing more than its arithmetic; here it is
+ * two calls:
+ *
+ *   bracket_rows  the bracket of every row of a padded time table at once (the
+ *                 rule of client.render._bracket_rows / StreamBuffer.bracket)
+ *   pair_rows     soa, motor-lerp or dq-slerp of every bracket, reading the
+ *                 keyframes where they lie (interp.kernels' soa_rows,
+ *                 motor_lerp_rows, dq_slerp_rows on gathered rows)
+ *
+ * The numpy kernels are the reference. The formulas, their half-angle sines and
+ * the order of their sums are theirs; the elementary functions are libm's, which
+ * numpy's may not be (SIMD builds), so results agree to float rounding (bit for
+ * bit where numpy calls libm). s = 0 and s = 1 give the keyframes bit for bit. interp/accel.py picks which
+ * path runs; tests compare both. Built without FMA contraction (setup.py).
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <string.h>
+
+#ifndef SOURCE_HASH
+#define SOURCE_HASH "unknown"
+#endif
+
+enum { SOA = 0, MOTOR_LERP = 1, DQ_SLERP = 2 };
+
+/* ------------------------------------------------------------------ buffers */
+
+/* Whether a buffer's items are of the struct format char ``c`` (native order). */
+static int format_is(const Py_buffer *v, const char *chars) {
+    const char *f = v->format ? v->format : "B";
+    if (*f == '@' || *f == '=' || *f == '<') f++;
+    return f[0] != 0 && f[1] == 0 && strchr(chars, f[0]) != NULL;
+}
+
+/* A C-contiguous buffer of ``ndim`` dimensions whose items are one of ``chars``
+ * and ``itemsize`` bytes (writable if asked); -1 with TypeError otherwise. */
+static int get_buffer(PyObject *o, Py_buffer *v, int writable, int ndim, const char *chars,
+                      Py_ssize_t itemsize, const char *name) {
+    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(o, v, flags) < 0) {
+        PyErr_Clear();
+        PyErr_Format(PyExc_TypeError, "%s: expected a C-contiguous%s array", name,
+                     writable ? " writeable" : "");
+        return -1;
+    }
+    if (v->ndim != ndim || v->itemsize != itemsize || !format_is(v, chars)) {
+        PyErr_Format(PyExc_TypeError, "%s: expected a %d-d array of %s", name, ndim,
+                     chars[0] == 'd' ? "float64" : chars[0] == '?' ? "bool" : "intp");
+        PyBuffer_Release(v);
+        return -1;
+    }
+    return 0;
+}
+
+#define INTP "lqn"
+
+/* ------------------------------------------------------------------ bracket_rows */
+
+/* Row i's keyframes are times[base[i] .. newest[i]] (sorted, at least one), its
+ * playout time t[i]: lo, hi, s and whether it stalled, as client.render does it
+ * (hold the newest past it and before the first; exactly on a keyframe is no
+ * stall). Returns whether any bracket is held or has s == 1. */
+static int bracket_all(const double *times, const Py_ssize_t *base, const Py_ssize_t *newest,
+                       const double *ts, double t1, Py_ssize_t n, Py_ssize_t *lo_out,
+                       Py_ssize_t *hi_out, double *s_out, char *stalled) {
+    int ends = 0;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        double t = ts ? ts[i] : t1;
+        Py_ssize_t first = base[i], last = newest[i];
+        /* after: how many keyframes are at or before t (bisect_right). */
+        Py_ssize_t a = first, b = last + 1;
+        while (a < b) {
+            Py_ssize_t mid = a + (b - a) / 2;
+            if (times[mid] <= t)
+                a = mid + 1;
+            else
+                b = mid;
+        }
+        Py_ssize_t lo = a == first ? last : a - 1;
+        double t_lo = times[lo];
+        int on = t_lo == t, at_end = lo == last;
+        lo_out[i] = lo;
+        stalled[i] = at_end && !on;
+        if (at_end || on) {
+            hi_out[i] = lo;
+            s_out[i] = 0.0;
+            ends = 1;
+        } else {
+            double s = t - t_lo;
+            s /= times[lo + 1] - t_lo;
+            hi_out[i] = lo + 1;
+            s_out[i] = s;
+            if (s == 1.0) ends = 1;
+        }
+    }
+    return ends;
+}
+
+static PyObject *py_bracket_rows(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (nargs != 8) {
+        PyErr_SetString(PyExc_TypeError,
+                        "bracket_rows(times, base, newest, t, lo, hi, s, stalled)");
+        return NULL;
+    }
+    Py_buffer bt, bb, bn, btt, blo, bhi, bs, bst;
+    Py_buffer *held[8];
+    int k = 0, have_t = 0;
+    double t1 = 0.0;
+    PyObject *result = NULL;
+    if (get_buffer(args[0], &bt, 0, 1, "d", 8, "times") < 0) goto done;
+    held[k++] = &bt;
+    if (get_buffer(args[1], &bb, 0, 1, INTP, sizeof(Py_ssize_t), "base") < 0) goto done;
+    held[k++] = &bb;
+    if (get_buffer(args[2], &bn, 0, 1, INTP, sizeof(Py_ssize_t), "newest") < 0) goto done;
+    held[k++] = &bn;
+    if (PyFloat_Check(args[3]) || PyLong_Check(args[3])) {
+        t1 = PyFloat_AsDouble(args[3]);
+        if (t1 == -1.0 && PyErr_Occurred()) goto done;
+    } else {
+        if (get_buffer(args[3], &btt, 0, 1, "d", 8, "t") < 0) goto done;
+        held[k++] = &btt;
+        have_t = 1;
+    }
+    if (get_buffer(args[4], &blo, 1, 1, INTP, sizeof(Py_ssize_t), "lo") < 0) goto done;
+    held[k++] = &blo;
+    if (get_buffer(args[5], &bhi, 1, 1, INTP, sizeof(Py_ssize_t), "hi") < 0) goto done;
+    held[k++] = &bhi;
+    if (get_buffer(args[6], &bs, 1, 1, "d", 8, "s") < 0) goto done;
+    held[k++] = &bs;
+    if (get_buffer(args[7], &bst, 1, 1, "?", 1, "stalled") < 0) goto done;
+    held[k++] = &bst;
+    Py_ssize_t n = bb.shape[0], size = bt.shape[0];
+    if (bn.shape[0] != n || blo.shape[0] != n || bhi.shape[0] != n || bs.shape[0] != n ||
+        bst.shape[0] != n || (have_t && btt.shape[0] != n)) {
+        PyErr_SetString(PyExc_ValueError, "bracket_rows: the rows' arrays differ in length");
+        goto done;
+    }
+    const Py_ssize_t *base = bb.buf, *newest = bn.buf;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        if (base[i] < 0 || newest[i] < base[i] || newest[i] >= size) {
+            PyErr_Format(PyExc_ValueError,
+                         "bracket_rows: row %zd has no keyframes in the table (%zd..%zd)", i,
+                         base[i], newest[i]);
+            goto done;
+        }
+    }
+    int ends = bracket_all(bt.buf, base, newest, have_t ? btt.buf : NULL, t1, n, blo.buf,
+                           bhi.buf, bs.buf, bst.buf);
+    result = PyBool_FromLong(ends);
+done:
+    while (k > 0) PyBuffer_Release(held[--k]);
+    return result;
+}
+
+/* ------------------------------------------------------------------ pair kernels */
+
+/* q1 = b in q0's hemisphere; returns q0.q1 >= 0. At an exact half turn the
+ * largest component of the vector part of q0* b decides (interp.kernels'
+ * hemisphere_sign). */
+static double align(const double *q0, const double *b, double *q1) {
+    double dot = q0[0] * b[0] + q0[1] * b[1];
+    dot += q0[2] * b[2];
+    dot += q0[3] * b[3];
+    double sign;
+    if (dot != 0.0) {
+        sign = copysign(1.0, dot);
+    } else {
+        double rel[3];
+        rel[0] = q0[0] * b[1] - q0[1] * b[0] - q0[2] * b[3] + q0[3] * b[2];
+        rel[1] = q0[0] * b[2] + q0[1] * b[3] - q0[2] * b[0] - q0[3] * b[1];
+        rel[2] = q0[0] * b[3] - q0[1] * b[2] + q0[2] * b[1] - q0[3] * b[0];
+        int j = 0;
+        if (fabs(rel[1]) > fabs(rel[j])) j = 1;
+        if (fabs(rel[2]) > fabs(rel[j])) j = 2;
+        sign = rel[j] < 0.0 ? -1.0 : 1.0;
+    }
+    for (int c = 0; c < 4; c++) q1[c] = b[c] * sign;
+    return dot * sign;
+}
+
+/* Vector part of q0 q1*, summed in the order of interp.rowops.C_ROWS. */
+static void conj_product(const double *p, const double *q, double *cv) {
+    cv[0] = -q[1] * p[0] + q[0] * p[1] + -q[3] * p[2] + q[2] * p[3];
+    cv[1] = -q[2] * p[0] + q[3] * p[1] + q[0] * p[2] + -q[1] * p[3];
+    cv[2] = -q[3] * p[0] + -q[2] * p[1] + q[1] * p[2] + q[0] * p[3];
+}
+
+static void cross(const double *u, const double *v, double *out) {
+    out[0] = u[1] * v[2] - u[2] * v[1];
+    out[1] = u[2] * v[0] - u[0] * v[2];
+    out[2] = u[0] * v[1] - u[1] * v[0];
+}
+
+/* sin and cos of x; in [0, pi/2] through t = tan(x/2), as interp.rowops.sincos_rows
+ * (``half``: x/2 if the caller has it, else negative). */
+static void sincos_half(double x, double half, double *sin_x, double *cos_x) {
+    if (!(x >= 0.0 && x <= M_PI_2)) {
+        *sin_x = sin(x);
+        *cos_x = cos(x);
+        return;
+    }
+    double t = tan(half >= 0.0 ? half : x * 0.5);
+    double t2 = t * t;
+    double inv = 1.0 / (t2 + 1.0);
+    *sin_x = t * 2.0 * inv;
+    *cos_x = (1.0 - t2) * inv;
+}
+
+/* Position LERP + quaternion SLERP (interp.methods.soa). */
+static void soa_one(const double *t0, const double *q0, const double *t1, const double *b,
+                    double s, double *out) {
+    double q1[4], d2 = 0.0, m2 = 0.0;
+    double dot = align(q0, b, q1), r = 1.0 - s;
+    for (int c = 0; c < 4; c++) {
+        double d = q1[c] - q0[c], m = q1[c] + q0[c];
+        d2 += d * d;
+        m2 += m * m;
+    }
+    double nd = sqrt(d2), nm = sqrt(m2);
+    double sin_w = 0.5 * nd * nm;
+    double half = s * atan2(nd, nm), sw = half * 2.0, sin_sw, cos_sw, c0, c1;
+    sincos_half(sw, half, &sin_sw, &cos_sw);
+    if (sin_w != 0.0) {
+        c0 = (sin_w * cos_sw - dot * sin_sw) / sin_w;
+        c1 = sin_sw / sin_w;
+    } else {
+        c0 = r;
+        c1 = s;
+    }
+    for (int c = 0; c < 3; c++) out[c] = t0[c] + s * (t1[c] - t0[c]);
+    for (int c = 0; c < 4; c++) out[3 + c] = c0 * q0[c] + c1 * q1[c];
+}
+
+/* Motor LERP with Study normalisation (interp.methods.motor_lerp). */
+static void motor_one(const double *t0, const double *q0, const double *t1, const double *b,
+                      double s, double *out) {
+    double q1[4], cv[3], u[3], cr[3];
+    double dot = align(q0, b, q1), r = 1.0 - s;
+    conj_product(q0, q1, cv);
+    for (int c = 0; c < 3; c++) u[c] = t0[c] - t1[c];
+    cross(u, cv, cr);
+    double rr = r * r, ss = s * s, rs = r * s;
+    double den = rr + ss + rs * 2.0 * dot;
+    for (int c = 0; c < 3; c++) {
+        double mix = rs * (dot * (t0[c] + t1[c]) + cr[c]);
+        out[c] = (rr * t0[c] + ss * t1[c] + mix) / den;
+    }
+    double bl[4], n2 = 0.0;
+    for (int c = 0; c < 4; c++) {
+        bl[c] = r * q0[c] + s * q1[c];
+        n2 += bl[c] * bl[c];
+    }
+    double norm = sqrt(n2);
+    for (int c = 0; c < 4; c++) out[3 + c] = bl[c] / norm;
+}
+
+/* Dual-quaternion ScLERP in the world frame (interp.kernels.dq_slerp_rows). */
+static void dq_one(const double *t0, const double *q0, const double *t1, const double *b,
+                   double s, double *out) {
+    double q1[4], vec[3], d[3], u[3], vd[3];
+    double cos_phi = align(q0, b, q1), r = 1.0 - s;
+    conj_product(q0, q1, vec);
+    for (int c = 0; c < 3; c++) vec[c] = -vec[c]; /* vector part of q1 q0* */
+    double sin_phi = sqrt(vec[0] * vec[0] + vec[1] * vec[1] + vec[2] * vec[2]);
+    double sphi = s * atan2(sin_phi, cos_phi);
+    double sin_s, cos_s;
+    sincos_half(sphi, -1.0, &sin_s, &cos_s);
+    double sin_r = sin_phi * cos_s - cos_phi * sin_s;
+    double cos_r = cos_phi * cos_s + sin_phi * sin_s;
+    double div = sin_phi != 0.0 ? sin_phi : 1.0;
+    double k = sin_phi != 0.0 ? sin_s / div : s;
+    double kr = sin_phi != 0.0 ? sin_r / div : r;
+    double kc = k * cos_r;
+    for (int c = 0; c < 3; c++) {
+        d[c] = t1[c] - t0[c];
+        u[c] = vec[c] / div;
+    }
+    double along = (s - kc) * (d[0] * u[0] + d[1] * u[1] + d[2] * u[2]);
+    cross(vec, d, vd);
+    double kk = k * kr;
+    for (int c = 0; c < 3; c++) out[c] = t0[c] + (kc * d[c] + along * u[c] - kk * vd[c]);
+    for (int c = 0; c < 4; c++) out[3 + c] = kr * q0[c] + k * q1[c];
+}
+
+typedef void (*pair_fn)(const double *, const double *, const double *, const double *,
+                        double, double *);
+
+static PyObject *py_pair_rows(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (nargs != 6) {
+        PyErr_SetString(PyExc_TypeError, "pair_rows(kind, poses, lo, hi, s, out)");
+        return NULL;
+    }
+    long kind = PyLong_AsLong(args[0]);
+    if (kind == -1 && PyErr_Occurred()) return NULL;
+    pair_fn fn = kind == SOA ? soa_one : kind == MOTOR_LERP ? motor_one
+                                       : kind == DQ_SLERP   ? dq_one
+                                                            : NULL;
+    if (fn == NULL) {
+        PyErr_Format(PyExc_ValueError, "pair_rows: unknown kind %ld", kind);
+        return NULL;
+    }
+    Py_buffer bp, blo, bhi, bs, bo;
+    Py_buffer *held[5];
+    int k = 0;
+    PyObject *result = NULL;
+    if (get_buffer(args[1], &bp, 0, 2, "d", 8, "poses") < 0) goto done;
+    held[k++] = &bp;
+    if (get_buffer(args[2], &blo, 0, 1, INTP, sizeof(Py_ssize_t), "lo") < 0) goto done;
+    held[k++] = &blo;
+    if (get_buffer(args[3], &bhi, 0, 1, INTP, sizeof(Py_ssize_t), "hi") < 0) goto done;
+    held[k++] = &bhi;
+    if (get_buffer(args[4], &bs, 0, 1, "d", 8, "s") < 0) goto done;
+    held[k++] = &bs;
+    if (get_buffer(args[5], &bo, 1, 2, "d", 8, "out") < 0) goto done;
+    held[k++] = &bo;
+    Py_ssize_t n = blo.shape[0], size = bp.shape[1];
+    if (bp.shape[0] != 7 || bo.shape[1] != 7) {
+        PyErr_SetString(PyExc_ValueError, "pair_rows: poses must be (7, N) and out (n, 7)");
+        goto done;
+    }
+    if (bhi.shape[0] != n || bs.shape[0] != n || bo.shape[0] != n) {
+        PyErr_SetString(PyExc_ValueError, "pair_rows: lo, hi, s and out differ in length");
+        goto done;
+    }
+    const double *poses = bp.buf, *S = bs.buf;
+    const Py_ssize_t *lo = blo.buf, *hi = bhi.buf;
+    double *out = bo.buf;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        if (lo[i] < 0 || lo[i] >= size || hi[i] < 0 || hi[i] >= size) {
+            PyErr_Format(PyExc_IndexError, "pair_rows: slot out of 0..%zd at row %zd", size - 1,
+                         i);
+            goto done;
+        }
+    }
+    for (Py_ssize_t i = 0; i < n; i++) {
+        double a[7], b[7], s = S[i];
+        double *o = out + 7 * i;
+        for (int c = 0; c < 7; c++) {
+            a[c] = poses[c * size + lo[i]];
+            b[c] = poses[c * size + hi[i]];
+        }
+        if (s == 0.0)
+            memcpy(o, a, sizeof a);
+        else if (s == 1.0)
+            memcpy(o, b, sizeof b);
+        else
+            fn(a, a + 3, b, b + 3, s, o);
+    }
+    result = Py_NewRef(Py_None);
+done:
+    while (k > 0) PyBuffer_Release(held[--k]);
+    return result;
+}
+
+/* ------------------------------------------------------------------ module */
+
+static PyMethodDef methods[] = {
+    {"bracket_rows", (PyCFunction)(void (*)(void))py_bracket_rows, METH_FASTCALL,
+     "bracket_rows(times, base, newest, t, lo, hi, s, stalled) -> bool: every row's bracket "
+     "at t (a float, or one per row) into lo, hi, s, stalled; whether any is held or s == 1."},
+    {"pair_rows", (PyCFunction)(void (*)(void))py_pair_rows, METH_FASTCALL,
+     "pair_rows(kind, poses, lo, hi, s, out): pair method `kind` (0 soa, 1 motor-lerp, "
+     "2 dq-slerp) between columns lo and hi of poses (7, N) at s, into out (n, 7)."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {
+    PyModuleDef_HEAD_INIT, "posecast.interp._rowkernels",
+    "Compiled render kernels of the pair interpolators (see interp/accel.py).", -1, methods,
+};
+
+PyMODINIT_FUNC PyInit__rowkernels(void) {
+    PyObject *m = PyModule_Create(&module);
+    if (m == NULL) return NULL;
+    if (PyModule_AddStringConstant(m, "SOURCE_HASH", SOURCE_HASH) < 0 ||
+        PyModule_AddIntConstant(m, "SOA", SOA) < 0 ||
+        PyModule_AddIntConstant(m, "MOTOR_LERP", MOTOR_LERP) < 0 ||
+        PyModule_AddIntConstant(m, "DQ_SLERP", DQ_SLERP) < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    return m;
+}
