@@ -71,6 +71,8 @@ class RoomBuffers:
         self.capacity = capacity
         self.width = capacity + 1  # a spare slot: insert first, then evict
         self.n = 0  # rows in use
+        #: Rows in use that hold at least one keyframe (a render frame skips the others).
+        self.filled = 0
         self.times: F64
         self.poses: F64
         self.velocities: F64
@@ -150,6 +152,8 @@ class RoomBuffers:
         row, last = buffer.row, self.n - 1
         if row < 0 or self._rows[row] is not buffer:
             return  # released before
+        if self.counts[row]:
+            self.filled -= 1
         if row != last:
             moved = self._rows[last]
             self.times[row] = self.times[last]
@@ -195,6 +199,8 @@ class RoomBuffers:
         poses[:, row, i] = pose
         vels[row, i] = 0.0 if velocity is None else velocity
         self.counts[row] = c + 1
+        if not c:
+            self.filled += 1
         self.newest[row] += 1
 
     def _evict_oldest(self, row: int) -> None:

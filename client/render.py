@@ -195,7 +195,7 @@ def _rows_of(
     joined.counts[:n] = [len(b) for b in live]
     joined.has_velocities[:n] = [b.has_velocities for b in live]
     joined.newest[:] = joined.base + joined.counts - 1
-    joined.n = n
+    joined.n = joined.filled = n
     return joined, np.arange(len(live), dtype=np.intp), True
 
 
@@ -234,13 +234,17 @@ def render_buffers(
     instead (:func:`rendered_method`). A stall holds the bracket's keyframe for
     every kind of method.
     """
+    ck = accel.kernels
+    if ck is not None and isinstance(buffers, RoomBuffers):
+        fast = _render_room_c(ck, buffers, t, methods)
+        if fast is not None:
+            return fast
     room, rows, whole = _rows_of(buffers)
     n = rows.shape[0]
     if isinstance(t, np.ndarray):
         t = _live_times(buffers, t, rows, whole)
     if not n:
         return RenderFrame({m: np.empty((0, 7)) for m in methods}, np.zeros(0, dtype=bool))
-    ck = accel.kernels
     br = _bracket_rows(room, rows, t, whole) if ck is None else _bracket_c(ck, room, rows, t, whole)
     has_v = room.whole().has_velocities if whole else room.has_velocities[rows]
     plan = _plan(methods, _count(has_v) == n)
@@ -277,8 +281,12 @@ class _Plan(NamedTuple):
     #: Whether every method renders itself and what runs is ``methods`` in order
     #: (then the frame is what ran).
     direct: bool
-    #: Whether every pair method has a compiled kernel (:data:`COMPILED_KIND`).
+    #: Whether every pair method has a compiled kernel (:data:`COMPILED_KIND`), and
+    #: their numbers (the pair methods in order).
     compiled: bool
+    kinds: tuple[int, ...]
+    #: The pair methods' names, in order.
+    names: tuple[str, ...]
 
 
 _plans: dict[tuple[tuple[str, ...], bool], _Plan] = {}
@@ -303,7 +311,9 @@ def _plan(methods: Sequence[str], all_v: bool) -> _Plan:
     if len(_plans) >= 64:  # a bounded cache: callers use a handful of method sets
         _plans.clear()
     compiled = all(e.rows in COMPILED_KIND for e in pair)
-    plan = _plans[key] = _Plan(gen, shown, pair, rest, share, direct, compiled)
+    kinds = tuple(COMPILED_KIND[e.rows] for e in pair if e.rows in COMPILED_KIND)
+    names = tuple(e.name for e in pair)
+    plan = _plans[key] = _Plan(gen, shown, pair, rest, share, direct, compiled, kinds, names)
     return plan
 
 
@@ -333,6 +343,35 @@ def _render_pairs(
         else:  # a plug-in may keep what it is given: its own copies
             out[entry.name] = entry.func(a.T.copy(), b.T.copy(), br.s)
     return out
+
+
+def _render_room_c(
+    ck: ModuleType, room: RoomBuffers, t: float | F64, methods: Sequence[str]
+) -> RenderFrame | None:
+    """A whole room's frame in one call of the compiled kernels (bracket and every
+    method), when every row has keyframes and every method is a compiled pair method
+    (what a bot renders); None otherwise.
+
+    A frame owns two new arrays (its stalls and its poses, one block for all
+    methods); everything else is the room's or this thread's, kept between frames.
+    """
+    v = room.whole()
+    n = v.n
+    if room.filled != n or not n:
+        return None
+    plan = _plan(methods, True)  # pair methods render themselves, velocities or not
+    if plan.rest or not plan.compiled:
+        return None
+    if isinstance(t, np.ndarray):
+        t = _live_times(room, t, v.rows, True)
+    lo, hi, s = _bracket_scratch(n)
+    stalled = np.empty(n, dtype=bool)
+    poses = np.empty((len(plan.kinds), n, 7))
+    ck.render_rows(
+        v.flat_times, v.base, v.newest, t, lo, hi, s, stalled, v.flat_poses, plan.kinds, poses
+    )
+    ran = {name: poses[j] for j, name in enumerate(plan.names)}
+    return RenderFrame(ran if plan.direct else {m: ran[m] for m in methods}, stalled)
 
 
 def _render_pairs_c(

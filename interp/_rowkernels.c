@@ -101,63 +101,6 @@ static int bracket_all(const double *times, const Py_ssize_t *base, const Py_ssi
     return ends;
 }
 
-static PyObject *py_bracket_rows(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
-    (void)self;
-    if (nargs != 8) {
-        PyErr_SetString(PyExc_TypeError,
-                        "bracket_rows(times, base, newest, t, lo, hi, s, stalled)");
-        return NULL;
-    }
-    Py_buffer bt, bb, bn, btt, blo, bhi, bs, bst;
-    Py_buffer *held[8];
-    int k = 0, have_t = 0;
-    double t1 = 0.0;
-    PyObject *result = NULL;
-    if (get_buffer(args[0], &bt, 0, 1, "d", 8, "times") < 0) goto done;
-    held[k++] = &bt;
-    if (get_buffer(args[1], &bb, 0, 1, INTP, sizeof(Py_ssize_t), "base") < 0) goto done;
-    held[k++] = &bb;
-    if (get_buffer(args[2], &bn, 0, 1, INTP, sizeof(Py_ssize_t), "newest") < 0) goto done;
-    held[k++] = &bn;
-    if (PyFloat_Check(args[3]) || PyLong_Check(args[3])) {
-        t1 = PyFloat_AsDouble(args[3]);
-        if (t1 == -1.0 && PyErr_Occurred()) goto done;
-    } else {
-        if (get_buffer(args[3], &btt, 0, 1, "d", 8, "t") < 0) goto done;
-        held[k++] = &btt;
-        have_t = 1;
-    }
-    if (get_buffer(args[4], &blo, 1, 1, INTP, sizeof(Py_ssize_t), "lo") < 0) goto done;
-    held[k++] = &blo;
-    if (get_buffer(args[5], &bhi, 1, 1, INTP, sizeof(Py_ssize_t), "hi") < 0) goto done;
-    held[k++] = &bhi;
-    if (get_buffer(args[6], &bs, 1, 1, "d", 8, "s") < 0) goto done;
-    held[k++] = &bs;
-    if (get_buffer(args[7], &bst, 1, 1, "?", 1, "stalled") < 0) goto done;
-    held[k++] = &bst;
-    Py_ssize_t n = bb.shape[0], size = bt.shape[0];
-    if (bn.shape[0] != n || blo.shape[0] != n || bhi.shape[0] != n || bs.shape[0] != n ||
-        bst.shape[0] != n || (have_t && btt.shape[0] != n)) {
-        PyErr_SetString(PyExc_ValueError, "bracket_rows: the rows' arrays differ in length");
-        goto done;
-    }
-    const Py_ssize_t *base = bb.buf, *newest = bn.buf;
-    for (Py_ssize_t i = 0; i < n; i++) {
-        if (base[i] < 0 || newest[i] < base[i] || newest[i] >= size) {
-            PyErr_Format(PyExc_ValueError,
-                         "bracket_rows: row %zd has no keyframes in the table (%zd..%zd)", i,
-                         base[i], newest[i]);
-            goto done;
-        }
-    }
-    int ends = bracket_all(bt.buf, base, newest, have_t ? btt.buf : NULL, t1, n, blo.buf,
-                           bhi.buf, bs.buf, bst.buf);
-    result = PyBool_FromLong(ends);
-done:
-    while (k > 0) PyBuffer_Release(held[--k]);
-    return result;
-}
-
 /* ------------------------------------------------------------------ pair kernels */
 
 /* q1 = b in q0's hemisphere; returns q0.q1 >= 0. At an exact half turn the
@@ -291,54 +234,18 @@ static void dq_one(const double *t0, const double *q0, const double *t1, const d
 typedef void (*pair_fn)(const double *, const double *, const double *, const double *,
                         double, double *);
 
-static PyObject *py_pair_rows(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
-    (void)self;
-    if (nargs != 6) {
-        PyErr_SetString(PyExc_TypeError, "pair_rows(kind, poses, lo, hi, s, out)");
-        return NULL;
-    }
-    long kind = PyLong_AsLong(args[0]);
-    if (kind == -1 && PyErr_Occurred()) return NULL;
+static pair_fn kernel_of(long kind) {
     pair_fn fn = kind == SOA ? soa_one : kind == MOTOR_LERP ? motor_one
                                        : kind == DQ_SLERP   ? dq_one
                                                             : NULL;
-    if (fn == NULL) {
-        PyErr_Format(PyExc_ValueError, "pair_rows: unknown kind %ld", kind);
-        return NULL;
-    }
-    Py_buffer bp, blo, bhi, bs, bo;
-    Py_buffer *held[5];
-    int k = 0;
-    PyObject *result = NULL;
-    if (get_buffer(args[1], &bp, 0, 2, "d", 8, "poses") < 0) goto done;
-    held[k++] = &bp;
-    if (get_buffer(args[2], &blo, 0, 1, INTP, sizeof(Py_ssize_t), "lo") < 0) goto done;
-    held[k++] = &blo;
-    if (get_buffer(args[3], &bhi, 0, 1, INTP, sizeof(Py_ssize_t), "hi") < 0) goto done;
-    held[k++] = &bhi;
-    if (get_buffer(args[4], &bs, 0, 1, "d", 8, "s") < 0) goto done;
-    held[k++] = &bs;
-    if (get_buffer(args[5], &bo, 1, 2, "d", 8, "out") < 0) goto done;
-    held[k++] = &bo;
-    Py_ssize_t n = blo.shape[0], size = bp.shape[1];
-    if (bp.shape[0] != 7 || bo.shape[1] != 7) {
-        PyErr_SetString(PyExc_ValueError, "pair_rows: poses must be (7, N) and out (n, 7)");
-        goto done;
-    }
-    if (bhi.shape[0] != n || bs.shape[0] != n || bo.shape[0] != n) {
-        PyErr_SetString(PyExc_ValueError, "pair_rows: lo, hi, s and out differ in length");
-        goto done;
-    }
-    const double *poses = bp.buf, *S = bs.buf;
-    const Py_ssize_t *lo = blo.buf, *hi = bhi.buf;
-    double *out = bo.buf;
-    for (Py_ssize_t i = 0; i < n; i++) {
-        if (lo[i] < 0 || lo[i] >= size || hi[i] < 0 || hi[i] >= size) {
-            PyErr_Format(PyExc_IndexError, "pair_rows: slot out of 0..%zd at row %zd", size - 1,
-                         i);
-            goto done;
-        }
-    }
+    if (fn == NULL) PyErr_Format(PyExc_ValueError, "unknown pair kind %ld", kind);
+    return fn;
+}
+
+/* Method ``fn`` between columns lo[i] and hi[i] of poses (7, size) at s[i], into
+ * out (n, 7); the keyframes themselves at s 0 and 1. The slots are valid. */
+static void pairs_into(pair_fn fn, const double *poses, Py_ssize_t size, const Py_ssize_t *lo,
+                       const Py_ssize_t *hi, const double *S, Py_ssize_t n, double *out) {
     for (Py_ssize_t i = 0; i < n; i++) {
         double a[7], b[7], s = S[i];
         double *o = out + 7 * i;
@@ -353,9 +260,205 @@ static PyObject *py_pair_rows(PyObject *self, PyObject *const *args, Py_ssize_t 
         else
             fn(a, a + 3, b, b + 3, s, o);
     }
+}
+
+/* ------------------------------------------------------------------ entry points */
+
+/* The buffers an entry point holds, released together. */
+typedef struct {
+    Py_buffer views[12];
+    int count;
+} Held;
+
+static Py_buffer *hold(Held *h, PyObject *o, int writable, int ndim, const char *chars,
+                       Py_ssize_t itemsize, const char *name) {
+    Py_buffer *v = &h->views[h->count];
+    if (get_buffer(o, v, writable, ndim, chars, itemsize, name) < 0) return NULL;
+    h->count++;
+    return v;
+}
+
+static void release(Held *h) {
+    while (h->count > 0) PyBuffer_Release(&h->views[--h->count]);
+}
+
+/* The rows' arguments of a bracket (times, base, newest, t, lo, hi, s, stalled),
+ * checked: every row has keyframes in the table. */
+typedef struct {
+    const double *times, *t;
+    double t1;
+    const Py_ssize_t *base, *newest;
+    Py_ssize_t *lo, *hi;
+    double *s;
+    char *stalled;
+    Py_ssize_t n;
+} Rows;
+
+static int rows_of(Held *h, PyObject *const *a, Rows *r) {
+    Py_buffer *bt, *bb, *bn, *btt = NULL, *blo, *bhi, *bs, *bst;
+    if (!(bt = hold(h, a[0], 0, 1, "d", 8, "times")) ||
+        !(bb = hold(h, a[1], 0, 1, INTP, sizeof(Py_ssize_t), "base")) ||
+        !(bn = hold(h, a[2], 0, 1, INTP, sizeof(Py_ssize_t), "newest")))
+        return -1;
+    r->t = NULL;
+    r->t1 = 0.0;
+    if (PyFloat_Check(a[3]) || PyLong_Check(a[3])) {
+        r->t1 = PyFloat_AsDouble(a[3]);
+        if (r->t1 == -1.0 && PyErr_Occurred()) return -1;
+    } else if (!(btt = hold(h, a[3], 0, 1, "d", 8, "t"))) {
+        return -1;
+    }
+    if (!(blo = hold(h, a[4], 1, 1, INTP, sizeof(Py_ssize_t), "lo")) ||
+        !(bhi = hold(h, a[5], 1, 1, INTP, sizeof(Py_ssize_t), "hi")) ||
+        !(bs = hold(h, a[6], 1, 1, "d", 8, "s")) || !(bst = hold(h, a[7], 1, 1, "?", 1, "stalled")))
+        return -1;
+    Py_ssize_t n = bb->shape[0], size = bt->shape[0];
+    if (bn->shape[0] != n || blo->shape[0] != n || bhi->shape[0] != n || bs->shape[0] != n ||
+        bst->shape[0] != n || (btt && btt->shape[0] != n)) {
+        PyErr_SetString(PyExc_ValueError, "the rows' arrays differ in length");
+        return -1;
+    }
+    const Py_ssize_t *base = bb->buf, *newest = bn->buf;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        if (base[i] < 0 || newest[i] < base[i] || newest[i] >= size) {
+            PyErr_Format(PyExc_ValueError, "row %zd has no keyframes in the table (%zd..%zd)", i,
+                         base[i], newest[i]);
+            return -1;
+        }
+    }
+    r->times = bt->buf;
+    r->t = btt ? btt->buf : NULL;
+    r->base = base;
+    r->newest = newest;
+    r->lo = blo->buf;
+    r->hi = bhi->buf;
+    r->s = bs->buf;
+    r->stalled = bst->buf;
+    r->n = n;
+    return 0;
+}
+
+static int bracket(const Rows *r) {
+    return bracket_all(r->times, r->base, r->newest, r->t, r->t1, r->n, r->lo, r->hi, r->s,
+                       r->stalled);
+}
+
+static PyObject *py_bracket_rows(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (nargs != 8) {
+        PyErr_SetString(PyExc_TypeError,
+                        "bracket_rows(times, base, newest, t, lo, hi, s, stalled)");
+        return NULL;
+    }
+    Held h = {.count = 0};
+    Rows r;
+    PyObject *result = rows_of(&h, args, &r) < 0 ? NULL : PyBool_FromLong(bracket(&r));
+    release(&h);
+    return result;
+}
+
+/* poses (7, N) and out (k, n, 7): their data, or NULL with an error. */
+static int pose_tables(Held *h, PyObject *poses, PyObject *out, Py_ssize_t k, Py_ssize_t n,
+                       const double **p, Py_ssize_t *size, double **o) {
+    Py_buffer *bp, *bo;
+    if (!(bp = hold(h, poses, 0, 2, "d", 8, "poses")) || !(bo = hold(h, out, 1, 3, "d", 8, "out")))
+        return -1;
+    if (bp->shape[0] != 7 || bo->shape[0] != k || bo->shape[1] != n || bo->shape[2] != 7) {
+        PyErr_Format(PyExc_ValueError, "poses must be (7, N) and out (%zd, %zd, 7)", k, n);
+        return -1;
+    }
+    *p = bp->buf;
+    *size = bp->shape[1];
+    *o = bo->buf;
+    return 0;
+}
+
+static PyObject *py_pair_rows(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (nargs != 6) {
+        PyErr_SetString(PyExc_TypeError, "pair_rows(kind, poses, lo, hi, s, out)");
+        return NULL;
+    }
+    long kind = PyLong_AsLong(args[0]);
+    if (kind == -1 && PyErr_Occurred()) return NULL;
+    pair_fn fn = kernel_of(kind);
+    if (fn == NULL) return NULL;
+    Held h = {.count = 0};
+    PyObject *result = NULL;
+    Py_buffer *blo, *bhi, *bs, *bp, *bo;
+    if (!(bp = hold(&h, args[1], 0, 2, "d", 8, "poses")) ||
+        !(blo = hold(&h, args[2], 0, 1, INTP, sizeof(Py_ssize_t), "lo")) ||
+        !(bhi = hold(&h, args[3], 0, 1, INTP, sizeof(Py_ssize_t), "hi")) ||
+        !(bs = hold(&h, args[4], 0, 1, "d", 8, "s")) ||
+        !(bo = hold(&h, args[5], 1, 2, "d", 8, "out")))
+        goto done;
+    Py_ssize_t n = blo->shape[0], size = bp->shape[1];
+    if (bp->shape[0] != 7 || bo->shape[1] != 7) {
+        PyErr_SetString(PyExc_ValueError, "pair_rows: poses must be (7, N) and out (n, 7)");
+        goto done;
+    }
+    if (bhi->shape[0] != n || bs->shape[0] != n || bo->shape[0] != n) {
+        PyErr_SetString(PyExc_ValueError, "pair_rows: lo, hi, s and out differ in length");
+        goto done;
+    }
+    const Py_ssize_t *lo = blo->buf, *hi = bhi->buf;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        if (lo[i] < 0 || lo[i] >= size || hi[i] < 0 || hi[i] >= size) {
+            PyErr_Format(PyExc_IndexError, "pair_rows: slot out of 0..%zd at row %zd", size - 1,
+                         i);
+            goto done;
+        }
+    }
+    pairs_into(fn, bp->buf, size, lo, hi, bs->buf, n, bo->buf);
     result = Py_NewRef(Py_None);
 done:
-    while (k > 0) PyBuffer_Release(held[--k]);
+    release(&h);
+    return result;
+}
+
+#define MAX_KINDS 8
+
+static PyObject *py_render_rows(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (nargs != 11) {
+        PyErr_SetString(PyExc_TypeError,
+                        "render_rows(times, base, newest, t, lo, hi, s, stalled, poses, kinds, "
+                        "out)");
+        return NULL;
+    }
+    PyObject *kinds = args[9];
+    if (!PyTuple_Check(kinds) || PyTuple_GET_SIZE(kinds) > MAX_KINDS) {
+        PyErr_Format(PyExc_TypeError, "kinds: expected a tuple of at most %d ints", MAX_KINDS);
+        return NULL;
+    }
+    Py_ssize_t k = PyTuple_GET_SIZE(kinds);
+    pair_fn fns[MAX_KINDS];
+    for (Py_ssize_t j = 0; j < k; j++) {
+        long kind = PyLong_AsLong(PyTuple_GET_ITEM(kinds, j));
+        if (kind == -1 && PyErr_Occurred()) return NULL;
+        if ((fns[j] = kernel_of(kind)) == NULL) return NULL;
+    }
+    Held h = {.count = 0};
+    Rows r;
+    const double *poses;
+    double *out;
+    Py_ssize_t size;
+    PyObject *result = NULL;
+    if (rows_of(&h, args, &r) < 0 ||
+        pose_tables(&h, args[8], args[10], k, r.n, &poses, &size, &out) < 0)
+        goto done;
+    for (Py_ssize_t i = 0; i < r.n; i++) { /* a bracket's slots are at most newest */
+        if (r.newest[i] >= size) {
+            PyErr_Format(PyExc_IndexError, "render_rows: row %zd beyond the poses", i);
+            goto done;
+        }
+    }
+    int ends = bracket(&r);
+    for (Py_ssize_t j = 0; j < k; j++)
+        pairs_into(fns[j], poses, size, r.lo, r.hi, r.s, r.n, out + j * r.n * 7);
+    result = PyBool_FromLong(ends);
+done:
+    release(&h);
     return result;
 }
 
@@ -368,12 +471,16 @@ static PyMethodDef methods[] = {
     {"pair_rows", (PyCFunction)(void (*)(void))py_pair_rows, METH_FASTCALL,
      "pair_rows(kind, poses, lo, hi, s, out): pair method `kind` (0 soa, 1 motor-lerp, "
      "2 dq-slerp) between columns lo and hi of poses (7, N) at s, into out (n, 7)."},
+    {"render_rows", (PyCFunction)(void (*)(void))py_render_rows, METH_FASTCALL,
+     "render_rows(times, base, newest, t, lo, hi, s, stalled, poses, kinds, out) -> bool: "
+     "bracket_rows, then pair method kinds[j] of every bracket into out[j] (k, n, 7)."},
     {NULL, NULL, 0, NULL},
 };
 
 static struct PyModuleDef module = {
     PyModuleDef_HEAD_INIT, "posecast.interp._rowkernels",
     "Compiled render kernels of the pair interpolators (see interp/accel.py).", -1, methods,
+    NULL, NULL, NULL, NULL,
 };
 
 PyMODINIT_FUNC PyInit__rowkernels(void) {

@@ -168,7 +168,7 @@ def test_bad_arguments_are_refused(ck: ModuleType) -> None:
         ck.pair_rows(0, poses.astype(np.float32), lo, lo, s, out)
     with pytest.raises(TypeError, match="C-contiguous"):
         ck.pair_rows(0, poses, lo, lo, s, np.empty((7, 2)).T)
-    with pytest.raises(ValueError, match="unknown kind 9"):
+    with pytest.raises(ValueError, match="unknown pair kind 9"):
         ck.pair_rows(9, poses, lo, lo, s, out)
     times, st = np.array([0.0, 1.0, np.inf]), np.empty(2, bool)
     base, newest = np.zeros(2, np.intp), np.array([1, 3], np.intp)
