@@ -194,6 +194,7 @@ class _Connection(WebSocketConnection):
         peername = self.transport.get_extra_info("peername")
         address = peername[0] if isinstance(peername, tuple) and peername else None
         self.conn = core.connect(server.clock(), self._buffered, address)
+        self.pongs = core.peers[self.conn].stamps.round_trip  # its round trips (stamps.py)
         server._conns[self.conn] = self
         # Refused over a connection limit (a Close), or a join deadline to watch.
         server.apply(core.pending())
@@ -227,11 +228,6 @@ class _Connection(WebSocketConnection):
             actions = receive(conn, data, now, wall)
             if actions:
                 apply(actions)
-
-    def on_pong(self, rtt: float) -> None:
-        peer = self.server.core.peers.get(self.conn)
-        if peer is not None:  # its round trip: how old its updates may be (server/stamps.py)
-            peer.stamps.round_trip(rtt)
 
     def on_writable(self) -> None:
         self.flush()

@@ -13,7 +13,7 @@ so the same bytes serve every subscriber of one snapshot) and
 Time here is the loop's timers only (``call_later``): the opening handshake
 must end within ``open_timeout``; a keepalive ping goes out every
 ``ping_interval`` (the first ``FIRST_PING`` s after the handshake, so that the
-relay knows each connection's round trip early: :meth:`on_pong`) and a pong must
+relay knows each connection's round trip early: ``pongs``) and a pong must
 answer within ``ping_timeout`` (else 1011 "keepalive ping timeout", as websockets
 does); once a close is expected (a
 close frame sent or received, a refused handshake) the TCP connection is
@@ -27,7 +27,7 @@ import asyncio
 import logging
 import struct
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, cast
 
 from websockets.exceptions import NegotiationError
@@ -122,6 +122,8 @@ class WebSocketConnection(asyncio.Protocol):
         self._ping_seq = 0
         self._ping_data = b""
         self._ping_at = 0.0
+        #: Told each keepalive round trip (s, the loop's clock) when set.
+        self.pongs: Callable[[float], None] | None = None
         #: The parts of a fragmented message so far (None: not inside one).
         self._parts: list[bytes] | None = None
         self._text = False
@@ -143,9 +145,6 @@ class WebSocketConnection(asyncio.Protocol):
 
     def on_writable(self) -> None:
         """The transport takes writes again (after a pause)."""
-
-    def on_pong(self, rtt: float) -> None:
-        """A keepalive ping was answered ``rtt`` s (the loop's clock) after it went out."""
 
     def on_end(self) -> None:
         """The connection has ended (only after :meth:`on_open`)."""
@@ -254,8 +253,8 @@ class WebSocketConnection(asyncio.Protocol):
             self._pong_timer.cancel()
             self._pong_timer = None
             self._schedule_ping()
-            assert self._loop is not None
-            self.on_pong(self._loop.time() - self._ping_at)
+            if self.pongs is not None and self._loop is not None:
+                self.pongs(self._loop.time() - self._ping_at)
 
     def _message(self, data: bytes, text: bool, messages: list[bytes | str]) -> None:
         if not text:
