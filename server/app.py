@@ -1,35 +1,33 @@
 """The relay's asyncio adapter: sockets, timers and time around :class:`server.core.RelayCore`.
 
 Every rule of the relay lives in the sans-I/O core (``server/core.py``: its
-docstring is the protocol); this module only carries out what the core
-decides, with no task and no Event per connection. Each websocket is one
-:class:`asyncio.Protocol` on the loop's transport (``server/transport.py``,
-websockets' sans-I/O protocol inside): the messages of one read are fed to the
-core in one go, with one clock reading, each event's actions carried out before
-the next event (pose updates cause none). Writes are driven by
-the core: a ``Wake`` is carried out at once (:meth:`RelayCore.take`, then
-``transport.write``), so after a room tick every due subscriber's snapshot is
-written in that same callback; each payload is framed once and the framed
-bytes written to every subscriber that gets the same payload (members of one
-tick group get the very same ``bytes``). While the transport's buffer is full
-(``pause_writing``) nothing is taken: reliable messages wait in the outbox,
-whose bound the core enforces, and the latest-wins snapshot slot keeps the
-newest. An emulated link's delayed frames are written by one timer per
-connection at most. ``Close`` writes the queued messages (the error that
-explains the close) first, waiting at most 0.5 s for a full buffer to drain,
-then starts the closing handshake, bounded by ``close_timeout``, then aborts.
+docstring is the protocol); this module only carries out what the core decides, with
+no task and no Event per connection. Each websocket is one :class:`asyncio.Protocol`
+on the loop's transport (``server/transport.py``, websockets' sans-I/O protocol
+inside): the messages of one read are fed to the core in one go, with one clock
+reading, each event's actions carried out before the next event (pose updates cause
+none). Writes are driven by the core: a ``Wake`` is carried out at once
+(:meth:`RelayCore.take`, then ``transport.write``), so after a room tick every due
+subscriber's snapshot is written in that same callback; each payload is framed once
+and the framed bytes written to every subscriber that gets the same payload (members
+of one tick group get the very same ``bytes``). While the transport's buffer is full
+(``pause_writing``) nothing is taken: reliable messages wait in the outbox, whose
+bound the core enforces, and the latest-wins snapshot slot keeps the newest. An
+emulated link's delayed frames are written by one timer per connection at most.
+``Close`` writes the queued messages (the error that explains the close) first,
+waiting at most 0.5 s for a full buffer to drain, then starts the closing handshake,
+bounded by ``close_timeout``, then aborts.
 
-One timer ticks the rooms: each due room is ticked at its own reading of the
-clock (``RelayCore.tick(now, limit=1)``), so its lag and snapshot time are its
-own; each tick's lag, and twice a second the process's CPU time and the bytes
-unsent over all connections, go to the core's capacity (``server/capacity.py``),
-which refuses members over its budget. One task sleeps until
-:meth:`RelayCore.next_expiry` and closes the connections that have not joined in
-time. Recordings open and close off the
-event loop (a connection whose join opens a recorded room stops reading until
-the room is open). ``GET /healthz`` and ``GET /metrics`` are answered on the
-websocket port (``server/http.py``); a browser page from an origin not in
-``allow_origins`` is refused with 403 before its handshake (``server/http.py``).
+One timer ticks the rooms: each due room is ticked at its own reading of the clock
+(``RelayCore.tick(now, limit=1)``), so its lag and snapshot time are its own; each
+tick's lag, the time spent on connections not yet members, and twice a second the
+process's CPU time and the bytes unsent over all connections, go to the core's
+capacity (``server/capacity.py``), which refuses members over its budget. One task
+sleeps until :meth:`RelayCore.next_expiry` and closes the connections that have not
+joined in time. Recordings open and close off the event loop (a connection whose join
+opens a recorded room stops reading until the room is open). ``GET /healthz`` and
+``GET /metrics`` are answered on the websocket port (``server/http.py``); a browser
+page from an origin not in ``allow_origins`` is refused with 403 before its handshake.
 
 Logging is sized for a server that runs for weeks: plain HTTP requests (health
 probes, metrics scrapes, rejected handshakes) are logged at DEBUG, not at
@@ -91,8 +89,7 @@ OPEN_TIMEOUT = 2.0
 #: A forwarded client (its room is another cluster node's) with more than this
 #: unsent is closed as too slow: the owner node cannot see its socket's buffer.
 FORWARDED_BUFFER = 1 << 20
-#: Connections the kernel queues until accepted (listen backlog; capped by the kernel's
-#: ``net.core.somaxconn``): past it new ones are dropped and wait for SYN retries (1, 3, 7 s).
+#: Listen backlog: connections queued until accepted (past it dropped, to SYN retries).
 ACCEPTS = 4096
 #: Seconds between the capacity's readings of CPU time and unsent bytes.
 MEASURE_EVERY = 0.5
@@ -125,6 +122,7 @@ class _Connection(WebSocketConnection):
         #: Its place before the handshake (``server/handshakes.py``; None: none held).
         self._slot: Slot | None = None
         self._address: str | None = None
+        self._joining = True  # (not a member yet: its reads are ``Capacity.join_work``)
 
     @property
     def outbox(self) -> Outbox:
@@ -161,6 +159,14 @@ class _Connection(WebSocketConnection):
             self.server.core.handshakes.release(self._slot, self._address, key=self)
             self._slot = None
 
+    def data_received(self, data: bytes) -> None:
+        if not self._joining:  # a member's read: the steady work
+            return super().data_received(data)
+        server, cpu, start = self.server, time.process_time(), self.server.clock()
+        super().data_received(data)
+        server.core.capacity.join_work(start, server.clock(), time.process_time() - cpu)
+        self._joining = (peer := server.core.peers.get(self.conn)) is None or peer.room is None
+
     def connection_lost(self, exc: Exception | None) -> None:
         for timer in (self._drain_timer, self._link_timer):
             if timer is not None:
@@ -191,9 +197,7 @@ class _Connection(WebSocketConnection):
         server, core = self.server, self.server.core
         over = self._slot == "probe"  # a spare place: over a cap before its handshake
         self._release_slot()  # counted by the core from now on
-        peername = self.transport.get_extra_info("peername")
-        address = peername[0] if isinstance(peername, tuple) and peername else None
-        self.conn = core.connect(server.clock(), self._buffered, address)
+        self.conn = core.connect(server.clock(), self._buffered, self._address)
         self.pongs = core.peers[self.conn].stamps.round_trip  # its round trips (stamps.py)
         server._conns[self.conn] = self
         # Refused over a connection limit (a Close), or a join deadline to watch.
@@ -586,12 +590,9 @@ class RelayServer:
             self._arm_ticks()
 
     def _measure(self, now: float) -> None:
-        """Give the capacity (``server.capacity``) the process's CPU time and the bytes
-        unsent over every connection, twice a second (the ticks call this)."""
+        """Give the capacity the process's CPU time and the bytes unsent (twice a second)."""
         self._measure_at = now + MEASURE_EVERY
-        backlog = 0
-        for conn in self._conns.values():
-            backlog += conn._buffered()
+        backlog = sum(conn._buffered() for conn in self._conns.values())
         members = sum(len(room.members) for room in self.core.rooms.values())
         self.core.capacity.sample(now, time.process_time(), backlog, members)
 

@@ -31,6 +31,14 @@ growth          members admitted since the last CPU reading: at most half    wit
                 says so, a window late)
 ==============  ===========================================================  ==========
 
+A join storm is not the members' load: the adapter times the work it does for
+connections that are not members yet (:meth:`Capacity.join_work`: handshakes,
+hellos, joins, refusals). Its CPU is kept out of the per-member scaling (it is
+added as it is, not times ``(members + 1) / members``), and a tick late only by
+the join work that ran after it was due does not count against the lag budget
+(``ticks_late_for_joins``): one more member would not make it late, and a storm
+of refused clients must not read as "full" by itself.
+
 CPU and lag count from ``min_members`` members on (16): fewer cannot load a core by
 themselves, so a busy reading then is someone else's. Over any budget, the join (or
 the hello before it) is refused with the fatal
@@ -50,6 +58,7 @@ with made-up readings, never with a real clock.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -90,6 +99,8 @@ GROWTH_MIN = 16
 STALE_ERROR_INTERVAL = 1.0
 #: A CPU reading older than this many windows is not used (no ticks ran to sample).
 STALE_WINDOWS = 5
+#: Spans of join work remembered (the most recent): enough for the joins between ticks.
+SPANS = 256
 
 
 @dataclass(frozen=True, slots=True)
@@ -147,8 +158,19 @@ class Capacity:
     joins_refused: dict[str, int] = field(default_factory=dict)
     #: How late the relay runs (s): the largest tick lag of the recent windows.
     late: float = 0.0
+    #: CPU seconds spent on connections that were not members yet (handshakes, hellos,
+    #: joins, refusals): a join storm's cost, kept apart from the members' (:meth:`join_work`).
+    join_cpu: float = 0.0
+    #: The share of a core the join work used over the last CPU window.
+    join_share: float = 0.0
+    #: Ticks late over the lag budget, and those of them on time but for the join work
+    #: that ran since they were due (``posecast_ticks_late_total``).
+    ticks_late: int = 0
+    ticks_late_for_joins: int = 0
+    #: (start, end) of the join work of the recent past, on the server's clock.
+    _spans: deque[tuple[float, float]] = field(default_factory=lambda: deque(maxlen=SPANS))
     _sampled: float | None = None
-    _cpu_at: tuple[float, float, int] | None = None
+    _cpu_at: tuple[float, float, int, float] | None = None
     _current: _Window | None = None
     _previous: _Window | None = None
 
@@ -161,23 +183,47 @@ class Capacity:
         """
         self.backlog = backlog
         if self._cpu_at is None:
-            self._cpu_at = (now, cpu_seconds, members)
+            self._cpu_at = (now, cpu_seconds, members, self.join_cpu)
             return
-        t0, c0, m0 = self._cpu_at
+        t0, c0, m0, j0 = self._cpu_at
         if now - t0 >= self.budget.window:
             self.cpu = max(0.0, cpu_seconds - c0) / (now - t0)
+            self.join_share = min(self.cpu, max(0.0, self.join_cpu - j0) / (now - t0))
             # The members the window's CPU served: a ramp's members joined during it.
             self.cpu_members = round((m0 + members) / 2)
             self.read_members = members
-            self._cpu_at = (now, cpu_seconds, members)
+            self._cpu_at = (now, cpu_seconds, members, self.join_cpu)
             self._sampled = now
 
+    def join_work(self, start: float, end: float, cpu: float) -> None:
+        """The relay worked for a connection that was not a member yet (its handshake,
+        hello, join or refusal) from ``start`` to ``end``, for ``cpu`` CPU seconds."""
+        self.join_cpu += cpu
+        self._spans.append((start, end))
+
+    def _joins_since(self, due: float) -> float:
+        """Seconds of join work that ran after ``due`` (what delayed a tick due then)."""
+        total = 0.0
+        for start, end in reversed(self._spans):  # (in the order they ended)
+            if end <= due:
+                break
+            total += end - max(start, due)
+        return total
+
     def tick_lag(self, now: float, lag: float) -> None:
-        """One room tick ran ``lag`` seconds after it was due."""
+        """One room tick ran ``lag`` seconds after it was due.
+
+        A tick late only because of the join work that ran since it was due is late
+        for the join storm, not for its members: it does not count against the lag
+        budget (one more member would not make it late), only in ``ticks_late``."""
         w = self._roll(now)
         w.ticks += 1
         if lag > self.budget.lag:
-            w.late += 1
+            self.ticks_late += 1
+            if lag - self._joins_since(now - lag) > self.budget.lag:
+                w.late += 1
+            else:
+                self.ticks_late_for_joins += 1
         if lag > w.worst:
             w.worst = lag
             self.late = max(self.late, lag)
@@ -215,7 +261,9 @@ class Capacity:
         fresh = self._sampled is not None and now - self._sampled <= STALE_WINDOWS * b.window
         few = members < b.min_members
         if b.cpu > 0 and fresh and self.cpu_members > 0 and not few:
-            out["cpu"] = self.cpu * (members + 1) / self.cpu_members / b.cpu
+            # The members' CPU scales with one more member; the join work does not.
+            steady = self.cpu - self.join_share
+            out["cpu"] = (steady * (members + 1) / self.cpu_members + self.join_share) / b.cpu
         if b.cpu > 0 and fresh:  # (no reading yet: nothing to grow from)
             since = self.read_members
             out["growth"] = (members + 1 - since) / max(GROWTH_MIN, GROWTH * since)

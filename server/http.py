@@ -297,6 +297,27 @@ def _capacity_metric(core: RelayCore, metric: Metric, now: float) -> None:
         " (members admitted since the last CPU reading).",
         [(f'{{signal="{k}"}}', v) for k, v in core.capacity.usage(members, now).items()],
     )
+    cap = core.capacity
+    metric(
+        "posecast_join_cpu_seconds_total",
+        "counter",
+        "CPU time spent on connections not yet members: handshakes, hellos, joins and"
+        " refusals (a join storm's cost, kept out of the members' in the capacity).",
+        [("", cap.join_cpu)],
+    )
+    metric(
+        "posecast_ticks_late_total",
+        "counter",
+        "Room ticks later than the capacity's lag budget.",
+        [("", cap.ticks_late)],
+    )
+    metric(
+        "posecast_ticks_late_for_joins_total",
+        "counter",
+        "Of those, ticks on time but for the work on connections not yet members that ran"
+        " after they were due (not counted against the lag budget).",
+        [("", cap.ticks_late_for_joins)],
+    )
 
 
 def _overdue_metric(core: RelayCore, metric: Metric, now: float) -> None:

@@ -384,9 +384,11 @@ def _run_children(
                 f"{what} bench: ramping up {clients} clients at {ramp_rate:g}/s "
                 f"from {report['procs']} load process(es) ..."
             )
+            before = _storm_sample(server, port if what == "relay" else None)
             load = LoadFleet(cfg, report["procs"], seed)
             report["procs"] = len(load.children)
             _ramp(load, report, timeout=ramp_s + 60.0)
+            report.update(_storm_figures(before, _storm_sample(server, before.port), clients))
             t0 = time.monotonic() + warmup
             t1 = t0 + duration
             load.tell({"window": [t0, t1]})
@@ -409,6 +411,39 @@ def _run_children(
             code = server.stop(grace=15.0)
             report["server_exit_code"] = code
     return result, start, end
+
+
+@dataclass(frozen=True)
+class _StormSample:
+    """The relay's CPU time, its work on connections not yet members and its late ticks
+    (``/metrics``), at one end of the ramp (the join storm)."""
+
+    port: int | None
+    wall: float
+    cpu: float
+    metrics: dict[str, float] | None
+
+
+def _storm_sample(server: _Child, port: int | None) -> _StormSample:
+    metrics = None if port is None else _scrape(port)
+    return _StormSample(port, time.monotonic(), sum(_proc_cpu(server.pid)), metrics)
+
+
+def _storm_figures(a: _StormSample, b: _StormSample, clients: int) -> dict[str, float]:
+    """What the join storm (the ramp) cost the relay: its CPU share over the ramp, the
+    share spent on connections not yet members, that per client, and the ticks late
+    over the capacity's lag budget (all, and those only for the join work)."""
+    wall = b.wall - a.wall
+    join = _delta(a.metrics, b.metrics, "posecast_join_cpu_seconds_total")
+    return {
+        "ramp_server_cpu_pct": 100.0 * (b.cpu - a.cpu) / wall if wall > 0 else math.nan,
+        "ramp_join_cpu_pct": 100.0 * join / wall if wall > 0 else math.nan,
+        "join_cpu_ms_per_client": 1e3 * join / clients,
+        "ramp_ticks_late": _delta(a.metrics, b.metrics, "posecast_ticks_late_total"),
+        "ramp_ticks_late_for_joins": _delta(
+            a.metrics, b.metrics, "posecast_ticks_late_for_joins_total"
+        ),
+    }
 
 
 def _ramp(load: LoadFleet, report: dict[str, Any], timeout: float) -> None:

@@ -97,7 +97,7 @@ async def _answer(sock: socket.socket) -> bytes:
         writer.close()
 
 
-async def _storm() -> tuple[int, list[bytes]]:
+async def _storm() -> tuple[int, list[bytes], float, str]:
     stats = _LoadStats(1)
     holder = _BenchClient(0, "held", 20.0, stats, "compact")
     async with running_server(TINY) as server:
@@ -117,16 +117,22 @@ async def _storm() -> tuple[int, list[bytes]]:
             answers = await asyncio.gather(*(_answer(s) for s in socks))
         assert holder.conn is not None
         holder.conn.abort()
-    return connected, answers
+        metrics = server.metrics_text()
+    return connected, answers, cap.join_cpu, metrics
 
 
 @pytest.mark.skipif(_somaxconn() < STORM + 10, reason="net.core.somaxconn below the storm")
 def test_a_storm_of_joins_on_a_busy_full_relay_is_refused_not_dropped() -> None:
     """Every connection of the storm is queued while the loop is busy, and every one
     gets the ``server-full`` error and close 1013 (none silence, none a reset)."""
-    connected, answers = asyncio.run(_storm())
+    connected, answers, join_cpu, metrics = asyncio.run(_storm())
     assert connected == STORM, f"{STORM - connected} connections dropped by the kernel"
     refused = [a for a in answers if a.startswith(b"HTTP/1.1 101") and SERVER_FULL.encode() in a]
     assert len(refused) == STORM, f"{STORM - len(refused)} got no server-full: {answers[:1]}"
     # The close frame (opcode 8) carries 1013 "try again later".
     assert all(b"\x88" in a and (1013).to_bytes(2, "big") in a for a in answers)
+    # The storm's work was measured apart from the members' (``Capacity.join_work``).
+    assert join_cpu > 0
+    samples = dict(line.rpartition(" ")[::2] for line in metrics.splitlines() if line[:1] != "#")
+    assert float(samples["posecast_join_cpu_seconds_total"]) > 0
+    assert "posecast_ticks_late_for_joins_total" in samples
