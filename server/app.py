@@ -66,6 +66,7 @@ from posecast.server.core import (
 )
 from posecast.server.handshakes import Slot, fd_budget
 from posecast.server.http import OriginPolicy, QuietHttpLog, metrics_text, process_request
+from posecast.server.intake import Intake, measure
 from posecast.server.logs import LogLimiter
 from posecast.server.node import cluster_clock
 from posecast.server.recordings import Recordings
@@ -91,8 +92,6 @@ OPEN_TIMEOUT = 2.0
 FORWARDED_BUFFER = 1 << 20
 #: Listen backlog: connections queued until accepted (past it dropped, to SYN retries).
 ACCEPTS = 4096
-#: Seconds between the capacity's readings of CPU time and unsent bytes.
-MEASURE_EVERY = 0.5
 
 
 class _Connection(WebSocketConnection):
@@ -359,8 +358,7 @@ class _Connection(WebSocketConnection):
         cluster = self.server.cluster
         assert cluster is not None
         backlog, self._held, self._backlog = self._backlog, False, []
-        address = self.transport.get_extra_info("peername")
-        where = str(address[0] if address else "?")
+        where = self._address or "?"
         self.forwarded = True
         frames = [raw, *backlog]
         if resumes is None:
@@ -461,6 +459,7 @@ class RelayServer:
         self._tick_timer: asyncio.TimerHandle | None = None
         self._tick_at = 0.0
         self._measure_at = 0.0
+        self._intake: Intake | None = None  # (accepts what the loop has not, each tick)
         #: Frame once, write many: the last payload framed, and its frame.
         self._framed_src: bytes | None = None
         self._framed = b""
@@ -586,15 +585,10 @@ class RelayServer:
                 self.apply(core.tick(now, limit=1))
         finally:
             if now >= self._measure_at:
-                self._measure(now)
+                self._measure_at = measure(core, self._conns.values(), now)
             self._arm_ticks()
-
-    def _measure(self, now: float) -> None:
-        """Give the capacity the process's CPU time and the bytes unsent (twice a second)."""
-        self._measure_at = now + MEASURE_EVERY
-        backlog = sum(conn._buffered() for conn in self._conns.values())
-        members = sum(len(room.members) for room in self.core.rooms.values())
-        self.core.capacity.sample(now, time.process_time(), backlog, members)
+            if self._intake is not None:
+                self._intake.accept()
 
     async def _expiry_loop(self) -> None:
         """Close connections that have not joined in time (``join_timeout``), or whose
@@ -749,9 +743,9 @@ class RelayServer:
         """Listen until stop(); then close every connection and wait for them to end."""
         cfg = self.config
         loop = asyncio.get_running_loop()
-        listener = await loop.create_server(
-            lambda: _Connection(self), cfg.host, cfg.port, ssl=self._tls_context(), backlog=ACCEPTS
-        )
+        tls, accept = self._tls_context(), lambda: _Connection(self)
+        listener = await loop.create_server(accept, cfg.host, cfg.port, ssl=tls, backlog=ACCEPTS)
+        intake = self._intake = Intake(listener, accept, tls, self.spawn)
         try:
             self.port = int(listener.sockets[0].getsockname()[1])
             self.ready.set()
@@ -761,6 +755,7 @@ class RelayServer:
             # 0.5 s for the queued messages, then close_timeout for the handshake).
             self._closing = True  # handshakes from now on get a 503
             listener.close()
+            intake.close()
             for conn in list(self._conns.values()):
                 self.apply(self.core.close(conn.conn, 1001, "going away"))
             for conn in list(self._sockets):
@@ -769,6 +764,7 @@ class RelayServer:
             await self._all_gone.wait()
         finally:
             listener.close()
+            intake.close()
             for conn in list(self._sockets):
                 conn.abort()
 

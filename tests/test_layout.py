@@ -143,6 +143,7 @@ def test_server_holds_only_the_relay() -> None:
         "actions.py",
         "peer.py",
         "handshakes.py",
+        "intake.py",
         "parked.py",
         "parking.py",
         "ports.py",
