@@ -51,6 +51,7 @@ from numpy.typing import NDArray
 from posecast.client.playout import RoomPlayoutDelay
 from posecast.interp import TIP_OFFSET_M, quat_rotate, tip_error_mm
 from posecast.interp import get as get_interp
+from posecast.interp.expected_error import WINDOW_S, Acceleration
 from posecast.protocol import PoseUpdate, Snapshot, decode_message
 from posecast.protocol._compact import SnapshotDecoder
 from posecast.protocol.codec import DEFAULT_VOLUME
@@ -58,7 +59,7 @@ from posecast.scenarios.network import TCP_IP_HEADER_BYTES, TCP_MSS, websocket_h
 from posecast.scenarios.spawn import layout_points, place, placement_for
 from posecast.scenarios.traces import DEVICE_NAMES, Trace, find_traces, load_trace
 from posecast.server.room import Member, Outbox, Room
-from posecast.server.view_rates import ViewRates, ViewState
+from posecast.server.view_rates import Motion, ViewRates, ViewState
 
 __all__ = ["Room20", "Scored", "main", "run_policy", "score"]
 
@@ -112,11 +113,32 @@ class Received:
     ingest_cpu_s: float
 
 
+@dataclass
+class LookbackMotion(Motion):
+    """The relay's motion follower with another look-back of its acceleration
+    estimate (``--lookback``; the relay's is ``WINDOW_S``)."""
+
+    window_s: float = WINDOW_S
+
+    def observe(self, sid: int, t: float, pose: bytes) -> None:
+        if sid not in self.accel:
+            self.accel[sid] = Acceleration(window_s=self.window_s)
+        super().observe(sid, t, pose)
+
+
 def run_policy(
-    room20: Room20, compact: bool, budget_deg: float | None, margin: float, min_rate: float = 5.0
+    room20: Room20,
+    compact: bool,
+    budget_deg: float | None,
+    margin: float,
+    min_rate: float = 5.0,
+    lookback: float | None = None,
 ) -> Received:
-    """Drive the relay's Room through the whole session under one policy."""
+    """Drive the relay's Room through the whole session under one policy (``lookback``:
+    seconds of the acceleration estimate's look-back, None: the relay's)."""
     room = Room("view-eval", views=ViewRates(min_rate, margin), phase=0.0)
+    if lookback is not None and budget_deg is not None:
+        room.motion = LookbackMotion(window_s=lookback)
     n = len(room20.times)
     members = []
     for u in range(n):
@@ -374,6 +396,12 @@ def main(argv: Sequence[str] | None = None) -> None:
         help="playout delay rules to score each policy with: room, peer, pair (comma-separated)",
     )
     ap.add_argument("--budget-deg", type=float, default=None)
+    ap.add_argument(
+        "--lookback",
+        type=float,
+        default=None,
+        help=f"look-back (s) of the relay's acceleration estimate (default {WINDOW_S})",
+    )
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
     rules = args.delays.split(",")
@@ -398,8 +426,10 @@ def main(argv: Sequence[str] | None = None) -> None:
             print(f"budget: SoA@30's angular error at 1 m = {budget:.3f} deg ({codec})")
         for floor in (float(f) for f in args.floors.split(",")):
             for margin in (float(m) for m in args.margins.split(",")):
-                view = run_policy(room20, compact, budget, margin, floor)
+                view = run_policy(room20, compact, budget, margin, floor, args.lookback)
                 name = f"view x{margin:g} >={floor:g} Hz"
+                if args.lookback is not None:
+                    name += f" look-back {args.lookback:g} s"
                 for r in rules:
                     rows.append(score(room20, view, name, codec, args.warmup, rule=r)[0])
                 if floor < RATE / 2:  # the latency bound: render at the fixed D + 1 frame

@@ -37,3 +37,15 @@ def test_the_client_rule_with_per_peer_delays_bridges_slower_peers() -> None:
     v_peer, _ = score(room, view, "view", "compact", 1.0, rule="peer")
     assert v_peer.stall_pct < v_room.stall_pct
     assert v_peer.delay_ms > v_room.delay_ms
+
+
+def test_a_longer_look_back_never_lowers_a_peers_rate() -> None:
+    """The acceleration estimate is a running max: over 1 s it is at least the one over
+    0.1 s, so every peer goes at least as often and the bytes do not fall."""
+    traces = [load_trace(p).select(DEVICE_NAMES) for p in find_traces("traces:sample")]
+    room = build(traces, 5, "circle:4", 3.0)
+    short = run_policy(room, False, 10.0, 1.0, lookback=0.1)
+    long = run_policy(room, False, 10.0, 1.0, lookback=1.0)
+    s, _ = score(room, short, "short", "raw", 1.0)
+    g, _ = score(room, long, "long", "raw", 1.0)
+    assert g.mean_rate_hz > s.mean_rate_hz and sum(long.wire_bytes) > sum(short.wire_bytes)
