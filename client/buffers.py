@@ -49,7 +49,11 @@ class _WholeRoom(NamedTuple):
     has_velocities: NDArray[np.bool_]
     rows: NDArray[np.intp]
     flat_times: F64  # times (R * W,)
-    flat_poses: F64  # poses (7, R * W)
+    pose_rows: F64  # poses (R * W, 7), slot after slot
+    #: Each row's last bracket (the compiled render's, :attr:`RoomBuffers.brackets`).
+    lo: NDArray[np.intp]
+    hi: NDArray[np.intp]
+    s: F64
 
 
 class RoomBuffers:
@@ -57,9 +61,10 @@ class RoomBuffers:
 
     One row per stream (:meth:`stream` adds one and returns its
     :class:`StreamBuffer`), ``capacity + 1`` slots per row, in capture-time order
-    and padded with ``+inf`` times: ``times (R, W)``, ``poses (7, R, W)``
-    (component major, float64, validated on arrival: finite, unit quaternions),
-    ``velocities (R, W, 6)``, ``counts (R,)`` and ``has_velocities (R,)``. The
+    and padded with ``+inf`` times: ``times (R, W)``, ``pose_rows (R, W, 7)``
+    (float64, validated on arrival: finite, unit quaternions; ``poses (7, R, W)``
+    is its component-major view), ``velocities (R, W, 6)``, ``counts (R,)`` and
+    ``has_velocities (R,)``. The
     arrays grow (doubling the rows) when streams are added; a render frame
     (:func:`render_buffers`) brackets every row with one vectorised comparison
     and gathers the bracketing keyframes with one ``take`` per side.
@@ -74,7 +79,9 @@ class RoomBuffers:
         #: Rows in use that hold at least one keyframe (a render frame skips the others).
         self.filled = 0
         self.times: F64
+        self.pose_rows: F64
         self.poses: F64
+        self.brackets: tuple[NDArray[np.intp], NDArray[np.intp], F64]
         self.velocities: F64
         self.counts: NDArray[np.intp]
         self.has_velocities: NDArray[np.bool_]
@@ -90,18 +97,29 @@ class RoomBuffers:
     def _allocate(self, rows: int) -> None:
         w, n = self.width, self.n
         times = np.full((rows, w), np.inf)
-        poses = np.zeros((7, rows, w))
+        pose_rows = np.zeros((rows, w, 7))
         vels = np.zeros((rows, w, 6))
         counts = np.zeros(rows, dtype=np.intp)
         has_v = np.ones(rows, dtype=bool)
         if n:
             times[:n] = self.times[:n]
-            poses[:, :n] = self.poses[:, :n]
+            pose_rows[:n] = self.pose_rows[:n]
             vels[:n] = self.velocities[:n]
             counts[:n] = self.counts[:n]
             has_v[:n] = self.has_velocities[:n]
-        self.times, self.poses, self.velocities = times, poses, vels
+        # Stored slot after slot (a keyframe's 7 values side by side, where a render
+        # reads them); ``poses`` is the component-major view of the same memory.
+        self.pose_rows = pose_rows
+        self.poses = pose_rows.transpose(2, 0, 1)
+        self.times, self.velocities = times, vels
         self.counts, self.has_velocities = counts, has_v
+        #: Each row's last bracket (flat slots, fraction): where the compiled render
+        #: writes it, and where its next search starts (render time moves forward).
+        self.brackets = (
+            np.zeros(rows, dtype=np.intp),
+            np.zeros(rows, dtype=np.intp),
+            np.zeros(rows),
+        )
         self.row_index = np.arange(rows, dtype=np.intp)
         self.base = self.row_index * w
         self.newest = self.base + counts - 1
@@ -122,7 +140,10 @@ class RoomBuffers:
                 self.has_velocities[:n],
                 self.row_index[:n],
                 self.times.reshape(-1),
-                self.poses.reshape(7, -1),
+                self.pose_rows.reshape(-1, 7),
+                self.brackets[0][:n],
+                self.brackets[1][:n],
+                self.brackets[2][:n],
             )
         return v
 
@@ -157,7 +178,7 @@ class RoomBuffers:
         if row != last:
             moved = self._rows[last]
             self.times[row] = self.times[last]
-            self.poses[:, row] = self.poses[:, last]
+            self.pose_rows[row] = self.pose_rows[last]
             self.velocities[row] = self.velocities[last]
             self.counts[row] = self.counts[last]
             self.has_velocities[row] = self.has_velocities[last]
@@ -190,13 +211,13 @@ class RoomBuffers:
     ) -> None:
         """Put a keyframe at slot ``i`` of ``row``, shifting later ones right."""
         c = int(self.counts[row])
-        times, poses, vels = self.times, self.poses, self.velocities
+        times, poses, vels = self.times, self.pose_rows, self.velocities
         if i < c:
             times[row, i + 1 : c + 1] = times[row, i:c]
-            poses[:, row, i + 1 : c + 1] = poses[:, row, i:c]
+            poses[row, i + 1 : c + 1] = poses[row, i:c]
             vels[row, i + 1 : c + 1] = vels[row, i:c]
         times[row, i] = capture
-        poses[:, row, i] = pose
+        poses[row, i] = pose
         vels[row, i] = 0.0 if velocity is None else velocity
         self.counts[row] = c + 1
         if not c:
@@ -205,9 +226,9 @@ class RoomBuffers:
 
     def _evict_oldest(self, row: int) -> None:
         c = int(self.counts[row])
-        times, poses, vels = self.times, self.poses, self.velocities
+        times, poses, vels = self.times, self.pose_rows, self.velocities
         times[row, : c - 1] = times[row, 1:c]
-        poses[:, row, : c - 1] = poses[:, row, 1:c]
+        poses[row, : c - 1] = poses[row, 1:c]
         vels[row, : c - 1] = vels[row, 1:c]
         times[row, c - 1] = np.inf
         self.counts[row] = c - 1

@@ -36,6 +36,7 @@ __all__ = ["VELOCITY_FALLBACK", "RenderFrame", "render_buffers", "rendered_metho
 F64 = NDArray[np.float64]
 
 _count = np.count_nonzero
+_copyto = np.copyto
 _local = threading.local()
 
 
@@ -190,7 +191,7 @@ def _rows_of(
     for j, b in enumerate(live):
         src, w = b.room, b.room.width
         joined.times[j, :w] = src.times[b.row]
-        joined.poses[:, j, :w] = src.poses[:, b.row]
+        joined.pose_rows[j, :w] = src.pose_rows[b.row]
         joined.velocities[j, :w] = src.velocities[b.row]
     joined.counts[:n] = [len(b) for b in live]
     joined.has_velocities[:n] = [b.has_velocities for b in live]
@@ -327,10 +328,12 @@ def _render_pairs(
     the same arrays frame after frame, so the kernels keep their views of them.
     """
     n = br.lo.shape[0]
-    poses = room.whole().flat_poses
-    a, b = _gather_rows(n)
-    poses.take(br.lo, 1, a, "clip")  # lo and hi are valid slots
-    poses.take(br.hi, 1, b, "clip")
+    poses = room.whole().pose_rows
+    a, b, ga, gb = _gather_rows(n)
+    poses.take(br.lo, 0, ga, "clip")  # lo and hi are valid slots
+    poses.take(br.hi, 0, gb, "clip")
+    _copyto(a, ga.T)
+    _copyto(b, gb.T)
     shared = None if share is None else share_rows(a, b, br.s, share)
     out: dict[str, NDArray[np.float64]] = {}
     for entry in entries:
@@ -364,11 +367,11 @@ def _render_room_c(
         return None
     if isinstance(t, np.ndarray):
         t = _live_times(room, t, v.rows, True)
-    lo, hi, s = _bracket_scratch(n)
     stalled = np.empty(n, dtype=bool)
     poses = np.empty((len(plan.kinds), n, 7))
+    # The room's own lo, hi, s: each row's search starts from its last bracket.
     ck.render_rows(
-        v.flat_times, v.base, v.newest, t, lo, hi, s, stalled, v.flat_poses, plan.kinds, poses
+        v.flat_times, v.base, v.newest, t, v.lo, v.hi, v.s, stalled, v.pose_rows, plan.kinds, poses
     )
     ran = {name: poses[j] for j, name in enumerate(plan.names)}
     return RenderFrame(ran if plan.direct else {m: ran[m] for m in methods}, stalled)
@@ -380,7 +383,7 @@ def _render_pairs_c(
     """Pair methods with compiled kernels: each one call on the room's keyframes
     where they lie (no gather), into the frame's own ``(n, 7)`` poses."""
     n = br.lo.shape[0]
-    poses = room.whole().flat_poses
+    poses = room.whole().pose_rows
     out: dict[str, NDArray[np.float64]] = {}
     for entry in entries:
         assert entry.rows is not None
@@ -390,12 +393,14 @@ def _render_pairs_c(
     return out
 
 
-def _gather_rows(n: int) -> tuple[F64, F64]:
+def _gather_rows(n: int) -> tuple[F64, F64, F64, F64]:
     """This thread's ``(7, n)`` rows for the keyframes either side of ``n`` brackets,
-    kept for the last width (a bot's frames all have the same)."""
-    rows: tuple[F64, F64] | None = getattr(_local, "gather", None)
+    and the ``(n, 7)`` poses they are gathered into first, kept for the last width
+    (a bot's frames all have the same)."""
+    rows: tuple[F64, F64, F64, F64] | None = getattr(_local, "gather", None)
     if rows is None or rows[0].shape[1] != n:
-        rows = _local.gather = (np.empty((7, n)), np.empty((7, n)))
+        rows = (np.empty((7, n)), np.empty((7, n)), np.empty((n, 7)), np.empty((n, 7)))
+        _local.gather = rows
     return rows
 
 
@@ -409,7 +414,7 @@ def _render_windows(
     n = br.lo.shape[0]
     slots = _window(br, lb, la)
     flat = slots.reshape(-1)
-    keys = room.poses.reshape(7, -1).take(flat, axis=1).reshape(7, k, n).transpose(1, 2, 0)
+    keys = room.whole().pose_rows.take(flat, axis=0).reshape(k, n, 7)
     times = room.times.reshape(-1).take(flat).reshape(k, n)
     with_velocity = any(interp_info(m).needs_velocity for m in names)
     vel = (

@@ -8,8 +8,9 @@
  *   bracket_rows  the bracket of every row of a padded time table at once (the
  *                 rule of client.render._bracket_rows / StreamBuffer.bracket)
  *   pair_rows     soa, motor-lerp or dq-slerp of every bracket, reading the
- *                 keyframes where they lie (interp.kernels' soa_rows,
- *                 motor_lerp_rows, dq_slerp_rows on gathered rows)
+ *                 keyframes where they lie, a pose table (N, 7) (interp.kernels'
+ *                 soa_rows, motor_lerp_rows, dq_slerp_rows on gathered rows)
+ *   render_rows   both in one call, every method of a frame
  *
  * The numpy kernels are the reference. The formulas, their half-angle sines and
  * the order of their sums are theirs; the elementary functions are libm's, which
@@ -64,16 +65,31 @@ static int get_buffer(PyObject *o, Py_buffer *v, int writable, int ndim, const c
 /* Row i's keyframes are times[base[i] .. newest[i]] (sorted, at least one), its
  * playout time t[i]: lo, hi, s and whether it stalled, as client.render does it
  * (hold the newest past it and before the first; exactly on a keyframe is no
- * stall). Returns whether any bracket is held or has s == 1. */
+ * stall). lo_out holds a guess on entry (any value). Returns whether any bracket
+ * is held or has s == 1. */
 static int bracket_all(const double *times, const Py_ssize_t *base, const Py_ssize_t *newest,
                        const double *ts, double t1, Py_ssize_t n, Py_ssize_t *lo_out,
                        Py_ssize_t *hi_out, double *s_out, char *stalled) {
     int ends = 0;
     for (Py_ssize_t i = 0; i < n; i++) {
         double t = ts ? ts[i] : t1;
-        Py_ssize_t first = base[i], last = newest[i];
-        /* after: how many keyframes are at or before t (bisect_right). */
+        Py_ssize_t first = base[i], last = newest[i], h = lo_out[i];
+        /* a: the first slot after t (bisect_right), in [first, last + 1]. Every slot
+         * before a is at or before t, every slot from b on after it. The search
+         * starts at the row's last bracket (lo_out on entry): playout time moves
+         * forward, so the answer is mostly there or one slot on. */
         Py_ssize_t a = first, b = last + 1;
+        if (h >= first && h <= last) {
+            if (times[h] <= t) {
+                a = h + 1;
+                if (a < b && !(times[a] <= t)) b = a;
+                else if (a < b) a++;
+            } else {
+                b = h;
+                if (b > a && times[b - 1] <= t) a = b;
+                else if (b > a) b--;
+            }
+        }
         while (a < b) {
             Py_ssize_t mid = a + (b - a) / 2;
             if (times[mid] <= t)
@@ -242,21 +258,17 @@ static pair_fn kernel_of(long kind) {
     return fn;
 }
 
-/* Method ``fn`` between columns lo[i] and hi[i] of poses (7, size) at s[i], into
+/* Method ``fn`` between slots lo[i] and hi[i] of poses (N, 7) at s[i], into
  * out (n, 7); the keyframes themselves at s 0 and 1. The slots are valid. */
-static void pairs_into(pair_fn fn, const double *poses, Py_ssize_t size, const Py_ssize_t *lo,
+static void pairs_into(pair_fn fn, const double *poses, const Py_ssize_t *lo,
                        const Py_ssize_t *hi, const double *S, Py_ssize_t n, double *out) {
     for (Py_ssize_t i = 0; i < n; i++) {
-        double a[7], b[7], s = S[i];
-        double *o = out + 7 * i;
-        for (int c = 0; c < 7; c++) {
-            a[c] = poses[c * size + lo[i]];
-            b[c] = poses[c * size + hi[i]];
-        }
+        const double *a = poses + 7 * lo[i], *b = poses + 7 * hi[i];
+        double s = S[i], *o = out + 7 * i;
         if (s == 0.0)
-            memcpy(o, a, sizeof a);
+            memcpy(o, a, 7 * sizeof(double));
         else if (s == 1.0)
-            memcpy(o, b, sizeof b);
+            memcpy(o, b, 7 * sizeof(double));
         else
             fn(a, a + 3, b, b + 3, s, o);
     }
@@ -357,18 +369,18 @@ static PyObject *py_bracket_rows(PyObject *self, PyObject *const *args, Py_ssize
     return result;
 }
 
-/* poses (7, N) and out (k, n, 7): their data, or NULL with an error. */
+/* poses (N, 7) and out (k, n, 7): their data, or -1 with an error. */
 static int pose_tables(Held *h, PyObject *poses, PyObject *out, Py_ssize_t k, Py_ssize_t n,
                        const double **p, Py_ssize_t *size, double **o) {
     Py_buffer *bp, *bo;
     if (!(bp = hold(h, poses, 0, 2, "d", 8, "poses")) || !(bo = hold(h, out, 1, 3, "d", 8, "out")))
         return -1;
-    if (bp->shape[0] != 7 || bo->shape[0] != k || bo->shape[1] != n || bo->shape[2] != 7) {
-        PyErr_Format(PyExc_ValueError, "poses must be (7, N) and out (%zd, %zd, 7)", k, n);
+    if (bp->shape[1] != 7 || bo->shape[0] != k || bo->shape[1] != n || bo->shape[2] != 7) {
+        PyErr_Format(PyExc_ValueError, "poses must be (N, 7) and out (%zd, %zd, 7)", k, n);
         return -1;
     }
     *p = bp->buf;
-    *size = bp->shape[1];
+    *size = bp->shape[0];
     *o = bo->buf;
     return 0;
 }
@@ -392,9 +404,9 @@ static PyObject *py_pair_rows(PyObject *self, PyObject *const *args, Py_ssize_t 
         !(bs = hold(&h, args[4], 0, 1, "d", 8, "s")) ||
         !(bo = hold(&h, args[5], 1, 2, "d", 8, "out")))
         goto done;
-    Py_ssize_t n = blo->shape[0], size = bp->shape[1];
-    if (bp->shape[0] != 7 || bo->shape[1] != 7) {
-        PyErr_SetString(PyExc_ValueError, "pair_rows: poses must be (7, N) and out (n, 7)");
+    Py_ssize_t n = blo->shape[0], size = bp->shape[0];
+    if (bp->shape[1] != 7 || bo->shape[1] != 7) {
+        PyErr_SetString(PyExc_ValueError, "pair_rows: poses must be (N, 7) and out (n, 7)");
         goto done;
     }
     if (bhi->shape[0] != n || bs->shape[0] != n || bo->shape[0] != n) {
@@ -409,7 +421,7 @@ static PyObject *py_pair_rows(PyObject *self, PyObject *const *args, Py_ssize_t 
             goto done;
         }
     }
-    pairs_into(fn, bp->buf, size, lo, hi, bs->buf, n, bo->buf);
+    pairs_into(fn, bp->buf, lo, hi, bs->buf, n, bo->buf);
     result = Py_NewRef(Py_None);
 done:
     release(&h);
@@ -455,7 +467,7 @@ static PyObject *py_render_rows(PyObject *self, PyObject *const *args, Py_ssize_
     }
     int ends = bracket(&r);
     for (Py_ssize_t j = 0; j < k; j++)
-        pairs_into(fns[j], poses, size, r.lo, r.hi, r.s, r.n, out + j * r.n * 7);
+        pairs_into(fns[j], poses, r.lo, r.hi, r.s, r.n, out + j * r.n * 7);
     result = PyBool_FromLong(ends);
 done:
     release(&h);
@@ -470,7 +482,7 @@ static PyMethodDef methods[] = {
      "at t (a float, or one per row) into lo, hi, s, stalled; whether any is held or s == 1."},
     {"pair_rows", (PyCFunction)(void (*)(void))py_pair_rows, METH_FASTCALL,
      "pair_rows(kind, poses, lo, hi, s, out): pair method `kind` (0 soa, 1 motor-lerp, "
-     "2 dq-slerp) between columns lo and hi of poses (7, N) at s, into out (n, 7)."},
+     "2 dq-slerp) between slots lo and hi of poses (N, 7) at s, into out (n, 7)."},
     {"render_rows", (PyCFunction)(void (*)(void))py_render_rows, METH_FASTCALL,
      "render_rows(times, base, newest, t, lo, hi, s, stalled, poses, kinds, out) -> bool: "
      "bracket_rows, then pair method kinds[j] of every bracket into out[j] (k, n, 7)."},

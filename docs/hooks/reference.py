@@ -45,8 +45,10 @@ OTHER_SETTINGS: dict[str, tuple[str, str]] = {
     "POSECAST_PURE": (
         "unset (the compiled accelerator where it is built)",
         "`1`: run the compact codec's pure-Python twin instead of its C accelerator "
-        "(same bytes, about twice the relay's CPU per pose). `posecast --version` and "
-        "the `posecast_codec_info` metric say which runs.",
+        "(same bytes, about twice the relay's CPU per pose), and the render frame's "
+        "numpy kernels instead of the compiled ones (the same poses to float rounding, "
+        "several times a bot's render CPU). `posecast --version` says which run; the "
+        "`posecast_codec_info` metric, which codec.",
     ),
 }
 

@@ -68,9 +68,9 @@ def numpy_rows(kernel: object, a: F64, b: F64, s: F64) -> F64:
 
 
 def compiled_rows(ck: ModuleType, kernel: object, a: F64, b: F64, s: F64) -> F64:
-    """The compiled kernel on the same rows: ``a`` and ``b`` as columns of one table."""
+    """The compiled kernel on the same rows: ``a`` and ``b`` as slots of one table."""
     m = s.shape[0]
-    poses = np.ascontiguousarray(np.concatenate([a, b], axis=1))
+    poses = np.ascontiguousarray(np.concatenate([a, b], axis=1).T)
     lo = np.arange(m, dtype=np.intp)
     out = np.empty((m, 7))
     ck.pair_rows(COMPILED_KIND[kernel], poses, lo, lo + m, s, out)  # type: ignore[index]
@@ -147,19 +147,25 @@ def test_bracket_rows_follow_the_buffer_rule(ck: ModuleType) -> None:
     newest = base + counts - 1
     lo, hi = np.empty(rows, np.intp), np.empty(rows, np.intp)
     s, stalled = np.empty(rows), np.empty(rows, bool)
-    for tt in (t, np.full(rows, 0.5)):
-        ends = ck.bracket_rows(times.reshape(-1), base, newest, tt, lo, hi, s, stalled)
+    # lo on entry is where each row's search starts: any value gives the same bracket.
+    hints = [np.full(rows, -7), rng.integers(0, rows * w, rows), base, newest, newest + 1]
+    for tt in (t, np.full(rows, 0.5), t + 0.02, t - 0.3):
         want = numpy_brackets(times, counts, tt)
-        assert (lo.tolist(), hi.tolist(), s.tolist(), stalled.tolist()) == want
-        assert ends == bool(np.any(lo == hi) or np.any(s == 1.0))
+        for hint in [*hints, np.array(want[0]) + 1, np.array(want[0]) - 1, np.array(want[0])]:
+            lo[:] = hint
+            ends = ck.bracket_rows(times.reshape(-1), base, newest, tt, lo, hi, s, stalled)
+            assert (lo.tolist(), hi.tolist(), s.tolist(), stalled.tolist()) == want
+            assert ends == bool(np.any(lo == hi) or np.any(s == 1.0))
     ck.bracket_rows(times.reshape(-1), base, newest, 0.5, lo, hi, s, stalled)  # a float
-    assert (lo.tolist(), hi.tolist(), s.tolist(), stalled.tolist()) == want
+    assert (lo.tolist(), hi.tolist(), s.tolist(), stalled.tolist()) == numpy_brackets(
+        times, counts, np.full(rows, 0.5)
+    )
 
 
 def test_bad_arguments_are_refused(ck: ModuleType) -> None:
     """Wrong dtypes, shapes or slots raise, and nothing is read out of bounds."""
-    poses = np.zeros((7, 4))
-    poses[3] = 1.0
+    poses = np.zeros((4, 7))
+    poses[:, 3] = 1.0
     lo, out = np.zeros(2, np.intp), np.empty((2, 7))
     s = np.zeros(2)
     with pytest.raises(IndexError, match=r"slot out of 0\.\.3"):
