@@ -164,7 +164,8 @@ class _Connection(WebSocketConnection):
         server, cpu, start = self.server, time.process_time(), self.server.clock()
         super().data_received(data)
         server.core.capacity.join_work(start, server.clock(), time.process_time() - cpu)
-        self._joining = (peer := server.core.peers.get(self.conn)) is None or peer.room is None
+        peer = server.core.peers.get(self.conn)  # (a forwarded client is in another node's room)
+        self._joining = not self.forwarded and (peer is None or peer.room is None)
 
     def connection_lost(self, exc: Exception | None) -> None:
         for timer in (self._drain_timer, self._link_timer):
