@@ -17,7 +17,7 @@ exceeds it by its lag as well.
 
 :class:`StampCheck` (one per connection) keeps, per stream it publishes, the
 smallest age of its updates over ``window`` seconds (in four blocks; judged from
-two on), and the
+the first on, 0.5 s), and the
 connection's round trip as the relay's keepalive pings measure it (the lowest of
 the last ``RTT_SAMPLES``). Once a stream's window holds ``min_updates`` updates
 and a round trip is known, its *unexplained lag* is ``min(age) - rtt / 2``. Over
@@ -167,7 +167,7 @@ class StampCheck:
     def _judge(self, track: _Track) -> float:
         """The correction a full window asks for: its unexplained lag, or 0."""
         rule = self.rule
-        if len(track.blocks) < 2 or sum(track.counts) < rule.min_updates:
+        if len(track.blocks) < 1 or sum(track.counts) < rule.min_updates:
             return 0.0
         if not math.isfinite(self.rtt):
             return 0.0

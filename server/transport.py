@@ -12,8 +12,8 @@ so the same bytes serve every subscriber of one snapshot) and
 
 Time here is the loop's timers only (``call_later``): the opening handshake
 must end within ``open_timeout``; a keepalive ping goes out every
-``ping_interval`` (the first ``FIRST_PING`` s after the handshake, so that the
-relay knows each connection's round trip early: ``pongs``) and a pong must
+``ping_interval`` (the first ``EARLY_PINGS`` ``FIRST_PING`` s apart from the handshake
+on, so that the relay knows each connection's round trip early: ``pongs``) and a pong must
 answer within ``ping_timeout`` (else 1011 "keepalive ping timeout", as websockets
 does); once a close is expected (a
 close frame sent or received, a refused handshake) the TCP connection is
@@ -56,9 +56,11 @@ _PING = struct.Struct("!I")
 BUG_LOG_INTERVAL = 60.0
 _bug_log = LogLimiter(BUG_LOG_INTERVAL, time.monotonic)
 
-#: The first keepalive ping goes out this long after the handshake (at most
-#: ``ping_interval``): its pong is the connection's first round trip.
+#: The first ``EARLY_PINGS`` keepalive pings go out this long after the handshake and
+#: after each other's pong (at most ``ping_interval``): the connection's first round
+#: trips, the lowest of a few (one alone may be late on a busy loop).
 FIRST_PING = 0.5
+EARLY_PINGS = 3
 
 #: The websocket subprotocol of this wire format (selected when offered, not required).
 SUBPROTOCOL = "posecast.v1"
@@ -252,7 +254,7 @@ class WebSocketConnection(asyncio.Protocol):
         ):
             self._pong_timer.cancel()
             self._pong_timer = None
-            self._schedule_ping()
+            self._schedule_ping(FIRST_PING if self._ping_seq < EARLY_PINGS else None)
             if self.pongs is not None and self._loop is not None:
                 self.pongs(self._loop.time() - self._ping_at)
 
