@@ -94,7 +94,8 @@ export class Receiver {
   posesReceived = 0;
   private floor = -Infinity;
   private readonly capacity: number;
-  private readonly perPeer: boolean;
+  /** Each peer's playout delay is sized from its own keyframe interval too (`perPeer`). */
+  readonly perPeer: boolean;
 
   constructor(opts: ReceiverOptions) {
     this.capacity = opts.capacity ?? DEFAULT_BUFFER_CAPACITY;

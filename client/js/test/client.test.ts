@@ -310,3 +310,19 @@ test('rate "auto" without maxRate sends no max_rate; a maxRate out of range or w
   assert.ok(!sentTypes(FakeSocket.sockets[0]!).includes("join"));
   assert.throws(() => client({ rate: 20, maxRate: 25 }), /maxRate is only allowed with rate "auto"/);
 });
+
+test("budgetDeg: the join asks it and the receiver sizes each peer's playout delay per peer, across a rate change", async () => {
+  FakeSocket.handler = relay();
+  const c = client({ budgetDeg: 1.5 });
+  await c.connect();
+  const join = FakeSocket.sockets[0]!.sent.filter((b) => b[0] !== 0xc1).map((b) => decodeMessage(b) as ControlMessage).find((m) => m.type === "join") as unknown as { budget_deg: number };
+  assert.equal(join.budget_deg, 1.5);
+  assert.equal(c.receiver.perPeer, true);
+  assert.equal(c.receiver.delay.perPeer, true);
+  c.receiver.setRate(15);
+  assert.equal(c.receiver.delay.perPeer, true);
+  c.close();
+  const plain = client();
+  assert.equal(plain.receiver.perPeer, false);
+  assert.equal(plain.receiver.delay.perPeer, false);
+});
