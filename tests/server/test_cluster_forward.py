@@ -189,8 +189,18 @@ async def _open_remote(
     econn: int,
     now: float,
 ) -> None:
+    """Welcome ``session`` on the edge (:func:`_welcome_on_edge`), then join room
+    "lab" on the owner."""
+    _welcome_on_edge(edge, session, inbox, econn, now)
+    edge.forward(econn, [session.send(Join(room="lab", streams=("head",), rate=20.0))])
+    await _until(lambda: any(isinstance(e, Joined) for e in inbox))
+
+
+def _welcome_on_edge(
+    edge: Edge, session: ClientSession, inbox: list[object], econn: int, now: float
+) -> None:
     """Welcome ``session`` as the edge's core would (an id of the edge's block), then
-    open it on the owner and join room "lab" there."""
+    open it on the owner."""
     edge_core = RelayCore()
     edge_core.users = IdAllocator(1024 + econn + 1, start=1024 + econn)
     conn = edge_core.connect(now)
@@ -199,8 +209,6 @@ async def _open_remote(
         inbox.extend(session.receive_data(frame))
     user = next(e.user for e in inbox if isinstance(e, Welcome))
     edge.open(econn, "o", user, "far", False, "x")
-    edge.forward(econn, [session.send(Join(room="lab", streams=("head",), rate=20.0))])
-    await _until(lambda: any(isinstance(e, Joined) for e in inbox))
 
 
 async def test_a_new_member_gets_joined_before_a_shared_snapshot(nats_url: str) -> None:
@@ -228,14 +236,7 @@ async def test_a_new_member_gets_joined_before_a_shared_snapshot(nats_url: str) 
             pub = connect(owner, now, room="lab", rate=20.0)
             await _open_remote(edge, members, sessions[1], got[1], 1, now)
             writer.cancel()  # from here on the owner writes only when told to
-            edge_core = RelayCore()
-            edge_core.users = IdAllocator(1030, start=1029)
-            conn = edge_core.connect(now)
-            edge_core.receive(conn, sessions[2].send(Hello(agent="far")), now)
-            for frame in edge_core.take(conn, now)[0]:
-                deliver(2, frame)
-            user = next(e.user for e in got[2] if isinstance(e, Welcome))
-            edge.open(2, "o", user, "far", False, "x")
+            _welcome_on_edge(edge, sessions[2], got[2], 2, now)
             seen = members.frames_in
             edge.forward(2, [sessions[2].send(Join(room="lab", streams=("head",), rate=20.0))])
             await _until(lambda: members.frames_in > seen)
