@@ -38,6 +38,7 @@ from posecast.protocol import (
     encode_update,
 )
 from posecast.server.app import RelayServer
+from posecast.server.room import Room
 
 T = TypeVar("T")
 Clock = Callable[[], float]
@@ -244,6 +245,49 @@ def keyframe_rates(
                 if t0 <= arrival < t1:
                     counts[key] = counts.get(key, 0) + 1
     return {key: n / (t1 - t0) for key, n in counts.items()}
+
+
+class DueTicks:
+    """The relay's due ticks of some members of ``room``, as it runs them: each member's
+    snapshot slots the relay reached (``Room.tick``'s own test of ``next_due``), with
+    the server clock at that tick. A loaded machine makes the relay miss slots (it
+    skips grid points it is late for): counting the slots it did reach, not seconds,
+    keeps a rate check about the relay, not about the machine."""
+
+    def __init__(self, room: Room, users: Iterable[int]) -> None:
+        self.at: dict[int, list[float]] = {user: [] for user in users}
+        tick = room.tick
+
+        def spy(now: float) -> int:
+            for user, times in self.at.items():
+                member = room.members.get(user)
+                if member is not None and not member.parked and member.next_due <= now + 1e-9:
+                    times.append(now)
+            return tick(now)
+
+        room.tick = spy  # type: ignore[method-assign]
+
+    def between(self, user: int, t0: float, t1: float) -> int:
+        return sum(t0 <= t < t1 for t in self.at[user])
+
+
+def keyframes_per_tick(bot: Bot, due: DueTicks, t0: float, t1: float) -> dict[StreamKey, float]:
+    """New keyframes of each remote stream in the snapshots the relay built for ``bot``
+    in [t0, t1) of the server clock, per due tick of ``bot`` in that span: 1.0 when every
+    slot carries a new keyframe (publishers faster than the granted rate)."""
+    newest: dict[StreamKey, float] = {}
+    counts: dict[StreamKey, int] = {}
+    for _, snap in bot.snapshots:
+        inside = t0 <= snap.send_time < t1
+        users, streams = snap.users.tolist(), snap.streams.tolist()
+        for user, stream, cap in zip(users, streams, snap.capture_times.tolist(), strict=True):
+            key = (user, stream)
+            if cap > newest.get(key, -np.inf):
+                newest[key] = cap
+                if inside:
+                    counts[key] = counts.get(key, 0) + 1
+    n = due.between(bot.user, t0, t1)
+    return {key: k / n for key, k in counts.items()} if n else {}
 
 
 def rate_of(rates: dict[StreamKey, float], streams: Iterable[StreamKey]) -> float:
