@@ -215,7 +215,12 @@ async def _scene(a: Actor, b: Actor, room: Room) -> tuple[int, int]:
 async def _run(tmp: Path) -> Session:
     # A join waits for the room's recorder (its process starting: seconds on a loaded
     # machine), and the relay's keepalive does not count that wait as an answer.
-    config = ServerConfig(host="127.0.0.1", port=0, record_dir=tmp, ping_timeout=30.0)
+    # b's skewed captures look 100 ms old to the relay, as a lagging liar's do: the
+    # relay's stamp rule (server/stamps.py, tested on its own) would move them, and
+    # this session checks that the file keeps what each client sent.
+    config = ServerConfig(
+        host="127.0.0.1", port=0, record_dir=tmp, ping_timeout=30.0, stamp_lag=0.0
+    )
     async with running_server(config) as server:
         url = f"ws://127.0.0.1:{server.port}"
         a = Actor(await ClientConnection.open(url, room=ROOM, streams=("head",), rate=RATE))

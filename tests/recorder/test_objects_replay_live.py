@@ -40,14 +40,16 @@ def session(tmp_path_factory: pytest.TempPathFactory) -> Session:
 
 def _recording(out: Path) -> ServerConfig:
     """A recording relay. A join waits for its room's recorder (a process starting:
-    seconds on a loaded machine), which the keepalive does not count as an answer."""
-    return ServerConfig(host="127.0.0.1", port=0, record_dir=out, ping_timeout=30.0)
+    seconds on a loaded machine), which the keepalive does not count as an answer.
+    The recorded member b's captures run 100 ms behind (``objkit.SKEW_B``), and a
+    replay sends them as recorded: the stamp rule is off, as when they were recorded."""
+    return ServerConfig(host="127.0.0.1", port=0, record_dir=out, ping_timeout=30.0, stamp_lag=0.0)
 
 
 async def _replay(path: Path, out: Path, codec: str) -> tuple[dict[str, Any], Path]:
     """Replay ``path`` into a recording relay; its report and the replayed room's file."""
     async with running_server(
-        ServerConfig(host="127.0.0.1", port=0, record_dir=out, ping_timeout=30.0)
+        ServerConfig(host="127.0.0.1", port=0, record_dir=out, ping_timeout=30.0, stamp_lag=0.0)
     ) as server:
         url = f"ws://127.0.0.1:{server.port}"
         # Someone elsewhere first: the replay's users get other ids than the recorded ones.
@@ -282,7 +284,7 @@ def test_a_window_creates_its_objects_and_gives_them_to_their_holders(
 
 async def _replay_window(path: Path, out: Path, start: float) -> tuple[dict[str, Any], Path]:
     async with running_server(
-        ServerConfig(host="127.0.0.1", port=0, record_dir=out, ping_timeout=30.0)
+        ServerConfig(host="127.0.0.1", port=0, record_dir=out, ping_timeout=30.0, stamp_lag=0.0)
     ) as server:
         url = f"ws://127.0.0.1:{server.port}"
         report = await replay_live(path, url, codec="raw", linger=0.2, start_s=start)
