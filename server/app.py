@@ -762,7 +762,10 @@ class RelayServer:
             for conn in list(self._sockets):
                 if not conn.is_open:  # no websocket yet (a handshake, a plain HTTP answer)
                     conn.abort()
-            await self._all_gone.wait()
+            try:  # (bounded: should a socket's end never be reported, it is aborted below)
+                await asyncio.wait_for(self._all_gone.wait(), cfg.close_timeout + 5.0)
+            except TimeoutError:
+                log.warning("stopping: %d connections did not end; aborted", len(self._sockets))
         finally:
             listener.close()
             intake.close()
