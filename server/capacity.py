@@ -299,7 +299,8 @@ class Capacity:
     def shed(self, core: Relay, peer: Peer, event: Hello | Join, now: float) -> bool:
         """Refuse ``event`` with ``server-full`` (close 1013) if one more member is over the
         budget; True if it was refused. A hello resuming a member (and its join), or one a
-        cluster node forwarded (that node admitted it), is never refused here."""
+        cluster node forwarded (that node welcomed it), is never refused here; a forwarded
+        join is: this node owns the room and would carry the member's fan-out."""
         if isinstance(event, Hello):
             peer.wants_retry_after = event.wants_retry_after
             if event.resume or peer.preset_user is not None:
