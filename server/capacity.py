@@ -47,6 +47,11 @@ to retry (:data:`RETRY_AFTER`), and ``error.retry_after`` too for a client whose
 hello asked (``wants_retry_after``); members already in are untouched (a member resuming
 its dropped connection is one of them). A budget of 0 turns its signal off.
 
+:meth:`Capacity.overloaded` says the relay's ticks run late for the members' work
+(over a tenth of a window's ticks over the lag budget): its rooms grew past what it
+can carry, and ``server.rates`` offers its auto-rate subscribers lower rates (a
+``rate`` notice each) instead of letting snapshots queue.
+
 :meth:`Capacity.lateness` is how late the relay itself runs (the largest tick
 lag of the recent windows): an update read that much later than it arrived is
 not its sender's fault, so the capture-age limit is widened by it
@@ -74,6 +79,8 @@ __all__ = [
     "GROWTH_MIN",
     "LAG_CPU_FLOOR",
     "LAG_MIN_MEMBERS",
+    "PRESSURE_SHARE",
+    "PRESSURE_TICKS",
     "RETRY_AFTER",
     "STALE_ERROR_INTERVAL",
     "Capacity",
@@ -91,6 +98,12 @@ LAG_CPU_FLOOR = 0.2
 LAG_MIN_MEMBERS = 16
 #: Share of a window's ticks that may be later than the lag budget (1 %: the p99).
 LAG_SHARE = 0.01
+#: The relay runs too late for its rooms' rates (:meth:`Capacity.overloaded`: its
+#: auto-rate subscribers are offered lower ones) when over this share of a window's
+#: ticks are later than the lag budget ...
+PRESSURE_SHARE = 0.1
+#: ... out of at least this many ticks (one late tick of a few is a hiccup, not a load).
+PRESSURE_TICKS = 10
 #: Members admitted per CPU reading: at most this share of the members it measured ...
 GROWTH = 0.5
 #: ... and at least this many.
@@ -253,6 +266,19 @@ class Capacity:
         """How late the relay runs at ``now`` (s): the largest tick lag of the recent
         windows (:attr:`late` is the same as of the last tick, for the hot path)."""
         return max((w.worst for w in self._windows(now)), default=0.0)
+
+    def overloaded(self, now: float) -> bool:
+        """Whether the relay runs too late to carry its rooms at their rates at ``now``:
+        over :data:`PRESSURE_SHARE` of the ticks of a recent window (of at least
+        :data:`PRESSURE_TICKS`) were later than the lag budget for the members' work
+        (a join storm's lateness does not count). ``server.rates`` then offers its
+        auto-rate subscribers lower rates. Off with the lag budget."""
+        if self.budget.lag <= 0:
+            return False
+        return any(
+            w.ticks >= PRESSURE_TICKS and w.late > PRESSURE_SHARE * w.ticks
+            for w in self._windows(now)
+        )
 
     def usage(self, members: int, now: float) -> dict[str, float]:
         """Each signal as a share of its budget with one more member (over 1: refused)."""

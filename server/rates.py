@@ -27,6 +27,10 @@ The rule, evaluated once per ``window`` (0.5 s):
   (``headroom x drained bytes/s / bytes per snapshot``), at least 1 Hz below the
   rate that failed (``down_factor`` below it before any snapshot got through);
   that rate is remembered as the link's *ceiling*;
+- *the relay late* (``relay_late``: the relay's own ticks run late for its
+  members' work, ``server.capacity.Capacity.overloaded``): the room grew past what
+  the relay can carry; **down fast** as if congested, whatever the link did (the
+  relay skips grid points already: the drain it measures is what it managed);
 - *clear* for ``up_after`` (1 s) since the last congestion and ``up_every`` (0.5 s)
   since the last change: **up slowly**, by ``up_step`` (25 %) of the rate (at least 1 Hz),
   but not to the ceiling until the ceiling is ``ceiling_hold`` (10 s) old: the
@@ -146,8 +150,9 @@ class LinkRate:
         """``rate`` in whole Hz, within [lo, hi] (lo and hi themselves are kept as given)."""
         return min(self.hi, max(self.lo, float(math.floor(rate + 1e-9))))
 
-    def update(self, now: float, egress: Egress) -> float | None:
-        """The new rate if it changes now (None: it stays)."""
+    def update(self, now: float, egress: Egress, relay_late: bool = False) -> float | None:
+        """The new rate if it changes now (None: it stays); ``relay_late``: the relay
+        itself runs late (its rooms grew past what it carries), a step down."""
         last = self._last
         if last is None or egress.ticks < last[1].ticks:  # first call, or counters reset
             self._last = (now, egress)
@@ -167,10 +172,11 @@ class LinkRate:
             self.frame_bytes = sample if old is None else 0.7 * old + 0.3 * sample
         size = self.frame_bytes
         backlogged = size is not None and egress.backlog > self.backlog_frames * size
-        if skips > 0 or backlogged:
+        if skips > 0 or backlogged or relay_late:
             if now - self._down_at < 2.0 * self.window:
                 return None  # what queued before the last step down is still draining
             lone = skips == 1 and not backlogged and now - self._skip_at >= self.isolated_s
+            lone = lone and not relay_late
             if lone and not self._on_trial(now):
                 self._edge(now)
                 return None
@@ -252,6 +258,8 @@ class RateHistogram:
     counts: list[int] = field(default_factory=lambda: [0] * (len(RATE_BUCKETS) + 1))
     total: float = 0.0
     changes: int = 0
+    #: Of the changes, the steps down made because the relay itself ran late.
+    relay_late: int = 0
 
     def observe(self, rate: float) -> None:
         self.counts[bucket(rate, RATE_BUCKETS)] += 1
@@ -272,6 +280,10 @@ class RateHistogram:
             "subscribers (rate messages).",
             "# TYPE posecast_auto_rate_changes_total counter",
             f"posecast_auto_rate_changes_total {self.changes}",
+            "# HELP posecast_auto_rate_relay_late_total Rates the relay lowered because its "
+            "own ticks ran late (its rooms grew past what it carries), not for the link.",
+            "# TYPE posecast_auto_rate_relay_late_total counter",
+            f"posecast_auto_rate_relay_late_total {self.relay_late}",
             "# HELP posecast_auto_rate_members Members whose rate the relay chooses now.",
             "# TYPE posecast_auto_rate_members gauge",
             f"posecast_auto_rate_members {members}",
@@ -369,8 +381,17 @@ def egress(peer: RatedPeer, member: RatedMember) -> Egress:
 P = TypeVar("P", bound=RatedPeer)
 
 
+class Pressure(Protocol):
+    """Whether the relay runs late for its members' work (``server.capacity.Capacity``)."""
+
+    def overloaded(self, now: float) -> bool: ...
+
+
 class RelayView(Protocol[P]):
     """What :class:`AutoRates` needs of the relay core (``server.core.RelayCore``)."""
+
+    @property
+    def capacity(self) -> Pressure: ...
 
     def connected(self, user: int) -> P | None: ...
 
@@ -379,9 +400,9 @@ class RelayView(Protocol[P]):
 
 class AutoRates(Generic[P]):
     """What the relay runs after each room's tick (``server.rooms.RoomTable.adapt``):
-    each auto-rate member's controller decides; a new rate moves the member (the
-    caller schedules the room after) and is told to the client. Keeps the rates'
-    histogram for ``/metrics``."""
+    each auto-rate member's controller decides, from its link and from whether the
+    relay itself runs late; a new rate moves the member (the caller schedules the
+    room after) and is told to the client. Keeps the rates' histogram for ``/metrics``."""
 
     def __init__(self, core: RelayView[P]) -> None:
         self.core = core
@@ -389,6 +410,7 @@ class AutoRates(Generic[P]):
 
     def __call__(self, room: RatedRoom, now: float) -> None:
         core, hist = self.core, self.histogram
+        late: bool | None = None  # (asked once a tick, and only of a room with auto rates)
         for member in room.members.values():
             ctl = member.link_rate
             if ctl is None or member.parked:
@@ -396,12 +418,15 @@ class AutoRates(Generic[P]):
             peer = core.connected(member.user)
             if peer is None:
                 continue
+            if late is None:
+                late = core.capacity.overloaded(now)
             windows, served = ctl.windows, ctl.rate
-            rate = ctl.update(now, egress(peer, member))
+            rate = ctl.update(now, egress(peer, member), late)
             if ctl.windows != windows:
                 hist.observe(served)
             if rate is not None and rate != member.rate:
                 hist.changes += 1
+                hist.relay_late += late and rate < served
                 room.set_rate(member.user, rate, now)
                 core.send(peer, RateNotice(rate=rate))
 

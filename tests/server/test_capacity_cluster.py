@@ -80,7 +80,7 @@ async def test_a_full_node_hands_the_client_to_another_node(nats_url: str) -> No
     full_cfg, free_cfg = _configs(nats_url)
     async with running_server(full_cfg) as full, running_server(free_cfg) as free:
         url_full, url_free = (f"ws://127.0.0.1:{s.port}" for s in (full, free))
-        holder, session, _ = await _member(url_full, "r")  # node a owns room r
+        holder, _, _ = await _member(url_full, "r")  # node a owns room r
         cap = full.core.capacity
         await poll_until(lambda: cap.cpu_members > 0 and cap.cpu > 0)
         report = await run_bot(_bot((url_full, url_free), "s"))

@@ -193,3 +193,39 @@ def test_histogram_of_chosen_rates() -> None:
     assert 'posecast_auto_rate_hz_bucket{le="12.5"} 2' in text
     assert 'posecast_auto_rate_hz_bucket{le="+Inf"} 4' in text
     assert "posecast_auto_rate_hz_sum 77" in text and "posecast_auto_rate_members 2" in text
+
+
+def test_a_late_relay_steps_the_rate_down_with_no_skip_and_up_once_it_keeps_up() -> None:
+    """The relay itself late (its rooms grew past what it carries): down fast, to what
+    got through, as for congestion, though the link skipped nothing; at most one step
+    per two windows; once the relay keeps up, up slowly again."""
+    ctl = LinkRate(5.0, 30.0)
+    link = CappedLink(1_000_000)
+    t, changes = 0.0, []
+    while t < 10.0:
+        link.offer(t)
+        # Late from 2 s to 5 s: the relay skips grid points (2 of every 3 ticks run).
+        late = 2.0 <= t < 5.0
+        new = ctl.update(t, link.egress(), relay_late=late)
+        if new is not None:
+            changes.append((t, new, late))
+        t += 1.0 / ctl.rate * (1.5 if late else 1.0)
+    assert link.skips == 0
+    downs = [(t, r) for t, r, late in changes if late]
+    assert downs and all(b[1] < a[1] for a, b in itertools.pairwise([(0.0, 30.0), *downs]))
+    assert all(t1 - t0 >= 2 * ctl.window - 1e-9 for (t0, _), (t1, _) in itertools.pairwise(downs))
+    lowest = downs[-1][1]
+    ups = [(t, r) for t, r, late in changes if not late and t >= 5.0]
+    assert ups and ups[-1][1] > lowest
+    assert all(r == math.floor(r) and 5.0 <= r <= 30.0 for _, r, _ in changes)
+
+
+def test_a_late_relay_is_no_lone_skip_at_the_links_edge() -> None:
+    """A lone skip keeps the rate (the link's edge); the same window with the relay late
+    is a step down."""
+    for late, stays in ((False, True), (True, False)):
+        ctl = LinkRate(5.0, 30.0)
+        assert ctl.update(0.0, Egress(0, 0, 0)) is None
+        assert ctl.update(0.5, Egress(15, 0, 15_000)) is None
+        new = ctl.update(1.0, Egress(30, 1, 29_000), relay_late=late)
+        assert (new is None) == stays, late
