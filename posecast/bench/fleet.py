@@ -39,6 +39,7 @@ _SUMMED = (
     "decoded_frames",
     "codec_snapshots",
     "codec_own_echo",
+    "empty_ticks",
     "clients_closed",
     "load_clients",
     "clients_measured",

@@ -215,7 +215,8 @@ def _traffic_rows(r: dict[str, Any]) -> list[_Row]:
         (
             "snapshots / client / s",
             f"{_f(r['snapshots_per_client_s'], 2)} (min {_f(r['snapshots_per_client_s_min'], 2)})",
-            f"asked {r['rate_hz']:g}; ratio {_f(r['snapshot_rate_ratio'], 3)}",
+            f"asked {r['rate_hz']:g}; ratio {_f(r['snapshot_rate_ratio'], 3)}; "
+            f"after a tick that sent nothing: {_f(r.get('empty_ticks', 0))}",
         ),
         ("skips", f"{_f(r['skips'], 0)} ({_f(r['skips_per_s'], 1)}/s)", "/metrics"),
         (

@@ -370,3 +370,30 @@ def test_a_send_time_rounded_to_the_microsecond_is_due_at_its_own_grid_point() -
         assert abs(client._due(send) - point) < 1e-6
     # A tick that ran late by a tenth of a period is still due at its grid point.
     assert abs(client._due(grid[-1] + 0.1 / rate + 1 / rate) - (grid[-1] + 1 / rate)) < 1e-6
+
+
+def test_a_tick_that_sent_a_client_nothing_does_not_make_its_next_snapshot_late() -> None:
+    """In a room of two (codec snapshots leave out one's own streams) a tick can send a
+    subscriber nothing. Alone, its next snapshot, on time, reads a whole period late;
+    with its room mate's snapshot of that tick seen (RoomTicks), it is due at its own
+    grid point, and the empty tick is counted. A tick that ran late is still late."""
+    a, b = _client(7, [21]), _client(8, [22])
+    b.ticks = a.ticks  # one room
+    rate, phase = a.rate, a._phase
+    grid = [(k + phase) / rate for k in range(1000, 1010)]
+    on_time = [point + 0.002 for point in grid]
+    assert abs(b._due(on_time[0]) - grid[0]) < 1e-6
+    a._due(on_time[0])
+    a._due(on_time[1])  # b's tick at grid[1] was empty: only a got a snapshot
+    assert abs(b._due(on_time[2]) - grid[2]) < 1e-6
+    assert b.stats.empty_ticks == 1
+    # Without the room mate the same snapshot reads a period late (the old reading).
+    lone = _client(9, [23])
+    lone._due(on_time[0])
+    assert abs(lone._due(on_time[2]) - grid[1]) < 1e-6
+    # The tick due at grid[4] ran 1.5 periods late, for both: due at grid[4] still.
+    for c in (a, b):
+        c._due(on_time[3])
+    late = grid[4] + 1.5 / rate
+    assert abs(a._due(late) - grid[4]) < 1e-6 and abs(b._due(late) - grid[4]) < 1e-6
+    assert b.stats.empty_ticks == 1
