@@ -80,11 +80,9 @@ from posecast.protocol import (
     ErrorMessage,
     Hello,
     Join,
-    Joined,
     Limits,
     LocalProtocolError,
     ObjectCreate,
-    PeerLeft,
     Ping,
     Pong,
     PoseUpdate,
@@ -111,11 +109,11 @@ from posecast.server.actions import (
 from posecast.server.config import ServerConfig
 from posecast.server.guard import Guard
 from posecast.server.handshakes import Handshakes
+from posecast.server.joins import Joins
 from posecast.server.limits import (
     Admission,
     Deadlines,
     error_message,
-    normalise_room,
     update_refusal,
 )
 from posecast.server.link import Downlink
@@ -174,7 +172,6 @@ class RelayCore:
         cfg = self.config
         self.admission = Admission(cfg.max_connections, cfg.max_connections_per_address)
         self.handshakes = Handshakes(self.admission, guard=Guard.of(cfg))  # caps before handshake
-        self._join_deadlines = Deadlines(self._unjoined)
         #: Access-token expiries (server clock) of joined connections; see Renew.
         self._token_deadlines = Deadlines(self._token_due)
         #: The cluster this relay is a node of (``server.node`` sets it; None: alone).
@@ -190,7 +187,9 @@ class RelayCore:
         #: Connections refused (over a limit), closed for not joining in time, and
         #: closed for misbehaving (over their budget).
         self.refused_connections = self.join_timeouts = self.misbehaviour_closes = 0
-        self._spectators: set[int] = set()  # Join.spectator: publish nothing, unannounced
+        #: Admission, the join deadline, joins and leaves (``server.joins``).
+        self.joins = Joins(self, self.peers, self.table, self.capacity, self.admission)
+        self._spectators = self.joins.spectators  # (read on every update)
 
     @property
     def tick_lags(self) -> LagHistogram:
@@ -237,7 +236,7 @@ class RelayCore:
 
     def is_spectator(self, user: int | None) -> bool:
         """Whether ``user`` joined as a spectator (publishes nothing, unannounced)."""
-        return user in self._spectators
+        return self.joins.is_spectator(user)
 
     def new_conn(self) -> int:
         """A new connection id (also for parked members no socket holds)."""
@@ -256,14 +255,11 @@ class RelayCore:
         """
         conn = self.new_conn()
         peer = self.peers[conn] = Peer(conn, self, buffered, now, address)
-        refused = self.admission.admit(address)
+        refused = self.joins.admit(peer, now)
         if refused is not None:
             self.refused_connections += 1
             log.info("connection from %s refused: %s", address, refused)
             self.close_peer(peer, 1013, f"try again later: {refused}")
-        else:
-            peer.admitted = True
-            self._join_deadlines.add(conn, now + self.config.join_timeout)
         return conn
 
     def next_expiry(self) -> float | None:
@@ -271,7 +267,7 @@ class RelayCore:
         time, or whose access token expires), or a publisher may have gone silent
         (None: none)."""
         due = [
-            self._join_deadlines.next(),
+            self.joins.next_deadline(),
             self._token_deadlines.next(),
             self.parking.next(),
             self.silence.next(),
@@ -282,7 +278,7 @@ class RelayCore:
         """Close (1008) every connection not joined ``join_timeout`` after it opened,
         and every connection whose access token expired without a renew; announce
         every publisher whose updates stopped ``stall_after`` ago (``peer_stalled``)."""
-        for conn in self._join_deadlines.pop_due(now):
+        for conn in self.joins.unjoined(now):
             self.join_timeouts += 1
             self.close_peer(
                 self.peers[conn], 1008, f"no join within {self.config.join_timeout:g} s"
@@ -297,12 +293,6 @@ class RelayCore:
     def emit_rearm(self) -> None:
         """A deadline of :meth:`next_expiry` was added or moved."""
         self.emit(Rearm())
-
-    def _unjoined(self, conn: int, deadline: float) -> bool:
-        peer = self.peers.get(conn)
-        return (
-            peer is not None and peer.room is None and peer.close_request is None
-        ) and not peer.forwarded
 
     def release_user(self, conn: int) -> None:
         """A forwarded ``conn`` whose room's node is gone: its user id is the room's
@@ -348,32 +338,16 @@ class RelayCore:
         return peer.session.receive_data(data)
 
     def room_to_open(self, conn: int, event: Event, wall: float) -> str | None:
-        """The room a recording server must open (off the loop) before ``event``."""
-        if self.config.record_dir is None:
-            return None
-        name = tokens.joinable_room(event, self.config.secret, wall)
-        if name is None or name in self.rooms or self.table.refusal(name) is not None:
-            return None
-        return name
+        """The room a recording server must open (off the loop) before ``event``
+        (``server.joins``)."""
+        return self.joins.room_to_open(event, wall)
 
     def hold(self, conn: int, event: Event, wall: float) -> Hold | None:
-        """Whether ``event`` of ``conn`` must wait before :meth:`handle` (None: it need not).
-
-        In a cluster, a join of a room this node must claim first (it does not own
-        it, or a claim under way may be taking members in) waits for the claim, and
-        a hello resuming a member not parked here waits for the cluster's lookup;
-        on a recording server, a join that creates a room waits for its recording
-        to open. The adapter holds the connection's reads meanwhile (in order).
-        """
-        cluster = self.cluster
-        if cluster is not None:
-            name = tokens.joinable_room(event, self.config.secret, wall)
-            if name is not None and cluster.must_claim(name):
-                return Hold(conn, "claim", name)
-            if isinstance(event, Hello) and event.resume and not self.parking.has(event.resume):
-                return Hold(conn, "resume", token=event.resume)
-        room = self.room_to_open(conn, event, wall)
-        return None if room is None else Hold(conn, "open", room)
+        """Whether ``event`` of ``conn`` must wait before :meth:`handle` (None: it need
+        not): a join for a cluster claim or a recording to open, a hello for the
+        cluster's resume lookup (``server.joins.Joins.hold``). The adapter holds the
+        connection's reads meanwhile (in order)."""
+        return self.joins.hold(conn, event, wall, self.cluster)
 
     def handle(self, conn: int, event: Event, now: float, wall: float = 0.0) -> list[Action]:
         """Apply one decoded event of connection ``conn``."""
@@ -451,11 +425,10 @@ class RelayCore:
         if resume.parkable(self, peer):
             resume.park(self, peer, now)
         else:
-            self._leave(peer, now)
+            self.joins.leave(peer, now)
         if peer.parked is not None:  # resumed, never joined again: parked again
             resume.unclaim(self, peer.parked, now)
-        if peer.admitted:
-            self.admission.release(peer.address)
+        self.joins.release(peer)
         if peer.user is not None:
             self._by_user.pop(peer.user, None)
             if not self.parking.holds(peer.user):
@@ -613,12 +586,7 @@ class RelayCore:
         elif isinstance(event, Hello):
             resume.hello(self, peer, event, now)
         elif isinstance(event, Join):
-            try:
-                name = normalise_room(event.room)
-            except ValueError as exc:
-                self.refuse(peer, ErrorCode.BAD_ROOM, str(exc), "join", now)
-                return
-            self._on_join(peer, event, name, now, wall)
+            self.joins.join(peer, event, now, wall)
         elif isinstance(event, SetRate):
             self._on_set_rate(peer, event, now)
         elif isinstance(event, Renew):
@@ -634,65 +602,6 @@ class RelayCore:
             if event.fatal:
                 # Its session is over (CLOSED): nothing more may be sent to it.
                 self.close_peer(peer, 1000, f"client ended the session: {event.code}")
-
-    def _on_join(self, peer: Peer, join: Join, name: str, now: float, wall: float) -> None:
-        """Join room ``name`` (``join.room`` normalised; ``joined`` echoes ``join.room``)."""
-        if not tokens.admit_join(self, peer, join, name, now, wall):
-            return
-        assert peer.user is not None  # the state table puts hello before join
-        if resume.resume_join(self, peer, join, name, now):
-            return
-        if (refused := self.table.refusal(name)) is not None:
-            self.capacity.count(ErrorCode.ROOM_FULL)
-            self.refuse(peer, ErrorCode.ROOM_FULL, refused, "join", now, charge=False)
-            return
-        room = self.room_for(name)
-        streams = room.allocate_streams(join.streams)
-        shared, rate = objects.joined_objects(room), rates.granted(self.config.max_rate, join)
-        self.send(peer, Joined(room=join.room, streams=streams, rate=rate, objects=shared))
-        member = Member(
-            peer.user,
-            peer.name,
-            streams,
-            rate,
-            peer.outbox,
-            label=join.label,
-            velocities=join.wants_velocities,
-            sends_velocities=join.sends_velocities,
-            compact=join.codec == "compact",
-            echo=join.echo,
-        )
-        rates.attach(self.config, peer, member, join)  # its link emulation, its auto rate
-        if join.spectator:
-            self._spectators.add(peer.user)
-        self._introduce(peer, member, room)
-        objects.introduce(self, peer, room)
-        room.add(member, now)
-        self.rescheduled(room)
-        peer.room, peer.member = room, member
-        if room.recorded and not join.spectator:
-            room.record(
-                "presence",
-                {
-                    "kind": "join",
-                    "user": peer.user,
-                    "name": peer.name,
-                    "label": join.label,
-                    "streams": streams,
-                    "rate": rate,
-                },
-                now,
-            )
-
-    def _introduce(self, peer: Peer, member: Member, room: Room) -> None:
-        """Tell a joining member about every member of ``room``, and every member about it
-        (spectators excepted: nobody hears of them)."""
-        spectators = self._spectators
-        for other in room.members.values():
-            if other.user not in spectators:
-                self.send(peer, Room.announce(other))
-            if member.user not in spectators:
-                other.presence.joined(Room.announce(member))  # at the room's next tick
 
     def _on_set_rate(self, peer: Peer, event: SetRate, now: float) -> None:
         room, user = peer.room, peer.user
@@ -769,19 +678,3 @@ class RelayCore:
             if abs(rate - member.rate) > 0.25:
                 room.set_rate(member.user, rate, now)
                 self.rescheduled(room)
-
-    def _leave(self, peer: Peer, now: float) -> None:
-        room, user = peer.room, peer.user
-        if room is not None and user is not None:
-            objects.owner_left(self, room, user, now)
-            room.remove(user)
-            self.rescheduled(room)
-            spectator = user in self._spectators
-            self._spectators.discard(user)
-            if not spectator:
-                room.record("presence", {"kind": "leave", "user": user, "reason": "left"}, now)
-            for other in list(room.members.values()):
-                if not spectator:
-                    other.presence.left(PeerLeft(user=user, reason="left"))
-            self.forget_room_if_empty(room, now)
-        peer.room = peer.member = None
