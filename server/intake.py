@@ -43,7 +43,7 @@ MEASURE_EVERY = 0.5
 def measure(core: RelayCore, conns: Iterable[Buffered], now: float) -> float:
     """Give the capacity the process's CPU time, the bytes unsent over ``conns`` and the
     members at ``now``; when to measure next."""
-    backlog = sum(conn._buffered() for conn in conns)
+    backlog = sum(conn.buffered() for conn in conns)
     members = sum(len(room.members) for room in core.rooms.values())
     core.capacity.sample(now, time.process_time(), backlog, members)
     return now + MEASURE_EVERY
@@ -52,7 +52,7 @@ def measure(core: RelayCore, conns: Iterable[Buffered], now: float) -> float:
 class Buffered(Protocol):
     """A connection whose unsent bytes can be read."""
 
-    def _buffered(self) -> int: ...
+    def buffered(self) -> int: ...
 
 
 class Intake:

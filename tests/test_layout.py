@@ -145,6 +145,7 @@ def test_server_holds_only_the_relay() -> None:
         "handshakes.py",
         "intake.py",
         "joins.py",
+        "connection.py",
         "parked.py",
         "parking.py",
         "ports.py",
@@ -196,8 +197,8 @@ def test_no_function_over_80_lines() -> None:
 
 # -- the relay's parts (server/) ---------------------------------------------------------
 
-#: The relay core and its parts: sans I/O (the adapter is app, transport, http,
-#: recordings, and the cluster side: node, cluster, forward).
+#: The relay core and its parts: sans I/O (the adapter is app, connection, transport,
+#: http, recordings, and the cluster side: node, cluster, forward).
 RELAY_CORE = (
     "actions",
     "auth",
@@ -311,9 +312,76 @@ def private_reaches(folder: Path) -> list[tuple[str, int, str]]:
     return out
 
 
+def _class_attributes(cls: ast.ClassDef) -> set[str]:
+    """Attribute names one class defines: methods, class fields, ``self.name = ...``."""
+    out: set[str] = set()
+    for item in cls.body:
+        if isinstance(item, ast.FunctionDef | ast.AsyncFunctionDef):
+            out.add(item.name)
+        elif isinstance(item, ast.AnnAssign) and isinstance(item.target, ast.Name):
+            out.add(item.target.id)
+        elif isinstance(item, ast.Assign):
+            out.update(t.id for t in item.targets if isinstance(t, ast.Name))
+    for node in ast.walk(cls):
+        if (
+            isinstance(node, ast.Attribute)
+            and isinstance(node.ctx, ast.Store)
+            and isinstance(node.value, ast.Name)
+            and node.value.id == "self"
+        ):
+            out.add(node.attr)
+    return out
+
+
+def private_reaches_by_class(folder: Path) -> list[tuple[str, int, str]]:
+    """Every ``x._name`` in a module of ``folder`` where ``x`` is not ``self`` or ``cls``
+    and ``_name`` is no attribute of the class the access is written in (another
+    instance of the same class may be read, e.g. in ``__eq__`` or a classmethod). Two
+    classes of one module share nothing private: a connection reads its server's
+    state through the server's public methods even when both sat in one file."""
+    out: list[tuple[str, int, str]] = []
+    for path in sorted(folder.glob("*.py")):
+        stack: list[tuple[ast.AST, frozenset[str]]] = [(ast.parse(path.read_text()), frozenset())]
+        while stack:
+            node, own = stack.pop()
+            if isinstance(node, ast.ClassDef):
+                own = frozenset(_class_attributes(node))
+            if isinstance(node, ast.Attribute):
+                attr, value = node.attr, node.value
+                if (
+                    attr.startswith("_")
+                    and not attr.startswith("__")
+                    and attr not in own
+                    and not (isinstance(value, ast.Name) and value.id in ("self", "cls"))
+                ):
+                    out.append((path.name, node.lineno, ast.unparse(node)))
+            stack.extend((child, own) for child in ast.iter_child_nodes(node))
+    return sorted(out)
+
+
 def test_no_part_of_the_relay_reads_another_parts_private_names() -> None:
-    """server/'s modules talk through public methods and fields only."""
+    """server/'s modules and classes talk through public methods and fields only (issue
+    27: 59 private cross-object reaches once; 20 left before the adapter was split)."""
     assert private_reaches(ROOT / "server") == []
+    assert private_reaches_by_class(ROOT / "server") == []
+
+
+def test_the_by_class_check_finds_a_neighbour_class_s_private(tmp_path: Path) -> None:
+    """Per class: a neighbour class's private name fails, the class's own passes
+    (on ``self``, on another instance, in a classmethod), and so does a module's
+    private function read off the module."""
+    (tmp_path / "m.py").write_text(
+        "import other\n"
+        "class Server:\n    def __init__(self):\n        self._conns = {}\n"
+        "    def same(self, twin):\n        return twin._conns\n"
+        "    @classmethod\n    def make(cls):\n        s = cls()\n        return s._conns\n"
+        "class Conn:\n    def __init__(self, server):\n        self._s = server._conns\n"
+        "def f():\n    return other._helper()\n"
+    )
+    assert private_reaches_by_class(tmp_path) == [
+        ("m.py", 13, "server._conns"),
+        ("m.py", 15, "other._helper"),
+    ]
 
 
 def test_the_private_reach_check_finds_one(tmp_path: Path) -> None:

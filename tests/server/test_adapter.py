@@ -33,6 +33,7 @@ from websockets.frames import Frame, Opcode
 from websockets.streams import StreamReader
 
 import posecast.server.app as server_app
+import posecast.server.connection as server_connection
 from posecast.client.connection import ClientConnection
 from posecast.protocol import PoseUpdate, Snapshot, UserEvent, encode_message
 from posecast.server.app import ServerConfig
@@ -76,7 +77,7 @@ async def test_subscribers_of_one_tick_group_share_one_frame(
         built.append(len(payload))
         return frame_binary(payload)
 
-    monkeypatch.setattr(server_app, "frame_binary", counting)
+    monkeypatch.setattr(server_connection, "frame_binary", counting)
     async with running_server(config()) as srv:
         url = f"ws://127.0.0.1:{srv.port}"
         pub = await Bot.join(url, srv.clock, room="g", rate=20.0, seed=1)
@@ -197,7 +198,7 @@ async def test_a_connection_that_never_handshakes_is_dropped(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """A TCP connection that sends no HTTP request is dropped after the open timeout."""
-    monkeypatch.setattr(server_app, "OPEN_TIMEOUT", 0.3)
+    monkeypatch.setattr(server_connection, "OPEN_TIMEOUT", 0.3)
     async with running_server(config()) as srv:
         reader, writer = await asyncio.open_connection("127.0.0.1", srv.port)
         async with asyncio.timeout(10):
