@@ -12,8 +12,9 @@ described where it is defined (``server.actions``): wake a connection's writer,
 close it, look at the next tick or expiry again, write a record or a pose on a
 room's recording, poll or finish a recording, hold an event for the adapter.
 
-The parts of the core (``objects``, ``resume``, ``tokens``, ``capacity``) see it
-through its port, ``server.ports.Relay``, which :class:`RelayCore` implements.
+The parts of the core (``joins``, ``objects``, ``resume``, ``tokens``, ``capacity``)
+see it through its port, ``server.ports.Relay``, which :class:`RelayCore` implements;
+the table below says which part holds each rule.
 
 The wire protocol (hello, join, the message state table, codes) is
 :class:`protocol.ServerSession`'s; this module adds the relay's rules on top:
@@ -23,13 +24,14 @@ a connection ...    the relay ...
 ==================  ==========================================================
 opens               over ``max_connections`` (or per source address): close
                     1013; not joined within ``join_timeout``: close 1008
-                    (:meth:`~RelayCore.expire`, at :meth:`~RelayCore.next_expiry`)
+                    (``server.joins``; closed at :meth:`~RelayCore.expire`)
 says hello          takes a user id (u16, oldest-freed first), welcomes; over
                     its capacity (``server.capacity``; join too): ``server-full``
-joins a room        normalises the name (NFC, stripped; empty, over 64 bytes,
-                    control or bidi characters -> ``bad-room``), checks the
-                    token (``secret`` set: HMAC, room, expiry; refused ->
-                    ``unauthorized``, close 1008), refuses over ``max_rooms``,
+joins a room        (``server.joins``) normalises the name (NFC, stripped;
+                    empty, over 64 bytes, control or bidi characters ->
+                    ``bad-room``), checks the token (``secret`` set: HMAC,
+                    room, expiry; refused -> ``unauthorized``, close 1008),
+                    refuses over ``max_rooms``,
                     ``max_members`` or ``max_recorded_rooms`` (``room-full``),
                     creates the room on first join, allocates a stream id per
                     stream name, answers ``joined``, tells it every member

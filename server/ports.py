@@ -6,6 +6,8 @@ parts hold one rule set each and act on the core only through :class:`Relay`:
 ==============  =================================================================
 part            rules
 ==============  =================================================================
+``joins``       admission, the join deadline, what waits before a join, join,
+                leave, spectators (``joins.Joins``: it keeps its own state)
 ``objects``     shared objects: ownership, flights, their records
 ``resume``      parking a dropped member, resuming it, the window closing
 ``tokens``      access tokens at join, renewed, expired; join and event rates
