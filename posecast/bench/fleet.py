@@ -185,6 +185,11 @@ def merge_parts(parts: list[dict[str, Any]]) -> dict[str, Any]:
     some = [p for p in parts if p.get("clients_measured", 1)] or parts
     merged["snapshots_per_client_s_min"] = min(p["snapshots_per_client_s_min"] for p in some)
     merged["snapshots_per_client_s_max"] = max(p["snapshots_per_client_s_max"] for p in some)
+    # Snapshots and the ticks that had nothing for the client (load.RoomTicks).
+    merged["ticks_per_client_s"] = sum(p.get("ticks_per_client_s_sum", 0.0) for p in parts) / max(
+        1, measured
+    )
+    merged["ticks_per_client_s_min"] = min(p.get("ticks_per_client_s_min", 0.0) for p in some)
     merged["close_reasons"] = sorted({r for p in parts for r in p["close_reasons"]})[:5]
     errors: dict[str, int] = {}
     for p in parts:

@@ -108,9 +108,9 @@ class _LoadStats:
         self.decoded_frames = 0
         self.codec_snapshots = 0
         self.codec_own_echo = 0
-        #: Snapshots that followed a tick of their room that sent the client nothing
-        #: (:class:`RoomTicks`), in the window.
-        self.empty_ticks = 0
+        #: Per client: ticks of its room that sent it nothing (:class:`RoomTicks`) and
+        #: were followed by a snapshot, in the window.
+        self.empty_ticks = [0] * clients
         self.errors: dict[str, int] = {}
         self.error_examples: dict[str, str] = {}
         self.poses_all = 0
@@ -216,6 +216,9 @@ class _LoadStats:
         got = np.asarray([self.snapshots[i] for i in idx], dtype=np.float64)
         ever = [self.snapshots_total[i] for i in idx]
         per_client = got / window if window > 0 else got * 0.0
+        # Ticks: the snapshots and the ticks that sent nothing (nothing new to send).
+        ticked = got + np.asarray([self.empty_ticks[i] for i in idx], dtype=np.float64)
+        ticks = ticked / window if window > 0 else ticked * 0.0
         return {
             "window_s": window,
             "clients_measured": len(got),
@@ -238,7 +241,9 @@ class _LoadStats:
             "decoded_frames": self.decoded_frames,
             "codec_snapshots": self.codec_snapshots,
             "codec_own_echo": self.codec_own_echo,
-            "empty_ticks": self.empty_ticks,
+            "empty_ticks": sum(self.empty_ticks),
+            "ticks_per_client_s_sum": float(ticks.sum()),
+            "ticks_per_client_s_min": float(ticks.min()) if len(ticks) else 0.0,
             "server_errors": dict(self.errors),
             "server_error_examples": dict(self.error_examples),
         }
@@ -455,7 +460,7 @@ class _BenchClient:
         mate = ticks.before(send)
         if prev is not None and mate > prev + _SAME_TICK:
             if self.stats.t0 <= send < self.stats.t1:
-                self.stats.empty_ticks += 1
+                self.stats.empty_ticks[self.index] += 1
             prev = mate
         ticks.saw(send)
         due = latest if prev is None else (math.floor(prev * rate - ph + slack) + 1 + ph) / rate

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from rich.console import Console
@@ -216,7 +217,8 @@ def _traffic_rows(r: dict[str, Any]) -> list[_Row]:
             "snapshots / client / s",
             f"{_f(r['snapshots_per_client_s'], 2)} (min {_f(r['snapshots_per_client_s_min'], 2)})",
             f"asked {r['rate_hz']:g}; ratio {_f(r['snapshot_rate_ratio'], 3)}; "
-            f"after a tick that sent nothing: {_f(r.get('empty_ticks', 0))}",
+            f"with the ticks that had nothing new: {_f(r.get('ticks_per_client_s', math.nan), 2)} "
+            f"(min {_f(r.get('ticks_per_client_s_min', math.nan), 2)})",
         ),
         ("skips", f"{_f(r['skips'], 0)} ({_f(r['skips_per_s'], 1)}/s)", "/metrics"),
         (
