@@ -70,6 +70,17 @@ def cluster_clock() -> Callable[[], float]:
     return lambda: time.monotonic() + anchor
 
 
+def _stop_if_cancelled() -> None:
+    """Raise CancelledError if the running task was cancelled. nats-py waits for its
+    replies with ``asyncio.wait_for``, which on Python 3.11 returns a reply that comes
+    together with a cancellation and drops the cancellation (or turns it into an error
+    of its own): a loop around NATS calls that does not check this after each runs on
+    for ever, and the relay's stop waits for it for ever."""
+    task = asyncio.current_task()
+    if task is not None and task.cancelling():
+        raise asyncio.CancelledError
+
+
 @dataclass
 class ClusterNode:
     """The cluster side of one relay process (build it with :meth:`open`)."""
@@ -359,9 +370,11 @@ class ClusterNode:
             try:
                 await self._round()
             except Exception as exc:  # NATS away: the rooms here keep running
+                _stop_if_cancelled()
                 # (while NATS is away the lease keeper has said so, once)
                 level = logging.DEBUG if self.directory.unreachable else logging.WARNING
                 log.log(level, "cluster: upkeep failed (%s); retrying", exc)
+            _stop_if_cancelled()
 
     async def _keep_records(self) -> None:
         """Member records to NATS within ``RECORD_INTERVAL`` of a join or a leave (a
@@ -371,7 +384,9 @@ class ClusterNode:
             try:
                 await self._sync_records()
             except Exception as exc:  # NATS away: said by the lease keeper
+                _stop_if_cancelled()
                 log.debug("cluster: member records not written (%s)", exc)
+            _stop_if_cancelled()
 
     async def _round(self) -> None:
         began = time.perf_counter()

@@ -334,3 +334,47 @@ async def test_tokens_are_checked_for_a_member_on_another_node(nats_url: str) ->
         assert await b.cluster.directory.owner("vault") is None
         await first.close()
         await ok.close()
+
+
+async def test_a_node_stops_though_a_nats_reply_swallowed_its_cancellation(nats_url: str) -> None:
+    """nats-py waits for its replies with ``asyncio.wait_for``, which on Python 3.11
+    returns a reply that arrives together with a cancellation and drops the
+    cancellation. A node stopped while its upkeep round waits on NATS must stop all
+    the same: its upkeep ran on instead, its TaskGroup never ended, and a full suite
+    hung in the teardown of two nodes, one listener open, both NATS connections up.
+
+    The race is made certain here: the round's first NATS round trip is answered
+    exactly when the node is stopped (a reply returned in place of the cancellation,
+    as ``wait_for`` does). A hang guard cancels a still-running upkeep once more after
+    30 s, so a regression fails instead of hanging."""
+    loop = asyncio.get_running_loop()
+    waiting, swallowed, stuck = asyncio.Event(), asyncio.Event(), []
+
+    def unstick() -> None:  # the hang guard (no timing is checked)
+        for task in asyncio.all_tasks():
+            if task.get_name() == "cluster-upkeep" and not task.done():
+                stuck.append(task.get_name())
+                task.cancel()
+
+    async with running_server(node(nats_url, "a")) as a:
+        assert a.cluster is not None
+        nc = a.cluster.directory.nc
+        real_rtt = nc.rtt
+
+        async def rtt(**kwargs: int) -> float:
+            if swallowed.is_set() or waiting.is_set():
+                return float(await real_rtt(**kwargs))
+            waiting.set()
+            try:
+                await asyncio.Event().wait()  # the pong: it comes with the cancellation
+            except asyncio.CancelledError:
+                swallowed.set()
+            return 0.0
+
+        nc.rtt = rtt
+        async with asyncio.timeout(30):  # (a hang guard)
+            await waiting.wait()  # an upkeep round waits on NATS now
+        guard = loop.call_later(30.0, unstick)
+    guard.cancel()
+    assert swallowed.is_set()
+    assert stuck == [], "the upkeep ran on after it was cancelled"
