@@ -7,11 +7,15 @@
  * WebXR orientations are {x, y, z, w}; posecast poses are w first. A position
  * outside the room volume of the server's welcome is not sent (counted in
  * `outOfVolume`). Publishes at `rate` Hz on the page's frames, never in bursts.
- * Structural types only: no dependency on WebXR typings or on three.js.
+ * The reference space is given once (the constructor) or with each frame (`onFrame(frame,
+ * space)`: three.js makes its space only when the session starts,
+ * `renderer.xr.getReferenceSpace()`). Structural types only: no dependency on WebXR
+ * typings or on three.js.
  */
 import type { PosecastClient } from "./client.js";
 import type { Pose } from "./messages.js";
 import { DEFAULT_VOLUME } from "./messages.js";
+import { UsageError } from "./errors.js";
 
 export interface XRVectorLike { x: number; y: number; z: number }
 export interface XRQuaternionLike { x: number; y: number; z: number; w: number }
@@ -51,7 +55,8 @@ export class XRPublisher {
 
   constructor(
     readonly client: PosecastClient,
-    readonly space: unknown,
+    /** The reference space poses are read in (null: give it to each onFrame / read). */
+    readonly space: unknown = null,
     readonly opts: XRPublisherOptions = {},
   ) {
     const rate = opts.rate ?? 30;
@@ -59,28 +64,31 @@ export class XRPublisher {
     this.period = 1 / rate;
   }
 
-  /** The poses of this XR frame, by stream name (only the tracked ones). */
-  read(frame: XRFrameLike): Record<string, Pose> {
+  /** The poses of this XR frame in `space` (default: the constructor's), by stream name
+   * (only the tracked ones). */
+  read(frame: XRFrameLike, space: unknown = this.space): Record<string, Pose> {
+    checkSpace(space);
     const out: Record<string, Pose> = {};
-    const space = this.space as never;
     if (this.opts.head ?? true) {
-      const viewer = frame.getViewerPose(space);
+      const viewer = frame.getViewerPose(space as never);
       if (viewer) out.head = xrPose(viewer.transform);
     }
     if (this.opts.hands ?? true) {
       for (const source of frame.session.inputSources) {
         const hand = source.handedness;
         if ((hand !== "left" && hand !== "right") || !source.gripSpace) continue;
-        const pose = frame.getPose(source.gripSpace as never, space);
+        const pose = frame.getPose(source.gripSpace as never, space as never);
         if (pose) out[hand] = xrPose(pose.transform);
       }
     }
     return out;
   }
 
-  /** Call from the XR animation frame callback; publishes when one period has passed.
-   * Returns the bytes sent (0 when not due, or nothing was tracked). */
-  onFrame(frame: XRFrameLike): number {
+  /** Call from the XR animation frame callback; publishes when one period has passed,
+   * reading the poses in `space` (default: the constructor's). Returns the bytes sent
+   * (0 when not due, or nothing was tracked). */
+  onFrame(frame: XRFrameLike, space: unknown = this.space): number {
+    checkSpace(space);
     const client = this.client;
     if (client.state !== "joined") return 0;
     const now = client.clock();
@@ -89,7 +97,7 @@ export class XRPublisher {
     const volume = client.welcome?.volume ?? DEFAULT_VOLUME;
     const poses: Record<string, Pose> = {};
     const joined = client.streams;
-    for (const [name, pose] of Object.entries(this.read(frame))) {
+    for (const [name, pose] of Object.entries(this.read(frame, space))) {
       if (!(name in joined)) continue;
       if (!inVolume(pose, volume)) {
         this.outOfVolume++;
@@ -103,6 +111,12 @@ export class XRPublisher {
       this.last = poses;
     }
     return bytes;
+  }
+}
+
+function checkSpace(space: unknown): void {
+  if (space === null || space === undefined) {
+    throw new UsageError("bad-space", "XRPublisher: no reference space (give one to the constructor or with each frame)");
   }
 }
 

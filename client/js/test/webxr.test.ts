@@ -3,6 +3,7 @@ import assert from "node:assert/strict";
 import { XRPublisher, inVolume, xrPose } from "../src/webxr.js";
 import type { XRFrameLike } from "../src/webxr.js";
 import type { PosecastClient } from "../src/client.js";
+import { UsageError } from "../src/errors.js";
 
 /** A client stand-in that records what would be published (its clock is ours). */
 function fakeClient(now: { t: number }) {
@@ -56,4 +57,15 @@ test("head from the viewer pose, hands from the grip spaces, at the chosen rate,
   pub.onFrame(frame(1.6, 5));
   assert.deepEqual(Object.keys(published.at(-1)!).sort(), ["head", "left"]);
   assert.equal(pub.outOfVolume, 1);
+});
+
+test("the reference space may come with each frame (three.js makes it at session start)", () => {
+  const now = { t: 10 };
+  const { client, published } = fakeClient(now);
+  const pub = new XRPublisher(client, null, { rate: 30 });
+  assert.throws(() => pub.onFrame(frame(1.6)), (e: Error) => e instanceof UsageError && /no reference space/.test(e.message));
+  assert.equal(published.length, 0);
+  pub.onFrame(frame(1.6), SPACE);
+  assert.deepEqual(published[0]!.head, [0, 1.6, 0, 0.8, 0, 0.6, 0]);
+  assert.deepEqual(pub.read(frame(1.5), SPACE).head, [0, 1.5, 0, 0.8, 0, 0.6, 0]);
 });
