@@ -457,3 +457,86 @@ def test_js_decodes_per_peer_snapshots_as_python_does(
     for g, w in zip(got, want, strict=True):
         assert sorted(e[:2] for e in g) == sorted(e[:2] for e in w)
         np.testing.assert_allclose(sorted(g), sorted(w), atol=1e-6)
+
+
+_TOKENS = """
+import { createHmac } from "node:crypto";
+import { spawnSync } from "node:child_process";
+import { pathToFileURL } from "node:url";
+if (!globalThis.WebSocket) {  // Node 20: its WebSocket is behind a flag
+  const again = spawnSync(process.execPath, ["--experimental-websocket", "--no-warnings",
+    ...process.argv.slice(1)], { stdio: "inherit" });
+  process.exit(again.status ?? 1);
+}
+const [sdk, url, secret] = process.argv.slice(2);
+const { PosecastClient } = await import(pathToFileURL(sdk).href);
+// docs/protocol.md 9.1, the JavaScript recipe
+function mintToken(secret, room, user, ttlSeconds) {
+  const body = JSON.stringify({ room, user, exp: Date.now() / 1000 + ttlSeconds });
+  const payload = Buffer.from(body, "utf8").toString("base64url");
+  const sig = createHmac("sha256", Buffer.from(secret, "utf8"))
+    .update(`v1.${payload}`, "ascii").digest("base64url");
+  return `v1.${payload}.${sig}`;
+}
+const out = { errors: [] };
+const bad = new PosecastClient({ url, room: "tok", token: mintToken("not-it", "tok", "x", 60) });
+try { await bad.connect(); out.bad = "joined"; } catch (e) { out.bad = e.code; }
+const c = new PosecastClient({ url, room: "tok", spectator: true, label: "watcher",
+  token: mintToken(secret, "tok", "watcher", 30) });
+c.on("error", (e) => out.errors.push(e.code));
+await c.connect();
+c.renew(mintToken(secret, "tok", "watcher", 600));
+c.setRate(10);
+out.user = c.user;
+console.log(JSON.stringify(out));
+process.stdin.resume();
+process.stdin.on("end", () => {
+  c.close("done");
+  console.log(JSON.stringify({ errors: out.errors }));
+});
+"""
+
+
+async def _tokens(node: Node, tmp_path: Path) -> None:
+    from posecast.server.app import ServerConfig
+
+    script = tmp_path / "tokens.mjs"
+    script.write_text(_TOKENS)
+    secret = "s3cret"
+    async with running_server(ServerConfig(host="127.0.0.1", port=0, secret=secret)) as server:
+        url = f"ws://127.0.0.1:{server.port}"
+        proc = await asyncio.create_subprocess_exec(
+            node.node, str(script), str(JS / "dist" / "posecast.js"), url, secret,
+            env=node.env, stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE,
+            stderr=asyncio.subprocess.PIPE,
+        )  # fmt: skip
+        assert proc.stdout is not None and proc.stdin is not None
+        line = await asyncio.wait_for(proc.stdout.readline(), 120)
+        assert line, (await proc.stderr.read()).decode() if proc.stderr else ""
+        first = json.loads(line)
+        assert first["bad"] == "unauthorized", first
+        user = int(first["user"])
+        core = server.core
+
+        def renewed() -> bool:
+            peer = core.peer_of(user)
+            return peer.token_deadline is not None and peer.token_deadline > server.clock() + 300
+
+        await poll_until(renewed)
+        assert core.is_spectator(user)
+        room = server.rooms["tok"]
+        await poll_until(lambda: room.members[user].asked_rate == 10.0)
+        proc.stdin.close()
+        out, err = await proc.communicate()
+    assert proc.returncode == 0, err.decode()
+    assert json.loads(out.decode().strip().splitlines()[-1]) == {"errors": []}
+
+
+def test_js_mints_a_token_joins_as_a_spectator_renews_and_sets_its_rate(
+    node: Node, tmp_path: Path
+) -> None:
+    """Against a relay with a secret, with tokens minted by the spec's JavaScript recipe:
+    a token signed with another secret is refused (unauthorized); a spectator joins,
+    its renew moves the connection's deadline to the new token's expiry, and its
+    set_rate reaches the relay."""
+    asyncio.run(_tokens(node, tmp_path))

@@ -326,3 +326,21 @@ test("budgetDeg: the join asks it and the receiver sizes each peer's playout del
   assert.equal(plain.receiver.perPeer, false);
   assert.equal(plain.receiver.delay.perPeer, false);
 });
+
+test("a spectator with a token: the join carries both; renew and setRate send their messages", async () => {
+  FakeSocket.handler = relay();
+  const c = client({ spectator: true, token: "v1.abc.def" });
+  await c.connect();
+  const ws = FakeSocket.sockets[0]!;
+  const join = decodeMessage(ws.sent[3]!);
+  assert.ok(join.type === "join");
+  assert.deepEqual([join.spectator, join.token, join.label], [true, "v1.abc.def", "unit"]);
+  c.renew("v1.new.sig");
+  const renew = decodeMessage(ws.sent.at(-1)!);
+  assert.ok(renew.type === "renew" && renew.token === "v1.new.sig");
+  c.setRate(12);
+  const setRate = decodeMessage(ws.sent.at(-1)!);
+  assert.ok(setRate.type === "set_rate" && setRate.rate === 12);
+  assert.equal(c.currentRate, 12);
+  c.close("done");
+});

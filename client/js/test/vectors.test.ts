@@ -91,6 +91,16 @@ test("the golden vectors are here, every kind of them", () => {
   }
 });
 
+test("ERROR_CODES is the spec's error table (generated from protocol/errors.py), code for code", () => {
+  const spec = readFileSync(new URL("../../../docs/protocol.md", import.meta.url), "utf8");
+  const table = spec.slice(spec.indexOf("<!-- errors:begin -->"), spec.indexOf("<!-- errors:end -->"));
+  const rows = [...table.matchAll(/^\| `([a-z-]+)` \| (yes|no) \| (\d+|-) \|/gm)];
+  assert.ok(rows.length >= 20, `only ${rows.length} rows read from docs/protocol.md section 8`);
+  const want = Object.fromEntries(rows.map((r) => [r[1]!, r[3] === "-" ? null : Number(r[3])]));
+  assert.deepEqual({ ...ERROR_CODES }, want);
+  for (const r of rows) assert.equal(r[2] === "yes", r[3] !== "-", `${r[1]}: fatal exactly when it closes`);
+});
+
 for (const v of vectors) {
   if (v.error) {
     test(`${v.name}: refused with ${v.error.code}`, () => {
