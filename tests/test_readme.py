@@ -12,8 +12,9 @@ README = (ROOT / "README.md").read_text(encoding="utf-8")
 
 
 def test_readme_is_short() -> None:
-    """Under 150 lines: what it is, two commands, the demo's table, links into the docs."""
-    assert README.count("\n") < 150
+    """Under 200 lines: what it is, two commands, the demo's table, links into the docs,
+    and the whole WebXR app of "Connect your app" (about 45 lines, issue 26)."""
+    assert README.count("\n") < 200
 
 
 def test_readme_links_resolve() -> None:
