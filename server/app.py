@@ -51,7 +51,7 @@ from posecast.server.core import (
     ServerConfig,
     Wake,
 )
-from posecast.server.handshakes import fd_budget
+from posecast.server.handshakes import FD_RESERVE, HEALTH_RESERVE
 from posecast.server.http import OriginPolicy, QuietHttpLog, metrics_text, process_request
 from posecast.server.intake import Intake, measure
 from posecast.server.logs import LogLimiter
@@ -457,6 +457,33 @@ class RelayServer:
     def metrics_text(self) -> str:
         """Prometheus text exposition of the server's counters."""
         return metrics_text(self.core, self.clock()) + self._cluster_metrics()
+
+
+def fd_budget(max_connections: int) -> int:
+    """The most connections this process can hold with ``FD_RESERVE`` + ``HEALTH_RESERVE``
+    descriptors to spare (its ``nofile`` soft limit raised to the hard one first);
+    ``max_connections`` if that fits, or if the limit cannot be read (not POSIX)."""
+    try:
+        import resource
+    except ImportError:  # pragma: no cover - Windows
+        return max_connections
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard == resource.RLIM_INFINITY or hard > soft:
+        target = 1 << 20 if hard == resource.RLIM_INFINITY else hard
+        try:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
+            soft = target
+        except (ValueError, OSError):
+            pass
+    budget = max(1, soft - FD_RESERVE - HEALTH_RESERVE)
+    if max_connections == 0 or max_connections > budget:
+        log.warning(
+            "nofile limit %d: at most %d connections (not %s), so that /healthz, "
+            "/metrics and the recordings always have descriptors",
+            soft, budget, max_connections or "unlimited",
+        )  # fmt: skip
+        return budget
+    return max_connections
 
 
 @contextlib.asynccontextmanager

@@ -17,13 +17,13 @@ before the core sees it (``RelayCore.connect`` runs once the handshake is done).
   handshake if that one has been pending ``EVICT_AFTER`` (0.5 s) or more: slow
   upgrades from many addresses (each under its own cap) then cannot fill the relay
   and lock honest users out, whose handshakes take milliseconds, not seconds;
-- :func:`fd_budget` raises the process's ``nofile`` soft limit to its hard limit
-  and lowers the caps so that ``FD_RESERVE`` descriptors always stay free (for the
-  spare places, recordings, the cluster's NATS, the log).
+- the adapter (``server/app.py``'s ``fd_budget``) raises the process's ``nofile``
+  soft limit to its hard limit and lowers the caps so that ``FD_RESERVE``
+  descriptors always stay free (for the spare places, recordings, the cluster's
+  NATS, the log).
 
 Refusals are counted (``posecast_handshakes_refused_total``) and logged at most
-once a second with a count of those not logged. Sans-I/O apart from
-:func:`fd_budget`: the adapter (``server/app.py``) passes the time.
+once a second with a count of those not logged. Sans I/O: the adapter passes the time.
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from posecast.server.guard import Guard
 from posecast.server.limits import Admission
 from posecast.server.logs import LogLimiter
 
-__all__ = ["EVICT_AFTER", "FD_RESERVE", "HEALTH_RESERVE", "Handshakes", "fd_budget"]
+__all__ = ["EVICT_AFTER", "FD_RESERVE", "HEALTH_RESERVE", "Handshakes"]
 
 log = logging.getLogger("posecast.server")
 
@@ -159,30 +159,3 @@ class Handshakes:
             left = self.by_address.pop(address, 1) - 1
             if left > 0:
                 self.by_address[address] = left
-
-
-def fd_budget(max_connections: int) -> int:
-    """The most connections this process can hold with ``FD_RESERVE`` + ``HEALTH_RESERVE``
-    descriptors to spare (its ``nofile`` soft limit raised to the hard one first);
-    ``max_connections`` if that fits, or if the limit cannot be read (not POSIX)."""
-    try:
-        import resource
-    except ImportError:  # pragma: no cover - Windows
-        return max_connections
-    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-    if hard == resource.RLIM_INFINITY or hard > soft:
-        target = 1 << 20 if hard == resource.RLIM_INFINITY else hard
-        try:
-            resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
-            soft = target
-        except (ValueError, OSError):
-            pass
-    budget = max(1, soft - FD_RESERVE - HEALTH_RESERVE)
-    if max_connections == 0 or max_connections > budget:
-        log.warning(
-            "nofile limit %d: at most %d connections (not %s), so that /healthz, "
-            "/metrics and the recordings always have descriptors",
-            soft, budget, max_connections or "unlimited",
-        )  # fmt: skip
-        return budget
-    return max_connections
