@@ -98,7 +98,7 @@ from posecast.protocol import (
     encode_message,
 )
 from posecast.protocol.events import Event, Message
-from posecast.server import capacity, objects, presence, rates, resume, tokens
+from posecast.server import capacity, objects, presence, rates, resume
 from posecast.server.actions import (
     Action,
     Close,
@@ -114,7 +114,6 @@ from posecast.server.handshakes import Handshakes
 from posecast.server.joins import Joins
 from posecast.server.limits import (
     Admission,
-    Deadlines,
     error_message,
     update_refusal,
 )
@@ -131,6 +130,7 @@ from posecast.server.room import (
 )
 from posecast.server.rooms import RoomTable
 from posecast.server.silence import Silence
+from posecast.server.tokens import EVENT_TYPE, Tokens
 
 __all__ = [
     "COUNTERS",
@@ -174,8 +174,6 @@ class RelayCore:
         cfg = self.config
         self.admission = Admission(cfg.max_connections, cfg.max_connections_per_address)
         self.handshakes = Handshakes(self.admission, guard=Guard.of(cfg))  # caps before handshake
-        #: Access-token expiries (server clock) of joined connections; see Renew.
-        self._token_deadlines = Deadlines(self._token_due)
         #: The cluster this relay is a node of (``server.node`` sets it; None: alone).
         self.cluster: ClusterView | None = None
         #: Members of dropped resumable connections, kept for ``resume_window``.
@@ -183,15 +181,21 @@ class RelayCore:
         self.capacity = capacity.Capacity(capacity.budget_of(cfg))  # sheds joins over budget
         #: Members whose updates stopped (``stall_after``): peers hear peer_stalled.
         self.silence = Silence(cfg.stall_after, self.tell_peers, self.emit_rearm)
-        self.token_expiries = 0
         #: Recordings that stopped writing (disk full, I/O error), counted by the adapter.
         self.recording_errors = 0
         #: Connections refused (over a limit), closed for not joining in time, and
         #: closed for misbehaving (over their budget).
         self.refused_connections = self.join_timeouts = self.misbehaviour_closes = 0
+        #: Access tokens: checked at join, renewed, expired; join and event rates.
+        self.tokens = Tokens(self, self.peers)
         #: Admission, the join deadline, joins and leaves (``server.joins``).
-        self.joins = Joins(self, self.peers, self.table, self.capacity, self.admission)
+        self.joins = Joins(self, self.peers, self.table, self.capacity, self.admission, self.tokens)
         self._spectators = self.joins.spectators  # (read on every update)
+
+    @property
+    def token_expiries(self) -> int:
+        """Connections closed because their access token expired (a metric)."""
+        return self.tokens.expiries
 
     @property
     def tick_lags(self) -> LagHistogram:
@@ -270,7 +274,7 @@ class RelayCore:
         (None: none)."""
         due = [
             self.joins.next_deadline(),
-            self._token_deadlines.next(),
+            self.tokens.next_deadline(),
             self.parking.next(),
             self.silence.next(),
         ]
@@ -285,8 +289,7 @@ class RelayCore:
             self.close_peer(
                 self.peers[conn], 1008, f"no join within {self.config.join_timeout:g} s"
             )
-        for conn in self._token_deadlines.pop_due(now):
-            tokens.expired(self, self.peers[conn])
+        self.tokens.expire(now)
         for parked in self.parking.expire(now):
             resume.gone(self, parked, now)
         self.silence.expire(now)
@@ -312,21 +315,11 @@ class RelayCore:
         peer = self.peers[conn]
         peer.forwarded, peer.resume_token = True, None
 
-    def _token_due(self, conn: int, deadline: float) -> bool:
-        peer = self.peers.get(conn)
-        return peer is not None and peer.token_deadline == deadline and not peer.close_request
-
-    def token_expires_at(self, peer: Peer, deadline: float) -> None:
-        """Close ``peer`` at ``deadline`` (server clock) unless it renews its token."""
-        peer.token_deadline = deadline
-        self._token_deadlines.add(peer.conn, deadline)
-        self.emit(Rearm())
-
     def frame(self, conn: int, data: bytes | str, now: float | None = None) -> list[Event]:
         """The events one received frame decodes to (none while the connection closes;
-        with ``now``, none for an event over its bucket: ``tokens.event_dropped``)."""
+        with ``now``, none for an event over its bucket: ``Tokens.event_dropped``)."""
         peer = self.peers[conn]
-        if now is not None and tokens.event_dropped(self, peer, data, now):
+        if now is not None and self.tokens.event_dropped(peer, data, now):
             return []
         peer.frames_in += 1
         if peer.close_request is not None:
@@ -362,7 +355,7 @@ class RelayCore:
         """:meth:`frame` and :meth:`handle` in one (rooms of a recording server must exist)."""
         peer = self.peers.get(conn)
         if peer is not None and not (
-            data[1:12] == tokens.EVENT_TYPE and tokens.event_dropped(self, peer, data, now)
+            data[1:12] == EVENT_TYPE and self.tokens.event_dropped(peer, data, now)
         ):
             for event in self.frame(conn, data):
                 self._handle(peer, event, now, wall)
@@ -592,7 +585,7 @@ class RelayCore:
         elif isinstance(event, SetRate):
             self._on_set_rate(peer, event, now)
         elif isinstance(event, Renew):
-            tokens.renew(self, peer, event, now, wall)
+            self.tokens.renew(peer, event, now, wall)
         elif isinstance(event, UserEvent):
             self._on_user_event(peer, event, now)
         elif isinstance(event, ObjectCreate | RequestOwnership | Release):
@@ -618,7 +611,7 @@ class RelayCore:
 
     def _on_user_event(self, peer: Peer, event: UserEvent, now: float) -> None:
         room = peer.room
-        if room is None or not tokens.admit_event(self, peer, now):
+        if room is None or not self.tokens.admit_event(peer, now):
             return
         for m in list(room.members.values()):
             if m.user != peer.user:

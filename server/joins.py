@@ -36,10 +36,11 @@ from typing import TYPE_CHECKING
 
 from posecast.protocol import ErrorCode, Hello, Join, Joined, PeerLeft
 from posecast.protocol.events import Event
-from posecast.server import objects, rates, resume, tokens
+from posecast.server import objects, rates, resume
 from posecast.server.actions import Hold
 from posecast.server.limits import Admission, Deadlines, normalise_room
 from posecast.server.room import Member, Room
+from posecast.server.tokens import Tokens, joinable_room
 
 if TYPE_CHECKING:
     from posecast.server.capacity import Capacity
@@ -60,6 +61,7 @@ class Joins:
         table: RoomTable,
         capacity: Capacity,
         admission: Admission,
+        tokens: Tokens,
     ) -> None:
         self.relay = relay
         self.config = relay.config
@@ -67,6 +69,7 @@ class Joins:
         self.table = table
         self.capacity = capacity
         self.admission = admission
+        self.tokens = tokens
         self._deadlines = Deadlines(self._unjoined)
         #: Users who joined as spectators: they publish nothing and nobody hears of them.
         #: (The core reads this set on every update: a spectator's is refused.)
@@ -108,7 +111,7 @@ class Joins:
         """The room a recording server must open (off the loop) before ``event``."""
         if self.config.record_dir is None:
             return None
-        name = tokens.joinable_room(event, self.config.secret, wall)
+        name = joinable_room(event, self.config.secret, wall)
         if name is None or name in self.table.rooms or self.table.refusal(name) is not None:
             return None
         return name
@@ -124,7 +127,7 @@ class Joins:
         recording to open.
         """
         if cluster is not None:
-            name = tokens.joinable_room(event, self.config.secret, wall)
+            name = joinable_room(event, self.config.secret, wall)
             if name is not None and cluster.must_claim(name):
                 return Hold(conn, "claim", name)
             parking = self.relay.parking
@@ -147,7 +150,7 @@ class Joins:
         except ValueError as exc:
             relay.refuse(peer, ErrorCode.BAD_ROOM, str(exc), "join", now)
             return
-        if not tokens.admit_join(relay, peer, join, name, now, wall):
+        if not self.tokens.admit_join(peer, join, name, now, wall):
             return
         assert peer.user is not None  # the state table puts hello before join
         if resume.resume_join(relay, peer, join, name, now):

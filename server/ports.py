@@ -82,9 +82,6 @@ class Relay(Protocol):
         """Admission before and at the handshake, and the join and event rates."""
         ...
 
-    #: Connections closed because their access token expired (a metric).
-    token_expiries: int
-
     # -- who is connected ----------------------------------------------------------------
 
     def connected(self, user: int) -> Peer | None:
@@ -135,10 +132,6 @@ class Relay(Protocol):
 
     def emit_rearm(self) -> None:
         """A deadline of the core's expiries was added or moved."""
-        ...
-
-    def token_expires_at(self, peer: Peer, deadline: float) -> None:
-        """Close ``peer`` at ``deadline`` (server clock) unless it renews its token."""
         ...
 
     def rescheduled(self, room: Room) -> None:
