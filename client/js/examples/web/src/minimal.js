@@ -2,8 +2,8 @@ import * as THREE from "three";
 import { VRButton } from "three/examples/jsm/webxr/VRButton.js";
 import { PosecastClient, XRPublisher } from "posecast";
 
-// Join the room: ?relay=ws://HOST:PORT, else port 8765 of the page's host.
-const relay = new URLSearchParams(location.search).get("relay") ?? `ws://${location.hostname}:8765`;
+// Join the room: ?relay=ws://HOST:PORT, else port 8765 of the page's host (wss: on https:).
+const relay = new URLSearchParams(location.search).get("relay") ?? `${location.protocol.replace("http", "ws")}//${location.hostname}:8765`;
 const client = new PosecastClient({ url: relay, room: "lobby", label: "my-app" });
 await client.connect(); // hello, clock sync, join
 
