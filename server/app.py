@@ -55,9 +55,10 @@ from posecast.server.handshakes import FD_RESERVE, HEALTH_RESERVE
 from posecast.server.http import OriginPolicy, QuietHttpLog, metrics_text, process_request
 from posecast.server.intake import Intake, measure
 from posecast.server.logs import LogLimiter
+from posecast.server.member import IdAllocator
 from posecast.server.node import cluster_clock
 from posecast.server.recordings import Recordings
-from posecast.server.room import IdAllocator, Room
+from posecast.server.room import Room
 
 if TYPE_CHECKING:
     from posecast.server.node import ClusterNode

@@ -43,8 +43,8 @@ from posecast.server.actions import Action, Hold
 from posecast.server.config import ServerConfig
 from posecast.server.handshakes import Slot
 from posecast.server.http import OriginPolicy, QuietHttpLog
+from posecast.server.member import Outbox
 from posecast.server.peer import ConnectionStatistics
-from posecast.server.room import Outbox
 from posecast.server.transport import WebSocketConnection, frame_binary
 
 if TYPE_CHECKING:

@@ -111,6 +111,7 @@ from posecast.server.actions import (
 from posecast.server.config import ServerConfig
 from posecast.server.guard import Guard
 from posecast.server.handshakes import Handshakes
+from posecast.server.histogram import TICK_LAG_BUCKETS, LagHistogram
 from posecast.server.joins import Joins
 from posecast.server.limits import (
     Admission,
@@ -118,16 +119,11 @@ from posecast.server.limits import (
     update_refusal,
 )
 from posecast.server.link import Downlink
+from posecast.server.member import IdAllocator, Member
 from posecast.server.parking import Parking
 from posecast.server.peer import COUNTERS, ConnectionStatistics, Peer
 from posecast.server.ports import ClusterView
-from posecast.server.room import (
-    TICK_LAG_BUCKETS,
-    IdAllocator,
-    LagHistogram,
-    Member,
-    Room,
-)
+from posecast.server.room import Room
 from posecast.server.rooms import RoomTable
 from posecast.server.silence import Silence
 from posecast.server.tokens import EVENT_TYPE, Tokens

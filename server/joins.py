@@ -39,7 +39,8 @@ from posecast.protocol.events import Event
 from posecast.server import objects, rates, resume
 from posecast.server.actions import Hold
 from posecast.server.limits import Admission, Deadlines, normalise_room
-from posecast.server.room import Member, Room
+from posecast.server.member import Member
+from posecast.server.room import Room
 from posecast.server.tokens import Tokens, joinable_room
 
 if TYPE_CHECKING:

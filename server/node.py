@@ -44,7 +44,7 @@ from posecast.server.actions import Action
 from posecast.server.cluster import Directory, member_key
 from posecast.server.core import RelayCore
 from posecast.server.forward import Edge, Members, alive
-from posecast.server.room import IdAllocator, Member, Outbox
+from posecast.server.member import IdAllocator, Member, Outbox
 
 __all__ = ["MOVED", "ClusterNode", "cluster_clock"]
 

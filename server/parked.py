@@ -10,7 +10,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from posecast.server.room import Member, Room
+from posecast.server.member import Member
+from posecast.server.room import Room
 
 __all__ = ["Parked"]
 

@@ -18,8 +18,9 @@ from posecast.server.config import ServerConfig
 from posecast.server.limits import Budget
 from posecast.server.link import Downlink
 from posecast.server.logs import LogLimiter
+from posecast.server.member import Member, Outbox
 from posecast.server.parked import Parked
-from posecast.server.room import Member, Outbox, Room
+from posecast.server.room import Room
 from posecast.server.stamps import StampCheck, StampRule
 
 __all__ = ["COUNTERS", "ConnectionStatistics", "Peer", "PeerHost"]

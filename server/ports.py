@@ -36,9 +36,10 @@ if TYPE_CHECKING:
     from posecast.protocol.events import Message
     from posecast.server.config import ServerConfig
     from posecast.server.handshakes import Handshakes
+    from posecast.server.member import IdAllocator, Member
     from posecast.server.parking import Parking
     from posecast.server.peer import Peer
-    from posecast.server.room import IdAllocator, Member, Room
+    from posecast.server.room import Room
     from posecast.server.silence import Silence
 
 __all__ = ["ClusterView", "Relay"]

@@ -300,7 +300,7 @@ def granted(max_rate: float, join: Join) -> float:
 
 
 class RatedOutbox(Protocol):
-    """What the rate rules read of a connection's outbox (``server.room.Outbox``)."""
+    """What the rate rules read of a connection's outbox (``server.member.Outbox``)."""
 
     @property
     def snapshots_offered(self) -> int: ...
@@ -324,7 +324,7 @@ class RatedPeer(Protocol):
 
 
 class RatedMember(Protocol):
-    """What the rate rules use of a room's member (``server.room.Member``)."""
+    """What the rate rules use of a room's member (``server.member.Member``)."""
 
     rate: float
     asked_rate: float

@@ -45,8 +45,9 @@ from posecast.protocol import (
 )
 from posecast.server import objects, rates
 from posecast.server.limits import error_message
+from posecast.server.member import Member
 from posecast.server.parked import Parked
-from posecast.server.room import Member, Room
+from posecast.server.room import Room
 
 if TYPE_CHECKING:
     from posecast.server.peer import Peer

@@ -33,11 +33,10 @@ from __future__ import annotations
 import math
 import struct
 import zlib
-from bisect import bisect_left
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -53,16 +52,14 @@ from posecast.protocol import (
 from posecast.protocol.codec import DEFAULT_VOLUME, Volume, quantise
 from posecast.protocol.codec_relay import GroupSnapshot, encode_stored
 from posecast.server.actions import Action, PollRecording, Record, RecordPose
-from posecast.server.config import DEFAULT_EVENT_QUEUE
-from posecast.server.presence import Presence
+from posecast.server.histogram import TICK_LAG_BUCKETS, LagHistogram
+from posecast.server.member import IdAllocator, Member, Outbox
 from posecast.server.shared import RoomObject
 from posecast.server.view_rates import Motion, ViewRates, ViewState, encode_peers, peer_divisor
 
-if TYPE_CHECKING:
-    from posecast.server.rates import LinkRate
-
+# (IdAllocator, Member, Outbox: ``server.member``; LagHistogram, TICK_LAG_BUCKETS:
+# ``server.histogram``; named here too for the callers that import them from here.)
 __all__ = [
-    "DEFAULT_EVENT_QUEUE",
     "TICK_LAG_BUCKETS",
     "IdAllocator",
     "LagHistogram",
@@ -92,26 +89,6 @@ def _key_slot(now: float, rate: float) -> int:
     return math.floor(now / max(KEY_INTERVAL - 1.0 / rate, 1e-3))
 
 
-#: Upper bounds (s) of the tick lag histogram's buckets (``posecast_tick_lag_seconds``;
-#: one more bucket, +Inf, holds the rest).
-TICK_LAG_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0)
-
-
-@dataclass
-class LagHistogram:
-    """Member ticks per lag bucket (``TICK_LAG_BUCKETS``, then +Inf; not cumulative),
-    the lag measured from each member's due time, and the sum of those lags (s).
-    One for the server, shared by its rooms."""
-
-    counts: list[int] = field(default_factory=lambda: [0] * (len(TICK_LAG_BUCKETS) + 1))
-    total: float = 0.0
-
-    def observe(self, lag: float) -> None:
-        lag = max(0.0, lag)
-        self.counts[bisect_left(TICK_LAG_BUCKETS, lag)] += 1
-        self.total += lag
-
-
 def room_phase(name: str) -> float:
     """Where in a tick interval room ``name``'s grid sits, in ``[0, 1)``.
 
@@ -119,163 +96,6 @@ def room_phase(name: str) -> float:
     phase per room (from its name, so it is stable) spreads the bursts out.
     """
     return zlib.crc32(name.encode()) / 2**32
-
-
-class IdAllocator:
-    """u16 ids in ``[start, limit)``, reused oldest-freed first so that a just-freed id
-    is not handed out again. Ids outside the range (a cluster node's members that came
-    through another node, see ``server.cluster``) are never taken back."""
-
-    def __init__(self, limit: int = 1 << 16, start: int = 0) -> None:
-        self._start = self._next = start
-        self._limit = limit
-        self._free: deque[int] = deque()
-
-    def take(self) -> int:
-        if self._next < self._limit:
-            self._next += 1
-            return self._next - 1
-        if not self._free:
-            raise RuntimeError("no free ids left")
-        return self._free.popleft()
-
-    def reserve(self, ident: int) -> bool:
-        """Take ``ident`` itself (a member restored on another cluster node keeps its
-        ids); False if it is taken already. Ids outside the range are not tracked."""
-        if not self._start <= ident < self._limit:
-            return True
-        if ident >= self._next:
-            self._free.extend(range(self._next, ident))
-            self._next = ident + 1
-            return True
-        if ident in self._free:
-            self._free.remove(ident)
-            return True
-        return False
-
-    def give_back(self, ident: int) -> None:
-        if self._start <= ident < self._next:
-            self._free.append(ident)
-
-    def __len__(self) -> int:
-        return self._next - self._start - len(self._free)
-
-
-class Outbox:
-    """What one connection still has to write: one pose slot and a bounded queue.
-
-    ``buffered`` reports the socket's write-buffer size; above ``congested_bytes``
-    the room gives the connection no new snapshot (a skip) until it drains.
-    """
-
-    def __init__(
-        self,
-        max_events: int = DEFAULT_EVENT_QUEUE,
-        buffered: Callable[[], int] = lambda: 0,
-        congested_bytes: int = 64 * 1024,
-    ) -> None:
-        self.pose: bytes | None = None
-        self.events: deque[bytes] = deque()
-        self.max_events = max_events
-        self.buffered = buffered
-        self.congested_bytes = congested_bytes
-        #: Called whenever something new waits to be written (the owner wakes its writer).
-        self.on_ready: Callable[[], None] | None = None
-        self.skips = 0
-        self.snapshots_offered = 0
-
-    def congested(self) -> bool:
-        return self.buffered() > self.congested_bytes
-
-    def offer_snapshot(self, data: bytes) -> None:
-        """Latest wins: a snapshot still waiting is replaced (and counted as a skip)."""
-        if self.pose is not None:
-            self.skips += 1
-        self.pose = data
-        self.snapshots_offered += 1
-        if self.on_ready is not None:
-            self.on_ready()
-
-    def offer_event(self, data: bytes) -> bool:
-        """Queue a reliable message; ``False`` if the queue is full (caller closes)."""
-        if len(self.events) >= self.max_events:
-            return False
-        self.events.append(data)
-        if self.on_ready is not None:
-            self.on_ready()
-        return True
-
-    def take(self) -> bytes | None:
-        """Next frame to write: queued events first, in order, then the snapshot."""
-        return self.take_with_kind()[0]
-
-    def take_with_kind(self) -> tuple[bytes | None, bool]:
-        """Like :meth:`take`, and whether the frame is the snapshot."""
-        if self.events:
-            return self.events.popleft(), False
-        data, self.pose = self.pose, None
-        return data, data is not None
-
-
-@dataclass
-class Member:
-    """A joined user as its room sees it."""
-
-    user: int
-    name: str
-    streams: dict[str, int]
-    rate: float
-    outbox: Outbox
-    label: str | None = None
-    #: The rate the subscriber asked for; ``rate`` may be lower (an emulated link's cap).
-    asked_rate: float = 0.0
-    next_due: float = 0.0
-    #: Store version covered by the newest snapshot offered to this member.
-    last_version: int = 0
-    #: Store version covered by the snapshots its writer has taken: the base of
-    #: the next delta. It lags ``last_version`` while a snapshot waits unsent.
-    delivered_version: int = 0
-    snapshots: int = 0
-    snapshot_bytes: int = 0
-    poses_sent: int = 0
-    congestion_skips: int = 0
-    updates_in: int = 0
-    #: Receives velocity-variant snapshots (``Join.wants_velocities``).
-    velocities: bool = False
-    #: Its updates carry velocities (``Join.sends_velocities``).
-    sends_velocities: bool = False
-    #: Receives compact snapshots (``Join.codec == "compact"``), without its own
-    #: streams unless ``echo``.
-    compact: bool = False
-    echo: bool = False
-    #: The key grid slot of its last key snapshot (-1: due one now), and whether
-    #: its newest snapshot was a key.
-    key_slot: int = -1
-    key_sent: bool = False
-    #: Its connection dropped and it waits to be resumed (``server.resume``): no
-    #: snapshots meanwhile, its streams stay at their last pose.
-    parked: bool = False
-    #: Server time of its last accepted pose update (None: it has published none),
-    #: whether its peers were told it stalled for having stopped publishing, and
-    #: whether a silence deadline watches it (``server.silence.Silence``).
-    last_update: float | None = None
-    silent: bool = False
-    watched: bool = False
-    #: Its rate controller, if it joined with ``rate="auto"`` (``server.rates``).
-    link_rate: LinkRate | None = None
-    #: Presence notices it has not been sent yet (``server.presence``).
-    presence: Presence = field(default_factory=Presence)
-    #: Its per-peer schedule, if it joined with ``budget_deg`` (``server.view_rates``).
-    view: ViewState | None = None
-
-    def undelivered(self) -> None:
-        """Its newest snapshot never reaches it (an emulated link lost or skipped
-        it): the next is coded against what it holds, and is a key if that was."""
-        self.last_version = self.delivered_version
-        if self.view is not None:
-            self.view.last = dict(self.view.delivered)
-        if self.key_sent:
-            self.key_slot = -1
 
 
 @dataclass(frozen=True, slots=True)

@@ -21,7 +21,8 @@ from collections.abc import Callable
 
 from posecast.protocol import PeerResumed, PeerStalled
 from posecast.protocol.events import Message
-from posecast.server.room import Member, Room
+from posecast.server.member import Member
+from posecast.server.room import Room
 
 __all__ = ["Silence", "Tell"]
 
