@@ -271,14 +271,24 @@ class Capacity:
         """Whether the relay runs too late to carry its rooms at their rates at ``now``:
         over :data:`PRESSURE_SHARE` of the ticks of a recent window (of at least
         :data:`PRESSURE_TICKS`) were later than the lag budget for the members' work
-        (a join storm's lateness does not count). ``server.rates`` then offers its
-        auto-rate subscribers lower rates. Off with the lag budget."""
-        if self.budget.lag <= 0:
-            return False
+        (a join storm's lateness does not count), while it is loaded as for the lag
+        budget (:meth:`usage`: with its members at the last reading). ``server.rates``
+        then offers its auto-rate subscribers lower rates. Off with the lag budget."""
+        if self.budget.lag <= 0 or not self._loaded(self.read_members, now):
+            return False  # (a near-idle relay is late for its machine: lower rates would not help)
         return any(
             w.ticks >= PRESSURE_TICKS and w.late > PRESSURE_SHARE * w.ticks
             for w in self._windows(now)
         )
+
+    def _loaded(self, members: int, now: float) -> bool:
+        """Whether the relay's lag is its members' doing: it holds ``min_members`` and uses
+        ``LAG_CPU_FLOOR`` of a core (its last reading) or holds ``LAG_MIN_MEMBERS``."""
+        b = self.budget
+        if members < b.min_members:
+            return False
+        fresh = self._sampled is not None and now - self._sampled <= STALE_WINDOWS * b.window
+        return (fresh and self.cpu >= LAG_CPU_FLOOR) or members >= LAG_MIN_MEMBERS
 
     def usage(self, members: int, now: float) -> dict[str, float]:
         """Each signal as a share of its budget with one more member (over 1: refused)."""
@@ -293,8 +303,7 @@ class Capacity:
         if b.cpu > 0 and fresh:  # (no reading yet: nothing to grow from)
             since = self.read_members
             out["growth"] = (members + 1 - since) / max(GROWTH_MIN, GROWTH * since)
-        loaded = not few and ((fresh and self.cpu >= LAG_CPU_FLOOR) or members >= LAG_MIN_MEMBERS)
-        if b.lag > 0 and loaded:
+        if b.lag > 0 and self._loaded(members, now):
             share = max((w.late / w.ticks for w in self._windows(now) if w.ticks), default=0.0)
             out["lag"] = share / LAG_SHARE
         if b.backlog > 0:

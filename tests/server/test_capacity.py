@@ -379,9 +379,14 @@ def test_a_bot_given_two_relays_gets_onto_the_second_when_the_first_is_full() ->
 
 def test_overloaded_when_a_tenth_of_the_ticks_run_late_for_the_members() -> None:
     """Over PRESSURE_SHARE of a window's ticks (of at least PRESSURE_TICKS) later than the
-    lag budget: the relay cannot carry its rooms at their rates. One late tick in a few,
-    lateness for a join storm, or a lag budget of 0 is no pressure."""
-    cap = Capacity(CapacityBudget(min_members=0))
+    lag budget, on a loaded relay: it cannot carry its rooms at their rates. One late
+    tick in a few, lateness for a join storm, a near-idle relay (its machine is busy:
+    lower rates would not help) or a lag budget of 0 is no pressure."""
+
+    def loaded(budget: CapacityBudget | None = None) -> Capacity:
+        return measured(0.5, LAG_MIN_MEMBERS, budget)  # (read at t = 1.0)
+
+    cap = loaded()
     for i in range(PRESSURE_TICKS - 1):
         cap.tick_lag(1.0 + 0.01 * i, 0.100)  # all late, but too few ticks to judge
     assert not cap.overloaded(1.1)
@@ -389,21 +394,23 @@ def test_overloaded_when_a_tenth_of_the_ticks_run_late_for_the_members() -> None
     assert cap.overloaded(1.1)
     assert not cap.overloaded(3.5)  # two windows later it is forgotten
 
-    mild = Capacity(CapacityBudget(min_members=0))
+    mild = loaded()
     for i in range(100):
         mild.tick_lag(1.0 + 0.005 * i, 0.100 if i < 10 else 0.001)  # 10 %: not over
     assert not mild.overloaded(1.6)
     mild.tick_lag(1.6, 0.100)
     assert mild.overloaded(1.6)
 
-    storm = Capacity(CapacityBudget(min_members=0))
+    storm = loaded()
     for i in range(20):
         t = 1.0 + 0.05 * i
         storm.join_work(t - 0.1, t, 0.1)  # join work ran since each tick was due
         storm.tick_lag(t, 0.100)
     assert not storm.overloaded(2.0) and storm.ticks_late == 20
 
-    off = Capacity(CapacityBudget(lag=0.0, min_members=0))
-    for i in range(20):
-        off.tick_lag(1.0 + 0.01 * i, 0.100)
-    assert not off.overloaded(1.2)
+    idle = measured(LAG_CPU_FLOOR - 0.05, 4, CapacityBudget(min_members=0))
+    off = loaded(CapacityBudget(lag=0.0, min_members=0))
+    for c in (idle, off):
+        for i in range(20):
+            c.tick_lag(1.0 + 0.01 * i, 0.100)
+        assert not c.overloaded(1.2)
