@@ -111,7 +111,6 @@ from posecast.server.actions import (
 from posecast.server.config import ServerConfig
 from posecast.server.guard import Guard
 from posecast.server.handshakes import Handshakes
-from posecast.server.histogram import TICK_LAG_BUCKETS, LagHistogram
 from posecast.server.joins import Joins
 from posecast.server.limits import (
     Admission,
@@ -123,7 +122,7 @@ from posecast.server.member import IdAllocator, Member
 from posecast.server.parking import Parking
 from posecast.server.peer import COUNTERS, ConnectionStatistics, Peer
 from posecast.server.ports import ClusterView
-from posecast.server.room import Room
+from posecast.server.room import TICK_LAG_BUCKETS, LagHistogram, Room
 from posecast.server.rooms import RoomTable
 from posecast.server.silence import Silence
 from posecast.server.tokens import EVENT_TYPE, Tokens

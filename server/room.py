@@ -33,6 +33,7 @@ from __future__ import annotations
 import math
 import struct
 import zlib
+from bisect import bisect_left
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -52,13 +53,12 @@ from posecast.protocol import (
 from posecast.protocol.codec import DEFAULT_VOLUME, Volume, quantise
 from posecast.protocol.codec_relay import GroupSnapshot, encode_stored
 from posecast.server.actions import Action, PollRecording, Record, RecordPose
-from posecast.server.histogram import TICK_LAG_BUCKETS, LagHistogram
 from posecast.server.member import IdAllocator, Member, Outbox
 from posecast.server.shared import RoomObject
 from posecast.server.view_rates import Motion, ViewRates, ViewState, encode_peers, peer_divisor
 
-# (IdAllocator, Member, Outbox: ``server.member``; LagHistogram, TICK_LAG_BUCKETS:
-# ``server.histogram``; named here too for the callers that import them from here.)
+# (IdAllocator, Member, Outbox: ``server.member``; named here too for the callers
+# that import them from here.)
 __all__ = [
     "TICK_LAG_BUCKETS",
     "IdAllocator",
@@ -87,6 +87,26 @@ def _key_slot(now: float, rate: float) -> int:
     """A compact subscriber's key slot at ``now``: slots of KEY_INTERVAL less one tick,
     per rate, so keys come at most KEY_INTERVAL apart and members of one rate share them."""
     return math.floor(now / max(KEY_INTERVAL - 1.0 / rate, 1e-3))
+
+
+#: Upper bounds (s) of the tick lag histogram's buckets (``posecast_tick_lag_seconds``;
+#: one more bucket, +Inf, holds the rest).
+TICK_LAG_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0)
+
+
+@dataclass
+class LagHistogram:
+    """Member ticks per lag bucket (``TICK_LAG_BUCKETS``, then +Inf; not cumulative),
+    the lag measured from each member's due time, and the sum of those lags (s).
+    One for the server, shared by its rooms."""
+
+    counts: list[int] = field(default_factory=lambda: [0] * (len(TICK_LAG_BUCKETS) + 1))
+    total: float = 0.0
+
+    def observe(self, lag: float) -> None:
+        lag = max(0.0, lag)
+        self.counts[bisect_left(TICK_LAG_BUCKETS, lag)] += 1
+        self.total += lag
 
 
 def room_phase(name: str) -> float:

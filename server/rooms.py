@@ -21,9 +21,8 @@ from collections.abc import Callable
 from posecast.protocol.codec import Volume
 from posecast.server.actions import Action, FinishRecording, Reschedule
 from posecast.server.config import ServerConfig
-from posecast.server.histogram import LagHistogram
 from posecast.server.limits import room_refusal
-from posecast.server.room import Room, room_phase
+from posecast.server.room import LagHistogram, Room, room_phase
 from posecast.server.view_rates import ViewRates
 
 __all__ = ["RoomTable"]
