@@ -14,6 +14,7 @@ times before, between, on and after the keyframes.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import cache
 
 import numpy as np
 import pytest
@@ -23,7 +24,7 @@ from posecast import interp
 from posecast.client.buffers import RoomBuffers, StreamBuffer
 from posecast.client.render import render_buffers, rendered_method
 from posecast.scenarios.qoe import window_depth
-from posecast.scenarios.traces import find_traces, load_trace
+from posecast.scenarios.traces import Trace, find_traces, load_trace
 
 F64 = NDArray[np.float64]
 
@@ -80,6 +81,20 @@ def former_render(
     return frame, stalled
 
 
+@cache
+def sample_motion() -> tuple[tuple[Trace, F64], ...]:
+    """The bundled sample traces, each with its causal velocities ``(N, S, 6)``: read
+    and fitted once per process (the fit over a whole trace is most of a room's cost),
+    shared read-only."""
+    out = []
+    for tr in map(load_trace, find_traces("traces:sample")):
+        velocities = tr.causal_velocities()
+        for a in (tr.times, tr.poses, velocities):
+            a.setflags(write=False)
+        out.append((tr, velocities))
+    return tuple(out)
+
+
 def trace_room(
     streams: int, rate: float = 15.0, capacity: int = 12, seed: int = 0
 ) -> tuple[RoomBuffers, list[StreamBuffer], float, float]:
@@ -91,14 +106,14 @@ def trace_room(
     the room, its buffers and the span of capture times.
     """
     rng = np.random.default_rng(seed)
-    traces = [load_trace(p) for p in find_traces("traces:sample")]
+    traces = sample_motion()
     room = RoomBuffers(capacity=capacity)
     bufs = []
     span = (np.inf, -np.inf)
     for j in range(streams):
-        tr = traces[j % len(traces)]
+        tr, velocities = traces[j % len(traces)]
         dev = j % len(tr.streams)
-        vel = tr.causal_velocities()[:, dev]
+        vel = velocities[:, dev]
         buf = room.stream(has_velocities=j % 3 != 2)
         start = rng.uniform(0.0, 20.0)
         send = start + np.arange(0.0, 3.0, 1.0 / rate) + rng.uniform(-0.004, 0.004)
