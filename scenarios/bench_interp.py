@@ -38,7 +38,6 @@ process's poses/s of every method at batch N as JSON.
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import math
 import os
@@ -47,9 +46,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass
 from functools import partial
-from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -60,6 +57,7 @@ from rich.table import Table
 from posecast import interp
 from posecast.client.buffers import RoomBuffers
 from posecast.client.render import render_buffers
+from posecast.scenarios.bench_interp_refs import REFERENCES, Unavailable, version
 from posecast.scenarios.traces import find_traces, load_trace
 
 __all__ = ["TARGETS", "frame_room", "run_interp_bench", "throughput_at"]
@@ -152,149 +150,6 @@ def _best_seconds(call: Callable[[], object]) -> float:
     return best
 
 
-def _optional(name: str) -> ModuleType | None:
-    """Import a reference library, or ``None`` when it is not installed."""
-    try:
-        return importlib.import_module(name)
-    except ImportError:
-        return None
-
-
-def _version(name: str) -> str:
-    mod = _optional(name)
-    return str(getattr(mod, "__version__", "?")) if mod is not None else "not installed"
-
-
-# --- reference cases -------------------------------------------------------------
-
-# A case builder takes (a, b, s) and returns the zero-argument call to time, or
-# raises _Unavailable with the reason.
-Builder = Callable[[F64, F64, F64], Callable[[], object]]
-
-
-class _Unavailable(Exception):
-    """A reference library (or feature) is missing."""
-
-
-def _need(module: str, attr: str | None = None) -> Any:
-    mod = _optional(module)
-    if mod is None:
-        raise _Unavailable("not installed")
-    if attr is None:
-        return mod
-    obj = getattr(mod, attr, None)
-    if obj is None:
-        raise _Unavailable(f"no {module}.{attr}")
-    return obj
-
-
-def _xyzw(q: F64) -> F64:
-    return np.ascontiguousarray(q[:, [1, 2, 3, 0]])
-
-
-def _scipy_rotation_slerp(a: F64, b: F64, s: F64) -> Callable[[], object]:
-    rotation = _need("scipy.spatial.transform", "Rotation")
-    r0, r1 = rotation.from_quat(_xyzw(a[:, 3:])), rotation.from_quat(_xyzw(b[:, 3:]))
-    t0, t1, sc = a[:, :3], b[:, :3], s[:, None]
-
-    def call() -> object:
-        rs = r0 * rotation.from_rotvec(sc * (r0.inv() * r1).as_rotvec())
-        return t0 + sc * (t1 - t0), rs
-
-    return call
-
-
-def _scipy_slerp_objects(a: F64, b: F64, s: F64) -> Callable[[], object]:
-    spatial = _need("scipy.spatial.transform")
-    keys = [
-        spatial.Rotation.from_quat(_xyzw(np.stack([x[3:], y[3:]])))
-        for x, y in zip(a, b, strict=True)
-    ]
-
-    def call() -> object:
-        return [spatial.Slerp([0.0, 1.0], k)(si) for k, si in zip(keys, s, strict=True)]
-
-    return call
-
-
-def _scipy_rigid_transform(a: F64, b: F64, s: F64) -> Callable[[], object]:
-    rigid = _need("scipy.spatial.transform", "RigidTransform")
-    rotation = _need("scipy.spatial.transform", "Rotation")
-    ta = rigid.from_components(a[:, :3], rotation.from_quat(_xyzw(a[:, 3:])))
-    tb = rigid.from_components(b[:, :3], rotation.from_quat(_xyzw(b[:, 3:])))
-    sc = s[:, None]
-
-    def call() -> object:
-        return ta * rigid.from_exp_coords(sc * (ta.inv() * tb).as_exp_coords())
-
-    return call
-
-
-def _pt_dual_quaternions(a: F64, b: F64) -> tuple[F64, F64]:
-    ptr = _need("pytransform3d.trajectories")
-    dqa = ptr.dual_quaternions_from_pqs(a)
-    dqb = ptr.dual_quaternions_from_pqs(b)
-    dqb[np.sum(dqa[:, :4] * dqb[:, :4], axis=1) < 0.0] *= -1.0  # short way
-    return dqa, dqb
-
-
-def _pt_sclerp_loop(a: F64, b: F64, s: F64) -> Callable[[], object]:
-    pt = _need("pytransform3d.transformations")
-    dqa, dqb = _pt_dual_quaternions(a, b)
-
-    def call() -> object:
-        return [pt.dual_quaternion_sclerp(x, y, si) for x, y, si in zip(dqa, dqb, s, strict=True)]
-
-    return call
-
-
-def _pt_sclerp_batch(a: F64, b: F64, s: F64) -> Callable[[], object]:
-    ptr = _need("pytransform3d.trajectories")
-    dqa, dqb = _pt_dual_quaternions(a, b)
-
-    def call() -> object:
-        return ptr.dual_quaternions_sclerp(dqa, dqb, s)
-
-    return call
-
-
-def _kingdon_motor_blend(a: F64, b: F64, s: F64) -> Callable[[], object]:
-    kingdon = _need("kingdon")
-    pga = kingdon.Algebra(3, 0, 1)
-
-    def motors(p: F64) -> Any:
-        t, q = p[:, :3].T, p[:, 3:].T
-        translator = 1.0 - 0.5 * pga.blades.e0 * pga.vector(e1=t[0], e2=t[1], e3=t[2])
-        return translator * pga.multivector(e=q[0], e23=-q[1], e13=q[2], e12=-q[3])
-
-    m0, m1 = motors(a), motors(b)
-    m1 = pga.scalar(e=np.where(np.sum(a[:, 3:] * b[:, 3:], axis=1) < 0.0, -1.0, 1.0)) * m1
-    w0, w1 = pga.scalar(e=1.0 - s), pga.scalar(e=s)
-
-    def call() -> object:
-        return (w0 * m0 + w1 * m1).normalized()
-
-    return call
-
-
-@dataclass(frozen=True, slots=True)
-class _Case:
-    label: str
-    method: str
-    build: Builder
-    loop: bool = False  # per-pair Python loop: timed on LOOP_PAIRS pairs only
-
-
-REFERENCES: tuple[_Case, ...] = (
-    _Case("scipy Rotation slerp (vectorised)", "soa", _scipy_rotation_slerp),
-    _Case("scipy Slerp, one object per pair", "soa", _scipy_slerp_objects, loop=True),
-    _Case("scipy RigidTransform exp/log", "dq-slerp", _scipy_rigid_transform),
-    _Case("pytransform3d dual_quaternion_sclerp", "dq-slerp", _pt_sclerp_loop, loop=True),
-    _Case("pytransform3d dual_quaternions_sclerp", "dq-slerp", _pt_sclerp_batch),
-    _Case("kingdon motor blend + normalized()", "motor-lerp", _kingdon_motor_blend),
-)
-
-
 # --- measurement --------------------------------------------------------------------
 
 
@@ -313,9 +168,9 @@ def _machine() -> dict[str, Any]:
         "load_1min": round(load, 2),
         "python": sys.version.split()[0],
         "numpy": np.__version__,
-        "scipy": _version("scipy"),
-        "pytransform3d": _version("pytransform3d"),
-        "kingdon": _version("kingdon"),
+        "scipy": version("scipy"),
+        "pytransform3d": version("pytransform3d"),
+        "kingdon": version("kingdon"),
     }
 
 
@@ -528,7 +383,7 @@ def run_interp_bench(
                 status.update(f"bench interp: {case.label} at batch {n:,}")
                 try:
                     call = case.build(a, b, s)
-                except _Unavailable as exc:
+                except Unavailable as exc:
                     row["missing"] = str(exc)
                     continue
                 row["rates"][n] = n / _best_seconds(call)
@@ -540,7 +395,7 @@ def run_interp_bench(
             status.update(f"bench interp: {case.label} on {m} pairs")
             try:
                 row["loop_rate"] = m / _best_seconds(case.build(a, b, s))
-            except _Unavailable as exc:
+            except Unavailable as exc:
                 row["missing"] = str(exc)
         status.update(f"bench interp: render frame, {FRAME_STREAMS} streams")
         frame = _frame_figures(rng)
