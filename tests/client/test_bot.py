@@ -138,24 +138,27 @@ def test_live_render_equals_offline_computation(three_bots: list[BotReport]) -> 
     checked = 0
     shown_total = 0
     for rep in three_bots:
-        logs = {}
-        for k, rs in rep.streams.items():
-            local = RemoteStream(rs.user, rs.stream, rs.name, rs.label)
-            local.capture, local.arrival, local.poses = rs.capture, rs.arrival_local, rs.poses
-            logs[k] = remote_log(local)
+        # Each stream's frames (t_play, rendered at, pose shown, stalled), in order:
+        # bracketed and interpolated in one call per stream, compared frame by frame.
+        frames: dict[tuple[int, int], list[tuple[float, float, object, bool]]] = {}
         for t_play, _d, rendered_at, shown in rep.render_log[5:]:
             shown_total += len(shown)
             for key, (pose, stalled) in shown.items():
-                log = logs[key]
-                play = playout_brackets(
-                    log.capture, log.arrival, np.array([t_play]), np.array([rendered_at - t_play])
-                )
-                # The loop only shows streams with a keyframe in their buffer.
-                assert not play.missing[0]
-                want = soa(log.poses[play.lo[0], 0], log.poses[play.hi[0], 0], play.s[0])
-                assert bool(play.stall[0]) == stalled
-                np.testing.assert_allclose(pose, want, atol=1e-6)
-                checked += 1
+                frames.setdefault(key, []).append((t_play, rendered_at, pose, stalled))
+        for key, rows in frames.items():
+            rs = rep.streams[key]
+            local = RemoteStream(rs.user, rs.stream, rs.name, rs.label)
+            local.capture, local.arrival, local.poses = rs.capture, rs.arrival_local, rs.poses
+            log = remote_log(local)
+            t_play = np.array([r[0] for r in rows])
+            delay = np.array([r[1] for r in rows]) - t_play
+            play = playout_brackets(log.capture, log.arrival, t_play, delay)
+            # The loop only shows streams with a keyframe in their buffer.
+            assert not play.missing.any()
+            want = soa(log.poses[play.lo, 0], log.poses[play.hi, 0], play.s)
+            np.testing.assert_array_equal(play.stall, [r[3] for r in rows])
+            np.testing.assert_allclose(np.array([r[2] for r in rows]), want, atol=1e-6)
+            checked += len(rows)
     # Every shown pose was checked; how many there are depends on the machine's load.
     assert checked == shown_total > 0
 
