@@ -432,7 +432,8 @@ def _storm_sample(server: _Child, port: int | None) -> _StormSample:
 def _storm_figures(a: _StormSample, b: _StormSample, clients: int) -> dict[str, float]:
     """What the join storm (the ramp) cost the relay: its CPU share over the ramp, the
     share spent on connections not yet members, that per client, and the ticks late
-    over the capacity's lag budget (all, and those only for the join work)."""
+    over the capacity's lag budget (all, and those only for the join work), and the p99
+    of the members' tick lag meanwhile."""
     wall = b.wall - a.wall
     join = _delta(a.metrics, b.metrics, "posecast_join_cpu_seconds_total")
     return {
@@ -443,6 +444,9 @@ def _storm_figures(a: _StormSample, b: _StormSample, clients: int) -> dict[str, 
         "ramp_ticks_late_for_joins": _delta(
             a.metrics, b.metrics, "posecast_ticks_late_for_joins_total"
         ),
+        # The admitted members' ticks while the storm was refused (the relay's histogram).
+        "ramp_tick_lag_p99_ms": 1e3
+        * _histogram_quantile(a.metrics, b.metrics, "posecast_tick_lag_seconds", 0.99),
     }
 
 

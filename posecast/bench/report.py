@@ -134,6 +134,14 @@ def _join_rows(r: dict[str, Any]) -> list[_Row]:
                 f"websocket upgrade p99 {_f(r['upgrade_p99_ms'])} ms",
             )
         )
+        rows.append(
+            (
+                "during the joins: tick lag p99",
+                f"{_f(r.get('ramp_tick_lag_p99_ms', math.nan), 2)} ms",
+                f"/metrics over the ramp: the admitted members' ticks; "
+                f"{_f(r.get('join_cpu_ms_per_client', math.nan), 2)} ms of relay CPU a join",
+            )
+        )
     return rows
 
 

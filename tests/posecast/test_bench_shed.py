@@ -124,3 +124,25 @@ def test_a_member_alone_in_its_room_is_not_measured() -> None:
     for c, outcome in zip(clients, [JOINED, JOINED, "server-full", JOINED, HUNG], strict=True):
         c.outcome = outcome
     assert measured_clients(clients) == [0, 1]
+
+
+def test_a_shed_run_accounts_for_every_client_and_reads_the_storm() -> None:
+    """``--shed`` end to end: the relay under test keeps its capacity budget (serve's
+    defaults), every client is joined, refused or hung, none hangs, and the report
+    reads the join storm from the relay's /metrics (its members' tick lag meanwhile)."""
+    import io
+
+    from rich.console import Console
+
+    from posecast.bench import run_relay_bench
+
+    out = Console(file=io.StringIO(), width=200)
+    report = run_relay_bench(24, 6, 20.0, 1.0, shed=True, console=out, warmup=0.5, ramp_rate=100.0)
+    assert report["shed"] and report["metrics_ok"] and report["server_exit_code"] == 0
+    joined, refused, hung = (
+        report[k] for k in ("clients_joined", "clients_refused", "clients_hung")
+    )
+    assert joined + refused + hung == 24 and hung == 0 and joined >= 16
+    assert set(report["join_errors"]) <= {"server-full"}
+    assert "ramp_tick_lag_p99_ms" in report and report["join_cpu_ms_per_client"] >= 0
+    assert report["ticks_per_client_s"] >= report["snapshots_per_client_s"] > 0
