@@ -59,6 +59,7 @@ from posecast.server.member import IdAllocator
 from posecast.server.node import cluster_clock
 from posecast.server.recordings import Recordings
 from posecast.server.room import Room
+from posecast.server.stopping import until_gone, watch_tasks
 
 if TYPE_CHECKING:
     from posecast.server.node import ClusterNode
@@ -353,6 +354,7 @@ class RelayServer:
             await self.recorders.start()
         if cfg.cluster is not None:
             await self._join_cluster(cfg.cluster)
+        watch = None
         try:
             async with asyncio.TaskGroup() as tg:
                 self._tg = tg
@@ -361,6 +363,7 @@ class RelayServer:
                 if self.cluster is not None:
                     upkeep = tg.create_task(self.cluster.run(), name="cluster")
                 await self._serve()
+                watch = watch_tasks(cfg.close_timeout + 5.0)  # (a stop that hangs says on what)
                 expiry.cancel()
                 if upkeep is not None:
                     upkeep.cancel()
@@ -374,6 +377,8 @@ class RelayServer:
             await self.recorders.close_hosts()
             if self.cluster is not None:
                 await self.cluster.close()
+            if watch is not None:
+                watch.cancel()
 
     async def _join_cluster(self, servers: str) -> None:
         """Join the cluster of relays on NATS ``servers`` (ClusterError: one line)."""
@@ -435,10 +440,8 @@ class RelayServer:
             for conn in list(self._sockets):
                 if not conn.is_open:  # no websocket yet (a handshake, a plain HTTP answer)
                     conn.abort()
-            try:  # (bounded: should a socket's end never be reported, it is aborted below)
-                await asyncio.wait_for(self._all_gone.wait(), cfg.close_timeout + 5.0)
-            except TimeoutError:
-                log.warning("stopping: %d connections did not end; aborted", len(self._sockets))
+            # (bounded: a socket whose end is not reported is named, then aborted below)
+            await until_gone(self._sockets, self._all_gone, cfg.close_timeout + 5.0)
         finally:
             listener.close()
             intake.close()
