@@ -72,6 +72,9 @@ class Intake:
             sock.setblocking(False)
         #: Connections accepted here (not by the loop's own accept).
         self.accepted = 0
+        #: The hand-overs under way (a TLS handshake can take seconds): a stop cancels them.
+        self._opening: set[asyncio.Task[Any]] = set()
+        self._closed = False
 
     def accept(self) -> int:
         """Accept up to ``BATCH`` queued connections; how many."""
@@ -92,7 +95,12 @@ class Intake:
         return n
 
     async def _open(self, conn: socket.socket) -> None:
+        task = asyncio.current_task()
+        if self._closed or task is None:  # the relay stopped before it was handed over
+            conn.close()
+            return
         loop = asyncio.get_running_loop()
+        self._opening.add(task)
         try:
             await loop.connect_accepted_socket(self._factory, conn, ssl=self._tls)
         except (OSError, TimeoutError) as exc:  # (ssl.SSLError is an OSError)
@@ -101,8 +109,17 @@ class Intake:
         except Exception:  # a bug: this connection is lost, the relay goes on
             log.exception("opening an accepted connection failed")
             conn.close()
+        finally:
+            self._opening.discard(task)
 
     def close(self) -> None:
-        for sock in self._socks:
+        """Stop accepting (each tick of a stop then accepts nothing, quietly); the
+        hand-overs under way are cancelled (their sockets closed): a stop waits for
+        no TLS handshake, and no connection is handed over after it."""
+        self._closed = True
+        socks, self._socks = self._socks, []
+        for sock in socks:
             with contextlib.suppress(OSError):
                 sock.close()
+        for task in self._opening:
+            task.cancel()

@@ -1,4 +1,5 @@
-"""A relay's stop: what it says when it waits too long (``server/stopping.py``).
+"""A relay's stop: what it says when it waits too long (``server/stopping.py``), and
+that a connection the intake took as the relay stopped ends with the stop.
 
 Real relays on loopback (port 0), real clients; the bounds given are what is
 waited for, never a timing that is checked.
@@ -9,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import socket
 
 import pytest
 from relaykit import raw_connect
@@ -73,3 +75,33 @@ async def test_tasks_a_stop_waits_for_are_named(caplog: pytest.LogCaptureFixture
         watch_tasks(0.01).cancel()
         await asyncio.sleep(0.05)
     assert _warnings(caplog, "still waiting") == []
+
+
+async def test_a_connection_the_intake_took_as_the_relay_stopped_ends_with_the_stop(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The intake accepts a queued connection; the relay stops before the socket is
+    handed over to the loop. It is closed with the stop, not left open after it
+    (it would be until its handshake timeout, 60 s here) nor waited for."""
+    server = RelayServer(ServerConfig(host="127.0.0.1", port=0, handshake_timeout=60.0))
+    loop = asyncio.get_running_loop()
+    client = socket.socket()
+    client.setblocking(False)
+    with caplog.at_level(logging.WARNING, "posecast.server"):
+        async with serving(server):
+            assert server._intake is not None
+            # Loopback: the connection is queued when connect_ex returns; the intake
+            # takes it before the loop's own accept can (no await in between).
+            client.connect_ex(("127.0.0.1", server.port))
+            assert server._intake.accept() == 1
+            server.stop()
+        try:
+            async with asyncio.timeout(30):  # (a hang guard)
+                got = await loop.sock_recv(client, 1)
+        except ConnectionResetError:  # (closed by an abort)
+            got = b""
+    client.close()
+    assert got == b""  # the relay closed it
+    assert server._sockets == set()
+    assert _warnings(caplog, "stopping") == []
+    assert _warnings(caplog, "accepting a connection failed") == []
