@@ -46,6 +46,7 @@ from posecast.bench.recorder import (
     _recorder_summary,
 )
 from posecast.bench.report import print_relay_report, saturation
+from posecast.protocol import codec as _codec
 
 #: The servers ``posecast bench relay`` can run under the load.
 SERVERS = ("relay", "baseline")
@@ -280,6 +281,8 @@ def _run_once(
         "server": server,
         "procs": procs,
         "codec": codec,
+        # What runs the compact codec here (the children inherit POSECAST_PURE).
+        "codec_implementation": _codec.IMPLEMENTATION,
         "motion": motion,
         "shed": shed,
     }

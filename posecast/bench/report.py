@@ -82,6 +82,7 @@ def print_relay_report(report: dict[str, Any], console: Console) -> None:
             f"{r['rate_hz']:g} Hz, {r.get('codec', 'raw')} updates of "
             f"{r.get('motion', 'static')} motion, "
             f"{r['window_s']:.1f} s measured on {r['nproc']} cores"
+            + (f"; codec: {r['codec_implementation']}" if r.get("codec") == "compact" else "")
         ),
         title_justify="left",
     )

@@ -135,6 +135,7 @@ def test_a_shed_run_accounts_for_every_client_and_reads_the_storm() -> None:
     from rich.console import Console
 
     from posecast.bench import run_relay_bench
+    from posecast.protocol import codec
 
     out = Console(file=io.StringIO(), width=200)
     report = run_relay_bench(24, 6, 20.0, 1.0, shed=True, console=out, warmup=0.5, ramp_rate=100.0)
@@ -146,3 +147,4 @@ def test_a_shed_run_accounts_for_every_client_and_reads_the_storm() -> None:
     assert set(report["join_errors"]) <= {"server-full"}
     assert "ramp_tick_lag_p99_ms" in report and report["join_cpu_ms_per_client"] >= 0
     assert report["ticks_per_client_s"] >= report["snapshots_per_client_s"] > 0
+    assert report["codec_implementation"] == codec.IMPLEMENTATION
