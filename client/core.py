@@ -182,6 +182,8 @@ class ClientCore:
     _by_user: dict[int, list[StreamBuffer]] = field(default_factory=dict)
     #: The room's playout time of the last frame: an older keyframe is stale.
     _floor: float = -np.inf
+    #: Each row's playout time of the frame being rendered, when some differ.
+    _t_rows: F64 = field(default_factory=lambda: np.empty(0))
 
     def __post_init__(self) -> None:
         # A window method waits for the keyframe after the bracket: one more interval.
@@ -330,13 +332,22 @@ class ClientCore:
 
     def _row_times(self, p: Playout) -> float | F64:
         """The room's playout time, or one per row when a user is shown late alone."""
+        now = p.now
         if not p.own:
-            return p.now - p.delay
-        d_rows = np.full(len(self.buffers), p.delay)
+            return now - p.delay
+        # Into the core's own array (a frame reads it and keeps nothing of it): one
+        # fill, then the late users' rows; the same values as ``now - D`` per row.
+        n = len(self.buffers)
+        t_rows = self._t_rows
+        if t_rows.shape[0] != n:
+            t_rows = self._t_rows = np.empty(n)
+        t_rows.fill(now - p.delay)
+        by_user = self._by_user
         for user, d_own in p.own.items():
-            for b in self._by_user.get(user, ()):
-                d_rows[b.row] = d_own
-        return p.now - d_rows
+            t_user = now - d_own
+            for b in by_user.get(user, ()):
+                t_rows[b.row] = t_user
+        return t_rows
 
     def shown(self) -> list[Key]:
         """The streams of a render frame, column by column (non-empty rows in order)."""
