@@ -90,6 +90,9 @@ class RoomBuffers:
         self.base: NDArray[np.intp]
         self.newest: NDArray[np.intp]
         self._whole: _WholeRoom | None = None
+        #: The compiled render's hold on these arrays (``client.render``; dropped
+        #: when they are reallocated).
+        self.renderer: object | None = None
         #: The buffer of each row in use, in row order.
         self._rows: list[StreamBuffer] = []
         self._allocate(max(1, streams))
@@ -124,6 +127,7 @@ class RoomBuffers:
         self.base = self.row_index * w
         self.newest = self.base + counts - 1
         self._whole = None
+        self.renderer = None
 
     def whole(self) -> _WholeRoom:
         """Views of the rows in use, for a render frame (kept until rows are added)."""

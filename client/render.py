@@ -19,7 +19,7 @@ import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from types import ModuleType
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -296,11 +296,14 @@ _plans: dict[tuple[tuple[str, ...], bool], _Plan] = {}
 def _plan(methods: Sequence[str], all_v: bool) -> _Plan:
     """The plan for ``methods`` when all streams have velocities (``all_v``) or not,
     kept until the interpolator registry changes."""
-    key = (tuple(methods), all_v)
     gen = registry_generation()
+    last = _last_plan
+    if last is not None and last[0] is methods and last[1] == all_v and last[2].generation == gen:
+        return last[2]  # a render loop's frames: the same methods object each time
+    key = (tuple(methods), all_v)
     plan = _plans.get(key)
     if plan is not None and plan.generation == gen:
-        return plan
+        return _remember(methods, all_v, plan)
     shown = {m: rendered_method(m, all_v) for m in methods}
     entries = {name: interp_info(name) for name in dict.fromkeys([*methods, *shown.values()])}
     pair = [e for e in entries.values() if e.kind == "pair"]
@@ -315,6 +318,17 @@ def _plan(methods: Sequence[str], all_v: bool) -> _Plan:
     kinds = tuple(COMPILED_KIND[e.rows] for e in pair if e.rows in COMPILED_KIND)
     names = tuple(e.name for e in pair)
     plan = _plans[key] = _Plan(gen, shown, pair, rest, share, direct, compiled, kinds, names)
+    return _remember(methods, all_v, plan)
+
+
+#: The last plan looked up and the ``methods`` object it was for (a tuple: immutable).
+_last_plan: tuple[Sequence[str], bool, _Plan] | None = None
+
+
+def _remember(methods: Sequence[str], all_v: bool, plan: _Plan) -> _Plan:
+    global _last_plan
+    if type(methods) is tuple:
+        _last_plan = (methods, all_v, plan)
     return plan
 
 
@@ -355,26 +369,34 @@ def _render_room_c(
     method), when every row has keyframes and every method is a compiled pair method
     (what a bot renders); None otherwise.
 
-    A frame owns two new arrays (its stalls and its poses, one block for all
-    methods); everything else is the room's or this thread's, kept between frames.
+    The room's tables are held by its compiled renderer (made once, again after the
+    room's arrays grow), so a frame passes only its own arrays: its stalls and its
+    poses (one block for all methods), the two a frame owns. Each row's bracket
+    (the room's ``brackets``) is kept between frames: its next search starts there.
     """
-    v = room.whole()
-    n = v.n
+    n = room.n
     if room.filled != n or not n:
         return None
     plan = _plan(methods, True)  # pair methods render themselves, velocities or not
     if plan.rest or not plan.compiled:
         return None
     if isinstance(t, np.ndarray):
-        t = _live_times(room, t, v.rows, True)
+        t = _live_times(room, t, room.whole().rows, True)
+    renderer: Any = room.renderer
+    if renderer is None or type(renderer) is not ck.Renderer:
+        renderer = room.renderer = _renderer(ck, room)
     stalled = np.empty(n, dtype=bool)
     poses = np.empty((len(plan.kinds), n, 7))
-    # The room's own lo, hi, s: each row's search starts from its last bracket.
-    ck.render_rows(
-        v.flat_times, v.base, v.newest, t, v.lo, v.hi, v.s, stalled, v.pose_rows, plan.kinds, poses
-    )
-    ran = {name: poses[j] for j, name in enumerate(plan.names)}
+    renderer.render(n, t, plan.kinds, poses, stalled)
+    ran = dict(zip(plan.names, poses, strict=True))  # poses[j] for each method
     return RenderFrame(ran if plan.direct else {m: ran[m] for m in methods}, stalled)
+
+
+def _renderer(ck: ModuleType, room: RoomBuffers) -> object:
+    """The compiled renderer of ``room``'s arrays (every row, in use or not)."""
+    lo, hi, s = room.brackets
+    flat_poses = room.pose_rows.reshape(-1, 7)
+    return ck.Renderer(room.times.reshape(-1), room.base, room.newest, lo, hi, s, flat_poses)
 
 
 def _render_pairs_c(

@@ -11,6 +11,8 @@
  *                 keyframes where they lie, a pose table (N, 7) (interp.kernels'
  *                 soa_rows, motor_lerp_rows, dq_slerp_rows on gathered rows)
  *   render_rows   both in one call, every method of a frame
+ *   Renderer      a room's tables held between frames: render_rows taking only
+ *                 the frame's own arrays
  *
  * The numpy kernels are the reference. The formulas, their half-angle sines and
  * the order of their sums are theirs; the elementary functions are libm's, which
@@ -474,6 +476,156 @@ done:
     return result;
 }
 
+/* ------------------------------------------------------------------ Renderer */
+
+/* A room's tables, held between frames: a frame's call then takes only its own
+ * arrays (two buffers, not nine), which is most of what a call costs when the
+ * caches are cold (a bot renders between other processes' time slices). */
+enum { R_TIMES, R_BASE, R_NEWEST, R_LO, R_HI, R_S, R_POSES, R_COUNT };
+
+typedef struct {
+    PyObject_HEAD
+    Py_buffer views[R_COUNT];
+    int held;
+} Renderer;
+
+static void renderer_release(Renderer *self) {
+    while (self->held > 0) PyBuffer_Release(&self->views[--self->held]);
+}
+
+static void renderer_dealloc(Renderer *self) {
+    renderer_release(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int renderer_init(Renderer *self, PyObject *args, PyObject *kwds) {
+    static const char *names[R_COUNT] = {"times", "base", "newest", "lo", "hi", "s", "poses"};
+    static const int writable[R_COUNT] = {0, 0, 0, 1, 1, 1, 0};
+    static const int ndims[R_COUNT] = {1, 1, 1, 1, 1, 1, 2};
+    PyObject *o[R_COUNT];
+    if (kwds != NULL && PyDict_GET_SIZE(kwds) != 0) {
+        PyErr_SetString(PyExc_TypeError, "Renderer takes no keyword arguments");
+        return -1;
+    }
+    if (!PyArg_ParseTuple(args, "OOOOOOO:Renderer", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5],
+                          &o[6]))
+        return -1;
+    renderer_release(self);
+    for (int j = 0; j < R_COUNT; j++) {
+        int is_f = j == R_TIMES || j == R_S || j == R_POSES;
+        if (get_buffer(o[j], &self->views[j], writable[j], ndims[j], is_f ? "d" : INTP,
+                       is_f ? 8 : (Py_ssize_t)sizeof(Py_ssize_t), names[j]) < 0) {
+            renderer_release(self);
+            return -1;
+        }
+        self->held++;
+    }
+    Py_ssize_t rows = self->views[R_BASE].shape[0];
+    for (int j = R_NEWEST; j <= R_S; j++) {
+        if (self->views[j].shape[0] != rows) {
+            PyErr_SetString(PyExc_ValueError, "Renderer: the rows' arrays differ in length");
+            renderer_release(self);
+            return -1;
+        }
+    }
+    if (self->views[R_POSES].shape[1] != 7 ||
+        self->views[R_POSES].shape[0] != self->views[R_TIMES].shape[0]) {
+        PyErr_SetString(PyExc_ValueError, "Renderer: poses must be (N, 7), N the times' length");
+        renderer_release(self);
+        return -1;
+    }
+    return 0;
+}
+
+/* render(n, t, kinds, out, stalled) -> bool: render_rows on the first n rows of the
+ * held tables (the same brackets and poses). */
+static PyObject *renderer_render(Renderer *self, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 5) {
+        PyErr_SetString(PyExc_TypeError, "render(n, t, kinds, out, stalled)");
+        return NULL;
+    }
+    if (self->held != R_COUNT) {
+        PyErr_SetString(PyExc_ValueError, "Renderer: not initialised");
+        return NULL;
+    }
+    Py_ssize_t n = PyLong_AsSsize_t(args[0]);
+    if (n == -1 && PyErr_Occurred()) return NULL;
+    if (n < 0 || n > self->views[R_BASE].shape[0]) {
+        PyErr_Format(PyExc_ValueError, "render: n must be in 0..%zd", self->views[R_BASE].shape[0]);
+        return NULL;
+    }
+    PyObject *kinds = args[2];
+    if (!PyTuple_Check(kinds) || PyTuple_GET_SIZE(kinds) > MAX_KINDS) {
+        PyErr_Format(PyExc_TypeError, "kinds: expected a tuple of at most %d ints", MAX_KINDS);
+        return NULL;
+    }
+    Py_ssize_t k = PyTuple_GET_SIZE(kinds);
+    pair_fn fns[MAX_KINDS];
+    for (Py_ssize_t j = 0; j < k; j++) {
+        long kind = PyLong_AsLong(PyTuple_GET_ITEM(kinds, j));
+        if (kind == -1 && PyErr_Occurred()) return NULL;
+        if ((fns[j] = kernel_of(kind)) == NULL) return NULL;
+    }
+    Held h = {.count = 0};
+    PyObject *result = NULL;
+    Py_buffer *bt = NULL, *bo, *bst;
+    const double *ts = NULL;
+    double t1 = 0.0;
+    if (PyFloat_Check(args[1]) || PyLong_Check(args[1])) {
+        t1 = PyFloat_AsDouble(args[1]);
+        if (t1 == -1.0 && PyErr_Occurred()) return NULL;
+    } else if (!(bt = hold(&h, args[1], 0, 1, "d", 8, "t"))) {
+        goto done;
+    }
+    if (!(bo = hold(&h, args[3], 1, 3, "d", 8, "out")) ||
+        !(bst = hold(&h, args[4], 1, 1, "?", 1, "stalled")))
+        goto done;
+    if ((bt && bt->shape[0] != n) || bst->shape[0] != n || bo->shape[0] != k ||
+        bo->shape[1] != n || bo->shape[2] != 7) {
+        PyErr_Format(PyExc_ValueError, "render: t and stalled must be (%zd,), out (%zd, %zd, 7)",
+                     n, k, n);
+        goto done;
+    }
+    if (bt) ts = bt->buf;
+    const Py_ssize_t *base = self->views[R_BASE].buf, *newest = self->views[R_NEWEST].buf;
+    Py_ssize_t size = self->views[R_TIMES].shape[0];
+    for (Py_ssize_t i = 0; i < n; i++) {
+        if (base[i] < 0 || newest[i] < base[i] || newest[i] >= size) {
+            PyErr_Format(PyExc_ValueError, "row %zd has no keyframes in the table (%zd..%zd)", i,
+                         base[i], newest[i]);
+            goto done;
+        }
+    }
+    Py_ssize_t *lo = self->views[R_LO].buf, *hi = self->views[R_HI].buf;
+    double *s = self->views[R_S].buf, *out = bo->buf;
+    int ends = bracket_all(self->views[R_TIMES].buf, base, newest, ts, t1, n, lo, hi, s, bst->buf);
+    for (Py_ssize_t j = 0; j < k; j++)
+        pairs_into(fns[j], self->views[R_POSES].buf, lo, hi, s, n, out + j * n * 7);
+    result = PyBool_FromLong(ends);
+done:
+    release(&h);
+    return result;
+}
+
+static PyMethodDef renderer_methods[] = {
+    {"render", (PyCFunction)(void (*)(void))renderer_render, METH_FASTCALL,
+     "render(n, t, kinds, out, stalled) -> bool: render_rows on the first n rows of the "
+     "tables given at construction."},
+    {NULL, NULL, 0, NULL},
+};
+
+static PyTypeObject RendererType = {
+    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "posecast.interp._rowkernels.Renderer",
+    .tp_basicsize = sizeof(Renderer),
+    .tp_dealloc = (destructor)renderer_dealloc,
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "Renderer(times, base, newest, lo, hi, s, poses): a room's tables held for "
+              "render(n, t, kinds, out, stalled), render_rows without passing them each frame.",
+    .tp_methods = renderer_methods,
+    .tp_init = (initproc)renderer_init,
+    .tp_new = PyType_GenericNew,
+};
+
 /* ------------------------------------------------------------------ module */
 
 static PyMethodDef methods[] = {
@@ -496,8 +648,13 @@ static struct PyModuleDef module = {
 };
 
 PyMODINIT_FUNC PyInit__rowkernels(void) {
+    if (PyType_Ready(&RendererType) < 0) return NULL;
     PyObject *m = PyModule_Create(&module);
     if (m == NULL) return NULL;
+    if (PyModule_AddObjectRef(m, "Renderer", (PyObject *)&RendererType) < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
     if (PyModule_AddStringConstant(m, "SOURCE_HASH", SOURCE_HASH) < 0 ||
         PyModule_AddIntConstant(m, "SOA", SOA) < 0 ||
         PyModule_AddIntConstant(m, "MOTOR_LERP", MOTOR_LERP) < 0 ||

@@ -124,3 +124,50 @@ def test_a_room_with_an_empty_row() -> None:
         numpy_frame, compiled = both(room, t, list(PAIRS))
         assert compiled.poses["soa"].shape == (2, 7)
         assert_same(numpy_frame, compiled, f"at {t}")
+
+
+def test_a_room_that_grows_and_shrinks_between_frames() -> None:
+    """The compiled renderer holds the room's arrays: rows added past their size
+    (the arrays reallocated) and rows released give the numpy path's frames."""
+    if accel.compiled() is None:
+        pytest.skip(f"the render kernels are not built here: {accel.IMPLEMENTATION}")
+    rng = np.random.default_rng(10)
+    room = RoomBuffers(capacity=8, streams=2)
+    bufs: list[StreamBuffer] = []
+    for step in range(12):
+        if step < 7 or step % 2:  # 2 rows of room at first: they double, twice
+            buf = room.stream()
+            for k in range(6):
+                q = rng.normal(size=4)
+                pose = np.concatenate([rng.normal(size=3), q / np.linalg.norm(q)])
+                buf.push(0.05 * k + 0.01 * step, pose.astype(np.float32))
+            bufs.append(buf)
+        else:
+            room.release(bufs.pop(int(rng.integers(len(bufs)))))
+        for t in (0.02, 0.11, 0.3):
+            numpy_frame, compiled = both(room, t, list(PAIRS))
+            assert compiled.poses["soa"].shape == (len(bufs), 7)
+            assert_same(numpy_frame, compiled, f"step {step} at {t}")
+
+
+def test_the_renderer_refuses_what_does_not_fit() -> None:
+    ck = accel.compiled()
+    if ck is None:
+        pytest.skip(f"the render kernels are not built here: {accel.IMPLEMENTATION}")
+    room = RoomBuffers(capacity=4, streams=2)
+    room.stream().push(0.0, np.array([0, 0, 0, 1, 0, 0, 0], np.float32))
+    lo, hi, s = room.brackets
+    r = ck.Renderer(
+        room.times.reshape(-1), room.base, room.newest, lo, hi, s, room.pose_rows.reshape(-1, 7)
+    )
+    out, stalled = np.empty((1, 1, 7)), np.empty(1, dtype=bool)
+    assert r.render(1, 0.0, (0,), out, stalled) in (True, False)
+    np.testing.assert_array_equal(out[0, 0], [0, 0, 0, 1, 0, 0, 0])
+    with pytest.raises(ValueError, match="n must be in"):
+        r.render(3, 0.0, (0,), out, stalled)
+    with pytest.raises(ValueError, match="no keyframes"):  # row 1 is empty
+        r.render(2, 0.0, (0,), np.empty((1, 2, 7)), np.empty(2, dtype=bool))
+    with pytest.raises(ValueError, match="out"):
+        r.render(1, 0.0, (0, 1), out, stalled)
+    with pytest.raises(TypeError, match="poses"):
+        ck.Renderer(room.times.reshape(-1), room.base, room.newest, lo, hi, s, room.pose_rows)
