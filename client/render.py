@@ -388,7 +388,7 @@ def _render_room_c(
     stalled = np.empty(n, dtype=bool)
     poses = np.empty((len(plan.kinds), n, 7))
     renderer.render(n, t, plan.kinds, poses, stalled)
-    ran = dict(zip(plan.names, poses, strict=True))  # poses[j] for each method
+    ran = {name: poses[j] for j, name in enumerate(plan.names)}
     return RenderFrame(ran if plan.direct else {m: ran[m] for m in methods}, stalled)
 
 
