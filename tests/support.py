@@ -4,16 +4,24 @@ from __future__ import annotations
 
 import asyncio
 import inspect
+import json
 import os
+import selectors
 import shutil
+import signal
+import subprocess
+import sys
+import tempfile
 import time
 from collections.abc import Awaitable, Callable
 from contextlib import AbstractAsyncContextManager
+from pathlib import Path
 
 from posecast.server.app import RelayServer, ServerConfig, serving
 
 __all__ = [
     "CHROMIUM_ARGS",
+    "CliForker",
     "Pacer",
     "find_chromium",
     "import_root",
@@ -109,3 +117,131 @@ def relayed(server: RelayServer, room: str) -> int:
     """Poses the relay has sent out in ``room`` so far (0 before the room exists)."""
     r = server.rooms.get(room)
     return 0 if r is None else r.statistics().poses_out
+
+
+# -- the CLI in child processes, without an interpreter start each -------------------
+
+#: The forker's own process: imports the CLI once, then forks a child per request that
+#: runs ``posecast ARGS`` as the console script does (``posecast.cli.main()``) and exits
+#: the way the interpreter would (SystemExit's code; a traceback and 1 on an exception).
+_FORKER = r"""
+import atexit, json, os, sys, traceback
+import posecast.cli
+
+def child(req):
+    code = 1
+    try:
+        os.chdir(req["cwd"])
+        os.environ.clear()
+        os.environ.update(req["env"])
+        for fd, path, flags in ((0, os.devnull, os.O_RDONLY),
+                                (1, req["stdout"], os.O_WRONLY | os.O_CREAT | os.O_TRUNC),
+                                (2, req["stderr"], os.O_WRONLY | os.O_CREAT | os.O_TRUNC)):
+            os.dup2(os.open(path, flags), fd)
+        sys.argv = [req["argv0"], *req["args"]]
+        try:
+            posecast.cli.main()
+            code = 0
+        except SystemExit as exc:
+            if exc.code is None or isinstance(exc.code, int):
+                code = exc.code or 0
+            else:
+                print(exc.code, file=sys.stderr)
+        except BaseException:
+            traceback.print_exc()
+        atexit._run_exitfuncs()
+        sys.stdout.flush()
+        sys.stderr.flush()
+    finally:
+        os._exit(code)
+
+for line in sys.stdin:
+    req = json.loads(line)
+    pid = os.fork()
+    if pid == 0:
+        child(req)
+    print(json.dumps({"pid": pid}), flush=True)
+    _, status = os.waitpid(pid, 0)
+    print(json.dumps({"code": os.waitstatus_to_exitcode(status)}), flush=True)
+"""
+
+
+class CliForker:
+    """Runs ``posecast ARGS`` in a fresh child process each, forked from one process that
+    imported the CLI once: each run is a real process (its own exit code, stdout and
+    stderr, nothing shared with the next run) without paying an interpreter start and
+    the CLI's imports per run. ``env`` is the forker's environment (the children get
+    the one each :meth:`run` gives). Close it with :meth:`close` (or ``with``)."""
+
+    def __init__(self, env: dict[str, str]) -> None:
+        self.argv0 = str(Path(sys.executable).with_name("posecast"))
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", _FORKER],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            env=env,
+        )
+        self._buf = b""
+
+    def __enter__(self) -> CliForker:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _line(self, limit: float) -> dict[str, int]:
+        """The forker's next reply; ``limit`` is a hang guard (TimeoutError)."""
+        assert self.proc.stdout is not None
+        fd = self.proc.stdout.fileno()
+        deadline = time.monotonic() + limit
+        with selectors.DefaultSelector() as sel:
+            sel.register(fd, selectors.EVENT_READ)
+            while b"\n" not in self._buf:
+                left = deadline - time.monotonic()
+                if left <= 0 or not sel.select(timeout=left):
+                    raise TimeoutError(f"no answer within {limit} s (a hang guard)")
+                chunk = os.read(fd, 4096)
+                if not chunk:
+                    raise RuntimeError(f"the CLI forker ended (exit code {self.proc.wait()})")
+                self._buf += chunk
+        line, self._buf = self._buf.split(b"\n", 1)
+        reply: dict[str, int] = json.loads(line)
+        return reply
+
+    def run(
+        self, args: list[str], env: dict[str, str], cwd: Path | None = None, limit: float = 120.0
+    ) -> tuple[int, str, str]:
+        """(exit code, stdout, stderr) of ``posecast ARGS``; ``limit`` is a hang guard: the
+        child is killed and TimeoutError raised."""
+        assert self.proc.stdin is not None
+        with tempfile.TemporaryDirectory(prefix="posecast-cli-") as folder:
+            out, err = Path(folder, "stdout"), Path(folder, "stderr")
+            request = {
+                "args": args,
+                "env": env,
+                "cwd": str(cwd or Path.cwd()),
+                "argv0": self.argv0,
+                "stdout": str(out),
+                "stderr": str(err),
+            }
+            self.proc.stdin.write(json.dumps(request).encode() + b"\n")
+            self.proc.stdin.flush()
+            pid = self._line(30.0)["pid"]
+            try:
+                code = self._line(limit)["code"]
+            except TimeoutError:
+                os.kill(pid, signal.SIGKILL)
+                self._line(30.0)
+                raise
+            return code, out.read_text(), err.read_text()
+
+    def close(self) -> None:
+        assert self.proc.stdin is not None
+        self.proc.stdin.close()
+        try:
+            self.proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        if self.proc.stdout is not None:
+            self.proc.stdout.close()

@@ -1,8 +1,11 @@
 """Every user mistake ends in one line on stderr and exit code 2 (usage) or 1 (run time).
 
-Each case runs the real ``posecast`` executable in a subprocess, so what is
-checked is what a user sees: the exit code, one or two lines on stderr (the
-last one ``error: ...`` naming the problem), and never a traceback.
+Each case runs ``posecast`` in a process of its own, so what is checked is what
+a user sees: the exit code, one or two lines on stderr (the last one ``error:
+...`` naming the problem), and never a traceback. The processes are forked from
+one that imported the CLI once (``support.CliForker``: an interpreter start and
+the CLI's imports were most of each case's CPU); the relay the bots' cases talk
+to is the real executable.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+from support import CliForker
 
 from posecast.client.connection import JoinRefused
 from posecast.protocol import PosecastError, ProtocolViolation
@@ -50,18 +54,23 @@ def _env(**extra: str) -> dict[str, str]:
     return env
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _forker() -> Iterator[None]:
+    """One process that imported the CLI, forking a child per case (support.CliForker)."""
+    global _FORKER
+    with CliForker(_env()) as forker:
+        _FORKER = forker
+        yield
+    _FORKER = None
+
+
+_FORKER: CliForker | None = None
+
+
 def posecast(*args: str | Path, cwd: Path | None = None, **env: str) -> Run:
-    """Run ``posecast ARGS``; the timeout is a hang guard, not a timing check."""
-    res = subprocess.run(
-        [*_COMMAND, *map(str, args)],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        env=_env(**env),
-        timeout=120,
-        check=False,
-    )
-    return Run(res.returncode, res.stdout, res.stderr)
+    """Run ``posecast ARGS`` in a child process of its own; the limit is a hang guard."""
+    assert _FORKER is not None
+    return Run(*_FORKER.run([*map(str, args)], _env(**env), cwd, limit=120))
 
 
 def assert_one_line(res: Run, code: int, *words: str) -> str:
