@@ -32,3 +32,14 @@ def test_main_prints_every_path(capsys: pytest.CaptureFixture[str]) -> None:
     out = capsys.readouterr().out
     assert "raw" in out and "compact pure" in out
     assert all(phase in out for phase in PHASES)
+
+
+def test_interleaved_times_the_relay_between_its_clients(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """``--interleaved`` times the first core (no replay) and says so."""
+    traces = [load_trace(p) for p in find_traces("traces:sample")]
+    got = measure_phases("raw", rooms=1, seconds=0.5, traces=traces, interleaved=True)
+    assert all(math.isfinite(v) and v > 0 for v in got.values())
+    main(["--rooms", "1", "--seconds", "0.5", "--rounds", "1", "--interleaved"])
+    assert "interleaved with its clients" in capsys.readouterr().out
