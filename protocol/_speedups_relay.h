@@ -597,6 +597,9 @@ static int stored_codes(PyObject *s, long long since, PyObject *volume, PyObject
         fresh = last != NULL && codes != Py_None && newest == version;
     }
     if (PyErr_Occurred()) goto fail;
+    /* Where the search for the baseline starts: history[-1] is this version (newer
+     * than since) once the stream is fresh or remembered here. */
+    Py_ssize_t start = size - 2;
     if (fresh) {
         *row = codes;
         codes = NULL;
@@ -611,6 +614,7 @@ static int stored_codes(PyObject *s, long long since, PyObject *volume, PyObject
         codes = NULL;
         size = PySequence_Size(history);
         if (size < 0) goto fail;
+        start = size - 2;
     } else {
         /* codes to compute, or this version to remember: the stream's own method */
         *row = PyObject_CallMethodOneArg(s, S_CODED, volume);
@@ -619,11 +623,12 @@ static int stored_codes(PyObject *s, long long since, PyObject *volume, PyObject
         history = PyObject_GetAttr(s, S_HISTORY);
         size = history ? PySequence_Size(history) : -1;
         if (size < 0) goto fail;
+        start = size - 1;
     }
     Py_XDECREF(codes);
     codes = NULL;
     if (since >= 0)
-        for (Py_ssize_t i = size - 1; i >= 0 && *base == NULL; i--) {
+        for (Py_ssize_t i = start; i >= 0 && *base == NULL; i--) {
             long long at;
             PyObject *c = history_item(history, i, &at);
             if (c == NULL) goto fail;
@@ -637,6 +642,185 @@ fail:
     Py_XDECREF(history);
     Py_CLEAR(*row);
     return -1;
+}
+
+/* A stream's CodeHistory (protocol/codec_store.py): a bytearray of int64 count, int64
+ * capacity, then capacity entries of 120 bytes, oldest first. */
+typedef struct {
+    int64_t version;
+    int64_t width;
+    int64_t codes[13];
+} RingEntry;
+
+/* The entries of a history if it is a CodeHistory (NULL if it is not one). */
+static RingEntry *ring_of(PyObject *history, int64_t *count, int64_t *capacity) {
+    if (!PyByteArray_Check(history)) return NULL;
+    Py_ssize_t size = PyByteArray_GET_SIZE(history);
+    char *buf = PyByteArray_AS_STRING(history);
+    if (size < 16) return NULL;
+    memcpy(count, buf, 8);
+    memcpy(capacity, buf + 8, 8);
+    if (*capacity < 1 || *count < 0 || *count > *capacity ||
+        size != 16 + *capacity * (Py_ssize_t)sizeof(RingEntry))
+        return NULL;
+    return (RingEntry *)(buf + 16);
+}
+
+/* The codes of a list of 7 or 13 int64 into e; -1 if it is not one. */
+static int ring_codes(PyObject *row, RingEntry *e) {
+    if (!PyList_Check(row)) return -1;
+    Py_ssize_t width = PyList_GET_SIZE(row);
+    if (width != 7 && width != 13) return -1;
+    memset(e->codes, 0, sizeof(e->codes));
+    for (Py_ssize_t j = 0; j < width; j++) {
+        int overflow;
+        long long v = PyLong_AsLongLongAndOverflow(PyList_GET_ITEM(row, j), &overflow);
+        if (overflow || (v == -1 && PyErr_Occurred())) {
+            PyErr_Clear();
+            return -1;
+        }
+        e->codes[j] = v;
+    }
+    e->width = width;
+    return 0;
+}
+
+/* codes (width >= want, idx 0..3, each within int32 as entry_fill wants) into dst;
+ * -1 if not. */
+static int ring_take(const RingEntry *e, int want, int64_t *dst) {
+    if (e->width < want || e->codes[0] < 0 || e->codes[0] > 3) return -1;
+    for (int j = 0; j < want; j++) {
+        if (e->codes[j] < INT32_MIN || e->codes[j] > INT32_MAX) return -1;
+        dst[j] = e->codes[j];
+    }
+    return 0;
+}
+
+/* stored_codes and entry_fill for a stream whose history is a CodeHistory: the entry
+ * read from its bytes, this version remembered there as coded() would. 1 an entry, 0
+ * not newer than since, -1 an error, -2 the pure path decides. */
+static int stored_ring_entry(PyObject *s, PyObject *sid, long long version, PyObject *codes,
+                             PyObject *history, long long since, PyObject *volume, int width,
+                             double base_time, Entry *out) {
+    int64_t n, capacity;
+    RingEntry *ring = ring_of(history, &n, &capacity), row;
+    if (ring == NULL) return -2;
+    int64_t start = n - 2;
+    if (codes != Py_None && n > 0 && ring[n - 1].version == version) {
+        row = ring[n - 1];
+    } else if (codes != Py_None && PyList_Check(codes)) {
+        if (ring_codes(codes, &row) < 0) return -2;
+        row.version = version;
+        /* remember this version (CodeHistory.append) */
+        if (n == capacity) {
+            memmove(ring, ring + 1, (size_t)(n - 1) * sizeof(RingEntry));
+            n--;
+        }
+        ring[n++] = row;
+        memcpy(PyByteArray_AS_STRING(history), &n, 8);
+        start = n - 2;
+    } else {
+        PyObject *got = PyObject_CallMethodOneArg(s, S_CODED, volume);
+        if (got == NULL) return -1;
+        int bad = ring_codes(got, &row);
+        Py_DECREF(got);
+        if (bad < 0) return -2;
+        /* coded() may have changed the history: read it again */
+        PyObject *again = PyObject_GetAttr(s, S_HISTORY);
+        if (again == NULL) return -1;
+        ring = ring_of(again, &n, &capacity);
+        Py_DECREF(again); /* the stream still holds it */
+        if (ring == NULL) return -2;
+        start = n - 1;
+    }
+    out->key = 1;
+    if (since >= 0)
+        for (int64_t i = start; i >= 0; i--)
+            if (ring[i].version <= since) {
+                if (ring_take(&ring[i], width, out->base) < 0) return -2;
+                out->key = 0;
+                break;
+            }
+    if (ring_take(&row, width, out->row) < 0) return -2;
+    PyObject *user = PyObject_GetAttr(s, S_USER);
+    if (user == NULL) return -1;
+    PyObject *capture = PyObject_GetAttr(s, S_CAPTURE);
+    if (capture == NULL) {
+        Py_DECREF(user);
+        return -1;
+    }
+    out->user = PyLong_AsLongLong(user);
+    out->stream = PyLong_AsLongLong(sid);
+    double t = PyFloat_AsDouble(capture);
+    Py_DECREF(user);
+    Py_DECREF(capture);
+    if (PyErr_Occurred()) {
+        PyErr_Clear();
+        return -2;
+    }
+    if (out->user < 0 || out->user > ID_MAX || out->stream < 0 || out->stream > ID_MAX) return -2;
+    if (!(t == t && fabs(t) < 1e12)) return -2;
+    double o = nearbyint((base_time - t) * 1000.0);
+    if (!(fabs(o) < (double)TIME_MS_LIMIT)) return -2;
+    out->off = (int64_t)o;
+    return 1;
+}
+
+/* One stream of the store into es[*n] (codec_relay.encode_stored's gather): 0 done
+ * (an entry or none), -1 an error, and *pure set where the pure path must decide. */
+static int stored_one(PyObject *sid, PyObject *s, long long since, PyObject *volume,
+                      int velocity, double base, Entry *e, Py_ssize_t *n, int *pure) {
+    PyObject *v = PyObject_GetAttr(s, S_VERSION);
+    if (v == NULL) return -1;
+    long long version = PyLong_AsLongLong(v);
+    Py_DECREF(v);
+    if (version == -1 && PyErr_Occurred()) return -1;
+    if (version <= since) return 0;
+    PyObject *codes = PyObject_GetAttr(s, S_CODES);
+    if (codes == NULL) return -1;
+    PyObject *history = PyObject_GetAttr(s, S_HISTORY);
+    if (history == NULL) {
+        Py_DECREF(codes);
+        return -1;
+    }
+    int got = -2;
+    if (!*pure)
+        got = stored_ring_entry(s, sid, version, codes, history, since, volume,
+                                velocity ? 13 : 7, base, e);
+    int ring = ring_of(history, &(int64_t){0}, &(int64_t){0}) != NULL;
+    Py_DECREF(codes);
+    Py_DECREF(history);
+    if (got == -1) return -1;
+    if (got == 1) {
+        (*n)++;
+        return 0;
+    }
+    if (ring) {
+        /* the pure path decides; remember this version as coded() would */
+        *pure = 1;
+        PyObject *row = PyObject_CallMethodOneArg(s, S_CODED, volume);
+        if (row == NULL) return -1;
+        Py_DECREF(row);
+        return 0;
+    }
+    /* a history of (version, codes) pairs */
+    PyObject *row, *basecodes;
+    got = stored_codes(s, since, volume, &row, &basecodes);
+    if (got <= 0) return got;
+    PyObject *user = PyObject_GetAttr(s, S_USER);
+    PyObject *capture = user ? PyObject_GetAttr(s, S_CAPTURE) : NULL;
+    if (capture != NULL && !*pure &&
+        entry_fill(user, sid, capture, row, basecodes, velocity ? 13 : 7, base, 1, 1, e) < 0) {
+        PyErr_Clear();
+        *pure = 1; /* gather on, then let the pure path decide */
+    }
+    Py_XDECREF(user);
+    Py_XDECREF(capture);
+    Py_DECREF(row);
+    Py_DECREF(basecodes);
+    if (capture == NULL) return -1;
+    (*n)++;
+    return 0;
 }
 
 static PyObject *py_encode_stored(PyObject *self, PyObject *args) {
@@ -657,25 +841,10 @@ static PyObject *py_encode_stored(PyObject *self, PyObject *args) {
     if (items == NULL) goto done;
     int pure = 0;
     for (Py_ssize_t i = 0; i < PyList_GET_SIZE(items) && n < cap; i++) {
-        PyObject *item = PyList_GET_ITEM(items, i), *row, *basecodes;
-        PyObject *sid = PyTuple_GET_ITEM(item, 0), *s = PyTuple_GET_ITEM(item, 1);
-        int got = stored_codes(s, since, volume, &row, &basecodes);
-        if (got < 0) goto done;
-        if (got == 0) continue;
-        PyObject *user = PyObject_GetAttr(s, S_USER);
-        PyObject *capture = user ? PyObject_GetAttr(s, S_CAPTURE) : NULL;
-        if (capture != NULL && !pure &&
-            entry_fill(user, sid, capture, row, basecodes, velocity ? 13 : 7, base, 1, 1,
-                       &es[n]) < 0) {
-            PyErr_Clear();
-            pure = 1; /* gather on, then let the pure path decide */
-        }
-        Py_XDECREF(user);
-        Py_XDECREF(capture);
-        Py_DECREF(row);
-        Py_DECREF(basecodes);
-        if (capture == NULL) goto done;
-        n++;
+        PyObject *item = PyList_GET_ITEM(items, i);
+        if (stored_one(PyTuple_GET_ITEM(item, 0), PyTuple_GET_ITEM(item, 1), since, volume,
+                       velocity, base, &es[n], &n, &pure) < 0)
+            goto done;
     }
     if (pure)
         result = Py_NewRef(Py_None);

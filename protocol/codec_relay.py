@@ -92,6 +92,7 @@ from posecast.protocol.codec_quant import (
     remote_error,
 )
 from posecast.protocol.codec_small import predict_row
+from posecast.protocol.codec_store import CodeHistory, baseline_of
 from posecast.protocol.errors import ErrorCode
 
 __all__ = [
@@ -504,14 +505,18 @@ class StoredStream(Protocol):
     version: int
     #: Codes of that pose, or None until :meth:`coded` computes them.
     codes: Row | None
-    #: (version, codes) of the versions coded so far, oldest first.
-    history: deque[tuple[int, Row]]
+
+    @property
+    def history(self) -> deque[tuple[int, Row]] | CodeHistory:
+        """(version, codes) of the versions coded so far, oldest first: a deque, or a
+        ``codec_store.CodeHistory`` (the accelerator reads and writes its bytes)."""
+        ...
 
     def coded(self, volume: Volume) -> Row:
         """The newest version's codes (computed once), remembered in ``history``.
 
         With ``codes`` set (a list) this must be ``history.append((version, codes))``
-        unless ``history[-1]`` is that version already, then ``codes``: the
+        unless the newest in ``history`` is that version already, then ``codes``: the
         accelerator does just that itself rather than call it."""
         ...
 
@@ -545,13 +550,10 @@ def encode_stored(
         if s.version <= since:
             continue
         row = s.coded(volume)
-        base = None
-        if since >= 0:
-            for version, codes in reversed(s.history):
-                if version <= since:
-                    base = codes[:width]
-                    break
-        entries.append((s.user, sid, s.capture, row[:width], base))
+        base = baseline_of(s.history, since) if since >= 0 else None
+        entries.append(
+            (s.user, sid, s.capture, row[:width], None if base is None else base[:width])
+        )
     if not entries:
         return None
     return encode_group(tick, base_time, entries, volume, velocity, trusted=True)

@@ -34,7 +34,6 @@ import math
 import struct
 import zlib
 from bisect import bisect_left
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -52,6 +51,7 @@ from posecast.protocol import (
 )
 from posecast.protocol.codec import DEFAULT_VOLUME, Volume, quantise
 from posecast.protocol.codec_relay import GroupSnapshot, encode_stored
+from posecast.protocol.codec_store import CodeHistory
 from posecast.server.actions import Action, PollRecording, Record, RecordPose
 from posecast.server.member import IdAllocator, Member, Outbox
 from posecast.server.shared import RoomObject
@@ -135,7 +135,7 @@ class RoomStatistics:
     tick_lag_mean_ms: float
 
 
-@dataclass
+@dataclass(slots=True)
 class _Stream:
     user: int
     capture: float
@@ -147,10 +147,9 @@ class _Stream:
     #: Codec codes (13: pose and velocity) of this version: from a compact update,
     #: else quantised when a compact subscriber first needs them.
     codes: list[int] | None = None
-    #: (version, codes) of the versions coded so far, oldest first (baselines).
-    history: deque[tuple[int, list[int]]] = field(
-        default_factory=lambda: deque(maxlen=CODES_HISTORY)
-    )
+    #: (version, codes) of the versions coded so far, oldest first (baselines), packed
+    #: for the accelerator (``protocol.codec_store``).
+    history: CodeHistory = field(default_factory=lambda: CodeHistory(CODES_HISTORY))
 
     def coded(self, volume: Volume) -> list[int]:
         """This version's codes (computed once, remembered as a baseline)."""
@@ -159,16 +158,13 @@ class _Stream:
             pose = np.frombuffer(self.pose, "<f4").reshape(1, 7)
             vel = np.frombuffer(self.velocity, "<f2").reshape(1, 6)
             codes = self.codes = quantise(pose, volume, vel)[0].tolist()
-        if not self.history or self.history[-1][0] != self.version:
+        if self.history.last_version() != self.version:
             self.history.append((self.version, codes))
         return codes
 
     def baseline(self, since: int) -> list[int] | None:
         """The codes a subscriber whose last snapshot covered version ``since`` holds."""
-        for version, codes in reversed(self.history):
-            if version <= since:
-                return codes
-        return None
+        return self.history.baseline(since)
 
 
 @dataclass
@@ -441,6 +437,7 @@ class Room:
         """Send a snapshot to every due member; returns how many were offered."""
         cache: dict[tuple[int, bool], tuple[bytes, int]] = {}
         groups: dict[tuple[int, bool], GroupSnapshot | None] = {}
+        slots: dict[float, int] = {}  # the key slot of each rate at this tick
         views: dict[Any, Any] = {}  # per-peer frames of this tick (_view_frame)
         offered = 0
         self._due = None  # due members move on to their next grid point
@@ -473,7 +470,10 @@ class Room:
             if member.view is not None:
                 data, n = self._view_frame(member, member.view, now, views)
             elif member.compact:
-                data, n = self._compact_frame(member, now, _key_slot(now, member.rate), groups)
+                slot = slots.get(member.rate)
+                if slot is None:
+                    slot = slots[member.rate] = _key_slot(now, member.rate)
+                data, n = self._compact_frame(member, now, slot, groups)
             else:
                 key = (member.delivered_version, member.velocities)
                 if key not in cache:

@@ -35,6 +35,7 @@ from posecast.protocol.codec_quant import (
 )
 from posecast.protocol.codec_relay import RelayEntry, encode_group, encode_stored
 from posecast.protocol.codec_small import SMALL_FRAME
+from posecast.protocol.codec_store import CodeHistory
 from posecast.protocol.errors import ProtocolViolation
 from posecast.protocol.poses import PoseUpdate
 
@@ -201,7 +202,9 @@ class _Stored:
     version: int
     pose: list[float]
     codes: list[int] | None
-    history: deque[tuple[int, list[int]]] = field(default_factory=lambda: deque(maxlen=4))
+    history: deque[tuple[int, list[int]]] | CodeHistory = field(
+        default_factory=lambda: deque(maxlen=4)
+    )
     computed: int = 0
 
     def coded(self, volume: codec.Volume) -> list[int]:
@@ -209,14 +212,19 @@ class _Stored:
         if codes is None:
             self.computed += 1
             codes = self.codes = quantise(np.array([self.pose]), volume)[0].tolist() + [0] * 6
-        if not self.history or self.history[-1][0] != self.version:
+        h = self.history
+        newest = h.last_version() if isinstance(h, CodeHistory) else (h[-1][0] if h else None)
+        if newest != self.version:
             self.history.append((self.version, codes))
         return codes
 
 
-def _store(seed: int, users: int) -> tuple[dict[int, _Stored], list[tuple[int, int, list[float]]]]:
+def _store(
+    seed: int, users: int, packed: bool = False
+) -> tuple[dict[int, _Stored], list[tuple[int, int, list[float]]]]:
     """A store of 1-3 streams per user, then the updates that follow: (stream, version,
-    pose). Some streams come with codes (a compact publisher), some without (raw)."""
+    pose). Some streams come with codes (a compact publisher), some without (raw).
+    ``packed``: their histories are ``CodeHistory`` (as a relay's room keeps them)."""
     rng = np.random.default_rng(seed)
     store: dict[int, _Stored] = {}
     later = []
@@ -232,6 +240,8 @@ def _store(seed: int, users: int) -> tuple[dict[int, _Stored], list[tuple[int, i
             codes = quantise(np.array([pose]), DEFAULT_VOLUME).tolist()[0] + [0] * 6
             store[sid] = _Stored(user, 50.0 - float(rng.uniform(0, 0.3)), version, pose,
                                  codes if compact else None)  # fmt: skip
+            if packed:
+                store[sid].history = CodeHistory(4)
     for _ in range(3 * len(store)):
         sid = int(rng.choice(list(store)))
         version += 1
@@ -239,10 +249,12 @@ def _store(seed: int, users: int) -> tuple[dict[int, _Stored], list[tuple[int, i
     return store, later
 
 
-def _stored_frames(seed: int, users: int, sinces: list[int], velocity: bool) -> Any:
+def _stored_frames(
+    seed: int, users: int, sinces: list[int], velocity: bool, packed: bool = False
+) -> Any:
     """Frames of the store's group after each step of updates, from each ``since``,
     and what the store holds after: the history of every stream, codes computed."""
-    store, later = _store(seed, users)
+    store, later = _store(seed, users, packed)
     out: list[Any] = []
     step = max(1, len(later) // 3)
     for i in range(0, len(later) + 1, step):
@@ -273,15 +285,37 @@ def _stored_frames(seed: int, users: int, sinces: list[int], velocity: bool) -> 
     users=st.integers(1, 12),
     sinces=st.lists(st.integers(-1, 60), min_size=1, max_size=4),
     velocity=st.booleans(),
+    packed=st.booleans(),
 )
 def test_stored_group_encode_gives_the_same_bytes_and_store(
-    seed: int, users: int, sinces: list[int], velocity: bool
+    seed: int, users: int, sinces: list[int], velocity: bool, packed: bool
 ) -> None:
     """A group gathered from a relay's store (codes from updates or computed, deltas
-    against the history as of ``since``, keys where there is none): the same frames
-    for every subscriber, and the same history and codes left in the store."""
-    compiled, pure = both(lambda: _stored_frames(seed, users, sinces, velocity))
+    against the history as of ``since``, keys where there is none; histories as
+    (version, codes) pairs or packed, ``CodeHistory``): the same frames for every
+    subscriber, and the same history and codes left in the store."""
+    compiled, pure = both(lambda: _stored_frames(seed, users, sinces, velocity, packed))
     assert compiled == pure
+
+
+def test_code_history_keeps_the_newest_versions() -> None:
+    """A CodeHistory is a deque of (version, codes) of its capacity, packed: the oldest
+    goes when it is full; a baseline is the newest version at or before ``since``."""
+    packed, pairs = CodeHistory(3), deque[tuple[int, list[int]]](maxlen=3)
+    assert packed.last_version() is None and packed.baseline(10) is None
+    for version in (2, 5, 6, 9):
+        row = [version % 4, -4095, 4095, 7, 1 << 40, 0, 3] + ([] if version % 2 else [1] * 6)
+        packed.append((version, row))
+        pairs.append((version, row))
+        assert packed.items() == list(pairs) and packed.last_version() == version
+    assert [packed.baseline(s) for s in (4, 5, 8, 100)] == [
+        None,
+        pairs[0][1],
+        pairs[1][1],
+        pairs[2][1],
+    ]
+    with pytest.raises(ValueError, match="rows of 7 or 13"):
+        packed.append((10, [1, 2, 3]))
 
 
 def _updates(seed: int, frames: int, velocity: bool) -> list[bytes]:
