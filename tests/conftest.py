@@ -9,10 +9,12 @@ them, with the reason, only when an install left them out.
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 from hypothesis import settings
+from support import CliForker
 
 from posecast.scenarios.traces import SAMPLE_DIR, default_trace_root, full_traces_available
 
@@ -21,6 +23,15 @@ from posecast.scenarios.traces import SAMPLE_DIR, default_trace_root, full_trace
 settings.register_profile("ci", derandomize=True, database=None)
 if os.environ.get("CI"):
     settings.load_profile("ci")
+
+
+@pytest.fixture(scope="session")
+def cli() -> Iterator[CliForker]:
+    """``posecast ARGS`` in a child process each, forked from one process per worker that
+    imported the CLI once (:class:`support.CliForker`): for the cases that check what a
+    command prints and exits with, without an interpreter start each."""
+    with CliForker({k: v for k, v in os.environ.items() if not k.startswith("POSECAST_")}) as f:
+        yield f
 
 
 @pytest.fixture(scope="session")

@@ -15,12 +15,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
-import subprocess
-import sys
 from dataclasses import replace
 
 import pytest
-from support import poll_until, relayed, running_server
+from support import CliForker, poll_until, relayed, running_server
 
 from posecast.client.bot import Bot, BotConfig, BotReport, run_bot
 from posecast.client.connection import relay_urls
@@ -212,20 +210,14 @@ def test_bad_url_lists_are_refused_with_the_reason(text: str, says: str) -> None
 
 
 @pytest.mark.parametrize(("text", "says"), [BAD_LISTS[0], BAD_LISTS[3], BAD_LISTS[6]])
-def test_bad_url_lists_are_one_line_cli_errors(text: str, says: str) -> None:
+def test_bad_url_lists_are_one_line_cli_errors(text: str, says: str, cli: CliForker) -> None:
     """`posecast bots --url LIST` refuses a bad list before connecting: one line on
     stderr, exit code 2, no traceback."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("POSECAST_")}
-    res = subprocess.run(
-        [sys.executable, "-m", "posecast.cli", "bots", "--url", text, "--duration", "1"],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=120,  # a hang guard
-    )
-    lines = [line for line in res.stderr.splitlines() if line.strip()]
-    assert res.returncode == 2, res.stderr
-    assert len(lines) == 1 and lines[0].startswith("error: --url: "), res.stderr
+    code, _, stderr = cli.run(["bots", "--url", text, "--duration", "1"], env, limit=120)
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    assert code == 2, stderr
+    assert len(lines) == 1 and lines[0].startswith("error: --url: "), stderr
     assert says in lines[0]
 
 

@@ -10,12 +10,13 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 import sys
-from pathlib import Path
 from typing import Any
 
 import pytest
+from support import CliForker
 
 from posecast.bench.hostile import HostileConfig
 from posecast.bench.hostile_attacks import ATTACKS_14, ATTACKS_29
@@ -171,11 +172,11 @@ def test_never_reader_and_room_spam(report: dict[str, object]) -> None:
         (["--liar-lags", "0"], "attack counts, rates and lags must be positive"),
     ],
 )
-def test_bad_settings_one_line(args: list[str], message: str, tmp_path: Path) -> None:
+def test_bad_settings_one_line(args: list[str], message: str, cli: CliForker) -> None:
     """A bad setting is one line on stderr and exit code 2, before anything starts."""
-    res = _posecast("bench", "hostile", *args, timeout=60)
-    assert res.returncode == 2
-    assert message in res.stderr and "Traceback" not in res.stderr
+    code, _, stderr = cli.run(["bench", "hostile", *args], dict(os.environ), limit=60)
+    assert code == 2
+    assert message in stderr and "Traceback" not in stderr
 
 
 def test_config_checks_attacks() -> None:

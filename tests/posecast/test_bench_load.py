@@ -9,13 +9,13 @@ from __future__ import annotations
 import asyncio
 import io
 import math
-import subprocess
-import sys
+import os
 import time
 
 import numpy as np
 import pytest
 from rich.console import Console
+from support import CliForker
 from websockets.asyncio.server import ServerConnection, serve
 
 from posecast.bench import run_relay_bench, run_relay_curve
@@ -341,7 +341,7 @@ def test_compact_updates_are_relayed() -> None:
     assert report["ticks_per_client_s_min"] >= report["snapshots_per_client_s_min"]
 
 
-def test_cli_refuses_bad_relay_bench_options_in_one_line() -> None:
+def test_cli_refuses_bad_relay_bench_options_in_one_line(cli: CliForker) -> None:
     """Bad --clients, --procs, --codec or --record with a curve: one line, exit 2 (usage)."""
     cases = [
         (["--clients", "100,abc"], "--clients takes positive counts"),
@@ -350,14 +350,9 @@ def test_cli_refuses_bad_relay_bench_options_in_one_line() -> None:
         (["--clients", "10,20", "--record"], "--record takes one --clients count"),
     ]
     for args, message in cases:
-        run = subprocess.run(
-            [sys.executable, "-m", "posecast.cli", "bench", "relay", *args],
-            capture_output=True,
-            text=True,
-            timeout=60,
-        )
-        assert run.returncode == 2, (args, run.stderr)
-        assert message in run.stderr and "Traceback" not in run.stderr
+        code, _, stderr = cli.run(["bench", "relay", *args], dict(os.environ), limit=60)
+        assert code == 2, (args, stderr)
+        assert message in stderr and "Traceback" not in stderr
 
 
 def test_a_send_time_rounded_to_the_microsecond_is_due_at_its_own_grid_point() -> None:

@@ -9,13 +9,12 @@ from __future__ import annotations
 
 import io
 import math
-import subprocess
-import sys
-from pathlib import Path
+import os
 
 import numpy as np
 import pytest
 from rich.console import Console
+from support import CliForker
 
 from posecast.bench.cluster import _hops, run_cluster_bench
 from posecast.server.cluster import USER_BLOCK, find_nats_server
@@ -36,7 +35,6 @@ FIGURES = (
     "bytes_per_pose",
     "poses_per_s",
 )
-_EXE = Path(sys.executable).with_name("posecast")
 
 
 def _finite(value: object) -> bool:
@@ -129,13 +127,10 @@ def test_hops_count_the_nats_crossings_of_each_pose() -> None:
         (["--nodes", "0"], "--nodes must be 1 (one relay) or 2 to 8"),
     ],
 )
-def test_nodes_mistakes_are_one_line(args: list[str], says: str) -> None:
+def test_nodes_mistakes_are_one_line(args: list[str], says: str, cli: CliForker) -> None:
     """A --nodes the split run cannot take is refused in one line, exit code 2, no run."""
-    command = [str(_EXE)] if _EXE.exists() else [sys.executable, "-m", "posecast.cli"]
-    done = subprocess.run(
-        [*command, "bench", "relay", *args], capture_output=True, text=True, timeout=60
-    )
-    assert done.returncode == 2
-    last = done.stderr.strip().splitlines()[-1]
+    code, _, stderr = cli.run(["bench", "relay", *args], dict(os.environ), limit=60)
+    assert code == 2
+    last = stderr.strip().splitlines()[-1]
     assert last.startswith("error: ") and says in last
-    assert "Traceback" not in done.stderr
+    assert "Traceback" not in stderr

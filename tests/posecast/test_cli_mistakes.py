@@ -55,12 +55,11 @@ def _env(**extra: str) -> dict[str, str]:
 
 
 @pytest.fixture(scope="module", autouse=True)
-def _forker() -> Iterator[None]:
-    """One process that imported the CLI, forking a child per case (support.CliForker)."""
+def _forker(cli: CliForker) -> Iterator[None]:
+    """The worker's CLI forker (conftest ``cli``), for :func:`posecast`."""
     global _FORKER
-    with CliForker(_env()) as forker:
-        _FORKER = forker
-        yield
+    _FORKER = cli
+    yield
     _FORKER = None
 
 
