@@ -33,12 +33,13 @@ def dev_room() -> tuple[RoomBuffers, list[StreamBuffer], float, float]:
         pytest.skip(f"the render kernels are not built here: {accel.IMPLEMENTATION}")
     rng = np.random.default_rng(28)
     traces = [load_trace(p) for p in find_traces("traces:dev")]
+    velocities = [tr.causal_velocities() for tr in traces]  # once a trace, not a stream
     room = RoomBuffers(capacity=24)
     bufs = []
     for j in range(27):
         tr = traces[j % len(traces)]
         dev = (j // len(traces)) % len(tr.streams)
-        vel = tr.causal_velocities()[:, dev]
+        vel = velocities[j % len(traces)][:, dev]
         buf = room.stream(has_velocities=j % 4 != 3)
         start = rng.uniform(0.0, tr.duration - 8.0)
         send = start + np.arange(0.0, 4.0, 1.0 / 20.0) + rng.uniform(-0.004, 0.004)
