@@ -28,6 +28,8 @@ __all__ = ["CodeHistory", "baseline_of"]
 _HEAD = struct.Struct("=qq")
 _ENTRY = struct.Struct("=qq13q")
 _WIDTHS = (7, 13)
+#: One int64: the count, or an entry's version (its first field).
+_Q = struct.Struct("=q")
 
 
 class CodeHistory(bytearray):
@@ -43,7 +45,7 @@ class CodeHistory(bytearray):
 
     def held(self) -> int:
         """How many versions it holds."""
-        return int(_HEAD.unpack_from(self)[0])
+        return int(_Q.unpack_from(self)[0])
 
     def _entry(self, i: int) -> tuple[int, list[int]]:
         fields = _ENTRY.unpack_from(self, _HEAD.size + i * _ENTRY.size)
@@ -54,7 +56,7 @@ class CodeHistory(bytearray):
         n = self.held()
         if n == 0:
             return None
-        return int(_ENTRY.unpack_from(self, _HEAD.size + (n - 1) * _ENTRY.size)[0])
+        return int(_Q.unpack_from(self, _HEAD.size + (n - 1) * _ENTRY.size)[0])
 
     def append(self, item: tuple[int, list[int]]) -> None:  # type: ignore[override]
         """Remember ``item``, (version, codes), as the newest, dropping the oldest if
@@ -74,10 +76,10 @@ class CodeHistory(bytearray):
 
     def baseline(self, since: int) -> list[int] | None:
         """The codes of the newest version at or before ``since`` (None: none held)."""
+        unpack, size = _Q.unpack_from, _ENTRY.size
         for i in range(self.held() - 1, -1, -1):
-            version, codes = self._entry(i)
-            if version <= since:
-                return codes
+            if unpack(self, _HEAD.size + i * size)[0] <= since:
+                return self._entry(i)[1]
         return None
 
     def items(self) -> list[tuple[int, list[int]]]:
