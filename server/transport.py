@@ -337,6 +337,13 @@ class WebSocketConnection(asyncio.Protocol):
 
     def _pong_missing(self) -> None:
         self._pong_timer = None
+        if not self._lost and not self.transport.is_reading():
+            # The relay stopped reading (a join waits for its room to open): a pong
+            # may sit unread in the socket. Judge it ``ping_timeout`` after reading
+            # resumes at the earliest, not on bytes the relay chose not to read.
+            assert self._loop is not None and self.ping_timeout
+            self._pong_timer = self._loop.call_later(self.ping_timeout, self._pong_missing)
+            return
         if self.protocol.state is State.OPEN and not self._lost:
             self.protocol.logger.debug("- timed out waiting for keepalive pong")
             self.protocol.fail(1011, "keepalive ping timeout")

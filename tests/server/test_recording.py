@@ -444,3 +444,36 @@ def test_rooms_share_one_writer_process_and_survive_its_death(tmp_path: Path) ->
     for part in leftovers:
         report = recover(part, tmp_path / f"{part.name}.recovered.mcap")
         assert report.chunks_lost == 0
+
+
+def test_a_join_waiting_for_a_slow_writer_is_not_taken_for_a_dead_peer(tmp_path: Path) -> None:
+    """The relay stops reading a join's socket while its room's file opens; a writer
+    slower than ``ping_timeout`` (stopped here; a niced child on a loaded machine)
+    must not turn the unread pong into 1011 "keepalive ping timeout"."""
+
+    async def session() -> list[Path]:
+        config = ServerConfig(
+            host="127.0.0.1", port=0, record_dir=tmp_path, ping_interval=0.2, ping_timeout=0.2
+        )
+        async with running_server(config) as server:
+            host = server.recorders.host
+            assert host is not None
+            os.kill(host.pid, signal.SIGSTOP)
+            try:
+                join = asyncio.ensure_future(
+                    ClientConnection.open(
+                        f"ws://127.0.0.1:{server.port}", room="slow", streams=("head",), rate=20
+                    )
+                )
+                # The join's first ping and its whole pong deadline pass unread.
+                await poll_until(lambda: "slow" in server.recorders._opening)
+                await asyncio.sleep(0.5)
+                assert not join.done()
+            finally:
+                os.kill(host.pid, signal.SIGCONT)
+            conn = await join
+            await conn.close()
+        return server.recordings
+
+    files = asyncio.run(session())
+    assert len(files) == 1 and not find_leftovers(tmp_path)
