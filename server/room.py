@@ -34,6 +34,7 @@ import math
 import struct
 import zlib
 from bisect import bisect_left
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -46,12 +47,13 @@ from posecast.protocol import (
     ZERO_VELOCITY,
     PeerJoined,
     PoseUpdate,
+    _accel,
     pack_snapshot,
     pack_velocity_snapshot,
 )
 from posecast.protocol.codec import DEFAULT_VOLUME, Volume, quantise
 from posecast.protocol.codec_relay import GroupSnapshot, encode_stored
-from posecast.protocol.codec_store import CodeHistory
+from posecast.protocol.codec_store import CodeHistory, baseline_of
 from posecast.server.actions import Action, PollRecording, Record, RecordPose
 from posecast.server.member import IdAllocator, Member, Outbox
 from posecast.server.shared import RoomObject
@@ -135,6 +137,12 @@ class RoomStatistics:
     tick_lag_mean_ms: float
 
 
+def _new_history() -> CodeHistory | deque[tuple[int, list[int]]]:
+    if _accel.speedups is not None:
+        return CodeHistory(CODES_HISTORY)
+    return deque(maxlen=CODES_HISTORY)
+
+
 @dataclass(slots=True)
 class _Stream:
     user: int
@@ -147,9 +155,10 @@ class _Stream:
     #: Codec codes (13: pose and velocity) of this version: from a compact update,
     #: else quantised when a compact subscriber first needs them.
     codes: list[int] | None = None
-    #: (version, codes) of the versions coded so far, oldest first (baselines), packed
-    #: for the accelerator (``protocol.codec_store``).
-    history: CodeHistory = field(default_factory=lambda: CodeHistory(CODES_HISTORY))
+    #: (version, codes) of the versions coded so far, oldest first (baselines): packed
+    #: for the accelerator (``protocol.codec_store``) while it runs, else a deque
+    #: (cheaper in Python); either works with either path.
+    history: CodeHistory | deque[tuple[int, list[int]]] = field(default_factory=_new_history)
 
     def coded(self, volume: Volume) -> list[int]:
         """This version's codes (computed once, remembered as a baseline)."""
@@ -158,13 +167,15 @@ class _Stream:
             pose = np.frombuffer(self.pose, "<f4").reshape(1, 7)
             vel = np.frombuffer(self.velocity, "<f2").reshape(1, 6)
             codes = self.codes = quantise(pose, volume, vel)[0].tolist()
-        if self.history.last_version() != self.version:
-            self.history.append((self.version, codes))
+        h = self.history
+        newest = h.last_version() if isinstance(h, CodeHistory) else (h[-1][0] if h else None)
+        if newest != self.version:
+            h.append((self.version, codes))
         return codes
 
     def baseline(self, since: int) -> list[int] | None:
         """The codes a subscriber whose last snapshot covered version ``since`` holds."""
-        return self.history.baseline(since)
+        return baseline_of(self.history, since)
 
 
 @dataclass
