@@ -10,6 +10,7 @@ to is the real executable.
 
 from __future__ import annotations
 
+import atexit
 import json
 import os
 import selectors
@@ -67,8 +68,13 @@ _FORKER: CliForker | None = None
 
 
 def posecast(*args: str | Path, cwd: Path | None = None, **env: str) -> Run:
-    """Run ``posecast ARGS`` in a child process of its own; the limit is a hang guard."""
-    assert _FORKER is not None
+    """Run ``posecast ARGS`` in a child process of its own; the limit is a hang guard.
+    Another module importing this (test_export_cli) has no ``_forker`` fixture: its
+    first call starts a forker of its own, closed when the process exits."""
+    global _FORKER
+    if _FORKER is None:
+        _FORKER = CliForker(_env())
+        atexit.register(_FORKER.close)
     return Run(*_FORKER.run([*map(str, args)], _env(**env), cwd, limit=120))
 
 
