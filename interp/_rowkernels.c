@@ -432,6 +432,21 @@ done:
 
 #define MAX_KINDS 8
 
+/* The kernels of a tuple of interpolator kinds, into fns: their count, or -1 with an error. */
+static Py_ssize_t kernels_of(PyObject *kinds, pair_fn *fns) {
+    if (!PyTuple_Check(kinds) || PyTuple_GET_SIZE(kinds) > MAX_KINDS) {
+        PyErr_Format(PyExc_TypeError, "kinds: expected a tuple of at most %d ints", MAX_KINDS);
+        return -1;
+    }
+    Py_ssize_t k = PyTuple_GET_SIZE(kinds);
+    for (Py_ssize_t j = 0; j < k; j++) {
+        long kind = PyLong_AsLong(PyTuple_GET_ITEM(kinds, j));
+        if (kind == -1 && PyErr_Occurred()) return -1;
+        if ((fns[j] = kernel_of(kind)) == NULL) return -1;
+    }
+    return k;
+}
+
 static PyObject *py_render_rows(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     (void)self;
     if (nargs != 11) {
@@ -441,17 +456,9 @@ static PyObject *py_render_rows(PyObject *self, PyObject *const *args, Py_ssize_
         return NULL;
     }
     PyObject *kinds = args[9];
-    if (!PyTuple_Check(kinds) || PyTuple_GET_SIZE(kinds) > MAX_KINDS) {
-        PyErr_Format(PyExc_TypeError, "kinds: expected a tuple of at most %d ints", MAX_KINDS);
-        return NULL;
-    }
-    Py_ssize_t k = PyTuple_GET_SIZE(kinds);
     pair_fn fns[MAX_KINDS];
-    for (Py_ssize_t j = 0; j < k; j++) {
-        long kind = PyLong_AsLong(PyTuple_GET_ITEM(kinds, j));
-        if (kind == -1 && PyErr_Occurred()) return NULL;
-        if ((fns[j] = kernel_of(kind)) == NULL) return NULL;
-    }
+    Py_ssize_t k = kernels_of(kinds, fns);
+    if (k < 0) return NULL;
     Held h = {.count = 0};
     Rows r;
     const double *poses;
@@ -555,17 +562,9 @@ static PyObject *renderer_render(Renderer *self, PyObject *const *args, Py_ssize
         return NULL;
     }
     PyObject *kinds = args[2];
-    if (!PyTuple_Check(kinds) || PyTuple_GET_SIZE(kinds) > MAX_KINDS) {
-        PyErr_Format(PyExc_TypeError, "kinds: expected a tuple of at most %d ints", MAX_KINDS);
-        return NULL;
-    }
-    Py_ssize_t k = PyTuple_GET_SIZE(kinds);
     pair_fn fns[MAX_KINDS];
-    for (Py_ssize_t j = 0; j < k; j++) {
-        long kind = PyLong_AsLong(PyTuple_GET_ITEM(kinds, j));
-        if (kind == -1 && PyErr_Occurred()) return NULL;
-        if ((fns[j] = kernel_of(kind)) == NULL) return NULL;
-    }
+    Py_ssize_t k = kernels_of(kinds, fns);
+    if (k < 0) return NULL;
     Held h = {.count = 0};
     PyObject *result = NULL;
     Py_buffer *bt = NULL, *bo, *bst;

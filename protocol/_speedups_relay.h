@@ -576,17 +576,25 @@ static PyObject *history_item(PyObject *history, Py_ssize_t i, long long *versio
     return codes;
 }
 
+/* Whether stream s has a version after since, read into *version: 1 yes, 0 no, -1 an
+ * error. */
+static int is_newer(PyObject *s, long long since, long long *version) {
+    PyObject *v = PyObject_GetAttr(s, S_VERSION);
+    if (v == NULL) return -1;
+    *version = PyLong_AsLongLong(v);
+    Py_DECREF(v);
+    if (*version == -1 && PyErr_Occurred()) return -1;
+    return *version > since;
+}
+
 /* One stored stream's codes (codec_relay._stored_entry): 1 an entry, 0 not newer than
  * since, -1 an error. *row and *base are new references (base may be None). */
 static int stored_codes(PyObject *s, long long since, PyObject *volume, PyObject **row,
                         PyObject **base) {
     *row = *base = NULL;
-    PyObject *v = PyObject_GetAttr(s, S_VERSION);
-    if (v == NULL) return -1;
-    long long version = PyLong_AsLongLong(v);
-    Py_DECREF(v);
-    if (version == -1 && PyErr_Occurred()) return -1;
-    if (version <= since) return 0;
+    long long version;
+    int newer = is_newer(s, since, &version);
+    if (newer <= 0) return newer;
     PyObject *codes = PyObject_GetAttr(s, S_CODES);
     PyObject *history = codes ? PyObject_GetAttr(s, S_HISTORY) : NULL;
     Py_ssize_t size = history ? PySequence_Size(history) : -1;
@@ -770,12 +778,9 @@ static int stored_ring_entry(PyObject *s, PyObject *sid, long long version, PyOb
  * (an entry or none), -1 an error, and *pure set where the pure path must decide. */
 static int stored_one(PyObject *sid, PyObject *s, long long since, PyObject *volume,
                       int velocity, double base, Entry *e, Py_ssize_t *n, int *pure) {
-    PyObject *v = PyObject_GetAttr(s, S_VERSION);
-    if (v == NULL) return -1;
-    long long version = PyLong_AsLongLong(v);
-    Py_DECREF(v);
-    if (version == -1 && PyErr_Occurred()) return -1;
-    if (version <= since) return 0;
+    long long version;
+    int newer = is_newer(s, since, &version);
+    if (newer <= 0) return newer;
     PyObject *codes = PyObject_GetAttr(s, S_CODES);
     if (codes == NULL) return -1;
     PyObject *history = PyObject_GetAttr(s, S_HISTORY);
