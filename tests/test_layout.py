@@ -295,18 +295,25 @@ def test_the_core_s_parts_see_it_through_its_port() -> None:
     assert not bad, bad
 
 
+def _body_names(cls: ast.ClassDef) -> set[str]:
+    """Names a class body defines: methods, annotated fields, assigned fields."""
+    out: set[str] = set()
+    for item in cls.body:
+        if isinstance(item, ast.FunctionDef | ast.AsyncFunctionDef):
+            out.add(item.name)
+        elif isinstance(item, ast.AnnAssign) and isinstance(item.target, ast.Name):
+            out.add(item.target.id)
+        elif isinstance(item, ast.Assign):
+            out.update(t.id for t in item.targets if isinstance(t, ast.Name))
+    return out
+
+
 def _attributes(tree: ast.Module) -> set[str]:
     """Attribute names a module's classes define: methods, class fields, ``x.name = ...``."""
     out: set[str] = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.ClassDef):
-            for item in node.body:
-                if isinstance(item, ast.FunctionDef | ast.AsyncFunctionDef):
-                    out.add(item.name)
-                elif isinstance(item, ast.AnnAssign) and isinstance(item.target, ast.Name):
-                    out.add(item.target.id)
-                elif isinstance(item, ast.Assign):
-                    out.update(t.id for t in item.targets if isinstance(t, ast.Name))
+            out |= _body_names(node)
         elif isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Store):
             out.add(node.attr)
     return out
@@ -334,14 +341,7 @@ def private_reaches(folder: Path) -> list[tuple[str, int, str]]:
 
 def _class_attributes(cls: ast.ClassDef) -> set[str]:
     """Attribute names one class defines: methods, class fields, ``self.name = ...``."""
-    out: set[str] = set()
-    for item in cls.body:
-        if isinstance(item, ast.FunctionDef | ast.AsyncFunctionDef):
-            out.add(item.name)
-        elif isinstance(item, ast.AnnAssign) and isinstance(item.target, ast.Name):
-            out.add(item.target.id)
-        elif isinstance(item, ast.Assign):
-            out.update(t.id for t in item.targets if isinstance(t, ast.Name))
+    out = _body_names(cls)
     for node in ast.walk(cls):
         if (
             isinstance(node, ast.Attribute)
