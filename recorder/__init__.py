@@ -5,6 +5,8 @@
 - :class:`ProcessRecorder`, :class:`RecorderHost` (``recorder.host``): the same
   tap with the writer in a child process (``recorder.writerproc``) fed the raw
   update frames through a pipe (``recorder.pipe``); what the server uses.
+- ``recorder.tap``: the ``record_*`` encoders both recorders share, their
+  counters and :class:`RecorderError`.
 - :class:`RecordOptions` (``recorder.options``): how a room is recorded, for
   either recorder.
 - :func:`recover`, :func:`find_leftovers`, :func:`recover_leftovers`
@@ -43,7 +45,8 @@ from posecast.recorder.recovery import (
     recover_leftovers,
 )
 from posecast.recorder.scan import ScanProblem
-from posecast.recorder.writer import RecorderError, RecorderStatistics, SessionRecorder
+from posecast.recorder.tap import RecorderError, RecorderStatistics
+from posecast.recorder.writer import SessionRecorder
 
 __all__ = [
     "DropRecord",

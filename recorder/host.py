@@ -81,7 +81,8 @@ from posecast.recorder.pipe import (
     _frame,
     _room_config,
 )
-from posecast.recorder.writer import RecorderError, RecorderStatistics, RecordTap, SessionRecorder
+from posecast.recorder.tap import RecorderError, RecorderStatistics, RecordTap
+from posecast.recorder.writer import SessionRecorder
 
 from .format import DROPS_TOPIC, POSES_TOPIC, QUEUE_OVERFLOW_KIND, encode_json, to_ns
 

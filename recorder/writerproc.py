@@ -53,7 +53,8 @@ from posecast.recorder.pipe import (
     EXIT_OK,
     EXIT_RELAY_GONE,
 )
-from posecast.recorder.writer import RecorderError, SessionRecorder
+from posecast.recorder.tap import RecorderError
+from posecast.recorder.writer import SessionRecorder
 
 __all__ = ["main"]
 
