@@ -20,7 +20,7 @@ from websockets.asyncio.server import ServerConnection, serve
 
 from posecast.bench import run_relay_bench, run_relay_curve
 from posecast.bench.common import MOTION_FRAMES, Motion
-from posecast.bench.load import SAMPLE_EVERY, _BenchClient, _LoadStats
+from posecast.bench.loadclient import SAMPLE_EVERY, _BenchClient, _LoadStats
 from posecast.bench.procs import _histogram_quantile
 from posecast.bench.report import saturation
 from posecast.bench.sweep import BASELINE_KEYS, CURVE_KEYS, parse_counts

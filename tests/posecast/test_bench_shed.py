@@ -16,15 +16,8 @@ from typing import Any
 from support import poll_until, running_server
 
 from posecast.bench.fleet import join_figures, merge_parts, merge_ramped
-from posecast.bench.load import (
-    HUNG,
-    JOINED,
-    UNREACHABLE,
-    _BenchClient,
-    _LoadStats,
-    join_outcomes,
-    measured_clients,
-)
+from posecast.bench.load import join_outcomes, measured_clients
+from posecast.bench.loadclient import HUNG, JOINED, UNREACHABLE, _BenchClient, _LoadStats
 from posecast.server.app import ServerConfig
 
 TINY = ServerConfig(host="127.0.0.1", port=0, capacity_cpu=1e-9, capacity_min_members=0)

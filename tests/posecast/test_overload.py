@@ -24,7 +24,7 @@ from pathlib import Path
 import pytest
 from support import poll_until, running_server
 
-from posecast.bench.load import SERVER_FULL, _BenchClient, _LoadStats
+from posecast.bench.loadclient import SERVER_FULL, _BenchClient, _LoadStats
 from posecast.bench.wsclient import client_frame
 from posecast.protocol import ClientSession, Hello
 from posecast.server.app import ServerConfig
