@@ -2,8 +2,8 @@
 
 Sections, in order:
 
-- **zigzag**: signed to unsigned (0, -1, 1, -2, ... -> 0, 1, 2, 3, ...), for Python
-  ints (:func:`zz`, :func:`unzz`) and int64 arrays (:func:`zigzag`, :func:`unzigzag`).
+- **zigzag**: signed to unsigned (0, -1, 1, -2, ... -> 0, 1, 2, 3, ...): :func:`zz`
+  and :func:`unzz`, one expression each for Python ints and int64 arrays alike.
 - **Exp-Golomb**: the code, its tables, and the choice of its order ``k``.
 - **Python-int streams**: :class:`IntWriter` and :class:`IntReader`, a bitstream as
   one Python int, for frames of a few dozen entries (every relay update and
@@ -29,6 +29,7 @@ codes) and never allocate more than a small multiple of the stream's size.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -52,9 +53,7 @@ __all__ = [
     "eg_cost",
     "eg_pack",
     "k_of_histogram",
-    "unzigzag",
     "unzz",
-    "zigzag",
     "zz",
 ]
 
@@ -68,23 +67,22 @@ MAX_EG_BITS = 48
 # --------------------------------------------------------------------------- zigzag
 
 
-def zz(v: int) -> int:
-    """Signed to unsigned: 0, -1, 1, -2 -> 0, 1, 2, 3."""
-    return v * 2 if v >= 0 else -2 * v - 1
-
-
-def unzz(z: int) -> int:
-    """Inverse of :func:`zz`."""
-    return (z >> 1) ^ -(z & 1)
-
-
-def zigzag(v: I64) -> I64:
-    """:func:`zz` of each value of an int64 array."""
+@overload
+def zz(v: int) -> int: ...
+@overload
+def zz(v: I64) -> I64: ...
+def zz(v: int | I64) -> int | I64:
+    """Signed to unsigned: 0, -1, 1, -2 -> 0, 1, 2, 3; a Python int or each value of
+    an int64 array. Exact for -2**63 <= v < 2**63, the range of every coded field."""
     return (v << 1) ^ (v >> 63)
 
 
-def unzigzag(z: I64) -> I64:
-    """Inverse of :func:`zigzag`."""
+@overload
+def unzz(z: int) -> int: ...
+@overload
+def unzz(z: I64) -> I64: ...
+def unzz(z: int | I64) -> int | I64:
+    """Inverse of :func:`zz`, for a Python int or an int64 array."""
     return (z >> 1) ^ -(z & 1)
 
 
@@ -357,7 +355,7 @@ class IntReader:
         of order k to column c of the rows (one code a row)."""
         for rows, c, k in jobs:
             for row, z in zip(rows, self.eg_column(len(rows), k), strict=True):
-                row[c] += (z >> 1) ^ -(z & 1)
+                row[c] += unzz(z)
 
     def rest_is_padding(self) -> bool:
         """Whether only zero padding (fewer than 8 bits) is left."""

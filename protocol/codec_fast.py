@@ -148,13 +148,13 @@ def _delta_section(
     for r, b in zip(rows, base, strict=True):
         p = predict_row(b, r[0])
         d0, d1, d2 = r[1] - p[0], r[2] - p[1], r[3] - p[2]
-        z.append([(d0 << 1) ^ (d0 >> 63), (d1 << 1) ^ (d1 >> 63), (d2 << 1) ^ (d2 >> 63)])
+        z.append([zz(d0), zz(d1), zz(d2)])
     nib += _classed(w, z, cls, sel)
     for lo in range(4, len(rows[0]), 3):
         z = []
         for r, b in zip(rows, base, strict=True):
             d0, d1, d2 = r[lo] - b[lo], r[lo + 1] - b[lo + 1], r[lo + 2] - b[lo + 2]
-            z.append([(d0 << 1) ^ (d0 >> 63), (d1 << 1) ^ (d1 >> 63), (d2 << 1) ^ (d2 >> 63)])
+            z.append([zz(d0), zz(d1), zz(d2)])
         nib += _classed(w, z, cls, sel)
     return nib
 
@@ -420,12 +420,12 @@ def _update_ids(r: IntReader, n: int, k: int) -> tuple[list[int], list[int]]:
     z = r.eg_column(1, k)[0]
     same = r.eg_column(n - 1, 0)
     s = sg[0]
-    o = (z >> 1) ^ -(z & 1)
+    o = unzz(z)
     if s > _ID_MAX or abs(o) >= _TIME_MS_LIMIT:
         raise Fallback
     streams, off = [s], [o]
     for d, z in zip(sg[1:], same, strict=True):
-        step = (z >> 1) ^ -(z & 1)
+        step = unzz(z)
         if d > _ID_MAX or abs(step) >= _TIME_MS_LIMIT:
             raise Fallback
         s += d + 1

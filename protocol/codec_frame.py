@@ -17,7 +17,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from posecast.protocol.bits import BitReader, BitWriter, best_k, unzigzag, zigzag, zz
+from posecast.protocol.bits import BitReader, BitWriter, best_k, unzz, zz
 from posecast.protocol.codec_quant import (
     ROTATION_BITS,
     M,
@@ -204,17 +204,17 @@ def _id_columns(users: I64, streams: I64) -> tuple[I64, I64, Bools]:
 
 
 def _write_time(w: BitWriter, off: I64, new: Bools, own: I64) -> int:
-    first = zigzag(off[new])
+    first = zz(off[new])
     k, _ = best_k(first)
     w.exp_golomb(first, k, own[new])
-    same = zigzag(np.diff(off, prepend=0)[~new])
+    same = zz(np.diff(off, prepend=0)[~new])
     w.exp_golomb(same, 0, own[~new])
     return k
 
 
 def _write_classed(w: BitWriter, values: I64, cls: I64, own: I64) -> list[int]:
     ks = []
-    z = zigzag(values)
+    z = zz(values)
     for c in (0, 1):
         k, _ = best_k(z[cls == c].reshape(-1))
         ks.append(k)
@@ -281,7 +281,7 @@ def _write_key_section(
         w.fixed(c[:, j], bits, sel)
     if c.shape[1] == 13:
         for cols in ((7, 8, 9), (10, 11, 12)):
-            z = zigzag(c[:, cols])
+            z = zz(c[:, cols])
             k, _ = best_k(z.reshape(-1))
             nibbles.append(k)
             for j in range(3):
@@ -432,8 +432,8 @@ def _read_header(data: bytes, want_update: bool, volume: Volume) -> _Header:
     number, pos = _read_uvarint(data, 2)
     if number >= 1 << 63:
         raise remote_error(ErrorCode.BAD_MESSAGE, "tick/seq over 2**63")
-    zz, pos = _read_uvarint(data, pos)
-    base_us = (zz >> 1) ^ -(zz & 1)
+    z, pos = _read_uvarint(data, pos)
+    base_us = unzz(z)
     if abs(base_us) >= _US_LIMIT:
         raise remote_error(ErrorCode.BAD_MESSAGE, "base time out of range")
     nk, pos = _read_uvarint(data, pos)
@@ -464,8 +464,8 @@ def _absmax(values: I64) -> int:
 
 def _read_time(r: BitReader, k: int, new: Bools) -> I64:
     n = new.size
-    first = unzigzag(r.exp_golomb(int(new.sum()), k))
-    same = unzigzag(r.exp_golomb(n - int(new.sum()), 0))
+    first = unzz(r.exp_golomb(int(new.sum()), k))
+    same = unzz(r.exp_golomb(n - int(new.sum()), 0))
     if max(_absmax(first), _absmax(same)) >= _TIME_MS_LIMIT:
         raise remote_error(ErrorCode.BAD_POSE, "capture time too far from the base time")
     steps = np.empty(n, np.int64)
@@ -504,7 +504,7 @@ def _read_classed(r: BitReader, cls: I64, ks: list[int]) -> I64:
     for j in range(3):
         for c in (0, 1):
             m = cls == c
-            out[m, j] = unzigzag(r.exp_golomb(int(m.sum()), ks[c]))
+            out[m, j] = unzz(r.exp_golomb(int(m.sum()), ks[c]))
     return out
 
 
@@ -524,7 +524,7 @@ def _read_key_section(r: BitReader, h: _Header, nibbles: Iterator[int], volume: 
     for lo in range(7, h.width, 3):
         k = next(nibbles)
         for j in range(lo, lo + 3):
-            codes[:, j] = unzigzag(r.exp_golomb(n, k))
+            codes[:, j] = unzz(r.exp_golomb(n, k))
     return users, streams, off, codes
 
 

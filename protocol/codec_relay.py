@@ -438,11 +438,8 @@ def _delta_values(
                 p0, p1, p2 = b[1], b[2], b[3]
             else:
                 p0, p1, p2 = predict_row(b, r[0])
-            # Zigzag as (v << 1) ^ (v >> 63): code differences are far below 2**62.
-            v0, v1, v2 = r[1] - p0, r[2] - p1, r[3] - p2
-            v3, v4, v5 = r[4] - b[4], r[5] - b[5], r[6] - b[6]
-            z0, z1, z2 = (v0 << 1) ^ (v0 >> 63), (v1 << 1) ^ (v1 >> 63), (v2 << 1) ^ (v2 >> 63)
-            z3, z4, z5 = (v3 << 1) ^ (v3 >> 63), (v4 << 1) ^ (v4 >> 63), (v5 << 1) ^ (v5 >> 63)
+            z0, z1, z2 = zz(r[1] - p0), zz(r[2] - p1), zz(r[3] - p2)
+            z3, z4, z5 = zz(r[4] - b[4]), zz(r[5] - b[5]), zz(r[6] - b[6])
             hr[z0.bit_length()] += 1
             hr[z1.bit_length()] += 1
             hr[z2.bit_length()] += 1
@@ -453,8 +450,7 @@ def _delta_values(
                 row.append(0)  # ug: the same user
             row += (*fields[i], (r[0] - b[0]) & 3, z0, z1, z2, z3, z4, z5)
             for c in range(7, width):
-                v = r[c] - b[c]
-                z = (v << 1) ^ (v >> 63)
+                z = zz(r[c] - b[c])
                 row.append(z)
                 hists[(c - 1) // 3][cls][z.bit_length()] += 1
             check ^= zlib.crc32(pack(user, e[1], *b))

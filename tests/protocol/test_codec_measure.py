@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from posecast.protocol.bits import best_k, bit_length, zigzag
+from posecast.protocol.bits import best_k, bit_length, zz
 from posecast.protocol.codec import (
     DEFAULT_VOLUME,
     ROTATION_ERROR_MAX_DEG,
@@ -135,7 +135,7 @@ def _measure(traces: list[Trace], rate: float, split: bool = True) -> dict[str, 
                     ]
                 )
                 pred = predict_rotation(base, dec.codes[:, 0])
-                d = zigzag(
+                d = zz(
                     np.concatenate(
                         [dec.codes[:, 1:4] - pred, dec.codes[:, 4:7] - base[:, 4:7]], axis=1
                     )
