@@ -60,8 +60,9 @@ async def test_a_late_relay_offers_its_auto_rate_subscribers_a_lower_rate() -> N
         notices = [m.rate for m in got if isinstance(m, RateNotice)]
         member = _member(srv, sub.user)
         assert member is not None and member.link_rate is not None
-        # (the relay may have stepped down again since the last notice the client read)
-        assert member.rate <= notices[-1] == sub.session.rate < 30.0
+        # The client runs at the last rate it heard; the relay may have stepped it again
+        # since (down while late, up once it keeps up), so only what was heard is fixed.
+        assert notices[-1] == sub.session.rate < 30.0
         assert member.outbox.skips == member.congestion_skips == 0  # the link took all
         text = metrics_text(srv.core, srv.clock())
         (line,) = [ln for ln in text.splitlines() if ln.startswith("posecast_auto_rate_relay_late")]
