@@ -4,7 +4,9 @@
   a bounded queue and a writer thread; ``NAME.mcap.part`` renamed on close.
 - :class:`ProcessRecorder`, :class:`RecorderHost` (``recorder.host``): the same
   tap with the writer in a child process (``recorder.writerproc``) fed the raw
-  update frames through a pipe (``recorder.pipe``); what the server uses.
+  update frames through a pipe (``recorder.pipe``); what the server uses. The
+  host owns the child and the pipe; one room's side (batches, losses, counters,
+  close) is ``recorder.hostroom``.
 - ``recorder.tap``: the ``record_*`` encoders both recorders share, their
   counters and :class:`RecorderError`.
 - :class:`RecordOptions` (``recorder.options``): how a room is recorded, for

@@ -7,32 +7,35 @@ third of a CPU-bound relay's throughput in ``posecast bench relay --record``.
 :class:`ProcessRecorder` has the same relay-facing methods but keeps almost all
 of that work out of the relay's process, and :class:`RecorderHost` is the one
 writer process a server shares between all its recorded rooms (a room opens in
-milliseconds, and a server recording 100 rooms runs one writer, not 100):
+milliseconds, and a server recording 100 rooms runs one writer, not 100).
 
-- the relay hands over each pose update as it decoded it
-  (:meth:`ProcessRecorder.record_pose_update`: sequence number, base time and
-  entries' bytes behind a small header, plus the codes of a compact session;
-  two list appends), and the few JSON records already encoded;
-- every ``batch_delay`` s (the room ticks call :meth:`ProcessRecorder.poll`)
-  each room's batch is joined into one blob (sooner, once it holds
-  ``batch_size`` records), and all rooms' blobs are written into the host's
-  non-blocking pipe (1 MiB) by the relay's own thread: one ``writev``, one
-  wake-up of the child, whatever the number of rooms, and no thread hand-off (a
-  feeder thread woken per batch cost the relay far more than the writing);
-  what the pipe cannot take yet waits, bounded per room;
-- the host's child process (:func:`recorder.writerproc.main`) reads the pipe,
-  encodes each room's updates in groups of the same shape and records them with
-  one :class:`SessionRecorder` per room (same file layout, chunking, fsync
+Three modules, one job each:
+
+- here, :class:`RecorderHost`: the writer process and the relay's end of its
+  pipe. Every ``batch_delay`` s (the room ticks call :meth:`ProcessRecorder.poll`)
+  it has each room hand its batch over as one blob, and writes all rooms'
+  blobs into its non-blocking pipe (1 MiB) from the relay's own thread: one
+  ``writev``, one wake-up of the child, whatever the number of rooms, and no
+  thread hand-off (a feeder thread woken per batch cost the relay far more than
+  the writing); what the pipe cannot take yet waits, counted per room. A thread
+  reads the child's replies and hands them to the rooms waiting for them.
+- :mod:`recorder.hostroom`: one room's side (:class:`ProcessRecorder`'s
+  methods): its records batched on the relay's thread, the bound on what waits
+  (a batch beyond it is lost, counted and recorded as a
+  ``recorder-queue-overflow`` drops record, as the thread recorder does), its
+  counters and its close. It sees its host through the
+  :class:`recorder.hostroom.Host` protocol and imports nothing of this module;
+  the host sees a room through its ``flush_locked`` and ``fail_locked``.
+- :func:`recorder.writerproc.main`, the child: reads the pipe, encodes each
+  room's updates in groups of the same shape and records them with one
+  :class:`SessionRecorder` per room (same file layout, chunking, fsync
   schedule, ``.part`` and rename).
 
-Nothing is silent: when more than ``queue_size`` of a room's records wait (the
-child or its disk cannot keep up and the pipe is full) a batch of that room is
-lost, counted and the loss recorded in its file as a ``recorder-queue-overflow``
-drops record, as the thread recorder does. If the relay dies, the child sees the
-pipe close without the rooms' stops, makes what it received durable and leaves
-every open room's ``.part`` for recovery. If the child dies, every room it was
-recording fails (the relay goes on, the ``.part`` files stay) and the server
-starts a new host for the rooms opened after that.
+If the relay dies, the child sees the pipe close without the rooms' stops, makes
+what it received durable and leaves every open room's ``.part`` for recovery. If
+the child dies, every room it was recording fails (the relay goes on, the
+``.part`` files stay) and the server starts a new host for the rooms opened
+after that.
 
 The pipe's layout and what the child answers: :mod:`recorder.pipe`.
 """
@@ -48,51 +51,26 @@ import logging
 import os
 import queue
 import select
-import struct
 import subprocess
 import sys
 import threading
 import time as _time
-from collections.abc import Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
 
-from posecast.protocol.codec import Volume
-from posecast.protocol.poses import PoseUpdate
-from posecast.recorder.options import Clock, RecordOptions
-from posecast.recorder.pipe import (
-    _CHANNEL_INDEX,
-    _COMPACT_EXTRA,
-    _COMPACT_PACK,
-    _FRAME_BATCH,
-    _FRAME_OPEN,
-    _KIND_COMPACT,
-    _KIND_RECORD,
-    _KIND_STOP,
-    _KIND_UPDATE,
-    _RECORD,
-    _RECORD_EXTRA,
-    _STOP,
-    _UPDATE_EXTRA,
-    _UPDATE_PACK,
-    _VOLUME,
-    _codes_struct,
-    _frame,
-    _room_config,
-)
-from posecast.recorder.tap import RecorderError, RecorderStatistics, RecordTap
+from posecast.recorder.hostroom import CLOSE_TIMEOUT, HostedRoom
+from posecast.recorder.options import RecordOptions
+from posecast.recorder.pipe import _FRAME_OPEN, _frame, _room_config
+from posecast.recorder.tap import RecorderError
 from posecast.recorder.writer import SessionRecorder
-
-from .format import DROPS_TOPIC, POSES_TOPIC, QUEUE_OVERFLOW_KIND, encode_json, to_ns
 
 __all__ = ["ProcessRecorder", "RecorderHost", "RoomRecorder"]
 
 log = logging.getLogger("posecast.recorder")
 
-#: Seconds to wait for the child to open a room's file, and to finish it on close.
+#: Seconds to wait for the child to open a room's file (finishing it: CLOSE_TIMEOUT).
 _START_TIMEOUT: Final = 60.0
-_CLOSE_TIMEOUT: Final = 120.0
+_CLOSE_TIMEOUT: Final = CLOSE_TIMEOUT
 #: Linux's fcntl to resize a pipe (Python 3.11's fcntl lacks the name), and the size asked.
 _F_SETPIPE_SZ: Final = getattr(fcntl, "F_SETPIPE_SZ", 1031)
 _PIPE_BYTES: Final = 1 << 20
@@ -101,41 +79,6 @@ _WRITEV_MAX: Final = 512
 _CHILD_BOOT: Final = "import sys; from posecast.recorder.writerproc import main; sys.exit(main())"
 #: Records a room hands over at a time unless its options say otherwise.
 _BATCH_SIZE: Final = 256
-
-
-class _Batch:
-    """Records waiting on the relay's thread; what a loss of the batch would lose."""
-
-    __slots__ = ("first", "last", "parts", "poses", "records", "topics", "updates")
-
-    def __init__(self) -> None:
-        self.parts: list[bytes] = []
-        self.records = 0
-        #: Pose updates among the records (the others are counted in ``topics``).
-        self.updates = 0
-        self.poses = 0
-        self.first = 0.0
-        self.last = 0.0
-        self.topics: dict[str, int] = {}
-
-
-@dataclass
-class _Loss:
-    records: int = 0
-    poses: int = 0
-    first: float = 0.0
-    last: float = 0.0
-
-    def add(self, batch: _Batch, topics: dict[str, int]) -> None:
-        if self.records == 0 or batch.first < self.first:
-            self.first = batch.first
-        self.last = max(self.last, batch.last)
-        self.records += batch.records
-        self.poses += batch.poses
-        if batch.updates:
-            topics[POSES_TOPIC] = topics.get(POSES_TOPIC, 0) + batch.updates
-        for k, v in batch.topics.items():
-            topics[k] = topics.get(k, 0) + v
 
 
 class RecorderHost:
@@ -155,14 +98,16 @@ class RecorderHost:
         os.set_blocking(self._fd, False)
         with contextlib.suppress(OSError):  # a bigger pipe: seconds of records in flight
             fcntl.fcntl(self._fd, _F_SETPIPE_SZ, _PIPE_BYTES)
-        #: Guards the pipe, the pending blobs and every room handle's counters.
+        #: Guards the pipe, the pending blobs and every room's batch and counters.
         self.lock = threading.Lock()
-        # [view, records, handle or None]: blobs not yet (fully) in the pipe, in order.
+        # [view, records, room id or None]: blobs not yet (fully) in the pipe, in order.
         self._pending: collections.deque[list[Any]] = collections.deque()
+        # room id -> its records in those blobs
+        self._waiting: dict[int, int] = {}
         self._held = False
         self._error: str | None = None
         self._ids = itertools.count(1)
-        self._rooms: dict[int, ProcessRecorder] = {}
+        self._rooms: dict[int, HostedRoom[RecorderHost]] = {}
         self._replies: dict[int, queue.SimpleQueue[dict[str, Any] | None]] = {}
         self._eof = False
         self._closed = False
@@ -190,6 +135,11 @@ class RecorderHost:
     @property
     def pid(self) -> int:
         return self._proc.pid
+
+    @property
+    def process(self) -> subprocess.Popen[bytes]:
+        """The writer process (its pipe is written through this host only)."""
+        return self._proc
 
     @property
     def alive(self) -> bool:
@@ -268,7 +218,7 @@ class RecorderHost:
         self.drain(block=True)
         return room_id, replies
 
-    def _finished(self, room_id: int, timeout: float | None) -> dict[str, Any] | None:
+    def finished(self, room_id: int, timeout: float | None) -> dict[str, Any] | None:
         """The room's ``closed`` (or ``error``) reply, and forget the room.
 
         ``None`` if the child is gone or did not answer within ``timeout``
@@ -288,14 +238,24 @@ class RecorderHost:
             with self.lock:
                 self._replies.pop(room_id, None)
                 self._rooms.pop(room_id, None)
+                self._waiting.pop(room_id, None)
 
     # -- the pipe: never blocks the relay ----------------------------------------------
 
-    def _push(self, handle: ProcessRecorder | None, data: bytes, records: int) -> None:
-        """Queue one blob (under :attr:`lock`)."""
-        self._pending.append([memoryview(data), records, handle])
-        if handle is not None:
-            handle._pending_records += records
+    def push_locked(self, room_id: int | None, data: bytes, records: int) -> None:
+        """Queue one blob of ``records`` records of room ``room_id`` (under :attr:`lock`)."""
+        self._pending.append([memoryview(data), records, room_id])
+        if room_id is not None:
+            self._waiting[room_id] = self._waiting.get(room_id, 0) + records
+
+    def waiting_locked(self, room_id: int) -> int:
+        """Records of room ``room_id`` queued, not yet (fully) in the pipe (under :attr:`lock`)."""
+        return self._waiting.get(room_id, 0)
+
+    def _written_locked(self, room_id: int | None, records: int) -> None:
+        """A blob of room ``room_id`` is in the pipe (or dropped with a failed pipe)."""
+        if room_id is not None and room_id in self._waiting:
+            self._waiting[room_id] -= records
 
     def drain(self, block: bool = False, timeout: float = _CLOSE_TIMEOUT) -> None:
         """Write pending blobs into the pipe until it is full (or all, with ``block``).
@@ -339,9 +299,7 @@ class RecorderHost:
                     break
                 written -= size
                 pending.popleft()
-                handle = entry[2]
-                if handle is not None:
-                    handle._pending_records -= entry[1]
+                self._written_locked(entry[2], entry[1])
         return True
 
     def flush(self, now: float) -> None:
@@ -351,10 +309,16 @@ class RecorderHost:
         """
         with self.lock:
             self._due = now + (self._flush_delay or 0.05)
-            for handle in self._rooms.values():
-                if handle._batch.records and not handle._closing:
-                    handle._handoff_locked()
+            for room in self._rooms.values():
+                room.flush_locked()
         self.drain()
+
+    def poll(self, now: float) -> None:
+        """Flush every room once the flush delay has passed, else write what waits."""
+        if now >= self._due:
+            self.flush(now)
+        elif self._pending:
+            self.drain()
 
     def hold(self) -> None:
         """Stop feeding the child (tests: a stalled writer); records wait, up to each bound."""
@@ -375,11 +339,10 @@ class RecorderHost:
         if self._error is None:
             self._error = message
             log.error("%s; the rooms' .part files are kept for recovery", message)
-        for handle in self._rooms.values():
-            handle._fail_locked(message)
+        for room in self._rooms.values():
+            room.fail_locked(message)
         for entry in self._pending:
-            if entry[2] is not None:
-                entry[2]._pending_records -= entry[1]
+            self._written_locked(entry[2], entry[1])
         self._pending.clear()
 
     # -- the child's replies -----------------------------------------------------------
@@ -412,7 +375,7 @@ class RecorderHost:
                 self._fail_locked(f"the recorder process failed: {event.get('error')}")
                 return
             if event.get("event") == "error" and room_id in self._rooms:
-                self._rooms[room_id]._fail_locked(str(event.get("error")))
+                self._rooms[room_id].fail_locked(str(event.get("error")))
             replies = self._replies.get(room_id)
         if replies is not None:
             replies.put(event)
@@ -450,56 +413,15 @@ class RecorderHost:
         self.close()
 
 
-class ProcessRecorder(RecordTap):
+class ProcessRecorder(HostedRoom[RecorderHost]):
     """Records one room's session through a :class:`RecorderHost`; see the module docstring.
 
     :meth:`RecorderHost.open_room` makes one on a shared host; :meth:`open`
     starts a host of its own (closed with the room). The relay-facing methods
-    match :class:`SessionRecorder` (``record_*`` return ``True`` if the record
-    was taken, ``False`` if it was lost or refused, always counted).
+    (:class:`recorder.hostroom.HostedRoom`'s) match :class:`SessionRecorder`
+    (``record_*`` return ``True`` if the record was taken, ``False`` if it was
+    lost or refused, always counted).
     """
-
-    def __init__(
-        self,
-        host: RecorderHost,
-        room_id: int,
-        part_path: Path,
-        final_path: Path,
-        *,
-        clock: Clock,
-        queue_size: int,
-        batch_size: int,
-    ) -> None:
-        self._host = host
-        self._id = room_id
-        #: Set by :meth:`open`: this room's host is its own, closed with it.
-        self._owns_host = False
-        self.part_path = part_path
-        self.path = final_path
-        self._clock = clock
-        self._batch_size = max(1, batch_size)
-        # At most ``queue_size`` of this room's records wait for the pipe;
-        # beyond that a batch is lost and the loss recorded.
-        self._bound = max(1, queue_size)
-        self._pending_records = 0
-        self._lock = host.lock
-        self._batch = _Batch()
-        self._loss = _Loss()
-        self._loss_topics: dict[str, int] = {}
-        self._closing = False
-        self._closed = False
-        self._error: str | None = None
-        self._final: dict[str, Any] | None = None
-        self._offered = 0
-        self._queue_drops = 0
-        self._queue_drop_poses = 0
-        self._loss_records = 0
-        self._rejected = 0
-        self._high_water = 0
-        self._checked = _time.monotonic()
-        # the room volume of compact updates, and its bytes in the pipe
-        self._volume: Volume | None = None
-        self._box = b""
 
     @classmethod
     def open(
@@ -523,271 +445,8 @@ class ProcessRecorder(RecordTap):
             with contextlib.suppress(Exception):
                 host.close(5.0)
             raise
-        rec._owns_host = True
+        rec.own_host()
         return rec
-
-    @property
-    def host(self) -> RecorderHost:
-        return self._host
-
-    @property
-    def _proc(self) -> subprocess.Popen[bytes]:
-        """The writer process (shared with the host's other rooms)."""
-        return self._host._proc
-
-    # -- the relay's side: never blocks ----------------------------------------------
-
-    def record_pose_update(
-        self,
-        user: int,
-        arrival: float,
-        update: PoseUpdate,
-        codes: Mapping[int, list[int]] | None = None,
-        volume: Volume | None = None,
-    ) -> bool:
-        """Take one pose update of ``user`` as the relay decoded it, arrived at ``arrival``.
-
-        ``codes`` (stream id -> codec codes) and ``volume`` of a compact session:
-        the writer records the update as its codes (layout 2).
-        """
-        if self._closing or self._error is not None:
-            return self._refuse(1)
-        entries = update.entries
-        n = len(entries)
-        body = entries.tobytes()
-        b = self._batch
-        if not b.records:
-            b.first = arrival
-        # Two appends, not ``+= (head, body)``: a tuple per update is a GC-tracked
-        # allocation, and the relay's cyclic collections run per 700 of those.
-        parts = b.parts
-        seq, base = update.seq, update.base_time
-        flat = b""
-        if codes is not None and volume is not None and len(codes) == n:
-            width = len(next(iter(codes.values()))) if n else 7
-            with contextlib.suppress(struct.error):  # rows of unequal widths: not compact
-                flat = _codes_struct(width * n).pack(*itertools.chain.from_iterable(codes.values()))
-        if flat or (codes is not None and volume is not None and n == 0):
-            assert volume is not None
-            body += flat
-            size = _COMPACT_EXTRA + len(body)
-            if volume is not self._volume:
-                self._volume, self._box = volume, _VOLUME.pack(*volume.lo, *volume.hi)
-            head = _COMPACT_PACK(_KIND_COMPACT, size, user, n, arrival, seq, base, width)
-            parts.append(head + self._box)
-        else:
-            size = _UPDATE_EXTRA + len(body)
-            parts.append(_UPDATE_PACK(_KIND_UPDATE, size, user, n, arrival, seq, base))
-        parts.append(body)
-        b.records += 1
-        b.updates += 1
-        b.poses += n
-        b.last = arrival
-        if b.records >= self._batch_size:
-            self._handoff()
-        return True
-
-    def _take(self, topic: str, log_time: float, publish_ns: int, data: bytes, poses: int) -> bool:
-        if self._closing or self._error is not None:
-            return self._refuse(1)
-        b = self._batch
-        if not b.records:
-            b.first = b.last = log_time
-        head = _RECORD.pack(
-            _KIND_RECORD,
-            _RECORD_EXTRA + len(data),
-            _CHANNEL_INDEX[topic],
-            to_ns(log_time),
-            publish_ns,
-            poses,
-        )
-        b.parts += (head, data)
-        b.records += 1
-        b.poses += poses
-        b.first = min(b.first, log_time)
-        b.last = max(b.last, log_time)
-        b.topics[topic] = b.topics.get(topic, 0) + 1
-        if b.records >= self._batch_size:
-            self._handoff()
-        return True
-
-    def _count_rejected(self, n: int = 1) -> None:
-        self._refuse(n)
-
-    def _refuse(self, n: int) -> bool:
-        with self._lock:
-            self._rejected += n
-        return False
-
-    def poll(self) -> None:
-        """Call every tick: hands the rooms' batches over every flush delay."""
-        host = self._host
-        now = _time.monotonic()
-        if now >= host._due:
-            host.flush(now)
-        elif host._pending:
-            host.drain()
-        if now - self._checked >= 1.0:
-            self._checked = now
-            if self._error is None and not self._closing:
-                host.check()
-
-    def _handoff(self) -> None:
-        """Queue the waiting batch for the pipe and write what the pipe takes."""
-        with self._lock:
-            self._handoff_locked()
-        self._host.drain()
-
-    def _handoff_locked(self) -> None:
-        batch, self._batch = self._batch, _Batch()
-        if not batch.records:
-            return
-        parts = batch.parts
-        batch.parts = []
-        if self._error is not None:
-            self._rejected += batch.records
-            return
-        if self._pending_records and self._pending_records + batch.records > self._bound:
-            self._loss.add(batch, self._loss_topics)
-            self._queue_drops += batch.records
-            self._queue_drop_poses += batch.poses
-            return
-        self._send_locked(parts, batch.records)
-        self._offered += batch.records
-        self._high_water = max(self._high_water, self._pending_records)
-
-    def _send_locked(self, parts: list[bytes], records: int) -> None:
-        """Queue ``parts`` as one batch frame, behind the record of any loss not yet sent."""
-        if self._loss.records:
-            parts.insert(0, self._loss_message())
-            self._loss_records += 1
-            self._loss = _Loss()
-            self._loss_topics = {}
-        size = sum(map(len, parts))
-        parts.insert(0, _frame(_FRAME_BATCH, self._id, size))
-        self._host._push(self, b"".join(parts), records)
-
-    def _loss_message(self) -> bytes:
-        loss = self._loss
-        record = {
-            "kind": QUEUE_OVERFLOW_KIND,
-            "count": loss.records,
-            "poses": loss.poses,
-            "topics": dict(self._loss_topics),
-            "first_time": loss.first,
-            "last_time": loss.last,
-            "time": loss.last,
-        }
-        data = encode_json(record)
-        ns = to_ns(loss.last)
-        head = _RECORD.pack(
-            _KIND_RECORD, _RECORD_EXTRA + len(data), _CHANNEL_INDEX[DROPS_TOPIC], ns, ns, 0
-        )
-        return head + data
-
-    def _fail(self, message: str) -> None:
-        with self._lock:
-            self._fail_locked(message)
-
-    def _fail_locked(self, message: str) -> None:
-        if self._error is None:
-            self._error = message
-            # A warning: the room's owner (the relay) reports the failure once, at ERROR.
-            log.warning("recorder for %s failed: %s; the .part file is kept", self.path, message)
-
-    # -- control -----------------------------------------------------------------------
-
-    def hold(self, timeout: float = 10.0) -> None:
-        """Stop feeding the host's child (tests: a stalled writer); records then wait."""
-        del timeout
-        self._host.hold()
-
-    def release(self) -> None:
-        """Resume feeding after :meth:`hold`."""
-        self._host.release()
-
-    def close(self, time: float | None = None) -> Path:
-        """Send what is waiting and a stop; wait for the child to finish and rename.
-
-        Blocks (use :meth:`aclose` from the event loop). Raises
-        :class:`RecorderError` if the child failed, keeping the ``.part``.
-        """
-        host = self._host
-        if not self._closing:
-            end = self._clock() if time is None else time
-            stop = _STOP.pack(_KIND_STOP, 8, end)
-            with self._lock:
-                # One step: a flush on the relay's thread cannot slip records behind the stop.
-                self._handoff_locked()
-                self._closing = True
-                if self._error is None:
-                    self._send_locked([stop], 0)
-            host._held = False
-            host.drain(block=True)
-        # A failed room gets no reply; its entries on the host go all the same.
-        closed = host._finished(self._id, _CLOSE_TIMEOUT if self._error is None else None)
-        code = host.close() if self._owns_host else None
-        self._closed = True
-        if closed is not None and closed.get("event") == "closed":
-            self._final = closed.get("statistics")
-        final = self._final or {}
-        if (
-            closed is None
-            or closed.get("event") != "closed"
-            or closed.get("error")
-            or final.get("error")
-        ):
-            detail = (closed or {}).get("error") or final.get("error") or self._error
-            if code not in (None, 0):
-                detail = f"{detail} (exit code {code})"
-            self._fail(str(detail or "no reply from the recorder process"))
-            raise RecorderError(
-                f"recording failed ({self._error}); partial file kept at {self.part_path}"
-            )
-        return self.path
-
-    async def aclose(self, time: float | None = None) -> Path:
-        """:meth:`close` in a worker thread, for the event loop."""
-        import asyncio
-
-        return await asyncio.to_thread(self.close, time)
-
-    def __enter__(self) -> ProcessRecorder:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    @property
-    def failed(self) -> bool:
-        """True once the child process or the pipe to it failed."""
-        return self._error is not None
-
-    def statistics(self) -> RecorderStatistics:
-        """A snapshot of the counters; the child's own are filled in once it closed."""
-        final = self._final or {}
-        path = self.path if self._closed and self.path.exists() else self.part_path
-        try:
-            size = path.stat().st_size
-        except OSError:
-            size = 0
-        with self._lock:
-            return RecorderStatistics(
-                records_offered=self._offered,
-                records_written=int(final.get("records_written", 0)),
-                poses_written=int(final.get("poses_written", 0)),
-                queue_drops=self._queue_drops + int(final.get("queue_drops", 0)),
-                queue_drop_poses=self._queue_drop_poses + int(final.get("queue_drop_poses", 0)),
-                loss_records=self._loss_records + int(final.get("loss_records", 0)),
-                rejected=self._rejected + int(final.get("rejected", 0)),
-                bytes_written=size,
-                chunks=int(final.get("chunks", 0)),
-                fsyncs=int(final.get("fsyncs", 0)),
-                queue_depth=self._pending_records,
-                queue_high_water=self._high_water,
-                error=self._error,
-                closed=self._closed,
-            )
 
 
 #: What a server room records through: either recorder has the relay-facing methods.

@@ -308,7 +308,7 @@ def test_when_the_relay_vanishes_the_compact_updates_are_in_the_part(
         assert rec.record_pose_update(user, arrival, update, codes, DEFAULT_VOLUME)
     rec._handoff()
     rec.host.drain(block=True)  # everything is in the pipe; now close it as a dying process does
-    proc = rec._proc
+    proc = rec.host.process
     assert proc.stdin is not None
     proc.stdin.close()
     assert proc.wait(30) == 2

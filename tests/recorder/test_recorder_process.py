@@ -139,7 +139,7 @@ def test_when_the_relay_vanishes_the_child_keeps_a_recoverable_part(tmp_path: Pa
     _feed(rec, frames)
     rec._handoff()
     rec.host.drain(block=True)  # everything is in the pipe; now close it as a dying process does
-    proc = rec._proc
+    proc = rec.host.process
     assert proc.stdin is not None
     proc.stdin.close()
     assert proc.wait(30) == 2
@@ -157,8 +157,8 @@ def test_a_dead_writer_process_fails_the_recorder_not_the_relay(tmp_path: Path) 
     frames = _updates(100)
     rec = ProcessRecorder.open(tmp_path, "r", name="d", clock=lambda: T0, batch_size=4)
     _feed(rec, frames[:20])
-    os.kill(rec._proc.pid, signal.SIGKILL)
-    rec._proc.wait(10)
+    os.kill(rec.host.process.pid, signal.SIGKILL)
+    rec.host.process.wait(10)
 
     def failed() -> bool:
         for user, arrival, update in frames[20:40]:
@@ -278,7 +278,7 @@ def test_when_the_relay_vanishes_every_open_room_keeps_a_recoverable_part(
         _feed(rec, feed)
         rec._handoff()
     host.drain(block=True)
-    proc = host._proc
+    proc = host.process
     assert proc.stdin is not None
     proc.stdin.close()  # as a dying relay's pipe closes
     assert proc.wait(30) == pipe.EXIT_RELAY_GONE
@@ -300,9 +300,9 @@ def test_a_stalled_writer_fails_a_blocking_drain_instead_of_hanging(tmp_path: Pa
     os.kill(host.pid, signal.SIGSTOP)
     try:
         more_than_the_pipe = 2 << 20
-        blob = pipe._frame(pipe._FRAME_BATCH, rec._id, more_than_the_pipe)
+        blob = pipe._frame(pipe._FRAME_BATCH, rec.room_id, more_than_the_pipe)
         with host.lock:
-            host._push(rec, blob + bytes(more_than_the_pipe), 1)
+            host.push_locked(rec.room_id, blob + bytes(more_than_the_pipe), 1)
         host.drain(block=True, timeout=1.0)
         assert rec.failed and "took no records for 1 s" in (rec.statistics().error or "")
         assert not host.alive and rec.statistics().queue_depth == 0
