@@ -1,4 +1,5 @@
-"""What :class:`server.core.RelayCore` tells its adapter to do (see its module docstring)."""
+"""What :class:`server.core.RelayCore` tells its adapter to do (see its module docstring),
+log lines included: the core and its parts import no ``logging``."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ __all__ = [
     "Close",
     "FinishRecording",
     "Hold",
+    "Log",
     "PollRecording",
     "Rearm",
     "Record",
@@ -100,6 +102,33 @@ class Hold:
     token: str | None = None
 
 
+@dataclass(frozen=True, slots=True)
+class Log:
+    """Log ``message % args`` at ``level`` (``logging``'s numbers: ``INFO``, ``WARNING``, ``ERROR``)
+    on the relay's logger, ``posecast.server``; ``error``: the exception whose
+    traceback goes with it (a room's tick that failed)."""
+
+    level: int
+    message: str
+    args: tuple[object, ...] = ()
+    error: BaseException | None = None
+
+
+#: The levels a :class:`Log` uses (``logging.INFO``, ``logging.ERROR``: the core
+#: imports no ``logging``).
+INFO = 20
+WARNING = 30
+ERROR = 40
+
 Action = (
-    Wake | Close | Reschedule | Rearm | FinishRecording | Hold | Record | RecordPose | PollRecording
+    Wake
+    | Close
+    | Reschedule
+    | Rearm
+    | FinishRecording
+    | Hold
+    | Record
+    | RecordPose
+    | PollRecording
+    | Log
 )

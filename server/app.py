@@ -45,6 +45,7 @@ from posecast.server.core import (
     Close,
     ConnectionStatistics,
     FinishRecording,
+    Log,
     Rearm,
     RelayCore,
     Reschedule,
@@ -114,7 +115,7 @@ class RelayServer:
             self.config,
             clock,
             wall_clock,
-            self.core.add_room,
+            self._add_room,
             self._recording_metadata,
             on_error=self._count_recording_error,
         )
@@ -173,12 +174,20 @@ class RelayServer:
                 self._arm_ticks()
             elif isinstance(action, Rearm):
                 self._new_connection.set()
+            elif isinstance(action, Log):
+                log.log(action.level, action.message, *action.args, exc_info=action.error)
             elif isinstance(action, FinishRecording):
                 rec = self.recorders.take(action.room)
                 if rec is not None:
                     self.spawn(self.recorders.finish(action.room, rec), f"close:{action.room}")
             else:  # Record, RecordPose, PollRecording
                 self.recorders.carry_out(action)
+
+    def _add_room(self, name: str, recorded: bool, now: float) -> bool:
+        """``RelayCore.add_room``, its log line carried out at once."""
+        added = self.core.add_room(name, recorded, now)
+        self.apply(self.core.pending())
+        return added
 
     def spawn(self, job: Coroutine[Any, Any, None], name: str) -> None:
         """Run ``job`` under the server's task group."""

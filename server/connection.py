@@ -192,6 +192,9 @@ class Connection(WebSocketConnection):
         for oldest in shakes.take_evicted():  # at the cap: slow handshakes give way
             if isinstance(oldest, Connection):
                 oldest.abort()
+        logs: list[Action] = [*shakes.take_logs()]
+        if logs:
+            self.server.apply(logs)
         if self._slot is None:
             self.abort()  # over the caps and the spare places: not one byte read
 

@@ -72,7 +72,6 @@ encodes one snapshot per tick group, shared by every due member. Shared objects
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Callable
 
 from posecast.protocol import (
@@ -100,10 +99,12 @@ from posecast.protocol import (
 from posecast.protocol.events import Event, Message
 from posecast.server import capacity, objects, presence, rates, resume
 from posecast.server.actions import (
+    INFO,
     Action,
     Close,
     FinishRecording,
     Hold,
+    Log,
     Rearm,
     Reschedule,
     Wake,
@@ -135,6 +136,7 @@ __all__ = [
     "ConnectionStatistics",
     "FinishRecording",
     "Hold",
+    "Log",
     "Peer",
     "Rearm",
     "RelayCore",
@@ -142,8 +144,6 @@ __all__ = [
     "ServerConfig",
     "Wake",
 ]
-
-log = logging.getLogger("posecast.server")
 
 
 class RelayCore:
@@ -259,7 +259,7 @@ class RelayCore:
         refused = self.joins.admit(peer, now)
         if refused is not None:
             self.refused_connections += 1
-            log.info("connection from %s refused: %s", address, refused)
+            self.emit(Log(INFO, "connection from %s refused: %s", (address, refused)))
             self.close_peer(peer, 1013, f"try again later: {refused}")
         return conn
 
@@ -406,12 +406,8 @@ class RelayCore:
         stats = peer.statistics()  # before leaving: the member's counters go with it
         held = peer.log_limit.flush(now)
         if held:
-            log.info(
-                "user %s: %d more of its errors not logged in the last %.1f s",
-                peer.user,
-                held,
-                peer.log_limit.span,
-            )
+            msg = "user %s: %d more of its errors not logged in the last %.1f s"
+            self.emit(Log(INFO, msg, (peer.user, held, peer.log_limit.span)))
         if resume.parkable(self, peer):
             resume.park(self, peer, now)
         else:
@@ -522,7 +518,7 @@ class RelayCore:
         try:
             data = peer.session.send(message)
         except LocalProtocolError as exc:
-            log.info("user %s: not sent (%s)", peer.user, exc)
+            self.emit(Log(INFO, "user %s: not sent (%s)", (peer.user, exc)))
             return
         if not peer.outbox.offer_event(data):
             peer.event_drops += 1
@@ -549,7 +545,7 @@ class RelayCore:
         """Charge the misbehaviour budget one token; over it, close 1008."""
         if not peer.budget.spend(now) and peer.close_request is None:
             self.misbehaviour_closes += 1
-            log.info("user %s: over its misbehaviour budget, closing", peer.user)
+            self.emit(Log(INFO, "user %s: over its misbehaviour budget, closing", (peer.user,)))
             self.close_peer(peer, 1008, "misbehaving: too many invalid frames")
 
     def refuse(

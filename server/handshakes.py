@@ -23,21 +23,21 @@ before the core sees it (``RelayCore.connect`` runs once the handshake is done).
   NATS, the log).
 
 Refusals are counted (``posecast_handshakes_refused_total``) and logged at most
-once a second with a count of those not logged. Sans I/O: the adapter passes the time.
+once a second with a count of those not logged (``Log`` lines the adapter takes with
+:meth:`Handshakes.take_logs`). Sans I/O: the adapter passes the time.
 """
 
 from __future__ import annotations
 
-import logging
 from typing import Literal
 
+from posecast.server.actions import WARNING, Log
 from posecast.server.guard import Guard
 from posecast.server.limits import Admission
 from posecast.server.logs import LogLimiter
 
 __all__ = ["EVICT_AFTER", "FD_RESERVE", "HEALTH_RESERVE", "Handshakes"]
 
-log = logging.getLogger("posecast.server")
 
 #: Spare places over the connection caps where only /healthz and /metrics are answered.
 HEALTH_RESERVE = 16
@@ -72,6 +72,7 @@ class Handshakes:
         self._order: dict[object, tuple[str | None, float]] = {}
         self._evicted: list[object] = []
         self._log = LogLimiter(1.0)
+        self._logs: list[Log] = []
         #: Rates across connections, per address and token user (``server/guard.py``).
         self.guard = guard or Guard()
 
@@ -117,15 +118,21 @@ class Handshakes:
         self.evicted += 1
         quiet = self._log.admit(now)
         if quiet is not None:
-            log.warning(
+            self._logs.append(Log(
+                WARNING,
                 "at the connection cap (%d): the oldest pending handshake (from %s) "
                 "gave its place to a new connection%s",
-                self.admission.max_total, address, self._log.note(quiet),
-            )  # fmt: skip
+                (self.admission.max_total, address, self._log.note(quiet)),
+            ))  # fmt: skip
 
     def take_evicted(self) -> list[object]:
         """The keys of the pending handshakes given up since the last call (drop them)."""
         out, self._evicted = self._evicted, []
+        return out
+
+    def take_logs(self) -> list[Log]:
+        """The log lines decided since the last call (the adapter logs them)."""
+        out, self._logs = self._logs, []
         return out
 
     def _over(self, address: str | None, now: float) -> Slot | None:
@@ -136,12 +143,13 @@ class Handshakes:
         self.refused += 1
         quiet = self._log.admit(now)
         if quiet is not None:
-            log.warning(
+            self._logs.append(Log(
+                WARNING,
                 "connection from %s dropped before its handshake: %d pending, %d open, "
                 "caps %d in all and %d per address%s",
-                address, self.pending, cap.total, cap.max_total, cap.max_per_address,
-                self._log.note(quiet),
-            )  # fmt: skip
+                (address, self.pending, cap.total, cap.max_total, cap.max_per_address,
+                 self._log.note(quiet)),
+            ))  # fmt: skip
         return None
 
     def release(self, slot: Slot, address: str | None, key: object = None) -> None:

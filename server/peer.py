@@ -7,13 +7,12 @@
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
 from posecast.protocol import Limits, ServerSession, Volume
-from posecast.server.actions import Action, Wake
+from posecast.server.actions import INFO, Action, Log, Wake
 from posecast.server.config import ServerConfig
 from posecast.server.limits import Budget
 from posecast.server.link import Downlink
@@ -24,8 +23,6 @@ from posecast.server.room import Room
 from posecast.server.stamps import StampCheck, StampRule
 
 __all__ = ["COUNTERS", "ConnectionStatistics", "Peer", "PeerHost"]
-
-log = logging.getLogger("posecast.server")
 
 
 class PeerHost(Protocol):
@@ -177,7 +174,7 @@ class Peer:
         """Log what this peer caused, at most once per ``peer_log_interval``."""
         held = self.log_limit.admit(now)
         if held is not None:
-            log.info(msg + "%s", *args, self.log_limit.note(held))
+            self._core.emit(Log(INFO, msg + "%s", (*args, self.log_limit.note(held))))
 
     def _ready(self) -> None:
         self._core.emit(Wake(self.conn))

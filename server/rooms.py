@@ -15,19 +15,16 @@ effects are actions handed to ``emit``.
 from __future__ import annotations
 
 import heapq
-import logging
 from collections.abc import Callable
 
 from posecast.protocol.codec import Volume
-from posecast.server.actions import Action, FinishRecording, Reschedule
+from posecast.server.actions import ERROR, INFO, Action, FinishRecording, Log, Reschedule
 from posecast.server.config import ServerConfig
 from posecast.server.limits import room_refusal
 from posecast.server.room import LagHistogram, Room, room_phase
 from posecast.server.view_rates import ViewRates
 
 __all__ = ["RoomTable"]
-
-log = logging.getLogger("posecast.server")
 
 
 class RoomTable:
@@ -92,7 +89,7 @@ class RoomTable:
                 emit=self.emit,
                 fly=self.fly,
             )
-            log.info("room %r created", name)
+            self.emit(Log(INFO, "room %r created", (name,)))
         return room
 
     def next_deadline(self) -> float | None:
@@ -135,8 +132,8 @@ class RoomTable:
                 room.flush_drops(now)
                 if self.adapt is not None:
                     self.adapt(room, now)
-            except Exception:
-                log.exception("room %r failed", room.name)
+            except Exception as exc:
+                self.emit(Log(ERROR, "room %r failed", (room.name,), exc))
                 if self.rooms.get(room.name) is room:
                     del self.rooms[room.name]
                 failed.append(room)
@@ -150,7 +147,7 @@ class RoomTable:
         if not room.members and not room.retired:
             if self.rooms.get(room.name) is room:
                 del self.rooms[room.name]
-            log.info("room %r removed", room.name)
+            self.emit(Log(INFO, "room %r removed", (room.name,)))
             self._retire(room, now)
 
     def _retire(self, room: Room, now: float) -> None:

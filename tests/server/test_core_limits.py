@@ -12,7 +12,7 @@ import pytest
 from test_core import POSE, Client, connect, recorded
 
 from posecast.protocol import ErrorMessage, Hello, Join, Joined, PoseUpdate, encode_update
-from posecast.server.actions import Hold
+from posecast.server.actions import INFO, Hold, Log
 from posecast.server.auth import make_token
 from posecast.server.core import Close, RelayCore, ServerConfig
 from posecast.server.limits import normalise_room
@@ -185,8 +185,10 @@ def test_connections_are_limited_in_total_and_per_address() -> None:
     a2 = core.connect(1.0, address="10.0.0.1")
     assert core.pending() == []
     a3 = core.connect(1.0, address="10.0.0.1")
+    why = "too many connections from one address (2)"
     assert core.pending() == [
-        Close(a3, 1013, "try again later: too many connections from one address (2)")
+        Log(INFO, "connection from %s refused: %s", ("10.0.0.1", why)),  # (the adapter logs it)
+        Close(a3, 1013, f"try again later: {why}"),
     ]
     b1 = core.connect(1.0, address="10.0.0.2")
     assert core.pending() == []
