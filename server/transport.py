@@ -6,8 +6,8 @@ the message size limit -> 1009, ping/pong, the closing handshake) on the
 transport the loop hands it: received bytes go to the protocol, the messages
 it parses go to :meth:`~WebSocketConnection.on_messages` in one batch per read,
 what it has to send is written at once. Writes of data frames bypass it:
-:func:`frame_binary` frames a payload once (a server's frames are unmasked,
-so the same bytes serve every subscriber of one snapshot) and
+:func:`~posecast.server.wsframe.frame_binary` frames a payload once (a server's
+frames are unmasked, so the same bytes serve every subscriber of one snapshot) and
 :meth:`~WebSocketConnection.write` hands them to the transport.
 
 Time here is the loop's timers only (``call_later``): the opening handshake
@@ -38,6 +38,7 @@ from websockets.server import ServerProtocol
 from websockets.typing import Subprotocol
 
 from posecast.server.logs import LogLimiter
+from posecast.server.wsframe import frame_binary
 
 __all__ = ["SUBPROTOCOL", "WRITE_HIGH_WATER", "WebSocketConnection", "frame_binary"]
 
@@ -47,8 +48,6 @@ log = logging.getLogger("posecast.server")
 #: default ``write_limit``); it resumes them below a quarter of it.
 WRITE_HIGH_WATER = 32 * 1024
 
-_HEAD16 = struct.Struct("!BBH")
-_HEAD64 = struct.Struct("!BBQ")
 _PING = struct.Struct("!I")
 
 #: A failed read (a relay bug some input reaches) logs its traceback at most this
@@ -76,16 +75,6 @@ def _select_subprotocol(
         return Subprotocol(SUBPROTOCOL)
     names = ", ".join(offered)
     raise NegotiationError(f"unsupported subprotocol {names}; this relay speaks {SUBPROTOCOL}")
-
-
-def frame_binary(payload: bytes) -> bytes:
-    """A complete unmasked binary websocket frame (FIN set) carrying ``payload``."""
-    n = len(payload)
-    if n < 126:
-        return bytes((0x82, n)) + payload
-    if n < 65536:
-        return _HEAD16.pack(0x82, 126, n) + payload
-    return _HEAD64.pack(0x82, 127, n) + payload
 
 
 class WebSocketConnection(asyncio.Protocol):
