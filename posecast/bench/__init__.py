@@ -7,12 +7,13 @@ Processes on loopback:
   is read from ``/proc/<pid>/stat`` and its counters from ``GET /metrics``;
 - the **load**: ``--procs`` subprocesses sharing the clients (:mod:`.fleet`),
   each running its share in one event loop (:mod:`.load`). A client is a bare
-  websocket connection (:mod:`.wsclient`: its own framing, no task per
-  connection) that does the hello/join handshake through the protocol's
-  session, then publishes its three streams (head, left, right) at ``rate``
-  Hz from pre-encoded frames (raw or ``--codec compact``) and subscribes at
-  ``rate``. Snapshots are counted from their headers; one in 16 of a client's
-  is decoded for capture -> receipt latency;
+  websocket connection (:mod:`.wsclient`: websockets' sans-I/O client,
+  snapshots cut out of each read, no task per connection) that does the
+  hello/join handshake through the protocol's session, then publishes its
+  three streams (head, left, right) at ``rate`` Hz from pre-encoded frames
+  (raw or ``--codec compact``) and subscribes at ``rate``. Snapshots are
+  counted from their headers; one in 16 of a client's is decoded for capture
+  -> receipt latency;
 - this process, which starts them, fixes the measurement window once every
   client has joined and a warm-up has passed, samples CPU and metrics at both
   ends of the window, prints the report and says who was saturated.

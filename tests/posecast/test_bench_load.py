@@ -15,8 +15,9 @@ import time
 import numpy as np
 import pytest
 from rich.console import Console
-from support import CliForker
+from support import CliForker, poll_until
 from websockets.asyncio.server import ServerConnection, serve
+from websockets.utils import accept_key
 
 from posecast.bench import run_relay_bench, run_relay_curve
 from posecast.bench.common import MOTION_FRAMES, Motion
@@ -25,15 +26,18 @@ from posecast.bench.procs import _histogram_quantile
 from posecast.bench.report import saturation
 from posecast.bench.sweep import BASELINE_KEYS, CURVE_KEYS, parse_counts
 from posecast.bench.wsclient import (
+    MAX_FRAME,
     CompactUpdateFrames,
     RawUpdateFrames,
     client_frame,
+    connect,
     open_connection,
 )
 from posecast.protocol import Hello, Join, Joined, PoseUpdate, Welcome, encode_update, pack_snapshot
 from posecast.protocol._compact import UpstreamDecoder, UpstreamEncoder
 from posecast.protocol.codec import DEFAULT_VOLUME
 from posecast.protocol.wire import encode_message
+from posecast.server.wsframe import frame_binary
 
 
 def _console() -> Console:
@@ -174,6 +178,115 @@ def test_refused_handshake_says_so() -> None:
                 await open_connection(f"ws://127.0.0.1:{port}", time.monotonic, 5.0)
 
     asyncio.run(main())
+
+
+async def _raw_server_exchange(answer: bytes, then: bytes) -> tuple[str, bytes]:
+    """A bench client against a server that answers the upgrade with ``answer`` (its
+    ``{accept}`` filled in) and then sends ``then``: how the client ended and the
+    bytes it wrote after its request."""
+    wrote: asyncio.Future[bytes] = asyncio.get_running_loop().create_future()
+
+    async def server(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        request = (await reader.readuntil(b"\r\n\r\n")).decode()
+        key = next(
+            line.split(":", 1)[1].strip()
+            for line in request.split("\r\n")
+            if line.lower().startswith("sec-websocket-key:")
+        )
+        writer.write(answer.replace(b"{accept}", accept_key(key).encode()) + then)
+        await writer.drain()
+        wrote.set_result(await asyncio.wait_for(reader.read(-1), 5.0))
+        writer.close()
+
+    srv = await asyncio.start_server(server, "127.0.0.1", 0)
+    async with srv:
+        port = srv.sockets[0].getsockname()[1]
+        try:
+            conn, _ = await open_connection(f"ws://127.0.0.1:{port}", time.monotonic, 5.0)
+        except ConnectionError as exc:
+            return f"refused: {exc}", await asyncio.wait_for(wrote, 5.0)
+        ended = await asyncio.wait_for(conn.closed, 5.0)
+        return ended, await asyncio.wait_for(wrote, 5.0)
+
+
+_UPGRADE = (
+    b"HTTP/1.1 101 Switching Protocols\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+    b"Sec-WebSocket-Accept: {accept}\r\n\r\n"
+)
+
+
+def _close_code(wrote: bytes) -> int:
+    """The code of the (zero-key) close frame the client wrote."""
+    assert wrote[0] == 0x88 and wrote[1] & 0x80, wrote[:4]
+    key = wrote[2:6]
+    body = bytes(b ^ key[i % 4] for i, b in enumerate(wrote[6 : 6 + (wrote[1] & 0x7F)]))
+    return int.from_bytes(body[:2], "big")
+
+
+def test_a_masked_server_frame_closes_1002() -> None:
+    """A server must not mask its frames: the client closes 1002 and says so."""
+    masked = bytes((0x82, 0x80 | 3)) + b"\x01\x02\x03\x04" + b"abc"
+    ended, wrote = asyncio.run(_raw_server_exchange(_UPGRADE, masked))
+    assert ended.startswith("1002") and "mask" in ended
+    assert _close_code(wrote) == 1002
+
+
+def test_an_oversized_server_frame_closes_1009() -> None:
+    """A frame over the load's limit is refused from its header: 1009, nothing buffered."""
+    huge = bytes((0x82, 127)) + (MAX_FRAME + 1).to_bytes(8, "big")
+    ended, wrote = asyncio.run(_raw_server_exchange(_UPGRADE, huge))
+    assert ended.startswith("1009")
+    assert _close_code(wrote) == 1009
+
+
+def test_a_wrong_accept_key_is_a_refused_handshake() -> None:
+    """A 101 whose Sec-WebSocket-Accept does not answer the key: ConnectionError naming it."""
+    answer = _UPGRADE.replace(b"{accept}", b"d3Jvbmcga2V5IGZvciB0aGlz")
+    ended, wrote = asyncio.run(_raw_server_exchange(answer, b""))
+    assert ended.startswith("refused: handshake refused") and "Sec-WebSocket-Accept" in ended
+    assert wrote == b""  # no frame after a failed handshake
+
+
+def test_frames_right_after_the_upgrade_and_split_reads_arrive_whole() -> None:
+    """Frames in the read that ends the upgrade, a ping between them and a frame cut
+    mid-header reach on_message whole and in order; the ping is answered."""
+
+    async def main() -> tuple[list[bytes], bytes]:
+        got: list[bytes] = []
+        wrote: asyncio.Future[bytes] = asyncio.get_running_loop().create_future()
+        first, second, big = b"one", b"two" * 50, bytes(range(256)) * 300
+        stream = frame_binary(first) + bytes((0x89, 2)) + b"hi" + frame_binary(second)
+
+        async def server(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            request = (await reader.readuntil(b"\r\n\r\n")).decode()
+            key = next(
+                line.split(":", 1)[1].strip()
+                for line in request.split("\r\n")
+                if line.lower().startswith("sec-websocket-key:")
+            )
+            writer.write(_UPGRADE.replace(b"{accept}", accept_key(key).encode()) + stream)
+            await writer.drain()
+            wrote.set_result(await reader.readexactly(8))
+            writer.close()
+
+        srv = await asyncio.start_server(server, "127.0.0.1", 0)
+        async with srv:
+            port = srv.sockets[0].getsockname()[1]
+            conn = await connect(f"ws://127.0.0.1:{port}", time.monotonic, 5.0)
+            conn.on_message = lambda data, arrival: got.append(data)
+            await conn.upgraded(5.0)
+            pong = await asyncio.wait_for(wrote, 5.0)
+            await poll_until(lambda: len(got) == 2)
+            # One frame over four reads, cut inside its header and its payload.
+            tail = frame_binary(big)
+            for piece in (tail[:1], tail[1:3], tail[3:5000], tail[5000:]):
+                conn.data_received(piece)
+            conn.abort()
+        return got, pong
+
+    got, pong = asyncio.run(main())
+    assert got == [b"one", b"two" * 50, bytes(range(256)) * 300]
+    assert pong[0] == 0x8A and pong[1] == 0x80 | 2  # a masked pong of the ping's 2 bytes
 
 
 # ---------------------------------------------------------------------------------
