@@ -92,6 +92,9 @@ class RelayServer:
         self.core = RelayCore(self.config)
         self.limits = self.core.limits
         self._conns: dict[int, Connection] = {}
+        #: Connections whose sockets held unsent bytes when last looked at: told to the
+        #: core again before each tick (the loop sends between callbacks).
+        self.unsent: set[Connection] = set()
         #: Every TCP connection, handshake or not (stop() waits for them all to end).
         self._sockets: set[Connection] = set()
         self._all_gone = asyncio.Event()
@@ -224,6 +227,8 @@ class RelayServer:
         # At most one pass over the rooms per callback: other callbacks (reads) get the
         # loop between passes even when every room is overdue.
         budget = len(core.rooms) + 1
+        for conn in list(self.unsent):  # what the loop sent since: the core reads it
+            conn.tell_unsent()
         now = clock()
         try:
             while budget > 0 and (due := core.next_deadline()) is not None:
@@ -281,6 +286,7 @@ class RelayServer:
     def socket_gone(self, conn: Connection) -> None:
         """A TCP connection has ended."""
         self._sockets.discard(conn)
+        self.unsent.discard(conn)
         if not self._sockets:
             self._all_gone.set()
 

@@ -93,6 +93,8 @@ class Host(Protocol):
     origins: OriginPolicy
     ws_log: QuietHttpLog
     frames: Framer
+    #: Connections whose sockets held unsent bytes when last told (``tell_unsent``).
+    unsent: set[Connection]
 
     @property
     def closing(self) -> bool:
@@ -165,6 +167,8 @@ class Connection(WebSocketConnection):
         self._slot: Slot | None = None
         self._address: str | None = None
         self._joining = True  # (not a member yet: its reads are ``Capacity.join_work``)
+        #: The unsent bytes the core was last told (``tell_unsent``).
+        self._told = 0
 
     @property
     def outbox(self) -> Outbox:
@@ -179,6 +183,21 @@ class Connection(WebSocketConnection):
 
     def buffered(self) -> int:
         return int(self.transport.get_write_buffer_size())
+
+    def tell_unsent(self) -> None:
+        """Tell the core the socket's unsent bytes if they changed since it was last told.
+
+        Only a write adds to them (told after each ``flush``); the loop sends them
+        between callbacks, so a connection with some left stays in the server's
+        ``unsent`` set, told again before each tick: a room's tick reads a number."""
+        n = int(self.transport.get_write_buffer_size())
+        if n != self._told:
+            self._told = n
+            self.server.core.buffered(self.conn, n)
+        if n:
+            self.server.unsent.add(self)
+        else:
+            self.server.unsent.discard(self)
 
     # -- the websocket's hooks ---------------------------------------------------------------
 
@@ -242,7 +261,8 @@ class Connection(WebSocketConnection):
         server, core = self.server, self.server.core
         over = self._slot == "probe"  # a spare place: over a cap before its handshake
         self._release_slot()  # counted by the core from now on
-        self.conn = core.connect(server.clock(), self.buffered, self._address)
+        self.conn = core.connect(server.clock(), self._address)
+        self.tell_unsent()  # (the handshake's response may still be unsent)
         self.pongs = core.peers[self.conn].stamps.round_trip  # its round trips (stamps.py)
         # Refused over a connection limit (a Close), or a join deadline to watch.
         server.opened(self, core.pending())
@@ -422,6 +442,8 @@ class Connection(WebSocketConnection):
             write, frame = self.transport.write, server.frames.frame
             for data in frames:
                 write(frame(data))  # the same payload object: the same framed bytes
+            if self.transport.get_write_buffer_size() or self._told:
+                self.tell_unsent()
         if next_at is not None:
             self._link_due(next_at)
         pending = core.pending()

@@ -72,8 +72,6 @@ encodes one snapshot per tick group, shared by every due member. Shared objects
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 from posecast.protocol import (
     ROOM_USER,
     Bye,
@@ -246,22 +244,28 @@ class RelayCore:
 
     # -- connections ---------------------------------------------------------------
 
-    def connect(
-        self, now: float, buffered: Callable[[], int] = lambda: 0, address: str | None = None
-    ) -> int:
-        """A new connection from ``address``; returns its id. ``buffered``: its unsent bytes.
+    def connect(self, now: float, address: str | None = None) -> int:
+        """A new connection from ``address``; returns its id.
 
         Over ``max_connections`` (or ``max_connections_per_address``) it is closed
         at once with 1013 "try again later" (the ``Close`` is in :meth:`pending`).
         """
         conn = self.new_conn()
-        peer = self.peers[conn] = Peer(conn, self, buffered, now, address)
+        peer = self.peers[conn] = Peer(conn, self, now, address)
         refused = self.joins.admit(peer, now)
         if refused is not None:
             self.refused_connections += 1
             self.emit(Log(INFO, "connection from %s refused: %s", (address, refused)))
             self.close_peer(peer, 1013, f"try again later: {refused}")
         return conn
+
+    def buffered(self, conn: int, unsent: int) -> None:
+        """Connection ``conn``'s socket holds ``unsent`` bytes not yet sent (the adapter
+        tells whenever the number may have changed before a tick reads it): over
+        ``congested_bytes`` its snapshots are skipped; auto rates read it too."""
+        peer = self.peers.get(conn)
+        if peer is not None:
+            peer.outbox.buffered = unsent
 
     def next_expiry(self) -> float | None:
         """When the next connection is due to be closed (one that has not joined in

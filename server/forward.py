@@ -143,7 +143,7 @@ class Members:
         user, agent, resumable, address = int(item[3]), str(item[4]), bool(item[5]), item[6]
         token = item[7] if len(item) > 7 else None
         hello_follows = len(item) > 8 and bool(item[8])
-        conn = self.core.connect(now, lambda: 0, f"{key[0]}/{address}")
+        conn = self.core.connect(now, f"{key[0]}/{address}")
         self.conns[key], self.remote[conn] = conn, key
         peer = self.core.peer(conn)
         peer.preset_user = user

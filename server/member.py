@@ -69,14 +69,16 @@ class IdAllocator:
 class Outbox:
     """What one connection still has to write: one pose slot and a bounded queue.
 
-    ``buffered`` reports the socket's write-buffer size; above ``congested_bytes``
-    the room gives the connection no new snapshot (a skip) until it drains.
+    ``buffered`` is the socket's unsent bytes as the adapter last reported them
+    (``RelayCore.buffered``: a number, never a call into the adapter); above
+    ``congested_bytes`` the room gives the connection no new snapshot (a skip) until
+    it drains.
     """
 
     def __init__(
         self,
         max_events: int = DEFAULT_EVENT_QUEUE,
-        buffered: Callable[[], int] = lambda: 0,
+        buffered: int = 0,
         congested_bytes: int = 64 * 1024,
     ) -> None:
         self.pose: bytes | None = None
@@ -90,7 +92,7 @@ class Outbox:
         self.snapshots_offered = 0
 
     def congested(self) -> bool:
-        return self.buffered() > self.congested_bytes
+        return self.buffered > self.congested_bytes
 
     def offer_snapshot(self, data: bytes) -> None:
         """Latest wins: a snapshot still waiting is replaced (and counted as a skip)."""

@@ -7,7 +7,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -97,7 +96,6 @@ class Peer:
         self,
         conn: int,
         core: PeerHost,
-        buffered: Callable[[], int],
         now: float,
         address: str | None = None,
     ) -> None:
@@ -108,7 +106,7 @@ class Peer:
         #: Whether :class:`server.limits.Admission` counted it (it was not refused).
         self.admitted = False
         self.session = ServerSession(core.limits, core.volume)
-        self.outbox = Outbox(cfg.max_event_queue, buffered, cfg.congested_bytes)
+        self.outbox = Outbox(cfg.max_event_queue, 0, cfg.congested_bytes)
         self.outbox.on_ready = self._ready
         self._core = core
         self.user: int | None = None

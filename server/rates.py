@@ -306,6 +306,7 @@ class RatedOutbox(Protocol):
     def snapshots_offered(self) -> int: ...
     @property
     def skips(self) -> int: ...
+    @property
     def buffered(self) -> int: ...
 
 
@@ -374,7 +375,7 @@ def egress(peer: RatedPeer, member: RatedMember) -> Egress:
     if downlink is not None:  # the emulated link is the bottleneck: what passed its cap
         link = downlink.link
         return Egress(ticks, skips + link.cap_skips, link.bytes)
-    backlog = outbox.buffered()
+    backlog = outbox.buffered
     return Egress(ticks, skips, peer.bytes_out - backlog, backlog)
 
 

@@ -214,10 +214,9 @@ def test_skipped_snapshot_content_is_not_lost() -> None:
 
 def test_congested_member_skips_then_gets_everything() -> None:
     """A congested outbox gets no snapshot (counted); once drained it gets all it missed."""
-    buffered = [100_000]
     room = Room("r")
     pub = member(room, 1, ("head", "left"), 10.0)
-    sub = Member(2, "u2", room.allocate_streams(("head",)), 10.0, Outbox(8, lambda: buffered[0]))
+    sub = Member(2, "u2", room.allocate_streams(("head",)), 10.0, Outbox(8, buffered=100_000))
     room.add(pub, 0.0)
     room.add(sub, 0.0)
     head, left = pub.streams["head"], pub.streams["left"]
@@ -227,7 +226,7 @@ def test_congested_member_skips_then_gets_everything() -> None:
     room.tick(0.2)
     assert sub.outbox.pose is None
     assert sub.congestion_skips == 2
-    buffered[0] = 0
+    sub.outbox.buffered = 0  # (the adapter reported the socket drained)
     room.tick(0.3)
     assert contents(sub.outbox.take()) == {(1, head): 2.0, (1, left): 1.0}
     assert sub.outbox.skips == 0
@@ -278,10 +277,9 @@ def test_outbox_events_bounded_and_first() -> None:
 
 def test_outbox_congested_follows_buffer() -> None:
     """congested() is true exactly when the buffered bytes exceed congested_bytes."""
-    size = [10]
-    box = Outbox(buffered=lambda: size[0], congested_bytes=10)
+    box = Outbox(buffered=10, congested_bytes=10)
     assert not box.congested()
-    size[0] = 11
+    box.buffered = 11
     assert box.congested()
 
 

@@ -148,8 +148,8 @@ async def test_a_handshake_finishing_after_stop_is_closed_in_the_core() -> None:
         handled: list[object] = []
         connect, handle = srv.core.connect, srv.core.handle
 
-        def connect_spy(now: float, buffered: Any = lambda: 0, address: Any = None) -> int:
-            conn = connect(now, buffered, address)
+        def connect_spy(now: float, address: Any = None) -> int:
+            conn = connect(now, address)
             peers.append(srv.core.peer(conn))
             return conn
 
