@@ -44,7 +44,15 @@ has the owner it had before the recorded change (the bots run on their own
 timers: a request must not overtake the release it followed). An owner's bot
 sends the object's recorded keyframes in its updates while the live relay says
 it holds the object (entries it does not hold are left out; after a request it
-waits, as long again at most, for the answer before it sends on). A recorded
+waits, as long again at most, for the answer before it sends on). While the
+relay's answer to its request (or create) has not reached it, the bot holds
+the object's keyframes back, at most ``BACKLOG`` of them (a burst the relay's
+update bucket of a second's worth takes), and sends each in an update of its
+own once the grant arrives, before its next scheduled update (or right after the
+answer, or at its end, after waiting for the answer once more): late,
+as a bot behind its schedule sends, but none lost (the report's ``objects``
+count them: ``keyframes_late``, and ``keyframes_dropped`` when the answer was a
+refusal or the backlog overflowed). A recorded
 ``owner-left`` happens when its bot leaves; objects are found by name, so a
 replay into a room that still has them (``--loop``) uses them as they are.
 """
@@ -52,6 +60,7 @@ replay into a room that still has them (``--loop``) uses them as they are.
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import math
 import os
@@ -106,6 +115,8 @@ __all__ = [
 ]
 
 F64 = NDArray[np.float64]
+#: A held-back object keyframe: capture (server clock), pose row, velocity row.
+_Held = tuple[float, NDArray[np.float32], NDArray[Any] | None]
 Clock = Callable[[], float]
 Vec3 = tuple[float, float, float]
 
@@ -113,6 +124,8 @@ Vec3 = tuple[float, float, float]
 DEFAULT_MAX_SEND_RATE = 100.0
 #: Seconds a bot waits for a live object to be in its recorded state before an action.
 DEFAULT_OBJECT_PATIENCE = 1.0
+#: Keyframes of one object a bot holds back while it waits for the object's grant.
+BACKLOG = 32
 _SYNC_PINGS = 8
 #: What a replay bot's core is set up with: it renders nothing, so any method and
 #: rate serve (a plan without a recorded rate asks for this one).
@@ -172,6 +185,13 @@ class _ReplayBot:
         self.refused: list[str] = []
         #: Live object streams this bot asked for and has no answer about yet.
         self.pending: set[int] = set()
+        #: Objects this bot created to hold and has not heard of yet (by name).
+        self.creating: set[str] = set()
+        #: Recorded object stream -> its keyframes held back until the grant arrives.
+        self.backlog: dict[int, collections.deque[_Held]] = {}
+        #: Held-back keyframes sent once the grant came, and ones given up.
+        self.keyframes_late = 0
+        self.keyframes_dropped = 0
         self._changed = asyncio.Event()
 
     def _heard(self, ev: object, arrival: float, size: int) -> None:
@@ -179,9 +199,12 @@ class _ReplayBot:
         if isinstance(ev, ObjectInfo | Owner):
             self.owners[ev.stream] = ev.owner
             self.pending.discard(ev.stream)
+            if isinstance(ev, ObjectInfo):
+                self.creating.discard(ev.name)
         elif isinstance(ev, ErrorMessage) and ev.code == ErrorCode.OWNERSHIP_REFUSED:
             self.refused.append(ev.message)
             self.pending.clear()  # errors do not say which request
+            self.creating.clear()
         else:
             return
         self._changed.set()
@@ -205,6 +228,8 @@ class _ReplayBot:
             assert act.pose is not None
             pose = pose_tuple("object_create.pose", act.pose)
             create = ObjectCreate(act.name, pose, act.keep, act.steal, act.hold)
+            if act.hold:
+                self.creating.add(act.name)
             await self.conn.send(create)
             self.actions_sent += 1
             if act.hold:  # held before the keyframes that follow are sent
@@ -315,6 +340,7 @@ class _ReplayBot:
                 if wait > 0:
                     await asyncio.sleep(wait)
                 await self._act(actions[k], clock)
+                seq += await self.send_backlog(seq + 1)
                 k += 1
                 continue
             wait = due[i] - clock()
@@ -337,9 +363,15 @@ class _ReplayBot:
             seq += sent
             self.lateness.append(now - due[j - 1])
             i = j
+        if self.backlog:  # the last keyframes wait for their grant, once more at most
+            await self._wait_for(lambda: not any(map(self._awaiting, self._backlogged())), clock)
+            await self.send_backlog(seq + 1)
+            self.keyframes_dropped += sum(map(len, self.backlog.values()))
+            self.backlog.clear()
 
     async def _send_update(self, seq: int, i: int, j: int, scale: Callable[[float], float]) -> int:
-        """Send recorded updates ``i:j`` as one (merged if more); 1 if one was sent."""
+        """Send recorded updates ``i:j`` as one (merged if more), after the held-back
+        keyframes whose grant came; the number of updates sent (seq ``seq`` on)."""
         plan, vels = self.plan, self.plan.velocities
         if j - i == 1:
             ids, caps, poses = plan.updates[i]
@@ -349,20 +381,72 @@ class _ReplayBot:
                 plan.updates[i:j], None if vels is None else vels[i:j]
             )
             self.merged += j - i - 1
+        sent = await self.send_backlog(seq)
+        new_caps = np.array([scale(c) for c in caps.tolist()], dtype=np.float64)
         keep = self._live_ids(ids)
+        for k in np.flatnonzero(~keep).tolist():
+            self._hold_back(int(ids[k]), (new_caps[k], poses[k], None if vel is None else vel[k]))
         if not keep.any():
-            return 0  # only objects this bot does not hold (live) right now
+            return sent  # only objects this bot does not hold (live) right now
         live = np.array([self._live_id(int(s)) for s in ids[keep].tolist()], dtype=np.uint16)
-        new_caps = np.array([scale(c) for c in caps[keep].tolist()], dtype=np.float64)
-        poses = poses[keep]
-        if vel is not None:
-            vel = vel[keep]
-            if self.velocity_scale != 1.0:
-                vel = vel * np.float32(self.velocity_scale)
-        await send_update(self.conn, self.codec, seq, live, new_caps, poses, vel)
+        await self._send(
+            seq + sent, live, new_caps[keep], poses[keep], vel[keep] if vel is not None else None
+        )
         self.sent += 1
+        return sent + 1
+
+    async def _send(
+        self,
+        seq: int,
+        live: NDArray[np.uint16],
+        caps: F64,
+        poses: NDArray[Any],
+        vel: NDArray[Any] | None,
+    ) -> None:
+        if vel is not None and self.velocity_scale != 1.0:
+            vel = vel * np.float32(self.velocity_scale)
+        await send_update(self.conn, self.codec, seq, live, caps, poses, vel)
         self.poses += int(live.size)
-        return 1
+
+    def _hold_back(self, sid: int, keyframe: _Held) -> None:
+        """Keep an object's keyframe for its grant if this bot awaits one (else drop it:
+        the relay would not take it)."""
+        if not self._awaiting(self.plan.objects[sid]):
+            return
+        held = self.backlog.setdefault(sid, collections.deque())
+        if len(held) >= BACKLOG:
+            held.popleft()
+            self.keyframes_dropped += 1
+        held.append(keyframe)
+
+    def _backlogged(self) -> list[str]:
+        """Names of the objects with held-back keyframes."""
+        return [self.plan.objects[sid] for sid in self.backlog]
+
+    def _awaiting(self, name: str) -> bool:
+        """This bot asked for object ``name`` (a request, or a create that holds it)
+        and the relay's answer has not reached it yet."""
+        stream = self.conn.session.objects.get(name)
+        return name in self.creating if stream is None else stream in self.pending
+
+    async def send_backlog(self, seq: int) -> int:
+        """Send the held-back keyframes of every object granted since, one update each
+        (seq ``seq`` on); drop those of objects no longer awaited. Updates sent."""
+        sent = 0
+        objects, held = self.conn.session.objects, self.conn.session.held
+        for sid in list(self.backlog):
+            name = self.plan.objects[sid]
+            stream = objects.get(name)
+            if stream is not None and stream in held:
+                live = np.array([stream], dtype=np.uint16)
+                for cap, pose, vel in self.backlog.pop(sid):
+                    v = None if vel is None else vel[None]
+                    await self._send(seq + sent, live, np.array([cap]), pose[None], v)
+                    sent += 1
+                    self.keyframes_late += 1
+            elif not self._awaiting(name):
+                self.keyframes_dropped += len(self.backlog.pop(sid))
+        return sent
 
     def _live_id(self, sid: int) -> int:
         name = self.plan.objects.get(sid)
@@ -520,7 +604,10 @@ def _report(
 ) -> dict[str, Any]:
     """:func:`replay_live`'s report (see there). ``objects.impatient`` counts object
     actions sent before the live object reached its recorded owner (after the
-    bot's patience); ``objects.refused`` holds the relay's refusals."""
+    bot's patience); ``objects.refused`` holds the relay's refusals;
+    ``objects.keyframes_late`` counts object keyframes held back until their grant
+    reached the bot and sent then, ``objects.keyframes_dropped`` those given up (a
+    refusal, or more than ``BACKLOG`` waiting)."""
     lateness = [x for b in bots for x in b.lateness]
     return {
         "path": str(Path(path)),
@@ -566,6 +653,8 @@ def _report(
             "actions_sent": sum(b.actions_sent for b in bots),
             "impatient": sum(b.impatient for b in bots),
             "refused": [m for b in bots for m in b.refused],
+            "keyframes_late": sum(b.keyframes_late for b in bots),
+            "keyframes_dropped": sum(b.keyframes_dropped for b in bots),
         },
     }
 
@@ -623,7 +712,8 @@ async def replay_live(
          "streams": [{"recorded_user", "recorded_stream", "name", "user", "stream"}],
          "bots": [{"recorded_user", "user", "name", "updates_sent", "joined_at",
                    "velocities", "object_actions"}],
-         "objects": {"actions_recorded", "actions_sent", "impatient", "refused"}}
+         "objects": {"actions_recorded", "actions_sent", "impatient", "refused",
+                     "keyframes_late", "keyframes_dropped"}}
 
     A recorded update arriving at ``a`` (capture ``c``) is sent at server time
     ``server_start + (a - origin) / speed`` with capture ``server_start + (c -
