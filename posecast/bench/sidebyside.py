@@ -257,7 +257,7 @@ def _table(records: list[dict[str, Any]], bench: str, figures: tuple[str, ...]) 
 
 
 def _notes(records: list[dict[str, Any]]) -> list[str]:
-    """Load by side, the codec that ran, CRCs, failures."""
+    """Load by side, the codec that ran, failures; connections sent the same bytes."""
     lines = []
     for side in dict.fromkeys(r["side"] for r in records):
         mine = [r for r in records if r["side"] == side]
@@ -272,15 +272,31 @@ def _notes(records: list[dict[str, Any]]) -> list[str]:
                 if r["bench"] == "relay" and r["ok"]
             }
         )
-        crcs = sorted(
-            {f"{r['codec']} {r['figures'].get('crc')}" for r in mine if r["bench"] == "core"}
-        )
         lines.append(
             f"- {side}: {len(mine)} runs ({failed} failed), load average (1 min) "
             + (f"{min(loads):.2f}-{max(loads):.2f}" if loads else "-")
             + (f"; relay codec {'; '.join(impl)}" if impl else "")
-            + (f"; in-process frame CRCs {', '.join(crcs)}" if crcs else "")
         )
+    return lines + _same_bytes(records)
+
+
+def _same_bytes(records: list[dict[str, Any]]) -> list[str]:
+    """How many connections each side's relay sent the same bytes as before's, in process."""
+    core = [r for r in records if r["bench"] == "core" and r["ok"]]
+    first: dict[tuple[str, str], list[str]] = {}
+    for r in core:
+        first.setdefault((r["side"], r["codec"]), r["figures"].get("conn_crcs", []))
+    sides = list(dict.fromkeys(r["side"] for r in core))
+    lines = []
+    for side in sides[1:]:
+        for codec in dict.fromkeys(r["codec"] for r in core):
+            old, new = first.get((sides[0], codec)), first.get((side, codec))
+            if old and new:
+                same = sum(a == b for a, b in zip(old, new, strict=False))
+                lines.append(
+                    f"- in process, {codec}: {side}'s relay sent {same} of {len(old)} "
+                    f"connections the same bytes as {sides[0]}'s"
+                )
     return lines
 
 

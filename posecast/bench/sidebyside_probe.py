@@ -16,8 +16,10 @@ replays the log alone and only its ``receive``, ``tick`` and ``take`` are timed
 (``time.process_time``). ``--traces`` reads the traces from an ``.npz`` written
 by :func:`save_traces`, so two checkouts whose trace loaders differ are fed the
 same poses. Prints one JSON line: relay CPU (us) per remote pose delivered, by
-phase, and the CRC-32 of every frame the relay took: equal CRCs on two
-checkouts mean their relays sent the same bytes for the same input.
+phase, and a CRC-32 per connection of the frames the relay took for it, in order
+(``conn_crcs``; ``crc`` combines them): equal CRCs on two checkouts mean their
+relays sent each connection the same bytes for the same input (the order in
+which connections are served in one call may differ).
 """
 
 from __future__ import annotations
@@ -121,12 +123,12 @@ class _Run:
         update = self.p.PoseUpdate.from_arrays(m.seq, m.ids, capture, m.trace.poses[i])
         return m.session.send(update)  # type: ignore[no-any-return]
 
-    def play(self, seconds: float) -> tuple[int, int]:
-        """Publish and tick for ``seconds``; the remote poses delivered, and the frames' CRC."""
+    def play(self, seconds: float) -> tuple[int, list[int]]:
+        """Publish and tick for ``seconds``; the remote poses delivered, each connection's CRC."""
         members, core = self.members, self.core
         next_pub = [T0 + m.phase / RATE for m in members]
         conns = [m.conn for m in members]
-        now, poses, crc = T0, 0, 0
+        now, poses, crcs = T0, 0, [0] * len(conns)
         while now < T0 + seconds:
             now = min(min(next_pub), core.next_deadline() or now + 1)
             for k, m in enumerate(members):
@@ -137,17 +139,18 @@ class _Run:
             if due is not None and due <= now + 1e-12:
                 self.call("tick", core.tick, now)
                 out = self.call("take", _take_all, core, conns, now)
-                for m, frames in zip(members, out, strict=True):
+                for k, (m, frames) in enumerate(zip(members, out, strict=True)):
                     for data in frames:
-                        crc = zlib.crc32(data, crc)
+                        crcs[k] = zlib.crc32(data, crcs[k])
                         for ev in m.session.receive_data(data):
                             if isinstance(ev, self.p.Snapshot):
                                 poses += int((ev.entries["user"] != m.session.user).sum())
-        return poses, crc
+        return poses, crcs
 
 
-def _replay(log: list[tuple[str, bool, tuple[Any, ...]]]) -> tuple[dict[str, float], int]:
-    """CPU seconds by phase of a fresh core making the logged calls, and its frames' CRC."""
+def _replay(log: list[tuple[str, bool, tuple[Any, ...]]]) -> tuple[dict[str, float], list[int]]:
+    """CPU seconds by phase of a fresh core making the logged calls, and the CRC of the
+    frames it took for each connection (in order of the connections)."""
     core = modules()[2].RelayCore()
     fns: dict[str, Callable[..., Any]] = {
         "connect": core.connect,
@@ -156,32 +159,36 @@ def _replay(log: list[tuple[str, bool, tuple[Any, ...]]]) -> tuple[dict[str, flo
         "take": lambda _old, *args: _take_all(core, *args),
     }
     cpu = dict.fromkeys(PHASES, 0.0)
-    crc, clock = 0, time.process_time
+    crcs: dict[int, int] = {}
+    clock = time.process_time
     for phase, timed, args in log:
         c = clock()
         out = fns[phase](*args)
         if timed:
             cpu[phase] += clock() - c
             if phase == "take":
-                for frames in out:
+                for conn, frames in zip(args[1], out, strict=True):
+                    crc = crcs.get(conn, 0)
                     for data in frames:
                         crc = zlib.crc32(data, crc)
-    return cpu, crc
+                    crcs[conn] = crc
+    return cpu, [crcs[conn] for conn in sorted(crcs)]
 
 
 def measure(codec: str, rooms: int, seconds: float, traces: list[Any]) -> dict[str, Any]:
     """Relay CPU (us) per remote pose delivered, total and by phase; the frames' CRC."""
     run = _Run(codec, rooms, traces)
-    poses, crc = run.play(seconds)
+    poses, crcs = run.play(seconds)
     if not poses:
         raise RuntimeError("the relay delivered no pose")
     cpu, replayed = _replay(run.log)
-    if replayed != crc:
+    if replayed != crcs:
         raise RuntimeError("the replayed relay took other frames than the first")
     us = {phase: 1e6 * cpu[phase] / poses for phase in PHASES}
     out: dict[str, Any] = {"us_per_pose": sum(us.values())}
     out.update({f"us_{phase}": v for phase, v in us.items()})
-    out.update(crc=f"{crc:08x}", poses=poses)
+    out.update(crc=f"{zlib.crc32(b''.join(c.to_bytes(4, 'big') for c in crcs)):08x}")
+    out.update(conn_crcs=[f"{c:08x}" for c in crcs], poses=poses)
     return out
 
 

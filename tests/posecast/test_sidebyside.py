@@ -102,8 +102,10 @@ def test_driver_alternates_the_sides_and_writes_the_summary(
     ]
     assert all(r["ok"] and "load average" in r["uptime_before"] for r in runs)
     assert len({r["figures"]["crc"] for r in runs}) == 1
+    assert len(runs[0]["figures"]["conn_crcs"]) == 10
     summary = capsys.readouterr().out
     assert "| raw | us_per_pose |" in summary and "| raw | us_tick |" in summary
+    assert "raw: after's relay sent 10 of 10 connections the same bytes as before's" in summary
     assert (out / "summary.md").read_text().strip() in summary
 
 
