@@ -389,11 +389,30 @@ class _Header:
         return 13 if self.velocity else 7
 
 
-def _read_flags(data: bytes, want_update: bool) -> int:
+@dataclass(frozen=True, slots=True)
+class HeaderRules:
+    """What one codec version's header reader accepts (:func:`_read_header`)."""
+
+    version: int
+    """The codec version the flags byte must state (its high nibble)."""
+    flags: int
+    """The flag bits it knows (any other set: ``bad-frame``)."""
+    entries_per_bit: bool
+    """Refuse counts over one entry per bit left (``bad-frame``) as soon as they are
+    read, before the check and the nibbles (version 1)."""
+    entries_required: bool
+    """A frame without an entry is ``bad-message`` (version 2)."""
+
+
+#: Version 1: snapshots and updates of ``codec_frame`` and ``codec_fast``.
+FRAME_RULES = HeaderRules(CODEC_VERSION, _FLAGS_KNOWN, True, False)
+
+
+def _read_flags(data: bytes, want_update: bool, rules: HeaderRules = FRAME_RULES) -> int:
     if len(data) < 2 or data[0] != CODEC_MAGIC:
         raise remote_error(ErrorCode.BAD_FRAME, "not a codec pose frame")
     flags = data[1]
-    if flags >> 4 != CODEC_VERSION or flags & 0x0F & ~_FLAGS_KNOWN:
+    if flags >> 4 != rules.version or flags & 0x0F & ~rules.flags:
         raise remote_error(ErrorCode.BAD_FRAME, "unknown codec version or flags")
     if bool(flags & F_UPDATE) != want_update:
         raise remote_error(
@@ -425,21 +444,27 @@ def _min_entry_bits(update: bool, velocity: bool, volume: Volume) -> tuple[int, 
     return common + 2 + 3 * ROTATION_BITS + sum(volume.bits), common + 7
 
 
-def _read_header(data: bytes, want_update: bool, volume: Volume) -> _Header:
-    flags = _read_flags(data, want_update)
+def _read_header(
+    data: bytes, want_update: bool, volume: Volume, rules: HeaderRules = FRAME_RULES
+) -> _Header:
+    """The header of a codec frame (both versions: ``rules`` says which); raises
+    ``RemoteProtocolError`` (with a code) for a header that is not one."""
+    flags = _read_flags(data, want_update, rules)
     update = bool(flags & F_UPDATE)
     velocity = bool(flags & F_VELOCITY)
     number, pos = _read_uvarint(data, 2)
     if number >= 1 << 63:
-        raise remote_error(ErrorCode.BAD_MESSAGE, "tick/seq over 2**63")
+        raise remote_error(ErrorCode.BAD_MESSAGE, f"{'seq' if update else 'tick'} over 2**63")
     z, pos = _read_uvarint(data, pos)
     base_us = unzz(z)
     if abs(base_us) >= _US_LIMIT:
         raise remote_error(ErrorCode.BAD_MESSAGE, "base time out of range")
     nk, pos = _read_uvarint(data, pos)
     nd, pos = _read_uvarint(data, pos)
+    if rules.entries_required and nk + nd == 0:
+        raise remote_error(ErrorCode.BAD_MESSAGE, "empty pose frame")
     # Every entry costs at least one bit (its stream code): bound n by the frame.
-    if nk + nd > 8 * (len(data) - pos):
+    if rules.entries_per_bit and nk + nd > 8 * (len(data) - pos):
         raise remote_error(ErrorCode.BAD_FRAME, "more entries than the frame can hold")
     check = None
     if nd:

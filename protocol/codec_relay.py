@@ -66,6 +66,7 @@ from posecast.protocol.bits import (
     zz,
 )
 from posecast.protocol.codec_frame import (
+    _US_LIMIT,
     CODEC_MAGIC,
     F_VELOCITY,
     _svarint,
@@ -83,7 +84,6 @@ from posecast.protocol.codec_relay_read import (
     _F_SPLIT,
     _ID_MAX,
     _TIME_MS_LIMIT,
-    _US_LIMIT,
     RELAY_CODEC_VERSION,
     RelayEntry,
     RelaySnapshot,

@@ -18,12 +18,10 @@ from posecast.protocol.bits import (
     unzz,
 )
 from posecast.protocol.codec_frame import (
-    CODEC_MAGIC,
-    F_UPDATE,
     F_VELOCITY,
     BaselineMismatch,
-    _min_entry_bits,
-    _read_nibbles,
+    HeaderRules,
+    _read_header,
     _read_uvarint,
 )
 from posecast.protocol.codec_quant import (
@@ -49,7 +47,9 @@ __all__ = [
 RELAY_CODEC_VERSION = 2
 _F_SPLIT = 4
 _TIME_MS_LIMIT = 1 << 30
-_US_LIMIT = 1 << 62
+#: Version 2 (snapshots only: no update flag) knows velocity and split, bounds the
+#: counts after the nibbles only, and refuses a frame without an entry.
+RELAY_RULES = HeaderRules(RELAY_CODEC_VERSION, F_VELOCITY | _F_SPLIT, False, True)
 _ID_MAX = 0xFFFF
 
 Row = list[int]
@@ -175,46 +175,17 @@ def decode_relay_snapshot(
     :class:`BaselineMismatch` and nothing of the frame is shown.
     """
     data = bytes(data)
-    if len(data) < 2 or data[0] != CODEC_MAGIC:
-        raise remote_error(ErrorCode.BAD_FRAME, "not a codec pose frame")
-    flags = data[1]
-    if flags >> 4 != RELAY_CODEC_VERSION or flags & 0x0F & ~(F_VELOCITY | _F_SPLIT):
-        raise remote_error(ErrorCode.BAD_FRAME, "unknown codec version or flags")
-    if flags & F_UPDATE:
-        raise remote_error(ErrorCode.BAD_MESSAGE, "an update where a snapshot was expected")
-    velocity = bool(flags & F_VELOCITY)
-    width = 13 if velocity else 7
-    tick, pos = _read_uvarint(data, 2)
-    if tick >= 1 << 63:
-        raise remote_error(ErrorCode.BAD_MESSAGE, "tick over 2**63")
-    z, pos = _read_uvarint(data, pos)
-    base_us = unzz(z)
-    if abs(base_us) >= _US_LIMIT:
-        raise remote_error(ErrorCode.BAD_MESSAGE, "base time out of range")
-    nk, pos = _read_uvarint(data, pos)
-    nd, pos = _read_uvarint(data, pos)
-    if nk + nd == 0:
-        raise remote_error(ErrorCode.BAD_MESSAGE, "empty pose frame")
-    check = 0
-    if nd:
-        if pos + 4 > len(data):
-            raise remote_error(ErrorCode.BAD_FRAME, "pose frame header truncated")
-        check = int.from_bytes(data[pos : pos + 4], "little")
-        pos += 4
-    knib_n = (1 + (2 if velocity else 0)) if nk else 0
-    dnib_n = (5 + (4 if velocity else 0)) if nd else 0
-    nib, pos = _read_nibbles(data, pos, knib_n + dnib_n)
-    key_bits, delta_bits = _min_entry_bits(False, velocity, volume)
-    if nk * key_bits + nd * delta_bits > 8 * (len(data) - pos):
-        raise remote_error(ErrorCode.BAD_FRAME, "more entries than the frame can hold")
-    r = IntReader(data[pos:])
+    h = _read_header(data, False, volume, RELAY_RULES)
+    nk, nd, nib, width = h.n_key, h.n_delta, h.nibbles, h.width
+    knib_n = (1 + (2 if h.velocity else 0)) if nk else 0
+    r = IntReader(data[h.size :])
     out: tuple[list[int], list[int], list[int], list[Row]] = ([], [], [], [])
     held = baselines or {}
     if nk:
         _read_section(r, nk, nib[:knib_n], False, width, volume, held, out)
     if nd:
         got = _read_section(r, nd, nib[knib_n:], True, width, volume, held, out)
-        if got != check:
+        if got != h.check:
             raise BaselineMismatch("delta frame coded against other baselines (check differs)")
     r.finish()
     users, streams, offs, rows = out
@@ -224,9 +195,9 @@ def decode_relay_snapshot(
     order = sorted(range(len(rows)), key=lambda i: (users[i], streams[i]))
     if len({(users[i], streams[i]) for i in order}) != len(order):
         raise remote_error(ErrorCode.BAD_MESSAGE, "a stream twice in one pose frame")
-    base = base_us / 1e6
+    base = h.base_us / 1e6
     return RelaySnapshot(
-        tick,
+        h.number,
         base,
         [users[i] for i in order],
         [streams[i] for i in order],
