@@ -40,6 +40,7 @@ from websockets.uri import parse_uri
 
 from posecast.protocol import PoseUpdate
 from posecast.protocol._compact import F_RELATIVE
+from posecast.protocol.bits import zz
 from posecast.protocol.codec_frame import _svarint, _uvarint
 from posecast.server.wsframe import FINAL_BINARY, MASKED, client_frame, frame_head
 
@@ -162,10 +163,7 @@ class CompactUpdateFrames:
         head, tail = self._parts[i % k]
         base_us = round(now * 1e6)
         if head[1] & F_RELATIVE:
-            d = seq - self._previous[0]
-            fields = _uvarint(d * 2 if d >= 0 else -d * 2 - 1) + _svarint(
-                base_us - self._previous[1]
-            )
+            fields = _uvarint(zz(seq - self._previous[0])) + _svarint(base_us - self._previous[1])
         else:
             fields = _uvarint(seq) + _svarint(base_us)
         self._previous = (seq, base_us)
