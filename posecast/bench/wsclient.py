@@ -265,8 +265,9 @@ class FrameConnection(asyncio.Protocol):
                 self.on_message(data[start:stop], arrival)
             else:
                 self._to_protocol(data[pos:stop], arrival)
-                if not self._cutting:
-                    self._to_protocol(data[stop:], arrival)
+                if not self._cutting:  # a close: the protocol reads (and discards) the rest
+                    if stop < end:
+                        self._to_protocol(data[stop:], arrival)
                     return end
             pos = stop
         return pos
