@@ -23,8 +23,13 @@ demo: $(VENV)/.installed-run
 # Two workers (pytest-xdist): most tests wait on sockets and timers, not the CPU, so
 # two halve the wall time on a 2-core machine. Tests that build or drive the JS
 # bundle and Chromium share a group (tests/conftest.py): one worker runs them in turn.
+# Bytecode is cached even where the caller's environment says not to
+# (PYTHONDONTWRITEBYTECODE): the suite starts many `posecast` processes (relays, bots,
+# attackers), each of which would compile the sources again (13 % of the CPU of
+# test_interrupt + test_bot_session_end from a clean tree). The workers take the
+# longest groups first, in the order tests/conftest.py puts them (no reordering).
 test: $(VENV)/.installed-test
-	$(BIN)/python -m pytest -q -n 2 --dist loadgroup --durations=25
+	PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -q -n 2 --dist loadgroup --no-loadscope-reorder --durations=25
 
 # mypy reads modules from files, not through the install's folder mapping: it checks
 # a tree of links laid out as the installed package (posecast/server -> server/, ...).
