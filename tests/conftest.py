@@ -60,11 +60,41 @@ def dev_trace_path(sample_dir: Path) -> Path:
 #: builds write the same node_modules and no two browsers compete for the CPU.
 _ONE_WORKER = frozenset({"node", "web_port", "browser", "chromium_path", "page"})
 
+#: The groups that take longest (minutes of real runs each): first in the queue, so
+#: that the two workers start on them and the suite ends on short tests.
+_FIRST = ("bench-hostile", "node-and-chromium")
+
+_SHARED_SCOPES = frozenset({"module", "class", "package"})
+
+
+def _group(item: pytest.Item) -> str | None:
+    mark = item.get_closest_marker("xdist_group")
+    return None if mark is None else str(mark.args[0] if mark.args else mark.kwargs["name"])
+
+
+def _shares_a_fixture(item: pytest.Item) -> bool:
+    """Whether ``item`` uses a module-, class- or package-scoped fixture (a real run, a
+    relay, a built report shared by the module's tests)."""
+    info = getattr(item, "_fixtureinfo", None)
+    if info is None:
+        return False
+    return any(d.scope in _SHARED_SCOPES for defs in info.name2fixturedefs.values() for d in defs)
+
 
 # First: pytest-xdist reads the groups in its own hook of this name, which would
 # otherwise run before this one and see no marks.
 @pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Groups for pytest-xdist's ``--dist loadgroup``: the JS/Chromium tests on one
+    worker; the tests of a module that share a module-scoped fixture on one worker too
+    (split over two, each would build the fixture: a 10 s real run twice); the longest
+    groups first."""
     for item in items:
+        if _group(item) is not None:
+            continue
         if _ONE_WORKER & set(getattr(item, "fixturenames", ())):
             item.add_marker(pytest.mark.xdist_group("node-and-chromium"))
+        elif _shares_a_fixture(item):
+            item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::")[0]))
+    rank = {name: i for i, name in enumerate(_FIRST)}
+    items.sort(key=lambda item: rank.get(_group(item) or "", len(rank)))
