@@ -121,12 +121,22 @@ def relayed(server: RelayServer, room: str) -> int:
 
 # -- the CLI in child processes, without an interpreter start each -------------------
 
-#: The forker's own process: imports the CLI once, then forks a child per request that
-#: runs ``posecast ARGS`` as the console script does (``posecast.cli.main()``) and exits
-#: the way the interpreter would (SystemExit's code; a traceback and 1 on an exception).
+#: The forker's own process: imports the CLI and what its commands import (the relay, the
+#: bots, the recorder, the codec: most of a case's CPU when each child imported them),
+#: then forks a child per request that runs ``posecast ARGS`` as the console script does
+#: (``posecast.cli.main()``) and exits the way the interpreter would (SystemExit's code;
+#: a traceback and 1 on an exception). A request whose environment differs from the
+#: forker's in a variable read at import (``POSECAST_PURE``) runs in a fresh interpreter.
 _FORKER = r"""
-import atexit, json, os, sys, traceback
+import atexit, importlib, json, os, sys, traceback
 import posecast.cli
+
+for name in ("posecast.server.app", "posecast.client.bot", "posecast.client.swarm",
+             "posecast.recorder", "posecast.recorder.export", "posecast.scenarios.qoe",
+             "posecast.scenarios.traces", "posecast.scenarios.motion"):
+    importlib.import_module(name)
+AT_IMPORT = {k: os.environ.get(k) for k in ("POSECAST_PURE",)}
+BOOT = "import sys; sys.argv[0] = {!r}; from posecast.cli import main; main()"
 
 def child(req):
     code = 1
@@ -138,6 +148,9 @@ def child(req):
                                 (1, req["stdout"], os.O_WRONLY | os.O_CREAT | os.O_TRUNC),
                                 (2, req["stderr"], os.O_WRONLY | os.O_CREAT | os.O_TRUNC)):
             os.dup2(os.open(path, flags), fd)
+        if any(os.environ.get(k) != v for k, v in AT_IMPORT.items()):
+            boot = BOOT.format(req["argv0"])
+            os.execve(sys.executable, [sys.executable, "-c", boot, *req["args"]], os.environ)
         sys.argv = [req["argv0"], *req["args"]]
         try:
             posecast.cli.main()
