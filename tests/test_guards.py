@@ -16,6 +16,7 @@ And the tests themselves: real sleeps stay within :data:`SLEEP_BUDGET`.
 from __future__ import annotations
 
 import ast
+import functools
 import re
 from collections.abc import Iterator, Mapping
 from pathlib import Path
@@ -67,7 +68,10 @@ def imported(module: str, path: Path, modules: Mapping[str, Path]) -> Iterator[s
                     yield target
 
 
+@functools.cache
 def import_graph() -> dict[str, set[str]]:
+    """Module -> the modules of ours it imports; built once per process (three tests
+    read it, none changes it)."""
     modules = module_files()
     return {m: set(imported(m, p, modules)) for m, p in modules.items()}
 

@@ -11,6 +11,7 @@ lower packages but never each other, ``posecast`` or experiment code, and
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -73,8 +74,10 @@ def imports_of(path: Path) -> list[str]:
     return names
 
 
+@functools.cache
 def edges() -> list[tuple[str, str, str]]:
-    """(file, importing package, imported module) for every import of our packages."""
+    """(file, importing package, imported module) for every import of our packages;
+    built once per process (two tests read it, neither changes it)."""
     out = []
     for package in PACKAGES:
         for path in sorted((ROOT / package).rglob("*.py")):
