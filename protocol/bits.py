@@ -58,6 +58,7 @@ __all__ = [
 ]
 
 I64 = NDArray[np.int64]
+U64 = NDArray[np.uint64]
 
 #: Largest Exp-Golomb order a frame may state (a 4-bit field).
 MAX_K = 15
@@ -91,8 +92,12 @@ def zz(v: int | I64) -> int | I64:
 def unzz(z: int) -> int: ...
 @overload
 def unzz(z: I64) -> I64: ...
-def unzz(z: int | I64) -> int | I64:
-    """Inverse of :func:`zz`, for a Python int or an int64 array."""
+@overload
+def unzz(z: U64) -> U64: ...
+def unzz(z: int | I64 | U64) -> int | I64 | U64:
+    """Inverse of :func:`zz`, for a Python int or an int64 array; for a uint64 array
+    (zigzag codes of the whole int64 range, e.g. ``zz(v).view(np.uint64)``) the shift
+    is logical, so ``unzz(u).view(np.int64)`` gives back every int64 exactly."""
     return (z >> 1) ^ -(z & 1)
 
 

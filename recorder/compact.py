@@ -56,6 +56,7 @@ from typing import Final
 import numpy as np
 from numpy.typing import NDArray
 
+from posecast.protocol.bits import unzz, zz
 from posecast.protocol.codec import Volume, dequantise
 from posecast.protocol.codec_quant import codes_problem
 from posecast.protocol.poses import PoseUpdate
@@ -168,11 +169,11 @@ def newest_ns(update: CompactUpdate) -> int:
 
 
 def _zz(v: NDArray[np.int64]) -> NDArray[np.uint64]:
-    return ((v << 1) ^ (v >> 63)).view(_U64)
+    return zz(v).view(_U64)
 
 
 def _unzz(u: NDArray[np.uint64]) -> NDArray[np.int64]:
-    return ((u >> np.uint64(1)) ^ (np.uint64(0) - (u & np.uint64(1)))).view(np.int64)
+    return unzz(u).view(np.int64)
 
 
 def _column(values: NDArray[np.uint64]) -> bytes:

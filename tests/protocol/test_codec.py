@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from numpy.typing import NDArray
 
 from posecast.protocol import ErrorCode, LocalProtocolError, RemoteProtocolError
-from posecast.protocol.bits import BitReader, BitWriter, best_k, bit_length
+from posecast.protocol.bits import BitReader, BitWriter, best_k, bit_length, unzz, zz
 from posecast.protocol.codec import (
     DEFAULT_VOLUME,
     ROTATION_ERROR_MAX_DEG,
@@ -382,3 +382,20 @@ def test_big_frame_round_trip_takes_the_long_paths() -> None:
     got = decode_snapshot(enc.data, V, baselines)
     assert np.array_equal(got.codes, quantise(x, V))
     assert np.array_equal(decode_snapshot(key.data, V).codes, key.frame.codes)
+
+
+def test_zigzag_round_trips_the_whole_int64_range() -> None:
+    """``zz``/``unzz`` on Python ints, int64 arrays (codes under 2**63, which every
+    frame field is) and the recorder's uint64 views of the codes, where every int64
+    comes back exactly, the ends included (an arithmetic shift on a code >= 2**63
+    would keep the sign)."""
+    assert [zz(v) for v in (0, -1, 1, -2, 2)] == [0, 1, 2, 3, 4]
+    assert [unzz(zz(v)) for v in (-(2**63), 2**63 - 1, -5)] == [-(2**63), 2**63 - 1, -5]
+    rng = np.random.default_rng(27)
+    small = rng.integers(-(2**62), 2**62 - 1, 10_000, dtype=np.int64, endpoint=True)
+    assert (unzz(zz(small)) == small).all()
+    v = rng.integers(-(2**63), 2**63 - 1, 10_000, dtype=np.int64, endpoint=True)
+    v[:3] = [-(2**63), 2**63 - 1, 0]
+    codes = zz(v).view(np.uint64)
+    assert int(codes[0]) == 2**64 - 1 and int(codes[1]) == 2**64 - 2
+    assert (unzz(codes).view(np.int64) == v).all()
