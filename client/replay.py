@@ -41,7 +41,9 @@ changes (steal and lock as recorded; a throw with the recorded velocities times
 itself; the relay's recorded flight keyframes are not sent. Before each request
 or release a bot waits, up to ``object_patience`` seconds, until the live object
 has the owner it had before the recorded change (the bots run on their own
-timers: a request must not overtake the release it followed). An owner's bot
+timers: a request must not overtake the release it followed), and before a
+steal, until its snapshots show the victim's last keyframe of the object
+recorded before the steal (nor may a steal overtake those). An owner's bot
 sends the object's recorded keyframes in its updates while the live relay says
 it holds the object (entries it does not hold are left out; after a request it
 waits, as long again at most, for the answer before it sends on). While the
@@ -152,8 +154,9 @@ async def _connect_bots(
         if k == 0:
             await bots[-1].receiver.sync(conn, _SYNC_PINGS)
     users = {b.plan.user: b.conn.user for b in bots}
+    peers = {b.plan.user: b.plan for b in bots}
     for b in bots:
-        b.users = users
+        b.users, b.peers = users, peers
 
 
 async def _run_bots(

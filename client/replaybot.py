@@ -6,10 +6,13 @@ walks its user's plan (:class:`recorder.plan.UserPlan`): each update goes out at
 its scaled time (the due ones merged into one past ``max_send_rate``), each
 recorded object action (:class:`recorder.objects.ObjectAction`) before the
 update it came before, once the live object has the owner it had then (at most
-``patience`` s). An object's keyframes go in the owner's updates while the live
-relay says this bot holds the object; while the relay's answer to its request
-(or create) has not reached the bot, they wait in a backlog of at most
-:data:`BACKLOG` per object and go out once the grant has come.
+``patience`` s; a steal also waits until the relay shows the last keyframe of
+the object its victim's bot sent before it, which the relay had taken before
+the recorded steal: the bots run on their own timers). An object's keyframes go
+in the owner's updates while the live relay says this bot holds the object;
+while the relay's answer to its request (or create) has not reached the bot,
+they wait in a backlog of at most :data:`BACKLOG` per object and go out once the
+grant has come.
 """
 
 from __future__ import annotations
@@ -31,12 +34,14 @@ from posecast.client.publish import send_update
 from posecast.client.receiver import Receiver
 from posecast.client.reconnect import Reconnect
 from posecast.protocol import (
+    ROOM_USER,
     ErrorMessage,
     ObjectCreate,
     ObjectInfo,
     Owner,
     Release,
     RequestOwnership,
+    Snapshot,
 )
 from posecast.protocol.errors import ErrorCode
 from posecast.protocol.objects import pose_tuple
@@ -59,6 +64,8 @@ BACKLOG = 32
 #: rate serve (a plan without a recorded rate asks for this one).
 _METHODS = ("soa",)
 _RATE = 10.0
+#: How far below a capture a snapshot's may be and still be that keyframe (s).
+_CAPTURE_SLACK = 0.001
 
 
 class ReplayBot:
@@ -107,6 +114,10 @@ class ReplayBot:
         #: Held-back keyframes sent once the grant came, and ones given up.
         self.keyframes_late = 0
         self.keyframes_dropped = 0
+        #: Recorded user -> its plan, for every bot of the replay (shared).
+        self.peers: dict[int, UserPlan] = {}
+        #: Live object stream -> the newest capture of it this bot's snapshots showed.
+        self.seen: dict[int, float] = {}
         self._changed = asyncio.Event()
 
     def _heard(self, ev: object, arrival: float, size: int) -> None:
@@ -120,9 +131,19 @@ class ReplayBot:
             self.refused.append(ev.message)
             self.pending.clear()  # errors do not say which request
             self.creating.clear()
-        else:
+        elif not (isinstance(ev, Snapshot) and self.plan.actions and self._saw(ev)):
             return
         self._changed.set()
+
+    def _saw(self, snapshot: Snapshot) -> bool:
+        """Note the newest capture of each object in ``snapshot``; True if one is newer."""
+        newer = False
+        for k in np.flatnonzero(snapshot.users == ROOM_USER).tolist():
+            stream, capture = int(snapshot.streams[k]), float(snapshot.capture_times[k])
+            if capture > self.seen.get(stream, -math.inf):
+                self.seen[stream] = capture
+                newer = True
+        return newer
 
     async def _wait_for(self, ready: Callable[[], bool], clock: Clock) -> bool:
         """Wait until ``ready()`` (the live room caught up), at most ``patience`` s."""
@@ -136,7 +157,24 @@ class ReplayBot:
                 await asyncio.wait_for(self._changed.wait(), left)
         return True
 
-    async def _act(self, act: ObjectAction, clock: Clock) -> None:
+    def handed_over(self, act: ObjectAction) -> float | None:
+        """The recorded capture of the last keyframe of ``act``'s object that its previous
+        owner sent before the change, when that owner is another bot of the replay (a
+        steal): the relay took it before the change, so it must have it before the
+        request goes (the bots run on their own timers). None if there is none."""
+        previous = act.previous
+        plan = None if previous in (None, self.plan.user) else self.peers.get(previous)
+        if plan is None:
+            return None
+        sids = [sid for sid, name in plan.objects.items() if name == act.name]
+        for i in range(int(np.searchsorted(plan.arrival, act.time, side="right")) - 1, -1, -1):
+            ids, caps, _ = plan.updates[i]
+            hit = np.flatnonzero(np.isin(ids, sids))
+            if hit.size:
+                return float(caps[hit[-1]])
+        return None
+
+    async def _act(self, act: ObjectAction, clock: Clock, scale: Callable[[float], float]) -> None:
         """Send one recorded object action once the live object is in its recorded state."""
         objects = self.conn.session.objects
         if act.kind == "create" and act.name not in objects:
@@ -151,13 +189,18 @@ class ReplayBot:
                 held = self.conn.session.held
                 await self._wait_for(lambda: objects.get(act.name, -1) in held, clock)
             return
-        # Another bot creates it: wait for it, then for the owner it had before.
+        # Another bot creates it: wait for it, then for the owner it had before (and
+        # for that owner's keyframes sent before the change, if it was another bot's).
         known = act.previous is None or act.previous in self.users  # replayed users only
         before = None if act.previous is None else self.users.get(act.previous)
+        last = self.handed_over(act)
+        # (compact captures come in 1 ms steps)
+        due = -math.inf if last is None else scale(last) - _CAPTURE_SLACK
         ok = await self._wait_for(
             lambda: (
                 act.name in objects
                 and (not known or self.owners.get(objects[act.name], -1) == before)
+                and self.seen.get(objects[act.name], -math.inf) >= due
             ),
             clock,
         )
@@ -166,10 +209,10 @@ class ReplayBot:
         if stream is None:
             return  # never created here: nothing to ask for
         if act.kind == "release":
-            scale = self.velocity_scale
+            speed = self.velocity_scale
 
             def scaled(v: Vec3 | None) -> Vec3 | None:
-                return None if v is None else (scale * v[0], scale * v[1], scale * v[2])
+                return None if v is None else (speed * v[0], speed * v[1], speed * v[2])
 
             message: Release | RequestOwnership = Release(
                 stream, scaled(act.velocity), scaled(act.angular)
@@ -254,7 +297,7 @@ class ReplayBot:
                 wait = to_local(scale(actions[k].time)) - clock()
                 if wait > 0:
                     await asyncio.sleep(wait)
-                await self._act(actions[k], clock)
+                await self._act(actions[k], clock, scale)
                 seq += await self.send_backlog(seq + 1)
                 k += 1
                 continue

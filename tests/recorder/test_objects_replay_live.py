@@ -10,14 +10,16 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 from objkit import Session, record_handover_session
-from support import running_server
+from support import Pacer, running_server
 from typer.testing import CliRunner
 from websockets.exceptions import ConnectionClosed
 
@@ -25,7 +27,7 @@ from posecast.cli import app
 from posecast.client.connection import ClientConnection
 from posecast.client.replay import plan_replay, replay_live, select_plan
 from posecast.interp import get as get_interp
-from posecast.protocol import Owner, PoseUpdate, decode_message
+from posecast.protocol import Owner, PoseUpdate, Snapshot, decode_message
 from posecast.protocol.codec import DEFAULT_VOLUME, dequantise, quantise
 from posecast.recorder.export import read_session
 from posecast.recorder.objects import RESTED, ObjectTrack
@@ -47,21 +49,47 @@ def _recording(out: Path) -> ServerConfig:
     return ServerConfig(host="127.0.0.1", port=0, record_dir=out, ping_timeout=30.0, stamp_lag=0.0)
 
 
-async def _replay(path: Path, out: Path, codec: str, **options: Any) -> tuple[dict[str, Any], Path]:
+async def _replay(
+    path: Path, out: Path, codec: str, *, ticker: bool = False, **options: Any
+) -> tuple[dict[str, Any], Path]:
     """Replay ``path`` into a recording relay (``options`` for ``replay_live``); its
-    report and the replayed room's file."""
+    report and the replayed room's file. ``ticker``: a member of the replayed room
+    publishes its head at 30 Hz all along (the bots' snapshots go on while they wait)."""
     async with running_server(
         ServerConfig(host="127.0.0.1", port=0, record_dir=out, ping_timeout=30.0, stamp_lag=0.0)
     ) as server:
         url = f"ws://127.0.0.1:{server.port}"
         # Someone elsewhere first: the replay's users get other ids than the recorded ones.
         other = await ClientConnection.open(url, room="elsewhere", streams=("head",), rate=10)
+        stop = asyncio.Event()
         try:
-            report = await replay_live(path, url, codec=codec, linger=0.2, **options)
+            async with asyncio.TaskGroup() as tg:
+                if ticker:
+                    tg.create_task(_tick(url, plan_replay(path).room, stop))
+                try:
+                    report = await replay_live(path, url, codec=codec, linger=0.2, **options)
+                finally:
+                    stop.set()
         finally:
             await other.close()
     (replayed,) = [p for p in server.recordings if p.name.startswith("objects-")]
     return report, replayed
+
+
+async def _tick(url: str, room: str, stop: asyncio.Event) -> None:
+    """Publish a head in ``room`` at 30 Hz until ``stop``."""
+    conn = await ClientConnection.open(url, room=room, streams=("head",), rate=30)
+    head = conn.joined.streams["head"] if conn.joined is not None else 0
+    pacer, seq = Pacer(1 / 30), 0
+    try:
+        while not stop.is_set():
+            seq += 1
+            now = time.monotonic()
+            pose = np.array([(0.0, 1.6, -1.0, 1.0, 0.0, 0.0, 0.0)])
+            await conn.send(PoseUpdate.from_arrays(seq, [head], [now], pose))
+            await pacer.next()
+    finally:
+        await conn.close()
 
 
 def _live(users: dict[int, int], user: int | None) -> int | None:
@@ -268,6 +296,91 @@ def test_keyframes_sent_before_the_grant_reached_the_bot_are_not_lost(
     assert int(owned.sum()) - int(mine.sum()) <= report["updates_merged"]
     assert report["objects"]["keyframes_late"] >= 1
     assert report["objects"]["keyframes_dropped"] == 0
+
+
+class _LateVictim:
+    """Holds the update that carries the victim's last keyframe of the drill before the
+    steal (found by its pose) until the thief's bot has a snapshot built 50 ms after the
+    steal's replayed time: a thief that does not wait for that keyframe steals first."""
+
+    def __init__(self, pose: np.ndarray, capture: float, steal: float) -> None:
+        self.pose, self.capture, self.steal = pose.astype(np.float32), capture, steal
+        #: The held keyframe's replayed capture; the server time the hold ends.
+        self.sent: float | None = None
+        self.until = math.inf
+        self._over = asyncio.Event()
+
+    def hold_sends(self, conn: ClientConnection) -> None:
+        send_bytes = conn.send_bytes
+
+        async def late(data: bytes) -> None:
+            update = None
+            if self.sent is None:
+                with contextlib.suppress(Exception):
+                    update = decode_message(data)
+            if isinstance(update, PoseUpdate):
+                rows = np.flatnonzero((update.entries["pose"] == self.pose).all(axis=1))
+                if rows.size:
+                    self.sent = float(update.capture_times[rows[0]])
+                    self.until = self.steal + (self.sent - self.capture) + 0.05
+                    await asyncio.wait_for(self._over.wait(), 30)  # a hang guard
+            await send_bytes(data)
+
+        conn.send_bytes = late  # type: ignore[method-assign]
+
+    def watch_snapshots(self, conn: ClientConnection) -> None:
+        recv = conn.recv
+
+        async def watched() -> Any:
+            got = await recv()
+            if isinstance(got.event, Snapshot) and got.event.send_time >= self.until:
+                self._over.set()
+            return got
+
+        conn.recv = watched  # type: ignore[method-assign]
+
+
+def test_a_steal_waits_for_the_keyframes_its_victim_sent_before_it(
+    session: Session, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The bots run on their own timers: the victim's last keyframe before a steal
+    (held back here past the steal's time) still reaches the relay before the steal,
+    because the thief waits, within its patience, until the relay shows that keyframe."""
+    plan = plan_replay(session.path)
+    track = _track(session.path, "object:drill")
+    steal = next(c for c in track.changes if c.reason == "steal")
+    assert steal.previous is not None and steal.owner is not None
+    (victim,) = [u for u in plan.users if u.user == steal.previous]
+    (thief,) = [u for u in plan.users if u.user == steal.owner]
+    (sid,) = [s for s, name in victim.objects.items() if name == "object:drill"]
+    last = max(
+        (float(caps[k]), poses[k])
+        for ids, caps, poses in victim.updates[
+            : int(np.searchsorted(victim.arrival, steal.time, side="right"))
+        ]
+        for k in np.flatnonzero(ids == sid).tolist()
+    )
+    gate = _LateVictim(last[1], last[0], steal.time)
+    connect = ClientConnection.connect.__func__  # type: ignore[attr-defined]
+    bots = iter(plan.users)  # the replay connects one bot per user, in this order
+
+    async def gated_connect(cls: type[ClientConnection], url: str, **kw: Any) -> ClientConnection:
+        conn: ClientConnection = await connect(cls, url, **kw)
+        agent = str(kw.get("agent", ""))
+        if agent.startswith("posecast-replay:") and not agent.endswith(":opener"):
+            user = next(bots)
+            if user is victim:
+                gate.hold_sends(conn)
+            elif user is thief:
+                gate.watch_snapshots(conn)
+        return conn
+
+    monkeypatch.setattr(ClientConnection, "connect", classmethod(gated_connect))
+    report, replayed = asyncio.run(_replay(session.path, tmp_path, "raw", ticker=True))
+    assert gate.sent is not None  # the victim's keyframe was held
+    assert report["objects"]["impatient"] == 0 and report["objects"]["refused"] == []
+    replayed_drill = _track(replayed, "object:drill")
+    assert np.any(np.abs(replayed_drill.captures - gate.sent) < 1e-5)
 
 
 def _taken(reason: str) -> str:
