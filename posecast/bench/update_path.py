@@ -17,6 +17,16 @@ distinct files of ours the update crosses, **returns** how many times it comes b
 to a file it had already left (the sequence's length less the files). A walk that
 visits each file once has 0 returns. Runs differ by what else the relay does in the
 window (another member's tick); the figures are each run's and their median.
+
+That strict figure counts the way back of every call into another file, so it
+cannot reach 0 for code that calls functions. Two more figures read the walk as a
+reader follows calls (each call's caller is the nearest frame of ours below it):
+**callbacks**, the calls (counted once per caller file and callee function) into a
+file already on the call stack below the caller's file (a part calling up into
+whoever called it), and **files in more than one place**, the files entered by
+calls from more than one caller file (the event loop counts as one caller). A walk
+a reader follows down once, each file in one place, has 0 of both; ``--show``
+names them.
 """
 
 from __future__ import annotations
@@ -52,6 +62,10 @@ class Walk:
     """The files one update visited, in order (consecutive visits of one file merged)."""
 
     visits: list[str] = field(default_factory=list)
+    #: Each call into a file of ours from another place: (caller file, None for the
+    #: event loop; callee file; callee function; whether the callee's file was on
+    #: the stack below the caller's).
+    calls: list[tuple[str | None, str, str, bool]] = field(default_factory=list)
 
     @property
     def files(self) -> int:
@@ -60,6 +74,28 @@ class Walk:
     @property
     def returns(self) -> int:
         return len(self.visits) - self.files
+
+    @property
+    def callback_calls(self) -> list[str]:
+        """The callbacks, each once: ``caller file -> callee file:function``."""
+        seen = {f"{c} -> {f}:{fn}": None for c, f, fn, up in self.calls if up}
+        return list(seen)
+
+    @property
+    def callbacks(self) -> int:
+        return len(self.callback_calls)
+
+    @property
+    def places(self) -> dict[str, list[str]]:
+        """The files entered from more than one caller file: file -> its callers."""
+        callers: dict[str, dict[str, None]] = {}
+        for caller, file, _, _ in self.calls:
+            callers.setdefault(file, {})[caller or "(event loop)"] = None
+        return {f: list(c) for f, c in callers.items() if len(c) > 1}
+
+    @property
+    def multi_place(self) -> int:
+        return len(self.places)
 
 
 class _Tracer:
@@ -89,10 +125,27 @@ class _Tracer:
 
     def _call(self, frame: FrameType, event: str, arg: Any) -> Any:
         if event == "call":
-            self._visit(self._file(frame))
+            file = self._file(frame)
+            self._visit(file)
+            if file is not None and not self.paused:
+                self._place(frame, file)
             frame.f_trace_lines = False
             return self._local
         return None
+
+    def _place(self, frame: FrameType, file: str) -> None:
+        """Note a call into ``file`` from another file: who called, and whether ``file``
+        was on the stack already below its caller (a callback)."""
+        below: list[str] = []  # the files of ours on the stack, innermost first
+        back = frame.f_back
+        while back is not None:
+            mine = self._file(back)
+            if mine is not None and (not below or below[-1] != mine):
+                below.append(mine)
+            back = back.f_back
+        caller = below[0] if below else None
+        if caller != file:
+            self.walk.calls.append((caller, file, frame.f_code.co_name, file in below[1:]))
 
     def _local(self, frame: FrameType, event: str, arg: Any) -> Any:
         if event == "return":
@@ -193,11 +246,20 @@ def main(argv: list[str] | None = None) -> None:
     walks = [asyncio.run(walk(args.codec)) for _ in range(args.runs)]
     if args.show:
         print(" -> ".join(walks[0].visits))
+        for call in walks[0].callback_calls:
+            print(f"callback: {call}")
+        for file, callers in walks[0].places.items():
+            print(f"in more than one place: {file} (from {', '.join(callers)})")
     for i, w in enumerate(walks, 1):
         print(f"run {i}: {w.files} files, {w.returns} returns to a file already left")
+        print(f"run {i} as read: {w.callbacks} callbacks, {w.multi_place} files in more than one place")
     files = statistics.median(w.files for w in walks)
     returns = statistics.median(w.returns for w in walks)
     print(f"median of {len(walks)} ({args.codec}): {files:g} files, {returns:g} returns")
+    callbacks = statistics.median(w.callbacks for w in walks)
+    places = statistics.median(w.multi_place for w in walks)
+    print(f"median of {len(walks)} ({args.codec}) as read: {callbacks:g} callbacks, "
+          f"{places:g} files in more than one place")  # fmt: skip
 
 
 if __name__ == "__main__":
