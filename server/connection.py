@@ -224,12 +224,21 @@ class Connection(WebSocketConnection):
 
     def data_received(self, data: bytes) -> None:
         if not self._joining:  # a member's read: the steady work
-            return super().data_received(data)
+            return self._read(data)
         server, cpu, start = self.server, time.process_time(), self.server.clock()
-        super().data_received(data)
+        self._read(data)
         server.core.capacity.join_work(start, server.clock(), time.process_time() - cpu)
         peer = server.core.peers.get(self.conn)  # (a forwarded client is in another node's room)
         self._joining = not self.forwarded and (peer is None or peer.room is None)
+
+    def _read(self, data: bytes) -> None:
+        """The transport parses ``data``; this hands its messages on (no call back up)."""
+        messages = self.read(data)
+        if messages:
+            try:
+                self.on_messages(messages)
+            except Exception:
+                self.read_failed()
 
     def connection_lost(self, exc: Exception | None) -> None:
         for timer in (self._drain_timer, self._link_timer):

@@ -211,6 +211,11 @@ class RelayCore:
         """Queue an action for the caller (used by outboxes and rooms)."""
         self._out.append(action)
 
+    def _note(self, line: Log | None) -> None:
+        """A peer's log line, if it was not held back (``Peer.log``)."""
+        if line is not None:
+            self._out.append(line)
+
     def _actions(self) -> list[Action]:
         out, self._out = self._out, []
         return out
@@ -456,7 +461,7 @@ class RelayCore:
         A room whose tick fails (a bug) is removed and its members closed with
         1011; the other rooms go on.
         """
-        for room in self.table.tick(now, limit):
+        for room in self.table.tick(now, limit, self._out):
             for member in list(room.members.values()):
                 peer = self._by_user.get(member.user)
                 if peer is not None:
@@ -503,7 +508,7 @@ class RelayCore:
                 self.send(peer, notice)  # a peer's pending presence goes before news of it
             self.send(peer, message)
         elif isinstance(message, UserEvent):
-            member.outbox.offer_event(encode_message(message))
+            member.outbox.offer_event(encode_message(message))  # (no socket to wake)
 
     def tell_peers(self, room: Room, member: Member, notice: Message) -> None:
         """Queue ``notice`` (about ``member``) to every other member but spectators."""
@@ -524,7 +529,9 @@ class RelayCore:
         except LocalProtocolError as exc:
             self.emit(Log(INFO, "user %s: not sent (%s)", (peer.user, exc)))
             return
-        if not peer.outbox.offer_event(data):
+        if peer.outbox.offer_event(data):
+            self._out.append(Wake(peer.conn))
+        else:
             peer.event_drops += 1
             self.close_peer(
                 peer,
@@ -539,7 +546,7 @@ class RelayCore:
 
     def _protocol_error(self, peer: Peer, err: ProtocolError, now: float) -> None:
         peer.protocol_errors += 1
-        peer.log(now, "user %s: %s (%s)", peer.user, err.message, err.code)
+        self._note(peer.log(now, "user %s: %s (%s)", peer.user, err.message, err.code))
         self.send(peer, error_message(err))
         if err.fatal:
             self.close_peer(peer, err.close_code or 1002, err.close_reason)
@@ -556,7 +563,7 @@ class RelayCore:
         self, peer: Peer, code: ErrorCode, message: str, what: str, now: float, charge: bool = True
     ) -> None:
         """Answer a refused ``what`` (join, update) with a non-fatal error; charge the budget."""
-        peer.log(now, "user %s: %s refused: %s (%s)", peer.user, what, message, code)
+        self._note(peer.log(now, "user %s: %s refused: %s (%s)", peer.user, what, message, code))
         self.send(peer, error_message(code, message, what))
         if charge:
             self._misbehaved(peer, now)
@@ -588,7 +595,9 @@ class RelayCore:
         elif isinstance(event, Bye):
             self.close_peer(peer, 1000, event.reason or "bye")
         elif isinstance(event, ErrorMessage):
-            peer.log(now, "user %s reports %s: %s", peer.user, event.code, event.message)
+            self._note(
+                peer.log(now, "user %s reports %s: %s", peer.user, event.code, event.message)
+            )
             if event.fatal:
                 # Its session is over (CLOSED): nothing more may be sent to it.
                 self.close_peer(peer, 1000, f"client ended the session: {event.code}")

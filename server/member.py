@@ -12,7 +12,6 @@ user and stream ids. Nothing here touches a socket or reads a clock.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -86,8 +85,9 @@ class Outbox:
         self.max_events = max_events
         self.buffered = buffered
         self.congested_bytes = congested_bytes
-        #: Called whenever something new waits to be written (the owner wakes its writer).
-        self.on_ready: Callable[[], None] | None = None
+        #: The connection it is written to (None: none, e.g. a member restored
+        #: parked): whoever offers it a frame returns ``Wake(conn)`` to the adapter.
+        self.conn: int | None = None
         self.skips = 0
         self.snapshots_offered = 0
 
@@ -100,16 +100,12 @@ class Outbox:
             self.skips += 1
         self.pose = data
         self.snapshots_offered += 1
-        if self.on_ready is not None:
-            self.on_ready()
 
     def offer_event(self, data: bytes) -> bool:
         """Queue a reliable message; ``False`` if the queue is full (caller closes)."""
         if len(self.events) >= self.max_events:
             return False
         self.events.append(data)
-        if self.on_ready is not None:
-            self.on_ready()
         return True
 
     def take(self) -> bytes | None:

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 from posecast.protocol import Limits, ServerSession, Volume
-from posecast.server.actions import INFO, Action, Log, Wake
+from posecast.server.actions import INFO, Log
 from posecast.server.config import ServerConfig
 from posecast.server.limits import Budget
 from posecast.server.link import Downlink
@@ -26,7 +26,7 @@ __all__ = ["COUNTERS", "ConnectionStatistics", "Peer", "PeerHost"]
 
 class PeerHost(Protocol):
     """What a :class:`Peer` needs of the relay core that keeps it (``RelayCore`` is one):
-    its settings, and where to put the actions its outbox raises."""
+    its settings (a peer calls nothing of the core: what it decides, it returns)."""
 
     @property
     def config(self) -> ServerConfig: ...
@@ -36,8 +36,6 @@ class PeerHost(Protocol):
 
     @property
     def volume(self) -> Volume: ...
-
-    def emit(self, action: Action) -> None: ...
 
 
 #: ConnectionStatistics fields that only ever grow, summed over ended connections.
@@ -107,8 +105,7 @@ class Peer:
         self.admitted = False
         self.session = ServerSession(core.limits, core.volume)
         self.outbox = Outbox(cfg.max_event_queue, 0, cfg.congested_bytes)
-        self.outbox.on_ready = self._ready
-        self._core = core
+        self.outbox.conn = conn
         self.user: int | None = None
         #: The user id given by the cluster node this member came through (its hello
         #: takes it instead of a new one; ``server.forward``).
@@ -168,14 +165,13 @@ class Peer:
         else:
             self.out_of_bounds += 1
 
-    def log(self, now: float, msg: str, *args: object) -> None:
-        """Log what this peer caused, at most once per ``peer_log_interval``."""
+    def log(self, now: float, msg: str, *args: object) -> Log | None:
+        """The line to log of what this peer caused, at most one per
+        ``peer_log_interval`` (None: held back, counted for the next)."""
         held = self.log_limit.admit(now)
-        if held is not None:
-            self._core.emit(Log(INFO, msg + "%s", (*args, self.log_limit.note(held))))
-
-    def _ready(self) -> None:
-        self._core.emit(Wake(self.conn))
+        if held is None:
+            return None
+        return Log(INFO, msg + "%s", (*args, self.log_limit.note(held)))
 
     def statistics(self) -> ConnectionStatistics:
         m = self.member

@@ -54,7 +54,7 @@ from posecast.protocol import (
 from posecast.protocol.codec import DEFAULT_VOLUME, Volume, quantise
 from posecast.protocol.codec_relay import GroupSnapshot, encode_stored
 from posecast.protocol.codec_store import CodeHistory, baseline_of
-from posecast.server.actions import Action, PollRecording, Record, RecordPose
+from posecast.server.actions import Action, PollRecording, Record, RecordPose, Wake
 from posecast.server.member import IdAllocator, Member, Outbox
 from posecast.server.shared import RoomObject
 from posecast.server.view_rates import Motion, ViewRates, ViewState, encode_peers, peer_divisor
@@ -444,8 +444,9 @@ class Room:
             self._due_members = len(members)
         return due
 
-    def tick(self, now: float) -> int:
-        """Send a snapshot to every due member; returns how many were offered."""
+    def tick(self, now: float, out: list[Action] | None = None) -> int:
+        """Send a snapshot to every due member; returns how many were offered. Each
+        offer's ``Wake`` of the member's connection goes into ``out`` (the caller's)."""
         cache: dict[tuple[int, bool], tuple[bytes, int]] = {}
         groups: dict[tuple[int, bool], GroupSnapshot | None] = {}
         slots: dict[float, int] = {}  # the key slot of each rate at this tick
@@ -493,7 +494,10 @@ class Room:
             member.last_version = self._version
             if n == 0:
                 continue
-            member.outbox.offer_snapshot(data)
+            outbox = member.outbox
+            outbox.offer_snapshot(data)
+            if out is not None and outbox.conn is not None:
+                out.append(Wake(outbox.conn))
             member.snapshots += 1
             member.snapshot_bytes += len(data)
             member.poses_sent += n
@@ -513,11 +517,11 @@ class Room:
             data = pack_velocity_snapshot(
                 self._tick,
                 now,
-                ((s.user, sid, s.capture, s.pose, s.velocity) for sid, s in fresh),
+                [(s.user, sid, s.capture, s.pose, s.velocity) for sid, s in fresh],
             )
         else:
             data = pack_snapshot(
-                self._tick, now, ((s.user, sid, s.capture, s.pose) for sid, s in fresh)
+                self._tick, now, [(s.user, sid, s.capture, s.pose) for sid, s in fresh]
             )
         return data, len(fresh)
 

@@ -114,9 +114,10 @@ class RoomTable:
         self._schedule(room)
         self.emit(Reschedule())
 
-    def tick(self, now: float, limit: int | None = None) -> list[Room]:
-        """Tick every due room (at most ``limit``); returns the rooms that failed,
-        removed already (their members are the caller's to close)."""
+    def tick(self, now: float, limit: int | None, out: list[Action]) -> list[Room]:
+        """Tick every due room (at most ``limit``), the actions it decides (a Wake per
+        snapshot offered, the log line of a failure) added to ``out``; returns the
+        rooms that failed, removed already (their members are the caller's to close)."""
         ticked = 0
         failed: list[Room] = []
         while limit is None or ticked < limit:
@@ -128,12 +129,12 @@ class RoomTable:
             try:
                 if self.notify is not None:
                     self.notify(room)
-                room.tick(now)
+                room.tick(now, out)
                 room.flush_drops(now)
                 if self.adapt is not None:
                     self.adapt(room, now)
             except Exception as exc:
-                self.emit(Log(ERROR, "room %r failed", (room.name,), exc))
+                out.append(Log(ERROR, "room %r failed", (room.name,), exc))
                 if self.rooms.get(room.name) is room:
                     del self.rooms[room.name]
                 failed.append(room)

@@ -177,6 +177,18 @@ class WebSocketConnection(asyncio.Protocol):
         self._open_timer = self._loop.call_later(self.open_timeout, self._open_expired)
 
     def data_received(self, data: bytes) -> None:
+        messages = self.read(data)
+        if messages:
+            try:
+                self.on_messages(messages)
+            except Exception:
+                self.read_failed()
+
+    def read(self, data: bytes) -> list[bytes | str]:
+        """Feed ``data`` to the protocol: the messages it completes, for :meth:`on_messages`
+        (none once the connection is closing or lost; also those read with the peer's
+        close frame: they came before it). A subclass may call it and hand the messages
+        on itself (``server/connection.py``), :meth:`read_failed` if that raises."""
         protocol = self.protocol
         protocol.receive_data(data)
         events = protocol.events_received()
@@ -188,18 +200,19 @@ class WebSocketConnection(asyncio.Protocol):
                 self._handshake(event)
         self._send_pending()
         if messages and self.is_open and not self._lost:
-            # (also those read with the peer's close frame: they came before it)
-            try:
-                self.on_messages(messages)
-            except Exception:
-                # A bug, not the peer's doing: this connection ends (1011), the others go on.
-                held = _bug_log.admit()
-                if held is not None:
-                    log.exception("handling a read failed; closing the connection%s",
-                                  _bug_log.note(held))  # fmt: skip
-                if protocol.state is State.OPEN:
-                    protocol.fail(1011, "internal-error")
-                    self._send_pending()
+            return messages
+        return []
+
+    def read_failed(self) -> None:
+        """Handling a read's messages raised (call it in the ``except`` clause): a bug,
+        not the peer's doing: this connection ends (1011), the others go on."""
+        held = _bug_log.admit()
+        if held is not None:
+            log.exception("handling a read failed; closing the connection%s",
+                          _bug_log.note(held))  # fmt: skip
+        if self.protocol.state is State.OPEN:
+            self.protocol.fail(1011, "internal-error")
+            self._send_pending()
 
     def eof_received(self) -> bool | None:
         self.protocol.receive_eof()

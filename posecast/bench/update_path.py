@@ -23,9 +23,10 @@ cannot reach 0 for code that calls functions. Two more figures read the walk as 
 reader follows calls (each call's caller is the nearest frame of ours below it):
 **callbacks**, the calls (counted once per caller file and callee function) into a
 file already on the call stack below the caller's file (a part calling up into
-whoever called it), and **files in more than one place**, the files entered by
-calls from more than one caller file (the event loop counts as one caller). A walk
-a reader follows down once, each file in one place, has 0 of both; ``--show``
+whoever called it, a generator of one file consumed by another), and **files in
+more than one place**, the files entered by calls from more than one caller file
+(the event loop, which starts each of the walk's callbacks, is no caller file). A
+walk a reader follows down once, each file in one place, has 0 of both; ``--show``
 names them.
 """
 
@@ -90,7 +91,8 @@ class Walk:
         """The files entered from more than one caller file: file -> its callers."""
         callers: dict[str, dict[str, None]] = {}
         for caller, file, _, _ in self.calls:
-            callers.setdefault(file, {})[caller or "(event loop)"] = None
+            if caller is not None:  # (the event loop's calls start the walk's pieces)
+                callers.setdefault(file, {})[caller] = None
         return {f: list(c) for f, c in callers.items() if len(c) > 1}
 
     @property
@@ -252,14 +254,15 @@ def main(argv: list[str] | None = None) -> None:
             print(f"in more than one place: {file} (from {', '.join(callers)})")
     for i, w in enumerate(walks, 1):
         print(f"run {i}: {w.files} files, {w.returns} returns to a file already left")
-        print(f"run {i} as read: {w.callbacks} callbacks, {w.multi_place} files in more than one place")
+        places = f"{w.multi_place} files in more than one place"
+        print(f"run {i} as read: {w.callbacks} callbacks, {places}")
     files = statistics.median(w.files for w in walks)
     returns = statistics.median(w.returns for w in walks)
     print(f"median of {len(walks)} ({args.codec}): {files:g} files, {returns:g} returns")
     callbacks = statistics.median(w.callbacks for w in walks)
-    places = statistics.median(w.multi_place for w in walks)
+    multi = statistics.median(w.multi_place for w in walks)
     print(f"median of {len(walks)} ({args.codec}) as read: {callbacks:g} callbacks, "
-          f"{places:g} files in more than one place")  # fmt: skip
+          f"{multi:g} files in more than one place")  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -18,7 +18,7 @@ import socket
 import sys
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterable
 from dataclasses import dataclass, field
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import msgpack
 import numpy as np
@@ -258,12 +258,12 @@ class DueTicks:
         self.at: dict[int, list[float]] = {user: [] for user in users}
         tick = room.tick
 
-        def spy(now: float) -> int:
+        def spy(now: float, out: list[Any] | None = None) -> int:
             for user, times in self.at.items():
                 member = room.members.get(user)
                 if member is not None and not member.parked and member.next_due <= now + 1e-9:
                     times.append(now)
-            return tick(now)
+            return tick(now, out)
 
         room.tick = spy  # type: ignore[method-assign]
 

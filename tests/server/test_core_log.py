@@ -9,7 +9,7 @@ import logging
 import pytest
 from relaykit import joined_raw, raw_connect, settle, until_closed, update_bytes
 
-from posecast.server.actions import ERROR, INFO, WARNING, Log
+from posecast.server.actions import ERROR, INFO, WARNING, Action, Log
 from posecast.server.app import RelayServer, ServerConfig, serving
 from posecast.server.core import RelayCore
 from posecast.server.member import Member, Outbox
@@ -55,7 +55,7 @@ def test_a_failed_room_tick_is_an_error_line_with_its_exception() -> None:
     the exception, whose traceback the adapter logs (``logging.exception`` as before)."""
 
     class Broken(Room):
-        def tick(self, now: float) -> int:
+        def tick(self, now: float, out: list[Action] | None = None) -> int:
             raise RuntimeError("boom")
 
     core = RelayCore(ServerConfig())

@@ -94,7 +94,7 @@ def test_a_failed_room_closes_1011_and_its_recording_is_finished_once() -> None:
     ok = connect(core, 1.0, room="good")
     bad = core.rooms["bad"]
 
-    def explode(now: float) -> int:
+    def explode(now: float, out: object = None) -> int:
         raise RuntimeError("a bug")
 
     bad.tick = explode  # type: ignore[method-assign]

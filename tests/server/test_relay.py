@@ -285,10 +285,10 @@ async def test_room_bug_closes_its_members_1011_only(
     """A crash in one room's tick loop closes that room's members 1011; other rooms go on."""
     original = Room.tick
 
-    def tick(self: Room, now: float) -> int:
+    def tick(self: Room, now: float, out: list[Any] | None = None) -> int:
         if self.name == "doomed":
             raise RuntimeError("injected bug")
-        return original(self, now)
+        return original(self, now, out)
 
     monkeypatch.setattr(Room, "tick", tick)
     async with server_factory() as srv:

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from posecast.protocol import PoseUpdate, Snapshot, decode_message
+from posecast.server.actions import Action, Wake
 from posecast.server.room import IdAllocator, Member, Outbox, Room, room_phase
 
 IDENTITY = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
@@ -264,13 +265,9 @@ def test_outbox_latest_wins_counts_skips() -> None:
 def test_outbox_events_bounded_and_first() -> None:
     """Events queue in order up to max_events, ahead of the snapshot; overflow is refused."""
     box = Outbox(max_events=3)
-    woken: list[int] = []
-    box.on_ready = lambda: woken.append(len(box.events))
     box.offer_snapshot(b"snap")
     assert all(box.offer_event(bytes([i])) for i in range(3))
-    assert woken == [0, 1, 2, 3]  # its owner hears of every new frame
     assert not box.offer_event(b"x")
-    assert woken == [0, 1, 2, 3]
     assert len(box.events) == 3
     assert [box.take() for _ in range(5)] == [b"\x00", b"\x01", b"\x02", b"snap", None]
 
@@ -299,14 +296,14 @@ def test_a_tick_wakes_the_member_it_offers_a_snapshot() -> None:
     """The room never waits: the due time is a number, a tick an offer its owner hears of."""
     room = Room("r")
     pub = member(room, 1, ("head",), 30.0)
-    woken: list[bytes | None] = []
-    pub.outbox.on_ready = lambda: woken.append(pub.outbox.pose)
+    pub.outbox.conn = 7  # (its connection: a tick's offer returns Wake(7))
+    woken: list[Action] = []
     room.add(pub, 10.0)
     due = room.next_due()
     assert due is not None and 10.0 < due <= 10.0 + 1 / 30 + 1e-9
     room.ingest(1, update([pub.streams["head"]], [10.0], [1.0]))
-    assert room.tick(due - 0.001) == 0 and woken == []  # not due yet
-    assert room.tick(due) == 1 and len(woken) == 1
+    assert room.tick(due - 0.001, woken) == 0 and woken == []  # not due yet
+    assert room.tick(due, woken) == 1 and woken == [Wake(7)]
     assert contents(pub.outbox.take()) == {(1, pub.streams["head"]): 1.0}
     room.remove(1)
     assert room.next_due() is None
