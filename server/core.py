@@ -160,7 +160,7 @@ class RelayCore:
         #: Counters of connections that have ended, so that totals never go down.
         self.totals = dict.fromkeys(COUNTERS, 0)
         #: The rooms and their ticks (``server.rooms``); ``rooms`` is its dict of them.
-        self.table = RoomTable(self.config, self.volume, self.emit, objects.fly)
+        self.table = RoomTable(self.config, self.volume, self._out, objects.fly)
         self.rooms: dict[str, Room] = self.table.rooms
         self.table.adapt = rates.adapter(self)  # auto rates decide after each room's tick
         self.table.notify = presence.flusher(self.connected, self.send)  # once per tick
@@ -217,7 +217,12 @@ class RelayCore:
             self._out.append(line)
 
     def _actions(self) -> list[Action]:
-        out, self._out = self._out, []
+        out = self._out  # (one list for good: the room table and rooms append to it)
+        if not out:
+            return []
+        taken = out.copy()
+        out.clear()
+        return taken
         return out
 
     def pending(self) -> list[Action]:
@@ -461,7 +466,7 @@ class RelayCore:
         A room whose tick fails (a bug) is removed and its members closed with
         1011; the other rooms go on.
         """
-        for room in self.table.tick(now, limit, self._out):
+        for room in self.table.tick(now, limit):
             for member in list(room.members.values()):
                 peer = self._by_user.get(member.user)
                 if peer is not None:

@@ -201,10 +201,10 @@ class Room:
     #: Offset of this room's tick grid, as a fraction of an interval (see room_phase).
     phase: float = 0.0
     #: Whether this room is recorded (``posecast serve --record``): its records go
-    #: out as actions (``Record``, ``RecordPose``) through ``emit``; the adapter
-    #: holds the recorder.
+    #: out as actions (``Record``, ``RecordPose``) into ``out``, the list of actions
+    #: its owner (the core) returns; the adapter holds the recorder.
     recorded: bool = False
-    emit: Callable[[Action], None] | None = None
+    out: list[Action] | None = None
     _drops: dict[tuple[str, int], int] = field(default_factory=dict)
     _skips_reported: dict[int, int] = field(default_factory=dict)
     _drops_flushed: float = 0.0
@@ -283,8 +283,8 @@ class Room:
         self._drops.clear()
 
     def _emit(self, action: Action) -> None:
-        assert self.emit is not None, "a recorded room has an emit"
-        self.emit(action)
+        assert self.out is not None, "a recorded room has a list of actions"
+        self.out.append(action)
 
     def record(
         self, topic: Literal["presence", "event", "drop"], record: dict[str, Any], now: float

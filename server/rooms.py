@@ -9,7 +9,7 @@ made stale is dropped when met, so a wake-up costs O(log rooms), not
 O(members)), ticks the due rooms, and removes an empty room (its recording is
 finished: a ``FinishRecording`` action). A room whose tick fails (a bug) is
 removed; the core closes its members with 1011. Sans I/O: time is an argument,
-effects are actions handed to ``emit``.
+effects are actions added to ``out``, the core's list.
 """
 
 from __future__ import annotations
@@ -34,12 +34,13 @@ class RoomTable:
         self,
         config: ServerConfig,
         volume: Volume,
-        emit: Callable[[Action], None],
+        out: list[Action],
         fly: Callable[[Room, float], None] | None = None,
     ):
         self.config = config
         self.volume = volume
-        self.emit = emit
+        #: Where its actions and its rooms' go: the core's list, which it returns.
+        self.out = out
         #: What moves a room's thrown objects at its tick (``server.objects.fly``).
         self.fly = fly
         self.rooms: dict[str, Room] = {}
@@ -86,10 +87,10 @@ class RoomTable:
                 volume=self.volume,
                 lags=self.tick_lags,
                 views=self.view_rates,
-                emit=self.emit,
+                out=self.out,
                 fly=self.fly,
             )
-            self.emit(Log(INFO, "room %r created", (name,)))
+            self.out.append(Log(INFO, "room %r created", (name,)))
         return room
 
     def next_deadline(self) -> float | None:
@@ -112,12 +113,13 @@ class RoomTable:
     def rescheduled(self, room: Room) -> None:
         """A member of ``room`` joined, left or changed its rate."""
         self._schedule(room)
-        self.emit(Reschedule())
+        self.out.append(Reschedule())
 
-    def tick(self, now: float, limit: int | None, out: list[Action]) -> list[Room]:
+    def tick(self, now: float, limit: int | None = None) -> list[Room]:
         """Tick every due room (at most ``limit``), the actions it decides (a Wake per
         snapshot offered, the log line of a failure) added to ``out``; returns the
         rooms that failed, removed already (their members are the caller's to close)."""
+        out = self.out
         ticked = 0
         failed: list[Room] = []
         while limit is None or ticked < limit:
@@ -148,7 +150,7 @@ class RoomTable:
         if not room.members and not room.retired:
             if self.rooms.get(room.name) is room:
                 del self.rooms[room.name]
-            self.emit(Log(INFO, "room %r removed", (room.name,)))
+            self.out.append(Log(INFO, "room %r removed", (room.name,)))
             self._retire(room, now)
 
     def _retire(self, room: Room, now: float) -> None:
@@ -158,7 +160,7 @@ class RoomTable:
             room.resume_recording(now)  # a pause in progress goes into the file
             room.flush_drops(now, force=True)  # the drops of the last second too
             room.recorded = False
-            self.emit(FinishRecording(room.name))
+            self.out.append(FinishRecording(room.name))
 
     def close_all(self, now: float) -> None:
         """Server shutdown: forget every room; recorded ones are to be finished."""

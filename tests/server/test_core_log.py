@@ -59,7 +59,7 @@ def test_a_failed_room_tick_is_an_error_line_with_its_exception() -> None:
             raise RuntimeError("boom")
 
     core = RelayCore(ServerConfig())
-    broken = core.table.rooms["bad"] = Broken("bad", emit=core.emit)
+    broken = core.table.rooms["bad"] = Broken("bad", out=core.table.out)
     broken.add(Member(1, "u1", broken.allocate_streams(("head",)), 10.0, Outbox()), 9.0)
     core.table.rescheduled(broken)
     actions = core.tick(10.0)
