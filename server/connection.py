@@ -387,6 +387,7 @@ class Connection(WebSocketConnection):
             await self.server.prepare_room(room)
         if not self.server.serves(self):
             return  # it ended meanwhile
+        self.server.core.unhold(self.conn)
         backlog, self._held = self._backlog, False
         self._backlog = []
         self._consume(events, iter(backlog))

@@ -353,6 +353,11 @@ class RelayCore:
         connection's reads meanwhile (in order)."""
         return self.joins.hold(conn, event, wall, self.cluster)
 
+    def unhold(self, conn: int) -> None:
+        """The adapter is done holding ``conn`` (:meth:`hold`) and hands the held event
+        to :meth:`handle` next; until then its join deadline does not close it."""
+        self.joins.unhold(conn)
+
     def handle(self, conn: int, event: Event, now: float, wall: float = 0.0) -> list[Action]:
         """Apply one decoded event of connection ``conn``."""
         peer = self.peers.get(conn)

@@ -72,6 +72,9 @@ class Joins:
         self.admission = admission
         self.tokens = tokens
         self._deadlines = Deadlines(self._unjoined)
+        #: Connections whose join (or resuming hello) the adapter holds (:meth:`hold`):
+        #: the join was sent, so its deadline waits until :meth:`unhold`.
+        self._holding: set[int] = set()
         #: Users who joined as spectators: they publish nothing and nobody hears of them.
         #: (The core reads this set on every update: a spectator's is refused.)
         self.spectators: set[int] = set()
@@ -89,6 +92,7 @@ class Joins:
 
     def release(self, peer: Peer) -> None:
         """``peer``'s connection ended: its admission place is free."""
+        self._holding.discard(peer.conn)
         if peer.admitted:
             self.admission.release(peer.address)
 
@@ -97,8 +101,13 @@ class Joins:
         return self._deadlines.next()
 
     def unjoined(self, now: float) -> list[int]:
-        """The connections that have not joined ``join_timeout`` after they opened."""
-        return self._deadlines.pop_due(now)
+        """The connections that have not joined ``join_timeout`` after they opened. One
+        whose join came in time but is held (a recording opening, a cluster claim) is
+        looked at again a ``join_timeout`` later instead."""
+        due = self._deadlines.pop_due(now)
+        for conn in self._holding.intersection(due):
+            self._deadlines.add(conn, now + max(self.config.join_timeout, 1.0))
+        return [conn for conn in due if conn not in self._holding]
 
     def _unjoined(self, conn: int, deadline: float) -> bool:
         peer = self.peers.get(conn)
@@ -125,8 +134,17 @@ class Joins:
         In a cluster, a join of a room this node must claim first waits for the
         claim, and a hello resuming a member not parked here waits for the cluster's
         lookup; on a recording server, a join that creates a room waits for its
-        recording to open.
+        recording to open. While held, ``conn``'s join deadline waits (its join came
+        in time) until :meth:`unhold`.
         """
+        held = self._hold(conn, event, wall, cluster)
+        if held is not None and conn in self.peers:
+            self._holding.add(conn)
+        return held
+
+    def _hold(
+        self, conn: int, event: Event, wall: float, cluster: ClusterView | None
+    ) -> Hold | None:
         if cluster is not None:
             name = joinable_room(event, self.config.secret, wall)
             if name is not None and cluster.must_claim(name):
@@ -136,6 +154,10 @@ class Joins:
                 return Hold(conn, "resume", token=event.resume)
         room = self.room_to_open(event, wall)
         return None if room is None else Hold(conn, "open", room)
+
+    def unhold(self, conn: int) -> None:
+        """The hold of ``conn`` is over: the held event comes next, the deadline holds again."""
+        self._holding.discard(conn)
 
     # -- joining and leaving ----------------------------------------------------------------
 

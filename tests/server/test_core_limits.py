@@ -298,3 +298,44 @@ def test_room_name_size_counts_bytes() -> None:
     assert normalise_room("é" * 32) == "é" * 32
     with pytest.raises(ValueError, match="66 bytes"):
         normalise_room("é" * 33)
+
+
+def _held_join(core: RelayCore, now: float, room: str = "a") -> tuple[Client, Join]:
+    """A client whose join of a room still to open the adapter holds (as connection.py)."""
+    c = Client(core, core.connect(now))
+    c.send(Hello(agent="t"), now)
+    c.read(now)  # welcome
+    join = Join(room=room, streams=("head",), rate=10.0)
+    (event,) = core.frame(c.conn, c.session.send(join), now)
+    assert core.hold(c.conn, event, 0.0) == Hold(c.conn, "open", room)
+    return c, join
+
+
+def test_a_held_join_is_not_closed_as_unjoined(tmp_path: Path) -> None:
+    """A join that came in time but waits for its room's recording to open (slow under
+    load) is not closed "no join within 5 s" while held; once handled, it joins."""
+    core = RelayCore(ServerConfig(record_dir=tmp_path, join_timeout=5.0))
+    c, join = _held_join(core, 1.0)
+    assert core.expire(6.0) == [] and core.expire(30.0) == []
+    assert core.join_timeouts == 0
+    assert core.add_room("a", True, 31.0)
+    core.unhold(c.conn)
+    core.handle(c.conn, join, 31.0)
+    assert core.peer(c.conn).room is not None
+    assert closes(core.expire(100.0)) == []
+
+
+def test_a_held_join_refused_after_its_hold_still_has_a_deadline(tmp_path: Path) -> None:
+    """The hold only postpones the deadline: a join refused once handled (room full)
+    leaves the connection unjoined, and it is closed a join_timeout later at most."""
+    core = RelayCore(ServerConfig(record_dir=tmp_path, join_timeout=5.0, max_members=1))
+    c, join = _held_join(core, 1.0)
+    assert core.add_room("a", True, 2.0)
+    connect(core, 2.0, room="a")  # takes the one place
+    assert core.expire(8.0) == []  # held past its deadline (6.0): looked at again at 13
+    core.unhold(c.conn)
+    core.handle(c.conn, join, 9.0)
+    assert core.peer(c.conn).room is None  # room-full
+    assert core.next_expiry() == 13.0 and closes(core.expire(12.9)) == []
+    assert [x.conn for x in closes(core.expire(13.0))] == [c.conn]
+    assert core.join_timeouts == 1
