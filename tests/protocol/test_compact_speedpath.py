@@ -25,6 +25,9 @@ from posecast.protocol.errors import ProtocolViolation, RemoteProtocolError
 from posecast.protocol.poses import PoseUpdate
 
 SMALL_VOLUME = Volume((-3.0, -0.5, -4.0), (5.0, 2.5, 4.0))
+#: One worker runs the whole module (pytest-xdist), so that the compiled and the pure
+#: runs of a hostile test share the reference's answers (``functools.cache`` below).
+pytestmark = pytest.mark.xdist_group("compact-speedpath")
 
 
 class ReferenceDecoder:
