@@ -281,25 +281,41 @@ async def test_the_page_shows_each_bot_interpolated_between_its_keyframes(
                 "return f && f.poses.filter(p => !p.stalled).length >= 6; }",
                 timeout=30_000,
             )
-            await page.evaluate("() => new Promise(r => requestAnimationFrame(() => r()))")
-            rendered = await page.evaluate(RENDERED_JS)
-            checked = 0
-            f = interpolator(method)
-            for r in rendered:
-                times = np.array([k[0] for k in r["keyframes"]])
-                i = int(np.searchsorted(times, r["time"], side="right"))
-                if i == 0 or i == len(times):
-                    continue  # no bracketing pair (held)
-                a = np.array(r["keyframes"][i - 1][1:])
-                b = np.array(r["keyframes"][i][1:])
-                s = (r["time"] - times[i - 1]) / (times[i] - times[i - 1])
-                want = np.asarray(f(a, b, np.float64(s)))
-                shown = np.array(r["shown"])
-                assert np.abs(shown[:3] - want[:3]).max() < 1e-5, (method, r["user"])
-                sign = 1.0 if float(np.dot(shown[3:], want[3:])) >= 0 else -1.0
-                assert np.abs(shown[3:] - sign * want[3:]).max() < 1e-5, (method, r["user"])
-                checked += 1
-            assert checked >= 6, (method, len(rendered))
+            # Every frame read is checked; under load a frame may have fewer than six
+            # streams between two keyframes (a bot late: stalled or held), so frames
+            # are read until one has six.
+            f, best = interpolator(method), 0
+            for _ in range(FRAMES_TO_TRY):
+                await page.evaluate("() => new Promise(r => requestAnimationFrame(() => r()))")
+                best = max(best, check_rendered(await page.evaluate(RENDERED_JS), f, method))
+                if best >= 6:
+                    break
+            assert best >= 6, (method, best)
+
+
+#: How many animation frames a check reads at most for one with six bracketed streams.
+FRAMES_TO_TRY = 30
+
+
+def check_rendered(rendered: list[dict[str, Any]], f: Any, method: str) -> int:
+    """Assert each shown pose with a bracketing keyframe pair equals ``f`` between the
+    pair at the playout time (1e-5); how many were checked."""
+    checked = 0
+    for r in rendered:
+        times = np.array([k[0] for k in r["keyframes"]])
+        i = int(np.searchsorted(times, r["time"], side="right"))
+        if i == 0 or i == len(times):
+            continue  # no bracketing pair (held)
+        a = np.array(r["keyframes"][i - 1][1:])
+        b = np.array(r["keyframes"][i][1:])
+        s = (r["time"] - times[i - 1]) / (times[i] - times[i - 1])
+        want = np.asarray(f(a, b, np.float64(s)))
+        shown = np.array(r["shown"])
+        assert np.abs(shown[:3] - want[:3]).max() < 1e-5, (method, r["user"])
+        sign = 1.0 if float(np.dot(shown[3:], want[3:])) >= 0 else -1.0
+        assert np.abs(shown[3:] - sign * want[3:]).max() < 1e-5, (method, r["user"])
+        checked += 1
+    return checked
 
 
 async def test_the_page_resumes_after_its_socket_is_cut(
