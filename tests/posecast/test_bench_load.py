@@ -180,6 +180,16 @@ def test_refused_handshake_says_so() -> None:
     asyncio.run(main())
 
 
+async def upgrade_key(reader: asyncio.StreamReader) -> str:
+    """Read a client's upgrade request; its Sec-WebSocket-Key."""
+    request = (await reader.readuntil(b"\r\n\r\n")).decode()
+    return next(
+        line.split(":", 1)[1].strip()
+        for line in request.split("\r\n")
+        if line.lower().startswith("sec-websocket-key:")
+    )
+
+
 async def _raw_server_exchange(answer: bytes, then: bytes) -> tuple[str, bytes]:
     """A bench client against a server that answers the upgrade with ``answer`` (its
     ``{accept}`` filled in) and then sends ``then``: how the client ended and the
@@ -187,12 +197,7 @@ async def _raw_server_exchange(answer: bytes, then: bytes) -> tuple[str, bytes]:
     wrote: asyncio.Future[bytes] = asyncio.get_running_loop().create_future()
 
     async def server(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        request = (await reader.readuntil(b"\r\n\r\n")).decode()
-        key = next(
-            line.split(":", 1)[1].strip()
-            for line in request.split("\r\n")
-            if line.lower().startswith("sec-websocket-key:")
-        )
+        key = await upgrade_key(reader)
         writer.write(answer.replace(b"{accept}", accept_key(key).encode()) + then)
         await writer.drain()
         wrote.set_result(await asyncio.wait_for(reader.read(-1), 5.0))
@@ -258,12 +263,7 @@ def test_frames_right_after_the_upgrade_and_split_reads_arrive_whole() -> None:
         stream = frame_binary(first) + bytes((0x89, 2)) + b"hi" + frame_binary(second)
 
         async def server(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-            request = (await reader.readuntil(b"\r\n\r\n")).decode()
-            key = next(
-                line.split(":", 1)[1].strip()
-                for line in request.split("\r\n")
-                if line.lower().startswith("sec-websocket-key:")
-            )
+            key = await upgrade_key(reader)
             writer.write(_UPGRADE.replace(b"{accept}", accept_key(key).encode()) + stream)
             await writer.drain()
             wrote.set_result(await reader.readexactly(8))
