@@ -190,7 +190,7 @@ class Connection(WebSocketConnection):
         Only a write adds to them (told after each ``flush``); the loop sends them
         between callbacks, so a connection with some left stays in the server's
         ``unsent`` set, told again before each tick: a room's tick reads a number."""
-        n = int(self.transport.get_write_buffer_size())
+        n = self.buffered()
         if n != self._told:
             self._told = n
             self.server.core.buffered(self.conn, n)
